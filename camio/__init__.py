@@ -1,0 +1,32 @@
+"""camio: camera maths and file formats shared by every stage.
+
+Conventions (stated once, converted at every boundary):
+
+* Extrinsics are ``cam_from_world`` ([3,4] or [4,4], float64): ``x_cam = R @ x_world + t``.
+* Camera axes are OpenCV's: x right, y down, z forward (looking along +z).
+* Pixel coordinates are continuous with the COLMAP convention: the centre of the top-left
+  pixel is (0.5, 0.5); pixel (row i, column j) has its centre at (j + 0.5, i + 0.5). An
+  intrinsic matrix ``K`` maps camera coordinates to these pixel coordinates, so scaling an
+  image by (sx, sy) scales fx, cx by sx and fy, cy by sy exactly.
+* Quaternions are (w, x, y, z) everywhere in this project (COLMAP text, 3DGS PLY ``rot_*``).
+  pycolmap's ``Rotation3d.quat`` is (x, y, z, w); only :mod:`camio.colmap` touches it.
+* Images are float32 RGB in [0, 1], shape [H, W, 3], unless a function says otherwise.
+"""
+
+from camio.cameras import (
+    Camera,
+    camera_center,
+    invert_cam_from_world,
+    qvec_to_rotmat,
+    rotmat_to_qvec,
+    to_homogeneous,
+)
+
+__all__ = [
+    "Camera",
+    "camera_center",
+    "invert_cam_from_world",
+    "qvec_to_rotmat",
+    "rotmat_to_qvec",
+    "to_homogeneous",
+]

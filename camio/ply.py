@@ -1,0 +1,207 @@
+"""Gaussian-splat PLY files in the standard 3DGS layout.
+
+Layout (binary little-endian, one float32 property each, in this order), as written by the
+original 3DGS code and read by it, gsplat and SuperSplat:
+
+    x y z  nx ny nz  f_dc_0..2  f_rest_0..44  opacity  scale_0..2  rot_0..3
+
+* ``opacity`` is the logit of alpha; ``scale_*`` are log scales (world units);
+  ``rot_*`` is the quaternion (w, x, y, z), not necessarily unit length.
+* ``f_dc_*`` are the degree-0 SH coefficients of R, G, B (rgb = 0.5 + C0 * f_dc).
+* ``f_rest_*`` are stored channel-major: f_rest_{c * (K - 1) + k} is coefficient k + 1 of
+  channel c, K = (degree + 1)^2. Degree 3 (45 values) is always written; a lower degree is
+  padded with zeros, and the reader infers K from the number of f_rest fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from camio.atomic import atomic_path
+
+__all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
+           "read_gaussian_ply", "PlyFormatError"]
+
+SH_C0 = 0.28209479177387814
+
+
+class PlyFormatError(ValueError):
+    """A PLY file that is truncated or not in the 3DGS layout."""
+
+
+def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
+    """RGB in [0, 1] -> degree-0 SH coefficient, [..., 3] -> [..., 3]."""
+    return (np.asarray(rgb, dtype=np.float32) - 0.5) / SH_C0
+
+
+def sh_dc_to_rgb(dc: np.ndarray) -> np.ndarray:
+    """Degree-0 SH coefficient -> RGB (unclamped), [..., 3] -> [..., 3]."""
+    return np.asarray(dc, dtype=np.float32) * SH_C0 + 0.5
+
+
+@dataclass
+class GaussianCloud:
+    """N Gaussians in world coordinates, stored as the 3DGS PLY stores them.
+
+    Attributes:
+        means: [N, 3] float32 centres.
+        sh_dc: [N, 3] float32 degree-0 SH coefficients.
+        sh_rest: [N, K-1, 3] float32 higher SH coefficients (K = 16 for degree 3).
+        opacity_logit: [N] float32 logit(alpha).
+        log_scales: [N, 3] float32 log of the per-axis standard deviations.
+        quats: [N, 4] float32 rotation quaternions (w, x, y, z).
+    """
+
+    means: np.ndarray
+    sh_dc: np.ndarray
+    sh_rest: np.ndarray
+    opacity_logit: np.ndarray
+    log_scales: np.ndarray
+    quats: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.means)
+        self.means = np.asarray(self.means, np.float32).reshape(n, 3)
+        self.sh_dc = np.asarray(self.sh_dc, np.float32).reshape(n, 3)
+        self.sh_rest = np.asarray(self.sh_rest, np.float32).reshape(n, -1, 3)
+        self.opacity_logit = np.asarray(self.opacity_logit, np.float32).reshape(n)
+        self.log_scales = np.asarray(self.log_scales, np.float32).reshape(n, 3)
+        self.quats = np.asarray(self.quats, np.float32).reshape(n, 4)
+        k = self.sh_rest.shape[1] + 1
+        if int(round(np.sqrt(k))) ** 2 != k:
+            raise ValueError(f"sh_rest must hold (d+1)^2 - 1 coefficients, got {k - 1}")
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh_rest.shape[1] + 1))) - 1
+
+    @property
+    def opacity(self) -> np.ndarray:
+        """[N] alpha in (0, 1)."""
+        return 1.0 / (1.0 + np.exp(-self.opacity_logit.astype(np.float64)))
+
+    @staticmethod
+    def from_points(
+        means: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, scales: np.ndarray, sh_degree: int = 3
+    ) -> "GaussianCloud":
+        """Seed Gaussians: identity rotations, SH DC from RGB in [0,1], higher bands zero,
+        alpha in (0, 1) stored as logit, linear scales [N,3] (or [N]) stored as log."""
+        n = len(means)
+        alpha = np.clip(np.asarray(alpha, np.float64).reshape(n), 1e-6, 1 - 1e-6)
+        scales = np.asarray(scales, np.float64)
+        if scales.ndim == 1:
+            scales = np.repeat(scales[:, None], 3, axis=1)
+        quats = np.zeros((n, 4), np.float32)
+        quats[:, 0] = 1.0
+        return GaussianCloud(
+            means=means,
+            sh_dc=rgb_to_sh_dc(rgb),
+            sh_rest=np.zeros((n, (sh_degree + 1) ** 2 - 1, 3), np.float32),
+            opacity_logit=np.log(alpha / (1 - alpha)),
+            log_scales=np.log(scales),
+            quats=quats,
+        )
+
+
+_BASE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+
+
+def _field_names(n_rest: int) -> list[str]:
+    return (_BASE + [f"f_rest_{i}" for i in range(n_rest)] + ["opacity"]
+            + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+
+
+def write_gaussian_ply(path: str | Path, cloud: GaussianCloud) -> Path:
+    """Write ``cloud`` in the 3DGS layout (degree 3, 62 float32 properties), atomically."""
+    n = len(cloud)
+    rest = np.zeros((n, 15, 3), np.float32)
+    k = min(15, cloud.sh_rest.shape[1])
+    rest[:, :k] = cloud.sh_rest[:, :k]
+    data = np.concatenate(
+        [
+            cloud.means,
+            np.zeros((n, 3), np.float32),
+            cloud.sh_dc,
+            rest.transpose(0, 2, 1).reshape(n, 45),
+            cloud.opacity_logit[:, None],
+            cloud.log_scales,
+            cloud.quats,
+        ],
+        axis=1,
+    ).astype("<f4")
+    names = _field_names(45)
+    header = "ply\nformat binary_little_endian 1.0\n"
+    header += f"element vertex {n}\n"
+    header += "".join(f"property float {name}\n" for name in names)
+    header += "end_header\n"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(np.ascontiguousarray(data).tobytes())
+    return Path(path)
+
+
+_PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "uchar": "u1",
+              "uint8": "u1", "char": "i1", "int8": "i1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4"}
+
+
+def read_gaussian_ply(path: str | Path) -> GaussianCloud:
+    """Read a 3DGS-layout PLY (binary little-endian; any property order; any SH degree).
+
+    Raises:
+        PlyFormatError: truncated file, wrong format, or missing 3DGS fields.
+    """
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise PlyFormatError(f"{path}: not a PLY file (no 'ply' magic or end_header)")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise PlyFormatError(f"{path}: only binary_little_endian PLY is supported")
+    n, props, in_vertex = None, [], False
+    for line in header:
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"]:
+            n, in_vertex = int(parts[2]), True
+        elif parts and parts[0] == "element":
+            in_vertex = False
+        elif parts and parts[0] == "property" and in_vertex:
+            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
+                raise PlyFormatError(f"{path}: unsupported vertex property {line!r}")
+            props.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
+    if n is None:
+        raise PlyFormatError(f"{path}: no vertex element")
+    dtype = np.dtype(props)
+    body = raw[end + len(b"end_header\n"):]
+    if len(body) < n * dtype.itemsize:
+        raise PlyFormatError(
+            f"{path}: truncated: header promises {n} vertices ({n * dtype.itemsize} bytes), "
+            f"file holds {len(body)} bytes"
+        )
+    v = np.frombuffer(body, dtype=dtype, count=n)
+    names = set(dtype.names)
+    required = _BASE[:3] + ["f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] \
+        + [f"rot_{i}" for i in range(4)]
+    missing = [r for r in required if r not in names]
+    if missing:
+        raise PlyFormatError(f"{path}: not a 3DGS PLY, missing fields {missing}")
+    n_rest = sum(1 for name in names if name.startswith("f_rest_"))
+    col = lambda keys: np.stack([v[k].astype(np.float32) for k in keys], axis=1)  # noqa: E731
+    rest = (col([f"f_rest_{i}" for i in range(n_rest)]) if n_rest else np.zeros((n, 0), np.float32))
+    rest = rest.reshape(n, 3, n_rest // 3).transpose(0, 2, 1)
+    return GaussianCloud(
+        means=col(["x", "y", "z"]),
+        sh_dc=col(["f_dc_0", "f_dc_1", "f_dc_2"]),
+        sh_rest=rest,
+        opacity_logit=v["opacity"].astype(np.float32),
+        log_scales=col([f"scale_{i}" for i in range(3)]),
+        quats=col([f"rot_{i}" for i in range(4)]),
+    )

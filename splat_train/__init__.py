@@ -1,0 +1,1 @@
+"""splat_train package."""

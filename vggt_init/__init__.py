@@ -1,0 +1,1 @@
+"""vggt_init package."""
