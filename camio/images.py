@@ -1,0 +1,349 @@
+"""Image files through OpenImageIO: reading, writing and integer area downsampling.
+
+Reading (:func:`read_image`) always returns float32 RGB in [0, 1], shape [H, W, 3], in the
+image's *display* orientation:
+
+* 8- and 16-bit integer files (PNG, JPEG, TIFF, ...) are scaled by 1/255 or 1/65535; the
+  stored (sRGB-encoded) values are kept, no colour-space conversion is applied.
+* Float files (EXR, float TIFF) keep their stored linear values (no tone mapping, no sRGB
+  encoding) and are clipped to [0, 1]; NaN becomes 0. A debug message reports clipping.
+* Grayscale is repeated to RGB. An alpha channel is composited over ``background``
+  (``rgb * a + background * (1 - a)`` for straight alpha; associated alpha, as in EXR, is
+  composited as ``rgb + background * (1 - a)``).
+* The EXIF/TIFF ``Orientation`` tag (1..8) is applied explicitly by :func:`apply_orientation`
+  (OpenImageIO reports it but does not apply it).
+
+Unreadable, truncated or missing files raise :class:`ImageReadError` naming the file.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from camio.atomic import atomic_path
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "ImageReadError",
+    "read_image",
+    "read_image_uint8",
+    "write_image",
+    "image_size",
+    "image_orientation",
+    "apply_orientation",
+    "downsample_area",
+    "downsample_folder",
+    "list_images",
+]
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+
+class ImageReadError(OSError):
+    """An image file that is missing, unreadable, truncated or has an unusable layout."""
+
+
+def list_images(folder: str | Path) -> list[str]:
+    """Sorted file names (not paths) of the images directly in ``folder``.
+
+    Hidden files (leading '.') are skipped; the extension test is case-insensitive.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"image folder {folder} does not exist")
+    return sorted(
+        p.name for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+    )
+
+
+def _open(path: Path):
+    import OpenImageIO as oiio
+
+    if not path.is_file():
+        raise ImageReadError(f"image {path} does not exist")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # give straight alpha where the file has it
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise ImageReadError(f"cannot open image {path}: {oiio.geterror() or 'unknown format'}; "
+                             "check that the file is a complete PNG/JPEG/TIFF/EXR")
+    return inp
+
+
+def image_orientation(path: str | Path) -> int:
+    """The EXIF/TIFF Orientation tag of ``path`` (1 when absent), read from the header only."""
+    inp = _open(Path(path))
+    try:
+        o = int(inp.spec().get_int_attribute("Orientation", 1))
+    finally:
+        inp.close()
+    return o if 1 <= o <= 8 else 1
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of the image as displayed (after orientation), header only."""
+    inp = _open(Path(path))
+    try:
+        spec = inp.spec()
+        w, h = int(spec.width), int(spec.height)
+        o = int(spec.get_int_attribute("Orientation", 1))
+    finally:
+        inp.close()
+    return (h, w) if o in (5, 6, 7, 8) else (w, h)
+
+
+def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn a stored image into its display orientation (EXIF semantics).
+
+    Args:
+        img: [H, W, C] (or [H, W]) array as stored in the file.
+        orientation: EXIF Orientation 1..8 (1 = as stored, 3 = rotate 180, 6 = rotate 90
+            clockwise to display, 8 = rotate 90 counter-clockwise; 2, 4, 5, 7 mirror).
+
+    Returns:
+        The displayed image, [H', W', C]; H' and W' are swapped for 5..8.
+    """
+    o = int(orientation)
+    if o == 1:
+        return img
+    if o == 2:
+        out = img[:, ::-1]
+    elif o == 3:
+        out = img[::-1, ::-1]
+    elif o == 4:
+        out = img[::-1, :]
+    elif o == 5:
+        out = np.swapaxes(img, 0, 1)
+    elif o == 6:
+        out = np.rot90(img, k=-1)
+    elif o == 7:
+        out = np.swapaxes(img, 0, 1)[::-1, ::-1]
+    elif o == 8:
+        out = np.rot90(img, k=1)
+    else:
+        raise ValueError(f"EXIF orientation must be 1..8, got {orientation}")
+    return np.ascontiguousarray(out)
+
+
+def read_image(path: str | Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1], shape [H, W, 3], display orientation.
+
+    Args:
+        path: PNG / JPEG / TIFF / EXR file (anything OpenImageIO reads).
+        background: RGB in [0, 1] under transparent pixels (alpha images only).
+
+    Raises:
+        ImageReadError: missing, unreadable or truncated file, or an unsupported channel count.
+    """
+    path = Path(path)
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror() if inp.has_error else ""
+        orientation = int(spec.get_int_attribute("Orientation", 1))
+        alpha_ch = int(spec.alpha_channel)
+        unassociated = bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0))
+        is_float = spec.format.basetype in (_float_types())
+        nch = int(spec.nchannels)
+    finally:
+        inp.close()
+    if data is None or err:
+        raise ImageReadError(f"cannot read image {path}: {err or 'no pixel data'} "
+                             "(truncated or corrupt file? re-export or remove it)")
+    img = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, nch)
+    if nch in (2, 4) and alpha_ch < 0:
+        alpha_ch = nch - 1
+    if nch == 1:
+        rgb, alpha = np.repeat(img, 3, axis=2), None
+    elif nch == 2:
+        rgb, alpha = np.repeat(img[..., :1], 3, axis=2), img[..., alpha_ch:alpha_ch + 1]
+    elif nch == 3:
+        rgb, alpha = img, None
+    elif nch == 4:
+        rgb, alpha = img[..., :3], img[..., alpha_ch:alpha_ch + 1]
+    else:
+        raise ImageReadError(f"image {path} has {nch} channels; expected 1 (gray), 2 (gray+alpha), "
+                             "3 (RGB) or 4 (RGBA)")
+    if is_float:
+        bad = ~np.isfinite(rgb)
+        if bad.any():
+            rgb = np.where(bad, 0.0, rgb)
+        if rgb.min() < 0 or rgb.max() > 1:
+            log.debug("%s: float values outside [0, 1] (%.3g..%.3g) clipped", path, rgb.min(), rgb.max())
+    if alpha is not None:
+        a = np.clip(np.nan_to_num(alpha), 0.0, 1.0)
+        bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+        rgb = (rgb * a if unassociated else rgb) + bg * (1.0 - a)
+    rgb = np.clip(rgb, 0.0, 1.0).astype(np.float32, copy=False)
+    return apply_orientation(rgb, orientation if 1 <= orientation <= 8 else 1)
+
+
+def _float_types():
+    import OpenImageIO as oiio
+
+    return (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
+
+
+def read_image_uint8(path: str | Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
+    """:func:`read_image` rounded to uint8 [H, W, 3] (exact for 8-bit RGB files)."""
+    return to_uint8(read_image(path, background))
+
+
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    """Float [.., 3] in [0, 1] -> uint8 by rounding (clipped); uint8 input is returned as is."""
+    a = np.asarray(img)
+    if a.dtype == np.uint8:
+        return a
+    return np.round(np.clip(a.astype(np.float32), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def write_image(path: str | Path, img: np.ndarray, bits: int = 8, jpeg_quality: int = 95) -> Path:
+    """Write an RGB (or gray) image atomically; the format follows the file extension.
+
+    Args:
+        path: output file (.png default choice; .jpg/.tif/.exr also work).
+        img: [H, W, 3] or [H, W] float in [0, 1] (clipped) or uint8.
+        bits: 8 or 16 for integer formats (16-bit only for PNG/TIFF); ignored for EXR (half).
+        jpeg_quality: JPEG quality 1..100.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+        raise ValueError(f"write_image: expected [H, W, 3] or [H, W], got shape {np.shape(img)}")
+    ext = path.suffix.lower()
+    if ext == ".exr":
+        data, fmt = (a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)), "half"
+    elif bits == 16:
+        if ext not in (".png", ".tif", ".tiff"):
+            raise ValueError(f"write_image: 16-bit output needs .png or .tif, not {ext}")
+        f = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else np.clip(a.astype(np.float32), 0, 1)
+        data, fmt = np.round(f * 65535.0).astype(np.uint16), "uint16"
+    elif bits == 8:
+        data, fmt = to_uint8(a), "uint8"
+    else:
+        raise ValueError(f"write_image: bits must be 8 or 16, got {bits}")
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if ext in (".jpg", ".jpeg"):
+        spec.attribute("Compression", f"jpeg:{int(jpeg_quality)}")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise OSError(f"write_image: no writer for {path}: {oiio.geterror()}")
+        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(data))
+        err = out.geterror() if not ok else ""
+        out.close()
+        if not ok:
+            raise OSError(f"write_image: cannot write {path}: {err}")
+    return path
+
+
+def downsample_area(img: np.ndarray, factor: int) -> np.ndarray:
+    """Integer area (box) downsampling: each output pixel is the mean of a factor x factor block.
+
+    The remainder rows/columns (H % factor at the bottom, W % factor at the right) are cropped
+    first, so the output is [H // factor, W // factor, C] and continuous pixel coordinates
+    scale exactly: ``u_new = u_old / factor`` (intrinsics scale by 1/factor, see
+    :func:`camio.cameras.scale_intrinsics`). This is how ``images_8`` folders are made
+    (LLFF minifies by 1/8 with an area filter).
+
+    Args:
+        img: [H, W, C] or [H, W], float or uint8.
+        factor: integer >= 1.
+
+    Returns:
+        float32 [H // f, W // f, C] (uint8 input -> uint8 output, rounded).
+    """
+    if int(factor) != factor or factor < 1:
+        raise ValueError(f"downsample factor must be a positive integer, got {factor}")
+    f = int(factor)
+    a = np.asarray(img)
+    if f == 1:
+        return a.copy()
+    h, w = a.shape[0] // f, a.shape[1] // f
+    if h == 0 or w == 0:
+        raise ValueError(f"image of {a.shape[1]}x{a.shape[0]} is smaller than the factor {f}")
+    crop = a[: h * f, : w * f].astype(np.float64)
+    out = crop.reshape(h, f, w, f, *a.shape[2:]).mean(axis=(1, 3))
+    if a.dtype == np.uint8:
+        return np.round(out).astype(np.uint8)
+    return out.astype(np.float32)
+
+
+def downsample_folder(
+    src: str | Path,
+    dst: str | Path,
+    factor: int,
+    names: list[str] | None = None,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+) -> dict[str, tuple[int, int]]:
+    """Read every image of ``src``, downsample by ``factor`` and write it into ``dst``.
+
+    Each output keeps its file name (JPEG stays JPEG at quality 95, 16-bit stays 16-bit). With
+    factor 1 an 8-bit RGB file with orientation 1 is copied byte for byte; anything else is
+    decoded (orientation applied, alpha composited) and re-encoded. Files are written
+    atomically one by one; on an error nothing from this call is left in ``dst``.
+
+    Returns:
+        name -> (width, height) written.
+    """
+    from camio.logs import progress
+
+    src, dst = Path(src), Path(dst)
+    names = list_images(src) if names is None else list(names)
+    if not names:
+        raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {src}")
+    dst.mkdir(parents=True, exist_ok=True)
+    sizes: dict[str, tuple[int, int]] = {}
+    written: list[Path] = []
+    try:
+        for name in progress(names, desc=f"downsample x{factor}"):
+            sp, dp = src / name, dst / name
+            bits = _bit_depth(sp)
+            if factor == 1 and bits == 8 and _is_plain_rgb(sp):
+                img = read_image(sp)  # validates the whole file
+                with atomic_path(dp) as tmp:
+                    shutil.copyfile(sp, tmp)
+            else:
+                img = downsample_area(read_image(sp, background), factor)
+                write_image(dp, img, bits=16 if bits == 16 and dp.suffix.lower() in (".png", ".tif", ".tiff") else 8)
+            written.append(dp)
+            sizes[name] = (img.shape[1], img.shape[0])
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        raise
+    log.info("wrote %d images (x1/%d) to %s", len(names), factor, dst)
+    return sizes
+
+
+def _bit_depth(path: Path) -> int:
+    import OpenImageIO as oiio
+
+    inp = _open(path)
+    try:
+        base = inp.spec().format.basetype
+    finally:
+        inp.close()
+    return 16 if base in (oiio.UINT16, oiio.INT16) else (32 if base in _float_types() else 8)
+
+
+def _is_plain_rgb(path: Path) -> bool:
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        return spec.nchannels == 3 and int(spec.get_int_attribute("Orientation", 1)) == 1
+    finally:
+        inp.close()
