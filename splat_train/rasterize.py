@@ -1,0 +1,206 @@
+"""Public differentiable Gaussian rasterizer: :func:`rasterize`.
+
+Layers (gsplat style): this module checks inputs and runs the steps; projection
+(:mod:`splat_train.projection`), SH colour (:mod:`splat_train.sh`) and the blending backends
+(:mod:`splat_train._cpu_kernel`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
+:mod:`splat_train._gsplat_backend`) are private building blocks.
+
+Convention: ``cam_from_world`` maps world -> OpenCV camera (x right, y down, z forward); ``K``
+maps camera points to pixel coordinates with the top-left pixel centre at (0.5, 0.5) (COLMAP).
+Quaternions are (w, x, y, z). Output images are [H, W, ...] with row i = y.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+
+from splat_train import _reference
+from splat_train.projection import EPS2D, NEAR_PLANE, project_gaussians
+from splat_train.sh import num_sh_bases, sh_to_color
+
+__all__ = ["rasterize", "BACKENDS"]
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "cpu", "torch", "reference", "gsplat")
+
+
+def _check(name: str, t: Tensor, shape: tuple) -> None:
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
+
+
+def _choose_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend != "auto":
+        return backend
+    try:
+        if device.type == "cpu":
+            from splat_train import _cpu_kernel
+
+            return "cpu" if _cpu_kernel.available() else "torch"
+        if device.type == "cuda":
+            from splat_train import _gsplat_backend
+
+            return "gsplat" if _gsplat_backend.available() else "torch"
+        return "torch"
+    except ImportError:  # fast paths not written yet: TEMPORARY
+        return "reference"
+
+
+def blend(
+    backend: str,
+    means2d: Tensor,
+    conics: Tensor,
+    features: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    rect: Tensor,
+    visible: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back blend projected Gaussians with one backend ("cpu", "torch", "reference").
+
+    Args/returns as :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no
+    background) and final transmittance [H, W].
+    """
+    if backend == "reference":
+        fn = _reference.blend_dense
+    elif backend == "torch":
+        from splat_train import _tiles
+
+        fn = _tiles.blend_tiles
+    elif backend == "cpu":
+        from splat_train import _cpu_kernel
+
+        fn = _cpu_kernel.blend_cpu
+    else:
+        raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
+    return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    cam_from_world: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    sh_degree: int | None = None,
+    backend: str = "auto",
+    near_plane: float = NEAR_PLANE,
+) -> dict[str, Tensor]:
+    """Render Gaussians into one camera, differentiably (3DGS semantics, PROTOCOL.md section 3).
+
+    Args:
+        means: [N, 3] world-frame centres.
+        quats: [N, 4] (w, x, y, z) rotations; need not be normalised (zero -> identity).
+        scales: [N, 3] linear scales (not log).
+        opacities: [N] in [0, 1] (already through the sigmoid).
+        colors: [N, 3] RGB when ``sh_degree`` is None, else [N, K, 3] SH coefficients with
+            K >= (sh_degree + 1) ** 2; colour = max(SH(view dir) + 0.5, 0), view direction
+            from the camera centre to the mean.
+        cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera.
+        K: [3, 3] intrinsics in pixels of this image size (zero skew).
+        width, height: image size in pixels.
+        background: [3] RGB behind everything (default black).
+        sh_degree: None for plain colours, else 0..3.
+        backend: "auto" (CPU kernel on CPU when it builds, gsplat on CUDA when installed, else
+            the vectorised tile code), "cpu", "torch", "reference" (dense, small scenes only)
+            or "gsplat".
+        near_plane: Gaussians with camera z below this are culled.
+
+    Returns:
+        dict with
+        ``rgb`` [H, W, 3] = sum_i w_i c_i + T_final * background,
+        ``alpha`` [H, W] = 1 - T_final,
+        ``depth`` [H, W] expected camera z of the rendered surface, normalised by alpha:
+        ``depth_accum / max(alpha, 1e-10)`` (0 where nothing is rendered),
+        ``depth_accum`` [H, W] = sum_i w_i z_i (not normalised),
+        ``means2d`` [N, 2] projected centres in pixels (COLMAP convention); after
+        ``backward()`` its ``.grad`` holds dL/d(means2d) in pixel units (to compare with
+        3DGS's NDC-based densification threshold, multiply x by W/2 and y by H/2),
+        ``radii`` [N] int32 3-sigma screen radius in pixels, 0 = culled,
+        ``visible`` [N] bool (= radii > 0),
+        ``depths`` [N] camera z of the means, ``conics`` [N, 3], ``colors`` [N, 3] the
+        evaluated per-Gaussian colours.
+    """
+    _check("means", means, (None, 3))
+    n = means.shape[0]
+    _check("quats", quats, (n, 4))
+    _check("scales", scales, (n, 3))
+    _check("opacities", opacities, (n,))
+    if not (isinstance(cam_from_world, Tensor) and cam_from_world.shape in ((4, 4), (3, 4))):
+        raise ValueError(f"cam_from_world must be a [4, 4] or [3, 4] tensor, got {getattr(cam_from_world, 'shape', type(cam_from_world))}")
+    _check("K", K, (3, 3))
+    if float(K[0, 1]) != 0.0:
+        raise ValueError("K must have zero skew (K[0, 1] == 0); undistort / re-fit the camera first")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"width and height must be positive, got {width}x{height}")
+    width, height = int(width), int(height)
+    if sh_degree is None:
+        _check("colors", colors, (n, 3))
+    else:
+        _check("colors (SH coefficients)", colors, (n, None, 3))
+        if colors.shape[1] < num_sh_bases(sh_degree):
+            raise ValueError(
+                f"sh_degree={sh_degree} needs >= {num_sh_bases(sh_degree)} SH coefficients per "
+                f"Gaussian, got {colors.shape[1]}; lower sh_degree or pass [N, 16, 3] coefficients"
+            )
+    dev, dt = means.device, means.dtype
+    if background is None:
+        background = torch.zeros(3, device=dev, dtype=dt)
+    _check("background", background, (3,))
+    which = _choose_backend(backend, dev)
+
+    if which == "gsplat":
+        from splat_train import _gsplat_backend
+
+        return _gsplat_backend.rasterize_gsplat(
+            means, quats, scales, opacities, colors, cam_from_world, K, width, height,
+            background, sh_degree, near_plane,
+        )
+
+    proj = project_gaussians(means, quats, scales, cam_from_world, K, width, height, near=near_plane, eps2d=EPS2D)
+    if sh_degree is None:
+        rgb_g = colors
+    else:
+        cw = cam_from_world.to(dt)
+        cam_center = -cw[:3, :3].T @ cw[:3, 3]
+        rgb_g = sh_to_color(sh_degree, colors, means, cam_center)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    features = torch.cat([rgb_g.to(dt), proj.depths[:, None]], dim=1)
+    accum, t_final = blend(
+        which, means2d, proj.conics, features, opacities.to(dt), proj.depths, proj.rect,
+        proj.visible, width, height,
+    )
+    alpha = 1.0 - t_final
+    rgb = accum[..., :3] + t_final[..., None] * background.to(dt)
+    depth_accum = accum[..., 3]
+    depth = depth_accum / alpha.clamp_min(1e-10)
+    return {
+        "rgb": rgb,
+        "alpha": alpha,
+        "depth": depth,
+        "depth_accum": depth_accum,
+        "means2d": means2d,
+        "radii": proj.radii,
+        "visible": proj.visible,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "colors": rgb_g,
+    }
