@@ -1,0 +1,388 @@
+"""The train-only COLMAP baseline (PROTOCOL.md section 4), seeded and repeatable.
+
+Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
+features), exhaustive matching with guided matching, incremental mapping, all through
+pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
+are not possible) into a private work folder before feature extraction, so a test image can
+never leak into the model.
+
+Success follows the paper: the largest model loads with >= 1 registered image and >= 1
+point. ``aligned_ok`` additionally asks for >= 3 registered images, which the Sim(3)
+alignment to the reference frame needs. A failed reconstruction is a *result*
+(``success = false`` with a reason in ``status.json``), never an exception.
+
+Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
+``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``, and every stage
+runs single-threaded (``num_threads = 1``), so two runs with the same seed on the same input
+give identical models (tested). ``--repeats k`` runs k seeds and reports the spread.
+
+Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
+exists, ``DIR/status.json``; with repeats also ``DIR/repeats/seed<s>/{sparse/0,status.json}``
+and the spread in ``DIR/status.json["repeats"]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from camio.atomic import atomic_dir, write_json
+from camio.logs import peak_rss_mb
+
+__all__ = [
+    "ColmapSettings",
+    "run_colmap",
+    "run_colmap_repeats",
+    "summarise_repeats",
+    "model_fingerprint",
+]
+
+log = logging.getLogger(__name__)
+
+MIN_ALIGN_IMAGES = 3
+
+
+class ColmapSettings:
+    """PROTOCOL.md section 4 settings (defaults) plus the reproducibility knobs.
+
+    Attributes:
+        max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
+        max_num_features: SIFT features per image.
+        guided_matching: guided matching after geometric verification.
+        camera_model: the single shared camera model ("PINHOLE").
+        num_threads: threads for extraction, matching and mapping (1 = deterministic).
+    """
+
+    def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
+                 guided_matching: bool = True, camera_model: str = "PINHOLE",
+                 num_threads: int = 1) -> None:
+        self.max_image_size = int(max_image_size)
+        self.max_num_features = int(max_num_features)
+        self.guided_matching = bool(guided_matching)
+        self.camera_model = str(camera_model)
+        self.num_threads = int(num_threads)
+
+    def to_json(self) -> dict:
+        return dict(vars(self))
+
+
+def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
+    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``."""
+    missing = [n for n in names if not (images_dir / n).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"training images not found in {images_dir}: {missing[:5]}; check the split and "
+            "the scene's images/ folder")
+    work_images.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        dst = work_images / name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.symlink((images_dir / name).resolve(), dst)
+        except OSError:
+            shutil.copy2(images_dir / name, dst)
+
+
+def _options(settings: ColmapSettings, seed: int):
+    """pycolmap option objects for one seeded run."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = settings.camera_model
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = settings.max_image_size
+    extraction.num_threads = settings.num_threads
+    extraction.use_gpu = False
+    extraction.sift.max_num_features = settings.max_num_features
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = settings.guided_matching
+    matching.num_threads = settings.num_threads
+    matching.use_gpu = False
+
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed
+    verification.ransac.num_threads = 1
+
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = settings.num_threads
+    mapping.random_seed = seed
+    mapping.mapper.num_threads = settings.num_threads
+    mapping.mapper.random_seed = seed
+    mapping.triangulation.random_seed = seed
+    # min_model_size stays COLMAP's default (10); COLMAP itself lowers it to 80% of the
+    # image count for small sets, which is the behaviour the paper's baseline had.
+    return reader, extraction, matching, verification, mapping
+
+
+def _largest(recs: dict) -> tuple[int | None, object | None]:
+    """The model with the most registered images (ties: most points), or (None, None)."""
+    best_key, best = None, None
+    for key, rec in sorted(recs.items()):
+        score = (rec.num_reg_images(), rec.num_points3D())
+        if best is None or score > (best.num_reg_images(), best.num_points3D()):
+            best_key, best = key, rec
+    return best_key, best
+
+
+def _fy_over_fx(rec) -> float | None:
+    """fy / fx of the first camera of a PINHOLE model (a drifting ratio flags a bad model)."""
+    for cam in rec.cameras.values():
+        if cam.model.name == "PINHOLE":
+            fx, fy = float(cam.params[0]), float(cam.params[1])
+            return fy / fx if fx else None
+    return None
+
+
+def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, seed: int = 0,
+               settings: ColmapSettings | None = None, keep_work: bool = False) -> dict:
+    """Run the train-only COLMAP baseline once and write its result.
+
+    Args:
+        images_dir: folder holding the scene's images (test images may be there too; only
+            ``names`` are linked into the work folder).
+        names: the training image names (relative to ``images_dir``).
+        out_dir: output folder; receives ``sparse/0`` (if a model exists) and
+            ``status.json``.
+        seed: seed for pycolmap's PRNG and every ``random_seed`` option.
+        settings: COLMAP settings (PROTOCOL.md defaults if None).
+        keep_work: keep the work folder (database, linked images) as ``out_dir/work``.
+
+    Returns:
+        The status record written to ``status.json``: ``success`` (paper criterion),
+        ``aligned_ok`` (>= 3 registered), ``registered``, ``n_images``, ``points``,
+        ``reason`` (None on success), ``wall_time_s``, ``seed``, ``registered_names``,
+        ``num_models``, ``fy_over_fx``, ``mean_reproj_error_px``, ``settings``.
+    """
+    import pycolmap
+
+    settings = settings or ColmapSettings()
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    names = sorted(dict.fromkeys(names))
+    if not names:
+        raise ValueError("run_colmap: no training image names given")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    status: dict = {
+        "success": False, "aligned_ok": False, "registered": 0, "n_images": len(names),
+        "points": 0, "reason": None, "wall_time_s": None, "seed": int(seed),
+        "registered_names": [], "num_models": 0, "fy_over_fx": None,
+        "mean_reproj_error_px": None, "settings": settings.to_json(),
+    }
+    t0 = time.perf_counter()
+    work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
+    try:
+        _link_images(images_dir, names, work / "images")
+        reader, extraction, matching, verification, mapping = _options(settings, seed)
+        db = work / "database.db"
+        pycolmap.set_random_seed(int(seed))
+        log.info("COLMAP baseline: %d training images, seed %d", len(names), seed)
+        t = time.perf_counter()
+        pycolmap.extract_features(db, work / "images", image_names=names,
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        log.info("feature extraction done in %.2f s", time.perf_counter() - t)
+        t = time.perf_counter()
+        pycolmap.match_exhaustive(db, matching_options=matching,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+        log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
+        t = time.perf_counter()
+        (work / "sparse").mkdir()
+        recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
+        log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
+                 len(recs))
+        status["num_models"] = len(recs)
+        _, rec = _largest(recs)
+        sparse = out_dir / "sparse" / "0"
+        if rec is None:
+            status["reason"] = "no model: the incremental mapper found no initial image pair"
+        else:
+            reg = rec.num_reg_images()
+            pts = rec.num_points3D()
+            status["registered"] = int(reg)
+            status["points"] = int(pts)
+            status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
+            status["fy_over_fx"] = _fy_over_fx(rec)
+            if pts:
+                status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
+            with atomic_dir(sparse) as tmp:
+                rec.write_text(str(tmp))
+            status["success"] = bool(reg >= 1 and pts >= 1)
+            status["aligned_ok"] = bool(status["success"] and reg >= MIN_ALIGN_IMAGES)
+            if not status["success"]:
+                status["reason"] = f"model has {reg} registered images and {pts} points"
+        if rec is None and sparse.exists():
+            shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
+    except Exception as exc:  # noqa: BLE001 - a failed reconstruction is a recorded result
+        if isinstance(exc, FileNotFoundError):
+            raise
+        log.warning("COLMAP baseline failed: %s", exc)
+        status["reason"] = f"{type(exc).__name__}: {exc}"
+    finally:
+        if keep_work:
+            dst = out_dir / "work"
+            if dst.exists():
+                shutil.rmtree(dst)
+            os.replace(work, dst)
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+    status["wall_time_s"] = time.perf_counter() - t0
+    status["peak_rss_mb"] = peak_rss_mb()
+    write_json(out_dir / "status.json", status)
+    log.info("COLMAP baseline: success=%s, %d/%d registered, %d points, %.1f s%s",
+             status["success"], status["registered"], len(names), status["points"],
+             status["wall_time_s"], "" if status["success"] else f" ({status['reason']})")
+    return status
+
+
+def model_fingerprint(model_dir: str | Path) -> dict:
+    """A comparable summary of a text model: names, poses, intrinsics, points (float64).
+
+    Used to check that two seeded runs are identical. Returns a dict of sorted names ->
+    (qvec, tvec) tuples, the camera parameters and the sorted point coordinates.
+    """
+    from camio.colmap import read_model
+
+    model = read_model(model_dir)
+    return {
+        "poses": {c.name: np.round(c.cam_from_world, 12).tolist() for c in model.cameras},
+        "K": {c.name: c.K.tolist() for c in model.cameras},
+        "points": np.round(model.points[np.lexsort(model.points.T[::-1])], 12).tolist()
+        if len(model.points) else [],
+    }
+
+
+def summarise_repeats(records: list[dict]) -> dict:
+    """The spread over repeated runs: registered counts, points, success rates.
+
+    Args:
+        records: status records of runs with different seeds.
+
+    Returns:
+        ``seeds``, ``registered`` (list, min, max, mean, std), ``points`` (same),
+        ``success_rate``, ``aligned_ok_rate``, ``n_runs``.
+    """
+    def spread(key: str) -> dict:
+        v = np.array([r[key] for r in records], dtype=np.float64)
+        return {"values": v.astype(int).tolist(), "min": float(v.min()), "max": float(v.max()),
+                "mean": float(v.mean()), "std": float(v.std())}
+
+    return {
+        "n_runs": len(records),
+        "seeds": [r["seed"] for r in records],
+        "registered": spread("registered"),
+        "points": spread("points"),
+        "success_rate": float(np.mean([r["success"] for r in records])),
+        "aligned_ok_rate": float(np.mean([r["aligned_ok"] for r in records])),
+        "wall_time_s": [r["wall_time_s"] for r in records],
+    }
+
+
+def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | Path,
+                       seeds: list[int], settings: ColmapSettings | None = None) -> dict:
+    """Run the baseline once per seed; the first seed's run is the primary result.
+
+    Each run goes to ``out_dir/repeats/seed<s>``; the first seed's model and status are
+    also written to ``out_dir`` itself (the contract every other stage reads), with the
+    spread over all runs under ``status["repeats"]``.
+
+    Returns:
+        The primary status record with ``repeats`` added.
+    """
+    if not seeds:
+        raise ValueError("run_colmap_repeats: give at least one seed")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"run_colmap_repeats: seeds must be distinct, got {seeds}")
+    out_dir = Path(out_dir)
+    records = []
+    for i, seed in enumerate(seeds):
+        log.info("COLMAP repeat %d/%d (seed %d)", i + 1, len(seeds), seed)
+        records.append(run_colmap(images_dir, names, out_dir / "repeats" / f"seed{seed}",
+                                  seed=seed, settings=settings))
+    first = out_dir / "repeats" / f"seed{seeds[0]}"
+    primary = dict(records[0])
+    if (first / "sparse" / "0").is_dir():
+        with atomic_dir(out_dir / "sparse" / "0") as tmp:
+            for f in (first / "sparse" / "0").iterdir():
+                shutil.copy2(f, tmp / f.name)
+    elif (out_dir / "sparse" / "0").exists():
+        shutil.rmtree(out_dir / "sparse" / "0")
+    primary["repeats"] = summarise_repeats(records)
+    write_json(out_dir / "status.json", primary)
+    rep = primary["repeats"]
+    log.info("COLMAP repeats: registered %s, success rate %.2f, aligned rate %.2f",
+             rep["registered"]["values"], rep["success_rate"], rep["aligned_ok_rate"])
+    return primary
+
+
+def _read_names(args) -> list[str]:
+    """Training names from --split/--n, --image-list or --names."""
+    import json
+
+    if args.split:
+        if args.n is None:
+            raise SystemExit("--split needs --n (the number of training views)")
+        data = json.loads(Path(args.split).read_text())
+        try:
+            return list(data["train"][str(args.n)])
+        except KeyError:
+            raise SystemExit(f"{args.split} has no training list for n = {args.n}; "
+                             f"it has {sorted(data.get('train', {}))}") from None
+    if args.image_list:
+        return [ln.strip() for ln in Path(args.image_list).read_text().splitlines()
+                if ln.strip() and not ln.startswith("#")]
+    if args.names:
+        return list(args.names)
+    raise SystemExit("give the training images: --split JSON --n N, --image-list FILE or --names")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI: ``python -m evaluation.colmap_baseline --images DIR (--split JSON --n N |
+    --image-list FILE | --names ...) --out DIR [--seed S | --repeats K --seeds ...]``."""
+    import argparse
+
+    from camio.logs import setup_logging
+
+    p = argparse.ArgumentParser(prog="python -m evaluation.colmap_baseline",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--images", required=True, help="scene image folder")
+    p.add_argument("--split", help="split.json (docs/contracts.md); use with --n")
+    p.add_argument("--n", type=int, help="number of training views (key in split.json)")
+    p.add_argument("--image-list", help="text file with one training image name per line")
+    p.add_argument("--names", nargs="+", help="training image names")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="run K times with seeds seed, seed+1, ... (or --seeds) and report the spread")
+    p.add_argument("--seeds", type=int, nargs="+", help="explicit seeds for the repeats")
+    p.add_argument("--max-image-size", type=int, default=3200)
+    p.add_argument("--max-num-features", type=int, default=16384)
+    p.add_argument("--no-guided-matching", action="store_true")
+    p.add_argument("--threads", type=int, default=1,
+                   help="threads per COLMAP stage (1 = deterministic, the default)")
+    p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    args = p.parse_args(argv)
+    setup_logging(args.verbose)
+    names = _read_names(args)
+    settings = ColmapSettings(args.max_image_size, args.max_num_features,
+                              not args.no_guided_matching, "PINHOLE", args.threads)
+    seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
+    if args.seeds and args.repeats not in (1, len(args.seeds)):
+        raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
+    if len(seeds) == 1:
+        run_colmap(args.images, names, args.out, seed=seeds[0], settings=settings,
+                   keep_work=args.keep_work)
+    else:
+        run_colmap_repeats(args.images, names, args.out, seeds, settings=settings)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
