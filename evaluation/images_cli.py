@@ -1,0 +1,208 @@
+"""``images`` subcommand: PSNR, SSIM and LPIPS of rendered test views against ground truth.
+
+Usage (through the evaluation dispatcher, or standalone)::
+
+    python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json
+    python -m evaluation.images_cli --pred RENDERS --gt GT_IMAGES --out metrics.json [--lpips-nets alex]
+
+Matching: files are paired by *stem* (name without extension, case-sensitive), so a render
+``DSC01.png`` pairs with ``DSC01.JPG``: renders are usually PNG while ground truth keeps its
+original format. Every image in either folder must have a partner; otherwise the error lists
+the unmatched names (pass folders holding only the test views). Two files with one stem in a
+folder are an error. Pairs must have the same width and height (no implicit resizing).
+
+Output (``metrics.json``, written atomically; docs/contracts.md)::
+
+    {"psnr": mean, "ssim": mean, "lpips_alex": mean | null, "lpips_vgg": mean | null,
+     "n_images": N,
+     "per_image": [{"name": gt file name, "pred": render file name,
+                    "psnr": .., "ssim": .., "lpips_alex": .. | null, "lpips_vgg": .. | null}, ...],
+     "psnr_cap_db": 100.0, "psnr_capped": [names whose PSNR was >= the cap (identical: inf)],
+     "lpips_weights": {"alex": path | null, "vgg": path | null},
+     "pred_dir": .., "gt_dir": .., "wall_time_s": ..}
+
+PSNR is computed in float64 and capped at :data:`evaluation.metrics.PSNR_CAP_DB` (identical
+images have PSNR = inf; JSON has no inf, and a mean of inf says nothing), SSIM in float64,
+LPIPS in float32 (agrees with float64 to ~1e-7 on the reference images). An LPIPS backbone
+whose weights are absent, or that was not requested, is null (missing), never zero.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+from typing import Sequence
+
+import torch
+
+from camio.atomic import write_json
+from camio.images import list_images, read_image
+from camio.logs import progress, setup_logging, timed
+from evaluation.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
+from evaluation.metrics import PSNR_CAP_DB, capped_psnr, psnr, ssim
+
+__all__ = ["match_images", "evaluate_images", "add_parser", "main"]
+
+log = logging.getLogger(__name__)
+
+
+def _by_stem(folder: Path) -> dict[str, str]:
+    names = list_images(folder)
+    out: dict[str, str] = {}
+    for n in names:
+        stem = Path(n).stem
+        if stem in out:
+            raise ValueError(f"{folder} holds two images with the stem {stem!r} ({out[stem]}, {n}); "
+                             "images are matched by name without extension, keep one")
+        out[stem] = n
+    return out
+
+
+def match_images(pred_dir: str | Path, gt_dir: str | Path) -> list[tuple[str, str]]:
+    """Pair render and ground-truth files by stem, sorted by stem.
+
+    Returns:
+        [(pred_name, gt_name)], file names relative to their folders.
+
+    Raises:
+        FileNotFoundError: a folder is missing. ValueError: no images, duplicate stems, or
+        unmatched names (all of them are listed).
+    """
+    pred, gt = _by_stem(Path(pred_dir)), _by_stem(Path(gt_dir))
+    if not gt:
+        raise ValueError(f"no images (.png/.jpg/.tif/.exr) in the ground-truth folder {gt_dir}")
+    only_pred = sorted(pred[s] for s in set(pred) - set(gt))
+    only_gt = sorted(gt[s] for s in set(gt) - set(pred))
+    if only_pred or only_gt:
+        raise ValueError(f"renders and ground truth do not match by name (stem): "
+                         f"{len(only_pred)} only in {pred_dir}: {only_pred[:20]}; "
+                         f"{len(only_gt)} only in {gt_dir}: {only_gt[:20]}. "
+                         "Pass folders that hold exactly the same (test) views")
+    return [(pred[s], gt[s]) for s in sorted(gt)]
+
+
+def _mean(values: list[float | None]) -> float | None:
+    if not values or any(v is None for v in values):
+        return None
+    return float(sum(values) / len(values))
+
+
+def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Path | None,
+                    lpips_nets: Sequence[str] = ("alex", "vgg"), lpips_weights: str | Path | None = None,
+                    device: str | torch.device = "cpu") -> dict:
+    """Compute per-image and mean PSNR / SSIM / LPIPS and write ``out_json`` (if given).
+
+    Args:
+        pred_dir: folder of rendered images; gt_dir: folder of ground-truth images (matched
+            by stem, see module docstring). Images are read as float32 RGB [H, W, 3] in [0, 1]
+            by :func:`camio.images.read_image`.
+        out_json: output path (atomic write), or None to only return the record.
+        lpips_nets: LPIPS backbones among ``("alex", "vgg")``; others are reported null.
+        lpips_weights: folder with ``{net}.safetensors`` (default: LPIPS_WEIGHTS_DIR, then
+            the user cache; see :mod:`evaluation.lpips`).
+        device: torch device for LPIPS.
+
+    Returns:
+        The record written to ``out_json`` (see module docstring).
+    """
+    t0 = time.perf_counter()
+    pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
+    pairs = match_images(pred_dir, gt_dir)
+    wanted = {canonical_net(n) for n in lpips_nets}
+    models = {}
+    weights_used: dict[str, str | None] = {}
+    for net in NETS:
+        models[net] = load_lpips(net, lpips_weights, device) if net in wanted else None
+        weights_used[net] = str(find_weights(net, lpips_weights)) if models[net] is not None else None
+    log.info("evaluating %d image pairs (%s vs %s); LPIPS: %s", len(pairs), pred_dir, gt_dir,
+             ", ".join(n for n in NETS if models[n] is not None) or "none")
+
+    per_image: list[dict] = []
+    capped: list[str] = []
+    for pred_name, gt_name in progress(pairs, total=len(pairs), desc="image metrics"):
+        pred = read_image(pred_dir / pred_name)
+        gt = read_image(gt_dir / gt_name)
+        if pred.shape != gt.shape:
+            raise ValueError(f"size mismatch for {gt_name}: render {pred_dir / pred_name} is "
+                             f"{pred.shape[1]}x{pred.shape[0]}, ground truth {gt_dir / gt_name} is "
+                             f"{gt.shape[1]}x{gt.shape[0]} (width x height); render at the ground-truth size")
+        p64, g64 = torch.from_numpy(pred).double(), torch.from_numpy(gt).double()
+        p64, g64 = p64.permute(2, 0, 1), g64.permute(2, 0, 1)
+        raw_psnr = float(psnr(p64, g64)[0])
+        if raw_psnr >= PSNR_CAP_DB:
+            capped.append(gt_name)
+        rec = {"name": gt_name, "pred": pred_name, "psnr": capped_psnr(raw_psnr), "ssim": float(ssim(p64, g64)[0])}
+        for net in NETS:
+            m = models[net]
+            rec[f"lpips_{net}"] = float(lpips_distance(m, pred, gt)[0]) if m is not None else None
+        per_image.append(rec)
+        log.debug("%s: PSNR %.3f dB, SSIM %.4f", gt_name, rec["psnr"], rec["ssim"])
+
+    if capped:
+        log.warning("%d image(s) reached the PSNR cap of %.0f dB (identical or nearly): %s",
+                    len(capped), PSNR_CAP_DB, capped[:10])
+    result = {
+        "psnr": _mean([r["psnr"] for r in per_image]),
+        "ssim": _mean([r["ssim"] for r in per_image]),
+        "lpips_alex": _mean([r["lpips_alex"] for r in per_image]),
+        "lpips_vgg": _mean([r["lpips_vgg"] for r in per_image]),
+        "n_images": len(per_image),
+        "per_image": per_image,
+        "psnr_cap_db": PSNR_CAP_DB,
+        "psnr_capped": capped,
+        "lpips_weights": weights_used,
+        "pred_dir": str(pred_dir),
+        "gt_dir": str(gt_dir),
+        "wall_time_s": time.perf_counter() - t0,
+    }
+    log.info("mean over %d images: PSNR %.3f dB, SSIM %.4f, LPIPS-alex %s, LPIPS-vgg %s (%.2f s)",
+             len(per_image), result["psnr"], result["ssim"],
+             "missing" if result["lpips_alex"] is None else f"{result['lpips_alex']:.4f}",
+             "missing" if result["lpips_vgg"] is None else f"{result['lpips_vgg']:.4f}",
+             result["wall_time_s"])
+    if out_json is not None:
+        write_json(out_json, result)
+        log.info("wrote %s", out_json)
+    return result
+
+
+def _configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
+    p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
+    p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
+    p.add_argument("--lpips-nets", nargs="*", default=["alex", "vgg"], choices=["alex", "vgg"],
+                   help="LPIPS backbones (default both; give none to skip LPIPS)")
+    p.add_argument("--lpips-weights", type=Path, default=None,
+                   help="folder with {alex,vgg}.safetensors (default: $LPIPS_WEIGHTS_DIR, then the user cache)")
+    p.add_argument("--device", default="cpu", help="torch device for LPIPS (cpu, cuda, ...)")
+
+
+def _run(args: argparse.Namespace) -> int:
+    with timed("image metrics", log):
+        evaluate_images(args.pred, args.gt, args.out, tuple(args.lpips_nets), args.lpips_weights, args.device)
+    return 0
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``images`` on an ``argparse`` subparsers object; sets ``func`` (args -> exit code)."""
+    p = subparsers.add_parser("images", help="PSNR / SSIM / LPIPS of renders vs ground truth",
+                              description=__doc__.split("\n\n")[0])
+    _configure(p)
+    p.set_defaults(func=_run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Standalone entry point (``python -m evaluation.images_cli``)."""
+    p = argparse.ArgumentParser(prog="python -m evaluation.images_cli", description=__doc__.split("\n\n")[0])
+    _configure(p)
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    args = p.parse_args(argv)
+    setup_logging(args.verbose)
+    return _run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
