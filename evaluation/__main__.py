@@ -1,0 +1,169 @@
+"""``python -m evaluation <command>``: evaluation CLIs (argument parsing only).
+
+Commands:
+  pose     pose accuracy of a COLMAP model against reference cameras -> pose.json
+  images   image metrics of renders against ground truth -> metrics.json
+           (from :mod:`evaluation.images_cli`, imported only when used)
+  align    Sim(3) on training cameras; reference test cameras in the model frame
+  tables   results tree -> runs.parquet + tables.md
+  plots    training curves and the error / run-time Pareto plot (PNG)
+  report   one static HTML report with tables, plots and render grids
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from camio.logs import setup_logging
+
+log = logging.getLogger("evaluation")
+
+
+def _gate(args):
+    from evaluation.pose import GateConfig
+
+    return GateConfig(max_ate_rel_radius=args.max_ate_rel_radius, max_rel_rot_deg=args.max_rel_rot_deg)
+
+
+def _add_gate_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-ate-rel-radius", type=float, default=0.05,
+                   help="accuracy gate: ATE / RMS trajectory radius must be below this (default 0.05)")
+    p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
+                   help="accuracy gate: mean relative rotation error must be below this (default 5)")
+
+
+def _cmd_pose(args) -> int:
+    from evaluation.pose import run_pose
+
+    run_pose(args.pred, args.ref, args.out, args.names, args.n, _gate(args), args.orientations)
+    return 0
+
+
+def _cmd_align(args) -> int:
+    from evaluation.align_run import run_align
+
+    run_align(args.pred, args.ref, args.train_names, args.test_names, args.out, n=args.n,
+              images_dir=args.images, image_scale=args.image_scale,
+              use_orientations=args.orientations, collinear_tol=args.collinear_tol)
+    return 0
+
+
+def _cmd_tables(args) -> int:
+    from evaluation.tables import run_tables
+
+    run_tables(args.results, args.out, _gate(args))
+    return 0
+
+
+def _cmd_plots(args) -> int:
+    from evaluation.plots import run_plots
+
+    run_plots(args.results, args.out)
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from evaluation.report import run_report
+
+    run_report(args.results, args.out, scenes_dir=args.scenes, gate=_gate(args), max_views=args.max_views)
+    return 0
+
+
+def _missing_images(exc: Exception):
+    def run(args) -> int:
+        log.error("the 'images' command is not available: importing evaluation.images_cli failed "
+                  "(%s). Check that the evaluation package is complete and installed (pip install -e .).",
+                  exc)
+        return 2
+    return run
+
+
+def _add_images(sub, wanted: bool) -> None:
+    """Register ``images`` from evaluation.images_cli (only imported when it is the command)."""
+    if wanted:
+        try:
+            from evaluation import images_cli
+        except ImportError as exc:
+            p = sub.add_parser("images", help="image metrics (unavailable)")
+            p.add_argument("rest", nargs=argparse.REMAINDER)
+            p.set_defaults(func=_missing_images(exc))
+            return
+        images_cli.add_parser(sub)
+        return
+    sub.add_parser("images", help="image metrics of renders against ground truth -> metrics.json",
+                   add_help=False)
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="python -m evaluation", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    parser.add_argument("-q", "--quiet", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("pose", help="pose accuracy against reference cameras -> pose.json")
+    p.add_argument("--pred", required=True, help="the initialiser's COLMAP model folder")
+    p.add_argument("--ref", required=True, help="the reference COLMAP model folder")
+    p.add_argument("--out", required=True, help="pose.json to write")
+    p.add_argument("--names", help="restrict to these names (text file, JSON list or split.json)")
+    p.add_argument("--n", type=int, help="training-view count, to pick from a split.json")
+    p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
+                   help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
+    _add_gate_args(p)
+    p.set_defaults(func=_cmd_pose)
+
+    command = next((a for a in argv if not a.startswith("-")), None)
+    _add_images(sub, wanted=command == "images")
+
+    p = sub.add_parser("align", help="Sim(3) on training cameras; test cameras in the model frame")
+    p.add_argument("--pred", required=True, help="the model's COLMAP cameras (its frame)")
+    p.add_argument("--ref", required=True, help="the reference COLMAP model")
+    p.add_argument("--train-names", required=True, help="text file, JSON list or split.json")
+    p.add_argument("--test-names", help="text file, JSON list or split.json (default: --train-names' test list)")
+    p.add_argument("--n", type=int, help="training-view count, to pick from a split.json")
+    p.add_argument("--images", help="folder of the test images (their size sets the cameras' size)")
+    p.add_argument("--image-scale", type=float, help="scale of the test images relative to the reference")
+    p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto")
+    p.add_argument("--collinear-tol", type=float, default=0.1,
+                   help="sigma2/sigma1 of the centres below which they count as collinear")
+    p.add_argument("--out", required=True, help="output folder (align.json, sparse/0)")
+    p.set_defaults(func=_cmd_align)
+
+    p = sub.add_parser("tables", help="results tree -> runs.parquet + tables.md")
+    p.add_argument("--results", required=True)
+    p.add_argument("--out", required=True)
+    _add_gate_args(p)
+    p.set_defaults(func=_cmd_tables)
+
+    p = sub.add_parser("plots", help="training curves and the Pareto plot (PNG)")
+    p.add_argument("--results", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_plots)
+
+    p = sub.add_parser("report", help="static HTML report")
+    p.add_argument("--results", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--scenes", help="prepared scenes root, for ground-truth images "
+                   "({scenes}/{dataset}/{scene}/images or {scenes}/{scene}/images)")
+    p.add_argument("--max-views", type=int, default=4, help="test views per render grid")
+    _add_gate_args(p)
+    p.set_defaults(func=_cmd_report)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
+    setup_logging(args.verbose, args.quiet)
+    func = getattr(args, "func", None)
+    if func is None:
+        log.error("evaluation.images_cli.add_parser did not set a handler (set_defaults(func=...))")
+        return 2
+    return int(func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
