@@ -41,18 +41,15 @@ def _choose_backend(backend: str, device: torch.device) -> str:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend != "auto":
         return backend
-    try:
-        if device.type == "cpu":
-            from splat_train import _cpu_kernel
+    if device.type == "cpu":
+        from splat_train import _cpu_kernel
 
-            return "cpu" if _cpu_kernel.available() else "torch"
-        if device.type == "cuda":
-            from splat_train import _gsplat_backend
+        return "cpu" if _cpu_kernel.available() else "torch"
+    if device.type == "cuda":
+        from splat_train import _gsplat_backend
 
-            return "gsplat" if _gsplat_backend.available() else "torch"
-        return "torch"
-    except ImportError:  # fast paths not written yet: TEMPORARY
-        return "reference"
+        return "gsplat" if _gsplat_backend.available() else "torch"
+    return "torch"
 
 
 def blend(

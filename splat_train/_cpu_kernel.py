@@ -1,0 +1,195 @@
+"""CPU fast path: the C++/OpenMP tile blender in ``_cpu_kernel.cpp``, built on first use.
+
+The kernel has a plain C ABI and no torch headers, so it compiles with the system compiler
+(``$CXX``, else ``c++`` / ``g++``) in about a second into a cache folder
+(``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
+source and flags, and is loaded with ctypes. If no compiler is present or the build fails, the
+failure is logged once and :func:`available` returns False; the public rasterizer then uses the
+vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to disable the kernel.
+
+Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
+recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
+pair and summed per Gaussian with ``index_add_``: the result does not depend on thread count.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from splat_train._tiles import tile_pairs
+from splat_train.projection import TILE_SIZE
+
+__all__ = ["available", "load_library", "blend_cpu", "build_error"]
+
+log = logging.getLogger(__name__)
+
+_SOURCE = Path(__file__).with_name("_cpu_kernel.cpp")
+_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fopenmp"]
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_error: str | None = None
+_tried = False
+
+
+def _compiler() -> str | None:
+    for cand in (os.environ.get("CXX"), "c++", "g++", "clang++"):
+        if cand and shutil.which(cand):
+            return cand
+    return None
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("SPLAT_TRAIN_KERNEL_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
+
+
+def _build(cxx: str) -> Path:
+    src = _SOURCE.read_bytes()
+    key = hashlib.sha256(src + " ".join([cxx, *_FLAGS]).encode() + os.uname().machine.encode()).hexdigest()[:16]
+    out_dir = _cache_dir()
+    target = out_dir / f"splat_cpu_{key}.so"
+    if target.exists():
+        return target
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
+    os.close(fd)
+    try:
+        cmd = [cxx, *_FLAGS, str(_SOURCE), "-o", tmp]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        if res.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr[-2000:]}")
+        os.replace(tmp, target)  # atomic: concurrent builders race harmlessly
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    log.info("built CPU rasterizer kernel %s", target)
+    return target
+
+
+def load_library() -> ctypes.CDLL | None:
+    """Build (once, cached) and load the kernel; None if disabled or the build failed."""
+    global _lib, _error, _tried
+    with _lock:
+        if _tried:
+            return _lib
+        _tried = True
+        if os.environ.get("SPLAT_TRAIN_NO_KERNEL"):
+            _error = "disabled by SPLAT_TRAIN_NO_KERNEL"
+            return None
+        cxx = _compiler()
+        if cxx is None:
+            _error = "no C++ compiler found (set $CXX or install g++)"
+            log.warning("CPU rasterizer kernel unavailable: %s; using the slower torch tile path", _error)
+            return None
+        try:
+            lib = ctypes.CDLL(str(_build(cxx)))
+            if lib.splat_abi_version() != 1:
+                raise RuntimeError("kernel ABI version mismatch")
+        except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+            _error = str(exc)
+            log.warning("CPU rasterizer kernel unavailable (%s); using the slower torch tile path", _error)
+            return None
+        i64, i32, vp = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
+        for name in ("splat_forward_f32", "splat_forward_f64"):
+            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 9 + [i32]
+            getattr(lib, name).restype = None
+        for name in ("splat_backward_f32", "splat_backward_f64"):
+            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 11 + [i32]
+            getattr(lib, name).restype = None
+        _lib = lib
+        return _lib
+
+
+def available() -> bool:
+    """True when the CPU kernel is built and loaded."""
+    return load_library() is not None
+
+
+def build_error() -> str | None:
+    """Why the kernel is unavailable (None when it loaded or was not tried)."""
+    return _error
+
+
+def _ptr(t: Tensor) -> int:
+    return t.data_ptr()
+
+
+class _BlendCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height):
+        lib = load_library()
+        dt = means2d.dtype
+        suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
+        if suffix is None:
+            raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
+        m = means2d.detach().contiguous()
+        co = conics.detach().contiguous()
+        fe = features.detach().contiguous()
+        op = opacities.detach().contiguous()
+        nf = fe.shape[1]
+        accum = torch.empty(height, width, nf, dtype=dt)
+        t_final = torch.empty(height, width, dtype=dt)
+        last = torch.empty(height, width, dtype=torch.int32)
+        getattr(lib, f"splat_forward_{suffix}")(
+            tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), torch.get_num_threads(),
+        )
+        ctx.save_for_backward(m, co, fe, op, offsets, gauss, t_final, last)
+        ctx.dims = (tiles_x, tiles_y, width, height, suffix)
+        return accum, t_final
+
+    @staticmethod
+    def backward(ctx, v_accum, v_t):
+        m, co, fe, op, offsets, gauss, t_final, last = ctx.saved_tensors
+        tiles_x, tiles_y, width, height, suffix = ctx.dims
+        lib = load_library()
+        dt, nf, n = m.dtype, fe.shape[1], m.shape[0]
+        v_accum = (torch.zeros(height, width, nf, dtype=dt) if v_accum is None else v_accum).contiguous().to(dt)
+        v_t = (torch.zeros(height, width, dtype=dt) if v_t is None else v_t).contiguous().to(dt)
+        v_pair = torch.zeros(gauss.numel(), 6 + nf, dtype=dt)
+        getattr(lib, f"splat_backward_{suffix}")(
+            tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
+            torch.get_num_threads(),
+        )
+        v = torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, gauss, v_pair)
+        return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None, None, None
+
+
+def blend_cpu(
+    means2d: Tensor,
+    conics: Tensor,
+    features: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    rect: Tensor,
+    visible: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """C++ tile blending with a hand-written backward (CPU tensors, float32 or float64).
+
+    Arguments and results as :func:`splat_train._reference.blend_dense`: accum [H, W, F]
+    (no background) and final transmittance [H, W].
+    """
+    if means2d.device.type != "cpu":
+        raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
+    if load_library() is None:
+        raise RuntimeError(f"CPU rasterizer kernel unavailable: {_error}; use backend='torch'")
+    offsets, gauss, tiles_x, tiles_y = tile_pairs(depths, rect, visible, width, height, TILE_SIZE)
+    dt = means2d.dtype
+    return _BlendCPU.apply(
+        means2d, conics.to(dt), features.to(dt), opacities.to(dt),
+        offsets.contiguous(), gauss.contiguous(), tiles_x, tiles_y, width, height,
+    )
