@@ -175,7 +175,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.
     eye = np.asarray(eye, dtype=np.float64)
     fwd = np.asarray(target, dtype=np.float64) - eye
     fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, -np.asarray(up, dtype=np.float64))
+    right = np.cross(fwd, np.asarray(up, dtype=np.float64))
     if np.linalg.norm(right) < 1e-9:
         raise ValueError("look_at: view direction is parallel to up")
     right /= np.linalg.norm(right)

@@ -23,7 +23,7 @@ import numpy as np
 from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
-           "read_gaussian_ply", "PlyFormatError"]
+           "read_gaussian_ply", "PlyFormatError", "write_points_ply", "read_points_ply"]
 
 SH_C0 = 0.28209479177387814
 
@@ -152,13 +152,8 @@ _PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4"}
 
 
-def read_gaussian_ply(path: str | Path) -> GaussianCloud:
-    """Read a 3DGS-layout PLY (binary little-endian; any property order; any SH degree).
-
-    Raises:
-        PlyFormatError: truncated file, wrong format, or missing 3DGS fields.
-    """
-    path = Path(path)
+def _read_vertices(path: Path) -> np.ndarray:
+    """The vertex element of a binary little-endian PLY as a structured array."""
     raw = path.read_bytes()
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply\n") or end < 0:
@@ -187,6 +182,19 @@ def read_gaussian_ply(path: str | Path) -> GaussianCloud:
             f"file holds {len(body)} bytes"
         )
     v = np.frombuffer(body, dtype=dtype, count=n)
+    return v
+
+
+def read_gaussian_ply(path: str | Path) -> GaussianCloud:
+    """Read a 3DGS-layout PLY (binary little-endian; any property order; any SH degree).
+
+    Raises:
+        PlyFormatError: truncated file, wrong format, or missing 3DGS fields.
+    """
+    path = Path(path)
+    v = _read_vertices(path)
+    n = len(v)
+    dtype = v.dtype
     names = set(dtype.names)
     required = _BASE[:3] + ["f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] \
         + [f"rot_{i}" for i in range(4)]
@@ -205,3 +213,59 @@ def read_gaussian_ply(path: str | Path) -> GaussianCloud:
         log_scales=col([f"scale_{i}" for i in range(3)]),
         quats=col([f"rot_{i}" for i in range(4)]),
     )
+
+
+def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray,
+                     normals: np.ndarray | None = None) -> Path:
+    """Write a plain coloured point cloud (binary little-endian PLY), atomically.
+
+    Fields: ``x y z`` float32, optional ``nx ny nz`` float32, ``red green blue`` uchar -- the
+    layout MeshLab, Open3D and plyfile read. Not the 3DGS layout.
+
+    Args:
+        xyz: [N, 3] points; rgb: [N, 3] uint8 (or float in [0, 1]); normals: [N, 3] or None.
+    """
+    xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
+    n = len(xyz)
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8:
+        rgb = np.round(np.clip(rgb.astype(np.float64), 0, 1) * 255).astype(np.uint8)
+    rgb = rgb.reshape(n, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    v = np.empty(n, dtype=fields)
+    v["x"], v["y"], v["z"] = xyz.T
+    if normals is not None:
+        nrm = np.asarray(normals, np.float32).reshape(n, 3)
+        v["nx"], v["ny"], v["nz"] = nrm.T
+    v["red"], v["green"], v["blue"] = rgb.T
+    types = {"<f4": "float", "u1": "uchar"}
+    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
+    header += "".join(f"property {types[t]} {name}\n" for name, t in fields) + "end_header\n"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(v.tobytes())
+    return Path(path)
+
+
+def read_points_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read x, y, z and red, green, blue of a binary little-endian PLY point cloud.
+
+    Returns:
+        xyz [N, 3] float64, rgb [N, 3] uint8 (grey 128 when the file has no colours).
+
+    Raises:
+        PlyFormatError: truncated file, wrong format, or no x/y/z.
+    """
+    v = _read_vertices(Path(path))
+    if not {"x", "y", "z"} <= set(v.dtype.names):
+        raise PlyFormatError(f"{path}: no x, y, z vertex properties")
+    xyz = np.stack([v[k].astype(np.float64) for k in "xyz"], axis=1)
+    if {"red", "green", "blue"} <= set(v.dtype.names):
+        rgb = np.stack([v[k] for k in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    else:
+        rgb = np.full((len(xyz), 3), 128, np.uint8)
+    return xyz, rgb
