@@ -1,0 +1,86 @@
+"""CLI of the Bridge.
+
+    python -m bridge --pred predictions.npz --out DIR [--mode gated|uniform|filtered]
+        [--alpha-min 0.05] [--alpha-max 0.5] [--uniform-alpha 0.1] [--stride 20]
+        [--max-points N] [--percentile P] [--voxel-size V] [--outlier-removal]
+    python -m bridge --colmap MODEL_DIR [--images DIR] --out DIR [...]
+
+Writes DIR/seed.ply, DIR/sparse/0/*.txt and DIR/bridge.json (docs/contracts.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from bridge.core import MODES, BridgeConfig, run_bridge
+from bridge.equations import ALPHA_MAX, ALPHA_MIN
+from camio.logs import setup_logging, timed
+
+log = logging.getLogger("bridge")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m bridge",
+        description="Eq. 1 normalisation and Eq. 2 confidence-gated seeding: predictions.npz (or a "
+                    "COLMAP model) -> seed.ply + normalised sparse/0 + bridge.json",
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--pred", help="predictions.npz of vggt_init (or the oracle)")
+    src.add_argument("--colmap", help="COLMAP model folder (text or binary; or a scene folder with sparse/0)")
+    p.add_argument("--images", help="image folder of the COLMAP model (checked: every image must exist)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--mode", choices=MODES, default="gated",
+                   help="opacity: gated (Eq. 2), uniform (constant), filtered (percentile, then Eq. 2)")
+    p.add_argument("--alpha-min", type=float, default=ALPHA_MIN, help="Eq. 2 a_min (default %(default)s)")
+    p.add_argument("--alpha-max", type=float, default=ALPHA_MAX, help="Eq. 2 a_max (default %(default)s)")
+    p.add_argument("--uniform-alpha", type=float, default=0.1, help="opacity of uniform mode (default %(default)s)")
+    p.add_argument("--stride", type=int, default=None,
+                   help="keep every stride-th flattened pixel (default 20 for --pred as the paper, 1 for --colmap)")
+    p.add_argument("--max-points", type=int, default=None, help="keep at most this many (most confident)")
+    p.add_argument("--percentile", type=float, default=None,
+                   help="drop the lowest P %% by confidence (default: off; 40 in filtered mode)")
+    p.add_argument("--voxel-size", type=float, default=None, help="voxel downsampling, normalised units")
+    p.add_argument("--outlier-removal", action="store_true", help="open3d statistical outlier removal")
+    p.add_argument("--outlier-neighbors", type=int, default=20)
+    p.add_argument("--outlier-std", type=float, default=2.0)
+    p.add_argument("--no-points3d", action="store_true", help="leave sparse/0/points3D.txt empty")
+    p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud without confidence)")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose, args.quiet)
+    if args.images and not args.colmap:
+        log.error("--images goes with --colmap only")
+        return 2
+    from bridge.inputs import load_colmap, load_predictions
+
+    try:
+        cfg = BridgeConfig(
+            mode=args.mode, alpha_min=args.alpha_min, alpha_max=args.alpha_max,
+            uniform_alpha=args.uniform_alpha,
+            stride=args.stride if args.stride is not None else (20 if args.pred else 1),
+            percentile=args.percentile, voxel_size=args.voxel_size, outlier_removal=args.outlier_removal,
+            outlier_neighbors=args.outlier_neighbors, outlier_std_ratio=args.outlier_std,
+            max_points=args.max_points, seed=args.seed, write_points3d=not args.no_points3d,
+        )
+        timings: dict[str, float] = {}
+        with timed("load input", log, timings):
+            inp = load_predictions(args.pred) if args.pred else load_colmap(args.colmap, args.images)
+        report = run_bridge(inp, args.out, cfg, timings={"load": timings["load input"]})
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        log.error("%s", exc)
+        return 1
+    log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],
+             report["mode"], report["timings_s"]["total"], args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

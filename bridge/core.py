@@ -1,0 +1,305 @@
+"""The Bridge: predicted geometry -> normalised cameras + seed Gaussians (PROTOCOL.md sec. 2).
+
+Steps, in this order (each counted in bridge.json):
+
+1. drop rows whose point or confidence is NaN/Inf;
+2. Eq. 1 on every remaining row (all views, all pixels: before any subsampling), which
+   also scales the camera translations; c_min, c_max of Eq. 2 over the same rows;
+3. pixel stride (row stride of the flattened [S, H, W] map; paper: 20);
+4. optional confidence-percentile filter (``filtered`` mode: lowest 40 % dropped);
+5. optional voxel downsampling, optional statistical outlier removal (normalised units);
+6. optional cap on the count (most confident kept);
+7. opacity: Eq. 2 (``gated``, ``filtered``) or a constant (``uniform``); scales from the
+   3 nearest neighbours; identity rotations; SH DC from the image colours.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bridge.equations import ALPHA_MAX, ALPHA_MIN, global_coordinate_normalisation, uncertainty_gated_opacity
+from bridge.inputs import BridgeInput
+from bridge.selection import (MIN_DIST2, cap_points, knn_scales, percentile_mask, statistical_outlier_mask,
+                              stride_mask, voxel_downsample)
+from camio.cameras import Camera
+from camio.logs import timed
+from camio.ply import GaussianCloud
+
+__all__ = ["MODES", "BridgeConfig", "SeedResult", "build_seed", "write_outputs", "run_bridge"]
+
+log = logging.getLogger(__name__)
+
+MODES = ("gated", "uniform", "filtered")
+DEFAULT_PERCENTILE = 40.0
+UNIFORM_ALPHA = 0.1
+MEDIAN_SET = ("every row with a finite point and a finite confidence, over all pixels of all views, "
+              "before the stride and every filter")
+
+
+@dataclass
+class BridgeConfig:
+    """Options of the Bridge (the CLI flags).
+
+    Attributes:
+        mode: "gated" (Eq. 2), "uniform" (constant ``uniform_alpha``) or "filtered"
+            (percentile filter, default 40, then Eq. 2).
+        alpha_min, alpha_max: Eq. 2's opacity range.
+        uniform_alpha: the constant opacity of ``uniform`` mode (seed code fallback 0.1).
+        stride: keep every stride-th flattened pixel (paper 20; 1 keeps all).
+        percentile: drop the lowest ``percentile`` % by confidence (any mode that has
+            confidence); None = off, except 40 in ``filtered`` mode.
+        voxel_size: voxel edge in normalised units (Eq. 1 frame); None = off.
+        outlier_removal: open3d statistical outlier removal with ``outlier_neighbors`` and
+            ``outlier_std_ratio``.
+        max_points: keep at most this many (most confident); None = no cap.
+        seed: random seed (only for capping a cloud without confidence).
+        sh_degree: SH degree of the seed (higher bands are zero).
+        write_points3d: also write the seed points into sparse/0/points3D.txt.
+    """
+
+    mode: str = "gated"
+    alpha_min: float = ALPHA_MIN
+    alpha_max: float = ALPHA_MAX
+    uniform_alpha: float = UNIFORM_ALPHA
+    stride: int = 20
+    percentile: float | None = None
+    voxel_size: float | None = None
+    outlier_removal: bool = False
+    outlier_neighbors: int = 20
+    outlier_std_ratio: float = 2.0
+    max_points: int | None = None
+    seed: int = 0
+    sh_degree: int = 3
+    write_points3d: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if not (0.0 < self.alpha_min <= self.alpha_max < 1.0):
+            raise ValueError(f"need 0 < alpha_min <= alpha_max < 1, got {self.alpha_min}, {self.alpha_max}")
+        if not 0.0 < self.uniform_alpha < 1.0:
+            raise ValueError(f"uniform_alpha must be in (0, 1), got {self.uniform_alpha}")
+        if self.stride < 1:
+            raise ValueError(f"stride must be >= 1, got {self.stride}")
+        if self.percentile is not None and not 0.0 <= self.percentile < 100.0:
+            raise ValueError(f"percentile must be in [0, 100), got {self.percentile}")
+        if self.voxel_size is not None and not self.voxel_size > 0:
+            raise ValueError(f"voxel_size must be > 0, got {self.voxel_size}")
+        if self.max_points is not None and self.max_points < 1:
+            raise ValueError(f"max_points must be >= 1, got {self.max_points}")
+        if self.outlier_neighbors < 1 or not self.outlier_std_ratio > 0:
+            raise ValueError("outlier_neighbors must be >= 1 and outlier_std_ratio > 0")
+
+    @property
+    def effective_percentile(self) -> float | None:
+        if self.percentile is None and self.mode == "filtered":
+            return DEFAULT_PERCENTILE
+        return self.percentile
+
+
+@dataclass
+class SeedResult:
+    """What the Bridge writes.
+
+    Attributes:
+        cloud: the seed Gaussians in the normalised frame.
+        cameras: the cameras in the normalised frame (translations scaled by s).
+        points: [K, 3] float64 seed centres (normalised frame), rows of ``cloud``.
+        colors: [K, 3] uint8.
+        report: the bridge.json record.
+    """
+
+    cloud: GaussianCloud
+    cameras: list[Camera]
+    points: np.ndarray
+    colors: np.ndarray
+    report: dict = field(default_factory=dict)
+
+
+def _stats(x: np.ndarray) -> dict:
+    if len(x) == 0:
+        return {"min": None, "median": None, "max": None, "mean": None}
+    return {"min": float(np.min(x)), "median": float(np.median(x)), "max": float(np.max(x)),
+            "mean": float(np.mean(x))}
+
+
+def build_seed(inp: BridgeInput, cfg: BridgeConfig) -> SeedResult:
+    """Run the Bridge on ``inp`` in memory (no files written).
+
+    Args:
+        inp: the cloud and cameras in the input frame (see :class:`BridgeInput`).
+        cfg: options.
+
+    Returns:
+        the seed Gaussians and cameras in the normalised frame of Eq. 1, with the report.
+
+    Raises:
+        ValueError: zero points (or none valid, or none left after selection), a degenerate
+            cloud for Eq. 1, or a confidence-based option on an input without confidence.
+    """
+    timings: dict[str, float] = {}
+    n_in = len(inp.points)
+    if n_in == 0:
+        raise ValueError(f"{inp.path}: the input has zero points; there is nothing to seed "
+                         "(for COLMAP: the model has no points3D; for VGGT: an empty point map)")
+    has_conf = inp.conf is not None
+    mode = cfg.mode
+    mode_note = None
+    percentile = cfg.effective_percentile
+    if not has_conf:
+        if cfg.mode == "filtered" or cfg.percentile is not None:
+            raise ValueError(f"{inp.path}: a {inp.source} input has no confidence, so it cannot be "
+                             "percentile-filtered; use --mode uniform (or gated, which falls back to it)")
+        if mode == "gated":
+            mode = "uniform"
+            mode_note = "no confidence in the input: uniform opacity (seed code fallback)"
+            log.info("%s input has no confidence: gated -> uniform opacity %.3g", inp.source, cfg.uniform_alpha)
+
+    dropped = {k: 0 for k in ("nonfinite_point", "nonfinite_conf", "stride", "percentile", "voxel",
+                              "outliers", "max_points")}
+    with timed("validate and normalise (Eq. 1)", log, timings):
+        finite_pt = np.all(np.isfinite(inp.points), axis=1)
+        finite_conf = np.isfinite(inp.conf) if has_conf else np.ones(n_in, bool)
+        valid = finite_pt & finite_conf
+        dropped["nonfinite_point"] = int(np.count_nonzero(~finite_pt))
+        dropped["nonfinite_conf"] = int(np.count_nonzero(finite_pt & ~finite_conf))
+        n_valid = int(np.count_nonzero(valid))
+        if dropped["nonfinite_point"] or dropped["nonfinite_conf"]:
+            log.warning("dropped %d rows with a non-finite point and %d with a non-finite confidence",
+                        dropped["nonfinite_point"], dropped["nonfinite_conf"])
+        if n_valid == 0:
+            raise ValueError(f"{inp.path}: all {n_in} points are NaN/Inf (or have a NaN/Inf confidence); "
+                             "check the prediction")
+        rows = np.flatnonzero(valid)
+        ext = np.stack([c.cam_from_world for c in inp.cameras])
+        pts, ext_n, s = global_coordinate_normalisation(inp.points[rows], ext)
+        conf = inp.conf[rows] if has_conf else None
+        c_min = float(np.min(conf)) if has_conf else None
+        c_max = float(np.max(conf)) if has_conf else None
+
+    with timed("select points", log, timings):
+        on_stride = stride_mask(n_in, cfg.stride)[rows]
+        dropped["stride"] = int(np.count_nonzero(~on_stride))
+        sel = np.flatnonzero(on_stride)  # indices into rows / pts / conf
+        threshold = None
+        if percentile is not None:
+            keep, threshold = percentile_mask(conf[sel], percentile)
+            dropped["percentile"] = int(np.count_nonzero(~keep))
+            sel = sel[keep]
+        if cfg.voxel_size is not None:
+            keep_idx = voxel_downsample(pts[sel], cfg.voxel_size, conf[sel] if has_conf else None)
+            dropped["voxel"] = len(sel) - len(keep_idx)
+            sel = sel[keep_idx]
+        if cfg.outlier_removal:
+            keep = statistical_outlier_mask(pts[sel], cfg.outlier_neighbors, cfg.outlier_std_ratio)
+            dropped["outliers"] = int(np.count_nonzero(~keep))
+            sel = sel[keep]
+        if cfg.max_points is not None:
+            keep_idx = cap_points(len(sel), cfg.max_points, conf[sel] if has_conf else None, cfg.seed)
+            dropped["max_points"] = len(sel) - len(keep_idx)
+            sel = sel[keep_idx]
+        if len(sel) == 0:
+            raise ValueError(f"{inp.path}: no point left after selection ({n_valid} valid, stride "
+                             f"{cfg.stride}, dropped {dropped}); lower --stride or relax the filters")
+
+    with timed("seed Gaussians (Eq. 2, 3-NN scales)", log, timings):
+        p_sel = pts[sel]
+        if mode == "uniform":
+            alpha = np.full(len(sel), cfg.uniform_alpha)
+        else:
+            alpha = uncertainty_gated_opacity(conf[sel], cfg.alpha_min, cfg.alpha_max, c_min, c_max)
+        scales, n_floored = knn_scales(p_sel)
+        colors = np.asarray(inp.colors[rows[sel]], np.uint8)
+        cloud = GaussianCloud.from_points(p_sel, colors.astype(np.float64) / 255.0, alpha, scales,
+                                          sh_degree=cfg.sh_degree)
+    cameras = [Camera(c.name, c.width, c.height, c.K, ext_n[i]) for i, c in enumerate(inp.cameras)]
+    kept = len(sel)
+    assert kept + sum(dropped.values()) == n_in, (kept, dropped, n_in)
+
+    report = {
+        "source": inp.source,
+        "input": str(inp.path),
+        "mode": mode,
+        "mode_requested": cfg.mode,
+        "mode_note": mode_note,
+        "s": s,
+        "median_norm": 1.0 / s,
+        "median_set": MEDIAN_SET,
+        "c_min": c_min,
+        "c_max": c_max,
+        "c_range_set": MEDIAN_SET if has_conf else None,
+        "alpha_min": cfg.alpha_min,
+        "alpha_max": cfg.alpha_max,
+        "uniform_alpha": cfg.uniform_alpha if mode == "uniform" else None,
+        "alpha_out": _stats(alpha),
+        "points_in": n_in,
+        "points_valid": n_valid,
+        "points_kept": kept,
+        "dropped": dropped,
+        "stride": cfg.stride,
+        "percentile": percentile,
+        "percentile_threshold": threshold,
+        "voxel_size": cfg.voxel_size,
+        "outlier_removal": ({"nb_neighbors": cfg.outlier_neighbors, "std_ratio": cfg.outlier_std_ratio}
+                            if cfg.outlier_removal else None),
+        "max_points": cfg.max_points,
+        "scale": {"rule": "sqrt(mean squared distance to 3 nearest neighbours), normalised frame",
+                  "min_dist2": MIN_DIST2, "n_floored": n_floored, **_stats(scales)},
+        "sh_degree": cfg.sh_degree,
+        "n_cameras": len(cameras),
+        "grid_shape": list(inp.grid_shape) if inp.grid_shape else None,
+        "config": asdict(cfg),
+        "timings_s": timings,
+    }
+    log.info("bridge: %d of %d points kept (s = %.6g, mode %s, alpha %.3g..%.3g), dropped %s",
+             kept, n_in, s, mode, float(alpha.min()), float(alpha.max()),
+             {k: v for k, v in dropped.items() if v})
+    return SeedResult(cloud, cameras, p_sel, colors, report)
+
+
+def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool = True) -> dict[str, Path]:
+    """Write seed.ply, sparse/0 (COLMAP text) and bridge.json (last) into ``out_dir``.
+
+    Each file is written atomically; bridge.json comes last, so its presence means the
+    other two are complete.
+    """
+    from camio.atomic import write_json
+    from camio.colmap import write_text_model
+    from camio.ply import write_gaussian_ply
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timings = result.report.setdefault("timings_s", {})
+    with timed("write seed.ply", log, timings):
+        ply = write_gaussian_ply(out / "seed.ply", result.cloud)
+    with timed("write sparse/0", log, timings):
+        sparse = write_text_model(out / "sparse" / "0", result.cameras,
+                                  result.points if write_points3d else None,
+                                  result.colors if write_points3d else None)
+    result.report["outputs"] = {"seed_ply": "seed.ply", "sparse": "sparse/0",
+                                "points3d_written": bool(write_points3d)}
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    js = write_json(out / "bridge.json", result.report)
+    return {"seed_ply": ply, "sparse": sparse, "bridge_json": js}
+
+
+def run_bridge(inp: BridgeInput, out_dir: str | Path, cfg: BridgeConfig | None = None,
+               timings: dict[str, float] | None = None) -> dict:
+    """Build the seed from ``inp`` and write it to ``out_dir``; return the bridge.json record.
+
+    ``timings`` (e.g. {"load": seconds} from the caller) are recorded in bridge.json too and
+    count towards its ``timings_s.total``.
+    """
+    cfg = cfg or BridgeConfig()
+    t0 = time.perf_counter()
+    result = build_seed(inp, cfg)
+    result.report["timings_s"] = {**(timings or {}), **result.report["timings_s"]}
+    write_outputs(result, out_dir, cfg.write_points3d)
+    log.info("bridge wrote %s in %.2f s (%d Gaussians, %d cameras)", out_dir, time.perf_counter() - t0,
+             len(result.cloud), len(result.cameras))
+    return result.report
