@@ -1,0 +1,85 @@
+"""``python -m camio``: synthetic scene, dataset conversion, splits.
+
+    python -m camio synth --out DIR [--views 24] [--width 256] [--seed 0] [--arc-deg 70]
+    python -m camio convert --src PATH --out DIR [--format auto] [--images-subdir images_8]
+                            [--downsample K] [--undistort]
+    python -m camio split --scene DIR --n 3 6 9 12 [--manifest JSON] --out split.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from camio.logs import setup_logging, timed
+
+log = logging.getLogger("camio")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="camio", description=__doc__.split("\n")[0])
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--views", type=int, default=24)
+    s.add_argument("--width", type=int, default=256)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--arc-deg", type=float, default=70.0)
+    s.add_argument("--layout", choices=("arc", "sphere"), default="arc")
+    s.add_argument("--supersample", type=int, default=1, help="anti-aliasing rays per pixel side")
+
+    c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
+    c.add_argument("--src", required=True, type=Path)
+    c.add_argument("--out", required=True, type=Path)
+    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "folder"))
+    c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
+    c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")
+    c.add_argument("--undistort", action="store_true", help="undistort distorted COLMAP models to PINHOLE")
+    c.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts for split.json")
+
+    t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")
+    t.add_argument("--scene", required=True, type=Path, help="scene folder (its images/) or an image folder")
+    t.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12])
+    t.add_argument("--manifest", type=Path, default=None, help="JSON split manifest overriding the rule")
+    t.add_argument("--out", required=True, type=Path)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    setup_logging(args.verbose, args.quiet)
+    try:
+        if args.cmd == "synth":
+            from camio.synthetic import write_synthetic_scene
+
+            with timed("synth", log):
+                write_synthetic_scene(args.out, views=args.views, width=args.width, seed=args.seed,
+                                      arc_deg=args.arc_deg, layout=args.layout, supersample=args.supersample)
+        elif args.cmd == "convert":
+            from camio.prepare import prepare_scene
+
+            with timed("convert", log):
+                prepare_scene(args.src, args.out, args.format, args.images_subdir, args.downsample,
+                              args.undistort, tuple(args.n))
+        elif args.cmd == "split":
+            from camio.images import list_images
+            from camio.split import make_split, write_split
+
+            folder = args.scene / "images" if (args.scene / "images").is_dir() else args.scene
+            split = make_split(list_images(folder), tuple(args.n), args.manifest)
+            write_split(args.out, split)
+            log.info("split (%s): %d test, train n = %s -> %s", split.rule, len(split.test),
+                     ", ".join(split.train), args.out)
+    except (ValueError, OSError) as exc:
+        log.error("%s", exc)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

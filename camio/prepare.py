@@ -1,0 +1,89 @@
+"""Prepare a scene for the pipeline: any supported format -> ``OUT/images`` + ``OUT/sparse/0``.
+
+``OUT/images`` holds the images (copied, or area-downsampled by an integer factor, keeping
+their names); ``OUT/sparse/0`` a COLMAP text model (PINHOLE) with the reference cameras scaled
+exactly to the written images (``u_new = u_old / factor``, see
+:func:`camio.images.downsample_area`), points and observations when the source has them;
+``OUT/split.json`` the PROTOCOL section 4 split; ``OUT/scene.json`` provenance. The output
+folder appears atomically: on any error nothing is left.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+
+from camio.atomic import atomic_dir, write_json
+from camio.cameras import Camera, scale_intrinsics
+from camio.colmap import SparseModel, write_text_model
+from camio.images import downsample_folder
+from camio.scene import check_same_size, load_scene
+from camio.split import make_split, write_split, TEST_EVERY
+
+__all__ = ["prepare_scene", "scale_model"]
+
+log = logging.getLogger(__name__)
+
+
+def scale_model(model: SparseModel, factor: int, sizes: dict[str, tuple[int, int]]) -> SparseModel:
+    """The model for images area-downsampled by ``factor`` (intrinsics and observations / factor,
+    sizes from ``sizes`` name -> (width, height))."""
+    cams = [Camera(c.name, *sizes[c.name], scale_intrinsics(c.K, 1.0 / factor), c.cam_from_world)
+            for c in model.cameras]
+    obs = {k: (xy / factor, idx) for k, (xy, idx) in model.observations.items()}
+    return SparseModel(cams, model.points, model.colors, obs, model.camera_models)
+
+
+def prepare_scene(
+    src: str | Path, out: str | Path, format: str = "auto", images_subdir: str | Path | None = None,
+    downsample: int = 1, undistort: bool = False, ns: tuple[int, ...] = (3, 6, 9, 12),
+    require_same_size: bool = True,
+) -> Path:
+    """Convert the scene at ``src`` into a prepared scene folder ``out`` (module docstring).
+
+    Args:
+        src, format, images_subdir, undistort: as :func:`camio.scene.load_scene`.
+        downsample: integer area-downsampling factor (1 = copy).
+        ns: training-view counts written to split.json (those that do not fit are skipped).
+        require_same_size: refuse images of mixed sizes (the pipeline needs one size).
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    with atomic_dir(out) as tmp:
+        scene = load_scene(src, format, images_subdir, undistort=undistort,
+                           work_dir=tmp / "_undistorted" if undistort else None)
+        if require_same_size:
+            check_same_size(scene.image_dir, scene.names)
+        sizes = downsample_folder(scene.image_dir, tmp / "images", downsample, scene.names)
+        n_cams = 0
+        if scene.model is not None and scene.model.cameras:
+            model = scale_model(scene.model, downsample, sizes) if downsample != 1 else scene.model
+            write_text_model(tmp / "sparse" / "0", model.cameras, model.points, model.colors,
+                             model.observations)
+            n_cams = len(model.cameras)
+        pool = len(scene.names) - len(range(0, len(scene.names), TEST_EVERY))
+        fits = tuple(n for n in ns if n <= pool)
+        if fits:
+            write_split(tmp / "split.json", make_split(scene.names, fits))
+        else:
+            log.warning("%d images: too few for any n in %s; no split.json written", len(scene.names), ns)
+        if undistort:
+            import shutil
+
+            shutil.rmtree(tmp / "_undistorted", ignore_errors=True)
+        w, h = sizes[scene.names[0]]
+        write_json(tmp / "scene.json", {
+            "source": str(Path(src).resolve()), "format": scene.source_format,
+            "images_subdir": None if images_subdir is None else str(images_subdir),
+            "downsample": downsample, "undistorted": scene.undistorted, "n_images": len(scene.names),
+            "n_reference_cameras": n_cams,
+            "n_points": 0 if scene.model is None else int(len(scene.model.points)),
+            "image_size": [w, h], "wall_time_s": time.perf_counter() - t0,
+        })
+    log.info("prepared %s -> %s (%d images at %dx%d, %d reference cameras) in %.2f s", src, out,
+             len(scene.names), w, h, n_cams, time.perf_counter() - t0)
+    return out
+
+

@@ -1,0 +1,374 @@
+"""Scenes: an image folder, its sorted image names and optional reference cameras / points.
+
+Readers convert every input format to the project conventions (:mod:`camio`):
+
+* COLMAP model (text or binary, via :func:`camio.colmap.read_model`). PINHOLE /
+  SIMPLE_PINHOLE are used directly; SIMPLE_RADIAL, RADIAL, OPENCV are undistorted to PINHOLE
+  with pycolmap's undistorter when ``undistort=True`` (:mod:`camio.undistort`), refused
+  otherwise.
+* LLFF ``poses_bounds.npy``: [N, 17] = per image a 3x5 matrix [R | t | (H, W, focal)] with
+  R's columns the camera's [down, right, back] axes in world coordinates and t the camera
+  centre, plus two depth bounds. Rows follow the sorted image names.
+* ``transforms.json`` (instant-ngp / nerfstudio): camera-to-world in OpenGL axes (x right,
+  y up, z back); intrinsics ``fl_x``/``fl_y``/``cx``/``cy`` or ``camera_angle_x`` (and
+  ``camera_angle_y``), global or per frame; pixel coordinates as in COLMAP.
+* A bare image folder (no cameras).
+
+Intrinsics are always rescaled to the size of the images actually found in the folder (e.g.
+a full-resolution model used with ``images_8``), per image, from the file headers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from camio.cameras import Camera, invert_cam_from_world, opengl_to_opencv_c2w, scale_intrinsics
+from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelError, \
+    find_model_dir, read_model
+from camio.images import image_size, list_images, read_image
+
+__all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_size", "read_llff_poses",
+           "llff_to_cam_from_world", "FORMATS", "UNDISTORTABLE_MODELS"]
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("auto", "colmap", "llff", "transforms", "folder")
+UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+class SceneError(ValueError):
+    """A scene that cannot be loaded as given (the message says what to fix)."""
+
+
+@dataclass
+class Scene:
+    """Images plus optional reference cameras.
+
+    Attributes:
+        image_dir: folder the image names are relative to.
+        names: sorted image names (relative paths, '/' separated).
+        model: reference cameras (for some or all names; sizes match the image files) and
+            optional points, or None.
+        source_format: "colmap", "llff", "transforms" or "folder".
+        source: the path the scene was loaded from.
+        undistorted: True if the images and model are the output of the undistorter.
+    """
+
+    image_dir: Path
+    names: list[str]
+    model: SparseModel | None
+    source_format: str
+    source: Path
+    undistorted: bool = False
+
+    def image_path(self, name: str) -> Path:
+        return self.image_dir / name
+
+    def sizes(self) -> dict[str, tuple[int, int]]:
+        """name -> (width, height) from the file headers (display orientation)."""
+        return {n: image_size(self.image_path(n)) for n in self.names}
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def check_same_size(image_dir: str | Path, names: list[str]) -> tuple[int, int]:
+    """(width, height) shared by all ``names`` in ``image_dir``.
+
+    Raises:
+        SceneError: the images have different sizes (lists each size with an example).
+    """
+    sizes: dict[tuple[int, int], list[str]] = {}
+    for n in names:
+        sizes.setdefault(image_size(Path(image_dir) / n), []).append(n)
+    if len(sizes) != 1:
+        desc = "; ".join(f"{w}x{h}: {len(v)} image(s), e.g. {v[0]}" for (w, h), v in sorted(sizes.items()))
+        raise SceneError(f"images in {image_dir} have mixed sizes ({desc}); one size is required: "
+                         "resize or crop them to a common size")
+    return next(iter(sizes))
+
+
+def detect_format(path: str | Path) -> str:
+    """Guess the format of ``path`` (a file or a scene folder); see :func:`load_scene`."""
+    p = Path(path)
+    if p.is_file():
+        if p.suffix == ".json":
+            return "transforms"
+        if p.name.endswith(".npy"):
+            return "llff"
+        raise SceneError(f"{p} is a file but neither a transforms .json nor poses_bounds.npy")
+    if not p.is_dir():
+        raise SceneError(f"scene path {p} does not exist")
+    if (p / "transforms.json").is_file():
+        return "transforms"
+    try:
+        find_model_dir(p)
+        return "colmap"
+    except FileNotFoundError:
+        pass
+    if (p / "poses_bounds.npy").is_file():
+        return "llff"
+    return "folder"
+
+
+def _resolve_images(root: Path, images_subdir: str | Path | None) -> Path:
+    if images_subdir is not None:
+        d = Path(images_subdir)
+        d = d if d.is_absolute() else root / d
+        if not d.is_dir():
+            raise SceneError(f"image folder {d} does not exist")
+        return d
+    if (root / "images").is_dir():
+        return root / "images"
+    return root
+
+
+def _image_names(image_dir: Path) -> list[str]:
+    names = list_images(image_dir)
+    if not names:
+        raise SceneError(f"no images (.png/.jpg/.jpeg/.tif/.tiff/.exr) in {image_dir}; point the "
+                         "loader at the scene folder or its image folder")
+    return names
+
+
+def _fit_to_images(model: SparseModel, image_dir: Path, names: list[str]) -> SparseModel:
+    """Check every model image exists; rescale cameras (and observations) to the file sizes."""
+    present = set(names)
+    missing = [c.name for c in model.cameras if c.name not in present]
+    if missing:
+        raise SceneError(f"the model names {len(missing)} image(s) missing from {image_dir}, e.g. "
+                         f"{missing[:3]}; use the matching image folder (--images-subdir)")
+    cams, obs = [], {}
+    for c in model.cameras:
+        w, h = image_size(image_dir / c.name)
+        if (w, h) == (c.width, c.height):
+            cams.append(c)
+            if c.name in model.observations:
+                obs[c.name] = model.observations[c.name]
+            continue
+        sx, sy = w / c.width, h / c.height
+        if abs(sx - sy) > 0.01 * max(sx, sy):
+            raise SceneError(f"image {c.name} is {w}x{h} but its camera is {c.width}x{c.height}: "
+                             "not a uniform rescale (cropped?)")
+        cams.append(Camera(c.name, w, h, scale_intrinsics(c.K, sx, sy), c.cam_from_world))
+        if c.name in model.observations:
+            xy, idx = model.observations[c.name]
+            obs[c.name] = (xy * np.array([sx, sy]), idx)
+    if any(c is not m for c, m in zip(cams, model.cameras)):
+        log.info("rescaled reference intrinsics to the image sizes found in %s", image_dir)
+    return SparseModel(cams, model.points, model.colors, obs, model.camera_models)
+
+
+def _verify_readable(image_dir: Path, names: list[str]) -> None:
+    from camio.logs import progress
+
+    for n in progress(names, desc="verify images"):
+        read_image(image_dir / n)  # raises ImageReadError naming the file
+
+
+def load_scene(
+    path: str | Path,
+    format: str = "auto",
+    images_subdir: str | Path | None = None,
+    undistort: bool = False,
+    work_dir: str | Path | None = None,
+    verify_images: bool = True,
+) -> Scene:
+    """Load a scene in any supported format.
+
+    Args:
+        path: scene folder, a COLMAP model folder, a ``transforms*.json`` or a
+            ``poses_bounds.npy``.
+        format: one of :data:`FORMATS`; "auto" detects: transforms.json -> "transforms",
+            cameras.{txt,bin} in ., sparse/0, sparse or 0 -> "colmap", poses_bounds.npy ->
+            "llff", else "folder".
+        images_subdir: image folder relative to the scene folder (or absolute); default
+            ``images`` if present, else the folder itself (transforms: its folder).
+        undistort: undistort SIMPLE_RADIAL / RADIAL / OPENCV COLMAP models to PINHOLE with
+            pycolmap (needs ``work_dir``, where the undistorted images go); if False a
+            distorted model raises :class:`UnsupportedCameraModelError`.
+        work_dir: output folder for undistorted images and model (created; must be empty).
+        verify_images: decode every image once so that a truncated file fails here.
+
+    Raises:
+        SceneError, UnsupportedCameraModelError, ImageReadError: with what to fix.
+    """
+    if format not in FORMATS:
+        raise SceneError(f"unknown scene format {format!r}; choose one of {', '.join(FORMATS)}")
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"scene path {path} does not exist")
+    fmt = detect_format(path) if format == "auto" else format
+    root = path.parent if path.is_file() else path
+    if fmt == "transforms":
+        scene = _load_transforms(path, images_subdir)
+    else:
+        image_dir = _resolve_images(root, images_subdir)
+        names = _image_names(image_dir)
+        if fmt == "folder":
+            scene = Scene(image_dir, names, None, "folder", path)
+        elif fmt == "llff":
+            npy = path if path.is_file() else root / "poses_bounds.npy"
+            scene = Scene(image_dir, names, _fit_to_images(read_llff_poses(npy, names, image_dir), image_dir, names),
+                          "llff", path)
+        elif fmt == "colmap":
+            scene = _load_colmap(path, image_dir, names, undistort, work_dir)
+        else:  # pragma: no cover - guarded above
+            raise SceneError(fmt)
+    if verify_images:
+        _verify_readable(scene.image_dir, scene.names)
+    n_cams = 0 if scene.model is None else len(scene.model.cameras)
+    log.info("loaded %s scene %s: %d images, %d reference cameras, %d points", scene.source_format, path,
+             len(scene.names), n_cams, 0 if scene.model is None else len(scene.model.points))
+    return scene
+
+
+def _load_colmap(path: Path, image_dir: Path, names: list[str], undistort: bool,
+                 work_dir: str | Path | None) -> Scene:
+    model = read_model(path, allow_distorted=True)
+    kinds = {m for m, _ in model.camera_models.values()}
+    unsupported = sorted(kinds - set(PINHOLE_MODELS) - set(UNDISTORTABLE_MODELS))
+    if unsupported:
+        raise UnsupportedCameraModelError(
+            f"COLMAP model {path} uses camera model(s) {unsupported}; supported are "
+            f"{', '.join(PINHOLE_MODELS + UNDISTORTABLE_MODELS)} (re-run COLMAP with one of them)")
+    distorted = sorted(kinds - set(PINHOLE_MODELS))
+    if not distorted:
+        return Scene(image_dir, names, _fit_to_images(model, image_dir, names), "colmap", path)
+    if not undistort:
+        raise UnsupportedCameraModelError(
+            f"COLMAP model {path} uses the distorted camera model(s) {distorted}; pass undistort=True "
+            "(`python -m camio convert --undistort`) to undistort the images to PINHOLE with pycolmap")
+    if work_dir is None:
+        raise SceneError("undistort=True needs a work_dir to write the undistorted images into")
+    _fit_to_images(model, image_dir, names)  # missing images fail before the undistorter runs
+    from camio.undistort import undistort_colmap
+
+    out_images, out_model = undistort_colmap(find_model_dir(path), image_dir, Path(work_dir))
+    und = read_model(out_model)
+    und_names = _image_names(out_images)
+    return Scene(out_images, und_names, _fit_to_images(und, out_images, und_names), "colmap", path,
+                 undistorted=True)
+
+
+# ---------------------------------------------------------------------------------------- LLFF
+def llff_to_cam_from_world(poses: np.ndarray) -> np.ndarray:
+    """LLFF camera-to-world [N, 3, 4|5] ([down, right, back] axes) -> cam_from_world [N, 3, 4].
+
+    The OpenCV camera axes are right = LLFF column 1, down = column 0, forward = -column 2.
+    """
+    p = np.asarray(poses, np.float64)[..., :4]
+    c2w = np.concatenate([p[..., 1:2], p[..., 0:1], -p[..., 2:3], p[..., 3:4]], axis=-1)
+    return invert_cam_from_world(c2w)[..., :3, :]
+
+
+def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = None) -> SparseModel:
+    """Cameras from ``poses_bounds.npy`` for the sorted ``names``.
+
+    Each row's (H, W, focal) give K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]] at W x H (LLFF's
+    principal point is the image centre); :func:`load_scene` rescales it to the image files.
+    """
+    npy = Path(npy)
+    if not npy.is_file():
+        raise SceneError(f"no LLFF poses file {npy}")
+    arr = np.load(npy)
+    if arr.ndim != 2 or arr.shape[1] not in (15, 17):
+        raise SceneError(f"{npy}: expected an [N, 17] poses_bounds array, got shape {arr.shape}")
+    if len(arr) != len(names):
+        raise SceneError(f"{npy} holds {len(arr)} poses but {image_dir or 'the image folder'} has "
+                         f"{len(names)} images; LLFF poses follow the sorted image names one to one")
+    poses = arr[:, :15].reshape(-1, 3, 5)
+    cfw = llff_to_cam_from_world(poses)
+    cams = []
+    for name, p, m in zip(sorted(names), poses, cfw):
+        h, w, f = p[:, 4]
+        K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+        cams.append(Camera(name, int(round(w)), int(round(h)), K, m))
+    return SparseModel(cams)
+
+
+# ---------------------------------------------------------------------------------- transforms
+def _find_frame_file(base: Path, file_path: str) -> Path:
+    p = (base / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
+    if p.is_file():
+        return p
+    for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".exr", ".tif"):
+        cand = p.with_name(p.name + ext)
+        if cand.is_file():
+            return cand
+    raise SceneError(f"transforms frame file_path {file_path!r} not found under {base} "
+                     "(also tried .png/.jpg/.jpeg/.exr/.tif); the model names an image that is missing")
+
+
+def _intrinsics(d: dict, fallback: dict, size: tuple[int, int], where: str) -> tuple[np.ndarray, int, int]:
+    get = lambda k: d.get(k, fallback.get(k))  # noqa: E731
+    w = get("w") or size[0]
+    h = get("h") or size[1]
+    for k in ("k1", "k2", "k3", "k4", "p1", "p2"):
+        if abs(float(get(k) or 0.0)) > 0:
+            raise UnsupportedCameraModelError(
+                f"{where}: distortion ({k} = {get(k)}) in transforms.json is not supported; "
+                "undistort the images first (e.g. convert to COLMAP OPENCV and use --undistort)")
+    if get("fl_x") is not None:
+        fx = float(get("fl_x"))
+        fy = float(get("fl_y") if get("fl_y") is not None else fx)
+    elif get("camera_angle_x") is not None:
+        fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+        fy = 0.5 * h / np.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+    else:
+        raise SceneError(f"{where}: no focal length (fl_x or camera_angle_x)")
+    cx = float(get("cx") if get("cx") is not None else w / 2)
+    cy = float(get("cy") if get("cy") is not None else h / 2)
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), int(w), int(h)
+
+
+def _load_transforms(path: Path, images_subdir: str | Path | None) -> Scene:
+    json_path = path if path.is_file() else path / "transforms.json"
+    try:
+        meta = json.loads(json_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SceneError(f"cannot read {json_path}: {exc}") from exc
+    frames = meta.get("frames")
+    if not frames:
+        raise SceneError(f"{json_path} has no frames")
+    base = json_path.parent
+    files = [_find_frame_file(base, str(f.get("file_path", ""))) for f in frames]
+    image_dir = _resolve_images(base, images_subdir) if images_subdir is not None else Path(
+        _common_dir([f.parent for f in files]))
+    cams = []
+    for f, file in zip(frames, files):
+        if images_subdir is not None:
+            file = image_dir / file.name
+            if not file.is_file():
+                raise SceneError(f"image {file} named by {json_path} is missing from {image_dir}")
+        name = file.relative_to(image_dir.resolve() if images_subdir is None else image_dir).as_posix()
+        size = image_size(file)
+        K, w, h = _intrinsics(f, meta, size, f"{json_path} frame {name}")
+        if "transform_matrix" not in f:
+            raise SceneError(f"{json_path}: frame {name} has no transform_matrix")
+        cfw = opengl_to_opencv_c2w(np.asarray(f["transform_matrix"], np.float64))
+        cam = Camera(name, w, h, K, cfw[:3])
+        if (w, h) != size:
+            cam = Camera(name, size[0], size[1], scale_intrinsics(K, size[0] / w, size[1] / h), cfw[:3])
+        cams.append(cam)
+    image_dir = image_dir.resolve() if images_subdir is None else image_dir
+    names = sorted(c.name for c in cams)
+    if len(set(names)) != len(names):
+        raise SceneError(f"{json_path} names the same image twice")
+    return Scene(image_dir, names, SparseModel(cams), "transforms", path)
+
+
+def _common_dir(dirs: list[Path]) -> Path:
+    parts = [d.resolve().parts for d in dirs]
+    common = []
+    for items in zip(*parts):
+        if len(set(items)) != 1:
+            break
+        common.append(items[0])
+    return Path(*common)
+
