@@ -1,0 +1,252 @@
+"""Camera head, DPT dense heads and their output activations (chosen by name).
+
+Every head reads the aggregator outputs ``tokens = {layer index: [B, S, N, 2C]}`` with
+N = patch_start_idx + P.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
+from vggt_init.model.layers import Block, Mlp
+
+__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
+
+
+def _inv_log(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.expm1(torch.abs(x))
+
+
+ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "linear": lambda x: x,
+    "relu": F.relu,
+    "exp": torch.exp,
+    "expp1": lambda x: 1 + torch.exp(x),
+    "expp0": torch.exp,
+    "sigmoid": torch.sigmoid,
+    "inv_log": _inv_log,
+}
+
+
+def activation(name: str) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The activation called ``name``; ValueError naming the known ones otherwise."""
+    try:
+        return ACTIVATIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown activation {name!r}; known: {sorted(ACTIVATIONS)}") from None
+
+
+# ---------------------------------------------------------------------------- camera head
+class CameraHead(nn.Module):
+    """Pose encoding from the camera tokens: 4 adaLN-modulated refinement iterations.
+
+    Output encoding per frame (9 numbers): t (3) of cam_from_world, quaternion XYZW (4),
+    fov_h, fov_w (radians).
+    """
+
+    def __init__(self, cfg: CameraHeadConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        D = cfg.dim_in
+        self.token_norm = nn.LayerNorm(D, eps=cfg.layernorm_eps)
+        self.trunk = nn.Sequential(*[Block(D, cfg.num_heads, cfg.mlp_ratio, eps=cfg.layernorm_eps)
+                                     for _ in range(cfg.trunk_depth)])
+        self.trunk_norm = nn.LayerNorm(D, eps=cfg.layernorm_eps)
+        self.empty_pose_tokens = nn.Parameter(torch.zeros(1, 1, cfg.target_dim))
+        self.embed_pose = nn.Linear(cfg.target_dim, D)
+        self.poseLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(D, 3 * D))
+        self.adaln_norm = nn.LayerNorm(D, elementwise_affine=False, eps=cfg.adaln_eps)
+        self.pose_branch = Mlp(D, cfg.pose_branch_hidden, cfg.target_dim)
+        for name in (cfg.trans_act, cfg.quat_act, cfg.fl_act):
+            activation(name)  # fail early on an unknown name
+
+    def activate(self, raw: torch.Tensor) -> torch.Tensor:
+        """Raw [..., 9] -> activated copy (translation, quaternion, FoV activations)."""
+        c = self.cfg
+        return torch.cat((activation(c.trans_act)(raw[..., :3]), activation(c.quat_act)(raw[..., 3:7]),
+                          activation(c.fl_act)(raw[..., 7:])), dim=-1)
+
+    def forward(self, tokens: torch.Tensor, debug: dict | None = None) -> list[torch.Tensor]:
+        """tokens [B, S, N, 2C] (one aggregator output) -> list of num_iterations [B, S, 9]."""
+        B, S = tokens.shape[:2]
+        tok = self.token_norm(tokens[:, :, 0])
+        raw = None
+        out: list[torch.Tensor] = []
+        for it in range(self.cfg.num_iterations):
+            cond_in = self.empty_pose_tokens.expand(B, S, -1) if raw is None else raw
+            shift, scale, gate = self.poseLN_modulation(self.embed_pose(cond_in)).chunk(3, dim=-1)
+            z = gate * (self.adaln_norm(tok) * (1 + scale) + shift) + tok
+            z = self.trunk(z)
+            delta = self.pose_branch(self.trunk_norm(z))
+            if debug is not None:
+                debug[f"camera_head.delta.{it}"] = delta.detach().clone()
+            raw = delta if raw is None else raw + delta  # the raw prediction is fed back
+            out.append(self.activate(raw))
+        return out
+
+
+# ---------------------------------------------------------------------------- DPT head
+def _sincos(pos: torch.Tensor, dim: int, omega_0: float) -> torch.Tensor:
+    """pos [M] -> [M, dim]: sin(pos*omega_j) for j < dim/2, then cos; float64 maths."""
+    omega = torch.arange(dim // 2, dtype=torch.float64, device=pos.device) / (dim / 2.0)
+    omega = 1.0 / omega_0 ** omega
+    ang = pos.reshape(-1).to(torch.float64)[:, None] * omega[None, :]
+    return torch.cat((torch.sin(ang), torch.cos(ang)), dim=1)
+
+
+def dpt_position_embedding(hh: int, ww: int, channels: int, aspect: float, dtype: torch.dtype,
+                           device: torch.device, omega_0: float = 100.0) -> torch.Tensor:
+    """DPT sin/cos embedding [channels, hh, ww] as float32 (the reference casts to float32).
+
+    u spans +-(ar/d)(ww-1)/ww, v spans +-(1/d)(hh-1)/hh with ar = W/H of the *input image*
+    and d = sqrt(ar^2 + 1); the grid is built in ``dtype``, sin/cos in float64.
+    """
+    diag = (aspect ** 2 + 1.0) ** 0.5
+    sx, sy = aspect / diag, 1.0 / diag
+    xs = torch.linspace(-sx * (ww - 1) / ww, sx * (ww - 1) / ww, steps=ww, dtype=dtype, device=device)
+    ys = torch.linspace(-sy * (hh - 1) / hh, sy * (hh - 1) / hh, steps=hh, dtype=dtype, device=device)
+    uu, vv = torch.meshgrid(xs, ys, indexing="xy")  # [hh, ww]
+    emb = torch.cat((_sincos(uu, channels // 2, omega_0), _sincos(vv, channels // 2, omega_0)), dim=-1)
+    return emb.float().reshape(hh, ww, channels).permute(2, 0, 1)
+
+
+class ResidualConvUnit(nn.Module):
+    """y = conv2(relu(conv1(relu(x)))) + relu(x)  (the reference's in-place ReLU on the skip)."""
+
+    def __init__(self, features: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(features, features, 3, 1, 1, bias=True)
+        self.conv2 = nn.Conv2d(features, features, 3, 1, 1, bias=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = F.relu(x)
+        return self.conv2(F.relu(self.conv1(x))) + x
+
+
+class FusionBlock(nn.Module):
+    """RefineNet fusion: (a [+ RCU1(b)]) -> RCU2 -> bilinear resize (align_corners) -> 1x1 conv."""
+
+    def __init__(self, features: int, has_residual: bool = True) -> None:
+        super().__init__()
+        if has_residual:
+            self.resConfUnit1 = ResidualConvUnit(features)
+        self.has_residual = has_residual
+        self.resConfUnit2 = ResidualConvUnit(features)
+        self.out_conv = nn.Conv2d(features, features, 1, 1, 0, bias=True)
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor | None = None,
+                size: tuple[int, int] | None = None) -> torch.Tensor:
+        out = a + self.resConfUnit1(b) if self.has_residual else a
+        out = self.resConfUnit2(out)
+        if size is None:
+            out = F.interpolate(out, scale_factor=2, mode="bilinear", align_corners=True)
+        else:
+            out = F.interpolate(out, size=size, mode="bilinear", align_corners=True)
+        return self.out_conv(out)
+
+
+class Scratch(nn.Module):
+    """Container matching the checkpoint's ``scratch.*`` names."""
+
+    def __init__(self, out_channels: tuple[int, ...], features: int, head_features_2: int, output_dim: int) -> None:
+        super().__init__()
+        for i, oc in enumerate(out_channels, start=1):
+            setattr(self, f"layer{i}_rn", nn.Conv2d(oc, features, 3, 1, 1, bias=False))
+        self.refinenet1 = FusionBlock(features)
+        self.refinenet2 = FusionBlock(features)
+        self.refinenet3 = FusionBlock(features)
+        self.refinenet4 = FusionBlock(features, has_residual=False)
+        self.output_conv1 = nn.Conv2d(features, features // 2, 3, 1, 1)
+        self.output_conv2 = nn.Sequential(nn.Conv2d(features // 2, head_features_2, 3, 1, 1), nn.ReLU(),
+                                          nn.Conv2d(head_features_2, output_dim, 1, 1, 0))
+
+
+class DPTHead(nn.Module):
+    """Dense prediction head: 4 token layers -> multi-scale maps -> fused full-res output."""
+
+    def __init__(self, cfg: DPTHeadConfig, agg_depth: int) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.layers = [i % agg_depth for i in cfg.intermediate_layer_idx]  # non-negative indices
+        oc = cfg.out_channels
+        self.norm = nn.LayerNorm(cfg.dim_in, eps=cfg.layernorm_eps)
+        self.projects = nn.ModuleList(nn.Conv2d(cfg.dim_in, c, 1, 1, 0) for c in oc)
+        self.resize_layers = nn.ModuleList([
+            nn.ConvTranspose2d(oc[0], oc[0], kernel_size=4, stride=4, padding=0),
+            nn.ConvTranspose2d(oc[1], oc[1], kernel_size=2, stride=2, padding=0),
+            nn.Identity(),
+            nn.Conv2d(oc[3], oc[3], kernel_size=3, stride=2, padding=1),
+        ])
+        self.scratch = Scratch(oc, cfg.features, cfg.head_features_2, cfg.output_dim)
+        activation(cfg.activation)
+        activation(cfg.conf_activation)
+
+    def _pos(self, x: torch.Tensor, W: int, H: int) -> torch.Tensor:
+        if not self.cfg.pos_embed:
+            return x
+        pe = dpt_position_embedding(x.shape[-2], x.shape[-1], x.shape[1], W / H, x.dtype, x.device,
+                                    self.cfg.pos_embed_omega_0)
+        return x + pe * self.cfg.pos_embed_ratio  # float32 embedding, as the reference adds it
+
+    def _forward_frames(self, tokens: dict[int, torch.Tensor], patch_start_idx: int, H: int, W: int,
+                        s0: int, s1: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames s0:s1 -> (fused [B*s, F/2, 8h', 8w'] output_conv1 map, raw output [B*s, od, H, W])."""
+        cfg = self.cfg
+        p = cfg.patch_size
+        h, w = H // p, W // p
+        feats = []
+        for k, layer in enumerate(self.layers):
+            x = tokens[layer][:, s0:s1, patch_start_idx:]
+            B, s = x.shape[:2]
+            x = self.norm(x.reshape(B * s, -1, x.shape[-1]))
+            x = x.permute(0, 2, 1).reshape(B * s, x.shape[-1], h, w)
+            x = self._pos(self.projects[k](x), W, H)
+            feats.append(self.resize_layers[k](x))
+        sc = self.scratch
+        r1, r2, r3, r4 = (getattr(sc, f"layer{i}_rn")(f) for i, f in enumerate(feats, start=1))
+        del feats
+        out = sc.refinenet4(r4, size=r3.shape[2:])
+        out = sc.refinenet3(out, r3, size=r2.shape[2:])
+        out = sc.refinenet2(out, r2, size=r1.shape[2:])
+        out = sc.refinenet1(out, r1)
+        fused = sc.output_conv1(out)
+        out = F.interpolate(fused, size=(int(h * p / cfg.down_ratio), int(w * p / cfg.down_ratio)),
+                            mode="bilinear", align_corners=True)
+        out = sc.output_conv2(self._pos(out, W, H))
+        return fused, out
+
+    def forward(self, tokens: dict[int, torch.Tensor], image_hw: tuple[int, int], patch_start_idx: int,
+                frames_chunk_size: int | None = None, debug: dict | None = None,
+                debug_name: str = "dpt") -> tuple[torch.Tensor, torch.Tensor]:
+        """Dense prediction, processed ``frames_chunk_size`` frames at a time.
+
+        Args:
+            tokens: {layer: [B, S, N, 2C]} holding every index in ``self.layers``.
+            image_hw: (H, W) of the network input.
+
+        Returns:
+            value [B, S, H, W, output_dim - 1] and confidence [B, S, H, W].
+        """
+        H, W = image_hw
+        any_t = next(iter(tokens.values()))
+        B, S = any_t.shape[:2]
+        chunk = frames_chunk_size or self.cfg.frames_chunk_size or S
+        act_v, act_c = activation(self.cfg.activation), activation(self.cfg.conf_activation)
+        values, confs, fused_all = [], [], []
+        for s0 in range(0, S, chunk):
+            s1 = min(S, s0 + chunk)
+            fused, raw = self._forward_frames(tokens, patch_start_idx, H, W, s0, s1)
+            if debug is not None:
+                fused_all.append(fused.reshape(B, s1 - s0, *fused.shape[1:]))
+            fmap = raw.permute(0, 2, 3, 1)
+            values.append(act_v(fmap[..., :-1]).reshape(B, s1 - s0, *fmap.shape[1:3], -1))
+            confs.append(act_c(fmap[..., -1]).reshape(B, s1 - s0, *fmap.shape[1:3]))
+            del raw, fmap, fused
+        if debug is not None:
+            debug[f"{debug_name}.fused"] = torch.cat(fused_all, dim=1).flatten(0, 1)
+        return torch.cat(values, dim=1), torch.cat(confs, dim=1)

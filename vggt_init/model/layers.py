@@ -1,0 +1,124 @@
+"""Transformer building blocks shared by DINO, the aggregator and the camera head.
+
+Parameter names follow the official checkpoint (``norm1``, ``attn.qkv``, ``attn.q_norm``,
+``ls1.gamma``, ``mlp.fc1`` ...). Shapes: B batch of sequences, N tokens, C width,
+nh heads, D = C / nh head dim.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["LayerScale", "Mlp", "RoPE2D", "Attention", "Block"]
+
+
+class LayerScale(nn.Module):
+    """Per-channel scale ``x * gamma``; gamma [C]."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.gamma = nn.Parameter(torch.ones(dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.gamma
+
+
+class Mlp(nn.Module):
+    """fc1 -> exact GELU -> fc2. [..., C_in] -> [..., C_out]."""
+
+    def __init__(self, dim_in: int, hidden: int, dim_out: int | None = None, bias: bool = True) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(dim_in, hidden, bias=bias)
+        self.act = nn.GELU()
+        self.fc2 = nn.Linear(hidden, dim_out or dim_in, bias=bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(self.act(self.fc1(x)))
+
+
+class RoPE2D(nn.Module):
+    """2D rotary position embedding (rotate-half form), no parameters.
+
+    The first half of the head dim is rotated by the row coordinate, the second half by
+    the column coordinate; inv_freq_j = 1 / base^(2j / (D/2)). Frequencies, positions and
+    angles are computed in float32 (as the reference does) and cast to the token dtype
+    before cos/sin.
+    """
+
+    def __init__(self, base: float = 100.0) -> None:
+        super().__init__()
+        self.base = float(base)
+        self._cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _tables(self, dim: int, length: int, dtype: torch.dtype, device: torch.device):
+        key = (dim, length, dtype, device)
+        if key not in self._cache:
+            exponents = torch.arange(0, dim, 2, device=device).float() / dim
+            inv_freq = 1.0 / (self.base ** exponents)
+            positions = torch.arange(length, device=device, dtype=torch.float32)
+            angles = (positions[:, None] * inv_freq[None, :]).to(dtype)
+            angles = torch.cat((angles, angles), dim=-1)
+            self._cache[key] = (angles.cos(), angles.sin())
+        return self._cache[key]
+
+    @staticmethod
+    def _rotate(x: torch.Tensor, pos: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+        c = F.embedding(pos, cos)[:, None]
+        s = F.embedding(pos, sin)[:, None]
+        half = x.shape[-1] // 2
+        rot = torch.cat((-x[..., half:], x[..., :half]), dim=-1)
+        return x * c + rot * s
+
+    def forward(self, x: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """x [B, nh, N, D], pos [B, N, 2] int64 (row, col) -> [B, nh, N, D]."""
+        dim = x.shape[-1] // 2
+        cos, sin = self._tables(dim, int(pos.max()) + 1, x.dtype, x.device)
+        rows, cols = x.chunk(2, dim=-1)
+        return torch.cat((self._rotate(rows, pos[..., 0], cos, sin),
+                          self._rotate(cols, pos[..., 1], cos, sin)), dim=-1)
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention with optional qk LayerNorm and 2D RoPE. [B,N,C] -> [B,N,C]."""
+
+    def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True, proj_bias: bool = True,
+                 qk_norm: bool = False, qk_norm_eps: float = 1e-5, rope: RoPE2D | None = None) -> None:
+        super().__init__()
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
+        self.q_norm = nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
+        self.k_norm = nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
+        self.proj = nn.Linear(dim, dim, bias=proj_bias)
+        self.rope = rope
+
+    def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
+        B, N, C = x.shape
+        qkv = self.qkv(x).reshape(B, N, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv.unbind(0)
+        q, k = self.q_norm(q), self.k_norm(k)
+        if self.rope is not None and pos is not None:
+            q, k = self.rope(q, pos), self.rope(k, pos)
+        x = F.scaled_dot_product_attention(q, k, v)
+        return self.proj(x.transpose(1, 2).reshape(B, N, C))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block with LayerScale on both branches. [B,N,C] -> [B,N,C]."""
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float = 4.0, qkv_bias: bool = True,
+                 proj_bias: bool = True, ffn_bias: bool = True, eps: float = 1e-5,
+                 qk_norm: bool = False, qk_norm_eps: float = 1e-5, rope: RoPE2D | None = None) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim, eps=eps)
+        self.attn = Attention(dim, num_heads, qkv_bias, proj_bias, qk_norm, qk_norm_eps, rope)
+        self.ls1 = LayerScale(dim)
+        self.norm2 = nn.LayerNorm(dim, eps=eps)
+        self.mlp = Mlp(dim, int(dim * mlp_ratio), dim, bias=ffn_bias)
+        self.ls2 = LayerScale(dim)
+
+    def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
+        x = x + self.ls1(self.attn(self.norm1(x), pos))
+        return x + self.ls2(self.mlp(self.norm2(x)))
