@@ -1,0 +1,113 @@
+"""Command line: ``python -m splat_train`` (train) and ``python -m splat_train render``.
+
+Train::
+
+    python -m splat_train --seed seed.ply --cameras DIR --images DIR --out DIR
+        [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
+        [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
+        [--eval-every M] [--pose-refine] [--device auto|cpu|cuda] [--threads T]
+
+Render a trained model into any camera set::
+
+    python -m splat_train render --model model.ply --cameras DIR --out DIR
+        [--images DIR | --width W --height H] [--image-list FILE] [--background R,G,B]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from camio.logs import setup_logging
+
+log = logging.getLogger("splat_train")
+
+
+def _train_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m splat_train",
+                                description="Train 3D Gaussian Splatting from a seed PLY and posed images "
+                                            "(resumes from OUT/ckpt automatically). "
+                                            "`python -m splat_train render -h` renders a trained model.")
+    p.add_argument("--seed", required=True, help="seed PLY (3DGS layout, e.g. the Bridge's seed.ply)")
+    p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
+    p.add_argument("--images", required=True, help="folder of the training images")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--iterations", type=int, help="optimisation steps (default 2000)")
+    p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
+    p.add_argument("--test-images", help="folder of the held-out images")
+    p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
+    p.add_argument("--downsample", type=int, help="integer image downsampling factor (default 1)")
+    p.add_argument("--config", help="JSON file or JSON object string of config overrides "
+                                     "(keys of splat_train.config.TrainConfig)")
+    p.add_argument("--seed-rng", type=int, dest="seed_rng", help="random seed (default 0)")
+    p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
+    p.add_argument("--eval-every", type=int, help="held-out PSNR period M (default 200)")
+    p.add_argument("--pose-refine", action="store_true", default=None,
+                   help="learn small corrections of the training camera poses")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    return p
+
+
+def _render_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m splat_train render",
+                                description="Render a trained model.ply into the cameras of a COLMAP folder "
+                                            "(PNG per camera, named <image stem>.png).")
+    p.add_argument("--model", required=True, help="trained model.ply")
+    p.add_argument("--cameras", required=True, help="COLMAP model folder (same frame as the model)")
+    p.add_argument("--out", required=True, help="output folder for the PNGs")
+    p.add_argument("--images", help="take each image size from the same-named file here "
+                                    "(also reports PSNR against it)")
+    p.add_argument("--width", type=int, help="render every camera at this width (with --height)")
+    p.add_argument("--height", type=int)
+    p.add_argument("--image-list", help="only these image names")
+    p.add_argument("--background", default="0,0,0", help="background RGB in [0,1], e.g. 1,1,1")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "render":
+        args = _render_parser().parse_args(argv[1:])
+        setup_logging(args.verbose, args.quiet)
+        from splat_train.export import render_model
+
+        try:
+            bg = tuple(float(x) for x in args.background.split(","))
+            if len(bg) != 3:
+                raise ValueError
+        except ValueError:
+            log.error("--background must be three numbers like 0,0,0, got %r", args.background)
+            return 2
+        if args.images and args.width:
+            log.error("give --images or --width/--height, not both")
+            return 2
+        render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
+                     height=args.height, names=args.image_list, background=bg, device=args.device)
+        return 0
+
+    args = _train_parser().parse_args(argv)
+    setup_logging(args.verbose, args.quiet)
+    from splat_train.config import load_config
+    from splat_train.trainer import train
+
+    cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
+                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
+                      pose_refine=args.pose_refine, device=args.device, num_threads=args.threads)
+    result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
+                   test_images=args.test_images, image_list=args.image_list)
+    s = result.summary
+    print(f"model: {result.model_path}  Gaussians: {s['num_gaussians']}  train PSNR: {s['train_psnr']:.2f}  "
+          f"test PSNR: {s['test_psnr'] if s['test_psnr'] == s['test_psnr'] else 'n/a'}  "
+          f"training time: {s['wall_time_s']:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""Training checkpoints: ``DIR/ckpt/ckpt_<iteration>.pt``, plain tensors and dicts only.
+
+A checkpoint is a ``torch.save`` of a dict of tensors, numbers, strings, lists and dicts, read
+back with ``torch.load(..., weights_only=True)`` (no pickled code). It holds everything the
+run needs to continue bit for bit on CPU: parameters, Adam state, densification statistics,
+pose corrections and their Adam, the random generator state, the log rows so far and the
+training wall time. Files are written atomically; older ones beyond ``keep`` are deleted only
+after a newer one is complete, so a crash never loses the last good checkpoint.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from camio.atomic import atomic_path
+
+__all__ = ["checkpoint_path", "list_checkpoints", "latest_checkpoint", "save_checkpoint",
+           "load_checkpoint", "CKPT_DIR"]
+
+log = logging.getLogger(__name__)
+
+CKPT_DIR = "ckpt"
+_PATTERN = re.compile(r"^ckpt_(\d+)\.pt$")
+
+
+def checkpoint_path(out_dir: str | Path, iteration: int) -> Path:
+    return Path(out_dir) / CKPT_DIR / f"ckpt_{iteration:07d}.pt"
+
+
+def list_checkpoints(out_dir: str | Path) -> list[tuple[int, Path]]:
+    """(iteration, path) of the complete checkpoints in ``out_dir/ckpt``, oldest first."""
+    d = Path(out_dir) / CKPT_DIR
+    if not d.is_dir():
+        return []
+    found = []
+    for p in d.iterdir():
+        m = _PATTERN.match(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def latest_checkpoint(out_dir: str | Path) -> Path | None:
+    found = list_checkpoints(out_dir)
+    return found[-1][1] if found else None
+
+
+def save_checkpoint(out_dir: str | Path, iteration: int, payload: dict[str, Any], keep: int = 2) -> Path:
+    """Write ``payload`` (plus ``iteration``) atomically, then delete all but the newest
+    ``keep`` checkpoints."""
+    path = checkpoint_path(out_dir, iteration)
+    with atomic_path(path) as tmp:
+        torch.save({**payload, "iteration": int(iteration)}, tmp)
+    for _, old in list_checkpoints(out_dir)[:-keep]:
+        old.unlink(missing_ok=True)
+    log.debug("checkpoint %s", path)
+    return path
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read a checkpoint with ``weights_only=True``; tensors mapped to ``device``."""
+    try:
+        return torch.load(Path(path), map_location=device, weights_only=True)
+    except Exception as exc:  # torch raises several types for a damaged file
+        raise ValueError(f"cannot read checkpoint {path}: {exc}; delete it to resume from an "
+                         "older one or start again") from exc

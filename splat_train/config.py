@@ -1,0 +1,193 @@
+"""Training hyperparameters (PROTOCOL.md section 3 defaults) and the schedule they imply.
+
+The seed code trained for 10k iterations: densify from iteration 500 to 10000 every 100,
+reset opacity every 3000, raise the SH degree every 1000 up to 3. A run with fewer iterations
+(the CPU default is :data:`DEFAULT_ITERATIONS`) scales every one of these iteration counts by
+``iterations / schedule_reference_iterations`` (never by more than 1, so longer runs keep the
+seed schedule), rounded and kept >= 1 (the densification period >= 10: densifying every
+iteration would double the count each step); e.g. 2000 iterations densify from 100 to 2000 every 20,
+reset opacity at 600, 1200, 1800 and reach SH degree 3 at iteration 600. The learning rates
+are not scaled; the position rate decays exponentially over the whole run whatever its length.
+``scale_schedule=False`` keeps the seed code's absolute iteration counts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", "load_config"]
+
+# Chosen from measured CPU speed on the bundled 256 px synthetic scene (see train.json and
+# the package README): a few minutes on 2 cores.
+DEFAULT_ITERATIONS = 2000
+
+# Config fields that do not change the optimisation result: they may differ on resume.
+RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads")
+
+
+@dataclass
+class TrainConfig:
+    """Every hyperparameter of a training run. Field names are the JSON override keys.
+
+    Attributes (learning rates are Adam step sizes for the stored parameterisation):
+        iterations: optimisation steps.
+        seed: seed of the run's random generator (view order, random backgrounds, splits).
+        sh_degree: maximum SH degree (3 as in 3DGS).
+        sh_increase_every: raise the active SH degree by one every so many iterations.
+        lr_position_init, lr_position_final: position rate at the start / end, multiplied by
+            the scene extent; exponential decay over the run.
+        lr_sh_dc, lr_sh_rest, lr_opacity, lr_scaling, lr_rotation: constant rates.
+        adam_eps: Adam epsilon (3DGS uses 1e-15).
+        lambda_dssim: weight of (1 - SSIM) in the loss (1 - w) L1 + w (1 - SSIM).
+        background: RGB in [0, 1] behind the Gaussians.
+        random_background: draw a uniform random background every iteration instead.
+        densify_from, densify_until, densify_every: densification window and period.
+        densify_grad_threshold: mean view-space (NDC) positional gradient norm above which a
+            Gaussian is cloned (small) or split (large).
+        percent_dense: a Gaussian is "large" when its largest scale exceeds this fraction of
+            the scene extent.
+        opacity_reset_every: set every opacity to min(opacity, opacity_reset_value) this often.
+        prune_opacity: remove Gaussians whose opacity falls below this at densification.
+        prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
+            radius exceeded this many pixels ...
+        prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
+        max_gaussians: densification stops adding Gaussians above this count (None: no cap).
+        schedule_reference_iterations, scale_schedule: see the module docstring.
+        pose_refine: learn small se(3) corrections of the training cameras (off by default).
+        lr_pose: Adam rate of the pose corrections (rotation in radians, translation in
+            scene units).
+        pose_refine_from: first iteration at which the poses move (the Gaussians settle first).
+        downsample: integer area-downsampling factor of the training images.
+        checkpoint_every, keep_checkpoints: checkpoint period and how many to keep.
+        eval_every: held-out PSNR period (only with test cameras); 0 disables (final only).
+        device: "auto" (CUDA when available), "cpu" or "cuda".
+        num_threads: torch CPU threads (0: leave torch's default).
+    """
+
+    iterations: int = DEFAULT_ITERATIONS
+    seed: int = 0
+    sh_degree: int = 3
+    sh_increase_every: int = 1000
+    lr_position_init: float = 1.6e-4
+    lr_position_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20.0
+    lr_opacity: float = 0.05
+    lr_scaling: float = 5e-3
+    lr_rotation: float = 1e-3
+    adam_eps: float = 1e-15
+    lambda_dssim: float = 0.2
+    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    random_background: bool = False
+    densify_from: int = 500
+    densify_until: int = 10000
+    densify_every: int = 100
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    opacity_reset_every: int = 3000
+    opacity_reset_value: float = 0.01
+    prune_opacity: float = 0.005
+    prune_screen_size: float = 20.0
+    prune_world_size: float = 0.1
+    max_gaussians: int | None = None
+    schedule_reference_iterations: int = 10000
+    scale_schedule: bool = True
+    pose_refine: bool = False
+    lr_pose: float = 1e-4
+    pose_refine_from: int = 0
+    downsample: int = 1
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 2
+    eval_every: int = 200
+    device: str = "auto"
+    num_threads: int = 0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if len(self.background) != 3:
+            raise ValueError(f"background must be 3 numbers (RGB in [0, 1]), got {self.background}")
+        self.background = [float(x) for x in self.background]
+        if int(self.downsample) != self.downsample or self.downsample < 1:
+            raise ValueError(f"downsample must be a positive integer, got {self.downsample}")
+        if self.checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+        if self.keep_checkpoints < 1:
+            raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **overrides: Any) -> "TrainConfig":
+        """A copy with ``overrides`` applied; unknown keys raise ValueError naming them."""
+        known = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown training config keys {unknown}; valid keys: {sorted(known)}")
+        return dataclasses.replace(self, **overrides)
+
+    def schedule(self) -> "Schedule":
+        """The iteration counts this run uses (scaled as described in the module docstring)."""
+        f = 1.0
+        if self.scale_schedule:
+            f = min(1.0, self.iterations / float(self.schedule_reference_iterations))
+
+        def sc(n: int, floor: int = 1) -> int:
+            return max(floor, int(round(n * f))) if f < 1.0 else int(n)
+
+        every = sc(self.densify_every, min(10, self.densify_every))
+        return Schedule(
+            densify_from=sc(self.densify_from),
+            densify_until=sc(self.densify_until),
+            densify_every=every,
+            opacity_reset_every=sc(self.opacity_reset_every),
+            sh_increase_every=sc(self.sh_increase_every),
+            factor=f,
+        )
+
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Iteration counts in effect for one run (after scaling); ``factor`` is the scale used."""
+
+    densify_from: int
+    densify_until: int
+    densify_every: int
+    opacity_reset_every: int
+    sh_increase_every: int
+    factor: float
+
+    def sh_degree_at(self, iteration: int, max_degree: int) -> int:
+        """Active SH degree at 1-based ``iteration``: +1 every ``sh_increase_every``."""
+        return min(max_degree, (iteration - 1) // self.sh_increase_every)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def load_config(overrides: str | Path | dict | None = None, **cli: Any) -> TrainConfig:
+    """Defaults, then JSON overrides (a file path, a JSON string or a dict), then ``cli``
+    values that are not None (the CLI flags win)."""
+    data: dict[str, Any] = {}
+    if isinstance(overrides, dict):
+        data = dict(overrides)
+    elif overrides is not None:
+        text = str(overrides)
+        p = Path(text)
+        try:
+            data = json.loads(p.read_text() if p.is_file() else text)
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"--config must be a JSON file or a JSON object string: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"--config must hold a JSON object, got {type(data).__name__}")
+    data.update({k: v for k, v in cli.items() if v is not None})
+    return TrainConfig().replace(**data)

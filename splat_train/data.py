@@ -1,0 +1,149 @@
+"""Training data: the seed PLY, a COLMAP camera folder and the images, matched by name.
+
+The cameras (``camio.colmap.read_model``) must be in the frame of the seed PLY (the Bridge
+writes both). Images may have another size than the COLMAP cameras (e.g. the cameras at the
+original resolution, the images at 1/8): the intrinsics are rescaled to the image size
+(:meth:`camio.Camera.scaled`), which is exact in the COLMAP pixel convention. An optional
+integer ``downsample`` then area-downsamples each image (remainder rows / columns cropped) and
+divides K by the factor.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from camio import Camera
+from camio.cameras import scale_intrinsics
+from camio.images import downsample_area, image_size, read_image
+from camio.colmap import read_model
+
+__all__ = ["View", "load_views", "load_cameras", "read_name_list", "scene_extent"]
+
+log = logging.getLogger(__name__)
+
+# Images whose aspect ratio differs from the camera's by more than this are refused.
+ASPECT_TOLERANCE = 0.02
+
+
+@dataclass
+class View:
+    """One posed image ready for training or evaluation.
+
+    Attributes:
+        camera: pinhole camera at the image's size (K in its pixels, cam_from_world [3, 4]).
+        image: [H, W, 3] float32 RGB in [0, 1], or None for render-only views.
+    """
+
+    camera: Camera
+    image: np.ndarray | None = None
+
+    @property
+    def name(self) -> str:
+        return self.camera.name
+
+
+def read_name_list(path: str | Path) -> list[str]:
+    """Image names from a file: a JSON list, or plain text with one name per line ('#'
+    starts a comment, blank lines ignored)."""
+    path = Path(path)
+    text = path.read_text()
+    if path.suffix.lower() == ".json":
+        data = json.loads(text)
+        if not isinstance(data, list) or not all(isinstance(x, str) for x in data):
+            raise ValueError(f"{path}: a JSON image list must be a list of names")
+        return list(data)
+    names = [line.split("#", 1)[0].strip() for line in text.splitlines()]
+    return [n for n in names if n]
+
+
+def load_cameras(cameras_dir: str | Path, names: list[str] | None = None) -> list[Camera]:
+    """The posed pinhole cameras of a COLMAP folder, sorted by name, optionally restricted to
+    ``names`` (every name must be present)."""
+    model = read_model(cameras_dir)
+    cams = model.cameras
+    if names is not None:
+        have = {c.name for c in cams}
+        missing = sorted(set(names) - have)
+        if missing:
+            raise KeyError(f"image names not in the camera model {cameras_dir}: {missing[:5]} "
+                           f"({len(missing)} missing); check --image-list against the model")
+        wanted = set(names)
+        cams = [c for c in cams if c.name in wanted]
+    if not cams:
+        raise ValueError(f"no cameras to use in {cameras_dir}")
+    return cams
+
+
+def _fit_camera(cam: Camera, width: int, height: int) -> Camera:
+    if (width, height) == (cam.width, cam.height):
+        return cam
+    ra, rb = cam.width / cam.height, width / height
+    if abs(ra / rb - 1.0) > ASPECT_TOLERANCE:
+        raise ValueError(
+            f"image {cam.name!r} is {width}x{height} but its camera is {cam.width}x{cam.height} "
+            "(different aspect ratio): the images do not belong to these cameras, or were cropped"
+        )
+    return cam.scaled(width, height)
+
+
+def downsample_camera(cam: Camera, factor: int) -> Camera:
+    """The camera of ``downsample_area(image, factor)``: size floor-divided, K / factor."""
+    if factor == 1:
+        return cam
+    return Camera(cam.name, cam.width // factor, cam.height // factor,
+                  scale_intrinsics(cam.K, 1.0 / factor), cam.cam_from_world.copy())
+
+
+def load_views(cameras_dir: str | Path, images_dir: str | Path | None, names: list[str] | None = None,
+               downsample: int = 1, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+               read_pixels: bool = True) -> list[View]:
+    """Cameras matched with their images.
+
+    Args:
+        cameras_dir: COLMAP model folder (text or binary).
+        images_dir: folder holding the image files named as in the model (None: the views
+            keep the camera sizes and have no pixels).
+        names: restrict to these image names.
+        downsample: integer area-downsampling factor.
+        background: composited under transparent pixels of RGBA images.
+        read_pixels: False reads only the image sizes (for rendering).
+
+    Returns:
+        Views sorted by name; images [H, W, 3] float32 in [0, 1].
+    """
+    cams = load_cameras(cameras_dir, names)
+    views: list[View] = []
+    for cam in cams:
+        img = None
+        if images_dir is not None:
+            path = Path(images_dir) / cam.name
+            if not path.is_file():
+                raise FileNotFoundError(f"no image file {path} for camera {cam.name!r}: "
+                                        "--images must hold the images named in the camera model")
+            if read_pixels:
+                img = read_image(path, background)
+                h, w = img.shape[:2]
+            else:
+                w, h = image_size(path)
+            cam = _fit_camera(cam, w, h)
+        if downsample > 1:
+            cam = downsample_camera(cam, downsample)
+            if img is not None:
+                img = downsample_area(img, downsample)
+        views.append(View(cam, img))
+    log.info("loaded %d views from %s (%s)", len(views), cameras_dir,
+             "x".join(map(str, (views[0].camera.width, views[0].camera.height))))
+    return views
+
+
+def scene_extent(cameras: list[Camera]) -> float:
+    """3DGS scene extent: 1.1 x the largest distance of a camera centre from their mean
+    (``getNerfppNorm``); 1.0 for a single camera (or coincident centres)."""
+    c = np.stack([cam.center for cam in cameras])
+    radius = float(np.linalg.norm(c - c.mean(0), axis=1).max()) * 1.1
+    return radius if radius > 1e-9 else 1.0

@@ -1,0 +1,233 @@
+"""Adaptive density control of 3DGS (clone, split, prune, opacity reset), gsplat style.
+
+:class:`DensifyStrategy` holds the settings; its running statistics live outside it in a plain
+dict of tensors (``init_state``) so that they can be checkpointed. The plain ops
+:func:`duplicate`, :func:`split`, :func:`remove` and :func:`reset_opacity` rewrite the
+parameter dict *and* the Adam state of every group consistently:
+
+* new rows (clones, split children) start with zero Adam moments (as in 3DGS);
+* removed rows drop their moments; kept rows keep theirs; Adam's step count is unchanged;
+* an opacity reset zeroes the opacity group's moments.
+
+Parameters follow :mod:`splat_train.gaussians` (log scales, logit opacity, w x y z quats).
+
+View-space gradient units: the accumulated statistic is the norm of d loss / d (2D mean) in
+normalised device coordinates, i.e. the pixel-space gradient times (W / 2, H / 2), which is
+what the 3DGS threshold 2e-4 refers to (gsplat converts the same way).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+__all__ = ["DensifyStrategy", "duplicate", "split", "remove", "reset_opacity",
+           "quat_to_rotmat", "update_params"]
+
+log = logging.getLogger(__name__)
+
+Params = dict[str, torch.nn.Parameter]
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[N, 4] (w, x, y, z), any norm > 0 -> [N, 3, 3] rotation matrices."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(-1, 3, 3)
+
+
+def update_params(
+    params: Params,
+    optimizer: torch.optim.Optimizer,
+    param_fn: Callable[[str, torch.Tensor], torch.Tensor],
+    state_fn: Callable[[str, torch.Tensor], torch.Tensor],
+    names: tuple[str, ...] | None = None,
+) -> None:
+    """Replace ``params[name]`` by ``param_fn(name, old)`` and each per-row Adam state tensor
+    (``exp_avg``, ``exp_avg_sq``) by ``state_fn(name, old_state)``, in place of the group's
+    parameter. Scalar state (``step``) is kept."""
+    names = tuple(params) if names is None else names
+    for group in optimizer.param_groups:
+        name = group.get("name")
+        if name not in names:
+            continue
+        old = group["params"][0]
+        new = torch.nn.Parameter(param_fn(name, old.detach()), requires_grad=old.requires_grad)
+        st = optimizer.state.pop(old, None)
+        if st is not None:
+            for key, v in list(st.items()):
+                if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
+                    st[key] = state_fn(name, v)
+            optimizer.state[new] = st
+        group["params"][0] = new
+        params[name] = new
+
+
+def _append_zero_state(n_new: int) -> Callable[[str, torch.Tensor], torch.Tensor]:
+    return lambda name, v: torch.cat([v, v.new_zeros((n_new, *v.shape[1:]))])
+
+
+def duplicate(params: Params, optimizer: torch.optim.Optimizer, mask: torch.Tensor) -> int:
+    """Clone the Gaussians selected by ``mask`` [N] bool (copies appended at the end).
+    Returns the number added."""
+    sel = mask.nonzero().squeeze(1)
+    update_params(params, optimizer, lambda name, p: torch.cat([p, p[sel]]),
+                  _append_zero_state(len(sel)))
+    return len(sel)
+
+
+def split(params: Params, optimizer: torch.optim.Optimizer, mask: torch.Tensor,
+          generator: torch.Generator | None = None, n_children: int = 2) -> int:
+    """Replace each Gaussian selected by ``mask`` [N] bool by ``n_children`` children (3DGS):
+    centres drawn from N(mean, R diag(s^2) R^T), scales s / (0.8 n_children), the other
+    parameters copied. The parents are removed; survivors keep their order and the children
+    are appended. Returns the net number added."""
+    sel = mask.nonzero().squeeze(1)
+    keep = (~mask).nonzero().squeeze(1)
+    m = len(sel)
+    with torch.no_grad():
+        scales = torch.exp(params["scales"][sel])  # [M, 3]
+        rot = quat_to_rotmat(params["quats"][sel])  # [M, 3, 3]
+        eps = torch.randn((n_children, m, 3), generator=generator, dtype=scales.dtype,
+                          device="cpu").to(scales.device)
+        offsets = torch.einsum("mij,cmj->cmi", rot, eps * scales[None])  # [C, M, 3]
+        children_means = (params["means"][sel][None] + offsets).reshape(-1, 3)
+        children_scales = torch.log(scales / (0.8 * n_children)).repeat(n_children, 1)
+
+    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+        if name == "means":
+            child = children_means
+        elif name == "scales":
+            child = children_scales
+        else:
+            child = p[sel].repeat(n_children, *([1] * (p.dim() - 1)))
+        return torch.cat([p[keep], child])
+
+    def state_fn(name: str, v: torch.Tensor) -> torch.Tensor:
+        return torch.cat([v[keep], v.new_zeros((n_children * m, *v.shape[1:]))])
+
+    update_params(params, optimizer, param_fn, state_fn)
+    return (n_children - 1) * m
+
+
+def remove(params: Params, optimizer: torch.optim.Optimizer, mask: torch.Tensor) -> int:
+    """Delete the Gaussians selected by ``mask`` [N] bool. Returns the number removed."""
+    keep = (~mask).nonzero().squeeze(1)
+    update_params(params, optimizer, lambda name, p: p[keep], lambda name, v: v[keep])
+    return int(mask.sum())
+
+
+def reset_opacity(params: Params, optimizer: torch.optim.Optimizer, value: float = 0.01) -> None:
+    """Clamp every opacity to at most ``value`` (stored as logit) and zero its Adam moments."""
+    cap = float(torch.logit(torch.tensor(value, dtype=torch.float64)))
+    update_params(params, optimizer, lambda name, p: p.clamp_max(cap),
+                  lambda name, v: torch.zeros_like(v), names=("opacity",))
+
+
+@dataclass
+class DensifyStrategy:
+    """The 3DGS densification schedule and thresholds (iteration counts already scaled).
+
+    Attributes:
+        densify_from, densify_until, densify_every: densify at iterations it with
+            densify_from < it <= densify_until and it % densify_every == 0 (1-based).
+        opacity_reset_every: reset at it % opacity_reset_every == 0, it <= densify_until.
+        grad_threshold: mean NDC view-space gradient norm that triggers clone / split.
+        percent_dense: clone if max scale <= percent_dense * extent, else split.
+        prune_opacity: prune alpha below this.
+        prune_screen_size, prune_world_size: after the first reset, prune Gaussians whose 2D
+            radius exceeded prune_screen_size pixels or whose max scale exceeds
+            prune_world_size * extent.
+        reset_value: opacity after a reset.
+        max_gaussians: no clone/split beyond this count (None: unlimited).
+    """
+
+    densify_from: int = 500
+    densify_until: int = 10000
+    densify_every: int = 100
+    opacity_reset_every: int = 3000
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    prune_screen_size: float = 20.0
+    prune_world_size: float = 0.1
+    reset_value: float = 0.01
+    max_gaussians: int | None = None
+
+    @staticmethod
+    def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
+        """Running statistics for n Gaussians: grad2d sum [N], count [N], max radius [N]."""
+        return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device),
+                "max_radii": torch.zeros(n, device=device)}
+
+    def update_state(self, state: dict[str, torch.Tensor], means2d_grad: torch.Tensor,
+                     radii: torch.Tensor, visible: torch.Tensor, width: int, height: int,
+                     iteration: int) -> None:
+        """Accumulate one view's statistics (only while densification is still to come).
+
+        Args:
+            means2d_grad: [N, 2] d loss / d means2d in pixels.
+            radii: [N] screen radius in pixels; visible: [N] bool.
+        """
+        if iteration > self.densify_until:
+            return
+        g = means2d_grad.detach().clone()
+        g[:, 0] *= width / 2.0
+        g[:, 1] *= height / 2.0
+        vis = visible & torch.isfinite(g).all(1)
+        state["grad2d"][vis] += g[vis].norm(dim=-1)
+        state["count"][vis] += 1
+        state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis].float())
+
+    def step(self, params: Params, optimizer: torch.optim.Optimizer, state: dict[str, torch.Tensor],
+             iteration: int, extent: float, generator: torch.Generator | None = None) -> dict[str, int]:
+        """Run whatever the schedule asks at 1-based ``iteration`` (after the optimizer step).
+
+        Returns counts {"cloned", "split", "pruned", "reset"} (zeros when nothing ran).
+        """
+        out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        if iteration > self.densify_until:
+            return out
+        if iteration > self.densify_from and iteration % self.densify_every == 0:
+            out.update(self._densify_and_prune(params, optimizer, state, iteration, extent, generator))
+        if iteration % self.opacity_reset_every == 0:
+            reset_opacity(params, optimizer, self.reset_value)
+            out["reset"] = 1
+        return out
+
+    def _densify_and_prune(self, params, optimizer, state, iteration, extent, generator) -> dict[str, int]:
+        n = params["means"].shape[0]
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        high = grads >= self.grad_threshold
+        big = torch.exp(params["scales"].detach()).amax(1) > self.percent_dense * extent
+        clone_mask, split_mask = high & ~big, high & big
+        if self.max_gaussians is not None:
+            room = max(0, self.max_gaussians - n)
+            if int(clone_mask.sum() + split_mask.sum()) > room:
+                log.debug("max_gaussians %d reached: no clone/split at %d", self.max_gaussians, iteration)
+                clone_mask = split_mask = torch.zeros_like(high)
+        n_clone = duplicate(params, optimizer, clone_mask)
+        # Radii statistics follow the rows: clones copy theirs; split children start at 0.
+        radii = torch.cat([state["max_radii"], state["max_radii"][clone_mask]])
+        split_mask = torch.cat([split_mask, split_mask.new_zeros(n_clone)])
+        n_split = split(params, optimizer, split_mask, generator)
+        radii = torch.cat([radii[~split_mask], radii.new_zeros(2 * int(split_mask.sum()))])
+
+        alpha = torch.sigmoid(params["opacity"].detach())
+        prune = alpha < self.prune_opacity
+        if iteration > self.opacity_reset_every:
+            prune |= radii > self.prune_screen_size
+            prune |= torch.exp(params["scales"].detach()).amax(1) > self.prune_world_size * extent
+        n_pruned = remove(params, optimizer, prune)
+        m = params["means"].shape[0]
+        state.update(self.init_state(m, params["means"].device))
+        log.debug("it %d: cloned %d, split %d, pruned %d -> %d Gaussians",
+                  iteration, n_clone, int(split_mask.sum()), n_pruned, m)
+        return {"cloned": n_clone, "split": int(split_mask.sum()), "pruned": n_pruned}

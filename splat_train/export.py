@@ -1,0 +1,113 @@
+"""Rendering trained Gaussians into camera sets: PNG files and PSNR against images.
+
+Used by the trainer at the end of a run and by ``python -m splat_train render`` (the
+evaluation stage renders the held-out cameras with it). Output names: the image name with
+its suffix replaced by ``.png`` (sub-folders kept), e.g. ``IMG_0001.JPG -> IMG_0001.png``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from camio import Camera
+from camio.images import write_image
+from camio.logs import progress
+from camio.ply import read_gaussian_ply
+from splat_train.data import View, load_views, read_name_list
+from splat_train.gaussians import activated, params_from_cloud, sh_coeffs
+from splat_train.losses import psnr
+from splat_train.rasterize import rasterize
+
+__all__ = ["render_params", "render_views", "render_model", "render_name"]
+
+log = logging.getLogger(__name__)
+
+
+def render_name(image_name: str) -> str:
+    """Relative output path of a render: ``name`` with suffix ``.png``."""
+    return str(Path(image_name).with_suffix(".png"))
+
+
+def camera_tensors(cam: Camera, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """(cam_from_world [4, 4], K [3, 3]) float32 tensors of a camera."""
+    m = np.eye(4)
+    m[:3] = cam.cam_from_world
+    return (torch.as_tensor(m, dtype=torch.float32, device=device),
+            torch.as_tensor(cam.K, dtype=torch.float32, device=device))
+
+
+def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
+                  K: torch.Tensor, width: int, height: int, background: torch.Tensor) -> dict:
+    """Rasterize the trainable Gaussians (:mod:`splat_train.gaussians`) into one camera.
+
+    Args:
+        cam_from_world: [4, 4] world -> OpenCV camera; K: [3, 3] pixels.
+        background: [3] RGB.
+
+    Returns:
+        The :func:`splat_train.rasterize` dict (``rgb`` [H, W, 3], ``means2d`` [N, 2], ...).
+    """
+    scales, opac, quats = activated(params)
+    return rasterize(params["means"], quats, scales, opac, sh_coeffs(params, sh_degree),
+                     cam_from_world, K, width, height, background=background, sh_degree=sh_degree)
+
+
+@torch.no_grad()
+def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[View],
+                 background: torch.Tensor, out_dir: str | Path | None = None,
+                 cam_override: list[torch.Tensor] | None = None, desc: str = "render") -> dict[str, float]:
+    """Render every view; write PNGs into ``out_dir`` (if given); PSNR where a view has an image.
+
+    Args:
+        cam_override: optional [4, 4] cam_from_world per view (refined poses).
+
+    Returns:
+        image name -> PSNR in dB (only views with an image).
+    """
+    dev = params["means"].device
+    scores: dict[str, float] = {}
+    for i, v in enumerate(progress(views, desc=desc)):
+        cw, K = camera_tensors(v.camera, dev)
+        if cam_override is not None:
+            cw = cam_override[i].to(dev)
+        out = render_params(params, sh_degree, cw, K, v.camera.width, v.camera.height, background)
+        rgb = out["rgb"].clamp(0.0, 1.0)
+        if v.image is not None:
+            scores[v.name] = psnr(rgb, torch.as_tensor(v.image, device=dev))
+        if out_dir is not None:
+            write_image(Path(out_dir) / render_name(v.name), rgb.cpu().numpy())
+    return scores
+
+
+def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
+                 images: str | Path | None = None, width: int | None = None, height: int | None = None,
+                 names: str | Path | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 device: str = "cpu") -> dict[str, float]:
+    """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs.
+
+    Image sizes: the camera sizes; or those of the same-named files in ``images`` (K rescaled;
+    the PSNR against them is returned); or ``width`` x ``height`` for every camera.
+
+    Returns:
+        image name -> PSNR (empty without ``images``).
+    """
+    t0 = time.perf_counter()
+    name_list = read_name_list(names) if names is not None else None
+    views = load_views(cameras, images, name_list, read_pixels=images is not None)
+    if (width is None) != (height is None):
+        raise ValueError("give both --width and --height, or neither")
+    if width is not None:
+        views = [View(v.camera.scaled(int(width), int(height)), None) for v in views]
+    cloud = read_gaussian_ply(model)
+    params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    scores = render_views(params, cloud.sh_degree, views, bg, out_dir)
+    log.info("rendered %d views of %s (%d Gaussians) into %s in %.1f s%s", len(views), model,
+             len(cloud), out_dir, time.perf_counter() - t0,
+             f", mean PSNR {np.mean(list(scores.values())):.2f} dB" if scores else "")
+    return scores

@@ -1,0 +1,117 @@
+"""Photometric losses and metrics: L1, SSIM (exactly as 3DGS computes it), PSNR.
+
+Image layouts accepted by every function here:
+
+* ``[B, 3, H, W]`` (channels first, batched), or
+* ``[H, W, 3]`` (one channel-last image, the layout of :mod:`camio` and of the rasterizer).
+
+Values are expected in [0, 1]; SSIM's constants C1 = (0.01)^2, C2 = (0.03)^2 assume that range.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["ssim", "l1_loss", "psnr", "photometric_loss", "gaussian_window"]
+
+
+def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
+    if img.dim() == 4:
+        return img
+    if img.dim() == 3 and img.shape[-1] == 3:
+        return img.permute(2, 0, 1).unsqueeze(0)
+    raise ValueError(f"{name} must be [B, C, H, W] or [H, W, 3], got shape {tuple(img.shape)}")
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Normalised 2D Gaussian window [size, size]: outer product of the 1D window
+    g[i] = exp(-(i - size // 2)^2 / (2 sigma^2)) / sum (the 3DGS ``create_window``)."""
+    x = torch.arange(size, dtype=torch.float64) - size // 2
+    g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
+    g = g / g.sum()
+    return torch.outer(g, g).to(dtype=dtype, device=device)
+
+
+def ssim(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    window_size: int = 11,
+    sigma: float = 1.5,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Structural similarity exactly as the 3DGS training code computes it.
+
+    Local statistics use an ``window_size`` x ``window_size`` Gaussian window (sigma 1.5),
+    applied per channel by ``conv2d`` with zero padding ``window_size // 2`` (so the map has
+    the image size and border windows see zeros outside the image), C1 = 0.01^2, C2 = 0.03^2:
+
+        ssim_map = ((2 mu1 mu2 + C1)(2 sigma12 + C2)) / ((mu1^2 + mu2^2 + C1)(sigma1^2 + sigma2^2 + C2))
+
+    with sigma1^2 = E[x^2] - mu1^2 etc. The result is the mean of the map over channels and
+    pixels (and images). Differentiable; any float dtype.
+
+    Args:
+        img1, img2: [B, C, H, W] or [H, W, 3], same shape, values in [0, 1].
+        window_size, sigma: the Gaussian window (3DGS: 11 and 1.5).
+        reduction: "mean" -> scalar; "none" -> [B] per-image means.
+
+    Returns:
+        Scalar (or [B]) tensor; 1 for identical images.
+    """
+    if img1.shape != img2.shape:
+        raise ValueError(f"ssim: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    a = _to_bchw(img1, "img1")
+    b = _to_bchw(img2, "img2")
+    c = a.shape[1]
+    w = gaussian_window(window_size, sigma, dtype=a.dtype, device=a.device)
+    w = w.expand(c, 1, window_size, window_size).contiguous()
+    pad = window_size // 2
+
+    def filt(x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(x, w, padding=pad, groups=c)
+
+    mu1, mu2 = filt(a), filt(b)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    sigma1_sq = filt(a * a) - mu1_sq
+    sigma2_sq = filt(b * b) - mu2_sq
+    sigma12 = filt(a * b) - mu12
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim_map = ((2 * mu12 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
+    if reduction == "mean":
+        return ssim_map.mean()
+    if reduction == "none":
+        return ssim_map.flatten(1).mean(1)
+    raise ValueError(f"ssim: reduction must be 'mean' or 'none', got {reduction!r}")
+
+
+def l1_loss(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference (any equal shapes) -> scalar."""
+    if img1.shape != img2.shape:
+        raise ValueError(f"l1_loss: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    return (img1 - img2).abs().mean()
+
+
+def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
+    """PSNR in dB of images in [0, 1] (any equal shapes): -10 log10(MSE); inf when equal."""
+    mse = float(((img1.double() - img2.double()) ** 2).mean())
+    return float("inf") if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+def photometric_loss(
+    render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 3DGS loss (1 - lambda) L1 + lambda (1 - SSIM).
+
+    Args:
+        render, target: [H, W, 3] (or [B, 3, H, W]) images in [0, 1].
+        lambda_dssim: weight of the SSIM term (0.2).
+
+    Returns:
+        (loss, l1, ssim) scalars; loss carries the gradient.
+    """
+    l1 = l1_loss(render, target)
+    s = ssim(render, target)
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s

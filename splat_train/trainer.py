@@ -1,0 +1,317 @@
+"""The 3DGS optimisation loop (PROTOCOL.md section 3) with checkpoints, resume and outputs.
+
+One iteration (1-based ``it``): set the position rate (exponential decay x scene extent), pick
+the next training view from a shuffled stack (refilled with a new permutation when empty, as
+3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
+(+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
+view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled), then
+densify / prune / reset opacity when the schedule says so (:mod:`splat_train.densify`).
+
+All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
+every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
+uninterrupted run. Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
+``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from camio import Camera
+from camio.atomic import write_json
+from camio.colmap import write_text_model
+from camio.logs import peak_rss_mb, progress
+from camio.ply import read_gaussian_ply, write_gaussian_ply
+from splat_train import checkpoint as ckpt
+from splat_train.config import RESUME_FREE_KEYS, TrainConfig
+from splat_train.data import View, load_views, read_name_list, scene_extent
+from splat_train.densify import DensifyStrategy
+from splat_train.export import camera_tensors, render_params, render_views
+from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
+from splat_train.losses import photometric_loss
+from splat_train.pose import PoseCorrections
+from splat_train.runlog import RunLog
+
+__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer"]
+
+log = logging.getLogger(__name__)
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss became NaN or infinite; the last good checkpoint is kept."""
+
+
+@dataclass
+class TrainResult:
+    """Summary of a finished run (the content of ``train.json``)."""
+
+    out_dir: Path
+    summary: dict[str, Any]
+
+    @property
+    def model_path(self) -> Path:
+        return self.out_dir / "model.ply"
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; use --config "
+                           "'{\"device\": \"cpu\"}' or install a CUDA build of torch")
+    return torch.device(name)
+
+
+class Trainer:
+    """State of one run; :meth:`run` trains to ``cfg.iterations`` and writes the outputs."""
+
+    def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
+                 test_views: list[View] | None = None) -> None:
+        if not train_views:
+            raise ValueError("no training views")
+        self.cfg, self.out = cfg, Path(out_dir)
+        self.sched = cfg.schedule()
+        self.dev = _device(cfg.device)
+        self.train_views, self.test_views = train_views, test_views or []
+        self.extent = scene_extent([v.camera for v in train_views])
+        self.strategy = DensifyStrategy(
+            densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,
+            densify_every=self.sched.densify_every, opacity_reset_every=self.sched.opacity_reset_every,
+            grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
+            prune_opacity=cfg.prune_opacity, prune_screen_size=cfg.prune_screen_size,
+            prune_world_size=cfg.prune_world_size, reset_value=cfg.opacity_reset_value,
+            max_gaussians=cfg.max_gaussians)
+        self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
+        self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
+        self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
+        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.params = params_from_cloud(read_gaussian_ply(seed_ply), cfg.sh_degree, self.dev)
+        self.optimizer = make_optimizer(self.params, cfg, self.extent)
+        self.state = DensifyStrategy.init_state(len(self.params["means"]), self.dev)
+        self.pose = self.pose_opt = None
+        if cfg.pose_refine:
+            self.pose = PoseCorrections(len(train_views), self.dev)
+            self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=cfg.lr_pose)
+        self.stack: list[int] = []
+        self.log = RunLog()
+        self.iteration, self.wall, self.resumed_from = 0, 0.0, None
+
+    # ---------------------------------------------------------------- checkpoints
+    def payload(self) -> dict[str, Any]:
+        return {
+            "params": {k: p.detach().clone() for k, p in self.params.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "strategy_state": {k: v.clone() for k, v in self.state.items()},
+            "pose": None if self.pose is None else {"delta": self.pose.delta.detach().clone(),
+                                                    "optimizer": self.pose_opt.state_dict()},
+            "rng": self.gen.get_state(),
+            "view_stack": torch.tensor(self.stack, dtype=torch.int64),
+            "train_names": [v.name for v in self.train_views],
+            "log": self.log.state_dict(),
+            "wall_time_s": float(self.wall),
+            "config": self.cfg.to_dict(),
+        }
+
+    def restore(self, path: Path) -> None:
+        """Continue from checkpoint ``path`` (its config and training views must match)."""
+        data = ckpt.load_checkpoint(path, self.dev)
+        old, new = data["config"], self.cfg.to_dict()
+        diff = sorted(k for k in new if k not in RESUME_FREE_KEYS and old.get(k) != new[k])
+        if diff:
+            raise ValueError(f"cannot resume from {path}: its config differs in {diff} "
+                             f"({ {k: old.get(k) for k in diff} } vs { {k: new[k] for k in diff} }); "
+                             "use another --out or delete its ckpt/ folder to start again")
+        if list(data["train_names"]) != [v.name for v in self.train_views]:
+            raise ValueError(f"cannot resume from {path}: it was trained on other images; use another --out")
+        self.params = {k: torch.nn.Parameter(v.to(self.dev)) for k, v in data["params"].items()}
+        self.optimizer = make_optimizer(self.params, self.cfg, self.extent)
+        self.optimizer.load_state_dict(data["optimizer"])
+        self.state = {k: v.to(self.dev) for k, v in data["strategy_state"].items()}
+        if self.pose is not None:
+            self.pose.delta.data.copy_(data["pose"]["delta"])
+            self.pose_opt.load_state_dict(data["pose"]["optimizer"])
+        self.gen.set_state(data["rng"])
+        self.stack = [int(x) for x in data["view_stack"].tolist()]
+        self.log.load_state_dict(data["log"])
+        self.wall = float(data["wall_time_s"])
+        self.iteration = int(data["iteration"])
+        self.resumed_from = str(path)
+        log.info("resumed from %s at iteration %d (%d Gaussians)", path, self.iteration, self.num_gaussians)
+
+    def save(self) -> Path:
+        bad = [k for k, p in self.params.items() if not torch.isfinite(p).all()]
+        if bad:
+            raise NonFiniteLossError(f"non-finite parameters {bad} at iteration {self.iteration}; "
+                                     f"not checkpointed; last good: {ckpt.latest_checkpoint(self.out)}")
+        return ckpt.save_checkpoint(self.out, self.iteration, self.payload(), self.cfg.keep_checkpoints)
+
+    # ---------------------------------------------------------------- training
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def next_view(self) -> int:
+        if not self.stack:
+            self.stack = torch.randperm(len(self.train_views), generator=self.gen).tolist()
+        return self.stack.pop()
+
+    def camera(self, idx: int) -> torch.Tensor:
+        cw = self.cams[idx][0]
+        if self.pose is not None and self.iteration >= self.cfg.pose_refine_from:
+            cw = self.pose(idx, cw)
+        return cw
+
+    def refined_cameras(self) -> list[torch.Tensor]:
+        with torch.no_grad():
+            return [self.camera(i).detach() for i in range(len(self.train_views))]
+
+    def step(self) -> dict[str, float]:
+        """One optimisation iteration (``self.iteration`` is advanced first)."""
+        self.iteration += 1
+        it, cfg = self.iteration, self.cfg
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = position_lr(cfg, it, self.extent)
+        deg = self.sched.sh_degree_at(it, cfg.sh_degree)
+        idx = self.next_view()
+        bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
+        cam = self.train_views[idx].camera
+        out = render_params(self.params, deg, self.camera(idx), self.cams[idx][1], cam.width, cam.height, bg)
+        loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
+        if not torch.isfinite(loss.detach()):
+            last = ckpt.latest_checkpoint(self.out)
+            raise NonFiniteLossError(
+                f"loss is {loss.item()} at iteration {it} (view {cam.name!r}); the run stops. "
+                f"Last good checkpoint: {last or 'none (no checkpoint written yet)'}. Lower the "
+                "learning rates or check the seed PLY / cameras for extreme values.")
+        loss.backward()
+        if out["means2d"].grad is not None:
+            self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
+                                       cam.width, cam.height, it)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.pose_opt is not None:
+            self.pose_opt.step()
+            self.pose_opt.zero_grad(set_to_none=True)
+        self.strategy.step(self.params, self.optimizer, self.state, it, self.extent, self.gen)
+        with torch.no_grad():
+            mse = float(((out["rgb"].detach() - self.targets[idx]) ** 2).mean())
+        return {"loss": loss.item(), "l1": l1.item(), "ssim": s.item(),
+                "train_psnr": -10 * math.log10(max(mse, 1e-20))}
+
+    def evaluate(self, views: list[View], out_dir: Path | None = None, refined: bool = False) -> float:
+        """Mean PSNR over ``views`` at the current SH degree (NaN without views)."""
+        if not views:
+            return float("nan")
+        deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.sh_degree)
+        override = self.refined_cameras() if refined and self.pose is not None else None
+        scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate")
+        return float(np.mean(list(scores.values()))) if scores else float("nan")
+
+    def run(self) -> TrainResult:
+        cfg = self.cfg
+        latest = ckpt.latest_checkpoint(self.out)
+        if latest is not None:
+            self.restore(latest)
+        t_start = time.perf_counter()
+        eval_time = 0.0
+        every_log = max(1, cfg.iterations // 10)
+        bar = progress(range(self.iteration + 1, cfg.iterations + 1), total=cfg.iterations - self.iteration,
+                       desc="train")
+        for _ in bar:
+            t0 = time.perf_counter()
+            rec = self.step()
+            self.wall += time.perf_counter() - t0
+            it = self.iteration
+            test_psnr = float("nan")
+            if self.test_views and cfg.eval_every > 0 and (it % cfg.eval_every == 0 or it == cfg.iterations):
+                te = time.perf_counter()
+                test_psnr = self.evaluate(self.test_views)
+                eval_time += time.perf_counter() - te
+            self.log.append(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
+                            test_psnr=test_psnr, **rec)
+            if it % 10 == 0 or it == cfg.iterations:
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['train_psnr']:.2f}", n=self.num_gaussians)
+            if it % every_log == 0:
+                log.info("it %d/%d loss %.4f psnr %.2f n %d%s (%.2f it/s)", it, cfg.iterations, rec["loss"],
+                         rec["train_psnr"], self.num_gaussians,
+                         "" if math.isnan(test_psnr) else f" test psnr {test_psnr:.2f}", it / max(self.wall, 1e-9))
+            if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+                self.save()
+                self.log.write_parquet(self.out / "log.parquet")
+        return self.finish(time.perf_counter() - t_start, eval_time)
+
+    def finish(self, session_s: float, eval_time: float) -> TrainResult:
+        """Write model.ply, log.parquet, renders/, train.json (and cameras_refined/)."""
+        out, cfg = self.out, self.cfg
+        write_gaussian_ply(out / "model.ply", params_to_cloud(self.params))
+        self.log.write_parquet(out / "log.parquet")
+        render_set = self.test_views if self.test_views else self.train_views
+        test_psnr = self.evaluate(self.test_views, out / "renders") if self.test_views else float("nan")
+        train_psnr = self.evaluate(self.train_views, None if self.test_views else out / "renders", refined=True)
+        if self.pose is not None:
+            cams = [Camera(v.name, v.camera.width, v.camera.height, v.camera.K, cw.cpu().double().numpy()[:3])
+                    for v, cw in zip(self.train_views, self.refined_cameras())]
+            write_text_model(out / "cameras_refined", cams)
+        summary = {
+            "iterations": cfg.iterations, "wall_time_s": self.wall, "session_time_s": session_s,
+            "eval_time_s": eval_time, "num_gaussians": self.num_gaussians,
+            "train_psnr": train_psnr, "test_psnr": test_psnr,
+            "num_train_views": len(self.train_views), "num_test_views": len(self.test_views),
+            "rendered": [v.name for v in render_set], "scene_extent": self.extent,
+            "peak_rss_mb": peak_rss_mb(),
+            "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
+            "device": str(self.dev), "torch_threads": torch.get_num_threads(),
+            "resumed_from": self.resumed_from, "schedule": self.sched.to_dict(), "config": cfg.to_dict(),
+        }
+        if self.pose is not None:
+            d = self.pose.delta.detach().cpu()
+            summary["pose_correction"] = {"max_rot_rad": float(d[:, :3].norm(dim=1).max()),
+                                          "max_trans": float(d[:, 3:].norm(dim=1).max())}
+        write_json(out / "train.json", summary)
+        log.info("trained %d iterations in %.1f s (training time): %d Gaussians, train PSNR %.2f, "
+                 "test PSNR %s -> %s", cfg.iterations, self.wall, self.num_gaussians, train_psnr,
+                 "n/a" if math.isnan(test_psnr) else f"{test_psnr:.2f}", out)
+        return TrainResult(out, summary)
+
+
+def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
+          cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
+          test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None) -> TrainResult:
+    """Train 3DGS from a seed PLY and posed images; resume from ``out_dir/ckpt`` if present.
+
+    Args:
+        seed: 3DGS-layout PLY (the Bridge's seed.ply), world frame of ``cameras``.
+        cameras: COLMAP model folder of the training cameras.
+        images: folder of the training images (names as in the model).
+        out_dir: output folder (docs/contracts.md, splat_train output).
+        cfg: hyperparameters (defaults: :class:`TrainConfig`).
+        test_cameras, test_images: held-out views in the same frame (both or neither).
+        image_list: restrict training to these names (a file or a list).
+
+    Raises:
+        NonFiniteLossError: the loss became non-finite (the last checkpoint stays in ckpt/).
+    """
+    cfg = cfg or TrainConfig()
+    if (test_cameras is None) != (test_images is None):
+        raise ValueError("give both --test-cameras and --test-images, or neither")
+    if cfg.num_threads > 0:
+        torch.set_num_threads(cfg.num_threads)
+    names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
+    bg = tuple(cfg.background)
+    t0 = time.perf_counter()
+    train_views = load_views(cameras, images, names, cfg.downsample, bg)
+    test_views = (load_views(test_cameras, test_images, None, cfg.downsample, bg)
+                  if test_cameras is not None else [])
+    log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
+             len(train_views), len(test_views))
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    return Trainer(cfg, seed, train_views, out_dir, test_views).run()

@@ -1,0 +1,117 @@
+"""splat_train.densify: clone / split / prune / reset keep parameters and Adam state consistent."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from camio.ply import GaussianCloud
+from splat_train.config import TrainConfig
+from splat_train.densify import DensifyStrategy, duplicate, quat_to_rotmat, remove, reset_opacity, split
+from splat_train.gaussians import PARAM_NAMES, make_optimizer, params_from_cloud
+
+
+def _setup(n=8, seed=0):
+    rng = np.random.default_rng(seed)
+    cloud = GaussianCloud.from_points(rng.normal(size=(n, 3)), rng.uniform(0, 1, (n, 3)),
+                                      rng.uniform(0.2, 0.9, n), rng.uniform(0.01, 0.3, n))
+    params = params_from_cloud(cloud)
+    opt = make_optimizer(params, TrainConfig(), extent=1.0)
+    # one step so that every group has non-zero Adam moments
+    loss = sum((p ** 2).sum() for p in params.values())
+    loss.backward()
+    opt.step()
+    opt.zero_grad(set_to_none=True)
+    return params, opt
+
+
+def _check_consistent(params, opt, n):
+    assert len(opt.param_groups) == len(PARAM_NAMES)
+    for g in opt.param_groups:
+        p = g["params"][0]
+        assert p is params[g["name"]], g["name"]
+        assert p.shape[0] == n
+        st = opt.state[p]
+        assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape
+    assert len(opt.state) == len(PARAM_NAMES)
+
+
+def test_duplicate_appends_copies_with_zero_moments():
+    params, opt = _setup()
+    before = {k: v.detach().clone() for k, v in params.items()}
+    avg_before = opt.state[params["means"]]["exp_avg"].clone()
+    mask = torch.tensor([True, False, False, True, False, False, False, False])
+    assert duplicate(params, opt, mask) == 2
+    _check_consistent(params, opt, 10)
+    for k in PARAM_NAMES:
+        torch.testing.assert_close(params[k][:8], before[k])
+        torch.testing.assert_close(params[k][8:], before[k][mask])
+    st = opt.state[params["means"]]
+    torch.testing.assert_close(st["exp_avg"][:8], avg_before)
+    assert (st["exp_avg"][8:] == 0).all() and (st["exp_avg_sq"][8:] == 0).all()
+
+
+def test_split_replaces_parents_by_two_smaller_children():
+    params, opt = _setup()
+    before = {k: v.detach().clone() for k, v in params.items()}
+    mask = torch.zeros(8, dtype=torch.bool)
+    mask[[2, 5]] = True
+    gen = torch.Generator().manual_seed(0)
+    assert split(params, opt, mask, gen) == 2
+    _check_consistent(params, opt, 10)
+    torch.testing.assert_close(params["means"][:6], before["means"][~mask])
+    # children: scale / 1.6, same colour / opacity / rotation as the parent, order [c0 of all, c1 of all]
+    parents = torch.tensor([2, 5, 2, 5])
+    torch.testing.assert_close(params["scales"][6:], before["scales"][parents] - math.log(1.6))
+    for k in ("sh_dc", "sh_rest", "opacity", "quats"):
+        torch.testing.assert_close(params[k][6:], before[k][parents])
+    # children lie within a few parent sigmas along the parent's axes
+    rot = quat_to_rotmat(before["quats"][parents])
+    local = torch.einsum("mji,mj->mi", rot, params["means"][6:] - before["means"][parents])
+    assert (local.abs() / torch.exp(before["scales"][parents]) < 6).all()
+    assert (opt.state[params["opacity"]]["exp_avg"][6:] == 0).all()
+    # an Adam step still runs on the rebuilt groups
+    sum((p ** 2).sum() for p in params.values()).backward()
+    opt.step()
+
+
+def test_remove_and_reset_opacity():
+    params, opt = _setup()
+    before = {k: v.detach().clone() for k, v in params.items()}
+    sq = opt.state[params["scales"]]["exp_avg_sq"].clone()
+    mask = torch.zeros(8, dtype=torch.bool)
+    mask[[0, 7]] = True
+    assert remove(params, opt, mask) == 2
+    _check_consistent(params, opt, 6)
+    torch.testing.assert_close(params["means"], before["means"][1:7])
+    torch.testing.assert_close(opt.state[params["scales"]]["exp_avg_sq"], sq[1:7])
+    step_before = float(opt.state[params["means"]]["step"])
+    reset_opacity(params, opt, 0.01)
+    _check_consistent(params, opt, 6)
+    assert float(torch.sigmoid(params["opacity"].detach()).max()) <= 0.01 + 1e-6
+    assert (opt.state[params["opacity"]]["exp_avg"] == 0).all()
+    assert float(opt.state[params["means"]]["step"]) == step_before
+
+
+def test_strategy_clones_small_splits_large_prunes_transparent():
+    params, opt = _setup(n=6)
+    with torch.no_grad():
+        params["scales"][:] = math.log(0.001)          # small (< 0.01 * extent)
+        params["scales"][3:5] = math.log(0.5)          # large
+        params["opacity"][:] = 2.0
+        params["opacity"][5] = -8.0                    # alpha 3e-4 < 0.005: pruned
+    strat = DensifyStrategy(densify_from=0, densify_until=100, densify_every=10, opacity_reset_every=1000)
+    state = strat.init_state(6)
+    g = torch.zeros(6, 2)
+    g[[0, 3], 0] = 1e-3  # pixel gradient; NDC = 1e-3 * W / 2 = 0.016 >> 2e-4
+    strat.update_state(state, g, torch.full((6,), 3), torch.ones(6, dtype=torch.bool), 32, 24, iteration=5)
+    assert float(state["count"].sum()) == 6
+    assert float(state["grad2d"][0]) == pytest.approx(1e-3 * 16)
+    out = strat.step(params, opt, state, iteration=10, extent=1.0, generator=torch.Generator().manual_seed(0))
+    assert out == {"cloned": 1, "split": 1, "pruned": 1, "reset": 0}
+    # 6 + 1 clone + 1 net split - 1 pruned
+    _check_consistent(params, opt, 7)
+    assert state["grad2d"].shape == (7,) and float(state["count"].sum()) == 0
+    # no densification outside the window; reset on its period
+    assert strat.step(params, opt, state, iteration=11, extent=1.0)["cloned"] == 0
