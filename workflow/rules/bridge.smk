@@ -1,0 +1,55 @@
+# The Bridge: initialiser output -> normalised cameras and the seed Gaussians.
+
+
+rule bridge_predictions:
+    input:
+        predictions=f"{RUN}/predictions.npz",
+    output:
+        seed=f"{MODE}/bridge/seed.ply",
+        info=f"{MODE}/bridge/bridge.json",
+        cameras=directory(f"{MODE}/bridge/sparse"),
+    log:
+        f"{MODE}/logs/bridge.log",
+    benchmark:
+        f"{MODE}/benchmarks/bridge.tsv"
+    wildcard_constraints:
+        init="vggt|oracle",
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    params:
+        out=out_dir,
+        args=bridge_args,
+    shell:
+        "python -m bridge --pred {input.predictions} --out {params.out} {params.args} "
+        "> {log} 2>&1"
+
+
+rule bridge_colmap:
+    input:
+        init=f"{RUN}/status.json",
+        scene=scene_dir,
+    output:
+        seed=f"{MODE}/bridge/seed.ply",
+        info=f"{MODE}/bridge/bridge.json",
+        cameras=directory(f"{MODE}/bridge/sparse"),
+    log:
+        f"{MODE}/logs/bridge.log",
+    benchmark:
+        f"{MODE}/benchmarks/bridge.tsv"
+    wildcard_constraints:
+        init="colmap",
+        mode="uniform",
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    params:
+        model=init_model_dir,
+        out=out_dir,
+    shell:
+        "python -m bridge --colmap {params.model} --images {input.scene}/images --mode uniform "
+        "--out {params.out} > {log} 2>&1"

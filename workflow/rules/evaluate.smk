@@ -1,0 +1,93 @@
+# Held-out image metrics, tables, plots and the report.
+
+
+rule image_metrics:
+    input:
+        renders=f"{MODE}/renders",
+        test_images=f"{SCENE}/test_images",
+    output:
+        f"{MODE}/metrics.json",
+    log:
+        f"{MODE}/logs/metrics.log",
+    benchmark:
+        f"{MODE}/benchmarks/metrics.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    params:
+        lpips=lpips_args,
+    shell:
+        "python -m evaluation images --pred {input.renders} --gt {input.test_images} "
+        "{params.lpips} --out {output} > {log} 2>&1"
+
+
+rule tables:
+    input:
+        ALL_TARGETS[0],
+        ALL_TARGETS[1],
+    output:
+        md=f"{R}/tables/tables.md",
+        runs=f"{R}/tables/runs.parquet",
+    log:
+        f"{R}/logs/tables.log",
+    benchmark:
+        f"{R}/benchmarks/tables.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        results=results_of_output,
+        out=out_dir,
+        gate=gate_args,
+    shell:
+        "python -m evaluation tables --results {params.results} --out {params.out} "
+        "{params.gate} > {log} 2>&1"
+
+
+rule plots:
+    input:
+        f"{R}/tables/runs.parquet",
+    output:
+        directory(f"{R}/plots"),
+    log:
+        f"{R}/logs/plots.log",
+    benchmark:
+        f"{R}/benchmarks/plots.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        results=results_of_input,
+    shell:
+        "python -m evaluation plots --results {params.results} --out {output} > {log} 2>&1"
+
+
+rule report:
+    input:
+        tables=f"{R}/tables/tables.md",
+        plots=f"{R}/plots",
+        scenes=prepared_scenes,
+    output:
+        f"{R}/report/index.html",
+    log:
+        f"{R}/logs/report.log",
+    benchmark:
+        f"{R}/benchmarks/report.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        results=results_of_output,
+        out=out_dir,
+        gate=gate_args,
+    shell:
+        "python -m evaluation report --results {params.results} --out {params.out} "
+        "--scenes {params.results} {params.gate} > {log} 2>&1"

@@ -1,0 +1,117 @@
+# Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle) and pose accuracy.
+
+
+rule vggt_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        predictions=temp(f"{SCENE}/n{{n}}/vggt/predictions.npz"),
+        model=directory(f"{SCENE}/n{{n}}/vggt/sparse"),
+        timing=f"{SCENE}/n{{n}}/vggt/timing.json",
+    log:
+        f"{SCENE}/n{{n}}/vggt/logs/vggt_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/vggt/benchmarks/vggt_init.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: config["vggt"]["threads"]
+    resources:
+        mem_mb=config["vggt"]["mem_mb"],
+        gpu=1,
+    params:
+        out=out_dir,
+        args=vggt_args,
+    shell:
+        "python -m vggt_init --images {input.scene}/images --image-list {input.image_list} "
+        "--out {params.out} {params.args} > {log} 2>&1"
+
+
+rule colmap_baseline:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        status=f"{SCENE}/n{{n}}/colmap/status.json",
+    log:
+        f"{SCENE}/n{{n}}/colmap/logs/colmap_baseline.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/colmap/benchmarks/colmap_baseline.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    params:
+        out=out_dir,
+        args=colmap_args,
+    shell:
+        "python -m evaluation.colmap_baseline --images {input.scene}/images "
+        "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
+
+
+checkpoint colmap_index:
+    input:
+        colmap_runs,
+    output:
+        f"{R}/colmap_index.json",
+    log:
+        f"{R}/logs/colmap_index.log",
+    benchmark:
+        f"{R}/benchmarks/colmap_index.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=200,
+    shell:
+        "python workflow/scripts/views.py index --status {input} --out {output} > {log} 2>&1"
+
+
+rule oracle_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        predictions=temp(f"{SCENE}/n{{n}}/oracle/predictions.npz"),
+        model=directory(f"{SCENE}/n{{n}}/oracle/sparse"),
+        status=f"{SCENE}/n{{n}}/oracle/status.json",
+    log:
+        f"{SCENE}/n{{n}}/oracle/logs/oracle_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/oracle/benchmarks/oracle_init.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    params:
+        out=out_dir,
+        args=oracle_args,
+    shell:
+        "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
+        "--out {params.out} {params.args} > {log} 2>&1"
+
+
+rule pose_eval:
+    input:
+        init=init_marker,
+        split=f"{SCENE}/split.json",
+        scene=scene_dir,
+    output:
+        f"{RUN}/pose.json",
+    log:
+        f"{RUN}/logs/pose_eval.log",
+    benchmark:
+        f"{RUN}/benchmarks/pose_eval.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        model=init_model_dir,
+        gate=gate_args,
+    shell:
+        "python -m evaluation pose --pred {params.model} --ref {input.scene}/sparse/0 "
+        "--names {input.split} --n {wildcards.n} {params.gate} --out {output} > {log} 2>&1"

@@ -1,0 +1,78 @@
+# Held-out cameras in the model frame, 3DGS optimisation and the held-out renders.
+
+
+rule align_test_cameras:
+    input:
+        cameras=f"{MODE}/bridge/sparse",
+        split=f"{SCENE}/split.json",
+        scene=scene_dir,
+        test_images=f"{SCENE}/test_images",
+    output:
+        info=f"{MODE}/align/align.json",
+        cameras=directory(f"{MODE}/align/sparse"),
+    log:
+        f"{MODE}/logs/align.log",
+    benchmark:
+        f"{MODE}/benchmarks/align.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        out=out_dir,
+    shell:
+        "python -m evaluation align --pred {input.cameras}/0 --ref {input.scene}/sparse/0 "
+        "--train-names {input.split} --n {wildcards.n} --images {input.test_images} "
+        "--out {params.out} > {log} 2>&1"
+
+
+rule train_splats:
+    input:
+        unpack(train_inputs),
+    output:
+        model=f"{MODE}/train/model.ply",
+        runlog=f"{MODE}/train/log.parquet",
+        summary=f"{MODE}/train/train.json",
+    log:
+        f"{MODE}/logs/train.log",
+    benchmark:
+        f"{MODE}/benchmarks/train.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: config["train"]["threads"]
+    resources:
+        mem_mb=config["train"]["mem_mb"],
+        gpu=1,
+    params:
+        out=out_dir,
+        iterations=config["train"]["iterations"],
+        seed=config["train"]["seed"],
+        eval_every=config["train"]["eval_every"],
+        test=train_test_args,
+    shell:
+        "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
+        "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
+        "--iterations {params.iterations} --seed-rng {params.seed} "
+        "--eval-every {params.eval_every} --threads {threads} {params.test} > {log} 2>&1"
+
+
+rule render_test:
+    input:
+        model=f"{MODE}/train/model.ply",
+        cameras=f"{MODE}/align/sparse",
+        test_images=f"{SCENE}/test_images",
+    output:
+        directory(f"{MODE}/renders"),
+    log:
+        f"{MODE}/logs/render.log",
+    benchmark:
+        f"{MODE}/benchmarks/render.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    shell:
+        "python -m splat_train render --model {input.model} --cameras {input.cameras}/0 "
+        "--images {input.test_images} --out {output} > {log} 2>&1"

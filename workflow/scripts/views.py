@@ -1,0 +1,111 @@
+"""Small file chores of the workflow that belong to no stage.
+
+    python workflow/scripts/views.py names --split split.json --n 6 --out train.txt
+    python workflow/scripts/views.py link --split split.json --which test --images DIR --out DIR
+    python workflow/scripts/views.py index --status a/status.json b/status.json --out index.json
+
+``names`` writes one image name per line (the training list of n, or the test list);
+``link`` fills a folder with links to (or copies of, where links fail) exactly those
+images, so that image metrics compare renders with the held-out views only; ``index``
+gathers COLMAP status files into one JSON (the workflow's colmap_index checkpoint).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+
+from camio.atomic import atomic_dir, atomic_path, write_json
+from camio.logs import setup_logging
+from camio.split import read_split
+
+log = logging.getLogger("workflow.views")
+
+
+def split_names(split_path: str | Path, which: str, n: int | None = None) -> list[str]:
+    """The training names for n, or the test names, of a split.json."""
+    split = read_split(split_path)
+    if which == "test":
+        return list(split.test)
+    if n is None:
+        raise ValueError("the training list needs --n")
+    if str(n) not in split.train:
+        raise ValueError(f"{split_path} has no training list for n = {n} "
+                         f"(it has {sorted(split.train, key=int)}); add n to the split")
+    return list(split.train[str(n)])
+
+
+def write_names(names: list[str], out: str | Path) -> None:
+    with atomic_path(out) as tmp:
+        tmp.write_text("".join(f"{n}\n" for n in names))
+
+
+def link_images(names: list[str], images: str | Path, out: str | Path) -> None:
+    """Fill ``out`` (replaced atomically) with links to ``images/<name>`` for each name."""
+    images = Path(images)
+    missing = [n for n in names if not (images / n).is_file()]
+    if missing:
+        raise FileNotFoundError(f"images missing from {images}: {missing[:5]}")
+    with atomic_dir(out) as tmp:
+        for n in names:
+            try:
+                os.symlink((images / n).resolve(), tmp / n)
+            except OSError:
+                shutil.copy2(images / n, tmp / n)
+
+
+def index_status(paths: list[str], out: str | Path) -> dict:
+    """{path: status} of COLMAP runs, with a success count, written to ``out``."""
+    runs = {p: json.loads(Path(p).read_text()) for p in paths}
+    keys = ("success", "aligned_ok", "registered", "n_images", "points", "reason")
+    data = {
+        "n_runs": len(runs),
+        "n_success": sum(bool(s.get("success")) for s in runs.values()),
+        "runs": {p: {k: s.get(k) for k in keys} for p, s in runs.items()},
+    }
+    write_json(out, data)
+    return data
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="workflow/scripts/views.py", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("names", help="write the training (or test) names, one per line")
+    a.add_argument("--split", required=True)
+    a.add_argument("--which", choices=["train", "test"], default="train")
+    a.add_argument("--n", type=int)
+    a.add_argument("--out", required=True)
+    b = sub.add_parser("link", help="a folder of links to the test (or training) images")
+    b.add_argument("--split", required=True)
+    b.add_argument("--which", choices=["train", "test"], default="test")
+    b.add_argument("--n", type=int)
+    b.add_argument("--images", required=True)
+    b.add_argument("--out", required=True)
+    c = sub.add_parser("index", help="gather COLMAP status.json files into one JSON")
+    c.add_argument("--status", nargs="*", default=[])
+    c.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    setup_logging()
+    t0 = time.perf_counter()
+    if args.cmd == "names":
+        names = split_names(args.split, args.which, args.n)
+        write_names(names, args.out)
+        log.info("wrote %d %s names to %s", len(names), args.which, args.out)
+    elif args.cmd == "link":
+        names = split_names(args.split, args.which, args.n)
+        link_images(names, args.images, args.out)
+        log.info("linked %d %s images into %s", len(names), args.which, args.out)
+    else:
+        data = index_status(args.status, args.out)
+        log.info("COLMAP: %d of %d runs succeeded", data["n_success"], data["n_runs"])
+    log.info("done in %.2f s", time.perf_counter() - t0)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
