@@ -1,0 +1,79 @@
+"""convert (prepare_scene) and the camio CLI."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from camio.__main__ import main
+from camio.cameras import project_points
+from camio.colmap import read_model
+from camio.images import downsample_area, read_image, read_image_uint8, write_image
+from camio.prepare import prepare_scene
+from camio.scene import SceneError
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    out = tmp_path_factory.mktemp("prep") / "synth"
+    assert main(["-q", "synth", "--out", str(out), "--views", "9", "--width", "64", "--seed", "2"]) == 0
+    return out
+
+
+def test_cli_synth_layout(synth):
+    assert sorted(p.name for p in synth.iterdir()) == ["gt", "images", "sparse", "split.json", "synthetic.json"]
+    meta = json.loads((synth / "synthetic.json").read_text())
+    assert meta["seed"] == 2 and meta["views"] == 9 and meta["width"] == 64
+
+
+def test_convert_downsample_scales_cameras_exactly(synth, tmp_path):
+    out = prepare_scene(synth, tmp_path / "out", downsample=2)
+    ref, got = read_model(synth), read_model(out)
+    assert got.names == ref.names
+    pts = ref.points
+    for a, b in zip(ref.cameras, got.cameras):
+        assert (b.width, b.height) == (32, 24)
+        ua, _ = project_points(pts, a.K, a.cam_from_world)
+        ub, _ = project_points(pts, b.K, b.cam_from_world)
+        np.testing.assert_allclose(ub, ua / 2, atol=1e-9)
+        np.testing.assert_allclose(got.observations[b.name][0], ref.observations[a.name][0] / 2, atol=1e-9)
+    img = read_image_uint8(synth / "images" / "0004.png")
+    # float path then 8-bit rounding: an exact .5 mean may round either way
+    got_img = read_image_uint8(out / "images" / "0004.png").astype(int)
+    assert np.abs(got_img - downsample_area(img, 2).astype(int)).max() <= 1
+    split = json.loads((out / "split.json").read_text())
+    assert split["test"] == ["0000.png", "0008.png"] and set(split["train"]) == {"3", "6"}
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["format"] == "colmap" and meta["image_size"] == [32, 24] and meta["n_reference_cameras"] == 9
+
+
+def test_convert_copy_is_byte_exact(synth, tmp_path):
+    assert main(["-q", "convert", "--src", str(synth), "--out", str(tmp_path / "o")]) == 0
+    assert (tmp_path / "o/images/0001.png").read_bytes() == (synth / "images/0001.png").read_bytes()
+
+
+def test_convert_mixed_sizes_leaves_nothing(synth, tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(synth / "images", src / "images")
+    write_image(src / "images" / "0005.png", read_image(src / "images" / "0005.png")[:40])
+    with pytest.raises(SceneError, match="mixed sizes"):
+        prepare_scene(src, tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+    assert main(["-q", "convert", "--src", str(src), "--out", str(tmp_path / "out")]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+
+
+def test_cli_split(synth, tmp_path):
+    out = tmp_path / "split.json"
+    assert main(["-q", "split", "--scene", str(synth), "--n", "3", "6", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["rule"] == "every8" and data["train"]["3"] == ["0001.png", "0004.png", "0007.png"]
+    man = tmp_path / "m.json"
+    man.write_text(json.dumps({"test": ["0003.png"], "train": ["0001.png", "0002.png"]}))
+    assert main(["-q", "split", "--scene", str(synth), "--manifest", str(man), "--n", "2", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["rule"] == "manifest"
+    assert main(["-q", "split", "--scene", str(synth), "--n", "12", "--out", str(tmp_path / "x.json")]) == 2
+    assert not (tmp_path / "x.json").exists()
