@@ -2,7 +2,7 @@
 
     python -m bridge --pred predictions.npz --out DIR [--mode gated|uniform|filtered]
         [--alpha-min 0.05] [--alpha-max 0.5] [--uniform-alpha 0.1] [--stride 20]
-        [--max-points N] [--percentile P] [--voxel-size V] [--outlier-removal]
+        [--max-points N] [--percentile P] [--voxel-size V] [--outlier-removal] [--points3d]
     python -m bridge --colmap MODEL_DIR [--images DIR] --out DIR [...]
 
 Writes DIR/seed.ply, DIR/sparse/0/*.txt and DIR/bridge.json (docs/contracts.md).
@@ -46,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outlier-removal", action="store_true", help="open3d statistical outlier removal")
     p.add_argument("--outlier-neighbors", type=int, default=20)
     p.add_argument("--outlier-std", type=float, default=2.0)
-    p.add_argument("--no-points3d", action="store_true", help="leave sparse/0/points3D.txt empty")
+    p.add_argument("--points3d", action="store_true",
+                   help="also write the seed points into sparse/0/points3D.txt (for the original 3DGS loader)")
     p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud without confidence)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
@@ -68,13 +69,13 @@ def main(argv: list[str] | None = None) -> int:
             stride=args.stride if args.stride is not None else (20 if args.pred else 1),
             percentile=args.percentile, voxel_size=args.voxel_size, outlier_removal=args.outlier_removal,
             outlier_neighbors=args.outlier_neighbors, outlier_std_ratio=args.outlier_std,
-            max_points=args.max_points, seed=args.seed, write_points3d=not args.no_points3d,
+            max_points=args.max_points, seed=args.seed, write_points3d=args.points3d,
         )
         timings: dict[str, float] = {}
         with timed("load input", log, timings):
             inp = load_predictions(args.pred) if args.pred else load_colmap(args.colmap, args.images)
         report = run_bridge(inp, args.out, cfg, timings={"load": timings["load input"]})
-    except (ValueError, KeyError, FileNotFoundError) as exc:
+    except (ValueError, KeyError, OSError) as exc:
         log.error("%s", exc)
         return 1
     log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],

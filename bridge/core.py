@@ -59,7 +59,10 @@ class BridgeConfig:
         max_points: keep at most this many (most confident); None = no cap.
         seed: random seed (only for capping a cloud without confidence).
         sh_degree: SH degree of the seed (higher bands are zero).
-        write_points3d: also write the seed points into sparse/0/points3D.txt.
+        write_points3d: also write the seed points into sparse/0/points3D.txt (off by default:
+            the contract's sparse/0 holds the cameras; seed.ply holds the points. Turn on for
+            tools that initialise from points3D, e.g. the original 3DGS loader. Costs ~1.5 s
+            per 100k points, and readers of the model pay again).
     """
 
     mode: str = "gated"
@@ -75,7 +78,7 @@ class BridgeConfig:
     max_points: int | None = None
     seed: int = 0
     sh_degree: int = 3
-    write_points3d: bool = True
+    write_points3d: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -262,7 +265,7 @@ def build_seed(inp: BridgeInput, cfg: BridgeConfig) -> SeedResult:
     return SeedResult(cloud, cameras, p_sel, colors, report)
 
 
-def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool = True) -> dict[str, Path]:
+def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool = False) -> dict[str, Path]:
     """Write seed.ply, sparse/0 (COLMAP text) and bridge.json (last) into ``out_dir``.
 
     Each file is written atomically; bridge.json comes last, so its presence means the

@@ -115,8 +115,9 @@ def uncertainty_gated_opacity(
       un-normalisable confidence into [0, 1], and VGGT confidences are > 1.)
     * The ratio is computed as (c/2 - c_min/2) / (c_max/2 - c_min/2) in float64, which
       cannot overflow for any finite input (confidences from 1e-6 to 1e6 and beyond), and
-      is clipped to [0, 1], so alpha is always in [a_min, a_max] even for a c_i outside
-      [c_min, c_max] or after rounding.
+      is clipped to [0, 1], and alpha to [a_min, a_max] (a_min + (a_max - a_min) * 1 can
+      round one ulp above a_max), so alpha is always in [a_min, a_max], even for a c_i
+      outside [c_min, c_max].
 
     Args:
         conf: [N] finite confidences (any real values; VGGT's are > 1).
@@ -149,4 +150,5 @@ def uncertainty_gated_opacity(
         ratio = np.clip((c / 2.0 - lo / 2.0) / den, 0.0, 1.0)
     else:  # c_max == c_min: the documented limit, ratio -> 1
         ratio = np.ones_like(c)
-    return alpha_min + (alpha_max - alpha_min) * ratio
+    # the final clip removes the 1-ulp overshoot of a_min + (a_max - a_min) * 1 over a_max
+    return np.clip(alpha_min + (alpha_max - alpha_min) * ratio, alpha_min, alpha_max)

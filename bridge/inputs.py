@@ -86,7 +86,7 @@ def load_predictions(path: str | Path) -> BridgeInput:
         the cloud with N = S*H*W rows (row = flattened pixel index), in VGGT's frame.
 
     Raises:
-        FileNotFoundError, KeyError (a missing key, naming the schema), ValueError (shapes).
+        FileNotFoundError; ValueError (a missing key, naming the schema; a wrong shape).
     """
     path = Path(path)
     if not path.is_file():
@@ -94,7 +94,7 @@ def load_predictions(path: str | Path) -> BridgeInput:
     with np.load(path, allow_pickle=False) as z:
         missing = [k for k in PREDICTION_KEYS if k not in z.files]
         if missing:
-            raise KeyError(f"{path} lacks keys {missing}; predictions.npz needs {list(PREDICTION_KEYS)} "
+            raise ValueError(f"{path} lacks keys {missing}; predictions.npz needs {list(PREDICTION_KEYS)} "
                            "(docs/contracts.md)")
         d = {k: z[k] for k in PREDICTION_KEYS}
     wp = d["world_points"]

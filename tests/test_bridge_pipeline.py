@@ -225,7 +225,7 @@ def seeded(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bridge")
     npz = write_synthetic_predictions(tmp / "predictions.npz", n_views=3, height=12, width=16, scale=3.7)
     res = build_seed(load_predictions(npz), BridgeConfig(stride=2))
-    write_outputs(res, tmp / "out")
+    write_outputs(res, tmp / "out", write_points3d=True)
     with np.load(npz) as z:
         raw = {k: z[k] for k in z.files}
     return tmp / "out", res, raw
