@@ -18,7 +18,8 @@ Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of cam
 * Paper success: the model has >= 1 registered image and >= 1 point, and >= 3 registered
   training views (needed for the Sim(3) step).
 * Accuracy-gated success: paper success AND ate_rel_radius < ``max_ate_rel_radius`` (0.05) AND
-  rel_rot_err_mean_deg < ``max_rel_rot_deg`` (5); None where there are no reference cameras.
+  rel_rot_err_mean_deg < ``max_rel_rot_deg`` (5); None where there are no reference cameras
+  (whatever the paper criterion says: the gate does not apply).
 """
 
 from __future__ import annotations
@@ -105,15 +106,15 @@ def paper_success(n_registered: int, n_points: int, n_train_registered: int,
 def accuracy_gate(record: dict, gate: GateConfig = GateConfig()) -> bool | None:
     """Accuracy-gated success from a pose record (keys of :func:`evaluate_pose`).
 
-    Returns None when the record has no pose accuracy (no reference cameras) but the paper
-    criterion holds; False when the paper criterion fails or a figure is missing.
+    Returns None when the scene has no reference cameras (``has_reference`` false): the gate
+    does not apply; else False when the paper criterion fails or a figure is missing.
     """
+    if not record.get("has_reference", True):
+        return None
     if not record.get("success_paper", False):
         return False
     ate = record.get("ate_rel_radius")
     rot = record.get("rel_rot_err_mean_deg")
-    if ate is None and rot is None and not record.get("has_reference", True):
-        return None
     if ate is None or rot is None or not (np.isfinite(ate) and np.isfinite(rot)):
         return False
     return bool(ate < gate.max_ate_rel_radius and rot < gate.max_rel_rot_deg)

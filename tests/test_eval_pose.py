@@ -152,7 +152,8 @@ def test_focal_ratio_flags_drift():
 
 def test_accuracy_gate_without_reference():
     assert accuracy_gate({"success_paper": True, "has_reference": False}) is None
-    assert accuracy_gate({"success_paper": False, "has_reference": False}) is False
+    assert accuracy_gate({"success_paper": False, "has_reference": False}) is None
+    assert accuracy_gate({"success_paper": True}) is False  # reference but no figures
     g = GateConfig(max_ate_rel_radius=0.1, max_rel_rot_deg=2.0)
     assert accuracy_gate({"success_paper": True, "ate_rel_radius": 0.08, "rel_rot_err_mean_deg": 1.0}, g) is True
     assert accuracy_gate({"success_paper": True, "ate_rel_radius": 0.08, "rel_rot_err_mean_deg": 3.0}, g) is False

@@ -1,0 +1,143 @@
+"""Error against run time (PNG, matplotlib Agg).
+
+* ``curves/{dataset}__{scene}__n{n}.png``: from each run's ``log.parquet`` (iteration,
+  wall_time_s, loss, test_psnr, ...), held-out PSNR and training loss against wall time and
+  against iteration, one line per initialiser.
+* ``pareto.png``: final held-out PSNR (metrics.json, else the log's last test_psnr) against
+  total run time (initialisation + bridge + training + evaluation) over all runs, with the
+  Pareto front (no other run is both faster and better).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from camio.atomic import atomic_path
+from evaluation.results import collect_runs, find_file
+
+__all__ = ["training_curves", "pareto_front", "pareto_plot", "run_plots"]
+
+log = logging.getLogger(__name__)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)  # no bbox "tight": 3x slower with log axes
+    _pyplot().close(fig)
+    return path
+
+
+def _read_log(run_dir: str | Path) -> pd.DataFrame | None:
+    p = find_file(Path(run_dir), "log.parquet")
+    if p is None:
+        return None
+    try:
+        return pd.read_parquet(p)
+    except (OSError, ValueError) as exc:
+        log.warning("plots: cannot read %s (%s)", p, exc)
+        return None
+
+
+def training_curves(runs: pd.DataFrame, out: str | Path) -> list[Path]:
+    """One 2 x 2 figure per (dataset, scene, n) with a training log; returns the files."""
+    plt = _pyplot()
+    out = Path(out)
+    written = []
+    for (dataset, scene, n), g in runs.groupby(["dataset", "scene", "n"], sort=True):
+        logs = {row.init: lg for row in g.itertuples() if (lg := _read_log(row.run_dir)) is not None}
+        if not logs:
+            continue
+        fig, axes = plt.subplots(2, 2, figsize=(10, 7))
+        panels = [("test_psnr", "wall_time_s", "held-out PSNR (dB)", "wall time (s)"),
+                  ("test_psnr", "iteration", "held-out PSNR (dB)", "iteration"),
+                  ("loss", "wall_time_s", "training loss", "wall time (s)"),
+                  ("loss", "iteration", "training loss", "iteration")]
+        for ax, (ycol, xcol, ylab, xlab) in zip(axes.flat, panels):
+            for init, lg in sorted(logs.items()):
+                if ycol not in lg or xcol not in lg:
+                    continue
+                d = lg[[xcol, ycol]].dropna()
+                if len(d):
+                    ax.plot(d[xcol], d[ycol], marker="o" if ycol == "test_psnr" else None,
+                            markersize=3, label=init)
+            ax.set_xlabel(xlab)
+            ax.set_ylabel(ylab)
+            if ycol == "loss":
+                ax.set_yscale("log")
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend()
+        fig.suptitle(f"{dataset} / {scene}, n = {n}")
+        fig.subplots_adjust(left=0.1, right=0.98, bottom=0.08, top=0.92, wspace=0.3, hspace=0.3)
+        written.append(_save(fig, out / "curves" / f"{dataset}__{scene}__n{n}.png"))
+    return written
+
+
+def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Indices of the Pareto-optimal points (minimise both time and error), sorted by time.
+
+    Args:
+        times: [M] run times; errors: [M] errors (lower is better). NaN entries are ignored.
+    """
+    t = np.asarray(times, np.float64)
+    e = np.asarray(errors, np.float64)
+    idx = [i for i in np.lexsort((e, t)) if np.isfinite(t[i]) and np.isfinite(e[i])]
+    front, best = [], math.inf
+    for i in idx:
+        if e[i] < best:
+            front.append(i)
+            best = e[i]
+    return np.asarray(front, dtype=np.int64)
+
+
+def pareto_plot(runs: pd.DataFrame, out: str | Path) -> Path | None:
+    """``out/pareto.png``: held-out PSNR against total run time; None when no run has both."""
+    plt = _pyplot()
+    psnr = runs["psnr"].where(runs["psnr"].notna(), runs["final_test_psnr"])
+    d = runs.assign(psnr_final=psnr)[["init", "n", "total_s", "psnr_final"]].dropna()
+    if d.empty:
+        log.warning("plots: no run has both a run time and a PSNR; no Pareto plot")
+        return None
+    fig, ax = plt.subplots(figsize=(7, 5))
+    markers = dict(zip(sorted(d["n"].unique()), "osD^vP*X"))
+    colors = {init: f"C{i}" for i, init in enumerate(sorted(d["init"].unique()))}
+    for (init, n), g in d.groupby(["init", "n"]):
+        ax.scatter(g["total_s"], g["psnr_final"], c=colors[init], marker=markers.get(n, "o"),
+                   label=f"{init}, n={n}", alpha=0.8)
+    front = pareto_front(d["total_s"].to_numpy(), -d["psnr_final"].to_numpy())
+    ax.step(d["total_s"].to_numpy()[front], d["psnr_final"].to_numpy()[front], where="post",
+            color="k", lw=1, label="Pareto front")
+    if d["total_s"].max() > 10 * max(d["total_s"].min(), 1e-9):
+        ax.set_xscale("log")
+    ax.set_xlabel("total run time (s): init + bridge + train + eval")
+    ax.set_ylabel("held-out PSNR (dB), higher = lower error")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.subplots_adjust(left=0.12, right=0.97, bottom=0.12, top=0.95)
+    return _save(fig, Path(out) / "pareto.png")
+
+
+def run_plots(results: str | Path, out: str | Path, runs: pd.DataFrame | None = None) -> list[Path]:
+    """Write every plot of the results tree into ``out``; returns the files."""
+    t0 = time.perf_counter()
+    runs = collect_runs(results) if runs is None else runs
+    files = training_curves(runs, out)
+    p = pareto_plot(runs, out)
+    if p is not None:
+        files.append(p)
+    log.info("plots: %d PNG files in %s (%.2f s)", len(files), out, time.perf_counter() - t0)
+    return files

@@ -1,0 +1,170 @@
+"""One static HTML report: ``out/index.html`` plus ``out/images/`` (tables, plots, render grids).
+
+Render grids follow the paper's Fig. 2: per scene and n, one row per test view (at most
+``max_views``), one column per initialiser (COLMAP first, then VGGT, then the rest) and the
+ground truth last. A cell whose initialiser failed (paper criterion) says "failed" with the
+reason; a run without that render says "missing".
+
+Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.results.find_file`);
+ground truth from ``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
+(matched by file stem). Thumbnails are downsampled by an integer factor to <= 256 px wide.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from camio.atomic import atomic_dir
+from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
+from evaluation.plots import run_plots
+from evaluation.pose import GateConfig
+from evaluation.results import collect_runs, find_file
+from evaluation.tables import build_tables
+
+__all__ = ["render_grid_html", "run_report"]
+
+log = logging.getLogger(__name__)
+
+THUMB_WIDTH = 256
+_CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;
+margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}
+th{background:#eee}.grid td{text-align:center;vertical-align:middle}.failed{background:#fdd;
+color:#900;width:160px}.missing{background:#eee;color:#666;width:160px}img{max-width:100%}"""
+
+
+def _images_in(folder: Path) -> dict[str, Path]:
+    """stem -> path of the images directly in ``folder``."""
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_EXTENSIONS}
+
+
+def _thumb(src: Path, dst: Path) -> bool:
+    """Write a PNG thumbnail of ``src`` to ``dst``; False (logged) when unreadable."""
+    try:
+        img = read_image(src)
+    except (ImageReadError, OSError) as exc:
+        log.warning("report: cannot read %s (%s)", src, exc)
+        return False
+    factor = max(1, -(-img.shape[1] // THUMB_WIDTH))
+    if factor > 1 and img.shape[0] >= factor:
+        img = downsample_area(img[: img.shape[0] // factor * factor, : img.shape[1] // factor * factor], factor)
+    write_image(dst, img)
+    return True
+
+
+def _gt_folder(scenes_dir: Path | None, dataset: str, scene: str) -> Path | None:
+    if scenes_dir is None:
+        return None
+    for cand in (scenes_dir / dataset / scene / "images", scenes_dir / scene / "images",
+                 scenes_dir / f"{dataset}__{scene}" / "images"):
+        if cand.is_dir():
+            return cand
+    return None
+
+
+def _init_order(inits) -> list[str]:
+    first = [i for i in ("colmap", "vggt") if i in inits]
+    return first + sorted(i for i in inits if i not in first)
+
+
+def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None, max_views: int = 4) -> str:
+    """The HTML table of one (dataset, scene, n) group of runs; thumbnails go to ``images_dir``."""
+    dataset, scene, n = group["dataset"].iloc[0], group["scene"].iloc[0], int(group["n"].iloc[0])
+    runs = {row.init: row for row in group.itertuples()}
+    renders = {}
+    for init, row in runs.items():
+        folder = find_file(Path(row.run_dir), "renders")
+        renders[init] = _images_in(folder) if folder is not None and folder.is_dir() else {}
+    gt = _images_in(_gt_folder(scenes_dir, dataset, scene) or Path("/nonexistent"))
+    views = sorted(set().union(*[set(r) for r in renders.values()]))[:max_views]
+    if not views:
+        return ""
+    inits = _init_order(runs)
+    head = "".join(f"<th>{html.escape(i)}</th>" for i in inits) + "<th>ground truth</th>"
+    rows = []
+    for stem in views:
+        cells = []
+        for init in inits + ["__gt__"]:
+            if init == "__gt__":
+                src, ok_run, reason = gt.get(stem), True, None
+            else:
+                row = runs[init]
+                src, ok_run, reason = renders[init].get(stem), bool(row.success_paper), row.reason
+            if not ok_run:
+                why = f"<br><small>{html.escape(str(reason))}</small>" if isinstance(reason, str) and reason else ""
+                cells.append(f'<td class="failed">failed{why}</td>')
+                continue
+            rel = f"renders/{dataset}__{scene}__n{n}__{init.strip('_')}__{stem}.png"
+            if src is None or not _thumb(src, images_dir / rel):
+                cells.append('<td class="missing">missing</td>')
+                continue
+            cells.append(f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(init)} {html.escape(stem)}"></td>')
+        rows.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")
+    return (f"<h3>{html.escape(dataset)} / {html.escape(scene)}, n = {n}</h3>\n<table class=\"grid\">"
+            f"<tr><th>view</th>{head}</tr>\n" + "\n".join(rows) + "</table>")
+
+
+def _table_html(df: pd.DataFrame) -> str:
+    if df.empty:
+        return "<p>(no runs)</p>"
+
+    def fmt(x):
+        return "-" if pd.isna(x) else (f"{x:.3f}" if abs(x) < 10 else f"{x:.2f}")
+
+    shown = df.copy()
+    for c in shown.columns:
+        if shown[c].dtype == object:
+            shown[c] = shown[c].map(lambda v: "-" if v is None or (isinstance(v, float) and pd.isna(v))
+                                    else ("yes" if v is True else "no" if v is False else v))
+    return shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0)
+
+
+def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | None = None,
+               gate: GateConfig = GateConfig(), max_views: int = 4, plots: bool = True) -> Path:
+    """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
+
+    ``plots=False`` leaves out the plots (``python -m evaluation plots`` makes them alone).
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    scenes_dir = Path(scenes_dir) if scenes_dir is not None else None
+    runs = collect_runs(results, gate)
+    with atomic_dir(out) as tmp:
+        images = tmp / "images"
+        images.mkdir()
+        plots = run_plots(results, images, runs) if plots else []
+        tables = build_tables(runs, gate)
+        parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
+                 f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
+                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. Success (paper): "
+                 ">= 1 registered image and >= 1 point, and >= "
+                 f"{gate.min_aligned_views} registered training views. Success (gated): also ATE &lt; "
+                 f"{100 * gate.max_ate_rel_radius:g}% of the trajectory radius and mean relative rotation "
+                 f"error &lt; {gate.max_rel_rot_deg:g} deg.</p>"]
+        for title, df in tables.items():
+            parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
+        parts.append("<h2>Error against run time</h2>")
+        for p in plots:
+            rel = p.relative_to(tmp).as_posix()
+            parts.append(f'<p><img src="{html.escape(rel)}" alt="{html.escape(p.stem)}"></p>')
+        parts.append("<h2>Renders (COLMAP | VGGT | ground truth)</h2>")
+        n_grids = 0
+        for _, g in runs.groupby(["dataset", "scene", "n"], sort=True):
+            grid = render_grid_html(g, images, scenes_dir, max_views)
+            if grid:
+                parts.append(grid)
+                n_grids += 1
+        if not n_grids:
+            parts.append("<p>(no renders found)</p>")
+        parts.append("</body></html>")
+        (tmp / "index.html").write_text("\n".join(parts) + "\n")
+    log.info("report: %d runs, %d tables, %d plots, %d render grids -> %s (%.2f s)", len(runs), len(tables),
+             len(plots), n_grids, out / "index.html", time.perf_counter() - t0)
+    return out / "index.html"
+

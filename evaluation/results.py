@@ -1,0 +1,287 @@
+"""Read a results tree into one record per run (tolerant of missing pieces).
+
+Layout: a run is a folder ``{results}/{dataset}/{scene}/n{n}/{init}/`` (``init`` = vggt,
+colmap, oracle, ...). Inside it every file below is looked up by name at any depth,
+shallowest first, ignoring ``repeats/`` (COLMAP repeat runs) and ``ckpt/``:
+
+=================  ==========================================================================
+file               what is read
+=================  ==========================================================================
+``status.json``    initialiser status (COLMAP baseline): ``success``, ``aligned_ok``,
+                   ``registered``, ``n_images``, ``points``, ``reason``, ``wall_time_s``,
+                   ``peak_rss_mb``, ``fy_over_fx``, ``repeats`` (spread over seeds)
+``pose.json``      :mod:`evaluation.pose`: ATE, RPE, relative rotation error, fy/fx, success
+``metrics.json``   ``python -m evaluation images``: means ``psnr``, ``ssim``, ``lpips_alex``,
+                   ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``
+``timing.json``    vggt_init / oracle: ``total_s`` (or ``wall_time_s``), peak memory keys
+``bridge.json``    bridge: ``mode``, ``wall_time_s``
+``train.json``     splat_train summary: ``wall_time_s`` (or ``train_s``), ``num_gaussians``
+``log.parquet``    training log: iteration, wall_time_s, loss, test_psnr, num_gaussians
+``*.tsv``          Snakemake benchmark files (columns ``s``, ``max_rss`` in MB); also looked
+                   for under ``{results}/benchmarks/{dataset}/{scene}/n{n}/{init}/``; a file's
+                   stage is guessed from its name (init/vggt/colmap/oracle, bridge, train,
+                   eval/metrics/pose/render)
+``renders/``       rendered test views (report only)
+=================  ==========================================================================
+
+A scene without reference cameras has no ``pose.json``; a failed COLMAP run has only
+``status.json``. Missing numbers are NaN / None, never zero.
+
+Success: ``success_paper`` = status ``success`` and ``aligned_ok`` (>= 3 registered views,
+needed for the Sim(3) step) when a status exists, else pose.json's, else "the run produced a
+trained model or metrics". ``success_gated`` = paper success and the accuracy gate on
+pose.json; None for scenes without reference cameras (no run of the scene has a pose.json);
+False for a run of a scene with reference cameras that has no pose.json itself.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+from pathlib import Path
+
+import pandas as pd
+
+from evaluation.pose import GateConfig, accuracy_gate
+
+__all__ = ["RUN_COLUMNS", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
+
+log = logging.getLogger(__name__)
+
+_N_DIR = re.compile(r"^n(\d+)$")
+_SKIP = {"repeats", "ckpt"}
+STAGES = ("init", "bridge", "train", "eval")
+_STAGE_WORDS = {"init": ("init", "vggt", "colmap", "oracle"), "bridge": ("bridge",),
+                "train": ("train", "splat"), "eval": ("eval", "metric", "pose", "render", "align")}
+
+RUN_COLUMNS = [
+    "dataset", "scene", "n", "init", "bridge_mode", "success_paper", "success_gated", "has_reference",
+    "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
+    "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
+    "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "num_gaussians",
+    "iterations", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
+    "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "run_dir",
+]
+
+
+def find_runs(results: str | Path) -> list[Path]:
+    """Run folders ``{results}/{dataset}/{scene}/n{n}/{init}``, sorted."""
+    results = Path(results)
+    if not results.is_dir():
+        raise FileNotFoundError(f"results folder {results} does not exist")
+    runs = [p for p in results.glob("*/*/n*/*") if p.is_dir() and _N_DIR.match(p.parent.name)]
+    return sorted(runs)
+
+
+def find_file(run_dir: Path, name: str) -> Path | None:
+    """The shallowest file (or folder) called ``name`` under ``run_dir``, skipping repeats/ and
+    ckpt/; None when absent."""
+    best = None
+    for p in run_dir.rglob(name):
+        rel = p.relative_to(run_dir).parts
+        if _SKIP & set(rel[:-1]):
+            continue
+        if best is None or (len(rel), str(p)) < (len(best.relative_to(run_dir).parts), str(best)):
+            best = p
+    return best
+
+
+def _json(path: Path | None) -> dict:
+    if path is None:
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        log.warning("results: cannot read %s (%s); treated as missing", path, exc)
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _num(value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return math.nan
+    return v
+
+
+def _first(d: dict, *keys) -> float:
+    for k in keys:
+        if k in d and d[k] is not None:
+            return _num(d[k])
+    return math.nan
+
+
+def _metric(m: dict, key: str) -> float:
+    v = m.get(key)
+    if isinstance(v, dict):
+        v = v.get("mean")
+    if v is None:
+        for nest in ("mean", "means"):
+            if isinstance(m.get(nest), dict):
+                v = m[nest].get(key)
+    return _num(v)
+
+
+def _peaks(d: dict) -> tuple[float, float]:
+    """(peak host MB, peak GPU MB) from any keys naming a peak in MB/GB."""
+    host, gpu = math.nan, math.nan
+    for k, v in d.items():
+        kl = k.lower()
+        if "peak" not in kl or isinstance(v, (dict, list)):
+            continue
+        val = _num(v) * (1024.0 if kl.endswith("gb") else 1.0)
+        if math.isnan(val):
+            continue
+        if "gpu" in kl or "cuda" in kl or "vram" in kl:
+            gpu = val if math.isnan(gpu) else max(gpu, val)
+        else:
+            host = val if math.isnan(host) else max(host, val)
+    return host, gpu
+
+
+def _benchmarks(run_dir: Path, bench_dir: Path | None) -> dict[str, dict]:
+    """stage -> {"s": seconds (summed), "max_rss": MB (max)} from Snakemake benchmark TSVs."""
+    files = [p for p in run_dir.rglob("*.tsv") if not (_SKIP & set(p.relative_to(run_dir).parts))]
+    if bench_dir is not None and bench_dir.is_dir():
+        files += sorted(bench_dir.glob("*.tsv"))
+    out: dict[str, dict] = {}
+    for f in files:
+        try:
+            df = pd.read_csv(f, sep="\t")
+        except (OSError, ValueError, pd.errors.ParserError) as exc:
+            log.warning("results: cannot read benchmark %s (%s)", f, exc)
+            continue
+        if "s" not in df.columns or df.empty:
+            continue
+        stem = f.stem.lower()
+        stage = next((s for s in STAGES if any(w in stem for w in _STAGE_WORDS[s])), None)
+        if stage is None:
+            continue
+        rec = out.setdefault(stage, {"s": 0.0, "max_rss": math.nan})
+        rec["s"] += float(pd.to_numeric(df["s"], errors="coerce").mean())
+        if "max_rss" in df.columns:
+            rss = float(pd.to_numeric(df["max_rss"], errors="coerce").max())
+            rec["max_rss"] = rss if math.isnan(rec["max_rss"]) else max(rec["max_rss"], rss)
+    return out
+
+
+def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root: Path | None = None) -> dict:
+    """One run's record (keys :data:`RUN_COLUMNS`); see the module docstring."""
+    run_dir = Path(run_dir)
+    init, n_dir, scene, dataset = run_dir.name, run_dir.parent.name, run_dir.parent.parent.name, \
+        run_dir.parent.parent.parent.name
+    n = int(_N_DIR.match(n_dir).group(1))
+    status = _json(find_file(run_dir, "status.json"))
+    pose = _json(find_file(run_dir, "pose.json"))
+    metrics = _json(find_file(run_dir, "metrics.json"))
+    timing = _json(find_file(run_dir, "timing.json"))
+    bridge = _json(find_file(run_dir, "bridge.json"))
+    train = _json(find_file(run_dir, "train.json"))
+    log_path = find_file(run_dir, "log.parquet")
+    bench_dir = results_root / "benchmarks" / dataset / scene / n_dir / init if results_root else None
+    bench = _benchmarks(run_dir, bench_dir)
+
+    if status:
+        ok = bool(status.get("success", False))
+        aligned = status.get("aligned_ok")
+        reg = status.get("registered")
+        success = ok and (bool(aligned) if aligned is not None else (reg or 0) >= gate.min_aligned_views)
+    elif pose:
+        success = bool(pose.get("success_paper", False))
+    else:
+        success = bool(metrics or train or log_path)
+    has_ref = bool(pose) and pose.get("has_reference", True)
+    gated = accuracy_gate({**pose, "success_paper": success, "has_reference": has_ref}, gate)
+    registered = status.get("registered", pose.get("registered", n if success and not status else None))
+
+    rec = {
+        "dataset": dataset, "scene": scene, "n": n, "init": init,
+        "bridge_mode": bridge.get("mode"), "success_paper": success, "success_gated": gated,
+        "has_reference": has_ref, "registered": _num(registered), "n_train": n,
+        "points": _first(status, "points") if status else _first(pose, "n_points"),
+        "reason": status.get("reason"),
+        **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
+        "n_test": _first(metrics, "n_images"),
+        **{k: _first(pose, k) for k in ("ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg",
+                                         "rpe_trans_dir_deg", "rel_rot_err_mean_deg", "rel_rot_err_max_deg",
+                                         "fy_fx_max_dev")},
+        "final_test_psnr": math.nan, "num_gaussians": _first(train, "num_gaussians", "final_num_gaussians"),
+        "iterations": _first(train, "iterations", "iteration"),
+        "run_dir": str(run_dir),
+    }
+    if math.isnan(rec["fy_fx_max_dev"]) and status.get("fy_over_fx") is not None:
+        rec["fy_fx_max_dev"] = abs(_num(status["fy_over_fx"]) - 1.0)
+    if log_path is not None:
+        try:
+            lg = pd.read_parquet(log_path)
+            if "test_psnr" in lg and lg["test_psnr"].notna().any():
+                rec["final_test_psnr"] = float(lg["test_psnr"].dropna().iloc[-1])
+            if math.isnan(rec["num_gaussians"]) and "num_gaussians" in lg and len(lg):
+                rec["num_gaussians"] = float(lg["num_gaussians"].iloc[-1])
+            if math.isnan(rec["iterations"]) and "iteration" in lg and len(lg):
+                rec["iterations"] = float(lg["iteration"].max())
+            log_time = float(lg["wall_time_s"].max()) if "wall_time_s" in lg and len(lg) else math.nan
+        except (OSError, ValueError) as exc:
+            log.warning("results: cannot read %s (%s)", log_path, exc)
+            log_time = math.nan
+    else:
+        log_time = math.nan
+
+    json_times = {
+        "init": _first(timing, "total_s", "wall_time_s", "total") if timing else _first(status, "wall_time_s"),
+        "bridge": _first(bridge, "wall_time_s", "total_s"),
+        "train": _first(train, "wall_time_s", "train_s", "total_s", "time_s"),
+        "eval": (_first(metrics, "wall_time_s") if metrics else math.nan),
+    }
+    if math.isnan(json_times["train"]):
+        json_times["train"] = log_time
+    if pose and not math.isnan(_first(pose, "wall_time_s")):
+        json_times["eval"] = (0.0 if math.isnan(json_times["eval"]) else json_times["eval"]) + _num(pose["wall_time_s"])
+    for stage in STAGES:
+        v = json_times[stage]
+        if math.isnan(v) and stage in bench:
+            v = bench[stage]["s"]
+        rec[f"{stage}_s"] = v
+    parts = [rec[f"{s}_s"] for s in STAGES if not math.isnan(rec[f"{s}_s"])]
+    rec["total_s"] = sum(parts) if parts else math.nan
+    host, gpu = math.nan, math.nan
+    for d in (timing, status, train, bridge):
+        h, g = _peaks(d)
+        host = h if math.isnan(host) else (host if math.isnan(h) else max(host, h))
+        gpu = g if math.isnan(gpu) else (gpu if math.isnan(g) else max(gpu, g))
+    for b in bench.values():
+        if not math.isnan(b["max_rss"]):
+            host = b["max_rss"] if math.isnan(host) else max(host, b["max_rss"])
+    rec["peak_mem_mb"], rec["peak_gpu_mb"] = host, gpu
+
+    rep = status.get("repeats") or {}
+    rec["repeats"] = _first(rep, "n_runs")
+    rec["repeats_success_rate"] = _first(rep, "aligned_ok_rate", "success_rate")
+    regs = rep.get("registered") if isinstance(rep.get("registered"), dict) else {}
+    rec["repeats_registered_min"] = _first(regs, "min")
+    rec["repeats_registered_max"] = _first(regs, "max")
+    return rec
+
+
+def collect_runs(results: str | Path, gate: GateConfig = GateConfig()) -> pd.DataFrame:
+    """Every run of the tree as one DataFrame row (columns :data:`RUN_COLUMNS`)."""
+    results = Path(results)
+    rows = []
+    for run in find_runs(results):
+        if run.parts[-4] == "benchmarks":
+            continue
+        rows.append(read_run(run, gate, results))
+    df = pd.DataFrame(rows, columns=RUN_COLUMNS)
+    if len(df):
+        # reference cameras are a property of the scene: a failed run (no pose.json) of a scene
+        # with references still counts in the gated k/N, as a failure
+        scene_ref = df.groupby(["dataset", "scene"])["has_reference"].transform("any").astype(bool)
+        unverified = scene_ref & ~df["has_reference"].astype(bool)
+        df["has_reference"] = scene_ref
+        df.loc[unverified, "success_gated"] = False
+    log.info("results: %d runs under %s (%d datasets, %d scenes)", len(df), results,
+             df["dataset"].nunique(), df[["dataset", "scene"]].drop_duplicates().shape[0])
+    return df

@@ -1,0 +1,199 @@
+"""Per-run records -> Parquet -> Markdown tables (issue 6 item 6, issue 10 items 1, 2, 4).
+
+* Table I (per dataset and n): COLMAP success k/N under the paper criterion and under the
+  accuracy gate (k/N over scenes with reference cameras), VGGT's success the same way;
+  matched COLMAP vs ours PSNR / SSIM / LPIPS over the scenes where COLMAP succeeded (paper
+  criterion), their difference (ours - COLMAP), and ours over all scenes.
+* Table II style summary: per dataset, initialiser and n: success under both criteria,
+  registered / n, image metrics over successful runs, ATE and rotation error.
+* Pose accuracy: one row per run with reference cameras.
+* Run time: mean seconds per stage and peak memory, per dataset, initialiser and n.
+* COLMAP repeats: the spread over seeds, where runs were repeated.
+
+Means ignore missing values (NaN); a cell with nothing to average is "-".
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from camio.atomic import atomic_path
+from evaluation.pose import GateConfig
+from evaluation.results import collect_runs
+
+__all__ = ["to_markdown", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
+           "build_tables", "run_tables"]
+
+log = logging.getLogger(__name__)
+
+
+def _fmt(v, digits: int) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.{digits}f}"
+    return str(v).replace("|", "\\|")
+
+
+def to_markdown(df: pd.DataFrame, digits: dict[str, int] | None = None, default_digits: int = 2) -> str:
+    """A GitHub-flavoured Markdown table; ``digits`` sets decimals per column."""
+    digits = digits or {}
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(_fmt(str(c), 0) for c in cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for _, row in df.iterrows():
+        lines.append("| " + " | ".join(_fmt(row[c], digits.get(c, default_digits)) for c in cols) + " |")
+    return "\n".join(lines)
+
+
+def _k_of_n(flags: pd.Series) -> str:
+    """'k/N' over the non-missing entries ('-' when none)."""
+    f = flags.dropna()
+    return f"{int(f.astype(bool).sum())}/{len(f)}" if len(f) else "-"
+
+
+def _mean(s: pd.Series) -> float:
+    s = pd.to_numeric(s, errors="coerce").dropna()
+    return float(s.mean()) if len(s) else math.nan
+
+
+def _lpips_col(df: pd.DataFrame, lpips: str) -> str:
+    return f"lpips_{lpips}"
+
+
+def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", lpips: str = "vgg") -> pd.DataFrame:
+    """Table I: per dataset and n (see the module docstring)."""
+    lp = _lpips_col(runs, lpips)
+    rows = []
+    for (dataset, n), g in runs.groupby(["dataset", "n"], sort=True):
+        base = g[g["init"] == baseline].set_index("scene")
+        our = g[g["init"] == ours].set_index("scene")
+        scenes = sorted(set(base.index) | set(our.index))
+        matched = [s for s in base.index[base["success_paper"].astype(bool)] if s in our.index]
+        row = {"dataset": dataset, "n": int(n), "scenes": len(scenes),
+               f"{baseline} success (paper)": _k_of_n(base["success_paper"]),
+               f"{baseline} success (gated)": _k_of_n(base.loc[base["has_reference"].astype(bool), "success_gated"]),
+               f"{baseline} registered": f"{int(np.nansum(base['registered']))}/{int(base['n_train'].sum())}"
+               if len(base) else "-",
+               f"{ours} success (paper)": _k_of_n(our["success_paper"]),
+               f"{ours} success (gated)": _k_of_n(our.loc[our["has_reference"].astype(bool), "success_gated"]),
+               "matched": len(matched)}
+        for metric, label in (("psnr", "PSNR"), ("ssim", "SSIM"), (lp, f"LPIPS-{lpips}")):
+            b = _mean(base.loc[matched, metric]) if matched else math.nan
+            o = _mean(our.loc[matched, metric]) if matched else math.nan
+            row[f"{label} {baseline} (matched)"] = b
+            row[f"{label} {ours} (matched)"] = o
+            row[f"{label} delta"] = o - b
+            row[f"{label} {ours} (all)"] = _mean(our[metric])
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
+    """Table II style summary per dataset, initialiser and n."""
+    lp = _lpips_col(runs, lpips)
+    rows = []
+    for (dataset, init, n), g in runs.groupby(["dataset", "init", "n"], sort=True):
+        ok = g[g["success_paper"].astype(bool)]
+        rows.append({
+            "dataset": dataset, "init": init, "n": int(n), "runs": len(g),
+            "success (paper)": _k_of_n(g["success_paper"]),
+            "success (gated)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
+            "registered/n": _mean(g["registered"] / g["n_train"]),
+            "PSNR": _mean(ok["psnr"]), "SSIM": _mean(ok["ssim"]), f"LPIPS-{lpips}": _mean(ok[lp]),
+            "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
+            "total s": _mean(g["total_s"]),
+        })
+    return pd.DataFrame(rows)
+
+
+def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per run with reference cameras (or a registration count)."""
+    g = runs[runs["has_reference"].astype(bool) | runs["registered"].notna()].copy()
+    g["registered/n"] = [f"{'-' if math.isnan(r) else int(r)}/{int(n)}" for r, n in zip(g["registered"], g["n_train"])]
+    cols = {"dataset": "dataset", "scene": "scene", "n": "n", "init": "init", "registered/n": "registered/n",
+            "success_paper": "success (paper)", "success_gated": "success (gated)",
+            "ate_rmse": "ATE", "ate_pct_radius": "ATE % radius", "rpe_rot_deg": "RPE rot (deg)",
+            "rpe_trans_dir_deg": "RPE trans dir (deg)", "rel_rot_err_max_deg": "max rel. rot (deg)",
+            "fy_fx_max_dev": "max abs(fy/fx - 1)"}
+    return g[list(cols)].rename(columns=cols).sort_values(["dataset", "scene", "n", "init"]).reset_index(drop=True)
+
+
+def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Mean stage times (s) and peak memory (MB) per dataset, initialiser and n."""
+    rows = []
+    for (dataset, init, n), g in runs.groupby(["dataset", "init", "n"], sort=True):
+        rows.append({"dataset": dataset, "init": init, "n": int(n), "runs": len(g),
+                     "init s": _mean(g["init_s"]), "bridge s": _mean(g["bridge_s"]),
+                     "train s": _mean(g["train_s"]), "eval s": _mean(g["eval_s"]),
+                     "total s": _mean(g["total_s"]), "peak MB": float(g["peak_mem_mb"].max()),
+                     "peak GPU MB": float(g["peak_gpu_mb"].max())})
+    return pd.DataFrame(rows)
+
+
+def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """The spread over repeated (seeded) runs, where any."""
+    g = runs[runs["repeats"].fillna(0) > 1]
+    cols = {"dataset": "dataset", "scene": "scene", "n": "n", "init": "init", "repeats": "runs",
+            "repeats_success_rate": "success rate (paper)", "repeats_registered_min": "registered min",
+            "repeats_registered_max": "registered max"}
+    return g[list(cols)].rename(columns=cols).reset_index(drop=True)
+
+
+_DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4}
+
+
+def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg") -> dict[str, pd.DataFrame]:
+    """All tables by title (ordered)."""
+    return {
+        "Table I: COLMAP vs VGGT per dataset and n": table_one(runs, lpips=lpips),
+        "Table II: summary per initialiser": table_two(runs, lpips=lpips),
+        "Pose accuracy": pose_table(runs),
+        "Run time": runtime_table(runs),
+        "COLMAP repeats": repeats_table(runs),
+    }
+
+
+def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig()) -> str:
+    """The Markdown document: criteria, then every non-empty table."""
+    out = ["# Results", "",
+           "Success (paper): a model with >= 1 registered image and >= 1 point, and >= "
+           f"{gate.min_aligned_views} registered training views for the Sim(3) alignment.",
+           f"Success (gated): paper success and ATE < {100 * gate.max_ate_rel_radius:g}% of the RMS "
+           f"trajectory radius and mean relative rotation error < {gate.max_rel_rot_deg:g} deg "
+           "(k/N over scenes with reference cameras).",
+           "Matched: scenes where COLMAP succeeded (paper criterion) at that n; delta = ours - COLMAP.", ""]
+    for title, df in tables.items():
+        out += [f"## {title}", ""]
+        if df.empty:
+            out += ["(no runs)", ""]
+            continue
+        digits = {c: (3 if "SSIM" in c or "LPIPS" in c else 2) for c in df.columns}
+        digits.update({k: v for k, v in _DIGITS.items() if k in df.columns})
+        out += [to_markdown(df, digits), ""]
+    return "\n".join(out)
+
+
+def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConfig(),
+               lpips: str = "vgg") -> dict[str, pd.DataFrame]:
+    """Collect the results tree, write ``out/runs.parquet`` and ``out/tables.md``."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    runs = collect_runs(results, gate)
+    with atomic_path(out / "runs.parquet") as tmp:
+        runs.to_parquet(tmp, index=False)
+    tables = build_tables(runs, gate, lpips)
+    with atomic_path(out / "tables.md") as tmp:
+        tmp.write_text(tables_markdown(tables, gate) + "\n")
+    log.info("tables: %d runs -> %s and %s in %.2f s", len(runs), out / "runs.parquet", out / "tables.md",
+             time.perf_counter() - t0)
+    return tables

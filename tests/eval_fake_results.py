@@ -1,0 +1,99 @@
+"""A small fake results tree with real JSON / Parquet / PNG / TSV files (evaluation tests).
+
+Layout ``{root}/results/mip360/{scene}/n{n}/{init}/``, scenes ``garden`` and ``room`` (with
+reference cameras: pose.json) and ``nus`` (none), n in {3, 6}, inits ``colmap`` and ``vggt``:
+
+* colmap on garden n=3 failed: only status.json (reason "no initial pair").
+* colmap on room n=3 passes the paper's criterion with wrong poses (ATE 40% of the radius).
+* colmap on nus n=3 registered only 2 views (paper success needs 3 for alignment).
+* every other run succeeded: metrics.json, pose.json (not for nus), train/log.parquet,
+  renders/*.png, timing.json (vggt) or status.json (colmap), bridge.json, a benchmark TSV.
+
+PSNR values are chosen so that the expected table cells can be computed by hand (see the
+``expected_*`` helpers).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from camio.images import write_image
+
+SCENES = ("garden", "room", "nus")
+NS = (3, 6)
+TEST_VIEWS = ("img000", "img008")
+
+
+def psnr_of(scene: str, n: int, init: str) -> float:
+    base = {"garden": 20.0, "room": 24.0, "nus": 16.0}[scene]
+    return base + n * 0.5 + (1.0 if init == "vggt" else 0.0)
+
+
+def _write(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data))
+
+
+def _image(path: Path, value: float) -> None:
+    img = np.full((24, 32, 3), value, np.float32)
+    img[:, :8] = 1.0 - value
+    write_image(path, img)
+
+
+def build(root: Path) -> tuple[Path, Path]:
+    """Write the tree; returns (results dir, scenes dir with ground-truth images)."""
+    results, scenes = root / "results", root / "scenes"
+    for scene in SCENES:
+        for v, name in enumerate(TEST_VIEWS):
+            _image(scenes / "mip360" / scene / "images" / f"{name}.JPG", 0.2 + 0.1 * v)
+        for n in NS:
+            for init in ("colmap", "vggt"):
+                run = results / "mip360" / scene / f"n{n}" / init
+                run.mkdir(parents=True)
+                failed = init == "colmap" and n == 3 and scene == "garden"
+                two_reg = init == "colmap" and n == 3 and scene == "nus"
+                if init == "colmap":
+                    _write(run / "status.json", {
+                        "success": not failed, "aligned_ok": not (failed or two_reg),
+                        "registered": 0 if failed else (2 if two_reg else n), "n_images": n,
+                        "points": 0 if failed else 500, "reason": "no initial pair" if failed else None,
+                        "wall_time_s": 30.0 + n, "peak_rss_mb": 900.0, "seed": 0,
+                        **({"repeats": {"n_runs": 3, "seeds": [0, 1, 2], "success_rate": 2 / 3,
+                                        "aligned_ok_rate": 1 / 3,
+                                        "registered": {"values": [2, 3, 2], "min": 2.0, "max": 3.0}}}
+                           if two_reg else {})})
+                    if failed or two_reg:
+                        continue
+                else:
+                    _write(run / "init" / "timing.json", {"total_s": 10.0, "peak_gpu_mb": 14000.0,
+                                                          "peak_rss_mb": 3000.0})
+                _write(run / "bridge" / "bridge.json", {"mode": "paper", "wall_time_s": 2.0})
+                wrong = init == "colmap" and scene == "room" and n == 3
+                if scene != "nus":
+                    _write(run / "eval" / "pose.json", {
+                        "ate_rmse": 0.4 if wrong else 0.01, "ate_rel_radius": 0.4 if wrong else 0.01,
+                        "ate_pct_radius": 40.0 if wrong else 1.0, "rpe_rot_deg": 30.0 if wrong else 1.0,
+                        "rpe_trans_dir_deg": 20.0 if wrong else 2.0,
+                        "rel_rot_err_mean_deg": 30.0 if wrong else 1.0, "rel_rot_err_max_deg": 50.0 if wrong else 2.0,
+                        "n_matched": n, "registered": n, "success_paper": True, "has_reference": True,
+                        "fy_fx_max_dev": 0.001, "wall_time_s": 0.5})
+                p = psnr_of(scene, n, init)
+                _write(run / "eval" / "metrics.json", {
+                    "psnr": p, "ssim": 0.5 + 0.01 * n, "lpips_alex": 0.3, "lpips_vgg": 0.4, "n_images": 2,
+                    "per_image": [], "wall_time_s": 1.5})
+                _write(run / "train" / "train.json", {"wall_time_s": 100.0 + n, "num_gaussians": 1000 * n})
+                it = np.arange(0, 1001, 100)
+                pd.DataFrame({"iteration": it, "wall_time_s": it * 0.1, "loss": 0.5 / (1 + it / 100.0),
+                              "l1": 0.1, "ssim": 0.8, "num_gaussians": 1000 + it,
+                              "test_psnr": np.where(it % 500 == 0, p - 3 + it / 500.0, np.nan)}
+                             ).to_parquet(run / "train" / "log.parquet")
+                for v, name in enumerate(TEST_VIEWS):
+                    _image(run / "train" / "renders" / f"{name}.png", 0.25 + 0.1 * v)
+                (run / "benchmarks").mkdir()
+                (run / "benchmarks" / "eval_metrics.tsv").write_text(
+                    "s\th:m:s\tmax_rss\tmax_vms\n4.0\t0:00:04\t1200.5\t2000\n")
+    return results, scenes

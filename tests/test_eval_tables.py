@@ -1,0 +1,124 @@
+"""Results tree -> runs.parquet -> Markdown tables, and the plots, on a fake results tree
+(tests/eval_fake_results.py; expected cells computed by hand from its values)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from eval_fake_results import build, psnr_of
+from evaluation.plots import pareto_front
+from evaluation.results import collect_runs, read_run
+from evaluation.tables import table_one, to_markdown
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    return build(tmp_path_factory.mktemp("fake"))
+
+
+@pytest.fixture(scope="module")
+def runs(tree):
+    return collect_runs(tree[0])
+
+
+def run(runs, scene, n, init) -> pd.Series:
+    sel = runs[(runs.scene == scene) & (runs.n == n) & (runs.init == init)]
+    assert len(sel) == 1
+    return sel.iloc[0]
+
+
+def test_records(runs):
+    assert len(runs) == 12
+    failed = run(runs, "garden", 3, "colmap")
+    assert failed.success_paper is False or failed.success_paper == False  # noqa: E712
+    assert failed.success_gated == False and failed.has_reference  # noqa: E712
+    assert failed.registered == 0 and math.isnan(failed.psnr) and failed.reason == "no initial pair"
+    two = run(runs, "nus", 3, "colmap")
+    assert not two.success_paper and two.registered == 2 and two.success_gated is None
+    assert two.repeats == 3 and two.repeats_registered_min == 2 and two.repeats_registered_max == 3
+    wrong = run(runs, "room", 3, "colmap")
+    assert wrong.success_paper and wrong.success_gated == False  # noqa: E712
+    v = run(runs, "room", 6, "vggt")
+    assert v.success_paper and v.success_gated == True and v.bridge_mode == "paper"  # noqa: E712
+    assert v.psnr == psnr_of("room", 6, "vggt") and v.lpips_vgg == 0.4
+    assert v.init_s == 10.0 and v.bridge_s == 2.0 and v.train_s == 106.0 and v.eval_s == 2.0
+    assert v.total_s == 120.0 and v.peak_mem_mb == 3000.0 and v.peak_gpu_mb == 14000.0
+    assert v.final_test_psnr == pytest.approx(psnr_of("room", 6, "vggt") - 1)
+    assert v.num_gaussians == 6000 and v.iterations == 1000
+    c = run(runs, "room", 6, "colmap")
+    assert c.init_s == 36.0 and c.peak_mem_mb == 1200.5  # the benchmark TSV's max_rss
+    assert run(runs, "nus", 6, "vggt").success_gated is None  # no reference cameras
+
+
+def test_eval_time_falls_back_to_benchmark(tmp_path):
+    from eval_fake_results import build as b
+
+    results, _ = b(tmp_path)
+    r = results / "mip360" / "garden" / "n6" / "vggt"
+    (r / "eval" / "metrics.json").unlink()
+    (r / "eval" / "pose.json").unlink()
+    assert read_run(r).get("eval_s") == 4.0
+
+
+def test_table_one_by_hand(runs):
+    t = table_one(runs).set_index("n")
+    r3 = t.loc[3]
+    assert r3["scenes"] == 3 and r3["colmap success (paper)"] == "1/3"
+    assert r3["colmap success (gated)"] == "0/2" and r3["colmap registered"] == "5/9"
+    assert r3["vggt success (paper)"] == "3/3" and r3["vggt success (gated)"] == "2/2"
+    assert r3["matched"] == 1
+    assert r3["PSNR colmap (matched)"] == pytest.approx(25.5)
+    assert r3["PSNR vggt (matched)"] == pytest.approx(26.5) and r3["PSNR delta"] == pytest.approx(1.0)
+    assert r3["PSNR vggt (all)"] == pytest.approx(np.mean([22.5, 26.5, 18.5]))
+    r6 = t.loc[6]
+    assert r6["colmap success (paper)"] == "3/3" and r6["colmap success (gated)"] == "2/2"
+    assert r6["PSNR colmap (matched)"] == pytest.approx(np.mean([23.0, 27.0, 19.0]))
+    assert r6["LPIPS-vgg delta"] == pytest.approx(0.0)
+
+
+def test_tables_cli(tree, tmp_path):
+    from evaluation.__main__ import main
+
+    assert main(["tables", "--results", str(tree[0]), "--out", str(tmp_path / "t")]) == 0
+    df = pd.read_parquet(tmp_path / "t" / "runs.parquet")
+    assert len(df) == 12 and {"success_paper", "success_gated", "ate_rel_radius", "peak_mem_mb"} <= set(df.columns)
+    md = (tmp_path / "t" / "tables.md").read_text()
+    for title in ("## Table I", "## Table II", "## Pose accuracy", "## Run time", "## COLMAP repeats"):
+        assert title in md
+    row3 = next(ln for ln in md.splitlines() if ln.startswith("| mip360 | 3 | 3 |"))
+    assert "| 1/3 | 0/2 | 5/9 | 3/3 | 2/2 | 1 | 25.50 | 26.50 | 1.00 |" in row3
+    # a stricter gate (option) fails the VGGT runs too
+    main(["tables", "--results", str(tree[0]), "--out", str(tmp_path / "s"), "--max-rel-rot-deg", "0.5"])
+    assert "| 3/3 | 0/2 |" in (tmp_path / "s" / "tables.md").read_text()
+
+
+def test_markdown_formatting():
+    df = pd.DataFrame({"a": ["x|y", None], "b": [1.23456, float("nan")], "c": [True, False]})
+    md = to_markdown(df, {"b": 3}).splitlines()
+    assert md[0] == "| a | b | c |" and md[2] == "| x\\|y | 1.235 | yes |" and md[3] == "| - | - | no |"
+
+
+def test_missing_tree_is_an_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        collect_runs(tmp_path / "nope")
+
+
+def test_pareto_front():
+    t = np.array([10.0, 5.0, 20.0, 7.0, np.nan])
+    e = np.array([1.0, 3.0, 0.5, 3.5, 0.1])
+    assert pareto_front(t, e).tolist() == [1, 0, 2]
+
+
+def test_plots_cli(tree, tmp_path):
+    from evaluation.__main__ import main
+
+    assert main(["plots", "--results", str(tree[0]), "--out", str(tmp_path / "p")]) == 0
+    pngs = sorted((tmp_path / "p").rglob("*.png"))
+    names = {p.name for p in pngs}
+    assert "pareto.png" in names and "mip360__garden__n3.png" in names and len(pngs) == 7
+    for p in pngs:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
