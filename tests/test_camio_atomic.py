@@ -52,3 +52,21 @@ def test_write_json_and_npz(tmp_path):
     assert sorted(q.name for q in tmp_path.iterdir()) == ["a.json"]
     q = save_npz(tmp_path / "z.npz", a=np.arange(4))
     np.testing.assert_array_equal(np.load(q)["a"], np.arange(4))
+
+
+def test_atomic_outputs_follow_umask(tmp_path):
+    """Outputs are readable by others as with a plain open() (mkstemp alone gives 0600)."""
+    import os
+    import stat
+
+    from camio.atomic import atomic_dir, write_json
+
+    old = os.umask(0o022)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+        with atomic_dir(tmp_path / "d") as d:
+            (d / "f").write_text("x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / "d").stat().st_mode) == 0o755
