@@ -71,8 +71,9 @@ def match_images(pred_dir: str | Path, gt_dir: str | Path) -> list[tuple[str, st
         unmatched names (all of them are listed).
     """
     pred, gt = _by_stem(Path(pred_dir)), _by_stem(Path(gt_dir))
-    if not gt:
-        raise ValueError(f"no images (.png/.jpg/.tif/.exr) in the ground-truth folder {gt_dir}")
+    for what, folder, found in (("render", pred_dir, pred), ("ground-truth", gt_dir, gt)):
+        if not found:
+            raise ValueError(f"no images (.png/.jpg/.tif/.exr) in the {what} folder {folder}")
     only_pred = sorted(pred[s] for s in set(pred) - set(gt))
     only_gt = sorted(gt[s] for s in set(gt) - set(pred))
     if only_pred or only_gt:

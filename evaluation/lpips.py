@@ -140,8 +140,6 @@ class LPIPS(nn.Module):
         self.net_name = canonical_net(net)
         self.net = _Backbone(self.net_name)
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in self.net.channels)
-        self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1), persistent=False)
         self.requires_grad_(False)
         self.eval()
 
@@ -163,7 +161,9 @@ class LPIPS(nn.Module):
             x, y = 2.0 * x - 1.0, 2.0 * y - 1.0
         elif input_range != "pm1":
             raise ValueError(f"input_range must be '01' or 'pm1', got {input_range!r}")
-        shift, scale = self.shift.to(x.dtype), self.scale.to(x.dtype)
+        # built per call in x's dtype: float32 buffers cast to float64 would be off by ~1e-9
+        shift = torch.tensor(_SHIFT, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+        scale = torch.tensor(_SCALE, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
         fx = self.net((x - shift) / scale)
         fy = self.net((y - shift) / scale)
         total = x.new_zeros(x.shape[0])
@@ -231,7 +231,8 @@ def load_lpips(net: str = "alex", weights: str | Path | None = None,
         state = {k: f.get_tensor(k) for k in f.keys()}
     if meta.get("net") not in (None, net):
         raise ValueError(f"{path} holds LPIPS weights for net={meta.get('net')!r}, not {net!r}")
-    model = LPIPS(net)
+    with torch.device("meta"):  # skip the random init of ~15M parameters; weights come next
+        model = LPIPS(net)
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
@@ -241,7 +242,8 @@ def load_lpips(net: str = "alex", weights: str | Path | None = None,
         raise ValueError(f"{path} is not an LPIPS-{net} weight file of format {WEIGHTS_FORMAT} "
                          f"(missing {missing[:5]}, unexpected {unexpected[:5]}, shape mismatches {bad[:5]}); "
                          f"re-create it: {missing_weights_hint()}")
-    model.load_state_dict({k: v.to(torch.float32) for k, v in state.items()})
+    model.load_state_dict({k: v.to(torch.float32).contiguous() for k, v in state.items()}, assign=True)
+    model.requires_grad_(False)
     log.debug("loaded LPIPS-%s weights from %s (%s)", net, path, meta.get("source", "unknown source"))
     return model.to(device)
 
