@@ -12,6 +12,15 @@ from splat_train.densify import DensifyStrategy, duplicate, quat_to_rotmat, remo
 from splat_train.gaussians import PARAM_NAMES, make_optimizer, params_from_cloud
 
 
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Tiny tensors: one thread is fastest (and far faster on a shared, busy machine)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
 def _setup(n=8, seed=0):
     rng = np.random.default_rng(seed)
     cloud = GaussianCloud.from_points(rng.normal(size=(n, 3)), rng.uniform(0, 1, (n, 3)),

@@ -1,0 +1,142 @@
+"""splat_train.trainer on a tiny generated scene: loss goes down, resume is exact, NaN stops
+the run keeping the last checkpoint, the log has its columns, pose refinement."""
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from _train_scene import write_scene
+from camio.colmap import read_model
+from camio.ply import read_gaussian_ply
+from splat_train import trainer as trainer_mod
+from splat_train.checkpoint import list_checkpoints, load_checkpoint
+from splat_train.config import TrainConfig
+from splat_train.runlog import LOG_COLUMNS
+from splat_train.trainer import NonFiniteLossError, train
+
+# A short explicit schedule: densify at 10 and 20, one opacity reset at 15, SH +1 every 10.
+SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, opacity_reset_every=15,
+             sh_increase_every=10, scale_schedule=False, checkpoint_every=8, eval_every=12,
+             device="cpu", keep_checkpoints=5)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Tiny images: one thread is fastest (and far faster on a shared, busy machine)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory, one_thread):
+    return write_scene(tmp_path_factory.mktemp("scene"), n_views=4, n_test=2)
+
+
+def _train(scene, out, **over):
+    cfg = TrainConfig(**{**SMALL, **over})
+    return train(scene["seed"], scene["cameras"], scene["images"], out, cfg,
+                 test_cameras=scene["test_cameras"], test_images=scene["test_images"])
+
+
+def test_loss_decreases_and_outputs(scene, tmp_path):
+    res = _train(scene, tmp_path / "run", iterations=40, densify_until=0, checkpoint_every=20)
+    out = tmp_path / "run"
+    table = pq.read_table(out / "log.parquet")
+    assert tuple(table.column_names) == LOG_COLUMNS
+    df = table.to_pandas()
+    assert list(df["iteration"]) == list(range(1, 41))
+    assert str(table.schema.field("iteration").type) == "int64"
+    assert (np.diff(df["wall_time_s"]) > 0).all()
+    assert df["loss"].iloc[-8:].mean() < 0.7 * df["loss"].iloc[:8].mean()
+    # held-out PSNR only every eval_every (and at the end), null elsewhere
+    assert list(df.index[df["test_psnr"].notna()] + 1) == [12, 24, 36, 40]
+    s = json.loads((out / "train.json").read_text())
+    for key in ("iterations", "wall_time_s", "num_gaussians", "train_psnr", "test_psnr", "peak_rss_mb"):
+        assert key in s
+    assert s["test_psnr"] > 15 and s["train_psnr"] > 15
+    assert sorted(p.name for p in (out / "renders").iterdir()) == ["view_01.png", "view_03.png"]
+    cloud = read_gaussian_ply(out / "model.ply")
+    assert len(cloud) == s["num_gaussians"] == res.summary["num_gaussians"]
+    assert [i for i, _ in list_checkpoints(out)] == [20, 40]
+    ck = load_checkpoint(list_checkpoints(out)[-1][1])
+    assert ck["iteration"] == 40 and set(ck["params"]) >= {"means", "quats"}
+    assert not (out / "cameras_refined").exists()  # pose refinement is off by default
+    assert TrainConfig().pose_refine is False
+
+
+def test_resume_gives_identical_model(scene, tmp_path, monkeypatch):
+    full = tmp_path / "full"
+    _train(scene, full)
+    # "killed" run: dies inside iteration 19 (checkpoints at 8 and 16), then resumes to 24.
+    part = tmp_path / "part"
+    real = trainer_mod.photometric_loss
+    calls = {"n": 0}
+
+    def killed(*args):
+        calls["n"] += 1
+        if calls["n"] == 19:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _train(scene, part)
+    assert [i for i, _ in list_checkpoints(part)] == [8, 16]
+    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    res = _train(scene, part)
+    assert res.summary["resumed_from"].endswith("ckpt_0000016.pt")
+    a, b = read_gaussian_ply(full / "model.ply"), read_gaussian_ply(part / "model.ply")
+    assert len(a) == len(b)
+    for k in ("means", "sh_dc", "sh_rest", "opacity_logit", "log_scales", "quats"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    la = pq.read_table(full / "log.parquet").to_pandas()
+    lb = pq.read_table(part / "log.parquet").to_pandas()
+    np.testing.assert_array_equal(la["loss"], lb["loss"])
+    np.testing.assert_array_equal(la["num_gaussians"], lb["num_gaussians"])
+
+
+def test_resume_refuses_other_config(scene, tmp_path):
+    _train(scene, tmp_path / "r", iterations=8)
+    with pytest.raises(ValueError, match="lr_opacity"):
+        _train(scene, tmp_path / "r", iterations=8, lr_opacity=0.01)
+
+
+def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch):
+    real = trainer_mod.photometric_loss
+    calls = {"n": 0}
+
+    def poisoned(render, target, lam):
+        calls["n"] += 1
+        loss, l1, s = real(render, target, lam)
+        return (loss * float("nan"), l1, s) if calls["n"] == 11 else (loss, l1, s)
+
+    monkeypatch.setattr(trainer_mod, "photometric_loss", poisoned)
+    out = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match=r"iteration 11.*ckpt_0000008\.pt"):
+        _train(scene, out)
+    ckpts = list_checkpoints(out)
+    assert [i for i, _ in ckpts] == [8]
+    data = load_checkpoint(ckpts[0][1])
+    assert all(torch.isfinite(v).all() for v in data["params"].values())
+    assert not (out / "model.ply").exists()
+    # the checkpoint is usable: a clean run resumes from it
+    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    res = _train(scene, out)
+    assert res.summary["resumed_from"].endswith("ckpt_0000008.pt")
+
+
+def test_pose_refinement_changes_cameras(scene, tmp_path):
+    out = tmp_path / "pose"
+    res = _train(scene, out, iterations=12, pose_refine=True, lr_pose=1e-3, densify_until=0)
+    assert res.summary["pose_correction"]["max_rot_rad"] > 0
+    refined = read_model(out / "cameras_refined")
+    given = read_model(scene["cameras"])
+    assert refined.names == given.names
+    moved = max(float(np.abs(a.cam_from_world - b.cam_from_world).max())
+                for a, b in zip(refined.cameras, given.cameras))
+    assert 1e-5 < moved < 0.1
