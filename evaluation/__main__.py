@@ -86,7 +86,8 @@ def _add_images(sub, wanted: bool) -> None:
         try:
             from evaluation import images_cli
         except ImportError as exc:
-            p = sub.add_parser("images", help="image metrics (unavailable)")
+            # prefix "+" so that the real command's --options land in ``rest`` unparsed
+            p = sub.add_parser("images", help="image metrics (unavailable)", prefix_chars="+")
             p.add_argument("rest", nargs=argparse.REMAINDER)
             p.set_defaults(func=_missing_images(exc))
             return
@@ -162,7 +163,12 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         log.error("evaluation.images_cli.add_parser did not set a handler (set_defaults(func=...))")
         return 2
-    return int(func(args) or 0)
+    try:
+        return int(func(args) or 0)
+    except (ValueError, KeyError, OSError) as exc:  # bad inputs: a clear message, no traceback
+        log.debug("traceback", exc_info=True)
+        log.error("%s failed: %s", args.command, exc)
+        return 1
 
 
 if __name__ == "__main__":

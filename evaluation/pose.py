@@ -198,8 +198,9 @@ def run_pose(pred_dir: str | Path, ref_dir: str | Path, out: str | Path,
     from evaluation.align_run import load_names
 
     t0 = time.perf_counter()
-    pred = read_model(pred_dir)
-    ref = read_model(ref_dir)
+    # poses only: a distorted camera model's distortion does not matter here
+    pred = read_model(pred_dir, allow_distorted=True)
+    ref = read_model(ref_dir, allow_distorted=True)
     names = None
     if names_file is not None:
         names = load_names(names_file, "train", n, available=pred.names)

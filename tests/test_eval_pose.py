@@ -157,3 +157,16 @@ def test_accuracy_gate_without_reference():
     g = GateConfig(max_ate_rel_radius=0.1, max_rel_rot_deg=2.0)
     assert accuracy_gate({"success_paper": True, "ate_rel_radius": 0.08, "rel_rot_err_mean_deg": 1.0}, g) is True
     assert accuracy_gate({"success_paper": True, "ate_rel_radius": 0.08, "rel_rot_err_mean_deg": 3.0}, g) is False
+
+
+def test_dispatcher_images_missing_and_clear_errors(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from evaluation.__main__ import main
+
+    monkeypatch.setitem(sys.modules, "evaluation.images_cli", None)  # import fails
+    assert main(["images", "--pred", "a", "--gt", "b", "--out", "c"]) == 2
+    assert "importing evaluation.images_cli failed" in capsys.readouterr().err
+    # a bad input is an error message and exit status 1, not a traceback
+    assert main(["pose", "--pred", str(tmp_path / "none"), "--ref", str(tmp_path), "--out", str(tmp_path / "p.json")]) == 1
+    assert "pose failed: no COLMAP model" in capsys.readouterr().err
