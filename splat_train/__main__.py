@@ -4,6 +4,7 @@ Train::
 
     python -m splat_train --seed seed.ply --cameras DIR --images DIR --out DIR
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
+        [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
         [--eval-every M] [--pose-refine] [--device auto|cpu|cuda] [--threads T]
 
@@ -37,6 +38,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
+    p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
     p.add_argument("--downsample", type=int, help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
@@ -101,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, device=args.device, num_threads=args.threads)
     result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
-                   test_images=args.test_images, image_list=args.image_list)
+                   test_images=args.test_images, image_list=args.image_list,
+                   test_image_list=args.test_image_list)
     s = result.summary
     print(f"model: {result.model_path}  Gaussians: {s['num_gaussians']}  train PSNR: {s['train_psnr']:.2f}  "
           f"test PSNR: {s['test_psnr'] if s['test_psnr'] == s['test_psnr'] else 'n/a'}  "

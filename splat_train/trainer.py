@@ -285,7 +285,8 @@ class Trainer:
 
 def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
           cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
-          test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None) -> TrainResult:
+          test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None,
+          test_image_list: str | Path | list[str] | None = None) -> TrainResult:
     """Train 3DGS from a seed PLY and posed images; resume from ``out_dir/ckpt`` if present.
 
     Args:
@@ -296,6 +297,8 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         cfg: hyperparameters (defaults: :class:`TrainConfig`).
         test_cameras, test_images: held-out views in the same frame (both or neither).
         image_list: restrict training to these names (a file or a list).
+        test_image_list: restrict the held-out views to these names (e.g. when the test
+            cameras folder is the Bridge's folder of every camera).
 
     Raises:
         NonFiniteLossError: the loss became non-finite (the last checkpoint stays in ckpt/).
@@ -306,10 +309,12 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
     names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
+    test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
+                  else test_image_list)
     bg = tuple(cfg.background)
     t0 = time.perf_counter()
     train_views = load_views(cameras, images, names, cfg.downsample, bg)
-    test_views = (load_views(test_cameras, test_images, None, cfg.downsample, bg)
+    test_views = (load_views(test_cameras, test_images, test_names, cfg.downsample, bg)
                   if test_cameras is not None else [])
     log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
              len(train_views), len(test_views))
