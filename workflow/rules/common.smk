@@ -29,6 +29,9 @@ SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
+# The workflow's own helper script, found from the workflow (any working directory works).
+VIEWS_SCRIPT = str(Path(workflow.basedir) / "scripts" / "views.py")
+
 # Formats whose source carries reference cameras.
 _REFERENCE_FORMATS = ("colmap", "llff", "transforms")
 _DISTORTED = (
@@ -87,7 +90,7 @@ def source_format(dataset, scene):
         return "llff"
     if (src / "transforms.json").is_file():
         return "transforms"
-    return "images"
+    return "folder"
 
 
 def has_reference(dataset, scene):

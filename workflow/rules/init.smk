@@ -64,8 +64,10 @@ checkpoint colmap_index:
     threads: 1
     resources:
         mem_mb=200,
+    params:
+        script=VIEWS_SCRIPT,
     shell:
-        "python workflow/scripts/views.py index --status {input} --out {output} > {log} 2>&1"
+        "python {params.script} index --status {input} --out {output} > {log} 2>&1"
 
 
 rule oracle_init:

@@ -93,8 +93,10 @@ rule train_list:
     threads: 1
     resources:
         mem_mb=200,
+    params:
+        script=VIEWS_SCRIPT,
     shell:
-        "python workflow/scripts/views.py names --split {input} --n {wildcards.n} "
+        "python {params.script} names --split {input} --n {wildcards.n} "
         "--out {output} > {log} 2>&1"
 
 
@@ -113,6 +115,8 @@ rule test_images:
     threads: 1
     resources:
         mem_mb=200,
+    params:
+        script=VIEWS_SCRIPT,
     shell:
-        "python workflow/scripts/views.py link --split {input.split} --which test "
+        "python {params.script} link --split {input.split} --which test "
         "--images {input.scene}/images --out {output} > {log} 2>&1"
