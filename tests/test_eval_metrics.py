@@ -162,7 +162,7 @@ class TestLayouts:
 _img = st.integers(0, 2 ** 31 - 1).map(lambda s: _rand_pair(s, 13, 15, noise=0.2))
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(_img)
 def test_property_symmetry(pair):
     pred, gt = pair
@@ -170,7 +170,7 @@ def test_property_symmetry(pair):
     assert float(ssim(pred, gt)[0]) == pytest.approx(float(ssim(gt, pred)[0]), abs=1e-12)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(_img, st.floats(0.0, 1.0))
 def test_property_bounds(pair, t):
     pred, gt = pair
