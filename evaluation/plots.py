@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_path
-from evaluation.results import collect_runs, find_file
+from evaluation.results import collect_runs, find_file, run_label
 
 __all__ = ["training_curves", "pareto_front", "pareto_plot", "run_plots"]
 
@@ -59,7 +59,8 @@ def training_curves(runs: pd.DataFrame, out: str | Path) -> list[Path]:
     out = Path(out)
     written = []
     for (dataset, scene, n), g in runs.groupby(["dataset", "scene", "n"], sort=True):
-        logs = {row.init: lg for row in g.itertuples() if (lg := _read_log(row.run_dir)) is not None}
+        logs = {run_label(row.init, row.bridge_mode): lg for row in g.itertuples()
+                if (lg := _read_log(row.run_dir)) is not None}
         if not logs:
             continue
         fig, axes = plt.subplots(2, 2, figsize=(10, 7))
@@ -108,7 +109,8 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> Path | None:
     """``out/pareto.png``: held-out PSNR against total run time; None when no run has both."""
     plt = _pyplot()
     psnr = runs["psnr"].where(runs["psnr"].notna(), runs["final_test_psnr"])
-    d = runs.assign(psnr_final=psnr)[["init", "n", "total_s", "psnr_final"]].dropna()
+    d = runs.assign(psnr_final=psnr, label=[run_label(i, m) for i, m in zip(runs["init"], runs["bridge_mode"])])
+    d = d[["label", "n", "total_s", "psnr_final"]].dropna().rename(columns={"label": "init"})
     if d.empty:
         log.warning("plots: no run has both a run time and a PSNR; no Pareto plot")
         return None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import html
 import logging
+import re
 import time
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
 from evaluation.plots import run_plots
 from evaluation.pose import GateConfig
-from evaluation.results import collect_runs, find_file
+from evaluation.results import collect_runs, find_file, run_label
 from evaluation.tables import build_tables
 
 __all__ = ["render_grid_html", "run_report"]
@@ -68,15 +69,16 @@ def _gt_folder(scenes_dir: Path | None, dataset: str, scene: str) -> Path | None
     return None
 
 
-def _init_order(inits) -> list[str]:
-    first = [i for i in ("colmap", "vggt") if i in inits]
-    return first + sorted(i for i in inits if i not in first)
+def _init_order(labels) -> list[str]:
+    """COLMAP first, then VGGT, then the rest (labels "init" or "init (mode)")."""
+    rank = {"colmap": 0, "vggt": 1}
+    return sorted(labels, key=lambda lab: (rank.get(lab.split(" ")[0], 2), lab))
 
 
 def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None, max_views: int = 4) -> str:
     """The HTML table of one (dataset, scene, n) group of runs; thumbnails go to ``images_dir``."""
     dataset, scene, n = group["dataset"].iloc[0], group["scene"].iloc[0], int(group["n"].iloc[0])
-    runs = {row.init: row for row in group.itertuples()}
+    runs = {run_label(row.init, row.bridge_mode): row for row in group.itertuples()}
     renders = {}
     for init, row in runs.items():
         folder = find_file(Path(row.run_dir), "renders")
@@ -100,7 +102,8 @@ def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | N
                 why = f"<br><small>{html.escape(str(reason))}</small>" if isinstance(reason, str) and reason else ""
                 cells.append(f'<td class="failed">failed{why}</td>')
                 continue
-            rel = f"renders/{dataset}__{scene}__n{n}__{init.strip('_')}__{stem}.png"
+            tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", init.strip("_")).strip("_")
+            rel = f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png"
             if src is None or not _thumb(src, images_dir / rel):
                 cells.append('<td class="missing">missing</td>')
                 continue

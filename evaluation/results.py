@@ -1,8 +1,12 @@
 """Read a results tree into one record per run (tolerant of missing pieces).
 
-Layout: a run is a folder ``{results}/{dataset}/{scene}/n{n}/{init}/`` (``init`` = vggt,
-colmap, oracle, ...). Inside it every file below is looked up by name at any depth,
-shallowest first, ignoring ``repeats/`` (COLMAP repeat runs) and ``ckpt/``:
+Layout (workflow/rules/common.smk): a run is ``{results}/{dataset}/{scene}/n{n}/{init}/``
+(``init`` = vggt, colmap, oracle, ...), optionally split into bridge-mode sub-folders
+``{init}/{mode}/`` (gated, uniform, filtered; any sub-folder holding ``bridge/``, ``train/`` or
+``metrics.json``), each one record. Every file below is looked up by name at any depth,
+shallowest first: in the mode folder, then in the run folder outside every mode folder
+(initialiser outputs such as status.json and pose.json are shared by the modes), ignoring
+``repeats/`` (COLMAP repeat runs) and ``ckpt/``:
 
 =================  ==========================================================================
 file               what is read
@@ -46,7 +50,7 @@ import pandas as pd
 
 from evaluation.pose import GateConfig, accuracy_gate
 
-__all__ = ["RUN_COLUMNS", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
+__all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
 
 log = logging.getLogger(__name__)
 
@@ -66,22 +70,54 @@ RUN_COLUMNS = [
 ]
 
 
-def find_runs(results: str | Path) -> list[Path]:
-    """Run folders ``{results}/{dataset}/{scene}/n{n}/{init}``, sorted."""
+_RESERVED = {"sparse", "repeats", "benchmarks", "logs", "ckpt", "init", "eval", "train", "bridge",
+             "renders", "align", "cameras_refined"}
+
+
+def mode_dirs(run_dir: Path) -> list[Path]:
+    """Bridge-mode sub-folders of a run (``{init}/{mode}/`` holding bridge/, train/ or
+    metrics.json), sorted; empty for a flat run or an initialiser-only (failed) run."""
+    return sorted(p for p in run_dir.iterdir() if p.is_dir() and p.name not in _RESERVED
+                  and ((p / "bridge").is_dir() or (p / "train").is_dir() or (p / "metrics.json").is_file()))
+
+
+def run_label(init: str, mode) -> str:
+    """Display name of an (initialiser, bridge mode) pair: "vggt" or "vggt (gated)"."""
+    return init if mode is None or (isinstance(mode, float) and math.isnan(mode)) else f"{init} ({mode})"
+
+
+def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
+    """(run folder ``{results}/{dataset}/{scene}/n{n}/{init}``, bridge mode or None), sorted.
+
+    A run folder with mode sub-folders gives one entry per mode; otherwise one entry with None.
+    """
     results = Path(results)
     if not results.is_dir():
         raise FileNotFoundError(f"results folder {results} does not exist")
-    runs = [p for p in results.glob("*/*/n*/*") if p.is_dir() and _N_DIR.match(p.parent.name)]
-    return sorted(runs)
+    out = []
+    for p in sorted(results.glob("*/*/n*/*")):
+        if not (p.is_dir() and _N_DIR.match(p.parent.name)) or p.parts[-4] == "benchmarks":
+            continue
+        modes = mode_dirs(p)
+        out += [(p, m.name) for m in modes] if modes else [(p, None)]
+    return out
 
 
-def find_file(run_dir: Path, name: str) -> Path | None:
-    """The shallowest file (or folder) called ``name`` under ``run_dir``, skipping repeats/ and
-    ckpt/; None when absent."""
+def find_file(run_dir: Path, name: str, skip: set[str] = frozenset(), mode: str | None = None) -> Path | None:
+    """The shallowest file (or folder) called ``name`` for a run: first under
+    ``run_dir/mode`` (when a mode is given), then under ``run_dir`` outside its mode
+    sub-folders; repeats/ and ckpt/ are skipped, and top-level folders named in ``skip``.
+    None when absent."""
+    run_dir = Path(run_dir)
+    if mode is not None:
+        hit = find_file(run_dir / mode, name)
+        if hit is not None:
+            return hit
+        skip = set(skip) | {m.name for m in mode_dirs(run_dir)}
     best = None
     for p in run_dir.rglob(name):
         rel = p.relative_to(run_dir).parts
-        if _SKIP & set(rel[:-1]):
+        if _SKIP & set(rel[:-1]) or (len(rel) > 1 and rel[0] in skip):
             continue
         if best is None or (len(rel), str(p)) < (len(best.relative_to(run_dir).parts), str(best)):
             best = p
@@ -142,9 +178,12 @@ def _peaks(d: dict) -> tuple[float, float]:
     return host, gpu
 
 
-def _benchmarks(run_dir: Path, bench_dir: Path | None) -> dict[str, dict]:
-    """stage -> {"s": seconds (summed), "max_rss": MB (max)} from Snakemake benchmark TSVs."""
-    files = [p for p in run_dir.rglob("*.tsv") if not (_SKIP & set(p.relative_to(run_dir).parts))]
+def _benchmarks(run_dir: Path, bench_dir: Path | None, mode: str | None = None) -> dict[str, dict]:
+    """stage -> {"s": seconds (summed), "max_rss": MB (max)} from Snakemake benchmark TSVs
+    (the run's own and its mode's; other modes' are skipped)."""
+    others = {m.name for m in mode_dirs(run_dir)} - {mode}
+    files = [p for p in run_dir.rglob("*.tsv")
+             if not (_SKIP & set(p.relative_to(run_dir).parts)) and p.relative_to(run_dir).parts[0] not in others]
     if bench_dir is not None and bench_dir.is_dir():
         files += sorted(bench_dir.glob("*.tsv"))
     out: dict[str, dict] = {}
@@ -168,21 +207,28 @@ def _benchmarks(run_dir: Path, bench_dir: Path | None) -> dict[str, dict]:
     return out
 
 
-def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root: Path | None = None) -> dict:
-    """One run's record (keys :data:`RUN_COLUMNS`); see the module docstring."""
+def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root: Path | None = None,
+             mode: str | None = None) -> dict:
+    """One run's record (keys :data:`RUN_COLUMNS`); see the module docstring.
+
+    Args:
+        run_dir: ``{results}/{dataset}/{scene}/n{n}/{init}``.
+        mode: the bridge-mode sub-folder to read (None: a flat run).
+    """
     run_dir = Path(run_dir)
     init, n_dir, scene, dataset = run_dir.name, run_dir.parent.name, run_dir.parent.parent.name, \
         run_dir.parent.parent.parent.name
     n = int(_N_DIR.match(n_dir).group(1))
-    status = _json(find_file(run_dir, "status.json"))
-    pose = _json(find_file(run_dir, "pose.json"))
-    metrics = _json(find_file(run_dir, "metrics.json"))
-    timing = _json(find_file(run_dir, "timing.json"))
-    bridge = _json(find_file(run_dir, "bridge.json"))
-    train = _json(find_file(run_dir, "train.json"))
-    log_path = find_file(run_dir, "log.parquet")
+    find = lambda name: find_file(run_dir, name, mode=mode)  # noqa: E731
+    status = _json(find("status.json"))
+    pose = _json(find("pose.json"))
+    metrics = _json(find("metrics.json"))
+    timing = _json(find("timing.json"))
+    bridge = _json(find("bridge.json"))
+    train = _json(find("train.json"))
+    log_path = find("log.parquet")
     bench_dir = results_root / "benchmarks" / dataset / scene / n_dir / init if results_root else None
-    bench = _benchmarks(run_dir, bench_dir)
+    bench = _benchmarks(run_dir, bench_dir, mode)
 
     if status:
         ok = bool(status.get("success", False))
@@ -199,7 +245,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
 
     rec = {
         "dataset": dataset, "scene": scene, "n": n, "init": init,
-        "bridge_mode": bridge.get("mode"), "success_paper": success, "success_gated": gated,
+        "bridge_mode": bridge.get("mode", mode), "success_paper": success, "success_gated": gated,
         "has_reference": has_ref, "registered": _num(registered), "n_train": n,
         "points": _first(status, "points") if status else _first(pose, "n_points"),
         "reason": status.get("reason"),
@@ -210,7 +256,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
                                          "fy_fx_max_dev")},
         "final_test_psnr": math.nan, "num_gaussians": _first(train, "num_gaussians", "final_num_gaussians"),
         "iterations": _first(train, "iterations", "iteration"),
-        "run_dir": str(run_dir),
+        "run_dir": str(run_dir / mode if mode else run_dir),
     }
     if math.isnan(rec["fy_fx_max_dev"]) and status.get("fy_over_fx") is not None:
         rec["fy_fx_max_dev"] = abs(_num(status["fy_over_fx"]) - 1.0)
@@ -270,12 +316,20 @@ def collect_runs(results: str | Path, gate: GateConfig = GateConfig()) -> pd.Dat
     """Every run of the tree as one DataFrame row (columns :data:`RUN_COLUMNS`)."""
     results = Path(results)
     rows = []
-    for run in find_runs(results):
-        if run.parts[-4] == "benchmarks":
-            continue
-        rows.append(read_run(run, gate, results))
+    for run, mode in find_runs(results):
+        rows.append(read_run(run, gate, results, mode))
     df = pd.DataFrame(rows, columns=RUN_COLUMNS)
     if len(df):
+        # an initialiser-only run (failed: no bridge / training) has no mode; it failed in
+        # every mode this initialiser was run with, so it stands for each of them
+        parts = []
+        for _, g in df.groupby(["dataset", "init"], sort=False):
+            modes = sorted(g["bridge_mode"].dropna().unique())
+            bare = g[g["bridge_mode"].isna()]
+            parts.append(g[g["bridge_mode"].notna()])
+            parts += [bare.assign(bridge_mode=m) for m in modes] if modes else [bare]
+        df = pd.concat(parts, ignore_index=True).sort_values(
+            ["dataset", "scene", "n", "init", "bridge_mode"], na_position="first").reset_index(drop=True)
         # reference cameras are a property of the scene: a failed run (no pose.json) of a scene
         # with references still counts in the gated k/N, as a failure
         scene_ref = df.groupby(["dataset", "scene"])["has_reference"].transform("any").astype(bool)

@@ -70,13 +70,22 @@ def _lpips_col(df: pd.DataFrame, lpips: str) -> str:
     return f"lpips_{lpips}"
 
 
-def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", lpips: str = "vgg") -> pd.DataFrame:
-    """Table I: per dataset and n (see the module docstring)."""
+def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
+    """One row per scene: the rows of bridge ``mode`` when there are any, else the first mode."""
+    if mode is not None and (rows["bridge_mode"] == mode).any():
+        rows = rows[rows["bridge_mode"] == mode]
+    return rows[~rows["scene"].duplicated()].set_index("scene")
+
+
+def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", lpips: str = "vgg",
+              ours_mode: str | None = "gated", baseline_mode: str | None = "uniform") -> pd.DataFrame:
+    """Table I: per dataset and n (see the module docstring); ``*_mode`` picks the bridge mode
+    (the paper's: VGGT gated, COLMAP uniform) when a run has several."""
     lp = _lpips_col(runs, lpips)
     rows = []
     for (dataset, n), g in runs.groupby(["dataset", "n"], sort=True):
-        base = g[g["init"] == baseline].set_index("scene")
-        our = g[g["init"] == ours].set_index("scene")
+        base = _one_mode(g[g["init"] == baseline], baseline_mode)
+        our = _one_mode(g[g["init"] == ours], ours_mode)
         scenes = sorted(set(base.index) | set(our.index))
         matched = [s for s in base.index[base["success_paper"].astype(bool)] if s in our.index]
         row = {"dataset": dataset, "n": int(n), "scenes": len(scenes),
@@ -99,13 +108,13 @@ def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", 
 
 
 def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
-    """Table II style summary per dataset, initialiser and n."""
+    """Table II style summary per dataset, initialiser, bridge mode and n."""
     lp = _lpips_col(runs, lpips)
     rows = []
-    for (dataset, init, n), g in runs.groupby(["dataset", "init", "n"], sort=True):
+    for (dataset, init, mode, n), g in runs.groupby(["dataset", "init", "bridge_mode", "n"], sort=True, dropna=False):
         ok = g[g["success_paper"].astype(bool)]
         rows.append({
-            "dataset": dataset, "init": init, "n": int(n), "runs": len(g),
+            "dataset": dataset, "init": init, "mode": mode, "n": int(n), "runs": len(g),
             "success (paper)": _k_of_n(g["success_paper"]),
             "success (gated)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
@@ -118,7 +127,8 @@ def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
 
 def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
     """One row per run with reference cameras (or a registration count)."""
-    g = runs[runs["has_reference"].astype(bool) | runs["registered"].notna()].copy()
+    g = runs[runs["has_reference"].astype(bool) | runs["registered"].notna()]
+    g = g[~g[["dataset", "scene", "n", "init"]].duplicated()].copy()  # poses are shared by bridge modes
     g["registered/n"] = [f"{'-' if math.isnan(r) else int(r)}/{int(n)}" for r, n in zip(g["registered"], g["n_train"])]
     cols = {"dataset": "dataset", "scene": "scene", "n": "n", "init": "init", "registered/n": "registered/n",
             "success_paper": "success (paper)", "success_gated": "success (gated)",
@@ -129,10 +139,11 @@ def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
 
 
 def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """Mean stage times (s) and peak memory (MB) per dataset, initialiser and n."""
+    """Mean stage times (s) and peak memory (MB) per dataset, initialiser, bridge mode and n."""
     rows = []
-    for (dataset, init, n), g in runs.groupby(["dataset", "init", "n"], sort=True):
-        rows.append({"dataset": dataset, "init": init, "n": int(n), "runs": len(g),
+    for (dataset, init, mode, n), g in runs.groupby(["dataset", "init", "bridge_mode", "n"], sort=True,
+                                                     dropna=False):
+        rows.append({"dataset": dataset, "init": init, "mode": mode, "n": int(n), "runs": len(g),
                      "init s": _mean(g["init_s"]), "bridge s": _mean(g["bridge_s"]),
                      "train s": _mean(g["train_s"]), "eval s": _mean(g["eval_s"]),
                      "total s": _mean(g["total_s"]), "peak MB": float(g["peak_mem_mb"].max()),
@@ -143,13 +154,15 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
 def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
     """The spread over repeated (seeded) runs, where any."""
     g = runs[runs["repeats"].fillna(0) > 1]
+    g = g[~g[["dataset", "scene", "n", "init"]].duplicated()]
     cols = {"dataset": "dataset", "scene": "scene", "n": "n", "init": "init", "repeats": "runs",
             "repeats_success_rate": "success rate (paper)", "repeats_registered_min": "registered min",
             "repeats_registered_max": "registered max"}
     return g[list(cols)].rename(columns=cols).reset_index(drop=True)
 
 
-_DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4}
+_DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "runs": 0,
+           "registered min": 0, "registered max": 0}
 
 
 def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg") -> dict[str, pd.DataFrame]:

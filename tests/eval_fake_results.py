@@ -1,17 +1,19 @@
 """A small fake results tree with real JSON / Parquet / PNG / TSV files (evaluation tests).
 
-Layout ``{root}/results/mip360/{scene}/n{n}/{init}/``, scenes ``garden`` and ``room`` (with
-reference cameras: pose.json) and ``nus`` (none), n in {3, 6}, inits ``colmap`` and ``vggt``:
+Layout as workflow/rules/common.smk writes it: ``{root}/results/mip360/{scene}/n{n}/{init}/``
+holds the initialiser's outputs (status.json, timing.json, pose.json, benchmarks/*.tsv) and one
+folder per bridge mode, ``{init}/{mode}/`` (bridge/bridge.json, train/{train.json,log.parquet},
+renders/*.png, metrics.json, benchmarks/metrics.tsv). Scenes ``garden`` and ``room`` (with
+reference cameras: pose.json) and ``nus`` (none), n in {3, 6}, inits ``colmap`` (mode uniform)
+and ``vggt`` (mode gated; on ``room`` also uniform, 0.5 dB worse):
 
 * colmap on garden n=3 failed: only status.json (reason "no initial pair").
 * colmap on room n=3 passes the paper's criterion with wrong poses (ATE 40% of the radius).
 * colmap on nus n=3 registered only 2 views (paper success needs 3 for alignment).
-* every other run succeeded: metrics.json, pose.json (not for nus), train/log.parquet,
-  renders/*.png, timing.json (vggt) or status.json (colmap), bridge.json, a benchmark TSV.
+* every other run succeeded.
 
-PSNR values are chosen so that the expected table cells can be computed by hand (see the
-``expected_*`` helpers).
-"""
+PSNR values are chosen so that the expected table cells can be computed by hand
+(:func:`psnr_of`)."""
 
 from __future__ import annotations
 
@@ -28,9 +30,9 @@ NS = (3, 6)
 TEST_VIEWS = ("img000", "img008")
 
 
-def psnr_of(scene: str, n: int, init: str) -> float:
+def psnr_of(scene: str, n: int, init: str, mode: str | None = None) -> float:
     base = {"garden": 20.0, "room": 24.0, "nus": 16.0}[scene]
-    return base + n * 0.5 + (1.0 if init == "vggt" else 0.0)
+    return base + n * 0.5 + (1.0 if init == "vggt" else 0.0) - (0.5 if init == "vggt" and mode == "uniform" else 0.0)
 
 
 def _write(path: Path, data) -> None:
@@ -69,31 +71,36 @@ def build(root: Path) -> tuple[Path, Path]:
                     if failed or two_reg:
                         continue
                 else:
-                    _write(run / "init" / "timing.json", {"total_s": 10.0, "peak_gpu_mb": 14000.0,
-                                                          "peak_rss_mb": 3000.0})
-                _write(run / "bridge" / "bridge.json", {"mode": "paper", "wall_time_s": 2.0})
+                    _write(run / "timing.json", {"total_s": 10.0, "peak_gpu_mb": 14000.0, "peak_rss_mb": 3000.0})
+                (run / "benchmarks").mkdir()
+                (run / "benchmarks" / f"{'colmap_baseline' if init == 'colmap' else 'vggt_init'}.tsv").write_text(
+                    "s\th:m:s\tmax_rss\tmax_vms\n12.0\t0:00:12\t700.0\t2000\n")
                 wrong = init == "colmap" and scene == "room" and n == 3
                 if scene != "nus":
-                    _write(run / "eval" / "pose.json", {
+                    _write(run / "pose.json", {
                         "ate_rmse": 0.4 if wrong else 0.01, "ate_rel_radius": 0.4 if wrong else 0.01,
                         "ate_pct_radius": 40.0 if wrong else 1.0, "rpe_rot_deg": 30.0 if wrong else 1.0,
                         "rpe_trans_dir_deg": 20.0 if wrong else 2.0,
                         "rel_rot_err_mean_deg": 30.0 if wrong else 1.0, "rel_rot_err_max_deg": 50.0 if wrong else 2.0,
                         "n_matched": n, "registered": n, "success_paper": True, "has_reference": True,
                         "fy_fx_max_dev": 0.001, "wall_time_s": 0.5})
-                p = psnr_of(scene, n, init)
-                _write(run / "eval" / "metrics.json", {
-                    "psnr": p, "ssim": 0.5 + 0.01 * n, "lpips_alex": 0.3, "lpips_vgg": 0.4, "n_images": 2,
-                    "per_image": [], "wall_time_s": 1.5})
-                _write(run / "train" / "train.json", {"wall_time_s": 100.0 + n, "num_gaussians": 1000 * n})
-                it = np.arange(0, 1001, 100)
-                pd.DataFrame({"iteration": it, "wall_time_s": it * 0.1, "loss": 0.5 / (1 + it / 100.0),
-                              "l1": 0.1, "ssim": 0.8, "num_gaussians": 1000 + it,
-                              "test_psnr": np.where(it % 500 == 0, p - 3 + it / 500.0, np.nan)}
-                             ).to_parquet(run / "train" / "log.parquet")
-                for v, name in enumerate(TEST_VIEWS):
-                    _image(run / "train" / "renders" / f"{name}.png", 0.25 + 0.1 * v)
-                (run / "benchmarks").mkdir()
-                (run / "benchmarks" / "eval_metrics.tsv").write_text(
-                    "s\th:m:s\tmax_rss\tmax_vms\n4.0\t0:00:04\t1200.5\t2000\n")
+                modes = ["uniform"] if init == "colmap" else (["gated", "uniform"] if scene == "room" else ["gated"])
+                for mode in modes:
+                    _mode_run(run / mode, scene, n, init, mode)
     return results, scenes
+
+
+def _mode_run(d: Path, scene: str, n: int, init: str, mode: str) -> None:
+    _write(d / "bridge" / "bridge.json", {"mode": mode, "wall_time_s": 2.0})
+    p = psnr_of(scene, n, init, mode)
+    _write(d / "metrics.json", {"psnr": p, "ssim": 0.5 + 0.01 * n, "lpips_alex": 0.3, "lpips_vgg": 0.4,
+                                "n_images": 2, "per_image": [], "wall_time_s": 1.5})
+    _write(d / "train" / "train.json", {"wall_time_s": 100.0 + n, "num_gaussians": 1000 * n, "iterations": 1000})
+    it = np.arange(0, 1001, 100)
+    pd.DataFrame({"iteration": it, "wall_time_s": it * 0.1, "loss": 0.5 / (1 + it / 100.0), "l1": 0.1,
+                  "ssim": 0.8, "num_gaussians": 1000 + it,
+                  "test_psnr": np.where(it % 500 == 0, p - 3 + it / 500.0, np.nan)}).to_parquet(d / "train" / "log.parquet")
+    for v, name in enumerate(TEST_VIEWS):
+        _image(d / "renders" / f"{name}.png", 0.25 + 0.1 * v)
+    (d / "benchmarks").mkdir()
+    (d / "benchmarks" / "metrics.tsv").write_text("s\th:m:s\tmax_rss\tmax_vms\n4.0\t0:00:04\t1200.5\t2000\n")

@@ -25,14 +25,16 @@ def runs(tree):
     return collect_runs(tree[0])
 
 
-def run(runs, scene, n, init) -> pd.Series:
-    sel = runs[(runs.scene == scene) & (runs.n == n) & (runs.init == init)]
+def run(runs, scene, n, init, mode=None) -> pd.Series:
+    mode = mode or ("uniform" if init == "colmap" else "gated")
+    sel = runs[(runs.scene == scene) & (runs.n == n) & (runs.init == init) & (runs.bridge_mode == mode)]
     assert len(sel) == 1
     return sel.iloc[0]
 
 
 def test_records(runs):
-    assert len(runs) == 12
+    assert len(runs) == 14  # 12 + VGGT's second bridge mode on room (n = 3, 6)
+    assert runs.bridge_mode.notna().all()  # failed COLMAP runs stand for its only mode
     failed = run(runs, "garden", 3, "colmap")
     assert failed.success_paper is False or failed.success_paper == False  # noqa: E712
     assert failed.success_gated == False and failed.has_reference  # noqa: E712
@@ -43,14 +45,16 @@ def test_records(runs):
     wrong = run(runs, "room", 3, "colmap")
     assert wrong.success_paper and wrong.success_gated == False  # noqa: E712
     v = run(runs, "room", 6, "vggt")
-    assert v.success_paper and v.success_gated == True and v.bridge_mode == "paper"  # noqa: E712
+    assert v.success_paper and v.success_gated == True and v.bridge_mode == "gated"  # noqa: E712
     assert v.psnr == psnr_of("room", 6, "vggt") and v.lpips_vgg == 0.4
+    u = run(runs, "room", 6, "vggt", "uniform")
+    assert u.psnr == psnr_of("room", 6, "vggt", "uniform") and u.ate_rmse == v.ate_rmse  # poses shared
     assert v.init_s == 10.0 and v.bridge_s == 2.0 and v.train_s == 106.0 and v.eval_s == 2.0
     assert v.total_s == 120.0 and v.peak_mem_mb == 3000.0 and v.peak_gpu_mb == 14000.0
     assert v.final_test_psnr == pytest.approx(psnr_of("room", 6, "vggt") - 1)
     assert v.num_gaussians == 6000 and v.iterations == 1000
     c = run(runs, "room", 6, "colmap")
-    assert c.init_s == 36.0 and c.peak_mem_mb == 1200.5  # the benchmark TSV's max_rss
+    assert c.init_s == 36.0 and c.peak_mem_mb == 1200.5  # the metrics benchmark TSV's max_rss
     assert run(runs, "nus", 6, "vggt").success_gated is None  # no reference cameras
 
 
@@ -59,9 +63,11 @@ def test_eval_time_falls_back_to_benchmark(tmp_path):
 
     results, _ = b(tmp_path)
     r = results / "mip360" / "garden" / "n6" / "vggt"
-    (r / "eval" / "metrics.json").unlink()
-    (r / "eval" / "pose.json").unlink()
-    assert read_run(r).get("eval_s") == 4.0
+    (r / "gated" / "metrics.json").unlink()
+    (r / "pose.json").unlink()
+    (r / "timing.json").unlink()
+    rec = read_run(r, mode="gated")
+    assert rec["eval_s"] == 4.0 and rec["init_s"] == 12.0  # from metrics.tsv and vggt_init.tsv
 
 
 def test_table_one_by_hand(runs):
@@ -85,7 +91,7 @@ def test_tables_cli(tree, tmp_path):
 
     assert main(["tables", "--results", str(tree[0]), "--out", str(tmp_path / "t")]) == 0
     df = pd.read_parquet(tmp_path / "t" / "runs.parquet")
-    assert len(df) == 12 and {"success_paper", "success_gated", "ate_rel_radius", "peak_mem_mb"} <= set(df.columns)
+    assert len(df) == 14 and {"success_paper", "success_gated", "ate_rel_radius", "peak_mem_mb"} <= set(df.columns)
     md = (tmp_path / "t" / "tables.md").read_text()
     for title in ("## Table I", "## Table II", "## Pose accuracy", "## Run time", "## COLMAP repeats"):
         assert title in md
