@@ -1,0 +1,65 @@
+"""CLI: ``python -m vggt_init --images DIR --out DIR [...]`` (parses arguments, calls run())."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from camio.logs import setup_logging
+
+log = logging.getLogger("vggt_init")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m vggt_init",
+        description="Run VGGT on a set of images; write predictions.npz, sparse/0 (COLMAP text, original "
+                    "resolution) and timing.json into --out.")
+    p.add_argument("--images", required=True, type=Path, help="folder with the input images")
+    p.add_argument("--image-list", type=Path, help="text file with image names (relative to --images), one per line")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--checkpoint", type=Path,
+                   help="model.pt or model.safetensors (else $VGGT_CHECKPOINT, the HF cache, or a download)")
+    p.add_argument("--model-config", type=Path,
+                   help="JSON architecture in the fixtures' config.json format (default: VGGT-1B)")
+    p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32",
+                   help="bf16 runs the aggregator under autocast; heads stay fp32")
+    p.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    p.add_argument("--points-from", choices=("point_head", "depth"), default="point_head",
+                   help="world points from the point head (paper) or depth head + cameras")
+    p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 (most confident)")
+    p.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
+    p.add_argument("--image-size", type=int, default=518, help="network width/longer side (multiple of 14)")
+    p.add_argument("--frames-chunk", type=int, default=4, help="frames per DPT-head chunk (memory vs speed)")
+    p.add_argument("--max-memory-gb", type=float, help="memory budget (default: what the OS reports free)")
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose, args.quiet)
+    from vggt_init.checkpoint import CheckpointFormatError, CheckpointNotFoundError, StateDictMismatchError
+    from vggt_init.preprocess import ImageInputError
+    from vggt_init.run import MemoryBudgetError, RunOptions, run
+
+    opts = RunOptions(
+        images=args.images, out=args.out, image_list=args.image_list, checkpoint=args.checkpoint,
+        model_config=args.model_config, dtype=args.dtype, device=args.device, points_from=args.points_from,
+        max_points=args.max_points, mode=args.mode, image_size=args.image_size,
+        frames_chunk_size=args.frames_chunk, max_memory_gb=args.max_memory_gb, threads=args.threads,
+    )
+    try:
+        run(opts)
+    except (CheckpointNotFoundError, CheckpointFormatError, StateDictMismatchError, ImageInputError,
+            MemoryBudgetError, FileNotFoundError, ValueError) as exc:
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
