@@ -1,0 +1,196 @@
+"""Dry runs of the Snakemake workflow on configs that differ in what a scene needs: only
+the jobs that apply are planned. Also: config schema errors name the key, the SLURM profile
+plans the same DAG with GPU resources on VGGT and training."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEMAKE = shutil.which("snakemake")
+
+pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
+
+
+def _write_colmap_source(root: Path, model: str, params: str) -> Path:
+    """A tiny COLMAP text model (one camera, no images) as a source scene."""
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(f"1 {model} 64 48 {params}\n")
+    (sparse / "images.txt").write_text("")
+    (sparse / "points3D.txt").write_text("")
+    (root / "images").mkdir()
+    return root
+
+
+def dry_run(tmp_path: Path, cfg: dict, *args: str, targets: tuple[str, ...] = (),
+            expect_ok: bool = True) -> tuple[dict, str]:
+    """Plan the workflow for ``cfg`` in ``tmp_path``.
+
+    Returns:
+        ({(rule, scene): job count} with scene None for rules without one, the output).
+    """
+    cfg_file = tmp_path / "config.yaml"
+    cfg_file.write_text(yaml.safe_dump(cfg))
+    cmd = [SNAKEMAKE, *targets, "-n", "-p", "--snakefile", str(REPO / "Snakefile"),
+           "--directory", str(tmp_path), *args, "--configfile", str(cfg_file)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    out = proc.stdout + proc.stderr
+    if not expect_ok:
+        assert proc.returncode != 0, out
+        return {}, out
+    assert proc.returncode == 0, out
+    counts: dict = {}
+    for block in re.split(r"\n(?=\[)", out):
+        rule = re.search(r"^(?:rule|checkpoint|localrule) (\w+):", block, re.M)
+        if not rule:
+            continue
+        scene = re.search(r"wildcards: .*?scene=([\w.-]+)", block)
+        key = (rule.group(1), scene.group(1) if scene else None)
+        counts[key] = counts.get(key, 0) + 1
+    return counts, out
+
+
+def jobs(counts: dict, rule: str, scene: str | None = None) -> int:
+    """Jobs of ``rule`` (for one scene, or over all)."""
+    return sum(v for (r, s), v in counts.items() if r == rule and (scene is None or s == scene))
+
+
+def synth_config(**overrides) -> dict:
+    cfg = {
+        "results": "results",
+        "datasets": {"synthetic": {"scenes": {"bundled": {"synth": {"views": 24, "width": 64}}}}},
+        "views": [3, 6],
+        "initialisers": ["vggt", "colmap", "oracle"],
+        "train": {"iterations": 10},
+    }
+    cfg.update(overrides)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory):
+    """One dry run over scenes that differ in what they need (module-wide, it is slow-ish):
+
+    * bundled: synthetic, reference cameras, test split, ground truth (everything applies);
+    * photos: a bare image folder (no reference cameras: no pose or held-out stages, no oracle);
+    * notest: synthetic with a manifest that has no test views (pose yes, held-out no);
+    * dist / pin: COLMAP sources with a distorted / pinhole camera (undistort only the first).
+    """
+    tmp = tmp_path_factory.mktemp("mixed")
+    (tmp / "photos").mkdir()
+    _write_colmap_source(tmp / "dist", "SIMPLE_RADIAL", "50 32 24 0.01")
+    _write_colmap_source(tmp / "pin", "PINHOLE", "50 50 32 24")
+    manifest = tmp / "manifest.json"
+    manifest.write_text(json.dumps({"test": [], "train": {"3": [f"{i:04d}.png" for i in range(3)]}}))
+    cfg = synth_config(datasets={
+        "synthetic": {"scenes": {
+            "bundled": {"synth": {"views": 24, "width": 64}},
+            "notest": {"synth": {"views": 8, "width": 64},
+                       "split": {"rule": "manifest", "manifest": str(manifest)}, "views": [3]},
+        }},
+        "real": {"scenes": {
+            "photos": {"path": "photos", "format": "folder"},
+            "dist": {"path": "dist", "initialisers": ["colmap"]},
+            "pin": {"path": "pin", "initialisers": ["colmap"]},
+        }},
+    })
+    return dry_run(tmp, cfg)
+
+
+def test_synthetic_scene_plans_every_stage(mixed):
+    counts, out = mixed
+    assert jobs(counts, "synth_scene", "bundled") == 1
+    for rule in ("vggt_init", "colmap_baseline", "oracle_init", "train_list"):
+        assert jobs(counts, rule, "bundled") == 2, rule
+    # VGGT and the oracle are planned to the end; COLMAP's later jobs wait for its checkpoint
+    for rule in ("pose_eval", "bridge_predictions", "align_test_cameras", "train_splats",
+                 "render_test", "image_metrics"):
+        assert jobs(counts, rule, "bundled") == 4, rule
+    assert jobs(counts, "colmap_index") == 1 and jobs(counts, "test_images", "bundled") == 1
+    assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
+    # the point head is used: the depth head is not asked for
+    assert "--points-from point_head" in out and "--points-from depth" not in out
+
+
+def test_scene_without_reference_cameras(mixed):
+    counts, _ = mixed
+    assert jobs(counts, "convert_scene", "photos") == 1 and jobs(counts, "synth_scene", "photos") == 0
+    for rule in ("pose_eval", "align_test_cameras", "render_test", "image_metrics", "test_images",
+                 "oracle_init", "undistort_scene"):
+        assert jobs(counts, rule, "photos") == 0, rule
+    assert jobs(counts, "vggt_init", "photos") == 2 and jobs(counts, "train_splats", "photos") == 2
+
+
+def test_manifest_without_test_views(mixed):
+    counts, out = mixed
+    assert "--manifest" in out
+    assert jobs(counts, "pose_eval", "notest") == 2 and jobs(counts, "train_splats", "notest") == 2
+    for rule in ("align_test_cameras", "render_test", "image_metrics", "test_images"):
+        assert jobs(counts, rule, "notest") == 0, rule
+
+
+def test_undistortion_only_for_distorted_data(mixed):
+    counts, out = mixed
+    assert jobs(counts, "undistort_scene", "dist") == 1 and jobs(counts, "convert_scene", "dist") == 0
+    assert jobs(counts, "convert_scene", "pin") == 1 and jobs(counts, "undistort_scene", "pin") == 0
+    assert re.search(r"camio convert --src dist .*--undistort", out)
+    assert not re.search(r"camio convert --src pin .*--undistort", out)
+    for scene in ("dist", "pin"):  # per-scene initialisers: COLMAP only
+        assert jobs(counts, "colmap_baseline", scene) == 2
+        assert jobs(counts, "vggt_init", scene) == jobs(counts, "oracle_init", scene) == 0
+
+
+def test_no_colmap_no_training_and_the_depth_head(tmp_path):
+    cfg = synth_config(initialisers=["vggt", "oracle"], vggt={"points_from": "depth"},
+                       train={"enabled": False})
+    counts, out = dry_run(tmp_path, cfg)
+    assert jobs(counts, "colmap_baseline") == 0 and jobs(counts, "colmap_index") == 0
+    assert "--points-from depth" in out
+    for rule in ("bridge_predictions", "train_splats", "render_test", "image_metrics",
+                 "align_test_cameras"):
+        assert jobs(counts, rule) == 0, rule
+    assert jobs(counts, "pose_eval") == 4 and jobs(counts, "tables") == 1
+
+
+def test_stage_target_and_per_scene_view_counts(tmp_path):
+    cfg = synth_config()
+    cfg["datasets"]["synthetic"]["scenes"]["bundled"]["views"] = [3]
+    counts, _ = dry_run(tmp_path, cfg, targets=("inits",))
+    assert jobs(counts, "vggt_init") == jobs(counts, "oracle_init") == jobs(counts, "colmap_baseline") == 1
+    assert jobs(counts, "train_splats") == 0 and jobs(counts, "tables") == 0
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda c: c["datasets"]["synthetic"]["scenes"]["bundled"].update(colour="red"), "colour"),
+        (lambda c: c["train"].update(iterations="many"), "iterations"),
+    ],
+)
+def test_config_errors_name_the_key(tmp_path, mutate, message):
+    cfg = synth_config()
+    mutate(cfg)
+    _, out = dry_run(tmp_path, cfg, expect_ok=False)
+    assert "Error validating config" in out and message in out
+
+
+def test_slurm_profile_dry_run(tmp_path):
+    pytest.importorskip("snakemake_executor_plugin_slurm")
+    profile = REPO / "workflow" / "profiles" / "slurm"
+    counts, out = dry_run(tmp_path, synth_config(views=[3]), "--profile", str(profile))
+    assert jobs(counts, "vggt_init") == 1 and jobs(counts, "train_splats") == 2
+    blocks = re.split(r"\n(?=\[)", out)
+    vggt = next(b for b in blocks if "rule vggt_init:" in b)
+    train = next(b for b in blocks if "rule train_splats:" in b)
+    colmap = next(b for b in blocks if "rule colmap_baseline:" in b)
+    for job in (vggt, train):
+        assert "gpu=1" in job and "slurm_partition=gpu" in job
+    assert "gpu=" not in colmap and "slurm_partition=cpu" in colmap
