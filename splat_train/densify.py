@@ -137,8 +137,10 @@ class DensifyStrategy:
 
     Attributes:
         densify_from, densify_until, densify_every: densify at iterations it with
-            densify_from < it <= densify_until and it % densify_every == 0 (1-based).
-        opacity_reset_every: reset at it % opacity_reset_every == 0, it <= densify_until.
+            densify_from < it < densify_until and it % densify_every == 0 (1-based; the 3DGS
+            test, so a run whose densify_until equals its length never densifies at its
+            last step).
+        opacity_reset_every: reset at it % opacity_reset_every == 0, it < densify_until.
         grad_threshold: mean NDC view-space gradient norm that triggers clone / split.
         percent_dense: clone if max scale <= percent_dense * extent, else split.
         prune_opacity: prune alpha below this.
@@ -176,7 +178,7 @@ class DensifyStrategy:
             means2d_grad: [N, 2] d loss / d means2d in pixels.
             radii: [N] screen radius in pixels; visible: [N] bool.
         """
-        if iteration > self.densify_until:
+        if iteration >= self.densify_until:
             return
         g = means2d_grad.detach().clone()
         g[:, 0] *= width / 2.0
@@ -193,7 +195,7 @@ class DensifyStrategy:
         Returns counts {"cloned", "split", "pruned", "reset"} (zeros when nothing ran).
         """
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
-        if iteration > self.densify_until:
+        if iteration >= self.densify_until:
             return out
         if iteration > self.densify_from and iteration % self.densify_every == 0:
             out.update(self._densify_and_prune(params, optimizer, state, iteration, extent, generator))
