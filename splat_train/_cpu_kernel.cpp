@@ -1,7 +1,9 @@
 // Tile-based Gaussian alpha blending on the CPU (forward and hand-written backward).
 //
 // Built by splat_train/_cpu_kernel.py with the system C++ compiler (plain C ABI, called
-// through ctypes; no torch headers, so it compiles in about a second). Semantics are those of
+// through ctypes; no torch headers or OpenMP, so it compiles in about a second anywhere).
+// Threads: each caller thread runs the same function with a shared tile counter and takes
+// the next tile with an atomic increment (dynamic scheduling; ctypes releases the GIL). Semantics are those of
 // splat_train/_reference.py (3DGS forward rules); the backward recomputes the blend back to
 // front per pixel as the 3DGS CUDA backward does, but passes no gradient through the 0.99
 // clamp where it is active (the exact derivative, matching the autograd reference).
@@ -80,14 +82,27 @@ inline void row_span(const Footprint<T>& f, T py, T px0, int& j0, int& j1) {
   j0 = (int)jl; j1 = (int)jh + 1;
 }
 
+// Tile-local rows [i0, i1) that the ellipse q <= r2 can reach: |dy| <= sqrt(r2 a / det).
+template <typename T>
+inline void row_range(const Footprint<T>& f, T py0, int rows, int& i0, int& i1) {
+  if (f.r2 < 0) { i0 = 0; i1 = rows; return; }
+  const double a = f.a, b = f.b, c = f.c;
+  const double half = std::sqrt((double)f.r2 * a / (a * c - b * b)) + 1e-3;
+  // row centre py = py0 + i + 0.5 must satisfy |my - py| <= half
+  double lo = std::ceil((double)f.my - half - (double)py0 - 0.5);
+  double hi = std::floor((double)f.my + half - (double)py0 - 0.5);
+  lo = std::max(lo, 0.0); hi = std::min(hi, double(rows - 1));
+  if (!(lo <= hi)) { i0 = 0; i1 = 0; return; }
+  i0 = (int)lo; i1 = (int)hi + 1;
+}
+
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
                   const int64_t* offsets, const int64_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, T* out_accum, T* out_T,
-                  int32_t* out_last, int nthreads) {
+                  int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   const int64_t n_tiles = tiles_x * tiles_y;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
-  for (int64_t t = 0; t < n_tiles; ++t) {
+  for (int64_t t; (t = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
     const int64_t tx = t % tiles_x, ty = t / tiles_x;
     const int64_t x0 = tx * TILE, y0 = ty * TILE;
     const int rows = (int)std::min<int64_t>(TILE, H - y0);
@@ -98,12 +113,14 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     T* heap = nullptr;
     if (F > 8) { heap = new T[TPIX * F]; accp = heap; }
     int32_t last[TPIX];
+    int32_t count[TPIX];
     bool done[TPIX];
     int active = 0;
     for (int p = 0; p < TPIX; ++p) {
       int i = p / TILE, j = p % TILE;
       Tr[p] = T(1);
       last[p] = 0;
+      count[p] = 0;
       done[p] = !(i < rows && j < cols);
       active += !done[p];
       for (int64_t f = 0; f < F; ++f) accp[p * F + f] = T(0);
@@ -117,7 +134,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       Footprint<T> fp = make_footprint(mx, my, a, b, c, op);
       if (!fp.any) continue;
       const T* fg = feat + g * F;
-      for (int i = 0; i < rows; ++i) {
+      int i0, i1;
+      row_range(fp, T(y0), rows, i0, i1);
+      for (int i = i0; i < i1; ++i) {
         const T py = T(y0 + i) + T(0.5);
         int j0, j1;
         row_span(fp, py, T(x0), j0, j1);
@@ -137,6 +156,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
           for (int64_t f = 0; f < F; ++f) accp[p * F + f] += w * fg[f];
           Tr[p] = test_T;
           last[p] = (int32_t)(k - k0 + 1);
+          ++count[p];
         }
       }
     }
@@ -146,6 +166,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         const int64_t pix = (y0 + i) * W + (x0 + j);
         out_T[pix] = Tr[p];
         out_last[pix] = last[p];
+        out_count[pix] = count[p];
         for (int64_t f = 0; f < F; ++f) out_accum[pix * F + f] = accp[p * F + f];
       }
     delete[] heap;
@@ -159,11 +180,10 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
                    const int64_t* offsets, const int64_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const T* out_T,
                    const int32_t* out_last, const T* v_accum, const T* v_T, T* v_pair,
-                   int nthreads) {
+                   int64_t* next_tile) {
   const int64_t n_tiles = tiles_x * tiles_y;
   const int64_t S = 6 + F;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
-  for (int64_t t = 0; t < n_tiles; ++t) {
+  for (int64_t t; (t = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
     const int64_t tx = t % tiles_x, ty = t / tiles_x;
     const int64_t x0 = tx * TILE, y0 = ty * TILE;
     const int rows = (int)std::min<int64_t>(TILE, H - y0);
@@ -203,7 +223,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       const T* fg = feat + g * F;
       T g_mx = 0, g_my = 0, g_a = 0, g_b = 0, g_c = 0, g_op = 0;
       T* gf = v_pair + k * S + 6;
-      for (int i = 0; i < rows; ++i) {
+      int i0, i1;
+      row_range(fp, T(y0), rows, i0, i1);
+      for (int i = i0; i < i1; ++i) {
         const T py = T(y0 + i) + T(0.5);
         int j0, j1;
         row_span(fp, py, T(x0), j0, j1);
@@ -255,31 +277,54 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
 
 extern "C" {
 
-int splat_abi_version() { return 1; }
+// Tile lists by counting sort: order [M] holds visible Gaussians front to back, rect [N, 4]
+// (x_min, x_max, y_min, y_max) their tile rectangles; writes offsets [n_tiles + 1] and
+// gauss [P] (P = sum of rectangle areas), each tile's list keeping the front-to-back order.
+void splat_bin(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
+               int64_t n_tiles, int64_t* offsets, int64_t* gauss) {
+  for (int64_t t = 0; t <= n_tiles; ++t) offsets[t] = 0;
+  for (int64_t k = 0; k < m; ++k) {
+    const int64_t* r = rect + 4 * order[k];
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = r[0]; x < r[1]; ++x) ++offsets[y * tiles_x + x + 1];
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) offsets[t + 1] += offsets[t];
+  int64_t* cursor = new int64_t[n_tiles];
+  for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = offsets[t];
+  for (int64_t k = 0; k < m; ++k) {
+    const int64_t g = order[k];
+    const int64_t* r = rect + 4 * g;
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = r[0]; x < r[1]; ++x) gauss[cursor[y * tiles_x + x]++] = g;
+  }
+  delete[] cursor;
+}
+
+int splat_abi_version() { return 4; }
 
 void splat_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                        const int64_t* off, const int64_t* gs, const float* m, const float* co,
-                       const float* op, const float* fe, float* acc, float* Tf, int32_t* last,
-                       int nth) {
-  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, nth);
+                       const float* op, const float* fe, float* acc, float* Tf, int32_t* last, int32_t* cnt,
+                       int64_t* nth) {
+  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, cnt, nth);
 }
 void splat_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                        const int64_t* off, const int64_t* gs, const double* m, const double* co,
                        const double* op, const double* fe, double* acc, double* Tf,
-                       int32_t* last, int nth) {
-  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, nth);
+                       int32_t* last, int32_t* cnt, int64_t* nth) {
+  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, cnt, nth);
 }
 void splat_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const float* Tf, const int32_t* last,
-                        const float* vacc, const float* vT, float* vpair, int nth) {
+                        const float* vacc, const float* vT, float* vpair, int64_t* nth) {
   backward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, Tf, last, vacc, vT, vpair, nth);
 }
 void splat_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const double* m,
                         const double* co, const double* op, const double* fe, const double* Tf,
                         const int32_t* last, const double* vacc, const double* vT,
-                        double* vpair, int nth) {
+                        double* vpair, int64_t* nth) {
   backward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, Tf, last, vacc, vT, vpair, nth);
 }
 

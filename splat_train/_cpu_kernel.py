@@ -1,6 +1,6 @@
 """CPU fast path: the C++/OpenMP tile blender in ``_cpu_kernel.cpp``, built on first use.
 
-The kernel has a plain C ABI and no torch headers, so it compiles with the system compiler
+The kernel has a plain C ABI and no torch headers or OpenMP, so it compiles with the system compiler
 (``$CXX``, else ``c++`` / ``g++``) in about a second into a cache folder
 (``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
 source and flags, and is loaded with ctypes. If no compiler is present or the build fails, the
@@ -10,6 +10,8 @@ vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to disable t
 Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
 recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
 pair and summed per Gaussian with ``index_add_``: the result does not depend on thread count.
+Threads: ``torch.get_num_threads()`` Python threads share an atomic tile counter (no OpenMP
+runtime, so no spinning worker threads competing with torch's on a loaded machine).
 """
 
 from __future__ import annotations
@@ -22,20 +24,21 @@ import shutil
 import subprocess
 import tempfile
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from splat_train._tiles import tile_pairs
+from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
-__all__ = ["available", "load_library", "blend_cpu", "build_error"]
+__all__ = ["available", "load_library", "blend_cpu", "build_error", "forward_raw", "tile_pairs_cpu"]
 
 log = logging.getLogger(__name__)
 
 _SOURCE = Path(__file__).with_name("_cpu_kernel.cpp")
-_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fopenmp"]
+_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", *os.environ.get("SPLAT_TRAIN_KERNEL_FLAGS", "").split()]
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _error: str | None = None
@@ -94,7 +97,7 @@ def load_library() -> ctypes.CDLL | None:
             return None
         try:
             lib = ctypes.CDLL(str(_build(cxx)))
-            if lib.splat_abi_version() != 1:
+            if lib.splat_abi_version() != 4:
                 raise RuntimeError("kernel ABI version mismatch")
         except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
             _error = str(exc)
@@ -102,11 +105,13 @@ def load_library() -> ctypes.CDLL | None:
             return None
         i64, i32, vp = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
         for name in ("splat_forward_f32", "splat_forward_f64"):
-            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 9 + [i32]
+            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 11
             getattr(lib, name).restype = None
         for name in ("splat_backward_f32", "splat_backward_f64"):
-            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 11 + [i32]
+            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 12
             getattr(lib, name).restype = None
+        lib.splat_bin.argtypes = [i64, vp, vp, i64, i64, vp, vp]
+        lib.splat_bin.restype = None
         _lib = lib
         return _lib
 
@@ -125,28 +130,65 @@ def _ptr(t: Tensor) -> int:
     return t.data_ptr()
 
 
+_pool: ThreadPoolExecutor | None = None
+
+
+def _run_threaded(fn, *args) -> None:
+    """Run a kernel entry on ``torch.get_num_threads()`` threads sharing one tile counter.
+
+    ctypes drops the GIL during the call, so the threads run the C code concurrently.
+    """
+    global _pool
+    nthreads = max(1, torch.get_num_threads())
+    counter = ctypes.c_int64(0)
+    cptr = ctypes.addressof(counter)
+    if nthreads == 1:
+        fn(*args, cptr)
+        return
+    if _pool is None or _pool._max_workers < nthreads:
+        _pool = ThreadPoolExecutor(max_workers=nthreads, thread_name_prefix="splat_cpu")
+    futures = [_pool.submit(fn, *args, cptr) for _ in range(nthreads - 1)]
+    fn(*args, cptr)
+    for f in futures:
+        f.result()
+
+
+def forward_raw(means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height):
+    """Run the forward kernel (no autograd). Tensors as in :func:`blend_cpu` plus tile lists.
+
+    Returns:
+        accum [H, W, F], T_final [H, W], last [H, W] int32 (1 + index of the last
+        contributing pair within the pixel's tile list, 0 if none) and count [H, W] int32
+        (Gaussians blended into the pixel).
+    """
+    lib = load_library()
+    dt = means2d.dtype
+    suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
+    if suffix is None:
+        raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
+    m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
+    nf = fe.shape[1]
+    accum = torch.empty(height, width, nf, dtype=dt)
+    t_final = torch.empty(height, width, dtype=dt)
+    last = torch.empty(height, width, dtype=torch.int32)
+    count = torch.empty(height, width, dtype=torch.int32)
+    _run_threaded(
+        getattr(lib, f"splat_forward_{suffix}"),
+        tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
+        _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+    )
+    return accum, t_final, last, count
+
+
 class _BlendCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height):
-        lib = load_library()
-        dt = means2d.dtype
-        suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
-        if suffix is None:
-            raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
-        m = means2d.detach().contiguous()
-        co = conics.detach().contiguous()
-        fe = features.detach().contiguous()
-        op = opacities.detach().contiguous()
-        nf = fe.shape[1]
-        accum = torch.empty(height, width, nf, dtype=dt)
-        t_final = torch.empty(height, width, dtype=dt)
-        last = torch.empty(height, width, dtype=torch.int32)
-        getattr(lib, f"splat_forward_{suffix}")(
-            tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), torch.get_num_threads(),
+        accum, t_final, last, _ = forward_raw(
+            means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height
         )
+        m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
         ctx.save_for_backward(m, co, fe, op, offsets, gauss, t_final, last)
-        ctx.dims = (tiles_x, tiles_y, width, height, suffix)
+        ctx.dims = (tiles_x, tiles_y, width, height, "f32" if m.dtype == torch.float32 else "f64")
         return accum, t_final
 
     @staticmethod
@@ -158,13 +200,34 @@ class _BlendCPU(torch.autograd.Function):
         v_accum = (torch.zeros(height, width, nf, dtype=dt) if v_accum is None else v_accum).contiguous().to(dt)
         v_t = (torch.zeros(height, width, dtype=dt) if v_t is None else v_t).contiguous().to(dt)
         v_pair = torch.zeros(gauss.numel(), 6 + nf, dtype=dt)
-        getattr(lib, f"splat_backward_{suffix}")(
+        _run_threaded(
+            getattr(lib, f"splat_backward_{suffix}"),
             tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
             _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
-            torch.get_num_threads(),
         )
         v = torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, gauss, v_pair)
         return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None, None, None
+
+
+def tile_pairs_cpu(
+    depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor, int, int]:
+    """:func:`splat_train._tiles.tile_pairs` with the list building in C (counting sort).
+
+    Same results; O(pairs) instead of a sort of all pairs.
+    """
+    lib = load_library()
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    n_tiles = tiles_x * tiles_y
+    with torch.no_grad():
+        order = depth_order(depths, visible).contiguous()
+        r = rect.to(torch.int64).contiguous()
+        total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
+        offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
+        gauss = torch.empty(total, dtype=torch.int64)
+        lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
+    return offsets, gauss, tiles_x, tiles_y
 
 
 def blend_cpu(
@@ -187,7 +250,7 @@ def blend_cpu(
         raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
     if load_library() is None:
         raise RuntimeError(f"CPU rasterizer kernel unavailable: {_error}; use backend='torch'")
-    offsets, gauss, tiles_x, tiles_y = tile_pairs(depths, rect, visible, width, height, TILE_SIZE)
+    offsets, gauss, tiles_x, tiles_y = tile_pairs_cpu(depths, rect, visible, width, height)
     dt = means2d.dtype
     return _BlendCPU.apply(
         means2d, conics.to(dt), features.to(dt), opacities.to(dt),

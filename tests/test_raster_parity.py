@@ -154,3 +154,14 @@ def test_tile_pairs_front_to_back_and_complete():
         assert torch.all(d[1:] >= d[:-1])
         x, y = t % tx, t // tx
         assert torch.all((r[ids, 0] <= x) & (x < r[ids, 1]) & (r[ids, 2] <= y) & (y < r[ids, 3]))
+
+
+@pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
+def test_cpu_binning_matches_torch_binning():
+    from splat_train._cpu_kernel import tile_pairs_cpu
+
+    params, cw, K, W, H = make_scene("overlap", seed=9)
+    proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
+    a = tile_pairs(proj.depths, proj.rect, proj.visible, W, H)
+    b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
