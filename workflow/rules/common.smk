@@ -30,7 +30,7 @@ RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
 # The workflow's own helper script, found from the workflow (any working directory works).
-VIEWS_SCRIPT = str(Path(workflow.basedir) / "scripts" / "views.py")
+VIEWS_SCRIPT = str((Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve())
 
 # Formats whose source carries reference cameras.
 _REFERENCE_FORMATS = ("colmap", "llff", "transforms")
@@ -239,6 +239,8 @@ def vggt_args(wildcards):
         args.append(f"--checkpoint {v['checkpoint']}")
     if v["model_config"]:
         args.append(f"--model-config {v['model_config']}")
+    if v["image_size"]:
+        args.append(f"--image-size {v['image_size']}")
     return " ".join(args)
 
 
