@@ -8,6 +8,10 @@ Layers (gsplat style): this module checks inputs and runs the steps; projection
 Convention: ``cam_from_world`` maps world -> OpenCV camera (x right, y down, z forward); ``K``
 maps camera points to pixel coordinates with the top-left pixel centre at (0.5, 0.5) (COLMAP).
 Quaternions are (w, x, y, z). Output images are [H, W, ...] with row i = y.
+
+Threads: the CPU kernel uses ``torch.get_num_threads()`` threads. On the shared 2-core
+development machine (load ~7) one thread was 2-8x faster than two for the whole
+forward+backward (torch's own intra-op threads suffer most); see benchmarks/bench_rasterizer.py.
 """
 
 from __future__ import annotations

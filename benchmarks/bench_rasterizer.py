@@ -1,0 +1,203 @@
+"""Rasterizer benchmark: fast CPU path vs the dense reference, and scaling of the fast path.
+
+Measures forward+backward time per iteration (SH degree 3, loss = sum(rgb) + sum(alpha)) on
+a synthetic scene: N Gaussians uniformly in the view frustum at depth 2..6, scales about half
+the mean spacing (log-normal spread), random rotations, opacities 0.05..0.95, focal = width.
+
+Reported per configuration: seconds per iteration (best of --reps), iterations per second,
+tile-Gaussian pairs, Gaussian-pixel pairs actually blended (from the kernel's per-pixel
+counts) and blended pairs per second; and the distance to an operation-count bound: a
+measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
+
+    python benchmarks/bench_rasterizer.py                # full set (a few minutes)
+    python benchmarks/bench_rasterizer.py --quick        # small sizes only
+    python benchmarks/bench_rasterizer.py --threads 1 2  # compare thread counts
+
+The machine is shared and noisy: compare ratios from one run, not absolute numbers across
+runs. Saves JSON to benchmarks/out/bench_rasterizer_<time>.json and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger("bench_rasterizer")
+OUT = Path(__file__).parent / "out"
+
+# Floating-point operations per blended Gaussian-pixel pair, forward + backward, counting
+# exp as 10 and a division as 4: forward ~28 (offset 2, quadratic form 7, exp 10, clamp and
+# alpha 2, transmittance 1, 4 features x 2) and backward ~62 (the same recomputation ~21, two
+# divisions 8, features 4 x 5, gradients of opacity, mean and conic ~13).
+FLOPS_PER_PAIR = 90
+
+
+def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float32):
+    """Synthetic benchmark scene.
+
+    Returns:
+        list of leaf tensors [means [N,3], quats [N,4], scales [N,3], opacities [N],
+        sh [N,16,3]] (requires_grad) and K [3,3]; the camera is the identity cam_from_world.
+    """
+    g = torch.Generator().manual_seed(seed)
+    z = 2 + 4 * torch.rand(n, generator=g)
+    x = (torch.rand(n, generator=g) - 0.5) * z
+    y = (torch.rand(n, generator=g) - 0.5) * z * height / width
+    means = torch.stack([x, y, z], 1)
+    volume = 4.0 * (height / width) * 16.0  # rough frustum volume between z = 2 and 6
+    s0 = 0.5 * (volume / n) ** (1 / 3)
+    params = [
+        means,
+        torch.randn(n, 4, generator=g),
+        s0 * torch.exp(0.3 * torch.randn(n, 3, generator=g)),
+        0.05 + 0.9 * torch.rand(n, generator=g),
+        0.3 * torch.randn(n, 16, 3, generator=g),
+    ]
+    K = torch.tensor([[float(width), 0, width / 2], [0, float(width), height / 2], [0, 0, 1]])
+    return [p.to(dtype).requires_grad_(True) for p in params], K.to(dtype)
+
+
+def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> dict:
+    """Best-of-reps forward and forward+backward seconds for one backend and size."""
+    from splat_train import rasterize
+
+    params, K = make_scene(n, width, height)
+    eye = torch.eye(4)
+    fwd, total = [], []
+    for _ in range(reps):
+        for p in params:
+            p.grad = None
+        t0 = time.perf_counter()
+        out = rasterize(*params, eye, K, width, height, torch.zeros(3), sh_degree=3, backend=backend)
+        t1 = time.perf_counter()
+        (out["rgb"].sum() + out["alpha"].sum()).backward()
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        total.append(t2 - t0)
+        del out
+    return {"forward_s": min(fwd), "fwd_bwd_s": min(total), "reps": reps}
+
+
+def count_pairs(n: int, width: int, height: int) -> dict:
+    """Tile-Gaussian pairs and blended Gaussian-pixel pairs (CPU kernel forward counts)."""
+    from splat_train import _cpu_kernel
+    from splat_train.projection import project_gaussians
+
+    params, K = make_scene(n, width, height)
+    with torch.no_grad():
+        proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
+        offsets, gauss, tx, ty = _cpu_kernel.tile_pairs_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        feats = torch.zeros(n, 4)
+        _, t_final, _, count = _cpu_kernel.forward_raw(
+            proj.means2d, proj.conics, feats, params[3], offsets, gauss, tx, ty, width, height
+        )
+    return {
+        "visible": int(proj.visible.sum()),
+        "tile_pairs": int(gauss.numel()),
+        "blended_pairs": int(count.sum()),
+        "mean_alpha": float((1 - t_final).mean()),
+    }
+
+
+def matmul_gflops(threads: int, size: int = 1024, reps: int = 5) -> float:
+    """Best float32 matmul GFLOP/s on ``threads`` threads (the machine's practical peak)."""
+    torch.set_num_threads(threads)
+    a = torch.randn(size, size)
+    b = torch.randn(size, size)
+    a @ b
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return 2 * size**3 / best / 1e9
+
+
+def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True) -> dict:
+    """Run every configuration; returns a JSON-ready dict (also see module docstring)."""
+    from splat_train import _cpu_kernel
+
+    if not _cpu_kernel.available():
+        raise RuntimeError(f"CPU kernel unavailable ({_cpu_kernel.build_error()}); nothing fast to benchmark")
+    sizes = [(10_000, 256, 256)] if quick else [(10_000, 256, 256), (10_000, 512, 512), (100_000, 256, 256), (100_000, 512, 512)]
+    ref_case = (2_000, 96, 96) if quick else (5_000, 128, 128)
+    results: dict = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "torch": torch.__version__,
+                    "python": sys.version.split()[0]},
+        "flops_per_pair": FLOPS_PER_PAIR,
+        "runs": [],
+    }
+    for nt in threads:
+        torch.set_num_threads(nt)
+        gflops = matmul_gflops(nt)
+        log.info("threads=%d: matmul %.1f GFLOP/s", nt, gflops)
+        cases = [("cpu", *ref_case), ("torch", *ref_case)]
+        if reference:
+            cases.append(("reference", *ref_case))
+        cases += [("cpu", *s) for s in sizes]
+        pair_cache: dict = {}
+        for backend, n, w, h in cases:
+            reps = 1 if backend == "reference" else (2 if backend == "torch" else 3)
+            log.info("threads=%d %s N=%d %dx%d ...", nt, backend, n, w, h)
+            t = time_iteration(backend, n, w, h, reps)
+            if (n, w, h) not in pair_cache:
+                pair_cache[(n, w, h)] = count_pairs(n, w, h)
+            pc = pair_cache[(n, w, h)]
+            rate = pc["blended_pairs"] / t["fwd_bwd_s"]
+            bound = gflops * 1e9 / FLOPS_PER_PAIR
+            results["runs"].append({
+                "threads": nt, "backend": backend, "n": n, "width": w, "height": h, **t, **pc,
+                "it_per_s": 1 / t["fwd_bwd_s"], "blended_pairs_per_s": rate,
+                "matmul_gflops": gflops, "bound_pairs_per_s": bound, "fraction_of_bound": rate / bound,
+            })
+        ref = [r for r in results["runs"] if r["threads"] == nt and (r["n"], r["width"], r["height"]) == ref_case]
+        by = {r["backend"]: r["fwd_bwd_s"] for r in ref}
+        if "reference" in by:
+            results.setdefault("speedup_vs_reference", {})[str(nt)] = {
+                "case": list(ref_case), "cpu": by["reference"] / by["cpu"], "torch": by["reference"] / by["torch"]}
+    return results
+
+
+def print_table(results: dict) -> None:
+    hdr = f"{'thr':>3} {'backend':>9} {'N':>7} {'size':>9} {'fwd s':>8} {'fwd+bwd s':>10} {'it/s':>7} {'blended':>11} {'pairs/s':>10} {'of bound':>8}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in results["runs"]:
+        print(f"{r['threads']:>3} {r['backend']:>9} {r['n']:>7} {str(r['width']) + 'x' + str(r['height']):>9} "
+              f"{r['forward_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} {r['it_per_s']:>7.2f} {r['blended_pairs']:>11,} "
+              f"{r['blended_pairs_per_s']:>10.3g} {r['fraction_of_bound']:>8.1%}")
+    for nt, s in results.get("speedup_vs_reference", {}).items():
+        print(f"threads={nt}: speed-up vs dense reference at N={s['case'][0]} {s['case'][1]}x{s['case'][2]}: "
+              f"cpu kernel {s['cpu']:.1f}x, torch tiles {s['torch']:.1f}x")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, nargs="+", default=[2], help="torch thread counts to measure")
+    ap.add_argument("--quick", action="store_true", help="small sizes only (about a minute)")
+    ap.add_argument("--no-reference", action="store_true", help="skip the slow dense reference")
+    ap.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/...)")
+    args = ap.parse_args(argv)
+    from camio.atomic import write_json
+    from camio.logs import setup_logging
+
+    setup_logging()
+    t0 = time.perf_counter()
+    results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference)
+    results["wall_s"] = time.perf_counter() - t0
+    out = args.out or OUT / f"bench_rasterizer_{time.strftime('%Y%m%d_%H%M%S')}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(out, results)
+    print_table(results)
+    log.info("saved %s (%.0f s)", out, results["wall_s"])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
