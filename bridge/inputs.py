@@ -10,6 +10,8 @@ counted by the Bridge.
 from __future__ import annotations
 
 import logging
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,17 +88,24 @@ def load_predictions(path: str | Path) -> BridgeInput:
         the cloud with N = S*H*W rows (row = flattened pixel index), in VGGT's frame.
 
     Raises:
-        FileNotFoundError; ValueError (a missing key, naming the schema; a wrong shape).
+        FileNotFoundError; ValueError (a damaged or truncated file; a missing key, naming the
+            schema; a wrong shape).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"predictions file {path} does not exist; run `python -m vggt_init` first")
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in PREDICTION_KEYS if k not in z.files]
-        if missing:
-            raise ValueError(f"{path} lacks keys {missing}; predictions.npz needs {list(PREDICTION_KEYS)} "
-                           "(docs/contracts.md)")
-        d = {k: z[k] for k in PREDICTION_KEYS}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            files = list(z.files)
+            d = {k: z[k] for k in PREDICTION_KEYS if k in files}
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+        # a truncated or damaged file (e.g. a copy cut short): numpy's messages do not name it
+        raise ValueError(f"{path} is damaged or truncated, not a readable predictions.npz "
+                         f"({type(exc).__name__}: {exc}); re-run `python -m vggt_init` to write it again") from exc
+    missing = [k for k in PREDICTION_KEYS if k not in files]
+    if missing:
+        raise ValueError(f"{path} lacks keys {missing}; predictions.npz needs {list(PREDICTION_KEYS)} "
+                         "(docs/contracts.md)")
     wp = d["world_points"]
     if wp.ndim != 4 or wp.shape[-1] != 3:
         raise ValueError(f"{path}: world_points must be [S,H,W,3], got {wp.shape}")

@@ -9,6 +9,7 @@ tests read it back with pycolmap. Quaternions in the text files are (w, x, y, z)
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,6 +113,55 @@ def _pinhole_K(model: str, params: np.ndarray) -> np.ndarray:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
 
 
+_COUNT_HEADER = re.compile(r"^#\s*Number of (cameras|images|points)\s*:\s*(\d+)")
+
+
+def _check_text_ends(model_dir: Path) -> None:
+    """Every ``*.txt`` of a text model written by COLMAP or :func:`write_text_model` ends
+    with a newline; one that does not was cut short (pycolmap would read a line cut
+    mid-number as another number, or drop a cut-off last image or point silently)."""
+    if (model_dir / "cameras.bin").is_file():
+        return  # pycolmap reads the binary model; its reader checks sizes itself
+    for fname in ("cameras.txt", "images.txt", "points3D.txt"):
+        f = model_dir / fname
+        if not f.is_file():
+            continue
+        with open(f, "rb") as fh:
+            fh.seek(0, 2)
+            if fh.tell() == 0:
+                continue
+            fh.seek(-1, 2)
+            last = fh.read(1)
+        if last != b"\n":
+            raise ValueError(f"{f} does not end with a newline: the file is truncated (COLMAP writes a "
+                             "newline after every line); copy or export the model again (if you wrote "
+                             "it by hand, end it with a newline)")
+
+
+def _check_text_counts(model_dir: Path, rec) -> None:
+    """Where a text file's header states ``# Number of cameras|images|points: N`` (COLMAP's
+    writers and :func:`write_text_model` do), the model read must hold N of them: a file cut
+    at a line boundary loses whole images or points without any parse error."""
+    if (model_dir / "cameras.bin").is_file():
+        return
+    found = {"cameras": len(rec.cameras), "images": len(rec.images), "points": len(rec.points3D)}
+    for fname in ("cameras.txt", "images.txt", "points3D.txt"):
+        f = model_dir / fname
+        if not f.is_file():
+            continue
+        with open(f, "rb") as fh:
+            head = fh.read(4096).decode("utf-8", errors="replace")
+        for line in head.splitlines():
+            if not line.startswith("#"):
+                break
+            m = _COUNT_HEADER.match(line)
+            if m and int(m.group(2)) != found[m.group(1)]:
+                raise ValueError(f"{f}: the header says {m.group(2)} {m.group(1)} but "
+                                 f"{found[m.group(1)]} were read: the file is truncated or damaged; "
+                                 "copy or export the model again (if you edited it by hand, correct "
+                                 f"the '# Number of {m.group(1)}' line)")
+
+
 def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
     """Read a COLMAP model (text or binary) with pycolmap.
 
@@ -128,11 +178,14 @@ def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
     import pycolmap
 
     model_dir = find_model_dir(path)
+    _check_text_ends(model_dir)
     rec = pycolmap.Reconstruction()
     try:
         rec.read(str(model_dir))
-    except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError
-        raise ValueError(f"cannot read the COLMAP model in {model_dir}: {exc}") from exc
+    except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError / IndexError
+        raise ValueError(f"cannot read the COLMAP model in {model_dir} (damaged or inconsistent files?): "
+                         f"{exc}") from exc
+    _check_text_counts(model_dir, rec)
 
     cameras: list[Camera] = []
     camera_models: dict[str, tuple[str, np.ndarray]] = {}
