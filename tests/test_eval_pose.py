@@ -164,7 +164,11 @@ def test_dispatcher_images_missing_and_clear_errors(tmp_path, monkeypatch, capsy
 
     from evaluation.__main__ import main
 
+    import evaluation
+
     monkeypatch.setitem(sys.modules, "evaluation.images_cli", None)  # import fails
+    # an earlier test may have imported it: the package attribute would satisfy the import
+    monkeypatch.delattr(evaluation, "images_cli", raising=False)
     assert main(["images", "--pred", "a", "--gt", "b", "--out", "c"]) == 2
     assert "importing evaluation.images_cli failed" in capsys.readouterr().err
     # a bad input is an error message and exit status 1, not a traceback
