@@ -30,7 +30,9 @@ RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
 # The workflow's own helper script, found from the workflow (any working directory works).
-VIEWS_SCRIPT = str((Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve())
+VIEWS_SCRIPT = str(
+    (Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve()
+)
 
 # Formats whose source carries reference cameras.
 _REFERENCE_FORMATS = ("colmap", "llff", "transforms")
@@ -453,6 +455,16 @@ def targets_of(stage):
     others.__name__ = f"{stage}_targets"
     colmap.__name__ = f"{stage}_colmap_targets"
     return others, colmap
+
+
+def plot_dirs(wildcards=None):
+    """The plots folder when there is training to plot (curves, PSNR/run-time Pareto)."""
+    return [f"{R}/plots"] if config["train"]["enabled"] else []
+
+
+def final_targets(wildcards=None):
+    """What `all` makes: tables, plots (if training ran) and the report."""
+    return [f"{R}/tables/tables.md", *plot_dirs(), f"{R}/report/index.html"]
 
 
 def prepared_scenes(wildcards=None):

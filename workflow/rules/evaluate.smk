@@ -71,7 +71,7 @@ rule plots:
 rule report:
     input:
         tables=f"{R}/tables/tables.md",
-        plots=f"{R}/plots",
+        plots=plot_dirs,
         scenes=prepared_scenes,
     output:
         f"{R}/report/index.html",
