@@ -14,7 +14,7 @@ alignment to the reference frame needs. A failed reconstruction is a *result*
 Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
 ``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``, and every stage
 runs single-threaded (``num_threads = 1``), so two runs with the same seed on the same input
-give identical models (tested). ``--repeats k`` runs k seeds and reports the spread.
+give identical models (tested). ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.colmap_repeats`).
 
 Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
 exists, ``DIR/status.json``; with repeats also ``DIR/repeats/seed<s>/{sparse/0,status.json}``
@@ -38,8 +38,6 @@ from camio.logs import peak_rss_mb
 __all__ = [
     "ColmapSettings",
     "run_colmap",
-    "run_colmap_repeats",
-    "summarise_repeats",
     "model_fingerprint",
 ]
 
@@ -258,69 +256,6 @@ def model_fingerprint(model_dir: str | Path) -> dict:
     }
 
 
-def summarise_repeats(records: list[dict]) -> dict:
-    """The spread over repeated runs: registered counts, points, success rates.
-
-    Args:
-        records: status records of runs with different seeds.
-
-    Returns:
-        ``seeds``, ``registered`` (list, min, max, mean, std), ``points`` (same),
-        ``success_rate``, ``aligned_ok_rate``, ``n_runs``.
-    """
-    def spread(key: str) -> dict:
-        v = np.array([r[key] for r in records], dtype=np.float64)
-        return {"values": v.astype(int).tolist(), "min": float(v.min()), "max": float(v.max()),
-                "mean": float(v.mean()), "std": float(v.std())}
-
-    return {
-        "n_runs": len(records),
-        "seeds": [r["seed"] for r in records],
-        "registered": spread("registered"),
-        "points": spread("points"),
-        "success_rate": float(np.mean([r["success"] for r in records])),
-        "aligned_ok_rate": float(np.mean([r["aligned_ok"] for r in records])),
-        "wall_time_s": [r["wall_time_s"] for r in records],
-    }
-
-
-def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | Path,
-                       seeds: list[int], settings: ColmapSettings | None = None) -> dict:
-    """Run the baseline once per seed; the first seed's run is the primary result.
-
-    Each run goes to ``out_dir/repeats/seed<s>``; the first seed's model and status are
-    also written to ``out_dir`` itself (the contract every other stage reads), with the
-    spread over all runs under ``status["repeats"]``.
-
-    Returns:
-        The primary status record with ``repeats`` added.
-    """
-    if not seeds:
-        raise ValueError("run_colmap_repeats: give at least one seed")
-    if len(set(seeds)) != len(seeds):
-        raise ValueError(f"run_colmap_repeats: seeds must be distinct, got {seeds}")
-    out_dir = Path(out_dir)
-    records = []
-    for i, seed in enumerate(seeds):
-        log.info("COLMAP repeat %d/%d (seed %d)", i + 1, len(seeds), seed)
-        records.append(run_colmap(images_dir, names, out_dir / "repeats" / f"seed{seed}",
-                                  seed=seed, settings=settings))
-    first = out_dir / "repeats" / f"seed{seeds[0]}"
-    primary = dict(records[0])
-    if (first / "sparse" / "0").is_dir():
-        with atomic_dir(out_dir / "sparse" / "0") as tmp:
-            for f in (first / "sparse" / "0").iterdir():
-                shutil.copy2(f, tmp / f.name)
-    elif (out_dir / "sparse" / "0").exists():
-        shutil.rmtree(out_dir / "sparse" / "0")
-    primary["repeats"] = summarise_repeats(records)
-    write_json(out_dir / "status.json", primary)
-    rep = primary["repeats"]
-    log.info("COLMAP repeats: registered %s, success rate %.2f, aligned rate %.2f",
-             rep["registered"]["values"], rep["success_rate"], rep["aligned_ok_rate"])
-    return primary
-
-
 def _read_names(args) -> list[str]:
     """Training names from --split/--n, --image-list or --names."""
     import json
@@ -361,6 +296,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=1,
                    help="run K times with seeds seed, seed+1, ... (or --seeds) and report the spread")
     p.add_argument("--seeds", type=int, nargs="+", help="explicit seeds for the repeats")
+    p.add_argument("--ref", help="reference COLMAP model: evaluate every repeat's poses "
+                   "(ATE, rotation error, both success criteria) and report their spread")
+    p.add_argument("--max-ate-rel-radius", type=float, default=0.05,
+                   help="accuracy gate for --ref: ATE / trajectory radius (default 0.05)")
+    p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
+                   help="accuracy gate for --ref: mean relative rotation error (default 5)")
     p.add_argument("--max-image-size", type=int, default=3200)
     p.add_argument("--max-num-features", type=int, default=16384)
     p.add_argument("--no-guided-matching", action="store_true")
@@ -380,7 +321,16 @@ def main(argv: list[str] | None = None) -> int:
         run_colmap(args.images, names, args.out, seed=seeds[0], settings=settings,
                    keep_work=args.keep_work)
     else:
-        run_colmap_repeats(args.images, names, args.out, seeds, settings=settings)
+        from evaluation.colmap_repeats import run_colmap_repeats
+
+        gate = None
+        if args.ref:
+            from evaluation.pose import GateConfig
+
+            gate = GateConfig(max_ate_rel_radius=args.max_ate_rel_radius,
+                              max_rel_rot_deg=args.max_rel_rot_deg)
+        run_colmap_repeats(args.images, names, args.out, seeds, settings=settings,
+                           ref=args.ref, gate=gate)
     return 0
 
 

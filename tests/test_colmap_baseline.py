@@ -14,9 +14,8 @@ from evaluation.colmap_baseline import (
     main,
     model_fingerprint,
     run_colmap,
-    run_colmap_repeats,
-    summarise_repeats,
 )
+from evaluation.colmap_repeats import run_colmap_repeats, summarise_repeats
 
 TRAIN = ["0001.png", "0003.png", "0005.png", "0007.png"]
 
@@ -99,8 +98,17 @@ def test_missing_training_image_is_an_input_error(scene, tmp_path):
 
 
 def test_repeats_report_the_spread_and_keep_the_first_seed(scene, tmp_path):
-    status = run_colmap_repeats(scene / "images", TRAIN, tmp_path / "rep", seeds=[5, 6])
+    status = run_colmap_repeats(scene / "images", TRAIN, tmp_path / "rep", seeds=[5, 6],
+                                ref=scene / "sparse" / "0")
     rep = status["repeats"]
+    # evaluated against the exact reference cameras: ATE and both criteria per repeat
+    assert len(rep["ate_rel_radius"]["values"]) == 2 and 0.0 <= rep["success_gated_rate"] <= 1.0
+    if status["aligned_ok"]:
+        assert rep["ate_rel_radius"]["values"][0] is not None
+        assert rep["ate_rel_radius"]["values"][0] == pytest.approx(rep["ate_rel_radius"]["min"]) or \
+            rep["ate_rel_radius"]["values"][0] >= rep["ate_rel_radius"]["min"]
+    seed5 = json.loads((tmp_path / "rep" / "repeats" / "seed5" / "status.json").read_text())
+    assert "ate_rel_radius" in seed5["pose"] and "success_gated" in seed5["pose"]
     assert rep["n_runs"] == 2 and rep["seeds"] == [5, 6]
     assert len(rep["registered"]["values"]) == 2
     assert rep["registered"]["min"] <= rep["registered"]["mean"] <= rep["registered"]["max"]

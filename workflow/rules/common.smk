@@ -255,6 +255,9 @@ def colmap_args(wildcards):
     ]
     if c["repeats"] > 1:
         args.append(f"--repeats {c['repeats']}")
+        if has_reference(wildcards.dataset, wildcards.scene):
+            # every repeat is evaluated against the reference: ATE and gated-success spread
+            args.append(f"--ref {scene_dir(wildcards)}/sparse/0 {gate_args()}")
     return " ".join(args)
 
 
