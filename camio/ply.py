@@ -66,7 +66,9 @@ class GaussianCloud:
         n = len(self.means)
         self.means = np.asarray(self.means, np.float32).reshape(n, 3)
         self.sh_dc = np.asarray(self.sh_dc, np.float32).reshape(n, 3)
-        self.sh_rest = np.asarray(self.sh_rest, np.float32).reshape(n, -1, 3)
+        rest = np.asarray(self.sh_rest, np.float32)
+        # reshape(0, -1, 3) is ambiguous for an empty cloud: keep the given band count
+        self.sh_rest = rest.reshape(n, -1, 3) if n else rest.reshape(0, rest.shape[1] if rest.ndim == 3 else 0, 3)
         self.opacity_logit = np.asarray(self.opacity_logit, np.float32).reshape(n)
         self.log_scales = np.asarray(self.log_scales, np.float32).reshape(n, 3)
         self.quats = np.asarray(self.quats, np.float32).reshape(n, 4)
