@@ -133,16 +133,22 @@ def test_single_frame_and_batch_slot_rule(fixture_dir):
 
 @pytest.mark.parametrize("fixture_dir", FIXTURE_SETS[:1])
 def test_bf16_trunk_close_to_fp32(fixture_dir):
-    """bf16 autocast on the trunk, heads in fp32: outputs stay close to the fp32 run."""
+    """bf16 autocast on the trunk, heads in fp32: within 1e-2 relative (L2) of the fp32 run
+    (measured ~1e-3). Storing the trunk weights in bf16 gives bit-identical numbers."""
     inputs = safetensors_torch.load_file(str(fixture_dir / "inputs.safetensors"))
     model = _model(fixture_dir, torch.float32)
     with torch.inference_mode():
         ref = model(inputs["images"])
         low = model(inputs["images"], trunk_dtype=torch.bfloat16)
-    for k in ("pose_enc", "depth", "world_points"):
+        model.cast_trunk_weights(torch.bfloat16)
+        cast = model(inputs["images"])
+    assert model.aggregator.frame_blocks[0].attn.qkv.weight.dtype == torch.bfloat16
+    assert model.point_head.norm.weight.dtype == torch.float32
+    for k in ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf"):
         assert low[k].dtype == torch.float32
         rel = (low[k] - ref[k]).norm() / ref[k].norm()
-        assert rel < 5e-2, f"{k}: relative difference {rel:.3g}"
+        assert rel < 1e-2, f"{k}: relative difference {rel:.3g}"
+        assert torch.equal(cast[k], low[k]), k
 
 
 def test_activation_names():

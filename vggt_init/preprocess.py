@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.logs import progress
 from vggt_init.pillow_compat import alpha_composite_over, resize_bicubic
 
 __all__ = [
@@ -235,7 +236,7 @@ def load_and_preprocess(paths: list[str | Path], mode: str = "crop", target: int
     if not paths:
         raise ImageInputError("no images given")
     imgs, geos = [], []
-    for p in paths:
+    for p in progress(paths, total=len(paths), desc="preprocess"):
         p = Path(p)
         data, pmode = decode_like_pillow(p)
         img, geo = preprocess_rgb(to_rgb8(data, pmode), p.name, mode, target)

@@ -168,7 +168,10 @@ def run(opts: RunOptions) -> dict:
     checkpoint = resolve_checkpoint(opts.checkpoint or ckpt_from_config)
     with timed("load_model", log, times):
         model = load_model(config, checkpoint, heads=heads, device=device)
-    trunk_dtype = torch.bfloat16 if opts.dtype == "bf16" else None
+    trunk_dtype = None
+    if opts.dtype == "bf16":
+        trunk_dtype = torch.bfloat16
+        model.cast_trunk_weights(torch.bfloat16)  # same numbers as autocast, half the trunk weights
 
     x = to_model_input(images_u8).to(device)
     comp: dict[str, float] = {}

@@ -47,6 +47,20 @@ class VGGT(nn.Module):
         self.depth_head = DPTHead(self.config.depth_head, depth) if "depth" in heads else None
         self.point_head = DPTHead(self.config.point_head, depth) if "point" in heads else None
 
+    def cast_trunk_weights(self, dtype: torch.dtype) -> "VGGT":
+        """Store the aggregator's Linear/Conv2d weights and biases in ``dtype`` (bf16/fp16).
+
+        The forward then runs the trunk under autocast to ``dtype``. Autocast would cast
+        these same fp32 tensors to ``dtype`` on every call, so the numbers are identical;
+        casting once saves the per-call conversion and half of the trunk's weight memory.
+        LayerNorms, LayerScale, tokens and position embeddings stay fp32, as under autocast.
+        """
+        for m in self.aggregator.modules():
+            if isinstance(m, (nn.Linear, nn.Conv2d)):
+                m.to(dtype)
+        self._trunk_weight_dtype = dtype
+        return self
+
     @property
     def layers_needed(self) -> list[int]:
         """Aggregator outputs the built heads read (the only ones kept in memory)."""
@@ -66,7 +80,8 @@ class VGGT(nn.Module):
             images: [S, 3, H, W] or [B, S, 3, H, W] RGB in [0, 1]; H, W multiples of the
                 patch size (14), at least one patch each.
             trunk_dtype: None runs everything in the parameters' dtype; torch.bfloat16 (or
-                float16) runs the aggregator under autocast. The heads always run in the
+                float16) runs the aggregator under autocast (implied after
+                :meth:`cast_trunk_weights`). The heads always run in the
                 parameters' dtype with autocast disabled, as the reference does.
             frames_chunk_size: frames per DPT chunk (default: the head config's value).
             debug: if a dict, intermediates are stored in it (``dino.*``, ``camera_head.*``,
@@ -85,7 +100,12 @@ class VGGT(nn.Module):
         if H % p or W % p or H < p or W < p:
             raise ValueError(f"image size {H}x{W} must be a positive multiple of the {p} px patch size")
         timings = {} if timings is None else timings
-        param_dtype = next(self.parameters()).dtype
+        param_dtype = self.aggregator.camera_token.dtype  # the model's (and heads') dtype
+        cast = getattr(self, "_trunk_weight_dtype", None)
+        if cast is not None:
+            if trunk_dtype not in (None, cast):
+                raise ValueError(f"trunk weights are stored in {cast}; trunk_dtype {trunk_dtype} is not possible")
+            trunk_dtype = cast
         device_type = images.device.type
 
         t0 = time.perf_counter()

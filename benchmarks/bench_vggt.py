@@ -1,0 +1,141 @@
+"""Speed / memory benchmark of our VGGT-1B implementation on this machine.
+
+RANDOM WEIGHTS: the full-size architecture is filled with random numbers. The outputs are
+meaningless; only wall time and peak memory are measured. Never report these as results.
+
+Each (frames, dtype) configuration runs in its own subprocess so that its peak RSS
+(ru_maxrss) is its own. Prints a table and saves JSON to benchmarks/out/ (git-ignored).
+
+    python benchmarks/bench_vggt.py --frames 3 6 12 --dtypes fp32 bf16 --threads 2
+
+Reference (fixtures README, official implementation, random init, idle 2-core machine):
+3 frames at 518x518, fp32, camera + depth + point heads: 78.1 s forward, 6.91 GB peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger("bench_vggt")
+OUT = Path(__file__).parent / "out"
+REFERENCE = {"frames": 3, "size": 518, "dtype": "fp32", "forward_s": 78.1, "aggregator_s": 64.8,
+             "peak_rss_gb": 6.91, "heads": "camera,depth,point", "note": "official code, idle 2-core machine"}
+
+
+def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], seed: int) -> dict:
+    """Build the random-weight model, run one forward, return timings (runs in a subprocess)."""
+    import torch
+
+    from vggt_init.model import VGGT, VGGTConfig
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    t0 = time.perf_counter()
+    with torch.device("meta"):
+        model = VGGT(VGGTConfig(), heads=heads)
+    model = model.to_empty(device="cpu")
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.endswith("gamma"):
+                p.fill_(0.05)  # LayerScale
+            elif p.dim() == 1 and ("norm" in name):
+                p.fill_(1.0 if name.endswith("weight") else 0.0)
+            elif p.dim() == 1:
+                p.zero_()  # biases
+            else:
+                fan_in = max(1, p[0].numel()) if p.dim() > 1 else 1
+                p.normal_(0.0, min(0.02, fan_in ** -0.5))
+    model.eval().requires_grad_(False)
+    if dtype == "bf16":
+        model.cast_trunk_weights(torch.bfloat16)  # as vggt_init.run does
+    build_s = time.perf_counter() - t0
+    rss_built = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    x = torch.rand(frames, 3, size, size, generator=torch.Generator().manual_seed(seed))
+    comp: dict[str, float] = {}
+    t0 = time.perf_counter()
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    with torch.inference_mode():
+        out = model(x, trunk_dtype=torch.bfloat16 if dtype == "bf16" else None, frames_chunk_size=4, timings=comp)
+    forward_s = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    nonfinite = {k: int((~torch.isfinite(v)).sum()) for k, v in out.items() if isinstance(v, torch.Tensor)}
+    return {"frames": frames, "dtype": dtype, "size": size, "threads": threads, "heads": ",".join(heads),
+            "build_s": build_s, "forward_s": forward_s, "forward_cpu_s": cpu_s, **{f"{k}_s": v for k, v in comp.items()},
+            "rss_after_build_gb": rss_built, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+            "nonfinite_outputs": nonfinite}
+
+
+def _machine() -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent).stdout.strip()
+    except OSError:
+        commit = None
+    import torch
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "cpu_count": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(), "loadavg_at_start": os.getloadavg(),
+            "git_commit": commit}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--frames", type=int, nargs="+", default=[3, 6, 12])
+    p.add_argument("--dtypes", nargs="+", choices=("fp32", "bf16"), default=["fp32", "bf16"])
+    p.add_argument("--size", type=int, default=518)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--heads", default="camera,depth,point", help="comma list; the reference ran all three")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    heads = [h for h in args.heads.split(",") if h]
+    if args.child:
+        print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed)))
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    log.info("RANDOM-WEIGHT speed/memory benchmark (outputs are meaningless, not results)")
+    rows = []
+    for n in args.frames:
+        for dt in args.dtypes:
+            log.info("running %d frames, %s, %dx%d, %d threads ...", n, dt, args.size, args.size, args.threads)
+            cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--size", str(args.size),
+                   "--threads", str(args.threads), "--heads", args.heads, "--seed", str(args.seed)]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode != 0:
+                log.error("configuration %d/%s failed:\n%s", n, dt, res.stderr[-2000:])
+                rows.append({"frames": n, "dtype": dt, "error": res.stderr[-500:]})
+                continue
+            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    print("\nVGGT-1B architecture, RANDOM WEIGHTS (speed/memory only)")
+    print(f"{'frames':>6} {'dtype':>5} {'forward s':>10} {'CPU s':>8} {'aggregator s':>12} {'heads s':>8} "
+          f"{'peak RSS GB':>11}")
+    for r in rows:
+        if "error" in r:
+            print(f"{r['frames']:>6} {r['dtype']:>5} {'failed':>10}")
+            continue
+        heads_s = sum(v for k, v in r.items() if k.endswith("_head_s"))
+        print(f"{r['frames']:>6} {r['dtype']:>5} {r['forward_s']:>10.1f} {r['forward_cpu_s']:>8.1f} {r['aggregator_s']:>12.1f} "
+              f"{heads_s:>8.1f} {r['peak_rss_gb']:>11.2f}")
+    print(f"reference (official, fp32, 3 frames, idle machine): forward {REFERENCE['forward_s']} s "
+          f"(about {2 * REFERENCE['forward_s']:.0f} CPU s on 2 threads), peak RSS {REFERENCE['peak_rss_gb']} GB")
+    print(f"load average at the end: {os.getloadavg()} on {os.cpu_count()} CPUs (wall times grow with contention)")
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / f"bench_vggt_{time.strftime('%Y%m%d_%H%M%S')}.json"
+    path.write_text(json.dumps({"benchmark": "vggt_init random-weight speed/memory", "weights": "RANDOM",
+                                "machine": _machine(), "reference": REFERENCE, "runs": rows}, indent=2))
+    log.info("saved %s", path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
