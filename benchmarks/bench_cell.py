@@ -1,0 +1,355 @@
+"""Benchmark of one pipeline cell on CPU: scene prep -> init -> bridge -> align -> train -> render -> metrics.
+
+The cell is the n = 3 scene at 1/8 resolution trained for 2,000 iterations (issue 9, item 2:
+target under 10 minutes on 2 cores). Every stage runs through its documented CLI
+(docs/contracts.md) in a subprocess, so the times include interpreter start-up and imports,
+which is what a user (or the Snakemake workflow) gets. ``--inprocess`` calls the same CLI
+``main(argv)`` functions in this process instead (no start-up cost; used by the smoke test).
+
+Scene: LLFF fern ``images_8`` from ../shared, converted and undistorted (497x372 after
+undistortion), when present; otherwise the synthetic scene of ``python -m camio synth``.
+Initialisers: the real VGGT checkpoint is not available on the development machine, so the
+cell is initialised by the COLMAP baseline (real scene) or the oracle (synthetic scene, which
+has ground-truth geometry; COLMAP is still timed there). The VGGT forward is timed separately
+with RANDOM full-size weights through benchmarks/bench_vggt.py (speed only, outputs
+meaningless), and an estimated VGGT cell total is reported beside the measured one.
+
+Training uses the trainer's defaults (threads included) unless ``--threads`` is given; the
+rasterizer engineer found one thread faster than two on this loaded machine, see the
+docstring of splat_train/rasterize.py.
+
+    python benchmarks/bench_cell.py                      # the real cell (several minutes)
+    python benchmarks/bench_cell.py --no-vggt            # skip the random-weight VGGT forward
+    python benchmarks/bench_cell.py --quick --scene synthetic --inprocess   # seconds
+
+Saves JSON to benchmarks/out/bench_cell_<time>.json (git-ignored) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+log = logging.getLogger("bench_cell")
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+OUT = HERE / "out"
+SHARED_FERN = REPO.parent / "shared" / "data" / "scenes" / "llff__fern"
+TARGET_S = 600.0  # issue 9, item 2: the full cell in under 10 minutes
+QUICK_ITERATIONS = 10
+QUICK_SYNTH = (10, 48)  # views, width of the --quick synthetic scene
+
+# The CLI modules whose ``main(argv)`` the in-process launcher calls.
+_MAIN_MODULES = {"camio": "camio.__main__", "bridge": "bridge.__main__", "evaluation": "evaluation.__main__",
+                 "splat_train": "splat_train.__main__", "evaluation.colmap_baseline": "evaluation.colmap_baseline",
+                 "evaluation.oracle": "evaluation.oracle"}
+
+
+class StageError(RuntimeError):
+    """A stage CLI returned a non-zero status."""
+
+
+def _cpu_seconds(inprocess: bool) -> float:
+    """User + system CPU seconds of this process (in-process) or of its finished children."""
+    ru = resource.getrusage(resource.RUSAGE_SELF if inprocess else resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_stage(name: str, module: str, args: list[str], logs: Path, inprocess: bool = False) -> tuple[float, float]:
+    """Run ``python -m module args`` (or its main(args) in-process); returns (wall s, CPU s).
+
+    The subprocess's stdout and stderr go to ``logs/<name>.log``; a failure raises StageError
+    with the end of that log. CPU seconds (user + system, all threads) show how much of the
+    wall time was work rather than waiting for a loaded machine.
+    """
+    logs.mkdir(parents=True, exist_ok=True)
+    log_path = logs / f"{name}.log"
+    log.info("stage %s: python -m %s %s", name, module, " ".join(args))
+    t0, c0 = time.perf_counter(), _cpu_seconds(inprocess)
+    if inprocess:
+        import torch
+
+        threads = torch.get_num_threads()
+        try:
+            rc = importlib.import_module(_MAIN_MODULES[module]).main(list(args))
+        except SystemExit as exc:  # argparse errors
+            rc = exc.code if isinstance(exc.code, int) else 1
+        finally:
+            torch.set_num_threads(threads)  # a stage may change it (splat_train --threads)
+        dt = time.perf_counter() - t0
+        if rc:
+            raise StageError(f"stage {name} (python -m {module}) failed with status {rc}; see the log above")
+        return dt, _cpu_seconds(inprocess) - c0
+    with open(log_path, "w") as fh:
+        res = subprocess.run([sys.executable, "-m", module, *args], stdout=fh, stderr=subprocess.STDOUT,
+                             cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    dt = time.perf_counter() - t0
+    if res.returncode != 0:
+        tail = log_path.read_text(errors="replace")[-1500:]
+        raise StageError(f"stage {name} (python -m {module}) failed with status {res.returncode} "
+                         f"after {dt:.1f} s; end of {log_path}:\n{tail}")
+    cpu = _cpu_seconds(inprocess) - c0
+    log.info("stage %s done in %.1f s (%.1f CPU s)", name, dt, cpu)
+    return dt, cpu
+
+
+def _write_lists(scene: Path, n: int, work: Path) -> tuple[Path, Path]:
+    """Training list file and a folder of links to the held-out images (the workflow's chores)."""
+    from camio.split import read_split
+
+    split = read_split(scene / "split.json")
+    train_txt = work / f"train_n{n}.txt"
+    train_txt.write_text("".join(f"{name}\n" for name in split.train[str(n)]))
+    test_dir = work / "test_images"
+    shutil.rmtree(test_dir, ignore_errors=True)
+    test_dir.mkdir()
+    for name in split.test:
+        os.symlink((scene / "images" / name).resolve(), test_dir / name)
+    return train_txt, test_dir
+
+
+def prepare_scene(kind: str, work: Path, n: int, quick: bool, stage) -> tuple[Path, dict]:
+    """Prepare the scene into ``work/scene`` with split.json; returns (folder, description)."""
+    scene = work / "scene"
+    if kind == "auto":
+        kind = "fern" if SHARED_FERN.is_dir() else "synthetic"
+    if kind == "fern":
+        if not SHARED_FERN.is_dir():
+            raise FileNotFoundError(f"{SHARED_FERN} is missing; use --scene synthetic")
+        stage("prep", "camio", ["convert", "--src", str(SHARED_FERN), "--images-subdir", "images_8", "--undistort",
+                                "--out", str(scene), "--n", str(n)])
+        return scene, {"scene": "llff/fern images_8 (1/8), undistorted", "source": str(SHARED_FERN)}
+    views, width = QUICK_SYNTH if quick else (24, 504)
+    stage("prep", "camio", ["synth", "--out", str(scene), "--views", str(views), "--width", str(width),
+                            "--seed", "0"])
+    stage("prep_split", "camio", ["split", "--scene", str(scene), "--n", str(n), "--out",
+                                  str(scene / "split.json")])
+    return scene, {"scene": f"synthetic ({views} views, width {width})", "source": "python -m camio synth"}
+
+
+def _image_size(scene: Path) -> list[int]:
+    import OpenImageIO as oiio
+
+    first = sorted((scene / "images").iterdir())[0]
+    inp = oiio.ImageInput.open(str(first))
+    if inp is None:
+        raise OSError(f"cannot read {first}: {oiio.geterror()}")
+    spec = inp.spec()
+    inp.close()
+    return [spec.width, spec.height]
+
+
+def vggt_random_forward(frames: int, dtype: str = "fp32", size: int = 518, threads: int = 2) -> dict:
+    """One forward of the full-size VGGT with RANDOM weights via benchmarks/bench_vggt.py.
+
+    Speed/memory only. Returns bench_vggt's row for (frames, dtype), or {"error": ...} when the
+    script is missing or fails (never a made-up number).
+    """
+    script = HERE / "bench_vggt.py"
+    if not script.is_file():
+        return {"frames": frames, "dtype": dtype, "error": f"{script} is missing"}
+    before = set(OUT.glob("bench_vggt_*.json")) if OUT.is_dir() else set()
+    cmd = [sys.executable, str(script), "--frames", str(frames), "--dtypes", dtype, "--size", str(size),
+           "--threads", str(threads)]
+    log.info("VGGT random-weight forward: %s", " ".join(cmd[1:]))
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    if res.returncode != 0:
+        return {"frames": frames, "dtype": dtype, "error": f"bench_vggt.py exit {res.returncode}: {res.stderr[-800:]}"}
+    new = sorted(set(OUT.glob("bench_vggt_*.json")) - before, key=lambda p: p.stat().st_mtime)
+    if not new:
+        return {"frames": frames, "dtype": dtype, "error": "bench_vggt.py wrote no JSON into benchmarks/out"}
+    runs = json.loads(new[-1].read_text()).get("runs", [])
+    row = next((r for r in runs if r.get("frames") == frames and r.get("dtype") == dtype), None)
+    if row is None:
+        return {"frames": frames, "dtype": dtype, "error": f"{new[-1].name} has no row for {frames}/{dtype}"}
+    return {**row, "json": str(new[-1]), "weights": "RANDOM (speed/memory only)"}
+
+
+def run_cell(work: Path, scene_kind: str = "auto", n: int = 3, iterations: int = 2000, quick: bool = False,
+             threads: int | None = None, vggt: bool = True, vggt_dtype: str = "fp32", vggt_size: int = 518,
+             inprocess: bool = False) -> dict:
+    """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc)."""
+    work.mkdir(parents=True, exist_ok=True)
+    logs = work / "logs"
+    times: dict[str, float] = {}
+    cpu: dict[str, float] = {}
+
+    def stage(name: str, module: str, args: list[str]) -> float:
+        dt, c = run_stage(name, module, args, logs, inprocess)
+        times[name] = times.get(name, 0.0) + dt
+        cpu[name] = cpu.get(name, 0.0) + c
+        return dt
+
+    t_start = time.perf_counter()
+    load0 = os.getloadavg()
+    scene, desc = prepare_scene(scene_kind, work, n, quick, stage)
+    synthetic = (scene / "gt" / "depth").is_dir()
+    t0 = time.perf_counter()
+    train_txt, test_dir = _write_lists(scene, n, work)
+    times["lists"] = time.perf_counter() - t0
+
+    # Initialisers: COLMAP always (a failure is a result); the oracle where ground truth exists.
+    inits: dict[str, dict] = {}
+    colmap_args = ["--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "colmap")]
+    if threads:
+        colmap_args += ["--threads", str(threads)]
+    inits["colmap"] = {"wall_s": stage("init_colmap", "evaluation.colmap_baseline", colmap_args)}
+    status = json.loads((work / "colmap" / "status.json").read_text())
+    inits["colmap"].update({k: status.get(k) for k in ("success", "aligned_ok", "registered", "points", "reason")})
+    if synthetic:
+        inits["oracle"] = {"wall_s": stage("init_oracle", "evaluation.oracle", [
+            "--scene", str(scene), "--image-list", str(train_txt), "--out", str(work / "oracle")])}
+    colmap_ok = bool(status.get("success") and status.get("aligned_ok", True))
+    used = "oracle" if synthetic else ("colmap" if colmap_ok else None)
+    if used is None:
+        raise StageError(f"COLMAP failed on {desc['scene']} at n = {n} ({status.get('reason')}) and the scene has "
+                         "no ground truth for the oracle: nothing to initialise the cell with")
+
+    bridge = work / "bridge"
+    if used == "colmap":
+        stage("bridge", "bridge", ["--colmap", str(work / "colmap" / "sparse" / "0"), "--images", str(scene / "images"),
+                                   "--mode", "uniform", "--out", str(bridge)])
+    else:
+        stage("bridge", "bridge", ["--pred", str(work / "oracle" / "predictions.npz"), "--mode", "gated",
+                                   "--out", str(bridge)])
+    stage("align", "evaluation", ["align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(scene / "sparse" / "0"),
+                                  "--train-names", str(scene / "split.json"), "--n", str(n), "--images", str(test_dir),
+                                  "--out", str(work / "align")])
+    train_args = ["--seed", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
+                  "--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "train"),
+                  "--iterations", str(iterations), "--seed-rng", "0",
+                  "--test-cameras", str(work / "align" / "sparse" / "0"), "--test-images", str(test_dir)]
+    if threads:
+        train_args += ["--threads", str(threads)]
+    stage("train", "splat_train", train_args)
+    summary = json.loads((work / "train" / "train.json").read_text())
+    stage("render", "splat_train", ["render", "--model", str(work / "train" / "model.ply"),
+                                    "--cameras", str(work / "align" / "sparse" / "0"), "--images", str(test_dir),
+                                    "--out", str(work / "renders")])
+    metric_args = ["images", "--pred", str(work / "renders"), "--gt", str(test_dir), "--out", str(work / "metrics.json")]
+    if quick:
+        metric_args.append("--lpips-nets")  # an empty list: no LPIPS in the quick run
+    stage("metrics", "evaluation", metric_args)
+    metrics = json.loads((work / "metrics.json").read_text())
+
+    # The cell on its used path: every stage except the initialisers it did not use.
+    path_stages = [k for k in times if not k.startswith("init_") or k == f"init_{used}"]
+    cell_s = sum(times[k] for k in path_stages)
+    cell_cpu = sum(cpu.get(k, 0.0) for k in path_stages)
+    result = {
+        **desc, "n": n, "iterations": iterations, "quick": quick, "image_size": _image_size(scene),
+        "launcher": "in-process main(argv)" if inprocess else "subprocess CLI (python -m ...)",
+        "init_used": used, "inits": inits, "stages_s": times, "stages_cpu_s": cpu,
+        "train": {
+            "wall_s": summary["wall_time_s"], "session_s": summary.get("session_time_s"),
+            "eval_s": summary.get("eval_time_s"), "it_per_s": iterations / max(summary["wall_time_s"], 1e-9),
+            "final_gaussians": summary["num_gaussians"], "torch_threads": summary.get("torch_threads"),
+            "test_psnr": summary.get("test_psnr"), "train_psnr": summary.get("train_psnr"),
+            "peak_rss_mb": summary.get("peak_rss_mb"), "threads_arg": threads,
+        },
+        "metrics": {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg", "n_images")},
+        "cell_total_s": cell_s, "cell_total_cpu_s": cell_cpu, "target_s": TARGET_S, "meets_target": cell_s < TARGET_S,
+        "loadavg_start": list(load0),
+    }
+    if vggt:
+        row = vggt_random_forward(n, vggt_dtype, vggt_size, threads or 2)
+        result["vggt_forward_random"] = row
+        if "forward_s" in row:
+            result["cell_total_vggt_estimate_s"] = cell_s - times[f"init_{used}"] + row["forward_s"]
+    result["loadavg_end"] = list(os.getloadavg())
+    result["wall_s"] = time.perf_counter() - t_start
+    return result
+
+
+def _fmt1(x) -> str:
+    return "" if x is None else f"{x:.1f}"
+
+
+def _num(x) -> str:
+    return "missing" if x is None else f"{x:.3f}"
+
+
+def format_cell(r: dict) -> str:
+    """The cell breakdown as Markdown-style text."""
+    lines = [f"Cell: {r['scene']}, {r['image_size'][0]}x{r['image_size'][1]}, n = {r['n']}, "
+             f"{r['iterations']} iterations, init {r['init_used']} ({r['launcher']})",
+             "", "| stage | wall s | CPU s | note |", "|---|---:|---:|---|"]
+    tr = r["train"]
+    notes = {"train": f"{tr['it_per_s']:.2f} it/s (training loop {tr['wall_s']:.1f} s, held-out evals "
+                      f"{(tr['eval_s'] or 0):.1f} s), {tr['final_gaussians']} Gaussians, torch threads "
+                      f"{tr['torch_threads']}",
+             "metrics": f"PSNR {r['metrics']['psnr']:.2f} dB, SSIM {r['metrics']['ssim']:.3f}, LPIPS alex/vgg "
+                        f"{_num(r['metrics']['lpips_alex'])}/{_num(r['metrics']['lpips_vgg'])}"}
+    for name, info in r["inits"].items():
+        ok = "success" if info.get("success", True) else f"failed ({info.get('reason')})"
+        notes[f"init_{name}"] = ("used" if name == r["init_used"] else "timed, not used") + (
+            f"; {ok}, {info.get('registered')} registered, {info.get('points')} points" if name == "colmap" else "")
+    for name, dt in r["stages_s"].items():
+        c = r.get("stages_cpu_s", {}).get(name)
+        lines.append(f"| {name} | {dt:.1f} | {'' if c is None else f'{c:.1f}'} | {notes.get(name, '')} |")
+    lines.append(f"| **cell total** | **{r['cell_total_s']:.1f}** | {r.get('cell_total_cpu_s', float('nan')):.1f} | "
+                 f"target < {r['target_s']:.0f} s wall: {'MET' if r['meets_target'] else 'NOT MET'} |")
+    v = r.get("vggt_forward_random")
+    if v is not None:
+        if "forward_s" in v:
+            lines.append(f"| vggt forward, RANDOM weights | {v['forward_s']:.1f} | {_fmt1(v.get('forward_cpu_s'))} | {v['frames']} frames {v['size']}px "
+                         f"{v['dtype']}, peak RSS {v.get('peak_rss_gb', float('nan')):.2f} GB (speed only) |")
+            lines.append(f"| cell total with VGGT (estimate) | {r['cell_total_vggt_estimate_s']:.1f} | | "
+                         "COLMAP init replaced by the forward; checkpoint loading not included |")
+        else:
+            lines.append(f"| vggt forward, RANDOM weights | missing | | {v['error'][:120]!r} |")
+    lines.append(f"load average: start {r['loadavg_start'][0]:.1f}, end {r['loadavg_end'][0]:.1f} "
+                 f"(1 min) on {os.cpu_count()} CPUs")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                epilog="Times are one run on a shared machine: compare within a run.")
+    p.add_argument("--scene", choices=["auto", "fern", "synthetic"], default="auto",
+                   help="auto: ../shared llff fern if present, else synthetic")
+    p.add_argument("--n", type=int, default=3, help="training views (default 3)")
+    p.add_argument("--iterations", type=int, default=None, help=f"default 2000 ({QUICK_ITERATIONS} with --quick)")
+    p.add_argument("--quick", action="store_true", help="tiny synthetic sizes for a smoke run")
+    p.add_argument("--threads", type=int, default=None, help="torch threads for training (default: trainer's)")
+    p.add_argument("--no-vggt", action="store_true", help="skip the random-weight VGGT forward")
+    p.add_argument("--vggt-dtype", choices=["fp32", "bf16"], default="fp32")
+    p.add_argument("--inprocess", action="store_true", help="call the CLI main()s in this process")
+    p.add_argument("--work", type=Path, default=None, help="keep the cell's files here (default: a temp dir)")
+    p.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/bench_cell_<time>.json)")
+    args = p.parse_args(argv)
+    from camio.atomic import write_json
+    from camio.logs import setup_logging
+
+    setup_logging()
+    iterations = args.iterations or (QUICK_ITERATIONS if args.quick else 2000)
+    tmp = None
+    if args.work is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_cell_")
+    work = args.work or Path(tmp.name)
+    try:
+        result = run_cell(work, args.scene, args.n, iterations, args.quick, args.threads, not args.no_vggt,
+                          args.vggt_dtype, inprocess=args.inprocess)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    out = args.out or OUT / f"bench_cell_{time.strftime('%Y%m%d_%H%M%S')}.json"
+    write_json(out, result)
+    print(format_cell(result))
+    log.info("saved %s", out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
