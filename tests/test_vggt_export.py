@@ -123,11 +123,11 @@ def test_cli_point_head_end_to_end(scene, tmp_path):
     assert timing["peak_rss_mb"] > 0 and timing["nonfinite_total"] == 0 and timing["flagged"] is False
 
 
-def test_cli_depth_route_single_image_and_list(scene, tmp_path):
+def test_cli_depth_route_single_image_list_bf16(scene, tmp_path):
     out = tmp_path / "out"
     (tmp_path / "list.txt").write_text("# one image\na_rgb.png\n")
     assert _cli(scene, out, "--points-from", "depth", "--image-list", str(tmp_path / "list.txt"),
-                "--mode", "pad") == 0
+                "--mode", "pad", "--dtype", "bf16") == 0
     pred = np.load(out / "predictions.npz")
     assert set(pred.files) == set(PREDICTION_KEYS) | set(OPTIONAL_KEYS)
     assert pred["world_points"].shape == (1, SIZE, SIZE, 3)
@@ -140,6 +140,7 @@ def test_cli_depth_route_single_image_and_list(scene, tmp_path):
     _check_colmap(out, pred)
     timing = json.loads((out / "timing.json").read_text())
     assert timing["heads_built"] == ["camera", "depth"] and "forward.point_head" not in timing["wall_time_s"]
+    assert timing["dtype"] == "bf16" and timing["num_images"] == 1
 
 
 def test_sparse_points_exclude_padding_and_rank_by_confidence():

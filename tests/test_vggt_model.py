@@ -164,3 +164,24 @@ def test_bad_image_size_is_rejected():
     model = VGGT(cfg, heads=("camera",))
     with pytest.raises(ValueError, match="multiple of the 14"):
         model(torch.zeros(1, 3, 20, 28))
+
+
+def test_holdout_shaped_architecture_counts_and_shapes():
+    """Nothing is tied to the shared set's sizes: the holdout set's published architecture
+    (C=40, depth 6, layers [1,2,4,5], DINO grid 4, input 28x70, S=4) gives the README's
+    433 tensors / 832,912 parameters and its debug shapes."""
+    cfg = json.loads((DATA / "shared" / "config.json").read_text())
+    cfg["aggregator"].update(embed_dim=40, depth=6, num_heads=2)
+    cfg["dino"].update(embed_dim=40, depth=2, num_heads=5, img_size=56, pos_embed_grid=4)
+    cfg["camera_head"].update(dim_in=80, trunk_depth=3, num_heads=4, pose_branch_hidden=40)
+    for k in ("depth_head", "point_head"):
+        cfg[k].update(dim_in=80, features=24, out_channels=[16, 24, 32, 40], intermediate_layer_idx=[1, 2, 4, 5])
+    model = VGGT(VGGTConfig.from_fixture_config(cfg)).eval()
+    sd = model.state_dict()
+    assert len(sd) == 433 and sum(v.numel() for v in sd.values()) == 832_912
+    dbg: dict = {}
+    with torch.inference_mode():
+        out = model(torch.rand(4, 3, 28, 70), debug=dbg)
+    assert out["depth"].shape == (1, 4, 28, 70, 1) and out["world_points"].shape == (1, 4, 28, 70, 3)
+    assert dbg["dino.pos_embed"].shape == (1, 11, 40) and dbg["depth_head.fused"].shape == (4, 12, 16, 40)
+    assert model.layers_needed == [1, 2, 4, 5]
