@@ -226,9 +226,13 @@ def load_lpips(net: str = "alex", weights: str | Path | None = None,
         log.warning("LPIPS-%s weights not found: LPIPS-%s will be reported as missing (null); %s",
                     net, net, missing_weights_hint())
         return None
-    with safe_open(str(path), framework="pt") as f:
-        meta = f.metadata() or {}
-        state = {k: f.get_tensor(k) for k in f.keys()}
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            state = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as exc:  # SafetensorError: truncated, damaged or not safetensors at all
+        raise ValueError(f"{path} is not a readable LPIPS-{net} safetensors file ({exc}); "
+                         f"re-create it: {missing_weights_hint()}") from exc
     if meta.get("net") not in (None, net):
         raise ValueError(f"{path} holds LPIPS weights for net={meta.get('net')!r}, not {net!r}")
     with torch.device("meta"):  # skip the random init of ~15M parameters; weights come next

@@ -207,8 +207,14 @@ def _file_shapes(path: Path) -> dict[str, tuple[int, ...]] | None:
         return None
     from safetensors import safe_open
 
-    with safe_open(str(path), framework="pt", device="cpu") as f:
-        return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except Exception as exc:  # SafetensorError: truncated, damaged or not safetensors at all
+        raise CheckpointFormatError(
+            f"cannot read safetensors file {path}: {exc}; the file is damaged or not a "
+            "safetensors checkpoint: download it again"
+        ) from exc
 
 
 def expected_shapes(config: VGGTConfig) -> dict[str, tuple[int, ...]]:
