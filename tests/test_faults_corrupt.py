@@ -177,10 +177,8 @@ def test_lpips_truncated_weights_are_refused(tmp_path):
         load_lpips("alex", path)
 
 
-@pytest.mark.xfail(strict=True, reason="evaluation/lpips.py load_lpips: safe_open errors (truncated or "
-                   "non-safetensors file) escape as a bare SafetensorError that does not name the file "
-                   "or say how to re-create it")
 def test_lpips_truncated_weights_error_names_the_file(tmp_path):
+    """(Was a bare SafetensorError 'incomplete metadata'; fixed in 7dbcb10.)"""
     from safetensors.torch import save_file
 
     from evaluation.lpips import LPIPS, load_lpips

@@ -83,10 +83,8 @@ def test_vggt_load_model_pickle_named_safetensors_never_runs(tmp_path, marker):
         load_model(VGGTConfig(), path)
 
 
-@pytest.mark.xfail(strict=True, reason="vggt_init/checkpoint.py _file_shapes (called first by load_model) "
-                   "opens .safetensors with safe_open unguarded: a damaged or non-safetensors file escapes "
-                   "as a bare SafetensorError instead of CheckpointFormatError naming the file")
 def test_vggt_load_model_bad_safetensors_is_checkpoint_format_error(tmp_path, marker):
+    """(Was a bare SafetensorError from the shape probe; fixed in 7dbcb10.)"""
     from vggt_init.checkpoint import CheckpointFormatError, load_model
     from vggt_init.model.config import VGGTConfig
 
@@ -138,10 +136,8 @@ def test_lpips_weights_refuse_code(tmp_path, marker, container, monkeypatch):
         load_lpips("alex")
 
 
-@pytest.mark.xfail(strict=True, reason="evaluation/lpips.py load_lpips: safe_open on a file that is not "
-                   "safetensors raises a bare SafetensorError ('header too large') that names neither the "
-                   "file nor the converter to re-create it")
 def test_lpips_weights_pickle_error_is_clear(tmp_path, marker):
+    """(Was a bare SafetensorError 'header too large'; fixed in 7dbcb10.)"""
     from evaluation.lpips import load_lpips
 
     path = _evil(tmp_path / "alex.safetensors", marker, "torch")
