@@ -93,7 +93,11 @@ class Trainer:
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
-        self.params = params_from_cloud(read_gaussian_ply(seed_ply), cfg.sh_degree, self.dev)
+        cloud = read_gaussian_ply(seed_ply)
+        if len(cloud) == 0:
+            raise ValueError(f"seed {seed_ply} holds 0 Gaussians: nothing can be trained or densified; "
+                             "check the Bridge output (bridge.json counts) or its filters")
+        self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = DensifyStrategy.init_state(len(self.params["means"]), self.dev)
         self.pose = self.pose_opt = None
