@@ -37,6 +37,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -176,10 +177,44 @@ def vggt_random_forward(frames: int, dtype: str = "fp32", size: int = 518, threa
     return {**row, "json": str(new[-1]), "weights": "RANDOM (speed/memory only)"}
 
 
+class LoadSampler:
+    """Samples the 1-minute load average every ``period`` seconds in a daemon thread."""
+
+    def __init__(self, period: float = 10.0) -> None:
+        self.period, self.samples = period, [os.getloadavg()[0]]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            self.samples.append(os.getloadavg()[0])
+
+    def __enter__(self) -> "LoadSampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.samples.append(os.getloadavg()[0])
+
+    def summary(self) -> dict:
+        return {"mean_1min": sum(self.samples) / len(self.samples), "max_1min": max(self.samples),
+                "samples": len(self.samples), "period_s": self.period}
+
+
 def run_cell(work: Path, scene_kind: str = "auto", n: int = 3, iterations: int = 2000, quick: bool = False,
              threads: int | None = None, vggt: bool = True, vggt_dtype: str = "fp32", vggt_size: int = 518,
              inprocess: bool = False) -> dict:
     """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc)."""
+    with LoadSampler() as load:
+        result = _run_cell(work, scene_kind, n, iterations, quick, threads, vggt, vggt_dtype, vggt_size, inprocess)
+    result["loadavg_during"] = load.summary()
+    return result
+
+
+def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
+              vggt_dtype: str, vggt_size: int, inprocess: bool) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     logs = work / "logs"
     times: dict[str, float] = {}
@@ -309,8 +344,10 @@ def format_cell(r: dict) -> str:
                          "COLMAP init replaced by the forward; checkpoint loading not included |")
         else:
             lines.append(f"| vggt forward, RANDOM weights | missing | | {v['error'][:120]!r} |")
-    lines.append(f"load average: start {r['loadavg_start'][0]:.1f}, end {r['loadavg_end'][0]:.1f} "
-                 f"(1 min) on {os.cpu_count()} CPUs")
+    during = r.get("loadavg_during", {})
+    lines.append(f"load average (1 min): start {r['loadavg_start'][0]:.1f}, end {r['loadavg_end'][0]:.1f}, "
+                 f"mean {during.get('mean_1min', float('nan')):.1f}, max {during.get('max_1min', float('nan')):.1f} "
+                 f"on {os.cpu_count()} CPUs")
     return "\n".join(lines)
 
 

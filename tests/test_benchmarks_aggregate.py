@@ -59,6 +59,7 @@ def test_quick_run_writes_json_and_table(tmp_path, capsys):
     assert cell["train"]["it_per_s"] > 0 and cell["train"]["final_gaussians"] > 0
     assert math.isfinite(cell["metrics"]["psnr"])
     assert cell["cell_total_s"] <= sum(cell["stages_s"].values()) + 1e-9
+    assert cell["loadavg_during"]["samples"] >= 2 and len(cell["loadavg_start"]) == 3
     table = capsys.readouterr().out
     for heading in ("## Rasterizer", "## VGGT forward, RANDOM weights", "## Pipeline cell", "cell total"):
         assert heading in table
