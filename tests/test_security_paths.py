@@ -67,13 +67,9 @@ def test_schema_rejects_escaping_names(name, where):
         _validate(_config(**{where: name}))
 
 
-@pytest.mark.xfail(strict=True, reason="workflow/schemas/config.schema.yaml propertyNames patterns of "
-                   "datasets and scenes end in '$', which Python's re (used by jsonschema) also matches "
-                   "before a final newline: the name 'x\\n' passes validation (no escape from R, but a "
-                   "newline inside every shell command's paths). Fix: add `not: {pattern: \"\\n\"}` or "
-                   "a pattern that excludes the newline explicitly")
 @pytest.mark.parametrize("where", ["dataset", "scene"])
 def test_schema_rejects_trailing_newline_in_names(where):
+    """Python's ``$`` also matches before a final newline, so the schema excludes it explicitly."""
     with pytest.raises(jsonschema.ValidationError):
         _validate(_config(**{where: "x\n"}))
 
