@@ -136,6 +136,7 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> Path | None:
 def run_plots(results: str | Path, out: str | Path, runs: pd.DataFrame | None = None) -> list[Path]:
     """Write every plot of the results tree into ``out``; returns the files."""
     t0 = time.perf_counter()
+    Path(out).mkdir(parents=True, exist_ok=True)  # exists even with nothing to plot (a declared output)
     runs = collect_runs(results) if runs is None else runs
     files = training_curves(runs, out)
     p = pareto_plot(runs, out)

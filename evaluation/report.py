@@ -6,7 +6,8 @@ ground truth last. A cell whose initialiser failed (paper criterion) says "faile
 reason; a run without that render says "missing".
 
 Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.results.find_file`);
-ground truth from ``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
+ground truth from ``{scenes}/{dataset}/{scene}/test_images/`` (the workflow's results tree),
+``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
 (matched by file stem). Thumbnails are downsampled by an integer factor to <= 256 px wide.
 """
 
@@ -62,7 +63,9 @@ def _thumb(src: Path, dst: Path) -> bool:
 def _gt_folder(scenes_dir: Path | None, dataset: str, scene: str) -> Path | None:
     if scenes_dir is None:
         return None
-    for cand in (scenes_dir / dataset / scene / "images", scenes_dir / scene / "images",
+    # the workflow's results tree keeps the held-out views at {R}/{dataset}/{scene}/test_images
+    for cand in (scenes_dir / dataset / scene / "test_images", scenes_dir / dataset / scene / "images",
+                 scenes_dir / scene / "images",
                  scenes_dir / f"{dataset}__{scene}" / "images"):
         if cand.is_dir():
             return cand

@@ -45,3 +45,27 @@ def test_report_without_ground_truth_or_renders(tmp_path):
             f.unlink()
     page = run_report(results, tmp_path / "r", plots=False).read_text()
     assert "(no renders found)" in page and "Table I" in page
+
+
+def test_report_finds_ground_truth_in_the_workflow_results_tree(tmp_path):
+    """The workflow passes --scenes <results>; its held-out views are {dataset}/{scene}/test_images."""
+    import shutil
+
+    from evaluation.report import run_report
+
+    results, scenes = build(tmp_path / "fake")
+    for img_dir in scenes.glob("*/*/images"):
+        shutil.copytree(img_dir, results / img_dir.parent.relative_to(scenes) / "test_images")
+    page = run_report(results, tmp_path / "r", scenes_dir=results, plots=False).read_text()
+    grid = page[page.index("mip360 / garden, n = 3"):]
+    grid = grid[: grid.index("</table>")]
+    assert "renders/mip360__garden__n3__gt__img000.png" in grid
+
+
+def test_plots_folder_exists_with_nothing_to_plot(tmp_path):
+    """A declared Snakemake output: the folder is created even for an empty results tree."""
+    from evaluation.plots import run_plots
+
+    (tmp_path / "results").mkdir()
+    assert run_plots(tmp_path / "results", tmp_path / "plots") == []
+    assert (tmp_path / "plots").is_dir()
