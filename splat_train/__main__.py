@@ -48,7 +48,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-refine", action="store_true", default=None,
                    help="learn small corrections of the training camera poses")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
