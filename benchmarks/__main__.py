@@ -235,11 +235,26 @@ def format_table(res: dict) -> str:
 # ----------------------------------------------------------------------------- compare
 
 
+def as_aggregate(res: dict) -> dict:
+    """A result of this command as is; a JSON of bench_cell, bench_rasterizer or bench_vggt
+    wrapped as a one-section result (so --compare also reads the single benchmarks' files)."""
+    if "sections" in res:
+        return res
+    if "stages_s" in res:
+        return {"timestamp": None, "machine": {"loadavg_start": res.get("loadavg_start")}, "sections": {"cell": res}}
+    if "runs" in res and "flops_per_pair" in res:
+        return {"timestamp": None, "machine": res.get("machine", {}), "sections": {"raster": res}}
+    if "runs" in res and "vggt" in str(res.get("benchmark", "")):
+        return {"timestamp": None, "machine": res.get("machine", {}), "sections": {"vggt": res}}
+    raise ValueError("not a benchmark result: expected the JSON of python -m benchmarks, bench_cell, "
+                     "bench_rasterizer or bench_vggt")
+
+
 def flatten(res: dict) -> dict[str, float]:
     """Comparable numbers of a result JSON, keyed by a readable name (lower is better for
     seconds; it/s and pairs/s are higher-is-better)."""
     out: dict[str, float] = {}
-    sec = res.get("sections", {})
+    sec = as_aggregate(res).get("sections", {})
     for r in sec.get("raster", {}).get("runs", []):
         key = f"raster {r['backend']} t{r['threads']} N={r['n']} {r['width']}x{r['height']}"
         out[f"{key} fwd_bwd_s"] = r["fwd_bwd_s"]
@@ -255,19 +270,25 @@ def flatten(res: dict) -> dict[str, float]:
     for k in ("it_per_s", "final_gaussians"):
         if k in c.get("train", {}):
             out[f"cell train {k}"] = c["train"][k]
-    for k in ("cell_total_s", "cell_total_vggt_estimate_s"):
+    for k in ("cell_total_s", "cell_total_cpu_s", "cell_total_vggt_estimate_s"):
         if k in c:
             out[f"cell {k}"] = c[k]
     return {k: float(v) for k, v in out.items() if isinstance(v, (int, float))}
 
 
+def _load(res: dict) -> str:
+    load = (res.get("machine") or {}).get("loadavg_start") or (res.get("machine") or {}).get("loadavg_at_start")
+    return f"{load[0]:.1f}" if load else "?"
+
+
 def compare(old: dict, new: dict) -> str:
     """Table of new/old ratios for every number both results have."""
     a, b = flatten(old), flatten(new)
+    old, new = as_aggregate(old), as_aggregate(new)
     lines = [f"Compare: old {old.get('timestamp')} {(old.get('machine', {}).get('git_commit') or '?')[:10]} "
-             f"(load {old.get('machine', {}).get('loadavg_start', [float('nan')])[0]:.1f}) -> new {new.get('timestamp')} "
+             f"(load {_load(old)}) -> new {new.get('timestamp')} "
              f"{(new.get('machine', {}).get('git_commit') or '?')[:10]} "
-             f"(load {new.get('machine', {}).get('loadavg_start', [float('nan')])[0]:.1f})",
+             f"(load {_load(new)})",
              "| quantity | old | new | new/old |", "|---|---:|---:|---:|"]
     common = [k for k in b if k in a]
     for k in common:

@@ -84,6 +84,11 @@ def test_compare_ratios_and_cli(tmp_path, capsys):
     assert rows["cell train it_per_s"] == pytest.approx(2.0)
     assert rows["cell train s"] == pytest.approx(0.5)
     assert "aaa" in out and "bbb" in out
+    # a bench_cell JSON (no "sections") is read as the cell section
+    text = agg.compare(old["sections"]["cell"], new["sections"]["cell"])
+    assert "| cell train it_per_s | 4 | 8 | 2.000 |" in text
+    with pytest.raises(ValueError, match="not a benchmark result"):
+        agg.flatten({"foo": 1})
 
 
 def test_missing_vggt_benchmark_is_reported_not_invented(tmp_path, monkeypatch):
