@@ -86,10 +86,16 @@ def run_label(init: str, mode) -> str:
     return init if mode is None or (isinstance(mode, float) and math.isnan(mode)) else f"{init} ({mode})"
 
 
+_RUN_FILES = ("status.json", "timing.json", "pose.json", "metrics.json", "bridge.json", "train.json",
+              "log.parquet")
+
+
 def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
     """(run folder ``{results}/{dataset}/{scene}/n{n}/{init}``, bridge mode or None), sorted.
 
     A run folder with mode sub-folders gives one entry per mode; otherwise one entry with None.
+    A run folder without any result file (only logs: the job never wrote its outputs) is left
+    out with a warning.
     """
     results = Path(results)
     if not results.is_dir():
@@ -97,6 +103,11 @@ def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
     out = []
     for p in sorted(results.glob("*/*/n*/*")):
         if not (p.is_dir() and _N_DIR.match(p.parent.name)) or p.parts[-4] == "benchmarks":
+            continue
+        if not any(find_file(p, name) for name in _RUN_FILES):
+            # only logs: the job never produced a result (e.g. VGGT without its checkpoint);
+            # that is a run that did not happen, not a failure of the method
+            log.warning("%s holds no result files (see its logs/): left out of the tables", p)
             continue
         modes = mode_dirs(p)
         out += [(p, m.name) for m in modes] if modes else [(p, None)]

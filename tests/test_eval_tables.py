@@ -128,3 +128,15 @@ def test_plots_cli(tree, tmp_path):
     assert "pareto.png" in names and "mip360__garden__n3.png" in names and len(pngs) == 7
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+
+
+def test_run_that_never_produced_results_is_left_out(tmp_path):
+    """A run folder holding only logs (e.g. VGGT offline without its checkpoint) did not
+    happen: it is not counted as a failure of the method."""
+    results, _ = build(tmp_path / "fake")
+    before = collect_runs(results)
+    ghost = results / "mip360" / "garden" / "n9" / "vggt" / "logs"
+    ghost.mkdir(parents=True)
+    (ghost / "vggt_init.log").write_text("CheckpointNotFoundError: no VGGT checkpoint found\n")
+    after = collect_runs(results)
+    assert len(after) == len(before) and not (after.n == 9).any()
