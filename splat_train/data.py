@@ -141,9 +141,27 @@ def load_views(cameras_dir: str | Path, images_dir: str | Path | None, names: li
     return views
 
 
-def scene_extent(cameras: list[Camera]) -> float:
-    """3DGS scene extent: 1.1 x the largest distance of a camera centre from their mean
-    (``getNerfppNorm``); 1.0 for a single camera (or coincident centres)."""
+def scene_extent(cameras: list[Camera], points: np.ndarray | None = None) -> float:
+    """Scene extent that scales the position learning rate and the world-size prune.
+
+    3DGS uses 1.1 x the largest distance of a camera centre from their mean
+    (``getNerfppNorm``): right for captures around an object, far too small for a few nearby
+    views of a deeper scene (3 views on a short arc gave 0.18 while the scene lay at distance
+    1.0, so after the first opacity reset every seed Gaussian exceeded the 0.1 x extent prune and
+    the run went black). With ``points`` ([N, 3] world, e.g. the seed means) the extent is the
+    larger of that and 1.1 x the median distance of the finite points from the camera mean; for
+    an object-centred capture the two agree. 1.0 when both are degenerate.
+
+    Args:
+        cameras: the training cameras.
+        points: [N, 3] world points or None (the plain 3DGS rule).
+    """
     c = np.stack([cam.center for cam in cameras])
-    radius = float(np.linalg.norm(c - c.mean(0), axis=1).max()) * 1.1
+    centre = c.mean(0)
+    radius = float(np.linalg.norm(c - centre, axis=1).max()) * 1.1
+    if points is not None and len(points):
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        p = p[np.isfinite(p).all(1)]
+        if len(p):
+            radius = max(radius, 1.1 * float(np.median(np.linalg.norm(p - centre, axis=1))))
     return radius if radius > 1e-9 else 1.0

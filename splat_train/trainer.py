@@ -4,8 +4,9 @@ One iteration (1-based ``it``): set the position rate (exponential decay x scene
 the next training view from a shuffled stack (refilled with a new permutation when empty, as
 3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
 (+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
-view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled), then
-densify / prune / reset opacity when the schedule says so (:mod:`splat_train.densify`).
+view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled), the
+held-out evaluation when due, then densify / prune / reset opacity when the schedule says so
+(:mod:`splat_train.densify`), then the checkpoint when due.
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
@@ -81,7 +82,6 @@ class Trainer:
         self.sched = cfg.schedule()
         self.dev = _device(cfg.device)
         self.train_views, self.test_views = train_views, test_views or []
-        self.extent = scene_extent([v.camera for v in train_views])
         self.strategy = DensifyStrategy(
             densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,
             densify_every=self.sched.densify_every, opacity_reset_every=self.sched.opacity_reset_every,
@@ -94,6 +94,8 @@ class Trainer:
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         cloud = read_gaussian_ply(seed_ply)
+        self.extent = scene_extent([v.camera for v in train_views],
+                                   cloud.means if cfg.extent_from_points else None)
         if len(cloud) == 0:
             raise ValueError(f"seed {seed_ply} holds 0 Gaussians: nothing can be trained or densified; "
                              "check the Bridge output (bridge.json counts) or its filters")
@@ -205,7 +207,6 @@ class Trainer:
         if self.pose_opt is not None:
             self.pose_opt.step()
             self.pose_opt.zero_grad(set_to_none=True)
-        self.strategy.step(self.params, self.optimizer, self.state, it, self.extent, self.gen)
         with torch.no_grad():
             mse = float(((out["rgb"].detach() - self.targets[idx]) ** 2).mean())
         return {"loss": loss.item(), "l1": l1.item(), "ssim": s.item(),
@@ -240,6 +241,11 @@ class Trainer:
                 te = time.perf_counter()
                 test_psnr = self.evaluate(self.test_views)
                 eval_time += time.perf_counter() - te
+            # densify / prune / opacity reset after the held-out evaluation, as 3DGS orders its
+            # loop: a test PSNR logged at a reset iteration measures the model, not the reset
+            t0 = time.perf_counter()
+            self.strategy.step(self.params, self.optimizer, self.state, it, self.extent, self.gen)
+            self.wall += time.perf_counter() - t0
             self.log.append(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
                             test_psnr=test_psnr, **rec)
             if it % 10 == 0 or it == cfg.iterations:

@@ -140,3 +140,32 @@ def test_pose_refinement_changes_cameras(scene, tmp_path):
     moved = max(float(np.abs(a.cam_from_world - b.cam_from_world).max())
                 for a, b in zip(refined.cameras, given.cameras))
     assert 1e-5 < moved < 0.1
+
+
+def test_test_psnr_at_a_reset_iteration_measures_the_model_not_the_reset(scene, tmp_path):
+    """3DGS order: evaluate, then densify / reset. An evaluation right after the reset would log
+    a near-black render (the error-against-run-time curve would show a false collapse)."""
+    res = _train(scene, tmp_path / "run", iterations=16, eval_every=15, densify_until=20)
+    df = pq.read_table(tmp_path / "run" / "log.parquet").to_pandas().set_index("iteration")
+    assert df.loc[15, "test_psnr"] > 15  # opacity reset at 15 happens after this evaluation
+    assert df.loc[16, "train_psnr"] < df.loc[14, "train_psnr"] - 3  # ... and then it does happen
+    assert res.summary["iterations"] == 16
+
+
+def test_scene_extent_covers_the_scene_for_nearby_views():
+    """Three views 0.1 apart looking at points 1.0 away: the camera spread alone (the 3DGS rule)
+    is 0.11; with the points the extent is 1.1 x their median distance. An object-centred
+    capture keeps the camera rule."""
+    from camio.cameras import Camera, look_at
+    from splat_train.data import scene_extent
+
+    K = np.array([[50.0, 0, 16], [0, 50.0, 12], [0, 0, 1]])
+    near = [Camera(f"{i}", 32, 24, K, look_at([0.1 * (i - 1), 0, -1.0], [0, 0, 0])) for i in range(3)]
+    pts = np.random.default_rng(0).normal(0, 0.05, (500, 3))
+    assert scene_extent(near) == pytest.approx(0.11)
+    assert scene_extent(near, pts) == pytest.approx(1.1 * np.median(np.linalg.norm(pts - [0, 0, -1.0], axis=1)))
+    ring = [Camera(f"{i}", 32, 24, K, look_at([3 * np.cos(a), 0, 3 * np.sin(a)], [0, 0, 0]))
+            for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))]
+    assert scene_extent(ring, pts) == pytest.approx(scene_extent(ring)) == pytest.approx(3.3)
+    with_nan = np.vstack([pts, [[np.nan, 0, 0]]])
+    assert np.isfinite(scene_extent(near, with_nan))
