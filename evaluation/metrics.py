@@ -30,7 +30,9 @@ from typing import Union
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+
+from splat_train.losses import gaussian_window
+from splat_train.losses import ssim_map as _ssim_map
 
 __all__ = [
     "PSNR_CAP_DB",
@@ -120,18 +122,6 @@ def capped_psnr(value: float, cap: float = PSNR_CAP_DB) -> float:
     return float(min(float(value), cap))
 
 
-def gaussian_window(size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA,
-                    dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
-    """Normalised 2D Gaussian window ``[size, size]`` (outer product of the 1D window).
-
-    The 1D window is ``g[i] = exp(-(i - size // 2)^2 / (2 sigma^2)) / sum``, i = 0..size-1.
-    """
-    x = torch.arange(size, dtype=torch.float64) - size // 2
-    g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
-    g = g / g.sum()
-    return torch.outer(g, g).to(dtype=dtype, device=device)
-
-
 def ssim_map(pred: ArrayLike, gt: ArrayLike, window_size: int = SSIM_WINDOW_SIZE,
              sigma: float = SSIM_SIGMA, max_val: float = 1.0) -> torch.Tensor:
     """Per-pixel SSIM map ``[B, C, H, W]`` (3DGS definition; see module docstring).
@@ -139,22 +129,7 @@ def ssim_map(pred: ArrayLike, gt: ArrayLike, window_size: int = SSIM_WINDOW_SIZE
     Differentiable; works on any device. ``C1 = (0.01 max_val)^2``, ``C2 = (0.03 max_val)^2``.
     """
     x, y = _pair(pred, gt)
-    c = x.shape[1]
-    w = gaussian_window(window_size, sigma, dtype=x.dtype, device=x.device)
-    w = w.expand(c, 1, window_size, window_size).contiguous()
-    pad = window_size // 2
-
-    def blur(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(t, w, padding=pad, groups=c)
-
-    mu_x, mu_y = blur(x), blur(y)
-    mu_x2, mu_y2, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
-    var_x = blur(x * x) - mu_x2
-    var_y = blur(y * y) - mu_y2
-    cov_xy = blur(x * y) - mu_xy
-    c1 = (0.01 * max_val) ** 2
-    c2 = (0.03 * max_val) ** 2
-    return ((2.0 * mu_xy + c1) * (2.0 * cov_xy + c2)) / ((mu_x2 + mu_y2 + c1) * (var_x + var_y + c2))
+    return _ssim_map(x, y, window_size, sigma, max_val)
 
 
 def ssim(pred: ArrayLike, gt: ArrayLike, window_size: int = SSIM_WINDOW_SIZE,

@@ -15,7 +15,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ssim", "l1_loss", "psnr", "photometric_loss", "gaussian_window"]
+__all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_window"]
 
 
 def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
@@ -33,6 +33,30 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, dev
     g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
     g = g / g.sum()
     return torch.outer(g, g).to(dtype=dtype, device=device)
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+             max_val: float = 1.0) -> torch.Tensor:
+    """Per-pixel SSIM map of the 3DGS definition (see :func:`ssim`): [B, C, H, W] x2 -> [B, C, H, W].
+
+    The one implementation in the project: the training loss and the evaluation metric
+    (:func:`evaluation.metrics.ssim_map`) both call it. C1 = (0.01 max_val)^2, C2 = (0.03 max_val)^2.
+    """
+    c = a.shape[1]
+    w = gaussian_window(window_size, sigma, dtype=a.dtype, device=a.device)
+    w = w.expand(c, 1, window_size, window_size).contiguous()
+    pad = window_size // 2
+
+    def filt(x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(x, w, padding=pad, groups=c)
+
+    mu1, mu2 = filt(a), filt(b)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    sigma1_sq = filt(a * a) - mu1_sq
+    sigma2_sq = filt(b * b) - mu2_sq
+    sigma12 = filt(a * b) - mu12
+    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    return ((2 * mu12 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
 
 
 def ssim(
@@ -63,27 +87,11 @@ def ssim(
     """
     if img1.shape != img2.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-    a = _to_bchw(img1, "img1")
-    b = _to_bchw(img2, "img2")
-    c = a.shape[1]
-    w = gaussian_window(window_size, sigma, dtype=a.dtype, device=a.device)
-    w = w.expand(c, 1, window_size, window_size).contiguous()
-    pad = window_size // 2
-
-    def filt(x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(x, w, padding=pad, groups=c)
-
-    mu1, mu2 = filt(a), filt(b)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    sigma1_sq = filt(a * a) - mu1_sq
-    sigma2_sq = filt(b * b) - mu2_sq
-    sigma12 = filt(a * b) - mu12
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    ssim_map = ((2 * mu12 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
+    m = ssim_map(_to_bchw(img1, "img1"), _to_bchw(img2, "img2"), window_size, sigma)
     if reduction == "mean":
-        return ssim_map.mean()
+        return m.mean()
     if reduction == "none":
-        return ssim_map.flatten(1).mean(1)
+        return m.flatten(1).mean(1)
     raise ValueError(f"ssim: reduction must be 'mean' or 'none', got {reduction!r}")
 
 
