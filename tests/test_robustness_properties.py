@@ -30,13 +30,7 @@ from camio.cameras import Camera, look_at, qvec_to_rotmat
 finite = dict(allow_nan=False, allow_infinity=False)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one thread is fastest, and 20x faster than two on a busy shared machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # ----------------------------------------------------------------------------- Sim(3) from cameras

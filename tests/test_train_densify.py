@@ -13,13 +13,7 @@ from splat_train.gaussians import PARAM_NAMES, make_optimizer, params_from_cloud
 
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one thread is fastest (and far faster on a shared, busy machine)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 def _setup(n=8, seed=0):
     rng = np.random.default_rng(seed)

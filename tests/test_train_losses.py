@@ -8,13 +8,7 @@ from splat_train.losses import gaussian_window, l1_loss, photometric_loss, psnr,
 
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one thread is fastest (and far faster on a shared, busy machine)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 def _ssim_direct(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float = 1.5) -> float:
     """Float64 SSIM by explicit window sums with zero padding ([H, W, C] images)."""

@@ -23,13 +23,7 @@ SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, 
              device="cpu", keep_checkpoints=5)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny images: one thread is fastest (and far faster on a shared, busy machine)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")
