@@ -49,6 +49,8 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="learn small corrections of the training camera poses")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
+    p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
+                   help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
@@ -101,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                      pose_refine=args.pose_refine, device=args.device, num_threads=args.threads)
+                      pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
+                      kernel_threads=args.kernel_threads)
     result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                    test_images=args.test_images, image_list=args.image_list,
                    test_image_list=args.test_image_list)

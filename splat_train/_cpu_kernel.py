@@ -133,13 +133,37 @@ def _ptr(t: Tensor) -> int:
 _pool: ThreadPoolExecutor | None = None
 
 
+_threads: int | None = None
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Threads for the C++ kernel (None: follow ``torch.get_num_threads()``)."""
+    global _threads
+    _threads = None if n is None else max(1, int(n))
+
+
+def kernel_threads() -> int:
+    """Threads of the C++ kernel: ``$SPLAT_TRAIN_KERNEL_THREADS`` if set, else the count given
+    to :func:`set_kernel_threads`, else ``torch.get_num_threads()``. The kernel's threads block
+    in C (no spinning OpenMP workers), so it can use more threads than torch's intra-op pool:
+    with torch at 1 thread, 2 kernel threads made forward+backward of 50k Gaussians at 497x372
+    1.85x faster (0.672 -> 0.364 s) here."""
+    env = os.environ.get("SPLAT_TRAIN_KERNEL_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError as exc:
+            raise ValueError(f"SPLAT_TRAIN_KERNEL_THREADS must be an integer, got {env!r}") from exc
+    return _threads if _threads is not None else max(1, torch.get_num_threads())
+
+
 def _run_threaded(fn, *args) -> None:
-    """Run a kernel entry on ``torch.get_num_threads()`` threads sharing one tile counter.
+    """Run a kernel entry on :func:`kernel_threads` threads sharing one tile counter.
 
     ctypes drops the GIL during the call, so the threads run the C code concurrently.
     """
     global _pool
-    nthreads = max(1, torch.get_num_threads())
+    nthreads = kernel_threads()
     counter = ctypes.c_int64(0)
     cptr = ctypes.addressof(counter)
     if nthreads == 1:

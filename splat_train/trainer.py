@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
 from splat_train.config import RESUME_FREE_KEYS, TrainConfig
+from splat_train import _cpu_kernel
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.export import camera_tensors, render_params, render_views
@@ -318,6 +320,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         raise ValueError("give both --test-cameras and --test-images, or neither")
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
+    _cpu_kernel.set_kernel_threads(cfg.kernel_threads or len(os.sched_getaffinity(0)))
     names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)

@@ -163,3 +163,23 @@ def test_scene_extent_covers_the_scene_for_nearby_views():
     assert scene_extent(ring, pts) == pytest.approx(scene_extent(ring)) == pytest.approx(3.3)
     with_nan = np.vstack([pts, [[np.nan, 0, 0]]])
     assert np.isfinite(scene_extent(near, with_nan))
+
+
+def test_kernel_threads_default_to_every_cpu_and_results_do_not_depend_on_them(scene, tmp_path, monkeypatch):
+    """torch stays at one thread; the C++ kernel (non-spinning threads) uses the idle cores.
+    The kernel sums gradients in a fixed order, so the trained model is the same."""
+    import os
+
+    from splat_train import _cpu_kernel
+
+    monkeypatch.delenv("SPLAT_TRAIN_KERNEL_THREADS", raising=False)
+    _train(scene, tmp_path / "a", iterations=12)
+    assert _cpu_kernel.kernel_threads() == len(os.sched_getaffinity(0))
+    _train(scene, tmp_path / "b", iterations=12, kernel_threads=1)
+    assert _cpu_kernel.kernel_threads() == 1
+    a, b = read_gaussian_ply(tmp_path / "a" / "model.ply"), read_gaussian_ply(tmp_path / "b" / "model.ply")
+    np.testing.assert_array_equal(a.means, b.means)
+    np.testing.assert_array_equal(a.opacity_logit, b.opacity_logit)
+    monkeypatch.setenv("SPLAT_TRAIN_KERNEL_THREADS", "3")
+    assert _cpu_kernel.kernel_threads() == 3
+    _cpu_kernel.set_kernel_threads(None)
