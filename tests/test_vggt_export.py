@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _oiio_write import write_raw as _write
+
 from vggt_init.__main__ import main
 from vggt_init.export import OPTIONAL_KEYS, PREDICTION_KEYS, select_points
 from vggt_init.geometry import unproject_depth
@@ -18,19 +20,6 @@ FIX = Path(__file__).parent / "data" / "vggt" / "shared"
 SIZE = 56  # network width: 4 patches, keeps the tiny model fast
 
 
-def _write(path: Path, data: np.ndarray, fmt: str = "uint8") -> None:
-    import OpenImageIO as oiio
-
-    if data.ndim == 2:
-        data = data[..., None]
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, fmt)
-    if c in (2, 4):
-        spec.attribute("oiio:UnassociatedAlpha", 1)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec)
-    assert out.write_image(np.ascontiguousarray(data))
-    out.close()
 
 
 @pytest.fixture()

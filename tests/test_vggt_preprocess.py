@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _oiio_write import write_raw as _write
+
 from vggt_init.pillow_compat import alpha_composite_over, bicubic_coefficients, resize_bicubic
 from vggt_init.preprocess import (
     ImageInputError,
@@ -167,19 +169,6 @@ def test_alpha_composite_matches_pillow():
     np.testing.assert_array_equal(alpha_composite_over(rgba), ref)
 
 
-def _write(path: Path, data: np.ndarray, fmt: str) -> None:
-    import OpenImageIO as oiio
-
-    if data.ndim == 2:
-        data = data[..., None]
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, fmt)
-    if c in (2, 4):
-        spec.attribute("oiio:UnassociatedAlpha", 1)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec)
-    assert out.write_image(np.ascontiguousarray(data))
-    out.close()
 
 
 def _pillow_loader(path: Path, mode: str) -> np.ndarray:
