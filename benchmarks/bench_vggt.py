@@ -33,7 +33,9 @@ REFERENCE = {"frames": 3, "size": 518, "dtype": "fp32", "forward_s": 78.1, "aggr
 
 def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], seed: int) -> dict:
     """Build the random-weight model, run one forward, return timings (runs in a subprocess)."""
+    import vggt_init  # noqa: F401  (sets THP_MEM_ALLOC_ENABLE before torch's first allocation)
     import torch
+    from vggt_init.model.fastpath import fast_paths_enabled
 
     from vggt_init.model import VGGT, VGGTConfig
 
@@ -72,7 +74,8 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     return {"frames": frames, "dtype": dtype, "size": size, "threads": threads, "heads": ",".join(heads),
             "build_s": build_s, "forward_s": forward_s, "forward_cpu_s": cpu_s, **{f"{k}_s": v for k, v in comp.items()},
             "rss_after_build_gb": rss_built, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
-            "nonfinite_outputs": nonfinite}
+            "nonfinite_outputs": nonfinite, "onednn_fast_paths": fast_paths_enabled(),
+            "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", "")}
 
 
 def _machine() -> dict:
@@ -96,6 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--heads", default="camera,depth,point", help="comma list; the reference ran all three")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-fast-paths", action="store_true",
+                   help="ATen's addmm/SDPA instead of the oneDNN paths (VGGT_INIT_ONEDNN=0)")
+    p.add_argument("--no-thp", action="store_true",
+                   help="4 kB pages for torch's large allocations (THP_MEM_ALLOC_ENABLE=0)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     heads = [h for h in args.heads.split(",") if h]
@@ -110,7 +117,12 @@ def main(argv: list[str] | None = None) -> int:
             log.info("running %d frames, %s, %dx%d, %d threads ...", n, dt, args.size, args.size, args.threads)
             cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--size", str(args.size),
                    "--threads", str(args.threads), "--heads", args.heads, "--seed", str(args.seed)]
-            res = subprocess.run(cmd, capture_output=True, text=True)
+            env = dict(os.environ)
+            if args.no_fast_paths:
+                env["VGGT_INIT_ONEDNN"] = "0"
+            if args.no_thp:
+                env["THP_MEM_ALLOC_ENABLE"] = "0"
+            res = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if res.returncode != 0:
                 log.error("configuration %d/%s failed:\n%s", n, dt, res.stderr[-2000:])
                 rows.append({"frames": n, "dtype": dt, "error": res.stderr[-500:]})

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
-from vggt_init.model.layers import Block, Mlp
+from vggt_init.model.layers import Block, Linear, Mlp
 
 __all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
 
@@ -58,8 +58,8 @@ class CameraHead(nn.Module):
                                      for _ in range(cfg.trunk_depth)])
         self.trunk_norm = nn.LayerNorm(D, eps=cfg.layernorm_eps)
         self.empty_pose_tokens = nn.Parameter(torch.zeros(1, 1, cfg.target_dim))
-        self.embed_pose = nn.Linear(cfg.target_dim, D)
-        self.poseLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(D, 3 * D))
+        self.embed_pose = Linear(cfg.target_dim, D)
+        self.poseLN_modulation = nn.Sequential(nn.SiLU(), Linear(D, 3 * D))
         self.adaln_norm = nn.LayerNorm(D, elementwise_affine=False, eps=cfg.adaln_eps)
         self.pose_branch = Mlp(D, cfg.pose_branch_hidden, cfg.target_dim)
         for name in (cfg.trans_act, cfg.quat_act, cfg.fl_act):

@@ -11,7 +11,20 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["LayerScale", "Mlp", "RoPE2D", "Attention", "Block"]
+from vggt_init.model.fastpath import attention, onednn_linear
+
+__all__ = ["LayerScale", "Linear", "Mlp", "RoPE2D", "Attention", "Block"]
+
+
+class Linear(nn.Linear):
+    """nn.Linear (same parameters and names) whose CPU inference uses oneDNN.
+
+    [..., C_in] -> [..., C_out]; see ``vggt_init.model.fastpath`` for when and why.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = onednn_linear(x, self.weight, self.bias)
+        return F.linear(x, self.weight, self.bias) if y is None else y
 
 
 class LayerScale(nn.Module):
@@ -30,12 +43,13 @@ class Mlp(nn.Module):
 
     def __init__(self, dim_in: int, hidden: int, dim_out: int | None = None, bias: bool = True) -> None:
         super().__init__()
-        self.fc1 = nn.Linear(dim_in, hidden, bias=bias)
+        self.fc1 = Linear(dim_in, hidden, bias=bias)
         self.act = nn.GELU()
-        self.fc2 = nn.Linear(hidden, dim_out or dim_in, bias=bias)
+        self.fc2 = Linear(hidden, dim_out or dim_in, bias=bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc2(self.act(self.fc1(x)))
+        h = onednn_linear(x, self.fc1.weight, self.fc1.bias, activation="gelu")
+        return self.fc2(self.act(self.fc1(x)) if h is None else h)
 
 
 class RoPE2D(nn.Module):
@@ -88,10 +102,10 @@ class Attention(nn.Module):
         super().__init__()
         self.num_heads = num_heads
         self.head_dim = dim // num_heads
-        self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
+        self.qkv = Linear(dim, 3 * dim, bias=qkv_bias)
         self.q_norm = nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
         self.k_norm = nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
-        self.proj = nn.Linear(dim, dim, bias=proj_bias)
+        self.proj = Linear(dim, dim, bias=proj_bias)
         self.rope = rope
 
     def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
@@ -101,8 +115,7 @@ class Attention(nn.Module):
         q, k = self.q_norm(q), self.k_norm(k)
         if self.rope is not None and pos is not None:
             q, k = self.rope(q, pos), self.rope(k, pos)
-        x = F.scaled_dot_product_attention(q, k, v)
-        return self.proj(x.transpose(1, 2).reshape(B, N, C))
+        return self.proj(attention(q, k, v).reshape(B, N, C))
 
 
 class Block(nn.Module):

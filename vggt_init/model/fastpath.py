@@ -1,0 +1,137 @@
+"""CPU inference fast paths through oneDNN: Linear (+ fused GELU) and attention.
+
+Why: ATen's float32 ``addmm`` and ``scaled_dot_product_attention`` call MKL's sgemm, which
+takes a slow code path on the AMD EPYC (Zen 5) machines this project runs on. Measured with
+2 threads on such a machine:
+
+- Linear 4122x1024 @ 1024x3072: ~150 GFLOP/s through ``F.linear``, ~290 through oneDNN
+  (``torch.ops.mkldnn._linear_pointwise``); fc1 + exact GELU fused there: 0.13 s vs 0.27 s.
+- Attention, 16 heads of 64 over 4122 tokens: SDPA 0.48 s (fp32) / 0.46 s (bf16); the
+  row-chunked oneDNN form below 0.31 s (fp32) / 0.29 s (bf16).
+
+Numerics: the float32 results differ from ATen's only by summation order (~1e-6 relative;
+the fixtures' float32 tolerance is 1e-4). In bf16 (autocast) the scores q k^T are computed
+in float32 from the (bf16-valued) q, k, softmax in float32, then P and V in bf16 with
+float32 accumulation: the precision of SDPA's bf16 kernel (measured rms error against a
+float64 reference 0.00096 vs SDPA's 0.00094). float64, autograd, other autocast dtypes
+and non-CPU tensors always take the ATen path, so the float64 parity runs never use this
+module. ``VGGT_INIT_ONEDNN=0`` (environment) or ``set_fast_paths(False)`` switches it off.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["set_fast_paths", "fast_paths_enabled", "onednn_linear", "attention", "ATTENTION_CHUNK"]
+
+log = logging.getLogger(__name__)
+
+_STATE = {"enabled": os.environ.get("VGGT_INIT_ONEDNN", "1") != "0"}
+ATTENTION_CHUNK = 256  # query rows per oneDNN score block: 256 x N float32 scores at a time
+_FAST_DTYPES = (torch.float32, torch.bfloat16)
+
+
+def set_fast_paths(enabled: bool) -> bool:
+    """Switch the oneDNN paths on or off; returns the previous setting."""
+    previous = _STATE["enabled"]
+    _STATE["enabled"] = bool(enabled)
+    return previous
+
+
+def fast_paths_enabled() -> bool:
+    return _STATE["enabled"]
+
+
+def _compute_dtype(*tensors: torch.Tensor | None) -> torch.dtype | None:
+    """The dtype a fast path computes in for these tensors, or None to use ATen.
+
+    Under CPU autocast to bf16: bf16. Otherwise the tensors' common dtype if it is float32
+    or bf16. None when switched off, under autograd, or off the CPU.
+    """
+    if not _STATE["enabled"] or torch.is_grad_enabled():
+        return None
+    ts = [t for t in tensors if t is not None]
+    if any(t.device.type != "cpu" for t in ts):
+        return None
+    if torch.is_autocast_enabled("cpu"):
+        dt = torch.get_autocast_dtype("cpu")
+        return dt if dt == torch.bfloat16 else None
+    dt = ts[0].dtype
+    return dt if dt in _FAST_DTYPES and all(t.dtype == dt for t in ts) else None
+
+
+def _disable(what: str, exc: Exception) -> None:
+    log.warning("oneDNN %s unavailable (%s); using ATen from now on", what, exc)
+    _STATE["enabled"] = False
+
+
+def onednn_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None,
+                  activation: str = "none") -> torch.Tensor | None:
+    """``activation(x @ weight.T + bias)`` through oneDNN, or None where the path does not apply.
+
+    Args:
+        x: [..., C_in]; weight: [C_out, C_in]; bias: [C_out] or None. CPU tensors.
+        activation: "none" or "gelu" (exact, erf form).
+
+    Returns:
+        [..., C_out] in the compute dtype (see ``_compute_dtype``; under bf16 autocast the
+        operands are cast to bf16, as autocast's own linear does), or None: the caller runs
+        the ATen path.
+    """
+    dt = _compute_dtype(x, weight, bias)
+    if dt is None:
+        return None
+    x, weight = x.to(dt), weight.to(dt)
+    bias = None if bias is None else bias.to(dt)
+    try:
+        if activation == "gelu":
+            return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "gelu", [], "none")
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
+    except (RuntimeError, AttributeError, NotImplementedError) as exc:  # a build without oneDNN
+        _disable("linear", exc)
+        return None
+
+
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Softmax attention without mask, scale 1/sqrt(D).
+
+    Args:
+        q, k, v: [B, nh, N, D] (any strides).
+
+    Returns:
+        [B, N, nh, D] (token-major, ready for the output projection). The oneDNN path
+        where ``_compute_dtype`` allows it, else ``F.scaled_dot_product_attention``.
+    """
+    dt = _compute_dtype(q, k, v)
+    if dt is not None:
+        try:
+            return _attention_onednn(q, k, v, dt)
+        except (RuntimeError, AttributeError, NotImplementedError) as exc:
+            _disable("attention", exc)
+    return F.scaled_dot_product_attention(q, k, v).transpose(1, 2)
+
+
+def _attention_onednn(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, dt: torch.dtype) -> torch.Tensor:
+    """Row-chunked attention: per (batch, head), ATTENTION_CHUNK query rows at a time.
+
+    Scores [chunk, N] in float32 (oneDNN), softmax in float32, then P [chunk, N] @ V [N, D]
+    in ``dt`` (float32 accumulation inside oneDNN). Returns [B, N, nh, D] in ``dt``.
+    """
+    linear = torch.ops.mkldnn._linear_pointwise
+    B, H, N, D = q.shape
+    out = torch.empty(B, N, H, D, dtype=dt, device=q.device)
+    qs = q.float() * (D ** -0.5)
+    kf = k.float()
+    for b in range(B):
+        for h in range(H):
+            k_bh = kf[b, h].contiguous()  # [N, D]: the "weight" of scores = q k^T
+            v_t = v[b, h].to(dt).t().contiguous()  # [D, N]: the "weight" of P V
+            for i in range(0, N, ATTENTION_CHUNK):
+                scores = linear(qs[b, h, i:i + ATTENTION_CHUNK], k_bh, None, "none", [], "")
+                probs = torch.softmax(scores, dim=-1).to(dt)
+                out[b, i:i + ATTENTION_CHUNK, h] = linear(probs, v_t, None, "none", [], "")
+    return out
