@@ -220,6 +220,11 @@ def format_table(res: dict) -> str:
                 ratio = r["forward_s"] / fp32[r["frames"]] if r["dtype"] == "bf16" and fp32.get(r["frames"]) else None
                 lines.append(f"| {r['frames']} | {r['dtype']} | {r['forward_s']:.2f} | {_fmt(r.get('aggregator_s'), '.2f')} | "
                              f"{_fmt(r.get('peak_rss_gb'), '.2f')} | {_fmt(ratio, '.2f')} |")
+            for n, per_key in (v.get("bf16_vs_fp32") or {}).items():
+                worst = max(per_key.items(), key=lambda kv: kv[1]["rel_l2"], default=None)
+                if worst:
+                    lines.append(f"bf16 vs fp32 outputs, {n} frames: largest relative L2 {worst[1]['rel_l2']:.2e} "
+                                 f"({worst[0]}; target < 1e-2)")
         lines.append("")
     if "cell" in sec:
         c = sec["cell"]

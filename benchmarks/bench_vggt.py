@@ -22,6 +22,7 @@ import platform
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -31,7 +32,11 @@ REFERENCE = {"frames": 3, "size": 518, "dtype": "fp32", "forward_s": 78.1, "aggr
              "peak_rss_gb": 6.91, "heads": "camera,depth,point", "note": "official code, idle 2-core machine"}
 
 
-def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], seed: int) -> dict:
+OUTPUT_KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
+
+
+def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], seed: int,
+           save: Path | None = None) -> dict:
     """Build the random-weight model, run one forward, return timings (runs in a subprocess)."""
     import vggt_init  # noqa: F401  (sets THP_MEM_ALLOC_ENABLE before torch's first allocation)
     import torch
@@ -71,11 +76,43 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     nonfinite = {k: int((~torch.isfinite(v)).sum()) for k, v in out.items() if isinstance(v, torch.Tensor)}
+    if save is not None:  # same seed -> same random weights and input in every child
+        import numpy as np
+
+        np.savez(save, **{k: out[k].float().numpy() for k in OUTPUT_KEYS if k in out})
     return {"frames": frames, "dtype": dtype, "size": size, "threads": threads, "heads": ",".join(heads),
             "build_s": build_s, "forward_s": forward_s, "forward_cpu_s": cpu_s, **{f"{k}_s": v for k, v in comp.items()},
             "rss_after_build_gb": rss_built, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
             "nonfinite_outputs": nonfinite, "onednn_fast_paths": fast_paths_enabled(),
             "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", "")}
+
+
+def _compare_outputs(saved: dict[tuple[int, str], Path], frames: list[int]) -> dict:
+    """{frames: {output: {rel_l2, max_abs, max_abs_fp32, nonfinite}}} for each n run in both dtypes.
+
+    rel_l2 = ||bf16 - fp32||_2 / ||fp32||_2 over the entries finite in both runs (float64).
+    """
+    import numpy as np
+
+    result: dict = {}
+    for n in frames:
+        a, b = saved.get((n, "fp32")), saved.get((n, "bf16"))
+        if a is None or b is None or not a.is_file() or not b.is_file():
+            continue
+        fa, fb = np.load(a), np.load(b)
+        per_key = {}
+        for k in OUTPUT_KEYS:
+            if k not in fa.files or k not in fb.files:
+                continue
+            x, y = fa[k].astype(np.float64), fb[k].astype(np.float64)
+            ok = np.isfinite(x) & np.isfinite(y)
+            d = y[ok] - x[ok]
+            per_key[k] = {"rel_l2": float(np.linalg.norm(d) / max(np.linalg.norm(x[ok]), 1e-300)),
+                          "max_abs": float(np.abs(d).max()) if d.size else 0.0,
+                          "max_abs_fp32": float(np.abs(x[ok]).max()) if d.size else 0.0,
+                          "nonfinite": int((~ok).sum())}
+        result[n] = per_key
+    return result
 
 
 def _machine() -> dict:
@@ -103,20 +140,28 @@ def main(argv: list[str] | None = None) -> int:
                    help="ATen's addmm/SDPA instead of the oneDNN paths (VGGT_INIT_ONEDNN=0)")
     p.add_argument("--no-thp", action="store_true",
                    help="4 kB pages for torch's large allocations (THP_MEM_ALLOC_ENABLE=0)")
+    p.add_argument("--no-compare", action="store_true",
+                   help="skip the bf16-vs-fp32 output comparison (outputs are kept in a temp dir otherwise)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--save", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     heads = [h for h in args.heads.split(",") if h]
     if args.child:
-        print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed)))
+        print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed, args.save)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     log.info("RANDOM-WEIGHT speed/memory benchmark (outputs are meaningless, not results)")
     rows = []
+    tmp = tempfile.TemporaryDirectory(prefix="bench_vggt_")
+    saved: dict[tuple[int, str], Path] = {}
     for n in args.frames:
         for dt in args.dtypes:
             log.info("running %d frames, %s, %dx%d, %d threads ...", n, dt, args.size, args.size, args.threads)
             cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--size", str(args.size),
                    "--threads", str(args.threads), "--heads", args.heads, "--seed", str(args.seed)]
+            if not args.no_compare:
+                saved[n, dt] = Path(tmp.name) / f"out_{n}_{dt}.npz"
+                cmd += ["--save", str(saved[n, dt])]
             env = dict(os.environ)
             if args.no_fast_paths:
                 env["VGGT_INIT_ONEDNN"] = "0"
@@ -141,10 +186,25 @@ def main(argv: list[str] | None = None) -> int:
     print(f"reference (official, fp32, 3 frames, idle machine): forward {REFERENCE['forward_s']} s "
           f"(about {2 * REFERENCE['forward_s']:.0f} CPU s on 2 threads), peak RSS {REFERENCE['peak_rss_gb']} GB")
     print(f"load average at the end: {os.getloadavg()} on {os.cpu_count()} CPUs (wall times grow with contention)")
+    comparison = _compare_outputs(saved, args.frames)
+    tmp.cleanup()
+    if comparison:
+        print("\nbf16 vs fp32 outputs (same random weights and input): relative L2 ||bf16 - fp32|| / ||fp32||; "
+              "target < 1e-2")
+        for n, per_key in comparison.items():
+            print(f"  {n:>2} frames: " + ", ".join(f"{k} {v['rel_l2']:.2e}" for k, v in per_key.items()))
+    for r in rows:
+        if r.get("dtype") == "bf16" and "forward_s" in r:
+            fp32 = next((x for x in rows if x.get("frames") == r["frames"] and x.get("dtype") == "fp32"
+                         and "forward_s" in x), None)
+            if fp32:
+                print(f"  {r['frames']:>2} frames: bf16 / fp32 wall = {r['forward_s'] / fp32['forward_s']:.2f} "
+                      f"(aggregator {r['aggregator_s'] / fp32['aggregator_s']:.2f})")
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / f"bench_vggt_{time.strftime('%Y%m%d_%H%M%S')}.json"
     path.write_text(json.dumps({"benchmark": "vggt_init random-weight speed/memory", "weights": "RANDOM",
-                                "machine": _machine(), "reference": REFERENCE, "runs": rows}, indent=2))
+                                "machine": _machine(), "reference": REFERENCE, "runs": rows,
+                                "bf16_vs_fp32": comparison}, indent=2))
     log.info("saved %s", path)
     return 0
 
