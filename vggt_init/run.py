@@ -24,6 +24,7 @@ from vggt_init.checkpoint import load_model, resolve_checkpoint
 from vggt_init.export import select_points, write_colmap, write_predictions
 from vggt_init.geometry import pose_encoding_to_extri_intri, unproject_depth
 from vggt_init.model.config import VGGTConfig
+from vggt_init.model.fastpath import fast_paths_enabled
 from vggt_init.preprocess import ImageInputError, load_and_preprocess, to_model_input
 
 __all__ = ["RunOptions", "MemoryBudgetError", "estimate_memory_bytes", "available_memory_bytes", "run"]
@@ -228,6 +229,8 @@ def run(opts: RunOptions) -> dict:
         "aggregator_layers_kept": model.layers_needed,
         "checkpoint": str(checkpoint),
         "torch_threads": torch.get_num_threads(),
+        "cpu_fast_paths": fast_paths_enabled(),  # oneDNN Linear/attention (vggt_init.model.fastpath)
+        "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", ""),
         "num_sparse_points": int(len(pts)),
         "estimated_memory_gb": need / 1e9,
         "wall_time_s": {**times, "total": time.perf_counter() - t_start},
