@@ -111,3 +111,23 @@ def test_block_modules_agree_with_aten_path():
         aten = (attn(x, pos), mlp(x))
     for a, b in zip(fast, aten):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_missing_onednn_falls_back_to_aten(monkeypatch, caplog):
+    """A torch build whose oneDNN op fails: one warning, then the ATen numbers, path off."""
+    def broken(*args, **kwargs):
+        raise RuntimeError("no oneDNN in this build")
+
+    monkeypatch.setattr(torch.ops.mkldnn, "_linear_pointwise", broken)
+    torch.manual_seed(0)
+    lin = Linear(16, 8).eval()
+    x = torch.randn(4, 16)
+    q, k, v = (t.float() for t in _qkv(1, 2, 10, 16))
+    with torch.inference_mode(), caplog.at_level("WARNING", logger="vggt_init.model.fastpath"):
+        y = lin(x)
+        assert not fastpath.fast_paths_enabled()
+        fastpath.set_fast_paths(True)
+        a = fastpath.attention(q, k, v)
+    assert torch.equal(y, F.linear(x, lin.weight, lin.bias))
+    torch.testing.assert_close(a, F.scaled_dot_product_attention(q, k, v).transpose(1, 2))
+    assert "oneDNN linear unavailable" in caplog.text and "oneDNN attention unavailable" in caplog.text
