@@ -3,9 +3,10 @@
 The kernel has a plain C ABI and no torch headers or OpenMP, so it compiles with the system compiler
 (``$CXX``, else ``c++`` / ``g++``) in about a second into a cache folder
 (``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
-source and flags, and is loaded with ctypes. If no compiler is present or the build fails, the
-failure is logged once and :func:`available` returns False; the public rasterizer then uses the
-vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to disable the kernel.
+source and flags (:mod:`camio.cbuild`), and is loaded with ctypes. If no compiler is present or the
+build fails, the failure is logged once and :func:`available` returns False; the public
+rasterizer then uses the vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to
+disable the kernel.
 
 Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
 recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
@@ -17,12 +18,9 @@ runtime, so no spinning worker threads competing with torch's on a loaded machin
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import logging
 import os
-import shutil
 import subprocess
-import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -30,6 +28,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from camio.cbuild import build_shared, find_compiler
 from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
@@ -45,39 +44,13 @@ _error: str | None = None
 _tried = False
 
 
-def _compiler() -> str | None:
-    for cand in (os.environ.get("CXX"), "c++", "g++", "clang++"):
-        if cand and shutil.which(cand):
-            return cand
-    return None
-
-
 def _cache_dir() -> Path:
     env = os.environ.get("SPLAT_TRAIN_KERNEL_DIR")
     return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
 
 
 def _build(cxx: str) -> Path:
-    src = _SOURCE.read_bytes()
-    key = hashlib.sha256(src + " ".join([cxx, *_FLAGS]).encode() + os.uname().machine.encode()).hexdigest()[:16]
-    out_dir = _cache_dir()
-    target = out_dir / f"splat_cpu_{key}.so"
-    if target.exists():
-        return target
-    out_dir.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
-    os.close(fd)
-    try:
-        cmd = [cxx, *_FLAGS, str(_SOURCE), "-o", tmp]
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        if res.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr[-2000:]}")
-        os.replace(tmp, target)  # atomic: concurrent builders race harmlessly
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    log.info("built CPU rasterizer kernel %s", target)
-    return target
+    return build_shared(_SOURCE, _FLAGS, _cache_dir(), "splat_cpu", cxx)
 
 
 def load_library() -> ctypes.CDLL | None:
@@ -90,7 +63,7 @@ def load_library() -> ctypes.CDLL | None:
         if os.environ.get("SPLAT_TRAIN_NO_KERNEL"):
             _error = "disabled by SPLAT_TRAIN_NO_KERNEL"
             return None
-        cxx = _compiler()
+        cxx = find_compiler()
         if cxx is None:
             _error = "no C++ compiler found (set $CXX or install g++)"
             log.warning("CPU rasterizer kernel unavailable: %s; using the slower torch tile path", _error)
