@@ -14,3 +14,13 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture
+def fast_paths_on():
+    """vggt_init's oneDNN/kernel fast paths switched on for the test, then restored."""
+    from vggt_init.model import fastpath
+
+    previous = fastpath.set_fast_paths(True)
+    yield
+    fastpath.set_fast_paths(previous)

@@ -21,26 +21,16 @@ import torch.nn.functional as F
 from vggt_init.model import _attention_kernel as ak
 from vggt_init.model import fastpath
 
-pytestmark = pytest.mark.skipif(
-    not ak.available(), reason=f"bf16 attention kernel unavailable: {ak.build_error()}")
+from _attention_inputs import qkv, rel as _rel
 
-
-@pytest.fixture(autouse=True)
-def _fast_paths_on():
-    previous = fastpath.set_fast_paths(True)
-    yield
-    fastpath.set_fast_paths(previous)
+pytestmark = [
+    pytest.mark.skipif(not ak.available(), reason=f"bf16 attention kernel unavailable: {ak.build_error()}"),
+    pytest.mark.usefixtures("fast_paths_on"),
+]
 
 
 def _qkv_bf16(B, H, N, D, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    # qk-normed-like inputs: unit-variance rows, scaled so the softmax is peaked
-    return tuple((F.layer_norm(torch.randn(B, H, N, D, generator=g, dtype=torch.float64), (D,)) * 1.5)
-                 .bfloat16() for _ in range(3))
-
-
-def _rel(a, b):
-    return float((a.double() - b.double()).norm() / b.double().norm())
+    return tuple(t.bfloat16() for t in qkv(B, H, N, D, seed))
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1, 64), (2, 3, 37, 64), (1, 2, 700, 64), (2, 3, 37, 32),

@@ -15,23 +15,10 @@ import torch.nn.functional as F
 from vggt_init.model import fastpath
 from vggt_init.model.layers import Attention, Linear, Mlp, RoPE2D
 
-
-@pytest.fixture(autouse=True)
-def _fast_paths_on():
-    previous = fastpath.set_fast_paths(True)
-    yield
-    fastpath.set_fast_paths(previous)
+from _attention_inputs import qkv as _qkv, rel as _rel
 
 
-def _qkv(B, H, N, D, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    # qk-normed-like inputs: unit-variance rows, scaled so the softmax is peaked
-    return tuple(F.layer_norm(torch.randn(B, H, N, D, generator=g, dtype=torch.float64), (D,)) * 1.5
-                 for _ in range(3))
-
-
-def _rel(a, b):
-    return float((a.double() - b.double()).norm() / b.double().norm())
+pytestmark = pytest.mark.usefixtures("fast_paths_on")
 
 
 @pytest.mark.parametrize("shape", [(1, 2, 1, 64), (2, 3, 37, 16), (1, 4, 600, 64)])
