@@ -75,13 +75,16 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     forward_s = time.perf_counter() - t0
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    sys_s = cpu1.ru_stime - cpu0.ru_stime  # kernel time: mostly zeroing freshly faulted pages
+    minflt = cpu1.ru_minflt - cpu0.ru_minflt
     nonfinite = {k: int((~torch.isfinite(v)).sum()) for k, v in out.items() if isinstance(v, torch.Tensor)}
     if save is not None:  # same seed -> same random weights and input in every child
         import numpy as np
 
         np.savez(save, **{k: out[k].float().numpy() for k in OUTPUT_KEYS if k in out})
     return {"frames": frames, "dtype": dtype, "size": size, "threads": threads, "heads": ",".join(heads),
-            "build_s": build_s, "forward_s": forward_s, "forward_cpu_s": cpu_s, **{f"{k}_s": v for k, v in comp.items()},
+            "build_s": build_s, "forward_s": forward_s, "forward_cpu_s": cpu_s, "forward_sys_s": sys_s,
+            "forward_minor_faults": minflt, **{f"{k}_s": v for k, v in comp.items()},
             "rss_after_build_gb": rss_built, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
             "nonfinite_outputs": nonfinite, "onednn_fast_paths": fast_paths_enabled(),
             "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", "")}

@@ -185,3 +185,57 @@ def test_holdout_shaped_architecture_counts_and_shapes():
     assert out["depth"].shape == (1, 4, 28, 70, 1) and out["world_points"].shape == (1, 4, 28, 70, 3)
     assert dbg["dino.pos_embed"].shape == (1, 11, 40) and dbg["depth_head.fused"].shape == (4, 12, 16, 40)
     assert model.layers_needed == [1, 2, 4, 5]
+
+
+def _meshgrid_embedding(hh: int, ww: int, channels: int, aspect: float, omega_0: float = 100.0) -> torch.Tensor:
+    """The DPT embedding written as the reference builds it: a full [hh*ww] grid, float64 sin/cos."""
+    diag = (aspect ** 2 + 1.0) ** 0.5
+    sx, sy = aspect / diag, 1.0 / diag
+    xs = torch.linspace(-sx * (ww - 1) / ww, sx * (ww - 1) / ww, steps=ww, dtype=torch.float64)
+    ys = torch.linspace(-sy * (hh - 1) / hh, sy * (hh - 1) / hh, steps=hh, dtype=torch.float64)
+    uu, vv = torch.meshgrid(xs, ys, indexing="xy")
+
+    def sincos(pos, dim):
+        omega = 1.0 / omega_0 ** (torch.arange(dim // 2, dtype=torch.float64) / (dim / 2.0))
+        ang = pos.reshape(-1)[:, None] * omega[None, :]
+        return torch.cat((torch.sin(ang), torch.cos(ang)), dim=1)
+
+    emb = torch.cat((sincos(uu, channels // 2), sincos(vv, channels // 2)), dim=-1)
+    return emb.float().reshape(hh, ww, channels).permute(2, 0, 1)
+
+
+@pytest.mark.parametrize("hh,ww,channels,aspect", [(37, 37, 256, 1.0), (28, 37, 64, 518 / 392), (5, 3, 8, 0.6)])
+def test_dpt_embedding_separable_form_is_exact(hh, ww, channels, aspect):
+    """The broadcast halves the heads add equal the materialised [C, h, w] embedding bit for bit."""
+    from vggt_init.model.heads import dpt_position_embedding, dpt_position_embedding_1d
+
+    ref = _meshgrid_embedding(hh, ww, channels, aspect)
+    full = dpt_position_embedding(hh, ww, channels, aspect, torch.float64, torch.device("cpu"))
+    ex, ey = dpt_position_embedding_1d(hh, ww, channels, aspect, torch.float64, torch.device("cpu"))
+    assert full.shape == (channels, hh, ww) and full.dtype == torch.float32
+    assert torch.equal(full, ref)
+    assert torch.equal(ex, ref[: channels // 2, 0, :]) and torch.equal(ey, ref[channels // 2:, :, 0])
+    with pytest.raises(ValueError, match="divisible by 4"):
+        dpt_position_embedding_1d(4, 4, 6, 1.0, torch.float64, torch.device("cpu"))
+
+
+@pytest.mark.parametrize("fixture_dir", FIXTURE_SETS[:1])
+def test_dpt_heads_same_with_and_without_autograd(fixture_dir):
+    """The DPT heads overwrite their own temporaries in place; with autograd recording, backward
+    must still run (no tensor a backward needs is overwritten) and the numbers stay the same."""
+    inputs = safetensors_torch.load_file(str(fixture_dir / "inputs.safetensors"))
+    x = inputs["images"].double()[None]
+    model = _model(fixture_dir, torch.float64, heads=("depth", "point"))
+    with torch.no_grad():
+        tokens = model.aggregator(x, keep=model.layers_needed)
+        ref_depth = model.depth_head(tokens, x.shape[-2:], model.aggregator.patch_start_idx)
+        ref_point = model.point_head(tokens, x.shape[-2:], model.aggregator.patch_start_idx)
+    tokens = {k: v.clone().requires_grad_(True) for k, v in tokens.items()}
+    depth, conf = model.depth_head(tokens, x.shape[-2:], model.aggregator.patch_start_idx)
+    point, _ = model.point_head(tokens, x.shape[-2:], model.aggregator.patch_start_idx)
+    torch.testing.assert_close(depth, ref_depth[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(conf, ref_depth[1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(point, ref_point[0], rtol=0, atol=1e-12)
+    (depth.sum() + point.sum()).backward()
+    grads = [t.grad for t in tokens.values() if t.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)

@@ -15,7 +15,8 @@ from torch import nn
 from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
 from vggt_init.model.layers import Block, Linear, Mlp
 
-__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
+__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding",
+           "dpt_position_embedding_1d"]
 
 
 def _inv_log(x: torch.Tensor) -> torch.Tensor:
@@ -104,15 +105,32 @@ def dpt_position_embedding(hh: int, ww: int, channels: int, aspect: float, dtype
     """DPT sin/cos embedding [channels, hh, ww] as float32 (the reference casts to float32).
 
     u spans +-(ar/d)(ww-1)/ww, v spans +-(1/d)(hh-1)/hh with ar = W/H of the *input image*
-    and d = sqrt(ar^2 + 1); the grid is built in ``dtype``, sin/cos in float64.
+    and d = sqrt(ar^2 + 1); the grid is built in ``dtype``, sin/cos in float64. Channels
+    [0, C/2) depend on the column (u) only, [C/2, C) on the row (v) only; see
+    :func:`dpt_position_embedding_1d` for the two factors without the [C, hh, ww] tensor.
     """
+    ex, ey = dpt_position_embedding_1d(hh, ww, channels, aspect, dtype, device, omega_0)
+    return torch.cat((ex[:, None, :].expand(-1, hh, -1), ey[:, :, None].expand(-1, -1, ww)), dim=0)
+
+
+def dpt_position_embedding_1d(hh: int, ww: int, channels: int, aspect: float, dtype: torch.dtype,
+                              device: torch.device, omega_0: float = 100.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The separable factors of :func:`dpt_position_embedding`, float32.
+
+    Returns:
+        ex [channels/2, ww]: embedding of the column coordinate u (rows of the map repeat it),
+        ey [channels/2, hh]: embedding of the row coordinate v (columns repeat it), so that
+        ``pe[:C/2, i, j] == ex[:, j]`` and ``pe[C/2:, i, j] == ey[:, i]`` exactly.
+    """
+    if channels % 4:
+        raise ValueError(f"DPT position embedding needs channels divisible by 4, got {channels}")
     diag = (aspect ** 2 + 1.0) ** 0.5
     sx, sy = aspect / diag, 1.0 / diag
     xs = torch.linspace(-sx * (ww - 1) / ww, sx * (ww - 1) / ww, steps=ww, dtype=dtype, device=device)
     ys = torch.linspace(-sy * (hh - 1) / hh, sy * (hh - 1) / hh, steps=hh, dtype=dtype, device=device)
-    uu, vv = torch.meshgrid(xs, ys, indexing="xy")  # [hh, ww]
-    emb = torch.cat((_sincos(uu, channels // 2, omega_0), _sincos(vv, channels // 2, omega_0)), dim=-1)
-    return emb.float().reshape(hh, ww, channels).permute(2, 0, 1)
+    ex = _sincos(xs, channels // 2, omega_0).float().T.contiguous()
+    ey = _sincos(ys, channels // 2, omega_0).float().T.contiguous()
+    return ex, ey
 
 
 class ResidualConvUnit(nn.Module):
@@ -124,8 +142,13 @@ class ResidualConvUnit(nn.Module):
         self.conv2 = nn.Conv2d(features, features, 3, 1, 1, bias=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = F.relu(x)
-        return self.conv2(F.relu(self.conv1(x))) + x
+        """x [B, F, h, w] -> [B, F, h, w]; x is overwritten by relu(x), as in the reference.
+
+        In-place ops touch only tensors whose backward does not need them (conv outputs), so
+        autograd still works; the heads write no new [B, F, h, w] buffer they can avoid.
+        """
+        x = F.relu_(x)
+        return self.conv2(F.relu_(self.conv1(x))).add_(x)
 
 
 class FusionBlock(nn.Module):
@@ -141,7 +164,7 @@ class FusionBlock(nn.Module):
 
     def forward(self, a: torch.Tensor, b: torch.Tensor | None = None,
                 size: tuple[int, int] | None = None) -> torch.Tensor:
-        out = a + self.resConfUnit1(b) if self.has_residual else a
+        out = self.resConfUnit1(b).add_(a) if self.has_residual else a
         out = self.resConfUnit2(out)
         if size is None:
             out = F.interpolate(out, scale_factor=2, mode="bilinear", align_corners=True)
@@ -189,9 +212,15 @@ class DPTHead(nn.Module):
     def _pos(self, x: torch.Tensor, W: int, H: int) -> torch.Tensor:
         if not self.cfg.pos_embed:
             return x
-        pe = dpt_position_embedding(x.shape[-2], x.shape[-1], x.shape[1], W / H, x.dtype, x.device,
-                                    self.cfg.pos_embed_omega_0)
-        return x + pe * self.cfg.pos_embed_ratio  # float32 embedding, as the reference adds it
+        ex, ey = dpt_position_embedding_1d(x.shape[-2], x.shape[-1], x.shape[1], W / H, x.dtype, x.device,
+                                           self.cfg.pos_embed_omega_0)
+        # x + pe * ratio with the float32 product, as the reference adds it; pe is separable, so the
+        # two halves are added as broadcasts instead of materialising [C, h, w] (same values).
+        ex, ey = ex * self.cfg.pos_embed_ratio, ey * self.cfg.pos_embed_ratio
+        half = x.shape[1] // 2
+        x[:, :half] += ex[None, :, None, :]  # x is a conv / resize output owned by this head
+        x[:, half:] += ey[None, :, :, None]
+        return x
 
     def _forward_frames(self, tokens: dict[int, torch.Tensor], patch_start_idx: int, H: int, W: int,
                         s0: int, s1: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -217,7 +246,9 @@ class DPTHead(nn.Module):
         fused = sc.output_conv1(out)
         out = F.interpolate(fused, size=(int(h * p / cfg.down_ratio), int(w * p / cfg.down_ratio)),
                             mode="bilinear", align_corners=True)
-        out = sc.output_conv2(self._pos(out, W, H))
+        conv_a, _, conv_b = sc.output_conv2  # conv 3x3, ReLU, conv 1x1 (checkpoint names kept)
+        out = conv_a(self._pos(out, W, H))
+        out = conv_b(F.relu_(out))
         return fused, out
 
     def forward(self, tokens: dict[int, torch.Tensor], image_hw: tuple[int, int], patch_start_idx: int,
