@@ -36,9 +36,17 @@ OUTPUT_KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_
 
 
 def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], seed: int,
-           save: Path | None = None) -> dict:
-    """Build the random-weight model, run one forward, return timings (runs in a subprocess)."""
+           save: Path | None = None, trim: bool = True) -> dict:
+    """Build the random-weight model, run one forward, return timings (runs in a subprocess).
+
+    Memory settings as in the vggt_init CLI: freed memory kept in the process
+    (``vggt_init.memory``, off with VGGT_INIT_RETAIN_MEMORY=0), free pages returned after the
+    weights are built and cast (``trim``).
+    """
     import vggt_init  # noqa: F401  (sets THP_MEM_ALLOC_ENABLE before torch's first allocation)
+    from vggt_init.memory import release_free_memory, retain_freed_memory
+
+    retained = retain_freed_memory()
     import torch
     from vggt_init.model.fastpath import fast_paths_enabled
 
@@ -64,6 +72,8 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     model.eval().requires_grad_(False)
     if dtype == "bf16":
         model.cast_trunk_weights(torch.bfloat16)  # as vggt_init.run does
+    if trim:
+        release_free_memory()
     build_s = time.perf_counter() - t0
     rss_built = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     x = torch.rand(frames, 3, size, size, generator=torch.Generator().manual_seed(seed))
@@ -87,7 +97,8 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
             "forward_minor_faults": minflt, **{f"{k}_s": v for k, v in comp.items()},
             "rss_after_build_gb": rss_built, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
             "nonfinite_outputs": nonfinite, "onednn_fast_paths": fast_paths_enabled(),
-            "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", "")}
+            "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", ""), "retain_freed_memory": retained,
+            "trim_after_build": trim}
 
 
 def _compare_outputs(saved: dict[tuple[int, str], Path], frames: list[int]) -> dict:
@@ -143,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="ATen's addmm/SDPA instead of the oneDNN paths (VGGT_INIT_ONEDNN=0)")
     p.add_argument("--no-thp", action="store_true",
                    help="4 kB pages for torch's large allocations (THP_MEM_ALLOC_ENABLE=0)")
+    p.add_argument("--no-retain", action="store_true",
+                   help="let glibc return freed memory to the system (VGGT_INIT_RETAIN_MEMORY=0)")
+    p.add_argument("--no-trim", action="store_true", help="no malloc_trim after building the weights")
     p.add_argument("--no-compare", action="store_true",
                    help="skip the bf16-vs-fp32 output comparison (outputs are kept in a temp dir otherwise)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -150,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     heads = [h for h in args.heads.split(",") if h]
     if args.child:
-        print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed, args.save)))
+        print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed, args.save,
+                                trim=not args.no_trim)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     log.info("RANDOM-WEIGHT speed/memory benchmark (outputs are meaningless, not results)")
@@ -162,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
             log.info("running %d frames, %s, %dx%d, %d threads ...", n, dt, args.size, args.size, args.threads)
             cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--size", str(args.size),
                    "--threads", str(args.threads), "--heads", args.heads, "--seed", str(args.seed)]
+            if args.no_trim:
+                cmd.append("--no-trim")
             if not args.no_compare:
                 saved[n, dt] = Path(tmp.name) / f"out_{n}_{dt}.npz"
                 cmd += ["--save", str(saved[n, dt])]
@@ -170,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                 env["VGGT_INIT_ONEDNN"] = "0"
             if args.no_thp:
                 env["THP_MEM_ALLOC_ENABLE"] = "0"
+            if args.no_retain:
+                env["VGGT_INIT_RETAIN_MEMORY"] = "0"
             res = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if res.returncode != 0:
                 log.error("configuration %d/%s failed:\n%s", n, dt, res.stderr[-2000:])

@@ -42,7 +42,9 @@ def scene(tmp_path):
 def _cli(images: Path, out: Path, *extra: str) -> int:
     return main(["--images", str(images), "--out", str(out), "--model-config", str(FIX / "config.json"),
                  "--checkpoint", str(FIX / "weights.safetensors"), "--image-size", str(SIZE),
-                 "--threads", "2", "--max-points", "500", *extra])
+                 "--threads", "2", "--max-points", "500", "--no-retain-memory", *extra])
+    # (in-process: leave this pytest process's malloc settings alone; test_vggt_memory.py runs
+    # the CLI with them in a subprocess)
 
 
 def _check_colmap(out: Path, pred) -> None:
@@ -110,6 +112,7 @@ def test_cli_point_head_end_to_end(scene, tmp_path):
     assert "forward.depth_head" not in timing["wall_time_s"]
     assert timing["heads_built"] == ["camera", "point"]
     assert timing["peak_rss_mb"] > 0 and timing["nonfinite_total"] == 0 and timing["flagged"] is False
+    assert timing["retain_freed_memory"] is False  # --no-retain-memory
 
 
 def test_cli_depth_route_single_image_list_bf16(scene, tmp_path):

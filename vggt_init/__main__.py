@@ -34,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames-chunk", type=int, default=4, help="frames per DPT-head chunk (memory vs speed)")
     p.add_argument("--max-memory-gb", type=float, help="memory budget (default: what the OS reports free)")
     p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--no-retain-memory", action="store_true",
+                   help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "
+                        "see vggt_init/memory.py)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
@@ -44,7 +47,11 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     from vggt_init.checkpoint import CheckpointFormatError, CheckpointNotFoundError, StateDictMismatchError
     from vggt_init.preprocess import ImageInputError
+    from vggt_init.memory import retain_freed_memory
     from vggt_init.run import MemoryBudgetError, RunOptions, run
+
+    if not args.no_retain_memory:
+        retain_freed_memory()  # process-wide, so only the CLI does it
 
     opts = RunOptions(
         images=args.images, out=args.out, image_list=args.image_list, checkpoint=args.checkpoint,
