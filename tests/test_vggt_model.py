@@ -206,17 +206,17 @@ def _meshgrid_embedding(hh: int, ww: int, channels: int, aspect: float, omega_0:
 
 @pytest.mark.parametrize("hh,ww,channels,aspect", [(37, 37, 256, 1.0), (28, 37, 64, 518 / 392), (5, 3, 8, 0.6)])
 def test_dpt_embedding_separable_form_is_exact(hh, ww, channels, aspect):
-    """The broadcast halves the heads add equal the materialised [C, h, w] embedding bit for bit."""
-    from vggt_init.model.heads import dpt_position_embedding, dpt_position_embedding_1d
+    """The two factors the heads add as broadcasts equal the reference's materialised
+    [C, h, w] embedding bit for bit."""
+    from vggt_init.model.heads import dpt_position_embedding
 
     ref = _meshgrid_embedding(hh, ww, channels, aspect)
-    full = dpt_position_embedding(hh, ww, channels, aspect, torch.float64, torch.device("cpu"))
-    ex, ey = dpt_position_embedding_1d(hh, ww, channels, aspect, torch.float64, torch.device("cpu"))
-    assert full.shape == (channels, hh, ww) and full.dtype == torch.float32
+    ex, ey = dpt_position_embedding(hh, ww, channels, aspect, torch.float64, torch.device("cpu"))
+    assert ex.shape == (channels // 2, ww) and ey.shape == (channels // 2, hh) and ex.dtype == torch.float32
+    full = torch.cat((ex[:, None, :].expand(-1, hh, -1), ey[:, :, None].expand(-1, -1, ww)), dim=0)
     assert torch.equal(full, ref)
-    assert torch.equal(ex, ref[: channels // 2, 0, :]) and torch.equal(ey, ref[channels // 2:, :, 0])
     with pytest.raises(ValueError, match="divisible by 4"):
-        dpt_position_embedding_1d(4, 4, 6, 1.0, torch.float64, torch.device("cpu"))
+        dpt_position_embedding(4, 4, 6, 1.0, torch.float64, torch.device("cpu"))
 
 
 @pytest.mark.parametrize("fixture_dir", FIXTURE_SETS[:1])

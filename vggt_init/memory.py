@@ -21,7 +21,9 @@ glibc defaults 109 / 56-68 s, 6.3 / 4.7 GB peak RSS; 2 GB thresholds 91 / 46 s, 
 Reuse relies on torch's 2 MB-aligned large allocations (``THP_MEM_ALLOC_ENABLE=1``, which
 ``vggt_init`` sets): with 64-byte alignment glibc's memalign needs a few bytes more than a
 freed block of the same size offers, so a block freed in the middle of the heap is not
-reused for the same request (tested in tests/test_vggt_memory.py with huge pages on).
+reused for the same request (seen with ``THP_MEM_ALLOC_ENABLE=0``: a 64 MB buffer allocated
+and freed in a loop moved up the heap each round). tests/test_vggt_memory.py runs with huge
+pages on.
 
 Only glibc (Linux) is affected; elsewhere both functions do nothing and return False. The
 settings are process-wide: the ``vggt_init`` CLI applies them, library users opt in.

@@ -15,8 +15,7 @@ from torch import nn
 from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
 from vggt_init.model.layers import Block, Linear, Mlp
 
-__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding",
-           "dpt_position_embedding_1d"]
+__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
 
 
 def _inv_log(x: torch.Tensor) -> torch.Tensor:
@@ -101,26 +100,17 @@ def _sincos(pos: torch.Tensor, dim: int, omega_0: float) -> torch.Tensor:
 
 
 def dpt_position_embedding(hh: int, ww: int, channels: int, aspect: float, dtype: torch.dtype,
-                           device: torch.device, omega_0: float = 100.0) -> torch.Tensor:
-    """DPT sin/cos embedding [channels, hh, ww] as float32 (the reference casts to float32).
+                           device: torch.device, omega_0: float = 100.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """DPT sin/cos embedding of an hh x ww map, as its two separable float32 factors.
 
+    The reference builds pe [channels, hh, ww] from a full grid (and casts it to float32):
     u spans +-(ar/d)(ww-1)/ww, v spans +-(1/d)(hh-1)/hh with ar = W/H of the *input image*
-    and d = sqrt(ar^2 + 1); the grid is built in ``dtype``, sin/cos in float64. Channels
-    [0, C/2) depend on the column (u) only, [C/2, C) on the row (v) only; see
-    :func:`dpt_position_embedding_1d` for the two factors without the [C, hh, ww] tensor.
-    """
-    ex, ey = dpt_position_embedding_1d(hh, ww, channels, aspect, dtype, device, omega_0)
-    return torch.cat((ex[:, None, :].expand(-1, hh, -1), ey[:, :, None].expand(-1, -1, ww)), dim=0)
-
-
-def dpt_position_embedding_1d(hh: int, ww: int, channels: int, aspect: float, dtype: torch.dtype,
-                              device: torch.device, omega_0: float = 100.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """The separable factors of :func:`dpt_position_embedding`, float32.
+    and d = sqrt(ar^2 + 1); the grid in ``dtype``, sin/cos in float64. Its channels [0, C/2)
+    depend on the column (u) only and [C/2, C) on the row (v) only, so
 
     Returns:
-        ex [channels/2, ww]: embedding of the column coordinate u (rows of the map repeat it),
-        ey [channels/2, hh]: embedding of the row coordinate v (columns repeat it), so that
-        ``pe[:C/2, i, j] == ex[:, j]`` and ``pe[C/2:, i, j] == ey[:, i]`` exactly.
+        ex [channels/2, ww] and ey [channels/2, hh] with ``pe[:C/2, i, j] == ex[:, j]`` and
+        ``pe[C/2:, i, j] == ey[:, i]`` bit for bit.
     """
     if channels % 4:
         raise ValueError(f"DPT position embedding needs channels divisible by 4, got {channels}")
@@ -212,8 +202,8 @@ class DPTHead(nn.Module):
     def _pos(self, x: torch.Tensor, W: int, H: int) -> torch.Tensor:
         if not self.cfg.pos_embed:
             return x
-        ex, ey = dpt_position_embedding_1d(x.shape[-2], x.shape[-1], x.shape[1], W / H, x.dtype, x.device,
-                                           self.cfg.pos_embed_omega_0)
+        ex, ey = dpt_position_embedding(x.shape[-2], x.shape[-1], x.shape[1], W / H, x.dtype, x.device,
+                                        self.cfg.pos_embed_omega_0)
         # x + pe * ratio with the float32 product, as the reference adds it; pe is separable, so the
         # two halves are added as broadcasts instead of materialising [C, h, w] (same values).
         ex, ey = ex * self.cfg.pos_embed_ratio, ey * self.cfg.pos_embed_ratio
