@@ -1,10 +1,18 @@
-"""vggt_init.memory: freed memory stays in the process (glibc), so re-allocating a large
-buffer causes no page faults; the environment switch and the CLI flag turn it off.
+"""vggt_init.memory: freed memory stays in the process (glibc), so a large buffer that is
+freed and allocated again reuses the same heap block; the environment switch and the CLI flag
+turn it off.
 
-Each check runs in a subprocess: the malloc settings are process-wide. Page-fault counts
-are exact kernel counters (ru_minflt). With torch's huge-page allocation on (vggt_init's
-default) a 64 MB buffer that is faulted in anew costs at least 32 faults (2 MB pages; 16384
-where the kernel falls back to 4 kB pages), a reused one none.
+Each check runs in a subprocess: the malloc settings are process-wide. The checks read glibc's
+own bookkeeping (``mallinfo2`` through :func:`vggt_init.memory.heap_stats`), which depends
+only on the allocation sequence. They do not count page faults: those also depend on what the
+kernel does between allocations (background reclaim, huge-page splits and compaction, other
+jobs), and a fault-count test failed one clean-clone CI run in three. The fault counts, the
+effect these settings exist for, are measured by ``benchmarks/bench_vggt.py --reuse-probe``.
+
+With torch's huge-page allocation on (``THP_MEM_ALLOC_ENABLE=1``, vggt_init's default) a 64 MB
+tensor is a 2 MB-aligned ``posix_memalign``. glibc's defaults serve it with its own ``mmap``
+(above the 32 MB ceiling of the dynamic mmap threshold) and unmap it on free; with the settings
+it comes from the heap and stays there when freed.
 """
 
 from __future__ import annotations
@@ -23,47 +31,78 @@ pytestmark = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ve
                                 reason="the malloc settings exist only in glibc")
 
 FIX = Path(__file__).parent / "data" / "vggt" / "shared"
+MB64 = 64 * 2**20
 
+# The loop allocates nothing between rounds but the tensors themselves: any other allocation
+# made while the 64 MB block is free may be carved out of it, after which the next 64 MB
+# request no longer fits and the heap grows instead (glibc's best fit, not a kernel effect).
+# PYTHONHASHSEED is fixed by _run: hash randomisation changes the interpreter's own allocations.
 _SCRIPT = textwrap.dedent("""
-    import json, resource, sys
-    from vggt_init.memory import memory_retained, retain_freed_memory
+    import json, sys
+    from vggt_init.memory import heap_stats, memory_retained, retain_freed_memory
     applied = retain_freed_memory() if sys.argv[1] == "retain" else False
     import torch
-    faults = []
-    for _ in range(3):
-        f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    if heap_stats() is None:
+        print(json.dumps({"no_mallinfo2": True}))
+        sys.exit(0)
+    rounds = [None] * 4
+    for i in range(4):
+        before = heap_stats()
         x = torch.empty(16 * 2**20, dtype=torch.float32)  # 64 MB
         x.fill_(1.0)
+        held = heap_stats()
+        ptr = x.data_ptr()
         del x
-        faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
-    print(json.dumps({"applied": applied, "retained": memory_retained(), "faults": faults}))
+        rounds[i] = (before, held, heap_stats(), ptr)
+    rounds = [dict(before=b, held=h, freed=f, ptr=p) for b, h, f, p in rounds]
+    print(json.dumps({"applied": applied, "retained": memory_retained(), "rounds": rounds}))
 """)
+
 
 
 def _run(mode: str, **env: str) -> dict:
     full_env = {k: v for k, v in os.environ.items() if k != "VGGT_INIT_RETAIN_MEMORY"}
-    full_env.update(THP_MEM_ALLOC_ENABLE="1", **env)
+    full_env.update(THP_MEM_ALLOC_ENABLE="1", PYTHONHASHSEED="0")
+    full_env.update(env)
     res = subprocess.run([sys.executable, "-c", _SCRIPT, mode], capture_output=True, text=True, env=full_env,
                          timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    if out.get("no_mallinfo2"):
+        pytest.skip("glibc older than 2.33 (no mallinfo2)")
+    return out
 
 
-def test_retained_memory_is_reused_without_page_faults():
+def _assert_mmapped_each_round(result: dict) -> None:
+    """glibc's defaults: the 64 MB block is its own mapping while held and is unmapped on free."""
+    for r in result["rounds"]:
+        assert r["held"]["mmapped"] - r["before"]["mmapped"] >= MB64, r
+        assert r["freed"]["mmapped"] - r["before"]["mmapped"] <= 0, r
+
+
+def test_retained_memory_is_reused_from_the_heap():
     default = _run("default")
     retained = _run("retain")
-    assert default["applied"] is False and retained["applied"] is True and retained["retained"] is True
-    # glibc's own behaviour: a 64 MB block is mmap'd and unmapped each time -> faulted in anew
-    assert min(default["faults"][1:]) >= 32, default
-    # retained: the first round faults the heap in, later rounds reuse it
-    assert retained["faults"][0] >= 32, retained
-    assert max(retained["faults"][1:]) <= 4, retained
+    assert default["applied"] is False and default["retained"] is False
+    assert retained["applied"] is True and retained["retained"] is True
+    _assert_mmapped_each_round(default)
+    first, *later = retained["rounds"]
+    # retained: never mmap'd; the first round grows the heap by the block ...
+    for r in retained["rounds"]:
+        assert r["held"]["mmapped"] == r["before"]["mmapped"], r
+    assert first["held"]["arena"] - first["before"]["arena"] >= MB64, first
+    # ... which stays in the process when freed (not trimmed) ...
+    for r in retained["rounds"]:
+        assert r["freed"]["free_in_heap"] >= MB64 and r["freed"]["arena"] == r["held"]["arena"], r
+    # ... and is reused by the next allocation of the same size: no new heap, same address
+    for r in later:
+        assert r["held"]["arena"] == first["held"]["arena"] and r["ptr"] == first["ptr"], (first, r)
 
 
 def test_environment_switch_turns_it_off():
     off = _run("retain", VGGT_INIT_RETAIN_MEMORY="0")
     assert off["applied"] is False and off["retained"] is False
-    assert min(off["faults"][1:]) >= 32, off
+    _assert_mmapped_each_round(off)
 
 
 def test_cli_applies_it_and_records_it(tmp_path):

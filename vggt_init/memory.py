@@ -38,7 +38,7 @@ import logging
 import os
 import sys
 
-__all__ = ["retain_freed_memory", "release_free_memory", "memory_retained"]
+__all__ = ["retain_freed_memory", "release_free_memory", "memory_retained", "heap_stats"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,31 @@ def release_free_memory() -> bool:
     """Return whole free pages of the heap to the system (``malloc_trim(0)``); True if any were."""
     libc = _glibc()
     return bool(libc.malloc_trim(0)) if libc is not None else False
+
+
+class _Mallinfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                 "fordblks", "keepcost")]
+
+
+def heap_stats() -> dict[str, int] | None:
+    """glibc's own bookkeeping of the main arena (``mallinfo2``), in bytes; None without glibc 2.33+.
+
+    Keys: ``arena`` (heap obtained with sbrk), ``mmapped`` (bytes in blocks served by their own
+    mmap, glibc's ``hblkhd``), ``mmapped_blocks`` (``hblks``), ``in_use`` (``uordblks``),
+    ``free_in_heap`` (``fordblks``: freed bytes the process keeps). These are exact and depend
+    only on the allocation sequence, not on what the kernel does with the pages (reclaim,
+    huge-page splits), so they show whether a block was mmap'd or kept in the heap.
+    """
+    libc = _glibc()
+    fn = getattr(libc, "mallinfo2", None) if libc is not None else None
+    if fn is None:
+        return None
+    fn.restype = _Mallinfo2
+    m = fn()
+    return {"arena": m.arena, "mmapped": m.hblkhd, "mmapped_blocks": m.hblks, "in_use": m.uordblks,
+            "free_in_heap": m.fordblks}
 
 
 def memory_retained() -> bool:
