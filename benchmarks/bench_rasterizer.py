@@ -92,14 +92,12 @@ def count_pairs(n: int, width: int, height: int) -> dict:
     params, K = make_scene(n, width, height)
     with torch.no_grad():
         proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
-        offsets, gauss, tx, ty = _cpu_kernel.tile_pairs_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
         feats = torch.zeros(n, 4)
-        _, t_final, _, count = _cpu_kernel.forward_raw(
-            proj.means2d, proj.conics, feats, params[3], offsets, gauss, tx, ty, width, height
-        )
+        _, t_final, _, count = _cpu_kernel.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
     return {
         "visible": int(proj.visible.sum()),
-        "tile_pairs": int(gauss.numel()),
+        "tile_pairs": int(bins.gauss.numel()),
         "blended_pairs": int(count.sum()),
         "mean_alpha": float((1 - t_final).mean()),
     }

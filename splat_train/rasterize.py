@@ -29,7 +29,7 @@ __all__ = ["rasterize", "BACKENDS"]
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "cpu", "torch", "reference", "gsplat")
+BACKENDS = ("auto", "cpu", "cpu_v1", "torch", "reference", "gsplat")
 
 
 def _check(name: str, t: Tensor, shape: tuple) -> None:
@@ -68,7 +68,7 @@ def blend(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """Front-to-back blend projected Gaussians with one backend ("cpu", "torch", "reference").
+    """Front-to-back blend projected Gaussians with one backend ("cpu", "cpu_v1", "torch", "reference").
 
     Args/returns as :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no
     background) and final transmittance [H, W].
@@ -79,12 +79,13 @@ def blend(
         from splat_train import _tiles
 
         fn = _tiles.blend_tiles
-    elif backend == "cpu":
+    elif backend in ("cpu", "cpu_v1"):
         from splat_train import _cpu_kernel
 
-        fn = _cpu_kernel.blend_cpu
+        return _cpu_kernel.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
+                                     kernel=backend)
     else:
-        raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
+        raise ValueError(f"blend backend must be 'cpu', 'cpu_v1', 'torch' or 'reference', got {backend!r}")
     return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
 
 
@@ -119,8 +120,9 @@ def rasterize(
         background: [3] RGB behind everything (default black).
         sh_degree: None for plain colours, else 0..3.
         backend: "auto" (CPU kernel on CPU when it builds, gsplat on CUDA when installed, else
-            the vectorised tile code), "cpu", "torch", "reference" (dense, small scenes only)
-            or "gsplat".
+            the vectorised tile code), "cpu" (SIMD C++ kernel), "cpu_v1" (the scalar C++
+            kernel it replaced, kept for comparisons), "torch", "reference" (dense, small
+            scenes only) or "gsplat".
         near_plane: Gaussians with camera z below this are culled.
 
     Returns:

@@ -16,7 +16,7 @@ from splat_train._cpu_kernel import available as kernel_available
 from splat_train._tiles import tile_pairs
 from splat_train.projection import project_gaussians
 
-FAST = ["torch"] + (["cpu"] if kernel_available() else [])
+FAST = ["torch"] + (["cpu", "cpu_v1"] if kernel_available() else [])
 
 
 def make_scene(kind: str, seed: int, dtype=torch.float64, sh_degree=None):
@@ -125,19 +125,26 @@ def test_early_stop_happens_and_matches():
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
-def test_cpu_kernel_deterministic_across_threads():
-    params, cw, K, W, H = make_scene("overlap", seed=5)
-    old = torch.get_num_threads()
+@pytest.mark.parametrize("kernel", ["cpu", "cpu_v1"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpu_kernel_deterministic_across_threads(kernel, dtype):
+    """Bit-identical image and gradients for 1, 2 and 3 kernel threads and on a repeat: tiles
+    write disjoint pair rows and each Gaussian's pairs are summed in a fixed order."""
+    from splat_train import _cpu_kernel
+
+    params, cw, K, W, H = make_scene("overlap", seed=5, dtype=dtype, sh_degree=2)
     results = []
     try:
-        for nt in (1, 2):
-            torch.set_num_threads(nt)
-            out = render(params, cw, K, W, H, "cpu")
+        for nt in (1, 2, 3, 2):
+            _cpu_kernel.set_kernel_threads(nt)
+            out = render(params, cw, K, W, H, kernel, 2)
             results.append([out["rgb"].detach(), *grads_with_cotangents(out, params, 2)])
     finally:
-        torch.set_num_threads(old)
-    for a, b in zip(*results):
-        assert torch.equal(a, b)
+        _cpu_kernel.set_kernel_threads(None)
+    assert results[0][0].abs().sum() > 0
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert torch.equal(a, b)
 
 
 def test_tile_pairs_front_to_back_and_complete():
@@ -163,5 +170,24 @@ def test_cpu_binning_matches_torch_binning():
     params, cw, K, W, H = make_scene("overlap", seed=9)
     proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
     a = tile_pairs(proj.depths, proj.rect, proj.visible, W, H)
-    b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H)
-    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+    for kernel in ("cpu", "cpu_v1"):
+        b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H, kernel=kernel)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+
+
+@pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
+def test_cpu_radix_depth_order_matches_stable_sort():
+    """float32 depths (the radix path) with ties, negative and invisible entries: the same
+    indices as torch's stable sort (ties by index)."""
+    from splat_train._cpu_kernel import _depth_order, load_library
+    from splat_train._reference import depth_order
+
+    g = torch.Generator().manual_seed(3)
+    d = torch.randint(-50, 50, (5000,), generator=g).float() * 0.37
+    d[::7] = 1.0
+    d[1] = 0.0
+    d[5] = -0.0
+    vis = torch.rand(5000, generator=g) > 0.2
+    got = _depth_order(load_library("cpu"), d, vis)
+    assert torch.equal(got, depth_order(d, vis))
+    assert _depth_order(load_library("cpu"), d, torch.zeros(5000, dtype=torch.bool)).numel() == 0
