@@ -3,8 +3,9 @@
 Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (best of
 ``--reps``) on the synthetic scene of ``bench_rasterizer.py`` (SH degree 3):
 
-* ``project``: EWA projection with autograd graph (float64 maths), forward only;
-* ``sh``: SH degree-3 colour, forward only;
+* ``project``: EWA projection with autograd graph (float64 maths), forward only; for the
+  "cpu" backend the fused C++ projection + SH (``_cpu_project``), forward only;
+* ``sh``: SH degree-3 colour, forward only (torch; 0 for "cpu", fused into ``project``);
 * ``bin``: depth sort + tile lists (``tile_pairs_cpu``);
 * ``blend_fwd`` / ``blend_bwd``: the C++ blending kernel forward / backward (raw entries,
   including the per-pair gradient reduction);
@@ -49,8 +50,14 @@ def profile(n: int, size: int, backend: str, reps: int) -> dict[str, float]:
     means, quats, scales, opac, sh = params
     eye = torch.eye(4)
     res: dict[str, float] = {}
-    res["project"] = _best(lambda: project_gaussians(means, quats, scales, eye, K, size, size), reps)
-    res["sh"] = _best(lambda: sh_to_color(3, sh, means, torch.zeros(3)), reps)
+    if backend == "cpu":
+        from splat_train._cpu_project import project_sh_cpu
+
+        res["project"] = _best(lambda: project_sh_cpu(means, quats, scales, sh, 3, eye, K, size, size, 0.01, 0.3), reps)
+        res["sh"] = 0.0
+    else:
+        res["project"] = _best(lambda: project_gaussians(means, quats, scales, eye, K, size, size), reps)
+        res["sh"] = _best(lambda: sh_to_color(3, sh, means, torch.zeros(3)), reps)
     with torch.no_grad():
         proj = project_gaussians(means, quats, scales, eye, K, size, size)
         feats = torch.cat([sh_to_color(3, sh, means, torch.zeros(3)), proj.depths[:, None]], 1).contiguous()

@@ -95,8 +95,9 @@ def _extra_flags() -> list[str]:
 class _Kernel:
     """One kernel source: build (cached), load once, declare the ctypes signatures."""
 
-    def __init__(self, name: str, source: str, abi: int, simd: bool) -> None:
+    def __init__(self, name: str, source: str, abi: int, simd: bool, abi_fn: str, declare: Callable) -> None:
         self.name, self.source, self.abi, self.simd = name, _HERE / source, abi, simd
+        self.abi_fn, self.declare = abi_fn, declare
         self.lib: ctypes.CDLL | None = None
         self.error: str | None = None
         self.tried = False
@@ -121,13 +122,13 @@ class _Kernel:
                 flags = _BASE_FLAGS + _SIMD_FLAGS[level] + _extra_flags()
                 try:
                     lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx)))
-                    version = lib.splat2_abi_version() if self.simd else lib.splat_abi_version()
+                    version = getattr(lib, self.abi_fn)()
                     if version != self.abi:
                         raise RuntimeError(f"kernel ABI version mismatch ({version} != {self.abi})")
                 except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
                     errors.append(f"{level}: {exc}")
                     continue
-                self.lib = _declare(lib, self.simd)
+                self.lib = self.declare(lib)
                 if errors:
                     log.warning("CPU kernel %r: SIMD build failed (%s); using %s", self.name, errors, level)
                 return self.lib
@@ -165,7 +166,10 @@ def _cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
 
 
-_KERNELS = {"cpu": _Kernel("cpu", "_cpu_kernel.cpp", 5, True), "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False)}
+_KERNELS = {
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 5, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
+}
 
 
 def _kernel(name: str) -> _Kernel:
