@@ -15,10 +15,11 @@
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
 //   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
-//   that pair's own row of v_pair: tiles write disjoint rows, so threads never share an
-//   accumulator. splat2_reduce then sums each Gaussian's pair rows in a fixed order (the
-//   per-Gaussian pair list built by splat2_bin): the gradient does not depend on the thread
-//   count or on the scheduling at all, and there is no per-thread [N] buffer to zero and add.
+//   that pair's own gradient slot: tiles write disjoint slots, so threads never share an
+//   accumulator. The slots of one Gaussian are contiguous (splat2_bin numbers them), and
+//   splat2_reduce sums them in a fixed order with sequential reads: the gradient does not
+//   depend on the thread count or on the scheduling at all (stronger than per-thread [N]
+//   buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
 //   tile lists by a counting sort (splat2_bin).
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
@@ -62,10 +63,16 @@ struct Consts {
   static constexpr T t_min = T(1e-4);
 };
 
-template <typename V, typename E> inline V splat(E x) {
-  V r;
-  for (int l = 0; l < TILE; ++l) r[l] = x;
-  return r;
+// Broadcast a scalar to all 16 lanes. Written as an initialiser list: element-wise stores
+// (r[l] = x) compile to 16 masked broadcasts with GCC and made the blend loop 3x slower.
+template <typename V> struct Elem;
+template <> struct Elem<Vec<float>::v> { typedef float type; };
+template <> struct Elem<Vec<float>::m> { typedef int32_t type; };
+template <> struct Elem<Vec<double>::v> { typedef double type; };
+template <> struct Elem<Vec<double>::m> { typedef int64_t type; };
+template <typename V, typename E> inline V splat(E x0) {
+  const typename Elem<V>::type x = static_cast<typename Elem<V>::type>(x0);
+  return V{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x};
 }
 
 // Lane reductions of a comparison mask (all bits of a lane set or clear).
@@ -144,32 +151,32 @@ inline Vec<double>::v vexp(Vec<double>::v x) {
 }
 
 // Where a Gaussian can reach alpha >= 1/255 inside a tile: the ellipse q = d^T conic d <= r2 =
-// 2 ln(255 op) (+1% + 1e-3 margin; the scalar kernel's footprint rule). rows(): tile-local rows
-// [i0, i1) with |dy| <= sqrt(r2 a / det); hits(): whether the ellipse's slice at a row centre
-// (centre x = mx + b dy / a, half-width sqrt((r2 - dy^2 det / a) / a)) comes within one pixel of
-// the tile's pixel centres. Both only skip work whose pixels the blending rules skip anyway.
-// Not positive definite (never after the 0.3 dilation): every row, every column.
-struct Footprint {
-  bool pd;
-  double my, mx, r2, a, b, det_a;
-};
-
+// 2 ln(255 op) (+1% + 1e-3 margin; the scalar kernel's footprint rule). Computed once per
+// Gaussian (splat2_footprint: a log, a sqrt and divisions that would otherwise run per tile
+// pair) as fp[4 g ..] = (half, b / a, r2 / a, det / a^2):
+// rows(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3);
+// hits(): whether the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
+// sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres.
+// Both only skip work whose pixels the blending rules skip anyway. half < 0: opacity below
+// 1/255, nothing to blend. Not positive definite (never after the 0.3 dilation): every row
+// and column (half = r2 / a = 1e300).
 template <typename T>
-inline Footprint footprint(T mx, T my, T a, T b, T c, T op) {
-  Footprint f;
-  f.pd = (a > 0) && (c > 0) && (a * c - b * b > 0);
+inline void footprint(T a, T b, T c, T op, double* fp) {
+  if (op < Consts<T>::alpha_min) { fp[0] = -1; fp[1] = fp[2] = fp[3] = 0; return; }
+  if (!((a > 0) && (c > 0) && (a * c - b * b > 0))) { fp[0] = fp[2] = 1e300; fp[1] = fp[3] = 0; return; }
   const double lim = std::max(255.0 * (double)op, 1.0);
-  f.r2 = (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
-  f.mx = mx; f.my = my; f.a = a; f.b = b;
-  f.det_a = ((double)a * (double)c - (double)b * (double)b) / (double)a;
-  return f;
+  const double r2 = (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
+  const double da = a, db = b, dc = c;
+  const double det_a = (da * dc - db * db) / da;
+  fp[0] = std::sqrt(r2 / det_a) + 1e-3;
+  fp[1] = db / da;
+  fp[2] = r2 / da;
+  fp[3] = det_a / da;
 }
 
-inline void row_range(const Footprint& f, double py0, int rows, int& i0, int& i1) {
-  if (!f.pd) { i0 = 0; i1 = rows; return; }
-  const double half = std::sqrt(f.r2 / f.det_a) + 1e-3;
-  double lo = std::ceil(f.my - half - py0 - 0.5);
-  double hi = std::floor(f.my + half - py0 - 0.5);
+inline void row_range(const double* fp, double my, double py0, int rows, int& i0, int& i1) {
+  double lo = std::ceil(my - fp[0] - py0 - 0.5);
+  double hi = std::floor(my + fp[0] - py0 - 0.5);
   lo = std::max(lo, 0.0);
   hi = std::min(hi, double(rows - 1));
   if (!(lo <= hi)) { i0 = 0; i1 = 0; return; }
@@ -177,20 +184,19 @@ inline void row_range(const Footprint& f, double py0, int rows, int& i0, int& i1
   i1 = (int)hi + 1;
 }
 
-inline bool row_hits(const Footprint& f, double dy, double px0, int cols) {
-  if (!f.pd) return true;
-  const double hw2 = (f.r2 - dy * dy * f.det_a) / f.a;
-  if (hw2 < -1e-6 * f.r2 / f.a) return false;
+inline bool row_hits(const double* fp, double mx, double dy, double px0, int cols) {
+  const double hw2 = fp[2] - dy * dy * fp[3];
+  if (hw2 < -1e-6 * fp[2]) return false;
   const double hw = std::sqrt(std::max(hw2, 0.0)) * (1 + 1e-6) + 1.0;
-  const double xc = f.mx + f.b * dy / f.a;
+  const double xc = mx + fp[1] * dy;
   return xc + hw >= px0 + 0.5 && xc - hw <= px0 + cols - 0.5;
 }
 
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
                   const int64_t* offsets, const int64_t* gauss, const T* means2d,
-                  const T* conics, const T* opac, const T* feat, T* out_accum, T* out_T,
-                  int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
+                  const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
+                  T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -220,10 +226,10 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const T op = opac[g];
-      if (op < Consts<T>::alpha_min) continue;
-      const Footprint fp = footprint(mx, my, a, b, c, op);
+      const double* fp = fps + 4 * g;
+      if (fp[0] < 0) continue;
       int i0, i1;
-      row_range(fp, (double)y0, rows, i0, i1);
+      row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
@@ -231,7 +237,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       for (int i = i0; i < i1; ++i) {
         if (!alive[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
-        if (!row_hits(fp, (double)dy, (double)x0, cols)) continue;
+        if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
         const M pos = power <= splat<V>(T(0));
         V alpha = splat<V>(op) * vexp(pos ? power : splat<V>(T(0)));
@@ -269,9 +275,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
 template <typename T>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
                    const int64_t* offsets, const int64_t* gauss, const T* means2d,
-                   const T* conics, const T* opac, const T* feat, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T, T* v_pair,
-                   int64_t* next_tile) {
+                   const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
+                   const int32_t* out_last, const T* v_accum, const T* v_T, const int64_t* pslot,
+                   T* v_pair, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -308,19 +314,20 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       }
       max_last = std::max<int64_t>(max_last, row_last[i]);
     }
-    for (int64_t k = k0 + max_last; k < k1; ++k) std::memset(v_pair + k * S, 0, sizeof(T) * S);
+    for (int64_t k = k0 + max_last; k < k1; ++k)
+      for (int64_t q = 0; q < S; ++q) v_pair[pslot[k] * S + q] = T(0);
     for (int64_t k = k0 + max_last - 1; k >= k0; --k) {
-      T* gp = v_pair + k * S;
-      std::memset(gp, 0, sizeof(T) * S);
+      T* gp = v_pair + pslot[k] * S;
+      for (int64_t q = 0; q < S; ++q) gp[q] = T(0);
       const int32_t local = (int32_t)(k - k0);
       const int64_t g = gauss[k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const T op = opac[g];
-      if (op < Consts<T>::alpha_min) continue;
-      const Footprint fp = footprint(mx, my, a, b, c, op);
+      const double* fp = fps + 4 * g;
+      if (fp[0] < 0) continue;
       int i0, i1;
-      row_range(fp, (double)y0, rows, i0, i1);
+      row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
       V g_mx{}, g_my{}, g_a{}, g_b{}, g_c{}, g_op{}, g_f[MAXF];
       for (int64_t f = 0; f < F; ++f) g_f[f] = V{};
@@ -331,7 +338,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       for (int i = i0; i < i1; ++i) {
         if (local >= row_last[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
-        if (!row_hits(fp, (double)dy, (double)x0, cols)) continue;
+        if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
         const M pos = power <= splat<V>(T(0));
         const V G = vexp(pos ? power : splat<V>(T(0)));
@@ -341,7 +348,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         if (!any_lane(m)) continue;
         any = true;
         const V one_m = splat<V>(T(1)) - alpha;
-        const V Tfront = Tr[i] / one_m;
+        const V inv_one_m = splat<V>(T(1)) / one_m;
+        const V Tfront = Tr[i] * inv_one_m;
         const V w = alpha * Tfront;
         V v_alpha{};
         for (int64_t f = 0; f < F; ++f) {
@@ -352,7 +360,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
           v_alpha += (fv - rp) * vp;
           rp = m ? alpha * fv + one_m * rp : rp;
         }
-        v_alpha = v_alpha * Tfront - vTT[i] / one_m;
+        v_alpha = v_alpha * Tfront - vTT[i] * inv_one_m;
         Tr[i] = m ? Tfront : Tr[i];
         const M m2 = m & (raw <= splat<V>(Consts<T>::alpha_max));
         const V vG = m2 ? G * v_alpha : V{};
@@ -373,12 +381,12 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   }
 }
 
-// v_out[g] = sum of the pair rows of Gaussian g (rank r = its position in the depth order;
-// its pairs are gpairs[ps[r] .. ps[r+1]), in tile order). Chunks of ranks from a shared counter;
+// v_out[g] = sum of the pair gradient slots of Gaussian g (rank r = its position in the depth
+// order; its slots are ps[r] .. ps[r+1], contiguous). Chunks of ranks from a shared counter;
 // each Gaussian is summed by one thread in a fixed order, so the result is deterministic.
 template <typename T>
-void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, const int64_t* gpairs,
-                 int64_t S, const T* v_pair, T* v_out, int64_t* next_chunk) {
+void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const T* v_pair,
+                 T* v_out, int64_t* next_chunk) {
   constexpr int64_t CHUNK = 2048;
   for (int64_t ch; (ch = __atomic_fetch_add(next_chunk, 1, __ATOMIC_RELAXED)) * CHUNK < m;) {
     const int64_t r1 = std::min(m, (ch + 1) * CHUNK);
@@ -386,7 +394,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, const int64
       T* out = v_out + order[r] * S;
       for (int64_t s = 0; s < S; ++s) out[s] = T(0);
       for (int64_t j = ps[r]; j < ps[r + 1]; ++j) {
-        const T* src = v_pair + gpairs[j] * S;
+        const T* src = v_pair + j * S;
         for (int64_t s = 0; s < S; ++s) out[s] += src[s];
       }
     }
@@ -397,7 +405,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, const int64
 
 extern "C" {
 
-int splat2_abi_version() { return 5; }
+int splat2_abi_version() { return 7; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -449,10 +457,11 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 // Tile lists by counting sort: order [M] holds visible Gaussians front to back, rect [N, 4]
 // (x_min, x_max, y_min, y_max) their tile rectangles; writes offsets [n_tiles + 1], gauss [P]
 // (P = sum of rectangle areas), each tile's list keeping the front-to-back order, and for the
-// gradient reduction ps [M + 1] (prefix sums of the areas in rank order) and gpairs [P] (pair
-// positions of rank r at gpairs[ps[r] .. ps[r+1]), tiles row-major).
+// gradient reduction ps [M + 1] (prefix sums of the areas in rank order) and pslot [P]: pair k
+// of Gaussian rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so
+// each Gaussian's pair gradients lie next to each other for splat2_reduce.
 void splat2_bin(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
-                int64_t n_tiles, int64_t* offsets, int64_t* gauss, int64_t* ps, int64_t* gpairs) {
+                int64_t n_tiles, int64_t* offsets, int64_t* gauss, int64_t* ps, int64_t* pslot) {
   for (int64_t t = 0; t <= n_tiles; ++t) offsets[t] = 0;
   ps[0] = 0;
   for (int64_t k = 0; k < m; ++k) {
@@ -472,44 +481,56 @@ void splat2_bin(int64_t m, const int64_t* order, const int64_t* rect, int64_t ti
       for (int64_t x = r[0]; x < r[1]; ++x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
         gauss[pos] = g;
-        gpairs[q++] = pos;
+        pslot[pos] = q++;
       }
   }
   delete[] cursor;
 }
 
+// fp [4 N] float64: per-Gaussian footprint (see footprint()); chunks of 4096 Gaussians.
+void splat2_footprint_f32(int64_t n, const float* co, const float* op, double* fp, int64_t* nth) {
+  for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
+      footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], fp + 4 * g);
+}
+void splat2_footprint_f64(int64_t n, const double* co, const double* op, double* fp, int64_t* nth) {
+  for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
+      footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], fp + 4 * g);
+}
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,
-                        const float* op, const float* fe, float* acc, float* Tf, int32_t* last,
-                        int32_t* cnt, int64_t* nth) {
-  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, cnt, nth);
+                        const float* op, const float* fe, const double* fp, float* acc, float* Tf,
+                        int32_t* last, int32_t* cnt, int64_t* nth) {
+  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const double* m, const double* co,
-                        const double* op, const double* fe, double* acc, double* Tf,
+                        const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, acc, Tf, last, cnt, nth);
+  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                          const int64_t* off, const int64_t* gs, const float* m, const float* co,
-                         const float* op, const float* fe, const float* Tf, const int32_t* last,
-                         const float* vacc, const float* vT, float* vpair, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, Tf, last, vacc, vT, vpair, nth);
+                         const float* op, const float* fe, const double* fp, const float* Tf,
+                         const int32_t* last, const float* vacc, const float* vT, const int64_t* pslot,
+                         float* vpair, int64_t* nth) {
+  backward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                          const int64_t* off, const int64_t* gs, const double* m,
-                         const double* co, const double* op, const double* fe, const double* Tf,
-                         const int32_t* last, const double* vacc, const double* vT,
-                         double* vpair, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, Tf, last, vacc, vT, vpair, nth);
+                         const double* co, const double* op, const double* fe, const double* fp,
+                         const double* Tf, const int32_t* last, const double* vacc, const double* vT,
+                         const int64_t* pslot, double* vpair, int64_t* nth) {
+  backward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
-void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, const int64_t* gpairs,
-                       int64_t S, const float* v_pair, float* v_out, int64_t* nth) {
-  reduce_impl<float>(m, order, ps, gpairs, S, v_pair, v_out, nth);
+void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
+                       const float* v_pair, float* v_out, int64_t* nth) {
+  reduce_impl<float>(m, order, ps, S, v_pair, v_out, nth);
 }
-void splat2_reduce_f64(int64_t m, const int64_t* order, const int64_t* ps, const int64_t* gpairs,
-                       int64_t S, const double* v_pair, double* v_out, int64_t* nth) {
-  reduce_impl<double>(m, order, ps, gpairs, S, v_pair, v_out, nth);
+void splat2_reduce_f64(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
+                       const double* v_pair, double* v_out, int64_t* nth) {
+  reduce_impl<double>(m, order, ps, S, v_pair, v_out, nth);
 }
 
 }  // extern "C"

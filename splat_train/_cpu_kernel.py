@@ -142,17 +142,20 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     i64, vp = ctypes.c_int64, ctypes.c_void_p
     pre = "splat2_" if v2 else "splat_"
     for dt in ("f32", "f64"):
-        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * 11
+        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (12 if v2 else 11)
         getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 5 + [vp] * 12
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 5 + [vp] * (14 if v2 else 12)
         getattr(lib, f"{pre}backward_{dt}").restype = None
+        if v2:
+            getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp]
+            getattr(lib, f"splat2_footprint_{dt}").restype = None
     if v2:
         lib.splat2_bin.argtypes = [i64, vp, vp, i64, i64, vp, vp, vp, vp]
         lib.splat2_bin.restype = None
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
         for dt in ("f32", "f64"):
-            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, vp, i64, vp, vp, vp]
+            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp]
             getattr(lib, f"splat2_reduce_{dt}").restype = None
         lib.splat2_simd_bits.restype = ctypes.c_int
     else:
@@ -167,7 +170,7 @@ def _cache_dir() -> Path:
 
 
 _KERNELS = {
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 5, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 7, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 }
 
@@ -259,7 +262,8 @@ class Bins:
         tiles_x, tiles_y: tile grid.
         order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
         ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
-        gpairs: [P] pair positions grouped by Gaussian in ``order`` ("cpu" only).
+        pslot: [P] gradient slot of each pair; Gaussian ``order[r]`` owns slots
+            ps[r]:ps[r + 1] ("cpu" only).
     """
 
     offsets: Tensor
@@ -268,7 +272,7 @@ class Bins:
     tiles_y: int
     order: Tensor | None = None
     ps: Tensor | None = None
-    gpairs: Tensor | None = None
+    pslot: Tensor | None = None
 
 
 def _suffix(dt: torch.dtype) -> str:
@@ -317,10 +321,10 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
             lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
             return Bins(offsets, gauss, tiles_x, tiles_y)
         ps = torch.empty(order.numel() + 1, dtype=torch.int64)
-        gpairs = torch.empty(total, dtype=torch.int64)
+        pslot = torch.empty(total, dtype=torch.int64)
         lib.splat2_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss),
-                       _ptr(ps), _ptr(gpairs))
-    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, gpairs)
+                       _ptr(ps), _ptr(pslot))
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot)
 
 
 def tile_pairs_cpu(
@@ -358,13 +362,42 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     t_final = torch.empty(height, width, dtype=dt)
     last = torch.empty(height, width, dtype=torch.int32)
     count = torch.empty(height, width, dtype=torch.int32)
-    pre = "splat2_" if kernel == "cpu" else "splat_"
-    _run_threaded(
-        getattr(lib, f"{pre}forward_{suffix}"),
-        bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-        _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
-    )
+    if kernel == "cpu":
+        fp = _footprints(lib, co, op, suffix)
+        _run_threaded(
+            getattr(lib, f"splat2_forward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+        )
+    else:
+        _run_threaded(
+            getattr(lib, f"splat_forward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+        )
     return accum, t_final, last, count
+
+
+def _footprints(lib, conics: Tensor, opacities: Tensor, suffix: str) -> Tensor:
+    """[N, 4] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach)."""
+    fp = torch.empty(conics.shape[0], 4, dtype=torch.float64)
+    _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities), _ptr(fp))
+    return fp
+
+
+_workspace: dict[torch.dtype, Tensor] = {}
+_workspace_lock = threading.Lock()
+
+
+def _pair_buffer(rows: int, cols: int, dtype: torch.dtype) -> Tensor:
+    """A reused [rows, cols] scratch buffer (grow-only, one per dtype): the per-pair gradient
+    rows are fully rewritten by every backward, and a fresh 60 MB allocation per iteration
+    (1.5 M pairs at 100k Gaussians, 512x512) costs its page faults every time."""
+    buf = _workspace.get(dtype)
+    if buf is None or buf.numel() < rows * cols:
+        buf = torch.empty(max(rows * cols, 1), dtype=dtype)
+        _workspace[dtype] = buf
+    return buf[: rows * cols].view(rows, cols)
 
 
 def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int,
@@ -386,20 +419,27 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     nf, n = fe.shape[1], m.shape[0]
     v_accum = v_accum.to(dt).contiguous()
     v_t = v_t.to(dt).contiguous()
-    pre = "splat2_" if kernel == "cpu" else "splat_"
-    alloc = torch.empty if kernel == "cpu" else torch.zeros  # "cpu" writes every pair row
-    v_pair = alloc(bins.gauss.numel(), 6 + nf, dtype=dt)
-    _run_threaded(
-        getattr(lib, f"{pre}backward_{suffix}"),
-        bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-        _ptr(op), _ptr(fe), _ptr(t_final.contiguous()), _ptr(last.contiguous()), _ptr(v_accum), _ptr(v_t),
-        _ptr(v_pair),
-    )
+    t_final, last = t_final.contiguous(), last.contiguous()
     if kernel == "cpu_v1":
+        v_pair = torch.zeros(bins.gauss.numel(), 6 + nf, dtype=dt)
+        _run_threaded(
+            getattr(lib, f"splat_backward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
+        )
         return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
+    fp = _footprints(lib, co, op, suffix)
     v = torch.zeros(n, 6 + nf, dtype=dt)
-    _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
-                  _ptr(bins.gpairs), 6 + nf, _ptr(v_pair), _ptr(v))
+    with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
+        v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
+        _run_threaded(
+            getattr(lib, f"splat2_backward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(bins.pslot),
+            _ptr(v_pair),
+        )
+        _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
+                      6 + nf, _ptr(v_pair), _ptr(v))
     return v
 
 
