@@ -272,8 +272,11 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
 
 // Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c, v_op,
 // v_feat[0..F)); every row of the tile's pairs is written (zeros where nothing contributed).
+// Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
+// of channels Fa..F-1 is zero everywhere (their terms are exactly zero: the depth channel of a
+// photometric loss), and their gradient rows stay 0.
 template <typename T>
-void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
+void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa,
                    const int64_t* offsets, const int64_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
                    const int32_t* out_last, const T* v_accum, const T* v_T, const int64_t* pslot,
@@ -301,7 +304,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       vTT[i] = V{};
       last[i] = M{};
       row_last[i] = 0;
-      for (int64_t f = 0; f < F; ++f) rec[i * MAXF + f] = vacc[i * MAXF + f] = V{};
+      for (int64_t f = 0; f < Fa; ++f) rec[i * MAXF + f] = vacc[i * MAXF + f] = V{};
       if (i >= rows) continue;
       const int64_t row = (y0 + i) * W + x0;
       for (int j = 0; j < cols; ++j) {
@@ -310,7 +313,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         vTT[i][j] = v_T[row + j] * tf;  // dL/dT_final * T_final
         last[i][j] = out_last[row + j];
         row_last[i] = std::max(row_last[i], (int)out_last[row + j]);
-        for (int64_t f = 0; f < F; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
+        for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
       }
       max_last = std::max<int64_t>(max_last, row_last[i]);
     }
@@ -330,7 +333,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
       V g_mx{}, g_my{}, g_a{}, g_b{}, g_c{}, g_op{}, g_f[MAXF];
-      for (int64_t f = 0; f < F; ++f) g_f[f] = V{};
+      for (int64_t f = 0; f < Fa; ++f) g_f[f] = V{};
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const M lk = splat<M>((typename Vec<T>::mi)local);
@@ -352,7 +355,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const V Tfront = Tr[i] * inv_one_m;
         const V w = alpha * Tfront;
         V v_alpha{};
-        for (int64_t f = 0; f < F; ++f) {
+        for (int64_t f = 0; f < Fa; ++f) {
           const V fv = splat<V>(fg[f]);
           V& rp = rec[i * MAXF + f];
           const V vp = vacc[i * MAXF + f];
@@ -376,7 +379,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       if (!any) continue;
       gp[0] = hsum<T>(g_mx); gp[1] = hsum<T>(g_my); gp[2] = hsum<T>(g_a);
       gp[3] = hsum<T>(g_b); gp[4] = hsum<T>(g_c); gp[5] = hsum<T>(g_op);
-      for (int64_t f = 0; f < F; ++f) gp[6 + f] = hsum<T>(g_f[f]);
+      for (int64_t f = 0; f < Fa; ++f) gp[6 + f] = hsum<T>(g_f[f]);
     }
   }
 }
@@ -405,7 +408,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 7; }
+int splat2_abi_version() { return 8; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -510,19 +513,19 @@ void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
   forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
-void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
+void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int64_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
                          const int32_t* last, const float* vacc, const float* vT, const int64_t* pslot,
                          float* vpair, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
-void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
+void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int64_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
                          const int64_t* pslot, double* vpair, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
                        const float* v_pair, float* v_out, int64_t* nth) {

@@ -144,7 +144,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     for dt in ("f32", "f64"):
         getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (12 if v2 else 11)
         getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 5 + [vp] * (14 if v2 else 12)
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 14 if v2 else [i64] * 5 + [vp] * 12
         getattr(lib, f"{pre}backward_{dt}").restype = None
         if v2:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp]
@@ -170,7 +170,7 @@ def _cache_dir() -> Path:
 
 
 _KERNELS = {
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 7, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 8, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 }
 
@@ -430,11 +430,14 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
         return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
     fp = _footprints(lib, co, op, suffix)
     v = torch.zeros(n, 6 + nf, dtype=dt)
+    # trailing feature channels whose cotangent is zero everywhere are skipped (exact)
+    nz = torch.nonzero(v_accum.reshape(-1, nf).ne(0).any(0)).flatten()
+    n_active = int(nz[-1]) + 1 if nz.numel() else 0
     with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
         v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
         _run_threaded(
             getattr(lib, f"splat2_backward_{suffix}"),
-            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
             _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(bins.pslot),
             _ptr(v_pair),
         )
