@@ -21,7 +21,7 @@
 //   depend on the thread count or on the scheduling at all (stronger than per-thread [N]
 //   buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
-//   tile lists by a counting sort (splat2_bin).
+//   tile lists by a counting sort over fixed chunks in parallel (splat2_bin_count / _scatter).
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
 //   that it vectorises; float64 calls std::exp per lane (bit-identical to the scalar kernel's
 //   forward, which keeps the float64 parity tests at 1e-9).
@@ -408,7 +408,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 8; }
+int splat2_abi_version() { return 9; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -457,37 +457,49 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
   return m;
 }
 
-// Tile lists by counting sort: order [M] holds visible Gaussians front to back, rect [N, 4]
-// (x_min, x_max, y_min, y_max) their tile rectangles; writes offsets [n_tiles + 1], gauss [P]
-// (P = sum of rectangle areas), each tile's list keeping the front-to-back order, and for the
-// gradient reduction ps [M + 1] (prefix sums of the areas in rank order) and pslot [P]: pair k
-// of Gaussian rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so
-// each Gaussian's pair gradients lie next to each other for splat2_reduce.
-void splat2_bin(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
-                int64_t n_tiles, int64_t* offsets, int64_t* gauss, int64_t* ps, int64_t* pslot) {
-  for (int64_t t = 0; t <= n_tiles; ++t) offsets[t] = 0;
-  ps[0] = 0;
-  for (int64_t k = 0; k < m; ++k) {
-    const int64_t* r = rect + 4 * order[k];
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = r[0]; x < r[1]; ++x) ++offsets[y * tiles_x + x + 1];
-    ps[k + 1] = ps[k] + (r[1] - r[0]) * (r[3] - r[2]);
+// Tile lists by a parallel counting sort, in two passes over NCH fixed chunks of the depth
+// order (chunk c = ranks [c M / NCH, (c + 1) M / NCH)), each pass a work item per chunk from a
+// shared counter: splat2_bin_count writes counts [NCH, n_tiles] (the chunk's pairs per tile) and
+// the pair count (rectangle area) of every rank into area [M]; the caller turns these into
+// offsets [n_tiles + 1], the chunk's first position per tile, base [NCH, n_tiles], and ps [M + 1]
+// (prefix sums of the areas); splat2_bin_scatter then writes gauss [P] (each tile's list in
+// front-to-back order, as one sequential counting sort would) and pslot [P]: pair k of Gaussian
+// rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so each
+// Gaussian's pair gradients lie next to each other for splat2_reduce. The output does not depend
+// on the number of threads.
+void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
+                      int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
+  for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
+    int64_t* cnt = counts + c * n_tiles;
+    for (int64_t t = 0; t < n_tiles; ++t) cnt[t] = 0;
+    for (int64_t k = c * m / nch; k < (c + 1) * m / nch; ++k) {
+      const int64_t* r = rect + 4 * order[k];
+      for (int64_t y = r[2]; y < r[3]; ++y)
+        for (int64_t x = r[0]; x < r[1]; ++x) ++cnt[y * tiles_x + x];
+      area[k] = (r[1] - r[0]) * (r[3] - r[2]);
+    }
   }
-  for (int64_t t = 0; t < n_tiles; ++t) offsets[t + 1] += offsets[t];
-  int64_t* cursor = new int64_t[n_tiles];
-  for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = offsets[t];
-  for (int64_t k = 0; k < m; ++k) {
-    const int64_t g = order[k];
-    const int64_t* r = rect + 4 * g;
-    int64_t q = ps[k];
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = r[0]; x < r[1]; ++x) {
-        const int64_t pos = cursor[y * tiles_x + x]++;
-        gauss[pos] = g;
-        pslot[pos] = q++;
-      }
+}
+
+void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
+                        int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
+                        int64_t* gauss, int64_t* pslot, int64_t* next) {
+  for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
+    int64_t* cursor = new int64_t[n_tiles];
+    for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
+    for (int64_t k = c * m / nch; k < (c + 1) * m / nch; ++k) {
+      const int64_t g = order[k];
+      const int64_t* r = rect + 4 * g;
+      int64_t q = ps[k];
+      for (int64_t y = r[2]; y < r[3]; ++y)
+        for (int64_t x = r[0]; x < r[1]; ++x) {
+          const int64_t pos = cursor[y * tiles_x + x]++;
+          gauss[pos] = g;
+          pslot[pos] = q++;
+        }
+    }
+    delete[] cursor;
   }
-  delete[] cursor;
 }
 
 // fp [4 N] float64: per-Gaussian footprint (see footprint()); chunks of 4096 Gaussians.

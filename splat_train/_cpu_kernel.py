@@ -60,6 +60,7 @@ _SIMD_FLAGS = {
     "none": [],
 }
 KERNELS = ("cpu", "cpu_v1")
+_BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
 
 
 def _cpu_flags() -> set[str]:
@@ -150,8 +151,10 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp]
             getattr(lib, f"splat2_footprint_{dt}").restype = None
     if v2:
-        lib.splat2_bin.argtypes = [i64, vp, vp, i64, i64, vp, vp, vp, vp]
-        lib.splat2_bin.restype = None
+        lib.splat2_bin_count.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp]
+        lib.splat2_bin_count.restype = None
+        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
+        lib.splat2_bin_scatter.restype = None
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
         for dt in ("f32", "f64"):
@@ -170,7 +173,7 @@ def _cache_dir() -> Path:
 
 
 _KERNELS = {
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 8, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 9, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 }
 
@@ -312,18 +315,31 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_tiles = tiles_x * tiles_y
     with torch.no_grad():
-        order = _depth_order(lib, depths, visible) if kernel == "cpu" else depth_order(depths, visible).contiguous()
         r = rect.to(torch.int64).contiguous()
-        total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
-        offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
-        gauss = torch.empty(total, dtype=torch.int64)
         if kernel == "cpu_v1":
+            order = depth_order(depths, visible).contiguous()
+            total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
+            offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
+            gauss = torch.empty(total, dtype=torch.int64)
             lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
             return Bins(offsets, gauss, tiles_x, tiles_y)
-        ps = torch.empty(order.numel() + 1, dtype=torch.int64)
+        order = _depth_order(lib, depths, visible)
+        m = order.numel()
+        counts = torch.empty(_BIN_CHUNKS, n_tiles, dtype=torch.int64)
+        area = torch.empty(m, dtype=torch.int64)
+        _run_threaded(lib.splat2_bin_count, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(counts),
+                      _ptr(area))
+        per_tile = counts.sum(0)
+        offsets = torch.zeros(n_tiles + 1, dtype=torch.int64)
+        torch.cumsum(per_tile, 0, out=offsets[1:])
+        base = (offsets[:-1][None, :] + torch.cumsum(counts, 0) - counts).contiguous()
+        ps = torch.zeros(m + 1, dtype=torch.int64)
+        torch.cumsum(area, 0, out=ps[1:])
+        total = int(offsets[-1])
+        gauss = torch.empty(total, dtype=torch.int64)
         pslot = torch.empty(total, dtype=torch.int64)
-        lib.splat2_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss),
-                       _ptr(ps), _ptr(pslot))
+        _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(base),
+                      _ptr(ps), _ptr(gauss), _ptr(pslot))
     return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot)
 
 
