@@ -5,42 +5,31 @@
 per-pair gradients once per Gaussian in C. ``"cpu_v1"`` (``_cpu_kernel_v1.cpp``) is the scalar
 kernel it replaced, kept callable for side-by-side benchmarks (``benchmarks/bench_rasterizer.py``).
 
-Both have a plain C ABI and no torch headers or OpenMP, so they compile with the system compiler
-(``$CXX``, else ``c++`` / ``g++``) in a second or two into a cache folder
-(``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
-source, compiler and flags (:mod:`camio.cbuild`), and are loaded with ctypes. SIMD flags are
-chosen at load time from the CPU's flags (``/proc/cpuinfo``): AVX-512 (F, DQ, BW, VL) where
-present, else AVX2 + FMA, else none (SSE2, the x86-64 baseline, or the target's default); if
-that build fails, the portable build without them is tried. Override with
-``$SPLAT_TRAIN_KERNEL_SIMD`` = ``avx512`` | ``avx2`` | ``none``. If no compiler is present or
-every build fails, the failure is logged once and :func:`available` returns False; the public
-rasterizer then uses the vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to
-disable both kernels.
+Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train._cpu_build`.
+If no compiler is present or every build fails, the failure is logged once and
+:func:`available` returns False; the public rasterizer then uses the vectorised torch tile code.
 
 Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
 recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
 pair and summed per Gaussian in a fixed order (``"cpu"``: in C; ``"cpu_v1"``: ``index_add_``):
-the result does not depend on the thread count. Threads: :func:`kernel_threads` Python threads
-share an atomic tile counter (no OpenMP runtime, so no spinning worker threads competing with
-torch's on a loaded machine).
+the result does not depend on the thread count.
 """
 
 from __future__ import annotations
 
 import ctypes
-import logging
-import os
-import subprocess
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import torch
 from torch import Tensor
 
-from camio.cbuild import build_shared, find_compiler
+from splat_train._cpu_build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
+from splat_train._cpu_build import Kernel as _Kernel
+from splat_train._cpu_build import ptr as _ptr
+from splat_train._cpu_build import run_threaded as _run_threaded
+from splat_train._cpu_build import suffix as _suffix
 from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
@@ -49,94 +38,8 @@ __all__ = [
     "tile_pairs_cpu", "backend_functions", "simd_bits", "set_kernel_threads", "kernel_threads",
 ]
 
-log = logging.getLogger(__name__)
-
-_HERE = Path(__file__).parent
-_BASE_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-Wno-psabi"]
-_SIMD_FLAGS = {
-    "avx512": ["-mavx512f", "-mavx512dq", "-mavx512bw", "-mavx512vl", "-mavx2", "-mfma",
-               "-mprefer-vector-width=512"],
-    "avx2": ["-mavx2", "-mfma"],
-    "none": [],
-}
 KERNELS = ("cpu", "cpu_v1")
 _BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
-
-
-def _cpu_flags() -> set[str]:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                return set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return set()
-
-
-def _simd_choices() -> list[str]:
-    """SIMD levels to try, best first (the last one is always the portable build)."""
-    env = os.environ.get("SPLAT_TRAIN_KERNEL_SIMD")
-    if env:
-        if env not in _SIMD_FLAGS:
-            raise ValueError(f"SPLAT_TRAIN_KERNEL_SIMD must be one of {sorted(_SIMD_FLAGS)}, got {env!r}")
-        return [env]
-    flags = _cpu_flags()
-    out = []
-    if {"avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma"} <= flags:
-        out.append("avx512")
-    if {"avx2", "fma"} <= flags:
-        out.append("avx2")
-    return out + ["none"]
-
-
-def _extra_flags() -> list[str]:
-    return os.environ.get("SPLAT_TRAIN_KERNEL_FLAGS", "").split()
-
-
-class _Kernel:
-    """One kernel source: build (cached), load once, declare the ctypes signatures."""
-
-    def __init__(self, name: str, source: str, abi: int, simd: bool, abi_fn: str, declare: Callable) -> None:
-        self.name, self.source, self.abi, self.simd = name, _HERE / source, abi, simd
-        self.abi_fn, self.declare = abi_fn, declare
-        self.lib: ctypes.CDLL | None = None
-        self.error: str | None = None
-        self.tried = False
-        self.lock = threading.Lock()
-
-    def load(self) -> ctypes.CDLL | None:
-        with self.lock:
-            if self.tried:
-                return self.lib
-            self.tried = True
-            if os.environ.get("SPLAT_TRAIN_NO_KERNEL"):
-                self.error = "disabled by SPLAT_TRAIN_NO_KERNEL"
-                return None
-            cxx = find_compiler()
-            if cxx is None:
-                self.error = "no C++ compiler found (set $CXX or install g++)"
-                log.warning("CPU rasterizer kernel %r unavailable: %s; using the slower torch tile path",
-                            self.name, self.error)
-                return None
-            errors = []
-            for level in (_simd_choices() if self.simd else ["none"]):
-                flags = _BASE_FLAGS + _SIMD_FLAGS[level] + _extra_flags()
-                try:
-                    lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx)))
-                    version = getattr(lib, self.abi_fn)()
-                    if version != self.abi:
-                        raise RuntimeError(f"kernel ABI version mismatch ({version} != {self.abi})")
-                except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
-                    errors.append(f"{level}: {exc}")
-                    continue
-                self.lib = self.declare(lib)
-                if errors:
-                    log.warning("CPU kernel %r: SIMD build failed (%s); using %s", self.name, errors, level)
-                return self.lib
-            self.error = "; ".join(errors)
-            log.warning("CPU rasterizer kernel %r unavailable (%s); using the slower torch tile path",
-                        self.name, self.error)
-            return None
 
 
 def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
@@ -167,15 +70,11 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     return lib
 
 
-def _cache_dir() -> Path:
-    env = os.environ.get("SPLAT_TRAIN_KERNEL_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
-
-
-_KERNELS = {
+_KERNELS = KERNEL_REGISTRY
+_KERNELS.update({
     "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 9, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
-}
+})
 
 
 def _kernel(name: str) -> _Kernel:
@@ -205,55 +104,6 @@ def simd_bits() -> int | None:
     return None if lib is None else int(lib.splat2_simd_bits())
 
 
-def _ptr(t: Tensor) -> int:
-    return t.data_ptr()
-
-
-_pool: ThreadPoolExecutor | None = None
-_threads: int | None = None
-
-
-def set_kernel_threads(n: int | None) -> None:
-    """Threads for the C++ kernel (None: follow ``torch.get_num_threads()``)."""
-    global _threads
-    _threads = None if n is None else max(1, int(n))
-
-
-def kernel_threads() -> int:
-    """Threads of the C++ kernel: ``$SPLAT_TRAIN_KERNEL_THREADS`` if set, else the count given
-    to :func:`set_kernel_threads`, else ``torch.get_num_threads()``. The kernel's threads block
-    in C (no spinning OpenMP workers), so it can use more threads than torch's intra-op pool:
-    with torch at 1 thread, 2 kernel threads made forward+backward of 50k Gaussians at 497x372
-    1.85x faster (0.672 -> 0.364 s) here (scalar kernel, now "cpu_v1")."""
-    env = os.environ.get("SPLAT_TRAIN_KERNEL_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError as exc:
-            raise ValueError(f"SPLAT_TRAIN_KERNEL_THREADS must be an integer, got {env!r}") from exc
-    return _threads if _threads is not None else max(1, torch.get_num_threads())
-
-
-def _run_threaded(fn, *args) -> None:
-    """Run a kernel entry on :func:`kernel_threads` threads sharing one work counter.
-
-    ctypes drops the GIL during the call, so the threads run the C code concurrently.
-    """
-    global _pool
-    nthreads = kernel_threads()
-    counter = ctypes.c_int64(0)
-    cptr = ctypes.addressof(counter)
-    if nthreads == 1:
-        fn(*args, cptr)
-        return
-    if _pool is None or _pool._max_workers < nthreads:
-        _pool = ThreadPoolExecutor(max_workers=nthreads, thread_name_prefix="splat_cpu")
-    futures = [_pool.submit(fn, *args, cptr) for _ in range(nthreads - 1)]
-    fn(*args, cptr)
-    for f in futures:
-        f.result()
-
-
 @dataclass
 class Bins:
     """Tile lists of one view (CPU, int64).
@@ -276,13 +126,6 @@ class Bins:
     order: Tensor | None = None
     ps: Tensor | None = None
     pslot: Tensor | None = None
-
-
-def _suffix(dt: torch.dtype) -> str:
-    suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
-    if suffix is None:
-        raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
-    return suffix
 
 
 def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:

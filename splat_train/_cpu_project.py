@@ -17,7 +17,11 @@ import ctypes
 import torch
 from torch import Tensor
 
-from splat_train._cpu_kernel import _KERNELS, _Kernel, _ptr, _run_threaded, _suffix
+from splat_train._cpu_build import KERNEL_REGISTRY as _KERNELS
+from splat_train._cpu_build import Kernel as _Kernel
+from splat_train._cpu_build import ptr as _ptr
+from splat_train._cpu_build import run_threaded as _run_threaded
+from splat_train._cpu_build import suffix as _suffix
 from splat_train.projection import TILE_SIZE, Projected
 
 __all__ = ["available", "project_sh_cpu"]
