@@ -100,13 +100,6 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     from splat_train.config import load_config
     from splat_train.trainer import train
-    from vggt_init.memory import retain_freed_memory
-
-    # Every iteration allocates and frees MB-sized tensors (per-Gaussian gradients, images, the
-    # SSIM statistics); with glibc's defaults they are mapped and faulted in anew each time:
-    # ~2,100 minor faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256,
-    # none with the freed memory kept (issue 15, part 2). VGGT_INIT_RETAIN_MEMORY=0 turns it off.
-    retain_freed_memory()
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
@@ -123,4 +116,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    # Process-wide, so only when this is the process's CLI (not for callers of main()): every
+    # training iteration allocates and frees MB-sized tensors (per-Gaussian gradients, images,
+    # the SSIM statistics), which glibc's defaults map and fault in anew each time: ~2,100 minor
+    # faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256, none with the
+    # freed memory kept (issue 15, part 2). VGGT_INIT_RETAIN_MEMORY=0 turns it off.
+    from vggt_init.memory import retain_freed_memory
+
+    retain_freed_memory()
     sys.exit(main())
