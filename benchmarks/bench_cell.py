@@ -292,6 +292,7 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
             "final_gaussians": summary["num_gaussians"], "torch_threads": summary.get("torch_threads"),
             "test_psnr": summary.get("test_psnr"), "train_psnr": summary.get("train_psnr"),
             "peak_rss_mb": summary.get("peak_rss_mb"), "threads_arg": threads,
+            "test_curve": summary.get("test_curve"),
         },
         "metrics": {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg", "n_images")},
         "cell_total_s": cell_s, "cell_total_cpu_s": cell_cpu, "target_s": TARGET_S, "meets_target": cell_s < TARGET_S,
@@ -348,6 +349,14 @@ def format_cell(r: dict) -> str:
     lines.append(f"load average (1 min): start {r['loadavg_start'][0]:.1f}, end {r['loadavg_end'][0]:.1f}, "
                  f"mean {during.get('mean_1min', float('nan')):.1f}, max {during.get('max_1min', float('nan')):.1f} "
                  f"on {os.cpu_count()} CPUs")
+    curve = r["train"].get("test_curve") or {}
+    if curve.get("iterations"):
+        by_it = dict(zip(curve["iterations"], curve["test_psnr"]))
+        marks = [i for i in (1000, 2000, 5000, 10000) if i in by_it]
+        lines.append("")
+        lines.append("held-out PSNR (training loop's evaluation): " + ", ".join(f"{i}: {by_it[i]:.2f} dB" for i in marks)
+                     + f"; best {curve['best_test_psnr']:.2f} dB at iteration {curve['best_iteration']}, last "
+                     f"{curve['last_test_psnr']:.2f} dB at {curve['last_iteration']}")
     return "\n".join(lines)
 
 

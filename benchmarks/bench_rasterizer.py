@@ -1,5 +1,9 @@
 """Rasterizer benchmark: fast CPU path vs the dense reference, and scaling of the fast path.
 
+Every size runs the SIMD kernel with the fused projection (backend "cpu") and, side by side in
+the same process, the scalar kernel with the torch projection it replaced (backend "cpu_v1",
+issue 15): the printed speed-ups are ratios measured minutes apart under the same load.
+
 Measures forward+backward time per iteration (SH degree 3, loss = sum(rgb) + sum(alpha)) on
 a synthetic scene: N Gaussians uniformly in the view frustum at depth 2..6, scales about half
 the mean spacing (log-normal spread), random rotations, opacities 0.05..0.95, focal = width.
@@ -12,6 +16,7 @@ measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
     python benchmarks/bench_rasterizer.py                # full set (a few minutes)
     python benchmarks/bench_rasterizer.py --quick        # small sizes only
     python benchmarks/bench_rasterizer.py --threads 1 2  # compare thread counts
+    python benchmarks/bench_rasterizer.py --no-reference --no-v1   # only the current kernel
 
 The machine is shared and noisy: compare ratios from one run, not absolute numbers across
 runs. Saves JSON to benchmarks/out/bench_rasterizer_<time>.json and prints a table.
@@ -21,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import platform
 import sys
 import time
@@ -92,14 +98,12 @@ def count_pairs(n: int, width: int, height: int) -> dict:
     params, K = make_scene(n, width, height)
     with torch.no_grad():
         proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
-        offsets, gauss, tx, ty = _cpu_kernel.tile_pairs_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
         feats = torch.zeros(n, 4)
-        _, t_final, _, count = _cpu_kernel.forward_raw(
-            proj.means2d, proj.conics, feats, params[3], offsets, gauss, tx, ty, width, height
-        )
+        _, t_final, _, count = _cpu_kernel.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
     return {
         "visible": int(proj.visible.sum()),
-        "tile_pairs": int(gauss.numel()),
+        "tile_pairs": int(bins.gauss.numel()),
         "blended_pairs": int(count.sum()),
         "mean_alpha": float((1 - t_final).mean()),
     }
@@ -119,7 +123,7 @@ def matmul_gflops(threads: int, size: int = 1024, reps: int = 5) -> float:
     return 2 * size**3 / best / 1e9
 
 
-def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True) -> dict:
+def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True, v1: bool = True) -> dict:
     """Run every configuration; returns a JSON-ready dict (also see module docstring)."""
     from splat_train import _cpu_kernel
 
@@ -131,6 +135,8 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "torch": torch.__version__,
                     "python": sys.version.split()[0]},
         "flops_per_pair": FLOPS_PER_PAIR,
+        "simd_bits": _cpu_kernel.simd_bits(),
+        "loadavg_start": list(os.getloadavg()),
         "runs": [],
     }
     for nt in threads:
@@ -140,7 +146,8 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
         cases = [("cpu", *ref_case), ("torch", *ref_case)]
         if reference:
             cases.append(("reference", *ref_case))
-        cases += [("cpu", *s) for s in sizes]
+        for size in sizes:
+            cases += ([("cpu_v1", *size)] if v1 else []) + [("cpu", *size)]
         pair_cache: dict = {}
         for backend, n, w, h in cases:
             reps = 1 if backend == "reference" else (2 if backend == "torch" else 3)
@@ -161,6 +168,14 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
         if "reference" in by:
             results.setdefault("speedup_vs_reference", {})[str(nt)] = {
                 "case": list(ref_case), "cpu": by["reference"] / by["cpu"], "torch": by["reference"] / by["torch"]}
+        for size in sizes:
+            pair = {r["backend"]: r for r in results["runs"] if r["threads"] == nt and (r["n"], r["width"], r["height"]) == size}
+            if "cpu_v1" in pair:
+                results.setdefault("speedup_vs_v1", []).append({
+                    "threads": nt, "n": size[0], "width": size[1], "height": size[2],
+                    "v1_fwd_bwd_s": pair["cpu_v1"]["fwd_bwd_s"], "cpu_fwd_bwd_s": pair["cpu"]["fwd_bwd_s"],
+                    "speedup": pair["cpu_v1"]["fwd_bwd_s"] / pair["cpu"]["fwd_bwd_s"]})
+    results["loadavg_end"] = list(os.getloadavg())
     return results
 
 
@@ -172,6 +187,15 @@ def print_table(results: dict) -> None:
         print(f"{r['threads']:>3} {r['backend']:>9} {r['n']:>7} {str(r['width']) + 'x' + str(r['height']):>9} "
               f"{r['forward_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} {r['it_per_s']:>7.2f} {r['blended_pairs']:>11,} "
               f"{r['blended_pairs_per_s']:>10.3g} {r['fraction_of_bound']:>8.1%}")
+    for r in results["runs"]:
+        if r["backend"] in ("cpu", "cpu_v1") and r["n"] >= 100_000:
+            print(f"threads={r['threads']} {r['backend']:>6} N={r['n']} {r['width']}x{r['height']}: "
+                  f"{1e6 * r['fwd_bwd_s'] / r['n']:.3f} us per Gaussian per iteration, "
+                  f"{r['fraction_of_bound']:.1%} of the operation-count bound")
+    for s in results.get("speedup_vs_v1", []):
+        print(f"threads={s['threads']} N={s['n']} {s['width']}x{s['height']}: cpu {s['cpu_fwd_bwd_s']:.4f} s vs "
+              f"cpu_v1 {s['v1_fwd_bwd_s']:.4f} s per forward+backward: {s['speedup']:.2f}x")
+    print(f"SIMD {results.get('simd_bits')} bits; load average {results.get('loadavg_start')} -> {results.get('loadavg_end')}")
     for nt, s in results.get("speedup_vs_reference", {}).items():
         print(f"threads={nt}: speed-up vs dense reference at N={s['case'][0]} {s['case'][1]}x{s['case'][2]}: "
               f"cpu kernel {s['cpu']:.1f}x, torch tiles {s['torch']:.1f}x")
@@ -182,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[2], help="torch thread counts to measure")
     ap.add_argument("--quick", action="store_true", help="small sizes only (about a minute)")
     ap.add_argument("--no-reference", action="store_true", help="skip the slow dense reference")
+    ap.add_argument("--no-v1", action="store_true", help="skip the scalar kernel (backend cpu_v1)")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/...)")
     args = ap.parse_args(argv)
     from camio.atomic import write_json
@@ -189,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
 
     setup_logging()
     t0 = time.perf_counter()
-    results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference)
+    results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference, v1=not args.no_v1)
     results["wall_s"] = time.perf_counter() - t0
     out = args.out or OUT / f"bench_rasterizer_{time.strftime('%Y%m%d_%H%M%S')}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

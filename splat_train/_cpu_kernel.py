@@ -1,230 +1,347 @@
-"""CPU fast path: the C++/OpenMP tile blender in ``_cpu_kernel.cpp``, built on first use.
+"""CPU fast paths: C++ tile blenders built on first use, behind backends "cpu" and "cpu_v1".
 
-The kernel has a plain C ABI and no torch headers or OpenMP, so it compiles with the system compiler
-(``$CXX``, else ``c++`` / ``g++``) in about a second into a cache folder
-(``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
-source and flags (:mod:`camio.cbuild`), and is loaded with ctypes. If no compiler is present or the
-build fails, the failure is logged once and :func:`available` returns False; the public
-rasterizer then uses the vectorised torch tile code instead. Set ``SPLAT_TRAIN_NO_KERNEL=1`` to
-disable the kernel.
+``"cpu"`` (``_cpu_kernel.cpp``, issue 15) blends 16 pixels of a tile row per vector instruction
+(GCC/Clang vector extensions), bins with a radix depth sort and a counting sort, and reduces the
+per-pair gradients once per Gaussian in C. ``"cpu_v1"`` (``_cpu_kernel_v1.cpp``) is the scalar
+kernel it replaced, kept callable for side-by-side benchmarks (``benchmarks/bench_rasterizer.py``).
+
+Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train._cpu_build`.
+If no compiler is present or every build fails, the failure is logged once and
+:func:`available` returns False; the public rasterizer then uses the vectorised torch tile code.
 
 Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
 recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
-pair and summed per Gaussian with ``index_add_``: the result does not depend on thread count.
-Threads: ``torch.get_num_threads()`` Python threads share an atomic tile counter (no OpenMP
-runtime, so no spinning worker threads competing with torch's on a loaded machine).
+pair and summed per Gaussian in a fixed order (``"cpu"``: in C; ``"cpu_v1"``: ``index_add_``):
+the result does not depend on the thread count.
 """
 
 from __future__ import annotations
 
 import ctypes
-import logging
-import os
-import subprocess
 import threading
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
+from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor
 
-from camio.cbuild import build_shared, find_compiler
+from splat_train._cpu_build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
+from splat_train._cpu_build import Kernel as _Kernel
+from splat_train._cpu_build import ptr as _ptr
+from splat_train._cpu_build import run_threaded as _run_threaded
+from splat_train._cpu_build import suffix as _suffix
 from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
-__all__ = ["available", "load_library", "blend_cpu", "build_error", "forward_raw", "tile_pairs_cpu"]
+__all__ = [
+    "KERNELS", "available", "load_library", "blend_cpu", "build_error", "forward_raw", "backward_raw",
+    "tile_pairs_cpu", "backend_functions", "simd_bits", "set_kernel_threads", "kernel_threads",
+]
 
-log = logging.getLogger(__name__)
-
-_SOURCE = Path(__file__).with_name("_cpu_kernel.cpp")
-_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", *os.environ.get("SPLAT_TRAIN_KERNEL_FLAGS", "").split()]
-_lock = threading.Lock()
-_lib: ctypes.CDLL | None = None
-_error: str | None = None
-_tried = False
+KERNELS = ("cpu", "cpu_v1")
+_BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
 
 
-def _cache_dir() -> Path:
-    env = os.environ.get("SPLAT_TRAIN_KERNEL_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
-
-
-def _build(cxx: str) -> Path:
-    return build_shared(_SOURCE, _FLAGS, _cache_dir(), "splat_cpu", cxx)
-
-
-def load_library() -> ctypes.CDLL | None:
-    """Build (once, cached) and load the kernel; None if disabled or the build failed."""
-    global _lib, _error, _tried
-    with _lock:
-        if _tried:
-            return _lib
-        _tried = True
-        if os.environ.get("SPLAT_TRAIN_NO_KERNEL"):
-            _error = "disabled by SPLAT_TRAIN_NO_KERNEL"
-            return None
-        cxx = find_compiler()
-        if cxx is None:
-            _error = "no C++ compiler found (set $CXX or install g++)"
-            log.warning("CPU rasterizer kernel unavailable: %s; using the slower torch tile path", _error)
-            return None
-        try:
-            lib = ctypes.CDLL(str(_build(cxx)))
-            if lib.splat_abi_version() != 4:
-                raise RuntimeError("kernel ABI version mismatch")
-        except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
-            _error = str(exc)
-            log.warning("CPU rasterizer kernel unavailable (%s); using the slower torch tile path", _error)
-            return None
-        i64, i32, vp = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
-        for name in ("splat_forward_f32", "splat_forward_f64"):
-            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 11
-            getattr(lib, name).restype = None
-        for name in ("splat_backward_f32", "splat_backward_f64"):
-            getattr(lib, name).argtypes = [i64] * 5 + [vp] * 12
-            getattr(lib, name).restype = None
+def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    pre = "splat2_" if v2 else "splat_"
+    for dt in ("f32", "f64"):
+        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (12 if v2 else 11)
+        getattr(lib, f"{pre}forward_{dt}").restype = None
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 14 if v2 else [i64] * 5 + [vp] * 12
+        getattr(lib, f"{pre}backward_{dt}").restype = None
+        if v2:
+            getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp]
+            getattr(lib, f"splat2_footprint_{dt}").restype = None
+    if v2:
+        lib.splat2_bin_count.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp]
+        lib.splat2_bin_count.restype = None
+        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
+        lib.splat2_bin_scatter.restype = None
+        lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
+        lib.splat2_depth_order_f32.restype = i64
+        for dt in ("f32", "f64"):
+            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp]
+            getattr(lib, f"splat2_reduce_{dt}").restype = None
+        lib.splat2_simd_bits.restype = ctypes.c_int
+    else:
         lib.splat_bin.argtypes = [i64, vp, vp, i64, i64, vp, vp]
         lib.splat_bin.restype = None
-        _lib = lib
-        return _lib
+    return lib
 
 
-def available() -> bool:
-    """True when the CPU kernel is built and loaded."""
-    return load_library() is not None
+_KERNELS = KERNEL_REGISTRY
+_KERNELS.update({
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 9, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
+})
 
 
-def build_error() -> str | None:
-    """Why the kernel is unavailable (None when it loaded or was not tried)."""
-    return _error
+def _kernel(name: str) -> _Kernel:
+    if name not in _KERNELS:
+        raise ValueError(f"CPU kernel must be one of {KERNELS}, got {name!r}")
+    return _KERNELS[name]
 
 
-def _ptr(t: Tensor) -> int:
-    return t.data_ptr()
+def load_library(name: str = "cpu") -> ctypes.CDLL | None:
+    """Build (once, cached) and load kernel ``name``; None if disabled or the build failed."""
+    return _kernel(name).load()
 
 
-_pool: ThreadPoolExecutor | None = None
+def available(name: str = "cpu") -> bool:
+    """True when kernel ``name`` ("cpu" or "cpu_v1") is built and loaded."""
+    return load_library(name) is not None
 
 
-_threads: int | None = None
+def build_error(name: str = "cpu") -> str | None:
+    """Why kernel ``name`` is unavailable (None when it loaded or was not tried)."""
+    return _kernel(name).error
 
 
-def set_kernel_threads(n: int | None) -> None:
-    """Threads for the C++ kernel (None: follow ``torch.get_num_threads()``)."""
-    global _threads
-    _threads = None if n is None else max(1, int(n))
+def simd_bits() -> int | None:
+    """Vector width (bits) the "cpu" kernel was built for: 512, 256 or 128; None if unavailable."""
+    lib = load_library("cpu")
+    return None if lib is None else int(lib.splat2_simd_bits())
 
 
-def kernel_threads() -> int:
-    """Threads of the C++ kernel: ``$SPLAT_TRAIN_KERNEL_THREADS`` if set, else the count given
-    to :func:`set_kernel_threads`, else ``torch.get_num_threads()``. The kernel's threads block
-    in C (no spinning OpenMP workers), so it can use more threads than torch's intra-op pool:
-    with torch at 1 thread, 2 kernel threads made forward+backward of 50k Gaussians at 497x372
-    1.85x faster (0.672 -> 0.364 s) here."""
-    env = os.environ.get("SPLAT_TRAIN_KERNEL_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError as exc:
-            raise ValueError(f"SPLAT_TRAIN_KERNEL_THREADS must be an integer, got {env!r}") from exc
-    return _threads if _threads is not None else max(1, torch.get_num_threads())
+@dataclass
+class Bins:
+    """Tile lists of one view (CPU, int64).
 
-
-def _run_threaded(fn, *args) -> None:
-    """Run a kernel entry on :func:`kernel_threads` threads sharing one tile counter.
-
-    ctypes drops the GIL during the call, so the threads run the C code concurrently.
+    Attributes:
+        offsets: [T + 1] tile t owns pairs offsets[t]:offsets[t + 1] (T = tiles_x * tiles_y,
+            t = ty * tiles_x + tx).
+        gauss: [P] Gaussian index per pair, front to back within a tile.
+        tiles_x, tiles_y: tile grid.
+        order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
+        ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
+        pslot: [P] gradient slot of each pair; Gaussian ``order[r]`` owns slots
+            ps[r]:ps[r + 1] ("cpu" only).
     """
-    global _pool
-    nthreads = kernel_threads()
-    counter = ctypes.c_int64(0)
-    cptr = ctypes.addressof(counter)
-    if nthreads == 1:
-        fn(*args, cptr)
-        return
-    if _pool is None or _pool._max_workers < nthreads:
-        _pool = ThreadPoolExecutor(max_workers=nthreads, thread_name_prefix="splat_cpu")
-    futures = [_pool.submit(fn, *args, cptr) for _ in range(nthreads - 1)]
-    fn(*args, cptr)
-    for f in futures:
-        f.result()
+
+    offsets: Tensor
+    gauss: Tensor
+    tiles_x: int
+    tiles_y: int
+    order: Tensor | None = None
+    ps: Tensor | None = None
+    pslot: Tensor | None = None
 
 
-def forward_raw(means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height):
-    """Run the forward kernel (no autograd). Tensors as in :func:`blend_cpu` plus tile lists.
+def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
+    """:func:`splat_train._reference.depth_order` by the kernel's radix sort (float32 depths)."""
+    if depths.dtype != torch.float32:
+        return depth_order(depths, visible).contiguous()
+    n = depths.numel()
+    d = depths.detach().contiguous()
+    vis = visible.to(torch.uint8).contiguous()
+    order = torch.empty(n, dtype=torch.int64)
+    buf = torch.empty(n, dtype=torch.int64)
+    keys = torch.empty(2 * n, dtype=torch.int32)
+    m = lib.splat2_depth_order_f32(n, _ptr(d), _ptr(vis), _ptr(order), _ptr(buf), _ptr(keys))
+    return order[:m]
+
+
+def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int, kernel: str = "cpu") -> Bins:
+    """Depth order and per-tile Gaussian lists in C (counting sort).
+
+    Args:
+        depths: [N] camera z. rect: [N, 4] tile rectangle (x_min, x_max, y_min, y_max), max
+            exclusive. visible: [N] bool. width, height: image size in pixels.
+        kernel: "cpu" (radix depth sort, also the per-Gaussian pair lists) or "cpu_v1".
+
+    Returns:
+        :class:`Bins`, the same lists as :func:`splat_train._tiles.tile_pairs`.
+    """
+    lib = load_library(kernel)
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    n_tiles = tiles_x * tiles_y
+    with torch.no_grad():
+        r = rect.to(torch.int64).contiguous()
+        if kernel == "cpu_v1":
+            order = depth_order(depths, visible).contiguous()
+            total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
+            offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
+            gauss = torch.empty(total, dtype=torch.int64)
+            lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
+            return Bins(offsets, gauss, tiles_x, tiles_y)
+        order = _depth_order(lib, depths, visible)
+        m = order.numel()
+        counts = torch.empty(_BIN_CHUNKS, n_tiles, dtype=torch.int64)
+        area = torch.empty(m, dtype=torch.int64)
+        _run_threaded(lib.splat2_bin_count, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(counts),
+                      _ptr(area))
+        per_tile = counts.sum(0)
+        offsets = torch.zeros(n_tiles + 1, dtype=torch.int64)
+        torch.cumsum(per_tile, 0, out=offsets[1:])
+        base = (offsets[:-1][None, :] + torch.cumsum(counts, 0) - counts).contiguous()
+        ps = torch.zeros(m + 1, dtype=torch.int64)
+        torch.cumsum(area, 0, out=ps[1:])
+        total = int(offsets[-1])
+        gauss = torch.empty(total, dtype=torch.int64)
+        pslot = torch.empty(total, dtype=torch.int64)
+        _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(base),
+                      _ptr(ps), _ptr(gauss), _ptr(pslot))
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot)
+
+
+def tile_pairs_cpu(
+    depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int, kernel: str = "cpu"
+) -> tuple[Tensor, Tensor, int, int]:
+    """:func:`splat_train._tiles.tile_pairs` with the list building in C (counting sort).
+
+    Same results (offsets [T + 1], gauss [P], tiles_x, tiles_y); O(pairs) instead of a sort of
+    all pairs.
+    """
+    b = bin_cpu(depths, rect, visible, width, height, kernel)
+    return b.offsets, b.gauss, b.tiles_x, b.tiles_y
+
+
+def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int, kernel: str = "cpu"):
+    """Run the forward kernel (no autograd).
+
+    Args:
+        means2d [N, 2], conics [N, 3], features [N, F], opacities [N] as in :func:`blend_cpu`
+        (one dtype, float32 or float64); bins from :func:`bin_cpu` with the same ``kernel``.
 
     Returns:
         accum [H, W, F], T_final [H, W], last [H, W] int32 (1 + index of the last
         contributing pair within the pixel's tile list, 0 if none) and count [H, W] int32
         (Gaussians blended into the pixel).
     """
-    lib = load_library()
+    lib = load_library(kernel)
     dt = means2d.dtype
-    suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
-    if suffix is None:
-        raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
-    m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
+    suffix = _suffix(dt)
+    m, co, fe, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, features, opacities))
     nf = fe.shape[1]
+    if kernel == "cpu" and nf > 16:
+        raise ValueError(f"the 'cpu' kernel blends at most 16 feature channels, got {nf}")
     accum = torch.empty(height, width, nf, dtype=dt)
     t_final = torch.empty(height, width, dtype=dt)
     last = torch.empty(height, width, dtype=torch.int32)
     count = torch.empty(height, width, dtype=torch.int32)
-    _run_threaded(
-        getattr(lib, f"splat_forward_{suffix}"),
-        tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
-        _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
-    )
+    if kernel == "cpu":
+        fp = _footprints(lib, co, op, suffix)
+        _run_threaded(
+            getattr(lib, f"splat2_forward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+        )
+    else:
+        _run_threaded(
+            getattr(lib, f"splat_forward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+        )
     return accum, t_final, last, count
+
+
+def _footprints(lib, conics: Tensor, opacities: Tensor, suffix: str) -> Tensor:
+    """[N, 4] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach)."""
+    fp = torch.empty(conics.shape[0], 4, dtype=torch.float64)
+    _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities), _ptr(fp))
+    return fp
+
+
+_workspace: dict[torch.dtype, Tensor] = {}
+_workspace_lock = threading.Lock()
+
+
+def _pair_buffer(rows: int, cols: int, dtype: torch.dtype) -> Tensor:
+    """A reused [rows, cols] scratch buffer (grow-only, one per dtype): the per-pair gradient
+    rows are fully rewritten by every backward, and a fresh 60 MB allocation per iteration
+    (1.5 M pairs at 100k Gaussians, 512x512) costs its page faults every time."""
+    buf = _workspace.get(dtype)
+    if buf is None or buf.numel() < rows * cols:
+        buf = torch.empty(max(rows * cols, 1), dtype=dtype)
+        _workspace[dtype] = buf
+    return buf[: rows * cols].view(rows, cols)
+
+
+def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int,
+                 t_final: Tensor, last: Tensor, v_accum: Tensor, v_t: Tensor, kernel: str = "cpu") -> Tensor:
+    """Run the backward kernel and reduce per Gaussian (no autograd).
+
+    Args:
+        means2d .. bins, width, height as in :func:`forward_raw`; t_final [H, W] and last
+        [H, W] int32 from it; v_accum [H, W, F] and v_t [H, W] the cotangents.
+
+    Returns:
+        [N, 6 + F] per-Gaussian gradients (v_mx, v_my, v_a, v_b, v_c, v_opacity, v_features),
+        zero rows for Gaussians in no tile.
+    """
+    lib = load_library(kernel)
+    dt = means2d.dtype
+    suffix = _suffix(dt)
+    m, co, fe, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, features, opacities))
+    nf, n = fe.shape[1], m.shape[0]
+    v_accum = v_accum.to(dt).contiguous()
+    v_t = v_t.to(dt).contiguous()
+    t_final, last = t_final.contiguous(), last.contiguous()
+    if kernel == "cpu_v1":
+        v_pair = torch.zeros(bins.gauss.numel(), 6 + nf, dtype=dt)
+        _run_threaded(
+            getattr(lib, f"splat_backward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
+        )
+        return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
+    fp = _footprints(lib, co, op, suffix)
+    v = torch.zeros(n, 6 + nf, dtype=dt)
+    # trailing feature channels whose cotangent is zero everywhere are skipped (exact)
+    nz = torch.nonzero(v_accum.reshape(-1, nf).ne(0).any(0)).flatten()
+    n_active = int(nz[-1]) + 1 if nz.numel() else 0
+    with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
+        v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
+        _run_threaded(
+            getattr(lib, f"splat2_backward_{suffix}"),
+            bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(bins.pslot),
+            _ptr(v_pair),
+        )
+        _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
+                      6 + nf, _ptr(v_pair), _ptr(v))
+    return v
+
+
+@dataclass
+class KernelFunctions:
+    """The raw entries of one kernel (benchmarks and profiling)."""
+
+    tile_pairs: Callable[..., Bins]
+    forward_raw: Callable
+    backward_raw: Callable
+
+
+def backend_functions(kernel: str) -> KernelFunctions:
+    """Raw (no-autograd) entries of kernel ``kernel`` ("cpu" or "cpu_v1")."""
+    _kernel(kernel)
+    return KernelFunctions(
+        tile_pairs=lambda *a: bin_cpu(*a, kernel=kernel),
+        forward_raw=lambda *a: forward_raw(*a, kernel=kernel),
+        backward_raw=lambda *a: backward_raw(*a, kernel=kernel),
+    )
 
 
 class _BlendCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height):
-        accum, t_final, last, _ = forward_raw(
-            means2d, conics, features, opacities, offsets, gauss, tiles_x, tiles_y, width, height
-        )
+    def forward(ctx, means2d, conics, features, opacities, bins, width, height, kernel):
+        accum, t_final, last, _ = forward_raw(means2d, conics, features, opacities, bins, width, height, kernel)
         m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
-        ctx.save_for_backward(m, co, fe, op, offsets, gauss, t_final, last)
-        ctx.dims = (tiles_x, tiles_y, width, height, "f32" if m.dtype == torch.float32 else "f64")
+        ctx.save_for_backward(m, co, fe, op, t_final, last)
+        ctx.extra = (bins, width, height, kernel)
         return accum, t_final
 
     @staticmethod
     def backward(ctx, v_accum, v_t):
-        m, co, fe, op, offsets, gauss, t_final, last = ctx.saved_tensors
-        tiles_x, tiles_y, width, height, suffix = ctx.dims
-        lib = load_library()
-        dt, nf, n = m.dtype, fe.shape[1], m.shape[0]
-        v_accum = (torch.zeros(height, width, nf, dtype=dt) if v_accum is None else v_accum).contiguous().to(dt)
-        v_t = (torch.zeros(height, width, dtype=dt) if v_t is None else v_t).contiguous().to(dt)
-        v_pair = torch.zeros(gauss.numel(), 6 + nf, dtype=dt)
-        _run_threaded(
-            getattr(lib, f"splat_backward_{suffix}"),
-            tiles_x, tiles_y, width, height, nf, _ptr(offsets), _ptr(gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
-        )
-        v = torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, gauss, v_pair)
-        return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None, None, None
-
-
-def tile_pairs_cpu(
-    depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int
-) -> tuple[Tensor, Tensor, int, int]:
-    """:func:`splat_train._tiles.tile_pairs` with the list building in C (counting sort).
-
-    Same results; O(pairs) instead of a sort of all pairs.
-    """
-    lib = load_library()
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-    n_tiles = tiles_x * tiles_y
-    with torch.no_grad():
-        order = depth_order(depths, visible).contiguous()
-        r = rect.to(torch.int64).contiguous()
-        total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
-        offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
-        gauss = torch.empty(total, dtype=torch.int64)
-        lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
-    return offsets, gauss, tiles_x, tiles_y
+        m, co, fe, op, t_final, last = ctx.saved_tensors
+        bins, width, height, kernel = ctx.extra
+        dt, nf = m.dtype, fe.shape[1]
+        v_accum = torch.zeros(height, width, nf, dtype=dt) if v_accum is None else v_accum
+        v_t = torch.zeros(height, width, dtype=dt) if v_t is None else v_t
+        v = backward_raw(m, co, fe, op, bins, width, height, t_final, last, v_accum, v_t, kernel)
+        return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None
 
 
 def blend_cpu(
@@ -237,19 +354,18 @@ def blend_cpu(
     visible: Tensor,
     width: int,
     height: int,
+    kernel: str = "cpu",
 ) -> tuple[Tensor, Tensor]:
     """C++ tile blending with a hand-written backward (CPU tensors, float32 or float64).
 
     Arguments and results as :func:`splat_train._reference.blend_dense`: accum [H, W, F]
-    (no background) and final transmittance [H, W].
+    (no background) and final transmittance [H, W]. ``kernel``: "cpu" (SIMD) or "cpu_v1"
+    (the scalar kernel it replaced).
     """
     if means2d.device.type != "cpu":
         raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
-    if load_library() is None:
-        raise RuntimeError(f"CPU rasterizer kernel unavailable: {_error}; use backend='torch'")
-    offsets, gauss, tiles_x, tiles_y = tile_pairs_cpu(depths, rect, visible, width, height)
+    if load_library(kernel) is None:
+        raise RuntimeError(f"CPU rasterizer kernel {kernel!r} unavailable: {build_error(kernel)}; use backend='torch'")
+    bins = bin_cpu(depths, rect, visible, width, height, kernel)
     dt = means2d.dtype
-    return _BlendCPU.apply(
-        means2d, conics.to(dt), features.to(dt), opacities.to(dt),
-        offsets.contiguous(), gauss.contiguous(), tiles_x, tiles_y, width, height,
-    )
+    return _BlendCPU.apply(means2d, conics.to(dt), features.to(dt), opacities.to(dt), bins, width, height, kernel)

@@ -68,11 +68,17 @@ def position_lr(cfg: TrainConfig, iteration: int, extent: float) -> float:
 
 def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, extent: float
                    ) -> torch.optim.Adam:
-    """Adam with one named group per parameter at the PROTOCOL.md rates."""
+    """Adam with one named group per parameter at the PROTOCOL.md rates.
+
+    The fused implementation (one pass per parameter tensor) on CPU and CUDA floating-point
+    parameters: at 100k Gaussians on one CPU thread the default per-tensor loop took ~45 ms per
+    step, the fused one ~5 ms (issue 15, part 2). Same update rule, rounding differs.
+    """
     lrs = {"means": cfg.lr_position_init * extent, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
            "opacity": cfg.lr_opacity, "scales": cfg.lr_scaling, "quats": cfg.lr_rotation}
     groups = [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
-    return torch.optim.Adam(groups, lr=0.0, eps=cfg.adam_eps)
+    fused = all(params[k].device.type in ("cpu", "cuda") and params[k].is_floating_point() for k in PARAM_NAMES)
+    return torch.optim.Adam(groups, lr=0.0, eps=cfg.adam_eps, fused=fused or None)
 
 
 def activated(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

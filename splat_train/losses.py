@@ -108,6 +108,18 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
     return float("inf") if mse == 0.0 else -10.0 * math.log10(mse)
 
 
+def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train._cpu_ssim`) for CPU
+    float32/float64 images with a target that needs no gradient; the reference otherwise."""
+    if (render.device.type == "cpu" and target.device.type == "cpu" and not target.requires_grad
+            and render.dtype in (torch.float32, torch.float64) and render.shape == target.shape):
+        from splat_train import _cpu_ssim
+
+        if _cpu_ssim.available():
+            return _cpu_ssim.ssim_cpu(_to_bchw(render, "render"), _to_bchw(target, "target").to(render.dtype))
+    return ssim(render, target)
+
+
 def photometric_loss(
     render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -121,5 +133,5 @@ def photometric_loss(
         (loss, l1, ssim) scalars; loss carries the gradient.
     """
     l1 = l1_loss(render, target)
-    s = ssim(render, target)
+    s = _training_ssim(render, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s

@@ -29,7 +29,7 @@ __all__ = ["rasterize", "BACKENDS"]
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "cpu", "torch", "reference", "gsplat")
+BACKENDS = ("auto", "cpu", "cpu_v1", "torch", "reference", "gsplat")
 
 
 def _check(name: str, t: Tensor, shape: tuple) -> None:
@@ -56,6 +56,16 @@ def _choose_backend(backend: str, device: torch.device) -> str:
     return "torch"
 
 
+def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bool:
+    """Whether the "cpu" backend can use the fused C++ projection + SH: float32/float64 CPU
+    tensors and a camera that needs no gradient (pose refinement keeps the torch path)."""
+    if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
+        return False
+    from splat_train import _cpu_project
+
+    return _cpu_project.available()
+
+
 def blend(
     backend: str,
     means2d: Tensor,
@@ -68,7 +78,7 @@ def blend(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """Front-to-back blend projected Gaussians with one backend ("cpu", "torch", "reference").
+    """Front-to-back blend projected Gaussians with one backend ("cpu", "cpu_v1", "torch", "reference").
 
     Args/returns as :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no
     background) and final transmittance [H, W].
@@ -79,12 +89,13 @@ def blend(
         from splat_train import _tiles
 
         fn = _tiles.blend_tiles
-    elif backend == "cpu":
+    elif backend in ("cpu", "cpu_v1"):
         from splat_train import _cpu_kernel
 
-        fn = _cpu_kernel.blend_cpu
+        return _cpu_kernel.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
+                                     kernel=backend)
     else:
-        raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
+        raise ValueError(f"blend backend must be 'cpu', 'cpu_v1', 'torch' or 'reference', got {backend!r}")
     return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
 
 
@@ -119,8 +130,10 @@ def rasterize(
         background: [3] RGB behind everything (default black).
         sh_degree: None for plain colours, else 0..3.
         backend: "auto" (CPU kernel on CPU when it builds, gsplat on CUDA when installed, else
-            the vectorised tile code), "cpu", "torch", "reference" (dense, small scenes only)
-            or "gsplat".
+            the vectorised tile code), "cpu" (fused C++ projection + SH when the camera
+            needs no gradient, SIMD C++ blending), "cpu_v1" (torch projection and the scalar
+            C++ blending kernel they replaced, kept for comparisons), "torch", "reference" (dense, small
+            scenes only) or "gsplat".
         near_plane: Gaussians with camera z below this are culled.
 
     Returns:
@@ -174,13 +187,19 @@ def rasterize(
             background, sh_degree, near_plane,
         )
 
-    proj = project_gaussians(means, quats, scales, cam_from_world, K, width, height, near=near_plane, eps2d=EPS2D)
-    if sh_degree is None:
-        rgb_g = colors
+    if which == "cpu" and _fused_projection_ok(means, cam_from_world, K):
+        from splat_train import _cpu_project
+
+        proj, rgb_g = _cpu_project.project_sh_cpu(
+            means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D)
     else:
-        cw = cam_from_world.to(dt)
-        cam_center = -cw[:3, :3].T @ cw[:3, 3]
-        rgb_g = sh_to_color(sh_degree, colors, means, cam_center)
+        proj = project_gaussians(means, quats, scales, cam_from_world, K, width, height, near=near_plane, eps2d=EPS2D)
+        if sh_degree is None:
+            rgb_g = colors
+        else:
+            cw = cam_from_world.to(dt)
+            cam_center = -cw[:3, :3].T @ cw[:3, 3]
+            rgb_g = sh_to_color(sh_degree, colors, means, cam_center)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -11,6 +11,7 @@ the error-against-run-time record.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -41,6 +42,17 @@ class RunLog:
 
     def set_last(self, column: str, value: float) -> None:
         self.rows[column][-1] = float(value)
+
+    def test_curve(self) -> dict[str, Any]:
+        """The held-out PSNR curve: ``{"iterations": [...], "test_psnr": [...], "best_iteration",
+        "best_test_psnr", "last_iteration", "last_test_psnr"}`` over the rows that have one (in a
+        sparse-view run held-out PSNR can peak early, so the best is kept beside the last);
+        empty lists and None when no row does."""
+        pairs = [(int(i), p) for i, p in zip(self.rows["iteration"], self.rows["test_psnr"]) if np.isfinite(p)]
+        best = max(pairs, key=lambda x: x[1]) if pairs else (None, None)
+        return {"iterations": [i for i, _ in pairs], "test_psnr": [p for _, p in pairs],
+                "best_iteration": best[0], "best_test_psnr": best[1],
+                "last_iteration": pairs[-1][0] if pairs else None, "last_test_psnr": pairs[-1][1] if pairs else None}
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {c: torch.tensor(v, dtype=torch.float64) for c, v in self.rows.items()}

@@ -283,6 +283,7 @@ class Trainer:
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
             "device": str(self.dev), "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "schedule": self.sched.to_dict(), "config": cfg.to_dict(),
+            "test_curve": self.log.test_curve(),
         }
         if self.pose is not None:
             d = self.pose.delta.detach().cpu()

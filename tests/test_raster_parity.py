@@ -16,7 +16,7 @@ from splat_train._cpu_kernel import available as kernel_available
 from splat_train._tiles import tile_pairs
 from splat_train.projection import project_gaussians
 
-FAST = ["torch"] + (["cpu"] if kernel_available() else [])
+FAST = ["torch"] + (["cpu", "cpu_v1"] if kernel_available() else [])
 
 
 def make_scene(kind: str, seed: int, dtype=torch.float64, sh_degree=None):
@@ -72,10 +72,10 @@ def render(params, cw, K, W, H, backend, sh_degree=None):
     )
 
 
-def grads_with_cotangents(out, params, seed):
+def grads_with_cotangents(out, params, seed, keys=("rgb", "alpha", "depth")):
     g = torch.Generator().manual_seed(seed)
     loss = 0.0
-    for key in ("rgb", "alpha", "depth"):
+    for key in keys:
         loss = loss + (out[key] * torch.randn(out[key].shape, generator=g, dtype=out[key].dtype)).sum()
     inputs = list(params.values()) + [out["means2d"]]
     return torch.autograd.grad(loss, inputs, allow_unused=True)
@@ -103,6 +103,20 @@ def test_fast_matches_reference_float64(backend, kind, sh_degree):
 
 
 @pytest.mark.parametrize("backend", FAST)
+def test_fast_matches_reference_without_depth_loss(backend):
+    """A photometric loss leaves the depth channel's cotangent zero, which the "cpu" kernel's
+    backward skips: gradients still equal the reference (float64)."""
+    params, cw, K, W, H = make_scene("overlap", seed=21, sh_degree=3)
+    ref = render(params, cw, K, W, H, "reference", 3)
+    out = render(params, cw, K, W, H, backend, 3)
+    g_ref = grads_with_cotangents(ref, params, 3, keys=("rgb", "alpha"))
+    g_out = grads_with_cotangents(out, params, 3, keys=("rgb", "alpha"))
+    for name, a, b in zip(list(params) + ["means2d"], g_out, g_ref):
+        assert b is not None and b.abs().max() > 0, name
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9 * (1 + b.abs().max().item()), msg=name)
+
+
+@pytest.mark.parametrize("backend", FAST)
 def test_fast_matches_reference_float32(backend):
     params64, cw, K, W, H = make_scene("overlap", seed=3, sh_degree=2)
     params = {k: v.detach().float().requires_grad_(True) for k, v in params64.items()}
@@ -125,19 +139,26 @@ def test_early_stop_happens_and_matches():
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
-def test_cpu_kernel_deterministic_across_threads():
-    params, cw, K, W, H = make_scene("overlap", seed=5)
-    old = torch.get_num_threads()
+@pytest.mark.parametrize("kernel", ["cpu", "cpu_v1"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpu_kernel_deterministic_across_threads(kernel, dtype):
+    """Bit-identical image and gradients for 1, 2 and 3 kernel threads and on a repeat: tiles
+    write disjoint pair rows and each Gaussian's pairs are summed in a fixed order."""
+    from splat_train import _cpu_kernel
+
+    params, cw, K, W, H = make_scene("overlap", seed=5, dtype=dtype, sh_degree=2)
     results = []
     try:
-        for nt in (1, 2):
-            torch.set_num_threads(nt)
-            out = render(params, cw, K, W, H, "cpu")
+        for nt in (1, 2, 3, 2):
+            _cpu_kernel.set_kernel_threads(nt)
+            out = render(params, cw, K, W, H, kernel, 2)
             results.append([out["rgb"].detach(), *grads_with_cotangents(out, params, 2)])
     finally:
-        torch.set_num_threads(old)
-    for a, b in zip(*results):
-        assert torch.equal(a, b)
+        _cpu_kernel.set_kernel_threads(None)
+    assert results[0][0].abs().sum() > 0
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert torch.equal(a, b)
 
 
 def test_tile_pairs_front_to_back_and_complete():
@@ -163,5 +184,24 @@ def test_cpu_binning_matches_torch_binning():
     params, cw, K, W, H = make_scene("overlap", seed=9)
     proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
     a = tile_pairs(proj.depths, proj.rect, proj.visible, W, H)
-    b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H)
-    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+    for kernel in ("cpu", "cpu_v1"):
+        b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H, kernel=kernel)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+
+
+@pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
+def test_cpu_radix_depth_order_matches_stable_sort():
+    """float32 depths (the radix path) with ties, negative and invisible entries: the same
+    indices as torch's stable sort (ties by index)."""
+    from splat_train._cpu_kernel import _depth_order, load_library
+    from splat_train._reference import depth_order
+
+    g = torch.Generator().manual_seed(3)
+    d = torch.randint(-50, 50, (5000,), generator=g).float() * 0.37
+    d[::7] = 1.0
+    d[1] = 0.0
+    d[5] = -0.0
+    vis = torch.rand(5000, generator=g) > 0.2
+    got = _depth_order(load_library("cpu"), d, vis)
+    assert torch.equal(got, depth_order(d, vis))
+    assert _depth_order(load_library("cpu"), d, torch.zeros(5000, dtype=torch.bool)).numel() == 0

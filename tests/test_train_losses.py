@@ -91,3 +91,33 @@ def test_photometric_loss_combination_and_psnr():
     assert psnr(a, a) == float("inf")
     mse = float(((a - b) ** 2).mean())
     assert psnr(a, b) == pytest.approx(-10 * np.log10(mse), abs=1e-9)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+@pytest.mark.parametrize("shape", [(1, 3, 37, 53), (2, 3, 9, 12), (1, 1, 5, 30)])
+def test_cpu_ssim_matches_reference(dtype, tol, shape):
+    """The C++ SSIM of the training loss: value and gradient as the conv2d reference (float64
+    to 1e-12, float32 to 2e-5 relative to the largest gradient entry), including images
+    smaller than the 11 x 11 window in one direction (every column / row is a border)."""
+    from splat_train import _cpu_ssim
+
+    if not _cpu_ssim.available():
+        pytest.skip("SSIM kernel did not build")
+    g = torch.Generator().manual_seed(sum(shape))
+    a = torch.rand(*shape, generator=g, dtype=dtype, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.randn(*shape, generator=g, dtype=dtype)).clamp(0, 1)
+    ref = ssim(a, b)
+    (g_ref,) = torch.autograd.grad(ref, a)
+    got = _cpu_ssim.ssim_cpu(a, b)
+    (g_got,) = torch.autograd.grad(3.0 * got, a)
+    torch.testing.assert_close(got, ref, rtol=tol, atol=tol)
+    torch.testing.assert_close(g_got, 3.0 * g_ref, rtol=tol, atol=tol * g_ref.abs().max().item())
+
+
+def test_training_loss_uses_the_same_ssim_as_the_reference():
+    g = torch.Generator().manual_seed(7)
+    render = torch.rand(20, 30, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(20, 30, 3, generator=g, dtype=torch.float64)
+    loss, l1, s = photometric_loss(render, target, 0.2)
+    torch.testing.assert_close(s, ssim(render, target), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(loss, 0.8 * l1 + 0.2 * (1 - ssim(render, target)), rtol=1e-12, atol=1e-12)

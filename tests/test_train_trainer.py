@@ -183,3 +183,17 @@ def test_kernel_threads_default_to_every_cpu_and_results_do_not_depend_on_them(s
     monkeypatch.setenv("SPLAT_TRAIN_KERNEL_THREADS", "3")
     assert _cpu_kernel.kernel_threads() == 3
     _cpu_kernel.set_kernel_threads(None)
+
+
+def test_runlog_test_curve_keeps_best_and_last():
+    from splat_train.runlog import RunLog
+
+    log = RunLog()
+    for it, p in [(1, float("nan")), (200, 12.0), (400, 14.5), (401, float("nan")), (600, 13.0)]:
+        log.append(iteration=it, wall_time_s=0.0, loss=0.0, l1=0.0, ssim=0.0, train_psnr=0.0, num_gaussians=1,
+                   test_psnr=p)
+    c = log.test_curve()
+    assert c["iterations"] == [200, 400, 600] and c["test_psnr"] == [12.0, 14.5, 13.0]
+    assert (c["best_iteration"], c["best_test_psnr"]) == (400, 14.5)
+    assert (c["last_iteration"], c["last_test_psnr"]) == (600, 13.0)
+    assert RunLog().test_curve()["best_iteration"] is None

@@ -1,0 +1,112 @@
+"""Where one rasterizer forward+backward spends its time, stage by stage (issue 15, part 1).
+
+Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (best of
+``--reps``) on the synthetic scene of ``bench_rasterizer.py`` (SH degree 3):
+
+* ``project``: EWA projection with autograd graph (float64 maths), forward only; for the
+  "cpu" backend the fused C++ projection + SH (``_cpu_project``), forward only;
+* ``sh``: SH degree-3 colour, forward only (torch; 0 for "cpu", fused into ``project``);
+* ``bin``: depth sort + tile lists (``tile_pairs_cpu``);
+* ``blend_fwd`` / ``blend_bwd``: the C++ blending kernel forward / backward (raw entries,
+  including the per-pair gradient reduction);
+* ``total_fwd`` / ``total_fwd_bwd``: the whole ``rasterize`` call and its backward
+  (``loss = sum(rgb) + sum(alpha)``); ``autograd_rest`` = total minus the stages above, i.e.
+  the backward of projection and SH plus glue.
+
+    python benchmarks/profile_rasterizer.py --sizes 100000x256 100000x512 --backend cpu
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench_rasterizer import make_scene  # noqa: E402
+
+
+def _best(fn, reps: int) -> float:
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def profile(n: int, size: int, backend: str, reps: int) -> dict[str, float]:
+    """Seconds per stage (best of ``reps``) for N Gaussians at size x size."""
+    from splat_train import _cpu_kernel, rasterize
+    from splat_train.projection import project_gaussians
+    from splat_train.sh import sh_to_color
+
+    params, K = make_scene(n, size, size)
+    means, quats, scales, opac, sh = params
+    eye = torch.eye(4)
+    res: dict[str, float] = {}
+    if backend == "cpu":
+        from splat_train._cpu_project import project_sh_cpu
+
+        res["project"] = _best(lambda: project_sh_cpu(means, quats, scales, sh, 3, eye, K, size, size, 0.01, 0.3), reps)
+        res["sh"] = 0.0
+    else:
+        res["project"] = _best(lambda: project_gaussians(means, quats, scales, eye, K, size, size), reps)
+        res["sh"] = _best(lambda: sh_to_color(3, sh, means, torch.zeros(3)), reps)
+    with torch.no_grad():
+        proj = project_gaussians(means, quats, scales, eye, K, size, size)
+        feats = torch.cat([sh_to_color(3, sh, means, torch.zeros(3)), proj.depths[:, None]], 1).contiguous()
+    fns = _cpu_kernel.backend_functions(backend)
+    res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size), reps)
+    bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size)
+    fwd = lambda: fns.forward_raw(proj.means2d, proj.conics, feats, opac.detach(), bins, size, size)  # noqa: E731
+    res["blend_fwd"] = _best(fwd, reps)
+    accum, t_final, last, _ = fwd()
+    v_acc, v_t = torch.ones_like(accum), -torch.ones_like(t_final)
+    res["blend_bwd"] = _best(lambda: fns.backward_raw(proj.means2d, proj.conics, feats, opac.detach(), bins,
+                                                       size, size, t_final, last, v_acc, v_t), reps)
+
+    def whole(do_bwd: bool) -> None:
+        for p in params:
+            p.grad = None
+        out = rasterize(*params, eye, K, size, size, torch.zeros(3), sh_degree=3, backend=backend)
+        if do_bwd:
+            (out["rgb"].sum() + out["alpha"].sum()).backward()
+
+    res["total_fwd"] = _best(lambda: whole(False), reps)
+    res["total_fwd_bwd"] = _best(lambda: whole(True), reps)
+    res["autograd_rest"] = res["total_fwd_bwd"] - sum(res[k] for k in ("project", "sh", "bin", "blend_fwd", "blend_bwd"))
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", nargs="+", default=["100000x256", "100000x512"], help="NxSIZE")
+    ap.add_argument("--backend", nargs="+", default=["cpu"])
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (the kernel uses --kernel-threads)")
+    ap.add_argument("--kernel-threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    from splat_train import _cpu_kernel
+
+    _cpu_kernel.set_kernel_threads(args.kernel_threads)
+    print(f"load average {os.getloadavg()}, torch threads {args.threads}, kernel threads {args.kernel_threads}")
+    keys = ["project", "sh", "bin", "blend_fwd", "blend_bwd", "autograd_rest", "total_fwd", "total_fwd_bwd"]
+    print(f"{'backend':>8} {'case':>12} " + " ".join(f"{k:>13}" for k in keys) + "  (ms)")
+    for s in args.sizes:
+        n, size = (int(x) for x in s.split("x"))
+        for b in args.backend:
+            r = profile(n, size, b, args.reps)
+            print(f"{b:>8} {s:>12} " + " ".join(f"{1e3 * r[k]:>13.1f}" for k in keys))
+    print(f"load average {os.getloadavg()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

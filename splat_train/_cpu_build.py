@@ -1,0 +1,187 @@
+"""Build, load and run the C++ CPU kernels of :mod:`splat_train` (shared machinery).
+
+Each kernel is one C++ source with a plain C ABI and no torch headers or OpenMP, compiled with
+the system compiler (``$CXX``, else ``c++`` / ``g++``) on first use into a cache folder
+(``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
+source, compiler and flags (:mod:`camio.cbuild`), and loaded with ctypes. SIMD flags are chosen
+at load time from the CPU's flags (``/proc/cpuinfo``): AVX-512 (F, DQ, BW, VL) where present,
+else AVX2 + FMA, else none (SSE2, the x86-64 baseline, or the target's default); if that build
+fails, the next level down is tried. ``$SPLAT_TRAIN_KERNEL_SIMD`` = ``avx512`` | ``avx2`` |
+``none`` overrides; ``$SPLAT_TRAIN_KERNEL_FLAGS`` adds flags; ``SPLAT_TRAIN_NO_KERNEL=1``
+disables every kernel (callers then use the torch code).
+
+Threads: :func:`kernel_threads` Python threads run the same C entry and share an atomic work
+counter (ctypes drops the GIL; no OpenMP runtime, so no spinning worker threads competing with
+torch's on a loaded machine). Registered kernels: ``cpu`` and ``cpu_v1``
+(:mod:`splat_train._cpu_kernel`), ``project`` (:mod:`splat_train._cpu_project`), ``ssim``
+(:mod:`splat_train._cpu_ssim`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import subprocess
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from camio.cbuild import build_shared, find_compiler
+
+__all__ = ["KERNEL_REGISTRY", "Kernel", "set_kernel_threads", "kernel_threads", "run_threaded", "ptr", "suffix"]
+
+log = logging.getLogger(__name__)
+
+_HERE = Path(__file__).parent
+_BASE_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-Wno-psabi"]
+_SIMD_FLAGS = {
+    "avx512": ["-mavx512f", "-mavx512dq", "-mavx512bw", "-mavx512vl", "-mavx2", "-mfma",
+               "-mprefer-vector-width=512"],
+    "avx2": ["-mavx2", "-mfma"],
+    "none": [],
+}
+def _cpu_flags() -> set[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def _simd_choices() -> list[str]:
+    """SIMD levels to try, best first (the last one is always the portable build)."""
+    env = os.environ.get("SPLAT_TRAIN_KERNEL_SIMD")
+    if env:
+        if env not in _SIMD_FLAGS:
+            raise ValueError(f"SPLAT_TRAIN_KERNEL_SIMD must be one of {sorted(_SIMD_FLAGS)}, got {env!r}")
+        return [env]
+    flags = _cpu_flags()
+    out = []
+    if {"avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma"} <= flags:
+        out.append("avx512")
+    if {"avx2", "fma"} <= flags:
+        out.append("avx2")
+    return out + ["none"]
+
+
+def _extra_flags() -> list[str]:
+    return os.environ.get("SPLAT_TRAIN_KERNEL_FLAGS", "").split()
+
+
+class Kernel:
+    """One kernel source: build (cached), load once, declare the ctypes signatures."""
+
+    def __init__(self, name: str, source: str, abi: int, simd: bool, abi_fn: str, declare: Callable) -> None:
+        self.name, self.source, self.abi, self.simd = name, _HERE / source, abi, simd
+        self.abi_fn, self.declare = abi_fn, declare
+        self.lib: ctypes.CDLL | None = None
+        self.error: str | None = None
+        self.tried = False
+        self.lock = threading.Lock()
+
+    def load(self) -> ctypes.CDLL | None:
+        with self.lock:
+            if self.tried:
+                return self.lib
+            self.tried = True
+            if os.environ.get("SPLAT_TRAIN_NO_KERNEL"):
+                self.error = "disabled by SPLAT_TRAIN_NO_KERNEL"
+                return None
+            cxx = find_compiler()
+            if cxx is None:
+                self.error = "no C++ compiler found (set $CXX or install g++)"
+                log.warning("CPU rasterizer kernel %r unavailable: %s; using the slower torch tile path",
+                            self.name, self.error)
+                return None
+            errors = []
+            for level in (_simd_choices() if self.simd else ["none"]):
+                flags = _BASE_FLAGS + _SIMD_FLAGS[level] + _extra_flags()
+                try:
+                    lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx)))
+                    version = getattr(lib, self.abi_fn)()
+                    if version != self.abi:
+                        raise RuntimeError(f"kernel ABI version mismatch ({version} != {self.abi})")
+                except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+                    errors.append(f"{level}: {exc}")
+                    continue
+                self.lib = self.declare(lib)
+                if errors:
+                    log.warning("CPU kernel %r: SIMD build failed (%s); using %s", self.name, errors, level)
+                return self.lib
+            self.error = "; ".join(errors)
+            log.warning("CPU rasterizer kernel %r unavailable (%s); using the slower torch tile path",
+                        self.name, self.error)
+            return None
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("SPLAT_TRAIN_KERNEL_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "splat_train" / "kernels"
+
+
+def ptr(t: Tensor) -> int:
+    return t.data_ptr()
+
+
+_pool: ThreadPoolExecutor | None = None
+_threads: int | None = None
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Threads for the C++ kernel (None: follow ``torch.get_num_threads()``)."""
+    global _threads
+    _threads = None if n is None else max(1, int(n))
+
+
+def kernel_threads() -> int:
+    """Threads of the C++ kernel: ``$SPLAT_TRAIN_KERNEL_THREADS`` if set, else the count given
+    to :func:`set_kernel_threads`, else ``torch.get_num_threads()``. The kernel's threads block
+    in C (no spinning OpenMP workers), so it can use more threads than torch's intra-op pool:
+    with torch at 1 thread, 2 kernel threads made forward+backward of 50k Gaussians at 497x372
+    1.85x faster (0.672 -> 0.364 s) here (scalar kernel, now "cpu_v1")."""
+    env = os.environ.get("SPLAT_TRAIN_KERNEL_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError as exc:
+            raise ValueError(f"SPLAT_TRAIN_KERNEL_THREADS must be an integer, got {env!r}") from exc
+    return _threads if _threads is not None else max(1, torch.get_num_threads())
+
+
+def run_threaded(fn, *args) -> None:
+    """Run a kernel entry on :func:`kernel_threads` threads sharing one work counter.
+
+    ctypes drops the GIL during the call, so the threads run the C code concurrently.
+    """
+    global _pool
+    nthreads = kernel_threads()
+    counter = ctypes.c_int64(0)
+    cptr = ctypes.addressof(counter)
+    if nthreads == 1:
+        fn(*args, cptr)
+        return
+    if _pool is None or _pool._max_workers < nthreads:
+        _pool = ThreadPoolExecutor(max_workers=nthreads, thread_name_prefix="splat_cpu")
+    futures = [_pool.submit(fn, *args, cptr) for _ in range(nthreads - 1)]
+    fn(*args, cptr)
+    for f in futures:
+        f.result()
+
+
+def suffix(dt: torch.dtype) -> str:
+    suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dt)
+    if suffix is None:
+        raise TypeError(f"CPU kernel supports float32 and float64, got {dt}")
+    return suffix
+
+
+
+
+KERNEL_REGISTRY: dict[str, Kernel] = {}
