@@ -35,7 +35,7 @@ VIEWS_SCRIPT = str(
 )
 
 # Formats whose source carries reference cameras.
-_REFERENCE_FORMATS = ("colmap", "llff", "transforms")
+_REFERENCE_FORMATS = ("colmap", "llff", "transforms", "dtu", "mvsnet", "strecha")
 _DISTORTED = (
     "SIMPLE_RADIAL",
     "RADIAL",
@@ -78,21 +78,19 @@ def all_scenes():
 
 
 def source_format(dataset, scene):
-    """The source format, 'auto' resolved by looking at the source folder."""
+    """The source format, 'auto' resolved by camio's detection (the camera files present)."""
     cfg = scene_cfg(dataset, scene)
     if "synth" in cfg:
         return "synth"
     fmt = cfg["format"]
     if fmt != "auto":
         return fmt
-    src = Path(cfg["path"])
-    if (src / "sparse").is_dir() or (src / "cameras.txt").is_file():
-        return "colmap"
-    if (src / "poses_bounds.npy").is_file():
-        return "llff"
-    if (src / "transforms.json").is_file():
-        return "transforms"
-    return "folder"
+    from camio.scene import detect_format
+
+    try:
+        return detect_format(cfg["path"])
+    except ValueError as exc:
+        raise WorkflowError(f"datasets.{dataset}.scenes.{scene}: {exc}")
 
 
 def has_reference(dataset, scene):
@@ -108,21 +106,6 @@ def has_gt_geometry(dataset, scene):
     return "synth" in scene_cfg(dataset, scene)
 
 
-def _source_camera_models(src):
-    """COLMAP camera model names of a source COLMAP model ([] if none is readable)."""
-    import pycolmap
-
-    for cand in (src / "sparse" / "0", src / "sparse", src):
-        if any((cand / f"cameras.{e}").is_file() for e in ("txt", "bin")):
-            rec = pycolmap.Reconstruction()
-            try:
-                rec.read(str(cand))
-            except Exception:  # an unreadable model is the converter's error to report
-                return []
-            return [c.model.name for c in rec.cameras.values()]
-    return []
-
-
 def needs_undistort(dataset, scene):
     """Undistort only distorted data: explicit config, else the source model's cameras."""
     cfg = scene_cfg(dataset, scene)
@@ -130,9 +113,9 @@ def needs_undistort(dataset, scene):
         return False
     if cfg["undistort"] != "auto":
         return bool(cfg["undistort"])
-    if source_format(dataset, scene) != "colmap":
-        return False
-    return any(m in _DISTORTED for m in _source_camera_models(Path(cfg["path"])))
+    from camio.datasets import source_camera_models
+
+    return any(m in _DISTORTED for m in source_camera_models(cfg["path"]))
 
 
 def prepare_kind(dataset, scene):
@@ -167,6 +150,10 @@ def convert_args(wildcards):
         args.append(f"--images-subdir {cfg['images_subdir']}")
     if cfg["downsample"] > 1:
         args.append(f"--downsample {cfg['downsample']}")
+    if cfg["skip_missing"]:
+        args.append("--skip-missing")
+    if cfg["allow_mixed"]:
+        args.append("--allow-mixed")
     return " ".join(args)
 
 
