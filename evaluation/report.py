@@ -24,7 +24,7 @@ import pandas as pd
 from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
 from evaluation.plots import run_plots
-from evaluation.pose import GateConfig
+from evaluation.pose import GateConfig, success_criteria_text
 from evaluation.results import collect_runs, find_file, run_label
 from evaluation.tables import build_tables
 
@@ -148,11 +148,8 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         tables = build_tables(runs, gate)
         parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
                  f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
-                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. Success (paper): "
-                 ">= 1 registered image and >= 1 point, and >= "
-                 f"{gate.min_aligned_views} registered training views. Success (gated): also ATE &lt; "
-                 f"{100 * gate.max_ate_rel_radius:g}% of the trajectory radius and mean relative rotation "
-                 f"error &lt; {gate.max_rel_rot_deg:g} deg.</p>"]
+                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
+                 + " ".join(success_criteria_text(gate, html=True)) + "</p>"]
         for title, df in tables.items():
             parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
         parts.append("<h2>Error against run time</h2>")

@@ -29,6 +29,9 @@ SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
+# COLMAP baseline threads: the configured count, or every core snakemake was given.
+COLMAP_THREADS = config["colmap"]["threads"] or max(1, int(workflow.cores or 1))
+
 # The workflow's own helper script, found from the workflow (any working directory works).
 VIEWS_SCRIPT = str(
     (Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve()
@@ -389,7 +392,7 @@ def run_targets(dataset, scene, n, init, stage):
     aligned = True
     if init == "colmap":
         status = colmap_status(dataset, scene, n)
-        if not status["success"]:
+        if not status.get("success_paper", status.get("success")):
             return out
         aligned = status["aligned_ok"]
     if ref and stage in ("pose", "all"):

@@ -39,7 +39,7 @@ rule colmap_baseline:
         f"{SCENE}/n{{n}}/colmap/benchmarks/colmap_baseline.tsv"
     conda:
         "../envs/project.yaml"
-    threads: 1
+    threads: COLMAP_THREADS
     resources:
         mem_mb=4000,
     params:
@@ -47,7 +47,8 @@ rule colmap_baseline:
         args=colmap_args,
     shell:
         "python -m evaluation.colmap_baseline --images {input.scene}/images "
-        "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
+        "--image-list {input.image_list} --out {params.out} --threads {threads} "
+        "{params.args} > {log} 2>&1"
 
 
 checkpoint colmap_index:

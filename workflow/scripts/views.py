@@ -62,11 +62,13 @@ def link_images(names: list[str], images: str | Path, out: str | Path) -> None:
 def index_status(paths: list[str], out: str | Path) -> dict:
     """{path: status} of COLMAP runs, with a success count, written to ``out``."""
     runs = {p: json.loads(Path(p).read_text()) for p in paths}
-    keys = ("success", "aligned_ok", "registered", "n_images", "points", "reason")
+    keys = ("success_paper", "aligned_ok", "registered", "n_images", "points", "reason", "num_threads")
+    # success_paper (docs/contracts.md); files written before the rename call it "success"
+    ok = {p: bool(s.get("success_paper", s.get("success", False))) for p, s in runs.items()}
     data = {
         "n_runs": len(runs),
-        "n_success": sum(bool(s.get("success")) for s in runs.values()),
-        "runs": {p: {k: s.get(k) for k in keys} for p, s in runs.items()},
+        "n_success_paper": sum(ok.values()),
+        "runs": {p: {**{k: s.get(k) for k in keys}, "success_paper": ok[p]} for p, s in runs.items()},
     }
     write_json(out, data)
     return data
