@@ -8,6 +8,7 @@ Layout of the outputs (R = config["results"]):
     R/{dataset}/{scene}/test_images/                      links to the held-out images
     R/{dataset}/{scene}/n{n}/{init}/                      initialiser output (sparse/0, status.json)
     R/{dataset}/{scene}/n{n}/{init}/pose.json             pose accuracy (reference cameras only)
+    R/initialisers.json                                   configured initialisers a scene cannot have
     R/{dataset}/{scene}/n{n}/{init}/{mode}/bridge/        seed.ply, bridge.json, sparse/0
     R/{dataset}/{scene}/n{n}/{init}/{mode}/align/         test cameras in the model frame
     R/{dataset}/{scene}/n{n}/{init}/{mode}/train/         model.ply, log.parquet, train.json
@@ -18,6 +19,8 @@ Layout of the outputs (R = config["results"]):
 """
 
 import json
+
+from snakemake.logging import logger
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -56,7 +59,7 @@ wildcard_constraints:
     dataset=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     scene=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     n=r"\d+",
-    init=r"vggt|colmap|oracle",
+    init=r"vggt|colmap|oracle|posed",
     mode=r"gated|uniform|filtered",
 
 
@@ -210,15 +213,52 @@ def scene_views(dataset, scene):
     return cfg.get("views", config["views"])
 
 
+_NOT_APPLICABLE = {
+    "oracle": (has_gt_geometry, "it needs ground-truth depth (synthetic scenes only)"),
+    "posed": (has_reference, "it needs reference cameras and the scene has none"),
+}
+_told = set()
+
+
 def scene_inits(dataset, scene):
-    """Initialisers that apply: the oracle needs ground-truth geometry."""
+    """Initialisers that apply: the oracle needs ground-truth geometry, ``posed`` reference
+    cameras. A configured one that does not apply is named once in the log (and in
+    R/initialisers.json, which the report lists)."""
     inits = scene_cfg(dataset, scene).get("initialisers", config["initialisers"])
-    return [i for i in inits if i != "oracle" or has_gt_geometry(dataset, scene)]
+    out = []
+    for i in inits:
+        check, why = _NOT_APPLICABLE.get(i, (None, None))
+        if check is not None and not check(dataset, scene):
+            if (dataset, scene, i) not in _told:
+                _told.add((dataset, scene, i))
+                logger.warning(
+                    f"{dataset}/{scene}: initialiser '{i}' is not run: {why}"
+                )
+            continue
+        out.append(i)
+    return out
+
+
+def skipped_initialisers(wildcards=None):
+    """[{dataset, scene, init, reason}] of configured initialisers that do not apply."""
+    out = []
+    for ds, sc in all_scenes():
+        inits = scene_cfg(ds, sc).get("initialisers", config["initialisers"])
+        for i in inits:
+            check, why = _NOT_APPLICABLE.get(i, (None, None))
+            if check is not None and not check(ds, sc):
+                out.append({"dataset": ds, "scene": sc, "init": i, "reason": why})
+    return out
+
+
+def skipped_initialisers_json(wildcards=None):
+    """:func:`skipped_initialisers` as a JSON string (a rule parameter)."""
+    return json.dumps(skipped_initialisers())
 
 
 def init_modes(init):
-    """Bridge modes of an initialiser: COLMAP has no confidence, so uniform only."""
-    return ["uniform"] if init == "colmap" else config["bridge"]["modes"]
+    """Bridge modes of an initialiser: COLMAP and posed have no confidence, so uniform only."""
+    return ["uniform"] if init in ("colmap", "posed") else config["bridge"]["modes"]
 
 
 # ----------------------------------------------------------------------------- stages
@@ -268,6 +308,14 @@ def oracle_args(wildcards):
     )
 
 
+def posed_args(wildcards):
+    o = config["posed"]
+    return " ".join(
+        f"--{k.replace('_', '-')} {o[k]}"
+        for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")
+    )
+
+
 def bridge_args(wildcards):
     b = config["bridge"]
     args = [f"--mode {wildcards.mode}"]
@@ -299,7 +347,7 @@ def has_heldout(wildcards):
 
 def init_marker_of(init):
     """The file that marks a finished initialiser run: VGGT writes timing.json, the COLMAP
-    baseline and the oracle status.json."""
+    baseline, the oracle and posed status.json."""
     return "timing.json" if init == "vggt" else "status.json"
 
 

@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("index", help="gather COLMAP status.json files into one JSON")
     c.add_argument("--status", nargs="*", default=[])
     c.add_argument("--out", required=True)
+    d = sub.add_parser("notes", help="write the configured initialisers a scene cannot have")
+    d.add_argument("--skipped", required=True, help="JSON list of {dataset, scene, init, reason}")
+    d.add_argument("--out", required=True)
     args = p.parse_args(argv)
     setup_logging()
     t0 = time.perf_counter()
@@ -102,9 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         names = split_names(args.split, args.which, args.n)
         link_images(names, args.images, args.out)
         log.info("linked %d %s images into %s", len(names), args.which, args.out)
+    elif args.cmd == "notes":
+        skipped = json.loads(args.skipped)
+        write_json(args.out, {"skipped": skipped})
+        log.info("%d configured initialiser(s) not applicable: %s", len(skipped),
+                 "; ".join(f"{s['init']} on {s['dataset']}/{s['scene']} ({s['reason']})" for s in skipped) or "-")
     else:
         data = index_status(args.status, args.out)
-        log.info("COLMAP: %d of %d runs succeeded", data["n_success"], data["n_runs"])
+        log.info("COLMAP: %d of %d runs succeeded (success_paper)", data["n_success_paper"], data["n_runs"])
     log.info("done in %.2f s", time.perf_counter() - t0)
     return 0
 
