@@ -118,6 +118,9 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
         opts.num_threads = num_threads
         opts.random_seed = seed
         opts.triangulation.random_seed = seed
+        # sparse views: most tracks span two images; COLMAP's default drops those (it expects
+        # a dense capture), which leaves a handful of points from 3 wide-baseline views
+        opts.triangulation.ignore_two_view_tracks = False
         out = work / "triangulated"
         out.mkdir()
         tri = pycolmap.triangulate_points(rec, db, images, out, clear_points=True, options=opts,

@@ -49,7 +49,8 @@ def test_exact_cameras_and_points_on_the_surface(scene, exact):
     for c in model.cameras:
         xy, idx = model.observations[c.name]
         uv, z = project_points(model.points[idx], c.K, c.cam_from_world)
-        assert np.nanmax(np.linalg.norm(uv - xy, axis=1)) < 2.0
+        err = np.linalg.norm(uv - xy, axis=1)
+        assert np.nanmax(err) < 4.0 and np.nanmedian(err) < 0.5  # COLMAP's 4 px filter; typically sub-pixel
         depth = np.load(scene / "gt" / "depth" / f"{c.name[:-4]}.npy")
         col = np.clip(xy[:, 0].astype(int), 0, c.width - 1)
         row = np.clip(xy[:, 1].astype(int), 0, c.height - 1)
