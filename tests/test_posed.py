@@ -77,3 +77,19 @@ def test_cli_refuses_a_scene_without_reference(scene, tmp_path):
     r = subprocess.run([sys.executable, "-m", "evaluation.posed", "--scene", str(tmp_path / "s"),
                         "--names", *TRAIN, "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2 and "no reference cameras" in r.stderr and not (tmp_path / "o").exists()
+
+
+SHARED = __import__("pathlib").Path(__file__).parents[1].parent / "shared" / "data" / "scenes"
+
+
+@pytest.mark.shared_data
+@pytest.mark.skipif(not (SHARED / "strecha__fountain-P11").is_dir(), reason="../shared/data/scenes not present")
+def test_real_posed_scene(tmp_path):
+    """fountain-P11 (LIDAR-calibrated cameras): 3 training views give hundreds of points."""
+    from camio.prepare import prepare_scene
+
+    scene = prepare_scene(SHARED / "strecha__fountain-P11", tmp_path / "scene", ns=(3,))
+    train = json.loads((scene / "split.json").read_text())["train"]["3"]
+    status = run_posed(scene, train, tmp_path / "posed")
+    assert status["success_paper"] and status["registered"] == 3 and status["points"] > 100
+    assert status["triangulation"]["mean_reproj_error_px"] < 1.0
