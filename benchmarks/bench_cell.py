@@ -241,11 +241,11 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
         colmap_args += ["--threads", str(threads)]
     inits["colmap"] = {"wall_s": stage("init_colmap", "evaluation.colmap_baseline", colmap_args)}
     status = json.loads((work / "colmap" / "status.json").read_text())
-    inits["colmap"].update({k: status.get(k) for k in ("success", "aligned_ok", "registered", "points", "reason")})
+    inits["colmap"].update({k: status.get(k) for k in ("success_paper", "aligned_ok", "registered", "points", "reason")})
     if synthetic:
         inits["oracle"] = {"wall_s": stage("init_oracle", "evaluation.oracle", [
             "--scene", str(scene), "--image-list", str(train_txt), "--out", str(work / "oracle")])}
-    colmap_ok = bool(status.get("success") and status.get("aligned_ok", True))
+    colmap_ok = bool(status.get("success_paper", status.get("success")) and status.get("aligned_ok", True))
     used = "oracle" if synthetic else ("colmap" if colmap_ok else None)
     if used is None:
         raise StageError(f"COLMAP failed on {desc['scene']} at n = {n} ({status.get('reason')}) and the scene has "
@@ -328,7 +328,7 @@ def format_cell(r: dict) -> str:
              "metrics": f"PSNR {r['metrics']['psnr']:.2f} dB, SSIM {r['metrics']['ssim']:.3f}, LPIPS alex/vgg "
                         f"{_num(r['metrics']['lpips_alex'])}/{_num(r['metrics']['lpips_vgg'])}"}
     for name, info in r["inits"].items():
-        ok = "success" if info.get("success", True) else f"failed ({info.get('reason')})"
+        ok = "success" if info.get("success_paper", info.get("success", True)) else f"failed ({info.get('reason')})"
         notes[f"init_{name}"] = ("used" if name == r["init_used"] else "timed, not used") + (
             f"; {ok}, {info.get('registered')} registered, {info.get('points')} points" if name == "colmap" else "")
     for name, dt in r["stages_s"].items():

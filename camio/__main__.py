@@ -2,7 +2,7 @@
 
     python -m camio synth --out DIR [--views 24] [--width 256] [--seed 0] [--arc-deg 70]
     python -m camio convert --src PATH --out DIR [--format auto] [--images-subdir images_8]
-                            [--downsample K] [--undistort]
+                            [--downsample K] [--undistort] [--skip-missing] [--allow-mixed]
     python -m camio split --scene DIR --n 3 6 9 12 [--manifest JSON] --out split.json
 """
 
@@ -36,10 +36,15 @@ def _parser() -> argparse.ArgumentParser:
     c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
     c.add_argument("--src", required=True, type=Path)
     c.add_argument("--out", required=True, type=Path)
-    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "folder"))
+    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder"))
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
     c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")
-    c.add_argument("--undistort", action="store_true", help="undistort distorted COLMAP models to PINHOLE")
+    c.add_argument("--undistort", action="store_true",
+                   help="undistort distorted cameras (COLMAP, transforms.json k1 k2 p1 p2, Strecha) to PINHOLE")
+    c.add_argument("--skip-missing", action="store_true",
+                   help="transforms.json: drop frames whose image files are missing (warning) instead of failing")
+    c.add_argument("--allow-mixed", action="store_true",
+                   help="bare folder: accept images of mixed pixel types or sizes")
     c.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts for split.json")
 
     t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")
@@ -65,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
 
             with timed("convert", log):
                 prepare_scene(args.src, args.out, args.format, args.images_subdir, args.downsample,
-                              args.undistort, tuple(args.n))
+                              args.undistort, tuple(args.n), allow_mixed=args.allow_mixed,
+                              skip_missing=args.skip_missing, announce=lambda s: print(s, flush=True))
         elif args.cmd == "split":
             from camio.images import list_images
             from camio.split import make_split, write_split

@@ -24,6 +24,7 @@ __all__ = [
     "PINHOLE_MODELS",
     "find_model_dir",
     "read_model",
+    "camera_model_names",
     "write_text_model",
 ]
 
@@ -225,6 +226,20 @@ def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
     points = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in point_ids], dtype=np.uint8).reshape(-1, 3)
     return SparseModel(cameras, points, colors, observations, camera_models)
+
+
+def camera_model_names(path: str | Path) -> list[str]:
+    """Sorted COLMAP camera model names of every camera in the model at ``path`` (registered
+    images or not), for planning; [] when no model is there or it cannot be read."""
+    import pycolmap
+
+    try:
+        model_dir = find_model_dir(path)
+        rec = pycolmap.Reconstruction()
+        rec.read(str(model_dir))
+    except Exception:  # an unreadable model is the converter's error to report
+        return []
+    return sorted({c.model.name for c in rec.cameras.values()})
 
 
 def _nums(*xs: float) -> str:

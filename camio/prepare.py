@@ -39,7 +39,8 @@ def scale_model(model: SparseModel, factor: int, sizes: dict[str, tuple[int, int
 def prepare_scene(
     src: str | Path, out: str | Path, format: str = "auto", images_subdir: str | Path | None = None,
     downsample: int = 1, undistort: bool = False, ns: tuple[int, ...] = (3, 6, 9, 12),
-    require_same_size: bool = True,
+    require_same_size: bool = True, allow_mixed: bool = False, skip_missing: bool = False,
+    announce=None,
 ) -> Path:
     """Convert the scene at ``src`` into a prepared scene folder ``out`` (module docstring).
 
@@ -47,14 +48,22 @@ def prepare_scene(
         src, format, images_subdir, undistort: as :func:`camio.scene.load_scene`.
         downsample: integer area-downsampling factor (1 = copy).
         ns: training-view counts written to split.json (those that do not fit are skipped).
-        require_same_size: refuse images of mixed sizes (the pipeline needs one size).
+        require_same_size: refuse images of mixed sizes (the pipeline needs one size);
+            ``allow_mixed`` turns it off too.
+        allow_mixed, skip_missing: as :func:`camio.scene.load_scene`.
+        announce: called with :meth:`camio.scene.Scene.describe` once the scene is read (the
+            CLI prints it).
     """
     t0 = time.perf_counter()
     out = Path(out)
     with atomic_dir(out) as tmp:
         scene = load_scene(src, format, images_subdir, undistort=undistort,
-                           work_dir=tmp / "_undistorted" if undistort else None)
-        if require_same_size:
+                           work_dir=tmp / "_undistorted" if undistort else None,
+                           allow_mixed=allow_mixed, skip_missing=skip_missing)
+        log.info("%s", scene.describe())
+        if announce is not None:
+            announce(scene.describe())
+        if require_same_size and not allow_mixed:
             check_same_size(scene.image_dir, scene.names)
         sizes = downsample_folder(scene.image_dir, tmp / "images", downsample, scene.names)
         n_cams = 0
@@ -78,7 +87,7 @@ def prepare_scene(
             "source": str(Path(src).resolve()), "format": scene.source_format,
             "images_subdir": None if images_subdir is None else str(images_subdir),
             "downsample": downsample, "undistorted": scene.undistorted, "n_images": len(scene.names),
-            "n_reference_cameras": n_cams,
+            "n_reference_cameras": n_cams, "camera_models": list(scene.source_models),
             "n_points": 0 if scene.model is None else int(len(scene.model.points)),
             "image_size": [w, h], "wall_time_s": time.perf_counter() - t0,
         })

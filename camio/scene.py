@@ -12,7 +12,12 @@ Readers convert every input format to the project conventions (:mod:`camio`):
 * ``transforms.json`` (instant-ngp / nerfstudio): camera-to-world in OpenGL axes (x right,
   y up, z back); intrinsics ``fl_x``/``fl_y``/``cx``/``cy`` or ``camera_angle_x`` (and
   ``camera_angle_y``), global or per frame; pixel coordinates as in COLMAP.
-* A bare image folder (no cameras).
+* DTU (IDR / MonoSDF ``cameras.npz``), MVSNet ``cams/*_cam.txt`` and Strecha ``*.camera``:
+  :mod:`camio.datasets`, which also holds the auto-detection and the bare-folder rules.
+* A bare image folder (no cameras): photographs only (:func:`camio.datasets.split_photos`).
+
+Distortion (COLMAP SIMPLE_RADIAL / RADIAL / OPENCV, transforms.json ``k1 k2 p1 p2``, Strecha
+``k1 k2``) is removed with pycolmap's undistorter when ``undistort=True`` and refused otherwise.
 
 Intrinsics are always rescaled to the size of the images actually found in the folder (e.g.
 a full-resolution model used with ``images_8``), per image, from the file headers.
@@ -37,7 +42,7 @@ __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_siz
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("auto", "colmap", "llff", "transforms", "folder")
+FORMATS = ("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder")
 UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
@@ -54,9 +59,11 @@ class Scene:
         names: sorted image names (relative paths, '/' separated).
         model: reference cameras (for some or all names; sizes match the image files) and
             optional points, or None.
-        source_format: "colmap", "llff", "transforms" or "folder".
+        source_format: one of :data:`FORMATS` (not "auto").
         source: the path the scene was loaded from.
         undistorted: True if the images and model are the output of the undistorter.
+        source_models: camera models of the source as read (e.g. ("OPENCV",)), before any
+            undistortion; () without cameras.
     """
 
     image_dir: Path
@@ -65,6 +72,14 @@ class Scene:
     source_format: str
     source: Path
     undistorted: bool = False
+    source_models: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        """One line for the user: format, image count, cameras and their model."""
+        n = 0 if self.model is None else len(self.model.cameras)
+        cams = (f"{n} reference cameras ({'/'.join(self.source_models) or 'PINHOLE'}"
+                f"{', undistorted to PINHOLE' if self.undistorted else ''})" if n else "no reference cameras")
+        return f"detected format {self.source_format}: {len(self.names)} images, {cams}"
 
     def image_path(self, name: str) -> Path:
         return self.image_dir / name
@@ -104,16 +119,9 @@ def detect_format(path: str | Path) -> str:
         raise SceneError(f"{p} is a file but neither a transforms .json nor poses_bounds.npy")
     if not p.is_dir():
         raise SceneError(f"scene path {p} does not exist")
-    if (p / "transforms.json").is_file():
-        return "transforms"
-    try:
-        find_model_dir(p)
-        return "colmap"
-    except FileNotFoundError:
-        pass
-    if (p / "poses_bounds.npy").is_file():
-        return "llff"
-    return "folder"
+    from camio.datasets import detect_layout
+
+    return detect_layout(p)
 
 
 def _resolve_images(root: Path, images_subdir: str | Path | None) -> Path:
@@ -178,22 +186,28 @@ def load_scene(
     undistort: bool = False,
     work_dir: str | Path | None = None,
     verify_images: bool = True,
+    allow_mixed: bool = False,
+    skip_missing: bool = False,
 ) -> Scene:
     """Load a scene in any supported format.
 
     Args:
         path: scene folder, a COLMAP model folder, a ``transforms*.json`` or a
             ``poses_bounds.npy``.
-        format: one of :data:`FORMATS`; "auto" detects: transforms.json -> "transforms",
-            cameras.{txt,bin} in ., sparse/0, sparse or 0 -> "colmap", poses_bounds.npy ->
-            "llff", else "folder".
+        format: one of :data:`FORMATS`; "auto" detects from the camera files present
+            (:func:`camio.datasets.detect_layout`); a folder with camera files no adapter
+            reads is an error naming them.
         images_subdir: image folder relative to the scene folder (or absolute); default
             ``images`` if present, else the folder itself (transforms: its folder).
-        undistort: undistort SIMPLE_RADIAL / RADIAL / OPENCV COLMAP models to PINHOLE with
-            pycolmap (needs ``work_dir``, where the undistorted images go); if False a
-            distorted model raises :class:`UnsupportedCameraModelError`.
+        undistort: undistort distorted cameras (COLMAP SIMPLE_RADIAL / RADIAL / OPENCV,
+            transforms.json or Strecha distortion) to PINHOLE with pycolmap (needs ``work_dir``,
+            where the undistorted images go); if False a distorted model raises
+            :class:`UnsupportedCameraModelError`.
         work_dir: output folder for undistorted images and model (created; must be empty).
         verify_images: decode every image once so that a truncated file fails here.
+        allow_mixed: a bare folder may mix pixel types (gray / RGB, 8 / 16 bit).
+        skip_missing: transforms.json frames whose image files are missing are dropped with a
+            warning (default: an error naming how many are missing).
 
     Raises:
         SceneError, UnsupportedCameraModelError, ImageReadError: with what to fix.
@@ -206,18 +220,46 @@ def load_scene(
     fmt = detect_format(path) if format == "auto" else format
     root = path.parent if path.is_file() else path
     if fmt == "transforms":
-        scene = _load_transforms(path, images_subdir)
+        scene = _load_transforms(path, images_subdir, skip_missing)
+        scene = _maybe_undistort(scene, undistort, work_dir)
+    elif fmt == "dtu":
+        from camio.datasets import read_dtu
+
+        if images_subdir is not None:
+            image_dir = _resolve_images(root, images_subdir)
+            from camio.datasets import dtu_images
+
+            image_dir, names = dtu_images(image_dir) if not (image_dir / "cameras.npz").exists() else (
+                image_dir, _image_names(image_dir))
+            image_dir, names, model = read_dtu(root, image_dir, names)
+        else:
+            image_dir, names, model = read_dtu(root)
+        scene = Scene(image_dir, names, model, "dtu", path, source_models=("PINHOLE",))
     else:
         image_dir = _resolve_images(root, images_subdir)
         names = _image_names(image_dir)
         if fmt == "folder":
-            scene = Scene(image_dir, names, None, "folder", path)
+            from camio.datasets import split_photos
+
+            scene = Scene(image_dir, split_photos(image_dir, names, allow_mixed), None, "folder", path)
         elif fmt == "llff":
             npy = path if path.is_file() else root / "poses_bounds.npy"
             scene = Scene(image_dir, names, _fit_to_images(read_llff_poses(npy, names, image_dir), image_dir, names),
-                          "llff", path)
+                          "llff", path, source_models=("PINHOLE",))
         elif fmt == "colmap":
             scene = _load_colmap(path, image_dir, names, undistort, work_dir)
+        elif fmt == "mvsnet":
+            from camio.datasets import read_mvsnet
+
+            scene = Scene(image_dir, names, read_mvsnet(root, image_dir, names), "mvsnet", path,
+                          source_models=("PINHOLE",))
+        elif fmt == "strecha":
+            from camio.datasets import read_strecha
+
+            model = read_strecha(root, image_dir, names)
+            model = _fit_distorted(model, image_dir, names)
+            scene = Scene(image_dir, names, model, "strecha", path)
+            scene = _maybe_undistort(scene, undistort, work_dir)
         else:  # pragma: no cover - guarded above
             raise SceneError(fmt)
     if verify_images:
@@ -226,6 +268,44 @@ def load_scene(
     log.info("loaded %s scene %s: %d images, %d reference cameras, %d points", scene.source_format, path,
              len(scene.names), n_cams, 0 if scene.model is None else len(scene.model.points))
     return scene
+
+
+def _fit_distorted(model: SparseModel, image_dir: Path, names: list[str]) -> SparseModel:
+    """:func:`_fit_to_images`, also rescaling the pinhole part of the distorted camera models
+    (distortion coefficients act on normalised coordinates and stay)."""
+    fitted = _fit_to_images(model, image_dir, names)
+    models = {}
+    for c in fitted.cameras:
+        m, params = model.camera_models.get(c.name, ("PINHOLE", None))
+        params = np.r_[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2],
+                       (params[4:] if params is not None and m == "OPENCV" else [])]
+        models[c.name] = (m, params)
+    return SparseModel(fitted.cameras, fitted.points, fitted.colors, fitted.observations, models)
+
+
+def _maybe_undistort(scene: Scene, undistort: bool, work_dir: str | Path | None) -> Scene:
+    """Refuse or undistort a scene whose ``model.camera_models`` hold OPENCV distortion."""
+    models = scene.model.camera_models if scene.model is not None else {}
+    kinds = tuple(sorted({m for m, _ in models.values()})) or ("PINHOLE",)
+    scene.source_models = kinds
+    distorted = [n for n, (m, p) in models.items() if m == "OPENCV" and np.any(p[4:] != 0)]
+    if not distorted:
+        return scene
+    if not undistort:
+        ex = distorted[0]
+        raise UnsupportedCameraModelError(
+            f"{scene.source}: {len(distorted)} camera(s) have lens distortion (OPENCV k1 k2 p1 p2 = "
+            f"{models[ex][1][4:].tolist()} for {ex}); pass undistort=True (`python -m camio convert "
+            "--undistort`) to undistort the images to PINHOLE with pycolmap")
+    if work_dir is None:
+        raise SceneError("undistort=True needs a work_dir to write the undistorted images into")
+    from camio.undistort import undistort_model
+
+    out_images, out_model = undistort_model(scene.model, scene.image_dir, Path(work_dir))
+    und = read_model(out_model)
+    und_names = _image_names(out_images)
+    return Scene(out_images, und_names, _fit_to_images(und, out_images, und_names), scene.source_format,
+                 scene.source, undistorted=True, source_models=kinds)
 
 
 def _load_colmap(path: Path, image_dir: Path, names: list[str], undistort: bool,
@@ -239,7 +319,8 @@ def _load_colmap(path: Path, image_dir: Path, names: list[str], undistort: bool,
             f"{', '.join(PINHOLE_MODELS + UNDISTORTABLE_MODELS)} (re-run COLMAP with one of them)")
     distorted = sorted(kinds - set(PINHOLE_MODELS))
     if not distorted:
-        return Scene(image_dir, names, _fit_to_images(model, image_dir, names), "colmap", path)
+        return Scene(image_dir, names, _fit_to_images(model, image_dir, names), "colmap", path,
+                     source_models=tuple(sorted(kinds)))
     if not undistort:
         raise UnsupportedCameraModelError(
             f"COLMAP model {path} uses the distorted camera model(s) {distorted}; pass undistort=True "
@@ -253,7 +334,7 @@ def _load_colmap(path: Path, image_dir: Path, names: list[str], undistort: bool,
     und = read_model(out_model)
     und_names = _image_names(out_images)
     return Scene(out_images, und_names, _fit_to_images(und, out_images, und_names), "colmap", path,
-                 undistorted=True)
+                 undistorted=True, source_models=tuple(sorted(kinds)))
 
 
 # ---------------------------------------------------------------------------------------- LLFF
@@ -293,7 +374,9 @@ def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = 
 
 
 # ---------------------------------------------------------------------------------- transforms
-def _find_frame_file(base: Path, file_path: str) -> Path:
+def _find_frame_file(base: Path, file_path: str) -> Path | None:
+    """The image a frame names (``file_path`` may omit the extension, as NeRF-synthetic's
+    ``./train/r_0`` does), or None when no such file exists."""
     p = (base / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
     if p.is_file():
         return p
@@ -301,19 +384,27 @@ def _find_frame_file(base: Path, file_path: str) -> Path:
         cand = p.with_name(p.name + ext)
         if cand.is_file():
             return cand
-    raise SceneError(f"transforms frame file_path {file_path!r} not found under {base} "
-                     "(also tried .png/.jpg/.jpeg/.exr/.tif); the model names an image that is missing")
+    return None
 
 
-def _intrinsics(d: dict, fallback: dict, size: tuple[int, int], where: str) -> tuple[np.ndarray, int, int]:
+def _intrinsics(d: dict, fallback: dict, size: tuple[int, int], where: str
+                ) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """(K, w, h, [k1, k2, p1, p2]) of a frame: its own keys first, else the global ones.
+
+    instant-ngp / nerfstudio distortion ``k1 k2 p1 p2`` is OpenCV's (COLMAP OPENCV model);
+    ``k3``, ``k4`` or a fisheye flag are refused."""
     get = lambda k: d.get(k, fallback.get(k))  # noqa: E731
     w = get("w") or size[0]
     h = get("h") or size[1]
-    for k in ("k1", "k2", "k3", "k4", "p1", "p2"):
+    for k in ("k3", "k4"):
         if abs(float(get(k) or 0.0)) > 0:
             raise UnsupportedCameraModelError(
-                f"{where}: distortion ({k} = {get(k)}) in transforms.json is not supported; "
-                "undistort the images first (e.g. convert to COLMAP OPENCV and use --undistort)")
+                f"{where}: distortion {k} = {get(k)} in transforms.json is not supported (only k1 k2 p1 p2, "
+                "COLMAP's OPENCV model); undistort the images first")
+    if get("is_fisheye") or str(get("camera_model") or "OPENCV").upper() not in ("OPENCV", "PINHOLE",
+                                                                                 "SIMPLE_PINHOLE"):
+        raise UnsupportedCameraModelError(f"{where}: fisheye camera model {get('camera_model')!r} is not supported")
+    dist = np.array([float(get(k) or 0.0) for k in ("k1", "k2", "p1", "p2")])
     if get("fl_x") is not None:
         fx = float(get("fl_x"))
         fy = float(get("fl_y") if get("fl_y") is not None else fx)
@@ -324,11 +415,33 @@ def _intrinsics(d: dict, fallback: dict, size: tuple[int, int], where: str) -> t
         raise SceneError(f"{where}: no focal length (fl_x or camera_angle_x)")
     cx = float(get("cx") if get("cx") is not None else w / 2)
     cy = float(get("cy") if get("cy") is not None else h / 2)
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), int(w), int(h)
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), int(w), int(h), dist
 
 
-def _load_transforms(path: Path, images_subdir: str | Path | None) -> Scene:
-    json_path = path if path.is_file() else path / "transforms.json"
+def _transforms_json(path: Path) -> Path:
+    if path.is_file():
+        return path
+    for name in ("transforms.json", "transforms_train.json"):
+        if (path / name).is_file():
+            if name != "transforms.json":
+                log.info("%s: using %s (NeRF-synthetic layout; pass the val/test json as --src to use "
+                         "those frames)", path, name)
+            return path / name
+    raise SceneError(f"{path}: no transforms.json or transforms_train.json")
+
+
+def _load_transforms(path: Path, images_subdir: str | Path | None, skip_missing: bool = False) -> Scene:
+    """Cameras from an instant-ngp / nerfstudio / NeRF-synthetic ``transforms*.json``.
+
+    ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z back) and is
+    turned into cam_from_world in OpenCV axes. Intrinsics: ``fl_x``/``fl_y``/``cx``/``cy``
+    or ``camera_angle_x`` (and ``camera_angle_y``), per frame or global, in pixels of the
+    size ``w``/``h`` (default: the image file's), rescaled to the file. Distortion
+    ``k1 k2 p1 p2`` is kept as an OPENCV camera model (see :func:`_maybe_undistort`).
+    Frames whose image files are missing: error naming the count, or dropped with a
+    warning when ``skip_missing``.
+    """
+    json_path = _transforms_json(path)
     try:
         meta = json.loads(json_path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -337,30 +450,46 @@ def _load_transforms(path: Path, images_subdir: str | Path | None) -> Scene:
     if not frames:
         raise SceneError(f"{json_path} has no frames")
     base = json_path.parent
-    files = [_find_frame_file(base, str(f.get("file_path", ""))) for f in frames]
+    found = [(f, _find_frame_file(base, str(f.get("file_path", "")))) for f in frames]
+    missing = [str(f.get("file_path", "")) for f, p in found if p is None]
+    if missing:
+        msg = (f"{json_path}: {len(missing)} of {len(frames)} frames name image files that are missing "
+               f"under {base} (e.g. {missing[:3]}; also tried .png/.jpg/.jpeg/.exr/.tif)")
+        if not skip_missing:
+            raise SceneError(msg + "; restore them, or pass --skip-missing to use the "
+                             f"{len(frames) - len(missing)} frames that have images")
+        log.warning("%s; --skip-missing: using the %d frames that have images", msg, len(frames) - len(missing))
+        found = [(f, p) for f, p in found if p is not None]
+        if not found:
+            raise SceneError(f"{json_path}: no frame has an image file")
+    files = [p for _, p in found]
     image_dir = _resolve_images(base, images_subdir) if images_subdir is not None else Path(
         _common_dir([f.parent for f in files]))
-    cams = []
-    for f, file in zip(frames, files):
+    cams, models = [], {}
+    for (f, file) in found:
         if images_subdir is not None:
             file = image_dir / file.name
             if not file.is_file():
                 raise SceneError(f"image {file} named by {json_path} is missing from {image_dir}")
         name = file.relative_to(image_dir.resolve() if images_subdir is None else image_dir).as_posix()
         size = image_size(file)
-        K, w, h = _intrinsics(f, meta, size, f"{json_path} frame {name}")
+        K, w, h, dist = _intrinsics(f, meta, size, f"{json_path} frame {name}")
         if "transform_matrix" not in f:
             raise SceneError(f"{json_path}: frame {name} has no transform_matrix")
-        cfw = opengl_to_opencv_c2w(np.asarray(f["transform_matrix"], np.float64))
-        cam = Camera(name, w, h, K, cfw[:3])
+        c2w = np.asarray(f["transform_matrix"], np.float64)
+        if c2w.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(c2w)):
+            raise SceneError(f"{json_path}: frame {name}: transform_matrix must be a finite 4x4 matrix")
+        cfw = opengl_to_opencv_c2w(c2w)
         if (w, h) != size:
-            cam = Camera(name, size[0], size[1], scale_intrinsics(K, size[0] / w, size[1] / h), cfw[:3])
-        cams.append(cam)
+            K = scale_intrinsics(K, size[0] / w, size[1] / h)
+        cams.append(Camera(name, size[0], size[1], K, cfw[:3]))
+        models[name] = ("OPENCV", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist]) if np.any(dist != 0) else \
+            ("PINHOLE", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     image_dir = image_dir.resolve() if images_subdir is None else image_dir
     names = sorted(c.name for c in cams)
     if len(set(names)) != len(names):
         raise SceneError(f"{json_path} names the same image twice")
-    return Scene(image_dir, names, SparseModel(cams), "transforms", path)
+    return Scene(image_dir, names, SparseModel(cams, camera_models=models), "transforms", path)
 
 
 def _common_dir(dirs: list[Path]) -> Path:

@@ -6,15 +6,18 @@ pycolmap 4.x. Only the training images are visible: they are symlinked (copied w
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
 
-Success follows the paper: the largest model loads with >= 1 registered image and >= 1
-point. ``aligned_ok`` additionally asks for >= 3 registered images, which the Sim(3)
-alignment to the reference frame needs. A failed reconstruction is a *result*
-(``success = false`` with a reason in ``status.json``), never an exception.
+``success_paper`` (docs/contracts.md, :func:`evaluation.pose.paper_success`): the largest model
+loads with >= 1 registered image and >= 1 point. ``aligned_ok``: >= 3 registered images, which
+the Sim(3) alignment to the reference frame needs (part of ``success_gated``, decided in
+pose.json). A failed reconstruction is a *result* (``success_paper = false`` with a reason in
+``status.json``), never an exception.
 
 Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
-``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``, and every stage
-runs single-threaded (``num_threads = 1``), so two runs with the same seed on the same input
-give identical models (tested). ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.colmap_repeats`).
+``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. By default every
+stage uses every core this process may run on (:func:`available_cores`); the thread count is
+recorded in ``status.json`` (``num_threads``). With ``--threads 1`` two runs with the same seed
+on the same input give identical models (tested); with more threads the feature extraction and
+matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.colmap_repeats`).
 
 Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
 exists, ``DIR/status.json``; with repeats also ``DIR/repeats/seed<s>/{sparse/0,status.json}``
@@ -34,6 +37,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir, write_json
 from camio.logs import peak_rss_mb
+from evaluation.pose import paper_success
 
 __all__ = [
     "ColmapSettings",
@@ -46,6 +50,14 @@ log = logging.getLogger(__name__)
 MIN_ALIGN_IMAGES = 3
 
 
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity; os.cpu_count() where unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 class ColmapSettings:
     """PROTOCOL.md section 4 settings (defaults) plus the reproducibility knobs.
 
@@ -54,17 +66,18 @@ class ColmapSettings:
         max_num_features: SIFT features per image.
         guided_matching: guided matching after geometric verification.
         camera_model: the single shared camera model ("PINHOLE").
-        num_threads: threads for extraction, matching and mapping (1 = deterministic).
+        num_threads: threads for extraction, matching and mapping; None or 0 = every
+            available core (:func:`available_cores`); 1 = bitwise reproducible.
     """
 
     def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
                  guided_matching: bool = True, camera_model: str = "PINHOLE",
-                 num_threads: int = 1) -> None:
+                 num_threads: int | None = None) -> None:
         self.max_image_size = int(max_image_size)
         self.max_num_features = int(max_num_features)
         self.guided_matching = bool(guided_matching)
         self.camera_model = str(camera_model)
-        self.num_threads = int(num_threads)
+        self.num_threads = available_cores() if not num_threads else int(num_threads)
 
     def to_json(self) -> dict:
         return dict(vars(self))
@@ -154,7 +167,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         keep_work: keep the work folder (database, linked images) as ``out_dir/work``.
 
     Returns:
-        The status record written to ``status.json``: ``success`` (paper criterion),
+        The status record written to ``status.json``: ``success_paper`` (docs/contracts.md),
         ``aligned_ok`` (>= 3 registered), ``registered``, ``n_images``, ``points``,
         ``reason`` (None on success), ``wall_time_s``, ``seed``, ``registered_names``,
         ``num_models``, ``fy_over_fx``, ``mean_reproj_error_px``, ``settings``.
@@ -168,10 +181,11 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         raise ValueError("run_colmap: no training image names given")
     out_dir.mkdir(parents=True, exist_ok=True)
     status: dict = {
-        "success": False, "aligned_ok": False, "registered": 0, "n_images": len(names),
+        "success_paper": False, "aligned_ok": False, "registered": 0, "n_images": len(names),
         "points": 0, "reason": None, "wall_time_s": None, "seed": int(seed),
         "registered_names": [], "num_models": 0, "fy_over_fx": None,
         "mean_reproj_error_px": None, "settings": settings.to_json(),
+        "num_threads": settings.num_threads,
     }
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
@@ -180,7 +194,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         reader, extraction, matching, verification, mapping = _options(settings, seed)
         db = work / "database.db"
         pycolmap.set_random_seed(int(seed))
-        log.info("COLMAP baseline: %d training images, seed %d", len(names), seed)
+        log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
         t = time.perf_counter()
         pycolmap.extract_features(db, work / "images", image_names=names,
                                   camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -211,9 +225,9 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
                 status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
             with atomic_dir(sparse) as tmp:
                 rec.write_text(str(tmp))
-            status["success"] = bool(reg >= 1 and pts >= 1)
-            status["aligned_ok"] = bool(status["success"] and reg >= MIN_ALIGN_IMAGES)
-            if not status["success"]:
+            status["success_paper"] = paper_success(reg, pts)
+            status["aligned_ok"] = bool(status["success_paper"] and reg >= MIN_ALIGN_IMAGES)
+            if not status["success_paper"]:
                 status["reason"] = f"model has {reg} registered images and {pts} points"
         if rec is None and sparse.exists():
             shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
@@ -234,8 +248,8 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
     status["peak_rss_mb"] = peak_rss_mb()
     write_json(out_dir / "status.json", status)
     log.info("COLMAP baseline: success=%s, %d/%d registered, %d points, %.1f s%s",
-             status["success"], status["registered"], len(names), status["points"],
-             status["wall_time_s"], "" if status["success"] else f" ({status['reason']})")
+             status["success_paper"], status["registered"], len(names), status["points"],
+             status["wall_time_s"], "" if status["success_paper"] else f" ({status['reason']})")
     return status
 
 
@@ -305,8 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-image-size", type=int, default=3200)
     p.add_argument("--max-num-features", type=int, default=16384)
     p.add_argument("--no-guided-matching", action="store_true")
-    p.add_argument("--threads", type=int, default=1,
-                   help="threads per COLMAP stage (1 = deterministic, the default)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)

@@ -234,7 +234,7 @@ def run_oracle(scene: str | Path, names: list[str], out_dir: str | Path, noise: 
     keep = fg[np.argsort(-conf[fg], kind="stable")[:max_points]]
     write_text_model(out_dir / "sparse" / "0", noisy, pts[keep], col[keep])
     status = {
-        "success": True, "aligned_ok": len(names) >= 3, "registered": len(names),
+        "success_paper": True, "aligned_ok": len(names) >= 3, "registered": len(names),
         "n_images": len(names), "points": int(len(keep)), "reason": None,
         "wall_time_s": time.perf_counter() - t0, "seed": int(seed), "noise": asdict(noise),
         "downsample": int(downsample), "grid_size": list(arrays["world_points"].shape[1:3]),

@@ -15,11 +15,12 @@ Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of cam
   ``rel_rot_err_max_deg`` (issue 10's names) are the same rotation numbers.
 * ``fy_fx_*``: fy / fx of the predicted PINHOLE cameras (1 for SIMPLE_PINHOLE); a drift away
   from 1 flags a bad model.
-* Paper success: the model has >= 1 registered image and >= 1 point, and >= 3 registered
-  training views (needed for the Sim(3) step).
-* Accuracy-gated success: paper success AND ate_rel_radius < ``max_ate_rel_radius`` (0.05) AND
-  rel_rot_err_mean_deg < ``max_rel_rot_deg`` (5); None where there are no reference cameras
-  (whatever the paper criterion says: the gate does not apply).
+* Success: the two criteria of docs/contracts.md ("Success"), side by side under the same
+  names in status.json, pose.json, the tables and the report: ``success_paper`` (>= 1
+  registered image and >= 1 point, :func:`paper_success`) and ``success_gated`` (paper
+  success, >= 3 registered training views for the Sim(3) step, ate_rel_radius <
+  ``max_ate_rel_radius`` (0.05) and rel_rot_err_mean_deg < ``max_rel_rot_deg`` (5);
+  :func:`accuracy_gate`; None where there are no reference cameras).
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ import numpy as np
 from camio.colmap import SparseModel
 from evaluation.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
 
-__all__ = ["GateConfig", "relative_pose_errors", "paper_success", "accuracy_gate", "evaluate_pose",
+__all__ = ["GateConfig", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
+           "success_criteria_text", "evaluate_pose",
            "run_pose", "focal_ratio_stats"]
 
 log = logging.getLogger(__name__)
@@ -96,11 +98,25 @@ def focal_ratio_stats(model: SparseModel, names: list[str] | None = None) -> dic
             "fy_fx_max_dev": float(np.max(np.abs(a - 1.0)))}
 
 
-def paper_success(n_registered: int, n_points: int, n_train_registered: int,
-                  min_aligned_views: int = 3) -> bool:
-    """The paper's success: >= 1 registered image and >= 1 point, and enough registered
-    training views for the Sim(3) step."""
-    return n_registered >= 1 and n_points >= 1 and n_train_registered >= min_aligned_views
+def paper_success(n_registered: int, n_points: int) -> bool:
+    """``success_paper`` (docs/contracts.md): >= 1 registered image and >= 1 point."""
+    return bool(n_registered >= 1 and n_points >= 1)
+
+
+def status_success(status: dict) -> bool:
+    """``success_paper`` of a status.json (``success`` in files written before the rename)."""
+    return bool(status.get("success_paper", status.get("success", False)))
+
+
+def success_criteria_text(gate: "GateConfig" = None, html: bool = False) -> list[str]:
+    """The two criteria in words, for the tables and the report (one wording everywhere)."""
+    gate = gate or GateConfig()
+    lt = "&lt;" if html else "<"
+    return ["Success (paper), success_paper: a model with >= 1 registered image and >= 1 point.",
+            f"Success (gated), success_gated: paper success, >= {gate.min_aligned_views} registered "
+            f"training views (for the Sim(3) alignment), ATE {lt} {100 * gate.max_ate_rel_radius:g}% of the "
+            f"RMS trajectory radius and mean relative rotation error {lt} {gate.max_rel_rot_deg:g} deg "
+            "(scenes with reference cameras only)."]
 
 
 def accuracy_gate(record: dict, gate: GateConfig = GateConfig()) -> bool | None:
@@ -112,6 +128,9 @@ def accuracy_gate(record: dict, gate: GateConfig = GateConfig()) -> bool | None:
     if not record.get("has_reference", True):
         return None
     if not record.get("success_paper", False):
+        return False
+    reg = record.get("registered")
+    if reg is not None and reg < gate.min_aligned_views:
         return False
     ate = record.get("ate_rel_radius")
     rot = record.get("rel_rot_err_mean_deg")
@@ -183,8 +202,7 @@ def evaluate_pose(pred: SparseModel, ref: SparseModel, names: list[str] | None =
             rel_r = al.rmse / al.ref_radius
             rec.update({"ate_rmse": al.rmse, "ate_rel_radius": rel_r, "ate_pct_radius": 100 * rel_r,
                         "trajectory_radius": al.ref_radius, "alignment": al.to_json()})
-    rec["success_paper"] = paper_success(len(pred.cameras), len(pred.points), len(registered),
-                                         gate.min_aligned_views)
+    rec["success_paper"] = paper_success(len(registered), len(pred.points))
     rec["success_gated"] = accuracy_gate(rec, gate)
     return rec
 

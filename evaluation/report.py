@@ -14,6 +14,7 @@ ground truth from ``{scenes}/{dataset}/{scene}/test_images/`` (the workflow's re
 from __future__ import annotations
 
 import html
+import json
 import logging
 import re
 import time
@@ -24,7 +25,7 @@ import pandas as pd
 from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
 from evaluation.plots import run_plots
-from evaluation.pose import GateConfig
+from evaluation.pose import GateConfig, success_criteria_text
 from evaluation.results import collect_runs, find_file, run_label
 from evaluation.tables import build_tables
 
@@ -131,6 +132,23 @@ def _table_html(df: pd.DataFrame) -> str:
     return shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0)
 
 
+def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
+    """Where the posed initialiser's cameras come from, and the configured initialisers a
+    scene could not have (``results/initialisers.json``, written by the workflow)."""
+    out = []
+    if len(runs) and (runs["init"] == "posed").any():
+        from evaluation.posed import REFERENCE_SOURCE
+
+        out.append(f"<p>posed: {html.escape(REFERENCE_SOURCE)}.</p>")
+    notes = results / "initialisers.json"
+    skipped = json.loads(notes.read_text()).get("skipped", []) if notes.is_file() else []
+    if skipped:
+        items = "".join(f"<li>{html.escape(s['init'])} on {html.escape(s['dataset'])}/{html.escape(s['scene'])}: "
+                        f"{html.escape(s['reason'])}</li>" for s in skipped)
+        out.append(f"<p>Configured initialisers not run:</p><ul>{items}</ul>")
+    return out
+
+
 def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | None = None,
                gate: GateConfig = GateConfig(), max_views: int = 4, plots: bool = True) -> Path:
     """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
@@ -148,11 +166,9 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         tables = build_tables(runs, gate)
         parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
                  f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
-                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. Success (paper): "
-                 ">= 1 registered image and >= 1 point, and >= "
-                 f"{gate.min_aligned_views} registered training views. Success (gated): also ATE &lt; "
-                 f"{100 * gate.max_ate_rel_radius:g}% of the trajectory radius and mean relative rotation "
-                 f"error &lt; {gate.max_rel_rot_deg:g} deg.</p>"]
+                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
+                 + " ".join(success_criteria_text(gate, html=True)) + "</p>"]
+        parts += _initialiser_notes(Path(results), runs)
         for title, df in tables.items():
             parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
         parts.append("<h2>Error against run time</h2>")

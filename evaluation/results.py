@@ -31,10 +31,10 @@ file               what is read
 A scene without reference cameras has no ``pose.json``; a failed COLMAP run has only
 ``status.json``. Missing numbers are NaN / None, never zero.
 
-Success: ``success_paper`` = status ``success`` and ``aligned_ok`` (>= 3 registered views,
-needed for the Sim(3) step) when a status exists, else pose.json's, else "the run produced a
-trained model or metrics". ``success_gated`` = paper success and the accuracy gate on
-pose.json; None for scenes without reference cameras (no run of the scene has a pose.json);
+Success (docs/contracts.md, one definition): ``success_paper`` = status.json's (>= 1 registered
+image and >= 1 point) when a status exists, else pose.json's, else "the run produced a trained
+model or metrics". ``success_gated`` = paper success, >= 3 registered training views and the
+accuracy gate on pose.json (:func:`evaluation.pose.accuracy_gate`); None for scenes without reference cameras (no run of the scene has a pose.json);
 False for a run of a scene with reference cameras that has no pose.json itself.
 """
 
@@ -48,7 +48,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from evaluation.pose import GateConfig, accuracy_gate
+from evaluation.pose import GateConfig, accuracy_gate, status_success
 
 __all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
 
@@ -242,10 +242,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
     bench = _benchmarks(run_dir, bench_dir, mode)
 
     if status:
-        ok = bool(status.get("success", False))
-        aligned = status.get("aligned_ok")
-        reg = status.get("registered")
-        success = ok and (bool(aligned) if aligned is not None else (reg or 0) >= gate.min_aligned_views)
+        success = status_success(status)
     elif pose:
         success = bool(pose.get("success_paper", False))
     else:
@@ -316,7 +313,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
 
     rep = status.get("repeats") or {}
     rec["repeats"] = _first(rep, "n_runs")
-    rec["repeats_success_rate"] = _first(rep, "aligned_ok_rate", "success_rate")
+    rec["repeats_success_rate"] = _first(rep, "success_paper_rate", "success_rate")
     regs = rep.get("registered") if isinstance(rep.get("registered"), dict) else {}
     rec["repeats_registered_min"] = _first(regs, "min")
     rec["repeats_registered_max"] = _first(regs, "max")

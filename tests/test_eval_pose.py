@@ -134,7 +134,8 @@ def test_too_few_registered_and_names(tmp_path):
     rec = evaluate_pose(model(moved(ref[:2], SIM)), model(ref), names=names)
     assert rec["n_names"] == 4 and rec["registered"] == 2 and rec["registered_fraction"] == 0.5
     assert rec["ate_rmse"] is None and rec["rpe_rot_deg"] is not None
-    assert rec["success_paper"] is False and rec["success_gated"] is False
+    # the paper's criterion (>= 1 registered, >= 1 point) holds; the gate needs >= 3 views
+    assert rec["success_paper"] is True and rec["success_gated"] is False
     rec3 = evaluate_pose(model(moved(ref[:3], SIM)), model(ref), names=names)
     assert rec3["success_paper"] is True and rec3["success_gated"] is True
     no_points = evaluate_pose(model(moved(ref, SIM), n_points=0), model(ref))

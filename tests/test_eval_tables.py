@@ -40,7 +40,8 @@ def test_records(runs):
     assert failed.success_gated == False and failed.has_reference  # noqa: E712
     assert failed.registered == 0 and math.isnan(failed.psnr) and failed.reason == "no initial pair"
     two = run(runs, "nus", 3, "colmap")
-    assert not two.success_paper and two.registered == 2 and two.success_gated is None
+    # 2 registered views and points: the paper's criterion holds; no reference: no gate
+    assert two.success_paper and two.registered == 2 and two.success_gated is None
     assert two.repeats == 3 and two.repeats_registered_min == 2 and two.repeats_registered_max == 3
     wrong = run(runs, "room", 3, "colmap")
     assert wrong.success_paper and wrong.success_gated == False  # noqa: E712
@@ -73,7 +74,7 @@ def test_eval_time_falls_back_to_benchmark(tmp_path):
 def test_table_one_by_hand(runs):
     t = table_one(runs).set_index("n")
     r3 = t.loc[3]
-    assert r3["scenes"] == 3 and r3["colmap success (paper)"] == "1/3"
+    assert r3["scenes"] == 3 and r3["colmap success (paper)"] == "2/3"
     assert r3["colmap success (gated)"] == "0/2" and r3["colmap registered"] == "5/9"
     assert r3["vggt success (paper)"] == "3/3" and r3["vggt success (gated)"] == "2/2"
     assert r3["matched"] == 1
@@ -96,7 +97,7 @@ def test_tables_cli(tree, tmp_path):
     for title in ("## Table I", "## Table II", "## Pose accuracy", "## Run time", "## COLMAP repeats"):
         assert title in md
     row3 = next(ln for ln in md.splitlines() if ln.startswith("| mip360 | 3 | 3 |"))
-    assert "| 1/3 | 0/2 | 5/9 | 3/3 | 2/2 | 1 | 25.50 | 26.50 | 1.00 |" in row3
+    assert "| 2/3 | 0/2 | 5/9 | 3/3 | 2/2 | 1 | 25.50 | 26.50 | 1.00 |" in row3
     # a stricter gate (option) fails the VGGT runs too
     main(["tables", "--results", str(tree[0]), "--out", str(tmp_path / "s"), "--max-rel-rot-deg", "0.5"])
     assert "| 3/3 | 0/2 |" in (tmp_path / "s" / "tables.md").read_text()

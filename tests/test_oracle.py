@@ -84,7 +84,7 @@ def test_contract_keys_shapes_dtypes(scene, tmp_path):
     assert d["world_points_conf"].shape == (S, h, w) and np.all(d["world_points_conf"] >= 1.0)
     assert d["colors"].shape == (S, h, w, 3) and d["colors"].dtype == np.uint8
     assert d["depth"].shape == (S, h, w) and d["depth_conf"].shape == (S, h, w)
-    assert status["success"] is True and status["registered"] == S and status["grid_size"] == [h, w]
+    assert status["success_paper"] is True and status["registered"] == S and status["grid_size"] == [h, w]
     assert json.loads((out / "status.json").read_text())["noise"]["depth_rel"] == 0.05
     assert (out / "sparse" / "0" / "cameras.txt").is_file()
 

@@ -64,8 +64,8 @@ def test_colmap_baseline_identical_images_is_a_recorded_failure(tmp_path):
     for i in range(3):
         write_image(tmp_path / "images" / f"{i}.png", img)
     status = run_colmap(tmp_path / "images", ["0.png", "1.png", "2.png"], tmp_path / "out")
-    assert status["success"] is False and status["registered"] < 3 and status["reason"]
-    assert json.loads((tmp_path / "out" / "status.json").read_text())["success"] is False
+    assert status["success_paper"] is False and status["registered"] < 3 and status["reason"]
+    assert json.loads((tmp_path / "out" / "status.json").read_text())["success_paper"] is False
     assert not (tmp_path / "out" / "sparse").exists()
 
 

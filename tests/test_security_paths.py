@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
-COMMON = ROOT / "workflow" / "rules" / "common.smk"
+COMMON = ROOT / "workflow" / "rules" / "config.smk"  # SCENE/RUN/MODE (included by common.smk)
 
 BAD_NAMES = ["../x", "..", ".", "/abs", "/etc/passwd", "a/b", "a/../../b", ".hidden", "", "x\\..\\y",
              "~", "~root", "a b", "-rf", "x\n/.."]

@@ -118,6 +118,8 @@ def test_synthetic_scene_plans_every_stage(mixed):
     assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
     # the point head is used: the depth head is not asked for
     assert "--points-from point_head" in out and "--points-from depth" not in out
+    # the COLMAP baseline is given every core snakemake has (recorded in status.json)
+    assert re.search(r"evaluation\.colmap_baseline .*--threads [1-9]", out)
 
 
 def test_scene_without_reference_cameras(mixed):

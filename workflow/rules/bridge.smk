@@ -40,7 +40,7 @@ rule bridge_colmap:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="colmap",
+        init="colmap|posed",
         mode="uniform",
     conda:
         "../envs/project.yaml"

@@ -68,9 +68,29 @@ rule plots:
         "python -m evaluation plots --results {params.results} --out {output} > {log} 2>&1"
 
 
+rule initialiser_notes:
+    output:
+        f"{R}/initialisers.json",
+    log:
+        f"{R}/logs/initialiser_notes.log",
+    benchmark:
+        f"{R}/benchmarks/initialiser_notes.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=200,
+    params:
+        script=VIEWS_SCRIPT,
+        skipped=skipped_initialisers_json,
+    shell:
+        "python {params.script} notes --skipped {params.skipped:q} --out {output} > {log} 2>&1"
+
+
 rule report:
     input:
         tables=f"{R}/tables/tables.md",
+        notes=f"{R}/initialisers.json",
         plots=plot_dirs,
         scenes=prepared_scenes,
     output:

@@ -1,4 +1,5 @@
-# Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle) and pose accuracy.
+# Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle, the ground-truth-pose
+# initialiser on posed scenes) and pose accuracy.
 
 
 rule vggt_init:
@@ -39,7 +40,7 @@ rule colmap_baseline:
         f"{SCENE}/n{{n}}/colmap/benchmarks/colmap_baseline.tsv"
     conda:
         "../envs/project.yaml"
-    threads: 1
+    threads: COLMAP_THREADS
     resources:
         mem_mb=4000,
     params:
@@ -47,7 +48,8 @@ rule colmap_baseline:
         args=colmap_args,
     shell:
         "python -m evaluation.colmap_baseline --images {input.scene}/images "
-        "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
+        "--image-list {input.image_list} --out {params.out} --threads {threads} "
+        "{params.args} > {log} 2>&1"
 
 
 checkpoint colmap_index:
@@ -93,6 +95,30 @@ rule oracle_init:
     shell:
         "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} {params.args} > {log} 2>&1"
+
+
+rule posed_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        model=directory(f"{SCENE}/n{{n}}/posed/sparse"),
+        status=f"{SCENE}/n{{n}}/posed/status.json",
+    log:
+        f"{SCENE}/n{{n}}/posed/logs/posed_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/posed/benchmarks/posed_init.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    params:
+        out=out_dir,
+        args=posed_args,
+    shell:
+        "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
+        "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
 
 
 rule pose_eval:

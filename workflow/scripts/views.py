@@ -62,11 +62,13 @@ def link_images(names: list[str], images: str | Path, out: str | Path) -> None:
 def index_status(paths: list[str], out: str | Path) -> dict:
     """{path: status} of COLMAP runs, with a success count, written to ``out``."""
     runs = {p: json.loads(Path(p).read_text()) for p in paths}
-    keys = ("success", "aligned_ok", "registered", "n_images", "points", "reason")
+    keys = ("success_paper", "aligned_ok", "registered", "n_images", "points", "reason", "num_threads")
+    # success_paper (docs/contracts.md); files written before the rename call it "success"
+    ok = {p: bool(s.get("success_paper", s.get("success", False))) for p, s in runs.items()}
     data = {
         "n_runs": len(runs),
-        "n_success": sum(bool(s.get("success")) for s in runs.values()),
-        "runs": {p: {k: s.get(k) for k in keys} for p, s in runs.items()},
+        "n_success_paper": sum(ok.values()),
+        "runs": {p: {**{k: s.get(k) for k in keys}, "success_paper": ok[p]} for p, s in runs.items()},
     }
     write_json(out, data)
     return data
@@ -89,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("index", help="gather COLMAP status.json files into one JSON")
     c.add_argument("--status", nargs="*", default=[])
     c.add_argument("--out", required=True)
+    d = sub.add_parser("notes", help="write the configured initialisers a scene cannot have")
+    d.add_argument("--skipped", required=True, help="JSON list of {dataset, scene, init, reason}")
+    d.add_argument("--out", required=True)
     args = p.parse_args(argv)
     setup_logging()
     t0 = time.perf_counter()
@@ -100,9 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         names = split_names(args.split, args.which, args.n)
         link_images(names, args.images, args.out)
         log.info("linked %d %s images into %s", len(names), args.which, args.out)
+    elif args.cmd == "notes":
+        skipped = json.loads(args.skipped)
+        write_json(args.out, {"skipped": skipped})
+        log.info("%d configured initialiser(s) not applicable: %s", len(skipped),
+                 "; ".join(f"{s['init']} on {s['dataset']}/{s['scene']} ({s['reason']})" for s in skipped) or "-")
     else:
         data = index_status(args.status, args.out)
-        log.info("COLMAP: %d of %d runs succeeded", data["n_success"], data["n_runs"])
+        log.info("COLMAP: %d of %d runs succeeded (success_paper)", data["n_success_paper"], data["n_runs"])
     log.info("done in %.2f s", time.perf_counter() - t0)
     return 0
 

@@ -1,0 +1,32 @@
+"""Config validation and the constants every rule file uses: the results layout (R, SCENE,
+RUN, MODE), the wildcard constraints, thread counts and helper-script paths."""
+
+import json
+
+from snakemake.logging import logger
+from pathlib import Path
+
+from snakemake.utils import validate
+
+validate(config, schema="../schemas/config.schema.yaml", set_default=True)
+
+R = config["results"].rstrip("/")
+SCENE = f"{R}/{{dataset}}/{{scene}}"
+RUN = f"{SCENE}/n{{n}}/{{init}}"
+MODE = f"{RUN}/{{mode}}"
+
+# COLMAP baseline threads: the configured count, or every core snakemake was given.
+COLMAP_THREADS = config["colmap"]["threads"] or max(1, int(workflow.cores or 1))
+
+# The workflow's own helper script, found from the workflow (any working directory works).
+VIEWS_SCRIPT = str(
+    (Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve()
+)
+
+
+wildcard_constraints:
+    dataset=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
+    scene=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
+    n=r"\d+",
+    init=r"vggt|colmap|oracle|posed",
+    mode=r"gated|uniform|filtered",

@@ -1,0 +1,143 @@
+"""Stage arguments and parameters of the rules (CLI arguments each one passes), input
+functions, and the folders derived from a job's own files."""
+
+# ----------------------------------------------------------------------------- stages
+
+
+def vggt_args(wildcards):
+    v = config["vggt"]
+    args = [f"--dtype {v['dtype']}", f"--points-from {v['points_from']}"]
+    if v["checkpoint"]:
+        args.append(f"--checkpoint {v['checkpoint']}")
+    if v["model_config"]:
+        args.append(f"--model-config {v['model_config']}")
+    if v["image_size"]:
+        args.append(f"--image-size {v['image_size']}")
+    return " ".join(args)
+
+
+def colmap_args(wildcards):
+    c = config["colmap"]
+    args = [
+        f"--seed {c['seed']}",
+        f"--max-image-size {c['max_image_size']}",
+        f"--max-num-features {c['max_num_features']}",
+    ]
+    if c["repeats"] > 1:
+        args.append(f"--repeats {c['repeats']}")
+        if has_reference(wildcards.dataset, wildcards.scene):
+            # every repeat is evaluated against the reference: ATE and gated-success spread
+            args.append(f"--ref {scene_dir(wildcards)}/sparse/0 {gate_args()}")
+    return " ".join(args)
+
+
+def oracle_args(wildcards):
+    o = config["oracle"]
+    return " ".join(
+        f"--{k.replace('_', '-')} {o[k]}"
+        for k in (
+            "seed",
+            "rot_deg",
+            "trans_frac",
+            "depth_rel",
+            "outlier_frac",
+            "conf_scale",
+            "conf_noise",
+            "downsample",
+        )
+    )
+
+
+def posed_args(wildcards):
+    o = config["posed"]
+    return " ".join(
+        f"--{k.replace('_', '-')} {o[k]}"
+        for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")
+    )
+
+
+def bridge_args(wildcards):
+    b = config["bridge"]
+    args = [f"--mode {wildcards.mode}"]
+    if b["stride"]:
+        args.append(f"--stride {b['stride']}")
+    if b["max_points"]:
+        args.append(f"--max-points {b['max_points']}")
+    return " ".join(args)
+
+
+def gate_args(wildcards=None):
+    e = config["evaluation"]
+    return (
+        f"--max-ate-rel-radius {e['max_ate_rel_radius']} "
+        f"--max-rel-rot-deg {e['max_rel_rot_deg']}"
+    )
+
+
+def lpips_args(wildcards):
+    return f"--lpips-nets {' '.join(config['evaluation']['lpips_nets'])}"
+
+
+def has_heldout(wildcards):
+    """Held-out evaluation applies: reference cameras and a test split."""
+    return has_reference(wildcards.dataset, wildcards.scene) and has_test_split(
+        wildcards.dataset, wildcards.scene
+    )
+
+
+def init_marker_of(init):
+    """The file that marks a finished initialiser run: VGGT writes timing.json, the COLMAP
+    baseline, the oracle and posed status.json."""
+    return "timing.json" if init == "vggt" else "status.json"
+
+
+def init_marker(wildcards):
+    """Input function: the finished-run marker of a job's initialiser."""
+    return f"{RUN.format(**wildcards)}/{init_marker_of(wildcards.init)}"
+
+
+def train_inputs(wildcards):
+    """Input function of training: seed, cameras, images, list; held-out views when they exist."""
+    base = MODE.format(**wildcards)
+    out = {
+        "seed": f"{base}/bridge/seed.ply",
+        "cameras": f"{base}/bridge/sparse",
+        "scene": scene_dir(wildcards),
+        "image_list": f"{SCENE.format(**wildcards)}/n{wildcards.n}/train.txt",
+    }
+    if has_heldout(wildcards):
+        out["test_cameras"] = f"{base}/align/sparse"
+        out["test_images"] = f"{SCENE.format(**wildcards)}/test_images"
+    return out
+
+
+def train_test_args(wildcards, input):
+    if "test_cameras" in input.keys():
+        return (
+            f"--test-cameras {input.test_cameras}/0 --test-images {input.test_images}"
+        )
+    return ""
+
+
+# ----------------------------------------------------------------------------- params
+# Folders passed to the CLIs are derived from each job's own files (no hard-coded prefixes).
+
+
+def out_dir(wildcards, output):
+    """The folder of a job's first output file (the stage CLI's --out)."""
+    return str(Path(output[0]).parent)
+
+
+def init_model_dir(wildcards, input):
+    """The initialiser's COLMAP model, beside its finished-run marker (input.init)."""
+    return f"{Path(input.init).parent}/sparse/0"
+
+
+def results_of_output(wildcards, output):
+    """The results root, two levels above R/<folder>/<file>."""
+    return str(Path(output[0]).parents[1])
+
+
+def results_of_input(wildcards, input):
+    """The results root, two levels above the first input R/<folder>/<file>."""
+    return str(Path(input[0]).parents[1])

@@ -1,0 +1,124 @@
+"""Target planning: the files of every (scene, n, initialiser) run up to a stage, leaving out
+what does not apply (COLMAP decisions read through the colmap_index checkpoint)."""
+
+# ----------------------------------------------------------------------------- targets
+
+
+def colmap_runs(wildcards=None):
+    """status.json of every configured COLMAP run (inputs of the colmap_index checkpoint)."""
+    return [
+        f"{RUN.format(dataset=ds, scene=sc, n=n, init='colmap')}/status.json"
+        for ds, sc in all_scenes()
+        if "colmap" in scene_inits(ds, sc)
+        for n in scene_views(ds, sc)
+    ]
+
+
+def colmap_status(dataset, scene, n):
+    """status.json of a finished COLMAP run. Read through the colmap_index checkpoint, which
+    waits for every COLMAP run, so the jobs after COLMAP are planned once all results exist
+    (success or failure) rather than one checkpoint at a time."""
+    checkpoints.colmap_index.get()
+    run = RUN.format(dataset=dataset, scene=scene, n=n, init="colmap")
+    path = f"{run}/status.json"
+    return json.loads(Path(path).read_text())
+
+
+def run_targets(dataset, scene, n, init, stage):
+    """The files of one (scene, n, initialiser) run up to ``stage``, leaving out what does
+    not apply. COLMAP results that failed stop at their status.json (a recorded result);
+    held-out stages need >= 3 registered views for the Sim(3) alignment."""
+    w = dict(dataset=dataset, scene=scene, n=n, init=init)
+    run = RUN.format(**w)
+    ref = has_reference(dataset, scene)
+    heldout = ref and has_test_split(dataset, scene)
+    out = [f"{run}/{init_marker_of(init)}"]
+    if stage == "init":
+        return out
+    aligned = True
+    if init == "colmap":
+        status = colmap_status(dataset, scene, n)
+        if not status.get("success_paper", status.get("success")):
+            return out
+        aligned = status["aligned_ok"]
+    if ref and stage in ("pose", "all"):
+        out.append(f"{run}/pose.json")
+    if stage == "pose" or not config["train"]["enabled"]:
+        return out
+    for mode in init_modes(init):
+        m = MODE.format(mode=mode, **w)
+        out.append(f"{m}/bridge/seed.ply")
+        if stage == "bridge":
+            continue
+        if heldout and aligned and stage in ("align", "render", "metrics", "all"):
+            out.append(f"{m}/align/align.json")
+        if stage == "align":
+            continue
+        out.append(f"{m}/train/model.ply")
+        if stage == "train" or not (heldout and aligned):
+            continue
+        out.append(f"{m}/renders")
+        if stage == "render":
+            continue
+        out.append(f"{m}/metrics.json")
+    return out
+
+
+def stage_targets(stage, colmap):
+    """Every run's files up to ``stage`` over all scenes, view counts and initialisers;
+    the COLMAP runs (``colmap=True``, read through the checkpoint) or all the others.
+
+    Target rules take the two halves as separate input functions, so the runs that do not
+    depend on COLMAP are planned (and shown by a dry run) before the checkpoint completes.
+    """
+    out = []
+    for ds, sc in all_scenes():
+        if not colmap:
+            out.append(f"{R}/{ds}/{sc}/split.json")
+        for n in scene_views(ds, sc):
+            for init in scene_inits(ds, sc):
+                if (init == "colmap") == colmap:
+                    out += run_targets(ds, sc, n, init, stage)
+    return out
+
+
+def targets_of(stage):
+    """Two input functions for a stage target: (non-COLMAP runs, COLMAP runs)."""
+
+    def others(wildcards=None):
+        return stage_targets(stage, colmap=False)
+
+    def colmap(wildcards=None):
+        return stage_targets(stage, colmap=True)
+
+    others.__name__ = f"{stage}_targets"
+    colmap.__name__ = f"{stage}_colmap_targets"
+    return others, colmap
+
+
+def plot_dirs(wildcards=None):
+    """The plots folder when there is training to plot (curves, PSNR/run-time Pareto)."""
+    return [f"{R}/plots"] if config["train"]["enabled"] else []
+
+
+def final_targets(wildcards=None):
+    """What `all` makes: tables, plots (if training ran) and the report."""
+    return [f"{R}/tables/tables.md", *plot_dirs(), f"{R}/report/index.html"]
+
+
+def prepared_scenes(wildcards=None):
+    return [scene_dir_of(ds, sc) for ds, sc in all_scenes()]
+
+
+def splits(wildcards=None):
+    return [f"{R}/{ds}/{sc}/split.json" for ds, sc in all_scenes()]
+
+
+INIT_TARGETS = targets_of("init")
+POSE_TARGETS = targets_of("pose")
+BRIDGE_TARGETS = targets_of("bridge")
+ALIGN_TARGETS = targets_of("align")
+TRAIN_TARGETS = targets_of("train")
+RENDER_TARGETS = targets_of("render")
+METRIC_TARGETS = targets_of("metrics")
+ALL_TARGETS = targets_of("all")

@@ -1,0 +1,204 @@
+"""Scene discovery: what each configured scene is (format, reference cameras, ground truth,
+distortion: asked of camio, the one place that reads dataset layouts), how it is prepared,
+its split and view counts, and which initialisers apply to it."""
+
+# Formats whose source carries reference cameras.
+_REFERENCE_FORMATS = ("colmap", "llff", "transforms", "dtu", "mvsnet", "strecha")
+
+# ----------------------------------------------------------------------------- scenes
+
+
+def scene_cfg(dataset, scene):
+    """The config block of one scene (KeyError naming it if absent)."""
+    try:
+        return config["datasets"][dataset]["scenes"][scene]
+    except KeyError:
+        raise WorkflowError(
+            f"scene {dataset}/{scene} is not in the config (datasets.{dataset}.scenes)"
+        )
+
+
+def all_scenes():
+    """[(dataset, scene)] in config order."""
+    return [
+        (ds, sc) for ds, block in config["datasets"].items() for sc in block["scenes"]
+    ]
+
+
+def source_format(dataset, scene):
+    """The source format, 'auto' resolved by camio's detection (the camera files present)."""
+    cfg = scene_cfg(dataset, scene)
+    if "synth" in cfg:
+        return "synth"
+    fmt = cfg["format"]
+    if fmt != "auto":
+        return fmt
+    from camio.scene import detect_format
+
+    try:
+        return detect_format(cfg["path"])
+    except ValueError as exc:
+        raise WorkflowError(f"datasets.{dataset}.scenes.{scene}: {exc}")
+
+
+def has_reference(dataset, scene):
+    """Does the scene have reference cameras (pose evaluation, held-out renders)?"""
+    cfg = scene_cfg(dataset, scene)
+    if "reference" in cfg:
+        return cfg["reference"]
+    return source_format(dataset, scene) in ("synth",) + _REFERENCE_FORMATS
+
+
+def has_gt_geometry(dataset, scene):
+    """Ground-truth depth and points (the oracle needs them): synthetic scenes only."""
+    return "synth" in scene_cfg(dataset, scene)
+
+
+def needs_undistort(dataset, scene):
+    """Undistort only distorted data: explicit config, else the source model's cameras."""
+    cfg = scene_cfg(dataset, scene)
+    if "synth" in cfg:
+        return False
+    if cfg["undistort"] != "auto":
+        return bool(cfg["undistort"])
+    from camio.colmap import DISTORTED_MODELS
+    from camio.datasets import source_camera_models
+
+    return any(m in DISTORTED_MODELS for m in source_camera_models(cfg["path"]))
+
+
+def prepare_kind(dataset, scene):
+    """'synth', 'converted' or 'undistorted': the rule (and folder) that prepares the scene."""
+    if has_gt_geometry(dataset, scene):
+        return "synth"
+    return "undistorted" if needs_undistort(dataset, scene) else "converted"
+
+
+def scene_dir_of(dataset, scene):
+    return f"{R}/{dataset}/{scene}/{prepare_kind(dataset, scene)}"
+
+
+def scene_dir(wildcards):
+    """Input function: the prepared scene folder of a job's (dataset, scene)."""
+    return scene_dir_of(wildcards.dataset, wildcards.scene)
+
+
+def synth_args(wildcards):
+    """Arguments of `camio synth` for a synthetic scene."""
+    s = scene_cfg(wildcards.dataset, wildcards.scene)["synth"]
+    return f"--views {s['views']} --width {s['width']} --seed {s['seed']}"
+
+
+def convert_args(wildcards):
+    """Arguments of `camio convert` (without --undistort, which the rule adds)."""
+    cfg = scene_cfg(wildcards.dataset, wildcards.scene)
+    args = [f"--src {cfg['path']}"]
+    if cfg["format"] != "auto":
+        args.append(f"--format {cfg['format']}")
+    if cfg.get("images_subdir"):
+        args.append(f"--images-subdir {cfg['images_subdir']}")
+    if cfg["downsample"] > 1:
+        args.append(f"--downsample {cfg['downsample']}")
+    if cfg["skip_missing"]:
+        args.append("--skip-missing")
+    if cfg["allow_mixed"]:
+        args.append("--allow-mixed")
+    return " ".join(args)
+
+
+def convert_source(wildcards):
+    """Input function: the source folder of a converted scene (tracked for changes)."""
+    return scene_cfg(wildcards.dataset, wildcards.scene)["path"]
+
+
+# ----------------------------------------------------------------------------- splits
+
+
+def split_manifest(dataset, scene):
+    cfg = scene_cfg(dataset, scene)["split"]
+    if cfg["rule"] != "manifest":
+        return None
+    if "manifest" not in cfg:
+        raise WorkflowError(
+            f"datasets.{dataset}.scenes.{scene}.split: rule 'manifest' needs a 'manifest' file"
+        )
+    return cfg["manifest"]
+
+
+def split_inputs(wildcards):
+    """Input function: the prepared scene, plus the manifest when there is one."""
+    out = {"scene": scene_dir(wildcards)}
+    manifest = split_manifest(wildcards.dataset, wildcards.scene)
+    if manifest:
+        out["manifest"] = manifest
+    return out
+
+
+def split_args(wildcards):
+    views = " ".join(str(n) for n in scene_views(wildcards.dataset, wildcards.scene))
+    manifest = split_manifest(wildcards.dataset, wildcards.scene)
+    return f"--n {views}" + (f" --manifest {manifest}" if manifest else "")
+
+
+def has_test_split(dataset, scene):
+    """Held-out views exist: every8 always has them; a manifest only if its test list is not empty."""
+    manifest = split_manifest(dataset, scene)
+    if manifest is None:
+        return True
+    try:
+        return len(json.loads(Path(manifest).read_text()).get("test", [])) > 0
+    except (OSError, ValueError) as exc:
+        raise WorkflowError(f"cannot read the split manifest {manifest}: {exc}")
+
+
+def scene_views(dataset, scene):
+    cfg = scene_cfg(dataset, scene)
+    return cfg.get("views", config["views"])
+
+
+_NOT_APPLICABLE = {
+    "oracle": (has_gt_geometry, "it needs ground-truth depth (synthetic scenes only)"),
+    "posed": (has_reference, "it needs reference cameras and the scene has none"),
+}
+_told = set()
+
+
+def scene_inits(dataset, scene):
+    """Initialisers that apply: the oracle needs ground-truth geometry, ``posed`` reference
+    cameras. A configured one that does not apply is named once in the log (and in
+    R/initialisers.json, which the report lists)."""
+    inits = scene_cfg(dataset, scene).get("initialisers", config["initialisers"])
+    out = []
+    for i in inits:
+        check, why = _NOT_APPLICABLE.get(i, (None, None))
+        if check is not None and not check(dataset, scene):
+            if (dataset, scene, i) not in _told:
+                _told.add((dataset, scene, i))
+                logger.warning(
+                    f"{dataset}/{scene}: initialiser '{i}' is not run: {why}"
+                )
+            continue
+        out.append(i)
+    return out
+
+
+def skipped_initialisers(wildcards=None):
+    """[{dataset, scene, init, reason}] of configured initialisers that do not apply."""
+    out = []
+    for ds, sc in all_scenes():
+        inits = scene_cfg(ds, sc).get("initialisers", config["initialisers"])
+        for i in inits:
+            check, why = _NOT_APPLICABLE.get(i, (None, None))
+            if check is not None and not check(ds, sc):
+                out.append({"dataset": ds, "scene": sc, "init": i, "reason": why})
+    return out
+
+
+def skipped_initialisers_json(wildcards=None):
+    """:func:`skipped_initialisers` as a JSON string (a rule parameter)."""
+    return json.dumps(skipped_initialisers())
+
+
+def init_modes(init):
+    """Bridge modes of an initialiser: COLMAP and posed have no confidence, so uniform only."""
+    return ["uniform"] if init in ("colmap", "posed") else config["bridge"]["modes"]
