@@ -105,12 +105,19 @@ def main(argv: list[str] | None = None) -> int:
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
                       kernel_threads=args.kernel_threads)
-    result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
-                   test_images=args.test_images, image_list=args.image_list,
-                   test_image_list=args.test_image_list)
+    from camio.images import ImageReadError
+
+    try:
+        result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
+                       test_images=args.test_images, image_list=args.image_list,
+                       test_image_list=args.test_image_list)
+    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
     s = result.summary
+    test_psnr = s["test_psnr"]
     print(f"model: {result.model_path}  Gaussians: {s['num_gaussians']}  train PSNR: {s['train_psnr']:.2f}  "
-          f"test PSNR: {s['test_psnr'] if s['test_psnr'] == s['test_psnr'] else 'n/a'}  "
+          f"test PSNR: {f'{test_psnr:.2f}' if test_psnr == test_psnr and test_psnr is not None else 'n/a'}  "
           f"training time: {s['wall_time_s']:.1f} s")
     return 0
 

@@ -1,0 +1,173 @@
+"""Bad input images as a user meets them: each stage's command line, not the library function.
+
+For every stage that reads image files (``python -m vggt_init``, ``python -m
+evaluation.colmap_baseline``, ``python -m splat_train``, ``python -m evaluation images``) a
+damaged image is put among good ones and the command is run in a subprocess. Each must:
+exit with a non-zero code, print one error line that names the damaged file, print no Python
+traceback, and leave nothing behind in its output folder. The damages: a JPEG cut in half (it
+used to pass ``vggt_init`` as half-grey pixels and the COLMAP baseline as a 3/3 "success"), a
+PNG cut in half, text bytes named ``.jpg`` and an empty file. Nothing here needs /work/shared
+or the VGGT checkpoint (images are checked before the checkpoint is looked up).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from _train_scene import write_scene
+from camio.images import ImageReadError, read_image, write_image
+
+ROOT = Path(__file__).resolve().parents[1]
+KINDS = ("truncated_jpeg", "truncated_png", "text_bytes", "empty_file")
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["HF_HUB_OFFLINE"] = "1"  # never reach for the network from a test
+    env.pop("VGGT_CHECKPOINT", None)
+    return env
+
+
+def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=_env(), capture_output=True,
+                          text=True, timeout=300)
+
+
+def _texture(seed: int, h: int = 96, w: int = 128) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.random((h // 8, w // 8, 3)).astype(np.float32)
+    return np.kron(small, np.ones((8, 8, 1), dtype=np.float32))
+
+
+def _damage(path: Path, kind: str) -> Path:
+    """Damage the image at ``path`` (written first as a good image) in place; returns it."""
+    if kind in ("truncated_jpeg", "truncated_png"):
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    elif kind == "text_bytes":
+        path.write_text("this is not an image\n")
+    elif kind == "empty_file":
+        path.write_bytes(b"")
+    else:  # pragma: no cover
+        raise ValueError(kind)
+    return path
+
+
+def _image_folder(root: Path, kind: str, n: int = 3) -> tuple[Path, list[str], str]:
+    """n good textured images, one of them damaged; (folder, names, damaged name)."""
+    ext = ".png" if kind == "truncated_png" else ".jpg"
+    folder = root / "images"
+    names = [f"view_{i}{ext}" for i in range(n)]
+    for i, name in enumerate(names):
+        write_image(folder / name, _texture(i))
+    _damage(folder / names[1], kind)
+    return folder, names, names[1]
+
+
+def _assert_clean_failure(proc: subprocess.CompletedProcess, bad_name: str, out: Path) -> None:
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0, f"exit 0 on a damaged image:\n{text[-3000:]}"
+    assert bad_name in proc.stderr, f"the error does not name {bad_name}:\n{text[-3000:]}"
+    assert "Traceback" not in text, f"a traceback for a bad input:\n{text[-3000:]}"
+    left = sorted(str(p.relative_to(out)) for p in out.rglob("*")) if out.exists() else []
+    assert not left, f"outputs left behind after the failure: {left}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_unit_reader_rejects_damaged_image(tmp_path, kind):
+    """The shared reader itself: ImageReadError naming the file, for every damage."""
+    folder, _, bad = _image_folder(tmp_path, kind)
+    with pytest.raises(ImageReadError, match=bad):
+        read_image(folder / bad)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_vggt_init_cli_rejects_damaged_image(tmp_path, kind):
+    folder, names, bad = _image_folder(tmp_path, kind)
+    (tmp_path / "train.txt").write_text("\n".join(names) + "\n")
+    out = tmp_path / "out"
+    proc = _run(["-m", "vggt_init", "--images", str(folder), "--image-list",
+                 str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
+    _assert_clean_failure(proc, bad, out)
+    assert proc.returncode == 2
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_colmap_baseline_cli_rejects_damaged_image(tmp_path, kind):
+    """pycolmap never sees the file: no status.json with success=True (nor any status)."""
+    folder, names, bad = _image_folder(tmp_path, kind)
+    (tmp_path / "train.txt").write_text("\n".join(names) + "\n")
+    out = tmp_path / "out"
+    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--image-list",
+                 str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
+    _assert_clean_failure(proc, bad, out)
+    assert proc.returncode == 2
+
+
+@pytest.mark.parametrize("kind", ("truncated_png", "text_bytes", "empty_file"))
+def test_trainer_cli_rejects_damaged_image(tmp_path, kind):
+    sc = write_scene(tmp_path / "scene", n_views=3, n_test=1)
+    _damage(sc["images"] / "view_02.png", kind)
+    out = tmp_path / "out"
+    proc = _run(["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+                 "--images", str(sc["images"]), "--out", str(out), "--iterations", "2",
+                 "--threads", "1"], tmp_path)
+    _assert_clean_failure(proc, "view_02.png", out)
+
+
+def test_trainer_cli_rejects_damaged_held_out_image(tmp_path):
+    sc = write_scene(tmp_path / "scene", n_views=3, n_test=1)
+    bad = next(sc["test_images"].iterdir())
+    _damage(bad, "truncated_png")
+    out = tmp_path / "out"
+    proc = _run(["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+                 "--images", str(sc["images"]), "--out", str(out), "--iterations", "2",
+                 "--threads", "1", "--test-cameras", str(sc["test_cameras"]),
+                 "--test-images", str(sc["test_images"])], tmp_path)
+    _assert_clean_failure(proc, bad.name, out)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("side", ("pred", "gt"))
+def test_metrics_cli_rejects_damaged_image(tmp_path, kind, side):
+    ext = ".png" if kind == "truncated_png" else ".jpg"
+    folders = {s: tmp_path / s for s in ("pred", "gt")}
+    for i in range(2):
+        for s, f in folders.items():
+            write_image(f / f"t{i}{ext}", _texture(i))
+    bad = _damage(folders[side] / f"t1{ext}", kind)
+    out = tmp_path / "metrics" / "metrics.json"
+    proc = _run(["-m", "evaluation", "images", "--pred", str(folders["pred"]), "--gt",
+                 str(folders["gt"]), "--out", str(out), "--lpips-nets"], tmp_path)
+    _assert_clean_failure(proc, bad.name, out.parent)
+
+
+def test_colmap_baseline_cli_empty_image_list_is_one_line(tmp_path):
+    """An empty --image-list: a one-line error, not a traceback from deep inside."""
+    folder, _, _ = _image_folder(tmp_path, "truncated_jpeg")
+    (tmp_path / "train.txt").write_text("# nothing\n\n")
+    out = tmp_path / "out"
+    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--image-list",
+                 str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
+    assert proc.returncode != 0
+    assert "train.txt is empty" in proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert not out.exists()
+
+
+def test_vggt_init_cli_empty_image_list_is_one_line(tmp_path):
+    folder, _, _ = _image_folder(tmp_path, "truncated_jpeg")
+    (tmp_path / "train.txt").write_text("\n")
+    out = tmp_path / "out"
+    proc = _run(["-m", "vggt_init", "--images", str(folder), "--image-list",
+                 str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
+    assert proc.returncode == 2
+    assert "is empty" in proc.stderr and "Traceback" not in proc.stdout + proc.stderr
+    assert not out.exists()
