@@ -171,3 +171,39 @@ def test_vggt_init_cli_empty_image_list_is_one_line(tmp_path):
     assert proc.returncode == 2
     assert "is empty" in proc.stderr and "Traceback" not in proc.stdout + proc.stderr
     assert not out.exists()
+
+
+def test_hub_probe_fails_fast_on_a_closed_port():
+    import time
+
+    from vggt_init.checkpoint import hub_unreachable_reason
+
+    t0 = time.perf_counter()
+    reason = hub_unreachable_reason({"HF_ENDPOINT": "http://127.0.0.1:9"}, timeout=2.0)
+    assert reason is not None and "127.0.0.1:9" in reason
+    assert time.perf_counter() - t0 < 5
+
+
+def test_vggt_init_cli_offline_missing_checkpoint_fails_in_seconds(tmp_path):
+    """No checkpoint and no hub (HF_HUB_OFFLINE unset): one probe, not ~48 s of retries; the
+    message says where to put the file; no traceback; nothing written."""
+    import time
+
+    folder = tmp_path / "images"
+    for i in range(2):
+        write_image(folder / f"v{i}.jpg", _texture(i, 56, 56))
+    env = _env()
+    env.pop("HF_HUB_OFFLINE")
+    env["HF_ENDPOINT"] = "http://127.0.0.1:9"  # nothing listens on the discard port
+    env["HF_HOME"] = str(tmp_path / "hf_home")  # an empty cache
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "vggt_init", "--images", str(folder), "--out", str(out)],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    took = time.perf_counter() - t0
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 2, text[-3000:]
+    assert "no VGGT checkpoint found" in proc.stderr and "Traceback" not in text
+    assert "Retrying" not in text, text[-3000:]
+    assert took < 30, f"{took:.1f} s on a missing checkpoint offline"
+    assert not out.exists() or not any(out.rglob("*"))

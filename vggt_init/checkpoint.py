@@ -5,7 +5,8 @@ Resolution order (first hit wins):
 2. the environment variable ``VGGT_CHECKPOINT``;
 3. the local Hugging Face cache for ``facebook/VGGT-1B`` (``model.safetensors``, then
    ``model.pt``);
-4. a download with huggingface_hub, unless offline (``HF_HUB_OFFLINE=1``) or it fails.
+4. a download with huggingface_hub, unless offline: ``HF_HUB_OFFLINE=1``, or the hub's host
+   cannot be reached within 3 s (one probe, no retries), or the download fails.
 Otherwise :class:`CheckpointNotFoundError` says where to put the file.
 
 Reading: ``.safetensors`` with safetensors; ``.pt``/``.pth``/``.bin`` with
@@ -75,9 +76,37 @@ def _hf_cache_lookup(repo_id: str, filenames: Iterable[str], cache_dir: str | os
     return None
 
 
+HUB_PROBE_TIMEOUT_S = 3.0
+
+
+def hub_unreachable_reason(env: dict | None = None, timeout: float = HUB_PROBE_TIMEOUT_S) -> str | None:
+    """Why the Hugging Face Hub cannot be reached (None when a TCP connection opens).
+
+    One name lookup and one TCP connect to the hub's host (``HF_ENDPOINT``, default
+    huggingface.co) within ``timeout`` seconds. Without it, huggingface_hub retries each file
+    five times with back-off (about 48 s for the two file names) before giving up offline.
+    """
+    import socket
+    from urllib.parse import urlparse
+
+    env = dict(os.environ) if env is None else env
+    url = urlparse(env.get("HF_ENDPOINT") or "https://huggingface.co")
+    host = url.hostname or "huggingface.co"
+    port = url.port or (80 if url.scheme == "http" else 443)
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except OSError as exc:
+        return f"{host}:{port} cannot be reached ({exc.__class__.__name__}: {exc})"
+
+
 def _hf_download(repo_id: str, filenames: Iterable[str]) -> Path | None:
     from huggingface_hub import hf_hub_download
 
+    reason = hub_unreachable_reason()
+    if reason is not None:
+        log.warning("not downloading %s: the Hugging Face Hub at %s (offline?)", repo_id, reason)
+        return None
     last: Exception | None = None
     for name in filenames:
         try:
