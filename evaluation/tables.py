@@ -27,7 +27,7 @@ from camio.atomic import atomic_path
 from evaluation.pose import GateConfig
 from evaluation.results import collect_runs
 
-__all__ = ["to_markdown", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
+__all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
            "build_tables", "run_tables"]
 
 log = logging.getLogger(__name__)
@@ -165,10 +165,19 @@ _DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "run
            "registered min": 0, "registered max": 0}
 
 
-def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg") -> dict[str, pd.DataFrame]:
-    """All tables by title (ordered)."""
+TABLE_ONE = "Table I: COLMAP vs VGGT per dataset and n"
+RUN_STATUS = "Run status: what ran, per initialiser and scene"
+
+
+def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg",
+                 results: str | Path | None = None) -> dict[str, pd.DataFrame]:
+    """All tables by title (ordered); the run status reads ``results`` for skipped and failed
+    initialisers that left no result (see :mod:`evaluation.run_status`)."""
+    from evaluation.run_status import run_status_table
+
     return {
-        "Table I: COLMAP vs VGGT per dataset and n": table_one(runs, lpips=lpips),
+        RUN_STATUS: run_status_table(runs, results),
+        TABLE_ONE: table_one(runs, lpips=lpips),
         "Table II: summary per initialiser": table_two(runs, lpips=lpips),
         "Pose accuracy": pose_table(runs),
         "Run time": runtime_table(runs),
@@ -176,8 +185,29 @@ def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str
     }
 
 
+def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: str = "colmap") -> dict[str, str]:
+    """Why a table is empty or partly empty, by title (shown instead of, or above, the table)."""
+    notes: dict[str, str] = {}
+    status = tables.get(RUN_STATUS)
+    inits_ran = set()
+    if status is not None and not status.empty:
+        inits_ran = set(status.loc[status["status"].str.startswith("ran"), "init"])
+    missing = [i for i in (baseline, ours) if i not in inits_ran]
+    if TABLE_ONE in tables and missing:
+        whys = []
+        if status is not None and not status.empty:
+            for i in missing:
+                w = status.loc[status["init"] == i, ["status", "why"]]
+                whys.append(f"{i}: {w.iloc[0]['status']} ({w.iloc[0]['why']})" if len(w) else f"{i}: not configured")
+        notes[TABLE_ONE] = ("Not shown: Table I compares " + ours + " with " + baseline + ", and "
+                            + " and ".join(missing) + " did not run (" + "; ".join(whys) + "). "
+                            "See the run status above.")
+    return notes
+
+
 def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig()) -> str:
-    """The Markdown document: criteria, then every non-empty table."""
+    """The Markdown document: criteria, then every non-empty table (empty ones are named once
+    at the end; a table that cannot be filled says why instead)."""
     out = ["# Results", "",
            "Success (paper): a model with >= 1 registered image and >= 1 point, and >= "
            f"{gate.min_aligned_views} registered training views for the Sim(3) alignment.",
@@ -185,14 +215,21 @@ def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConf
            f"trajectory radius and mean relative rotation error < {gate.max_rel_rot_deg:g} deg "
            "(k/N over scenes with reference cameras).",
            "Matched: scenes where COLMAP succeeded (paper criterion) at that n; delta = ours - COLMAP.", ""]
+    notes = table_notes(tables)
+    empty = []
     for title, df in tables.items():
-        out += [f"## {title}", ""]
-        if df.empty:
-            out += ["(no runs)", ""]
+        if title in notes:
+            out += [f"## {title}", "", notes[title], ""]
             continue
+        if df.empty:
+            empty.append(title)
+            continue
+        out += [f"## {title}", ""]
         digits = {c: (3 if "SSIM" in c or "LPIPS" in c else 2) for c in df.columns}
         digits.update({k: v for k, v in _DIGITS.items() if k in df.columns})
         out += [to_markdown(df, digits), ""]
+    if empty:
+        out += ["Nothing to show (no runs of that kind): " + "; ".join(empty) + ".", ""]
     return "\n".join(out)
 
 
@@ -204,7 +241,7 @@ def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConf
     runs = collect_runs(results, gate)
     with atomic_path(out / "runs.parquet") as tmp:
         runs.to_parquet(tmp, index=False)
-    tables = build_tables(runs, gate, lpips)
+    tables = build_tables(runs, gate, lpips, results)
     with atomic_path(out / "tables.md") as tmp:
         tmp.write_text(tables_markdown(tables, gate) + "\n")
     log.info("tables: %d runs -> %s and %s in %.2f s", len(runs), out / "runs.parquet", out / "tables.md",

@@ -125,7 +125,8 @@ def test_plots_cli(tree, tmp_path):
     assert main(["plots", "--results", str(tree[0]), "--out", str(tmp_path / "p")]) == 0
     pngs = sorted((tmp_path / "p").rglob("*.png"))
     names = {p.name for p in pngs}
-    assert "pareto.png" in names and "mip360__garden__n3.png" in names and len(pngs) == 7
+    assert "pareto__mip360__garden__n3.png" in names and "mip360__garden__n3.png" in names
+    assert len(pngs) == 12  # 6 training-curve plots + one Pareto plot per scene and view count
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 

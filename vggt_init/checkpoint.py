@@ -38,6 +38,8 @@ __all__ = [
     "CheckpointFormatError",
     "StateDictMismatchError",
     "resolve_checkpoint",
+    "skip_reason",
+    "hub_unreachable_reason",
     "read_state_dict",
     "expected_shapes",
     "check_state_dict",
@@ -183,6 +185,27 @@ def resolve_checkpoint(
         if hit is not None:
             return hit
     raise CheckpointNotFoundError(_not_found_message(repo_id))
+
+
+def skip_reason(env: dict | None = None) -> str | None:
+    """Why VGGT cannot run here, in one sentence, or None (a checkpoint is in place, or the hub
+    can be reached and the job will download it). Used by the demo to skip VGGT up front
+    instead of letting its jobs fail."""
+    env = dict(os.environ) if env is None else env
+    try:
+        resolve_checkpoint(env=env, allow_download=False)
+        return None
+    except CheckpointNotFoundError as exc:
+        if env.get(ENV_VAR):
+            return str(exc)
+    if _offline(env):
+        return ("no VGGT-1B checkpoint (VGGT_CHECKPOINT unset, none in the Hugging Face cache) and "
+                "HF_HUB_OFFLINE is set, so it cannot be downloaded")
+    unreachable = hub_unreachable_reason(env)
+    if unreachable is not None:
+        return ("no VGGT-1B checkpoint (VGGT_CHECKPOINT unset, none in the Hugging Face cache) and "
+                f"the Hugging Face Hub cannot be reached: {unreachable}")
+    return None
 
 
 def read_state_dict(path: str | os.PathLike, keys: Iterable[str] | None = None) -> dict[str, torch.Tensor]:
