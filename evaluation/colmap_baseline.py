@@ -1,4 +1,4 @@
-"""The train-only COLMAP baseline (PROTOCOL.md section 4), seeded and repeatable.
+"""The train-only COLMAP baseline, seeded and repeatable.
 
 Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
 features), exhaustive matching with guided matching, incremental mapping, all through
@@ -48,7 +48,7 @@ MIN_ALIGN_IMAGES = 3
 
 
 class ColmapSettings:
-    """PROTOCOL.md section 4 settings (defaults) plus the reproducibility knobs.
+    """The evaluation protocol's COLMAP settings (defaults) plus the reproducibility knobs.
 
     Attributes:
         max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
@@ -168,7 +168,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         out_dir: output folder; receives ``sparse/0`` (if a model exists) and
             ``status.json``.
         seed: seed for pycolmap's PRNG and every ``random_seed`` option.
-        settings: COLMAP settings (PROTOCOL.md defaults if None).
+        settings: COLMAP settings (the protocol defaults if None).
         keep_work: keep the work folder (database, linked images) as ``out_dir/work``.
 
     Returns:
