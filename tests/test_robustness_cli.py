@@ -13,6 +13,7 @@ or the VGGT checkpoint (images are checked before the checkpoint is looked up).
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -207,3 +208,53 @@ def test_vggt_init_cli_offline_missing_checkpoint_fails_in_seconds(tmp_path):
     assert "Retrying" not in text, text[-3000:]
     assert took < 30, f"{took:.1f} s on a missing checkpoint offline"
     assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_skip_reason_offline_and_with_checkpoint(tmp_path):
+    """The demo's up-front question: why VGGT cannot run here (one sentence), or None."""
+    from vggt_init.checkpoint import skip_reason
+
+    env = {"HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf")}
+    reason = skip_reason(env)
+    assert reason and "HF_HUB_OFFLINE" in reason and "checkpoint" in reason
+    unreachable = skip_reason({"HF_ENDPOINT": "http://127.0.0.1:9", "HF_HOME": str(tmp_path / "hf")})
+    assert unreachable and "cannot be reached" in unreachable
+    ckpt = tmp_path / "model.pt"
+    ckpt.write_bytes(b"x")
+    assert skip_reason({"VGGT_CHECKPOINT": str(ckpt), "HF_HUB_OFFLINE": "1"}) is None
+    bad = skip_reason({"VGGT_CHECKPOINT": str(tmp_path / "nope.pt")})
+    assert bad and "nope.pt" in bad
+
+
+def test_colmap_baseline_ref_is_used_with_a_single_run(tmp_path, monkeypatch):
+    """--ref used to be ignored silently unless --repeats >= 2; a single run now evaluates it."""
+    import evaluation.colmap_repeats as repeats
+    from evaluation.colmap_baseline import main
+
+    calls = []
+    monkeypatch.setattr(repeats, "run_colmap_repeats",
+                        lambda images, names, out, seeds, **kw: calls.append((seeds, kw.get("ref"))))
+    folder = tmp_path / "images"
+    for i in range(3):
+        write_image(folder / f"v{i}.jpg", _texture(i))
+    assert main(["--images", str(folder), "--names", "v0.jpg", "v1.jpg", "v2.jpg", "--out",
+                 str(tmp_path / "out"), "--ref", str(tmp_path / "ref"), "--seed", "4"]) == 0
+    assert calls == [([4], str(tmp_path / "ref"))]
+
+
+def test_colmap_baseline_cli_keeps_pycolmap_chatter_off_the_console(tmp_path):
+    """pycolmap's own log (25-60 lines a call) stays out of stdout and, without -v, out of
+    stderr too; the stage's own lines remain."""
+    folder = tmp_path / "images"
+    names = [f"v{i}.jpg" for i in range(3)]
+    for i, name in enumerate(names):
+        write_image(folder / name, _texture(i))
+    out = tmp_path / "out"
+    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--names", *names,
+                 "--out", str(out)], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout == ""
+    pycolmap_lines = [ln for ln in proc.stderr.splitlines() if re.match(r"^[IW]\d{8} ", ln)]
+    assert not pycolmap_lines, pycolmap_lines[:5]
+    assert "COLMAP baseline: success=" in proc.stderr
+    assert (out / "status.json").is_file()
