@@ -5,7 +5,9 @@
   matched COLMAP vs ours PSNR / SSIM / LPIPS over the scenes where COLMAP succeeded (paper
   criterion), their difference (ours - COLMAP), and ours over all scenes.
 * Table II style summary: per dataset, initialiser and n: success under both criteria,
-  registered / n, image metrics over successful runs, ATE and rotation error.
+  registered / n, image metrics over successful runs (metrics.json at the final iteration, and
+  the training log's held-out PSNR at the final and at the best evaluated iteration), ATE and
+  rotation error.
 * Pose accuracy: one row per run with reference cameras.
 * Run time: mean seconds per stage and peak memory, per dataset, initialiser and n.
 * COLMAP repeats: the spread over seeds, where runs were repeated.
@@ -119,6 +121,9 @@ def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
             "success (gated)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
             "PSNR": _mean(ok["psnr"]), "SSIM": _mean(ok["ssim"]), f"LPIPS-{lpips}": _mean(ok[lp]),
+            "held-out PSNR final it.": _mean(ok["final_test_psnr"]),
+            "held-out PSNR best it.": _mean(ok["best_test_psnr"]),
+            "best it.": _mean(ok["best_test_iter"]),
             "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
             "total s": _mean(g["total_s"]),
         })
@@ -161,7 +166,7 @@ def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
     return g[list(cols)].rename(columns=cols).reset_index(drop=True)
 
 
-_DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "runs": 0,
+_DIGITS = {"best it.": 0, "SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "runs": 0,
            "registered min": 0, "registered max": 0}
 
 
@@ -197,11 +202,10 @@ def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: s
         whys = []
         if status is not None and not status.empty:
             for i in missing:
-                w = status.loc[status["init"] == i, ["status", "why"]]
-                whys.append(f"{i}: {w.iloc[0]['status']} ({w.iloc[0]['why']})" if len(w) else f"{i}: not configured")
-        notes[TABLE_ONE] = ("Not shown: Table I compares " + ours + " with " + baseline + ", and "
-                            + " and ".join(missing) + " did not run (" + "; ".join(whys) + "). "
-                            "See the run status above.")
+                w = status.loc[status["init"] == i, "status"]
+                whys.append(f"{i}: {w.iloc[0]}, see the run status for why" if len(w) else f"{i}: not configured")
+        notes[TABLE_ONE] = (f"Not shown: Table I compares {ours} with {baseline}, and "
+                            + " and ".join(missing) + " did not run (" + "; ".join(whys) + ").")
     return notes
 
 
