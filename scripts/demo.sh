@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: the whole DAG on the bundled synthetic scene (config.yaml) on 2 cores, then the
 # tables and the HTML report. Extra arguments go to snakemake (e.g. --configfile other.yaml).
-# About 4 to 5 minutes on a 2-core CPU without the VGGT checkpoint (README, "Quick start").
+# About 3 minutes on a 2-core CPU without the VGGT checkpoint (README, "Quick start").
 #
 # The VGGT branch needs the VGGT-1B checkpoint (vggt_init/checkpoint.py says where it is looked
 # for). Before anything runs, this script asks whether VGGT can run here (a checkpoint in place,
@@ -30,6 +30,23 @@ if [ -n "$skipped" ]; then
 else
   python3 -c "import sys; from evaluation.run_status import write_skipped; write_skipped(sys.argv[1], {})" "$RESULTS"
 fi
+
+# Progress during long steps: snakemake prints a line per finished job only, and a job's own
+# output goes to its log; every DEMO_HEARTBEAT_S seconds (default 30) print the newest log line
+# of the job that wrote last, e.g. the trainer's "it 400/1000 ...".
+heartbeat() {
+  local every=${DEMO_HEARTBEAT_S:-30} t0=$SECONDS latest line
+  while sleep "$every"; do
+    latest=$(find "$RESULTS" -name '*.log' -newermt "${every} seconds ago" -printf '%T@ %p\n' 2>/dev/null \
+             | sort -n | tail -1 | cut -d' ' -f2-)
+    [ -n "$latest" ] || continue
+    line=$(tail -c 2000 "$latest" | tr '\r' '\n' | grep -v '^\s*$' | tail -1 | cut -c1-140)
+    echo "[demo] $(( (SECONDS - t0) / 60 ))m$(( (SECONDS - t0) % 60 ))s, working on ${latest#"$RESULTS"/}: $line"
+  done
+}
+heartbeat &
+HB=$!
+trap 'kill "$HB" 2>/dev/null' EXIT
 
 # tables and report read skipped.json, which snakemake does not track: always remake them
 if python3 -m snakemake --cores 2 --keep-going --forcerun tables report "${extra[@]}" "$@"; then
