@@ -122,5 +122,18 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _cli() -> int:
+    """``python -m splat_train``: :func:`main`, with a bad input (unreadable seed, camera model,
+    checkpoint or config) reported as one line naming it instead of a traceback (-v shows the
+    traceback). :func:`main` itself still raises, for callers and tests."""
+    try:
+        return main()
+    except (ValueError, KeyError, OSError) as exc:
+        log.debug("traceback", exc_info=True)
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        log.error("%s: %s", type(exc).__name__, msg)
+        return 2
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli())

@@ -258,3 +258,118 @@ def test_colmap_baseline_cli_keeps_pycolmap_chatter_off_the_console(tmp_path):
     assert not pycolmap_lines, pycolmap_lines[:5]
     assert "COLMAP baseline: success=" in proc.stderr
     assert (out / "status.json").is_file()
+
+
+# --- the other input rows of the catalogue, through the command a user runs ----------------------
+
+def _cut(path: Path, keep: float) -> Path:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    return path
+
+
+def _train_cmd(sc: dict, out: Path, *extra: str) -> list[str]:
+    return ["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+            "--images", str(sc["images"]), "--out", str(out), "--iterations", "2", "--threads", "1", *extra]
+
+
+def _assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0, text[-3000:]
+    assert "Traceback" not in text, text[-3000:]
+    for needle in needles:
+        assert needle in proc.stderr, f"{needle!r} not in:\n{proc.stderr[-3000:]}"
+
+
+@pytest.mark.parametrize("keep", (0.0, 0.05, 0.6))
+def test_trainer_cli_truncated_seed_ply(tmp_path, keep):
+    """Row 35 at the command line: one line naming the seed, no model.ply."""
+    sc = write_scene(tmp_path / "scene", n_views=3)
+    _cut(sc["seed"], keep)
+    out = tmp_path / "out"
+    proc = _run(_train_cmd(sc, out), tmp_path)
+    _assert_one_line_error(proc, str(sc["seed"]))
+    assert not (out / "model.ply").exists()
+
+
+@pytest.mark.parametrize("fname", ("cameras.txt", "images.txt"))
+def test_trainer_cli_camera_model_cut_mid_line(tmp_path, fname):
+    """Rows 10/11 at the command line: a damaged --cameras model is one line, nothing trained."""
+    sc = write_scene(tmp_path / "scene", n_views=3)
+    f = sc["cameras"] / fname
+    f.write_text(f.read_text()[:-7])
+    out = tmp_path / "out"
+    proc = _run(_train_cmd(sc, out), tmp_path)
+    _assert_one_line_error(proc, fname, "truncated")
+    assert not (out / "model.ply").exists()
+
+
+def test_trainer_cli_truncated_newest_checkpoint(tmp_path):
+    """Row 36 at the command line: "cannot read checkpoint ...; delete it ..." as one line."""
+    sc = write_scene(tmp_path / "scene", n_views=3)
+    out = tmp_path / "out"
+    cfg = '{"densify_until": 0, "scale_schedule": false}'
+    first = _run(_train_cmd(sc, out, "--checkpoint-every", "2", "--config", cfg), tmp_path)
+    assert first.returncode == 0, first.stderr[-3000:]
+    newest = sorted((out / "ckpt").iterdir())[-1]
+    _cut(newest, 0.5)
+    cmd = _train_cmd(sc, out, "--checkpoint-every", "2", "--config", cfg)
+    cmd[cmd.index("--iterations") + 1] = "4"
+    proc = _run(cmd, tmp_path)
+    _assert_one_line_error(proc, "cannot read checkpoint", newest.name, "delete it")
+
+
+def test_vggt_init_cli_truncated_safetensors_checkpoint(tmp_path):
+    """Row 18 at the command line: CheckpointFormatError naming the file, exit 2, nothing written."""
+    import torch
+    from safetensors.torch import save_file
+
+    folder = tmp_path / "images"
+    for i in range(2):
+        write_image(folder / f"v{i}.jpg", _texture(i, 56, 56))
+    ckpt = tmp_path / "model.safetensors"
+    save_file({"w": torch.zeros(1000)}, str(ckpt))
+    _cut(ckpt, 0.5)
+    out = tmp_path / "out"
+    proc = _run(["-m", "vggt_init", "--images", str(folder), "--out", str(out), "--checkpoint", str(ckpt)],
+                tmp_path)
+    _assert_one_line_error(proc, "CheckpointFormatError", str(ckpt))
+    assert proc.returncode == 2
+    assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_pose_cli_reference_model_cut_at_a_line_boundary(tmp_path):
+    """Row 11 at the command line: `evaluation pose --ref` with images.txt missing its last image."""
+    from _train_scene import make_cameras
+    from camio.colmap import write_text_model
+
+    pred = write_text_model(tmp_path / "pred", make_cameras(4))
+    ref = write_text_model(tmp_path / "ref", make_cameras(4))
+    f = ref / "images.txt"
+    lines = f.read_text().splitlines(keepends=True)
+    f.write_text("".join(lines[:-2]))
+    out = tmp_path / "pose" / "pose.json"
+    proc = _run(["-m", "evaluation", "pose", "--pred", str(pred), "--ref", str(ref), "--out", str(out)], tmp_path)
+    _assert_one_line_error(proc, "the header says 4 images but 3 were read")
+    assert not out.exists()
+
+
+def test_metrics_cli_truncated_lpips_weights(tmp_path):
+    """Row 48 at the command line: truncated LPIPS weights are one line naming the file and the
+    converter; no metrics.json."""
+    from safetensors.torch import save_file
+
+    from evaluation.lpips import LPIPS
+
+    weights = tmp_path / "w"
+    weights.mkdir()
+    save_file(LPIPS("alex").state_dict(), str(weights / "alex.safetensors"), metadata={"net": "alex"})
+    _cut(weights / "alex.safetensors", 0.5)
+    for s in ("pred", "gt"):
+        for i in range(2):
+            write_image(tmp_path / s / f"t{i}.png", _texture(i, 32, 32))
+    out = tmp_path / "m" / "metrics.json"
+    proc = _run(["-m", "evaluation", "images", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"),
+                 "--out", str(out), "--lpips-nets", "alex", "--lpips-weights", str(weights)], tmp_path)
+    _assert_one_line_error(proc, "alex.safetensors", "lpips_convert")
+    assert not out.exists()
