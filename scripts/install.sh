@@ -15,6 +15,15 @@ cd "$(dirname "$0")/.."
 BASE_PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 if [ ! -x "$VENV/bin/python" ]; then
+  # Debian's system python3 has venv without ensurepip until python3-venv is installed
+  if ! "$BASE_PY" -c "import ensurepip, venv" 2>/dev/null; then
+    ver=$("$BASE_PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+    echo "[install] apt: python$ver-venv (needed to create $VENV)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq || true
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "python$ver-venv" || \
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv
+  fi
   echo "[install] creating $VENV (this clone's own environment)"
   if [ "${VENV_ISOLATED:-0}" = 1 ]; then
     "$BASE_PY" -m venv "$VENV"
@@ -25,7 +34,7 @@ fi
 PY="$VENV/bin/python"
 STAMP="$VENV/.installed"
 want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -c "import camio, vggt_init, splat_train" 2>/dev/null; then
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import camio, vggt_init, splat_train" 2>/dev/null; then
   echo "[install] $VENV is up to date (rm $STAMP to force a reinstall)"
   exit 0
 fi
