@@ -373,3 +373,32 @@ def test_metrics_cli_truncated_lpips_weights(tmp_path):
                  "--out", str(out), "--lpips-nets", "alex", "--lpips-weights", str(weights)], tmp_path)
     _assert_one_line_error(proc, "alex.safetensors", "lpips_convert")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ("empty_folder", "mixed_sizes", "truncated_jpeg"))
+def test_camio_convert_cli_bad_scene_folder(tmp_path, case):
+    """Rows 6, 7 and 1 (inside a scene) at the command line: `camio convert` on a folder scene."""
+    src = tmp_path / "src" / "images"
+    src.mkdir(parents=True)
+    needle = {"empty_folder": "no images", "mixed_sizes": "mixed sizes", "truncated_jpeg": "v1.jpg"}[case]
+    if case != "empty_folder":
+        for i in range(3):
+            write_image(src / f"v{i}.jpg", _texture(i, 96 + (8 * i if case == "mixed_sizes" else 0), 128))
+        if case == "truncated_jpeg":
+            _damage(src / "v1.jpg", "truncated_jpeg")
+    out = tmp_path / "out"
+    proc = _run(["-m", "camio", "convert", "--src", str(tmp_path / "src"), "--format", "folder",
+                 "--out", str(out)], tmp_path)
+    _assert_one_line_error(proc, needle)
+    assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_camio_split_cli_too_many_views(tmp_path):
+    """Row 9 at the command line: more training views than the pool holds."""
+    scene = tmp_path / "scene"
+    proc = _run(["-m", "camio", "synth", "--out", str(scene), "--views", "6", "--width", "64"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = tmp_path / "split.json"
+    proc = _run(["-m", "camio", "split", "--scene", str(scene), "--n", "3", "40", "--out", str(out)], tmp_path)
+    _assert_one_line_error(proc, "40")
+    assert not out.exists()
