@@ -402,3 +402,16 @@ def test_camio_split_cli_too_many_views(tmp_path):
     proc = _run(["-m", "camio", "split", "--scene", str(scene), "--n", "3", "40", "--out", str(out)], tmp_path)
     _assert_one_line_error(proc, "40")
     assert not out.exists()
+
+
+def test_oracle_cli_rejects_damaged_image(tmp_path):
+    """The oracle initialiser reads the training images for its colours: same reader, same error."""
+    scene = tmp_path / "scene"
+    proc = _run(["-m", "camio", "synth", "--out", str(scene), "--views", "6", "--width", "64"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = sorted(p.name for p in (scene / "images").iterdir())[:3]
+    _damage(scene / "images" / names[1], "truncated_png")
+    out = tmp_path / "out"
+    proc = _run(["-m", "evaluation.oracle", "--scene", str(scene), "--names", *names, "--out", str(out)],
+                tmp_path)
+    _assert_clean_failure(proc, names[1], out)
