@@ -40,7 +40,8 @@ heartbeat() {
     latest=$(find "$RESULTS" -name '*.log' -newermt "${every} seconds ago" -printf '%T@ %p\n' 2>/dev/null \
              | sort -n | tail -1 | cut -d' ' -f2-)
     [ -n "$latest" ] || continue
-    line=$(tail -c 2000 "$latest" | tr '\r' '\n' | grep -v '^\s*$' | tail -1 | cut -c1-140)
+    line=$(tail -c 2000 "$latest" | tr '\r' '\n' | grep '[[:alnum:]]' | tail -1 | cut -c1-140)
+    [ -n "$line" ] || line="(started)"
     echo "[demo] $(( (SECONDS - t0) / 60 ))m$(( (SECONDS - t0) % 60 ))s, working on ${latest#"$RESULTS"/}: $line"
   done
 }
