@@ -1,5 +1,12 @@
 # Quick start: `make demo` (main job on the bundled synthetic scene) and `make test`.
-PY ?= python3
+# Everything runs in this clone's own virtual environment, $(VENV) (created by `make install`,
+# scripts/install.sh); the targets put $(VENV)/bin first on PATH, so `python` and `snakemake`
+# inside them are this clone's.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+export VENV
+export PATH := $(abspath $(VENV))/bin:$(PATH)
+export VIRTUAL_ENV := $(abspath $(VENV))
 .PHONY: install demo test lint bench
 
 install:
@@ -11,7 +18,7 @@ demo: install
 test: install
 	$(PY) -m pytest -q
 
-lint:
+lint: install
 	snakefmt --check Snakefile workflow
 	snakemake --lint --cores 1
 

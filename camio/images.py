@@ -31,6 +31,8 @@ __all__ = [
     "ImageReadError",
     "read_image",
     "read_image_uint8",
+    "read_pixels",
+    "check_images",
     "write_image",
     "image_size",
     "image_orientation",
@@ -75,6 +77,48 @@ def _open(path: Path):
         raise ImageReadError(f"cannot open image {path}: {oiio.geterror() or 'unknown format'}; "
                              "check that the file is a complete PNG/JPEG/TIFF/EXR")
     return inp
+
+
+def read_pixels(path: str | Path, fmt: str = "float"):
+    """The whole pixel array of ``path`` as stored, checked: the one decoder every stage uses.
+
+    Args:
+        path: image file.
+        fmt: "float", "uint8" or "uint16" (the type OpenImageIO converts the pixels to).
+
+    Returns:
+        (pixels [H, W, C] numpy array, OpenImageIO ImageSpec of the file).
+
+    Raises:
+        ImageReadError naming the file: missing, not an image, truncated or corrupt (a JPEG
+        or PNG cut short decodes to partly grey pixels in OpenImageIO *with* an error flag;
+        that flag, not only a missing result, makes the file unusable here).
+    """
+    path = Path(path)
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        err = inp.geterror() if inp.has_error else ""
+    finally:
+        inp.close()
+    if data is None or err:
+        raise ImageReadError(f"cannot read image {path}: {(err or 'no pixel data').strip()} "
+                             "(truncated or corrupt file? re-export or remove it)")
+    data = np.asarray(data)
+    if data.ndim == 2:
+        data = data[..., None]
+    return data.reshape(int(spec.height), int(spec.width), int(spec.nchannels)), spec
+
+
+def check_images(paths) -> None:
+    """Decode every file of ``paths`` fully; raise :class:`ImageReadError` at the first bad one.
+
+    Stages that hand image files to another program (pycolmap) call this first, so that the
+    other program only ever sees files :func:`read_image` accepts.
+    """
+    for path in paths:
+        read_pixels(path, "uint8")
 
 
 def image_orientation(path: str | Path) -> int:
@@ -143,22 +187,13 @@ def read_image(path: str | Path, background: tuple[float, float, float] = (1.0, 
         ImageReadError: missing, unreadable or truncated file, or an unsupported channel count.
     """
     path = Path(path)
-    inp = _open(path)
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror() if inp.has_error else ""
-        orientation = int(spec.get_int_attribute("Orientation", 1))
-        alpha_ch = int(spec.alpha_channel)
-        unassociated = bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0))
-        is_float = spec.format.basetype in (_float_types())
-        nch = int(spec.nchannels)
-    finally:
-        inp.close()
-    if data is None or err:
-        raise ImageReadError(f"cannot read image {path}: {err or 'no pixel data'} "
-                             "(truncated or corrupt file? re-export or remove it)")
-    img = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, nch)
+    data, spec = read_pixels(path, "float")
+    orientation = int(spec.get_int_attribute("Orientation", 1))
+    alpha_ch = int(spec.alpha_channel)
+    unassociated = bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0))
+    is_float = spec.format.basetype in (_float_types())
+    nch = int(spec.nchannels)
+    img = np.asarray(data, dtype=np.float32)
     if nch in (2, 4) and alpha_ch < 0:
         alpha_ch = nch - 1
     if nch == 1:

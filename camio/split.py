@@ -1,4 +1,4 @@
-"""Train/test splits (PROTOCOL.md section 4) and the split manifest ``split.json``.
+"""Train/test splits and the split manifest ``split.json``.
 
 Rule "every8": sort the image names; test = names[i] with i % 8 == 0; the training pool is
 the rest (sorted); the n training views are ``pool[round(linspace(0, len(pool) - 1, n))]``.

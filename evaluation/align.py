@@ -1,4 +1,4 @@
-"""Sim(3) alignment of an initialiser's cameras to the reference cameras (PROTOCOL.md section 4).
+"""Sim(3) alignment of an initialiser's cameras to the reference cameras.
 
 Convention: a :class:`Sim3` maps points of a *source* frame into a *target* frame,
 ``x_target = s * R @ x_source + t``. For evaluation the source is the initialiser's

@@ -1,4 +1,4 @@
-"""The train-only COLMAP baseline (PROTOCOL.md section 4), seeded and repeatable.
+"""The train-only COLMAP baseline, seeded and repeatable.
 
 Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
 features), exhaustive matching with guided matching, incremental mapping, all through
@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.atomic import atomic_dir, write_json
+from camio.images import ImageReadError, check_images
 from camio.logs import peak_rss_mb
 from evaluation.pose import paper_success
 
@@ -59,7 +60,7 @@ def available_cores() -> int:
 
 
 class ColmapSettings:
-    """PROTOCOL.md section 4 settings (defaults) plus the reproducibility knobs.
+    """The evaluation protocol's COLMAP settings (defaults) plus the reproducibility knobs.
 
     Attributes:
         max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
@@ -98,6 +99,23 @@ def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
             os.symlink((images_dir / name).resolve(), dst)
         except OSError:
             shutil.copy2(images_dir / name, dst)
+
+
+def _check_inputs(images_dir: Path, names: list[str]) -> None:
+    """Every training image exists and decodes fully with :func:`camio.images.read_image`'s
+    checked decoder, so pycolmap is only ever given images the other stages accept too (it
+    would extract features from the grey half of a truncated JPEG without a word).
+
+    Raises:
+        FileNotFoundError: names missing from ``images_dir`` (named).
+        ImageReadError: the first truncated, corrupt or unreadable image (named).
+    """
+    missing = [n for n in names if not (images_dir / n).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"training images not found in {images_dir}: {missing[:5]}; check the split and "
+            "the scene's images/ folder")
+    check_images(images_dir / n for n in names)
 
 
 def _options(settings: ColmapSettings, seed: int):
@@ -163,7 +181,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         out_dir: output folder; receives ``sparse/0`` (if a model exists) and
             ``status.json``.
         seed: seed for pycolmap's PRNG and every ``random_seed`` option.
-        settings: COLMAP settings (PROTOCOL.md defaults if None).
+        settings: COLMAP settings (the protocol defaults if None).
         keep_work: keep the work folder (database, linked images) as ``out_dir/work``.
 
     Returns:
@@ -179,6 +197,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
     names = sorted(dict.fromkeys(names))
     if not names:
         raise ValueError("run_colmap: no training image names given")
+    _check_inputs(images_dir, names)  # before anything is written: a bad input leaves nothing
     out_dir.mkdir(parents=True, exist_ok=True)
     status: dict = {
         "success_paper": False, "aligned_ok": False, "registered": 0, "n_images": len(names),
@@ -193,6 +212,9 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         _link_images(images_dir, names, work / "images")
         reader, extraction, matching, verification, mapping = _options(settings, seed)
         db = work / "database.db"
+        # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
+        # (25-60 lines a call) only with -v, its errors always.
+        pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
         pycolmap.set_random_seed(int(seed))
         log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
         t = time.perf_counter()
@@ -232,7 +254,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         if rec is None and sparse.exists():
             shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
     except Exception as exc:  # noqa: BLE001 - a failed reconstruction is a recorded result
-        if isinstance(exc, FileNotFoundError):
+        if isinstance(exc, (FileNotFoundError, ImageReadError)):
             raise
         log.warning("COLMAP baseline failed: %s", exc)
         status["reason"] = f"{type(exc).__name__}: {exc}"
@@ -284,8 +306,14 @@ def _read_names(args) -> list[str]:
             raise SystemExit(f"{args.split} has no training list for n = {args.n}; "
                              f"it has {sorted(data.get('train', {}))}") from None
     if args.image_list:
-        return [ln.strip() for ln in Path(args.image_list).read_text().splitlines()
-                if ln.strip() and not ln.startswith("#")]
+        lst = Path(args.image_list)
+        if not lst.is_file():
+            raise SystemExit(f"error: image list {lst} does not exist")
+        names = [ln.strip() for ln in lst.read_text().splitlines()
+                 if ln.strip() and not ln.startswith("#")]
+        if not names:
+            raise SystemExit(f"error: image list {lst} is empty: one training image name per line")
+        return names
     if args.names:
         return list(args.names)
     raise SystemExit("give the training images: --split JSON --n N, --image-list FILE or --names")
@@ -310,8 +338,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=1,
                    help="run K times with seeds seed, seed+1, ... (or --seeds) and report the spread")
     p.add_argument("--seeds", type=int, nargs="+", help="explicit seeds for the repeats")
-    p.add_argument("--ref", help="reference COLMAP model: evaluate every repeat's poses "
-                   "(ATE, rotation error, both success criteria) and report their spread")
+    p.add_argument("--ref", help="reference COLMAP model: evaluate every run's poses "
+                   "(ATE, rotation error, both success criteria) and report their spread; "
+                   "written as a repeats summary, also for a single run")
     p.add_argument("--max-ate-rel-radius", type=float, default=0.05,
                    help="accuracy gate for --ref: ATE / trajectory radius (default 0.05)")
     p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
@@ -331,7 +360,16 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
-    if len(seeds) == 1:
+    try:
+        _run_cli(args, names, seeds, settings)
+    except (ImageReadError, FileNotFoundError, ValueError) as exc:
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
+    return 0
+
+
+def _run_cli(args, names: list[str], seeds: list[int], settings: ColmapSettings) -> None:
+    if len(seeds) == 1 and not args.ref:
         run_colmap(args.images, names, args.out, seed=seeds[0], settings=settings,
                    keep_work=args.keep_work)
     else:
@@ -345,7 +383,6 @@ def main(argv: list[str] | None = None) -> int:
                               max_rel_rot_deg=args.max_rel_rot_deg)
         run_colmap_repeats(args.images, names, args.out, seeds, settings=settings,
                            ref=args.ref, gate=gate)
-    return 0
 
 
 if __name__ == "__main__":

@@ -181,8 +181,15 @@ def _configure(p: argparse.ArgumentParser) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    with timed("image metrics", log):
-        evaluate_images(args.pred, args.gt, args.out, tuple(args.lpips_nets), args.lpips_weights, args.device)
+    from camio.images import ImageReadError
+
+    try:
+        with timed("image metrics", log):
+            evaluate_images(args.pred, args.gt, args.out, tuple(args.lpips_nets), args.lpips_weights,
+                            args.device)
+    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
     return 0
 
 

@@ -287,7 +287,13 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("give the training images: --split JSON --n N, --image-list or --names")
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise)
-    run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)
+    from camio.images import ImageReadError
+
+    try:
+        run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)
+    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
     return 0
 
 

@@ -3,7 +3,7 @@
 * ``curves/{dataset}__{scene}__n{n}.png``: from each run's ``log.parquet`` (iteration,
   wall_time_s, loss, test_psnr, ...), held-out PSNR and training loss against wall time and
   against iteration, one line per initialiser.
-* ``pareto.png``: final held-out PSNR (metrics.json, else the log's last test_psnr) against
+* ``pareto__{dataset}__{scene}__n{n}.png``: per scene and view count, final held-out PSNR (metrics.json, else the log's last test_psnr) against
   total run time (initialisation + bridge + training + evaluation) over all runs, with the
   Pareto front (no other run is both faster and better).
 """
@@ -105,32 +105,37 @@ def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
     return np.asarray(front, dtype=np.int64)
 
 
-def pareto_plot(runs: pd.DataFrame, out: str | Path) -> Path | None:
-    """``out/pareto.png``: held-out PSNR against total run time; None when no run has both."""
-    plt = _pyplot()
+def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
+    """``out/pareto__{dataset}__{scene}__n{n}.png``: held-out PSNR against total run time, one
+    plot (and one front) per scene and view count, since times and errors of different scenes
+    are not comparable. One legend entry per run label. Empty when no run has both."""
     psnr = runs["psnr"].where(runs["psnr"].notna(), runs["final_test_psnr"])
     d = runs.assign(psnr_final=psnr, label=[run_label(i, m) for i, m in zip(runs["init"], runs["bridge_mode"])])
-    d = d[["label", "n", "total_s", "psnr_final"]].dropna().rename(columns={"label": "init"})
+    d = d[["dataset", "scene", "label", "n", "total_s", "psnr_final"]].dropna()
     if d.empty:
         log.warning("plots: no run has both a run time and a PSNR; no Pareto plot")
-        return None
-    fig, ax = plt.subplots(figsize=(7, 5))
-    markers = dict(zip(sorted(d["n"].unique()), "osD^vP*X"))
-    colors = {init: f"C{i}" for i, init in enumerate(sorted(d["init"].unique()))}
-    for (init, n), g in d.groupby(["init", "n"]):
-        ax.scatter(g["total_s"], g["psnr_final"], c=colors[init], marker=markers.get(n, "o"),
-                   label=f"{init}, n={n}", alpha=0.8)
-    front = pareto_front(d["total_s"].to_numpy(), -d["psnr_final"].to_numpy())
-    ax.step(d["total_s"].to_numpy()[front], d["psnr_final"].to_numpy()[front], where="post",
-            color="k", lw=1, label="Pareto front")
-    if d["total_s"].max() > 10 * max(d["total_s"].min(), 1e-9):
-        ax.set_xscale("log")
-    ax.set_xlabel("total run time (s): init + bridge + train + eval")
-    ax.set_ylabel("held-out PSNR (dB), higher = lower error")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.subplots_adjust(left=0.12, right=0.97, bottom=0.12, top=0.95)
-    return _save(fig, Path(out) / "pareto.png")
+        return []
+    plt = _pyplot()
+    colors = {lab: f"C{i}" for i, lab in enumerate(sorted(d["label"].unique()))}
+    files = []
+    for (dataset, scene, n), g in d.groupby(["dataset", "scene", "n"], sort=True):
+        fig, ax = plt.subplots(figsize=(6, 4.5))
+        for lab, gl in g.groupby("label", sort=True):
+            ax.scatter(gl["total_s"], gl["psnr_final"], c=colors[lab], label=lab, alpha=0.85)
+        front = pareto_front(g["total_s"].to_numpy(), -g["psnr_final"].to_numpy())
+        if len(front) > 1:
+            ax.step(g["total_s"].to_numpy()[front], g["psnr_final"].to_numpy()[front], where="post",
+                    color="k", lw=1, label="Pareto front")
+        if g["total_s"].max() > 10 * max(g["total_s"].min(), 1e-9):
+            ax.set_xscale("log")
+        ax.set_title(f"{dataset} / {scene}, n = {int(n)}", fontsize=9)
+        ax.set_xlabel("total run time (s): init + bridge + train + eval")
+        ax.set_ylabel("held-out PSNR (dB), higher = lower error")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.subplots_adjust(left=0.13, right=0.97, bottom=0.13, top=0.92)
+        files.append(_save(fig, Path(out) / f"pareto__{dataset}__{scene}__n{int(n)}.png"))
+    return files
 
 
 def run_plots(results: str | Path, out: str | Path, runs: pd.DataFrame | None = None) -> list[Path]:
@@ -139,8 +144,6 @@ def run_plots(results: str | Path, out: str | Path, runs: pd.DataFrame | None = 
     Path(out).mkdir(parents=True, exist_ok=True)  # exists even with nothing to plot (a declared output)
     runs = collect_runs(results) if runs is None else runs
     files = training_curves(runs, out)
-    p = pareto_plot(runs, out)
-    if p is not None:
-        files.append(p)
+    files += pareto_plot(runs, out)
     log.info("plots: %d PNG files in %s (%.2f s)", len(files), out, time.perf_counter() - t0)
     return files

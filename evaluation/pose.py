@@ -1,4 +1,4 @@
-"""Pose accuracy of an initialiser's cameras against reference cameras (PROTOCOL.md section 4),
+"""Pose accuracy of an initialiser's cameras against reference cameras,
 and the accuracy-gated success of issue 10.
 
 Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of camera i):

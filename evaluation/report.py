@@ -20,6 +20,7 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_dir
@@ -27,7 +28,7 @@ from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read
 from evaluation.plots import run_plots
 from evaluation.pose import GateConfig, success_criteria_text
 from evaluation.results import collect_runs, find_file, run_label
-from evaluation.tables import build_tables
+from evaluation.tables import build_tables, table_notes
 
 __all__ = ["render_grid_html", "run_report"]
 
@@ -126,9 +127,12 @@ def _table_html(df: pd.DataFrame) -> str:
 
     shown = df.copy()
     for c in shown.columns:
-        if shown[c].dtype == object:
+        if shown[c].dtype == bool:  # the Markdown tables' words, not True/False
+            shown[c] = shown[c].map(lambda v: "yes" if v else "no")
+        elif shown[c].dtype == object:
             shown[c] = shown[c].map(lambda v: "-" if v is None or (isinstance(v, float) and pd.isna(v))
-                                    else ("yes" if v is True else "no" if v is False else v))
+                                    else ("yes" if isinstance(v, (bool, np.bool_)) and v
+                                          else "no" if isinstance(v, (bool, np.bool_)) else v))
     return shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0)
 
 
@@ -163,19 +167,33 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         images = tmp / "images"
         images.mkdir()
         plots = run_plots(results, images, runs) if plots else []
-        tables = build_tables(runs, gate)
+        tables = build_tables(runs, gate, results=results)
+        notes = table_notes(tables)
         parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
                  f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
                  f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
                  + " ".join(success_criteria_text(gate, html=True)) + "</p>"]
         parts += _initialiser_notes(Path(results), runs)
+        empty = []
         for title, df in tables.items():
-            parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
-        parts.append("<h2>Error against run time</h2>")
-        for p in plots:
-            rel = p.relative_to(tmp).as_posix()
-            parts.append(f'<p><img src="{html.escape(rel)}" alt="{html.escape(p.stem)}"></p>')
-        parts.append("<h2>Renders (COLMAP | VGGT | ground truth)</h2>")
+            if title in notes:
+                parts += [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(notes[title])}</p>"]
+            elif df.empty:
+                empty.append(title)
+            else:
+                parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
+        if empty:
+            parts.append(f"<p>Nothing to show (no runs of that kind): {html.escape('; '.join(empty))}.</p>")
+        if plots:
+            parts.append("<h2>Plots: training curves and error against run time</h2>")
+            for p in plots:
+                rel = p.relative_to(tmp).as_posix()
+                parts.append(f'<p><img src="{html.escape(rel)}" alt="{html.escape(p.stem)}"></p>')
+        else:
+            parts.append("<p>No plots: no run has a training log or both a run time and a held-out "
+                         "PSNR (training off?).</p>")
+        parts.append("<h2>Renders (one column per initialiser that produced them, as headed; "
+                     "then the ground truth)</h2>")
         n_grids = 0
         for _, g in runs.groupby(["dataset", "scene", "n"], sort=True):
             grid = render_grid_html(g, images, scenes_dir, max_views)

@@ -21,6 +21,7 @@ file               what is read
 ``bridge.json``    bridge: ``mode``, ``wall_time_s``
 ``train.json``     splat_train summary: ``wall_time_s`` (or ``train_s``), ``num_gaussians``
 ``log.parquet``    training log: iteration, wall_time_s, loss, test_psnr, num_gaussians
+                   (held-out PSNR at the final and at the best evaluated iteration)
 ``*.tsv``          Snakemake benchmark files (columns ``s``, ``max_rss`` in MB); also looked
                    for under ``{results}/benchmarks/{dataset}/{scene}/n{n}/{init}/``; a file's
                    stage is guessed from its name (init/vggt/colmap/oracle, bridge, train,
@@ -64,7 +65,7 @@ RUN_COLUMNS = [
     "dataset", "scene", "n", "init", "bridge_mode", "success_paper", "success_gated", "has_reference",
     "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
     "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
-    "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "num_gaussians",
+    "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
     "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "run_dir",
 ]
@@ -262,7 +263,8 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         **{k: _first(pose, k) for k in ("ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg",
                                          "rpe_trans_dir_deg", "rel_rot_err_mean_deg", "rel_rot_err_max_deg",
                                          "fy_fx_max_dev")},
-        "final_test_psnr": math.nan, "num_gaussians": _first(train, "num_gaussians", "final_num_gaussians"),
+        "final_test_psnr": math.nan, "best_test_psnr": math.nan, "best_test_iter": math.nan,
+        "num_gaussians": _first(train, "num_gaussians", "final_num_gaussians"),
         "iterations": _first(train, "iterations", "iteration"),
         "run_dir": str(run_dir / mode if mode else run_dir),
     }
@@ -272,7 +274,11 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         try:
             lg = pd.read_parquet(log_path)
             if "test_psnr" in lg and lg["test_psnr"].notna().any():
-                rec["final_test_psnr"] = float(lg["test_psnr"].dropna().iloc[-1])
+                ev = lg[lg["test_psnr"].notna()]
+                rec["final_test_psnr"] = float(ev["test_psnr"].iloc[-1])
+                best = ev.loc[ev["test_psnr"].idxmax()]
+                rec["best_test_psnr"] = float(best["test_psnr"])
+                rec["best_test_iter"] = float(best["iteration"]) if "iteration" in ev else math.nan
             if math.isnan(rec["num_gaussians"]) and "num_gaussians" in lg and len(lg):
                 rec["num_gaussians"] = float(lg["num_gaussians"].iloc[-1])
             if math.isnan(rec["iterations"]) and "iteration" in lg and len(lg):

@@ -5,7 +5,9 @@
   matched COLMAP vs ours PSNR / SSIM / LPIPS over the scenes where COLMAP succeeded (paper
   criterion) and has held-out metrics, their difference (ours - COLMAP), and ours over all scenes.
 * Table II style summary: per dataset, initialiser and n: success under both criteria,
-  registered / n, image metrics over successful runs, ATE and rotation error.
+  registered / n, image metrics over successful runs (metrics.json at the final iteration, and
+  the training log's held-out PSNR at the final and at the best evaluated iteration), ATE and
+  rotation error.
 * Pose accuracy: one row per run with reference cameras.
 * Run time: mean seconds per stage and peak memory, per dataset, initialiser and n.
 * COLMAP repeats: the spread over seeds, where runs were repeated.
@@ -27,7 +29,7 @@ from camio.atomic import atomic_path
 from evaluation.pose import GateConfig, success_criteria_text
 from evaluation.results import collect_runs
 
-__all__ = ["to_markdown", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
+__all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
            "build_tables", "run_tables"]
 
 log = logging.getLogger(__name__)
@@ -122,6 +124,9 @@ def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
             "success (gated)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
             "PSNR": _mean(ok["psnr"]), "SSIM": _mean(ok["ssim"]), f"LPIPS-{lpips}": _mean(ok[lp]),
+            "held-out PSNR final it.": _mean(ok["final_test_psnr"]),
+            "held-out PSNR best it.": _mean(ok["best_test_psnr"]),
+            "best it.": _mean(ok["best_test_iter"]),
             "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
             "total s": _mean(g["total_s"]),
         })
@@ -164,14 +169,23 @@ def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
     return g[list(cols)].rename(columns=cols).reset_index(drop=True)
 
 
-_DIGITS = {"SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "runs": 0,
+_DIGITS = {"best it.": 0, "SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx - 1)": 4, "runs": 0,
            "registered min": 0, "registered max": 0}
 
 
-def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg") -> dict[str, pd.DataFrame]:
-    """All tables by title (ordered)."""
+TABLE_ONE = "Table I: COLMAP vs VGGT per dataset and n"
+RUN_STATUS = "Run status: what ran, per initialiser and scene"
+
+
+def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg",
+                 results: str | Path | None = None) -> dict[str, pd.DataFrame]:
+    """All tables by title (ordered); the run status reads ``results`` for skipped and failed
+    initialisers that left no result (see :mod:`evaluation.run_status`)."""
+    from evaluation.run_status import run_status_table
+
     return {
-        "Table I: COLMAP vs VGGT per dataset and n": table_one(runs, lpips=lpips),
+        RUN_STATUS: run_status_table(runs, results),
+        TABLE_ONE: table_one(runs, lpips=lpips),
         "Table II: summary per initialiser": table_two(runs, lpips=lpips),
         "Pose accuracy": pose_table(runs),
         "Run time": runtime_table(runs),
@@ -179,20 +193,47 @@ def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str
     }
 
 
+def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: str = "colmap") -> dict[str, str]:
+    """Why a table is empty or partly empty, by title (shown instead of, or above, the table)."""
+    notes: dict[str, str] = {}
+    status = tables.get(RUN_STATUS)
+    inits_ran = set()
+    if status is not None and not status.empty:
+        inits_ran = set(status.loc[status["status"].str.startswith("ran"), "init"])
+    missing = [i for i in (baseline, ours) if i not in inits_ran]
+    if TABLE_ONE in tables and missing:
+        whys = []
+        if status is not None and not status.empty:
+            for i in missing:
+                w = status.loc[status["init"] == i, "status"]
+                whys.append(f"{i}: {w.iloc[0]}, see the run status for why" if len(w) else f"{i}: not configured")
+        notes[TABLE_ONE] = (f"Not shown: Table I compares {ours} with {baseline}, and "
+                            + " and ".join(missing) + " did not run (" + "; ".join(whys) + ").")
+    return notes
+
+
 def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig()) -> str:
-    """The Markdown document: criteria, then every non-empty table."""
+    """The Markdown document: criteria, then every non-empty table (empty ones are named once
+    at the end; a table that cannot be filled says why instead)."""
     out = ["# Results", "",
            *success_criteria_text(gate),
            "Matched: scenes where COLMAP succeeded (paper criterion) and has held-out metrics at that n; "
            "delta = ours - COLMAP.", ""]
+    notes = table_notes(tables)
+    empty = []
     for title, df in tables.items():
-        out += [f"## {title}", ""]
-        if df.empty:
-            out += ["(no runs)", ""]
+        if title in notes:
+            out += [f"## {title}", "", notes[title], ""]
             continue
+        if df.empty:
+            empty.append(title)
+            continue
+        out += [f"## {title}", ""]
         digits = {c: (3 if "SSIM" in c or "LPIPS" in c else 2) for c in df.columns}
         digits.update({k: v for k, v in _DIGITS.items() if k in df.columns})
         out += [to_markdown(df, digits), ""]
+    if empty:
+        out += ["Nothing to show (no runs of that kind): " + "; ".join(empty) + ".", ""]
     return "\n".join(out)
 
 
@@ -204,7 +245,7 @@ def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConf
     runs = collect_runs(results, gate)
     with atomic_path(out / "runs.parquet") as tmp:
         runs.to_parquet(tmp, index=False)
-    tables = build_tables(runs, gate, lpips)
+    tables = build_tables(runs, gate, lpips, results)
     with atomic_path(out / "tables.md") as tmp:
         tmp.write_text(tables_markdown(tables, gate) + "\n")
     log.info("tables: %d runs -> %s and %s in %.2f s", len(runs), out / "runs.parquet", out / "tables.md",

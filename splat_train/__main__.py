@@ -105,14 +105,34 @@ def main(argv: list[str] | None = None) -> int:
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
                       kernel_threads=args.kernel_threads)
-    result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
-                   test_images=args.test_images, image_list=args.image_list,
-                   test_image_list=args.test_image_list)
+    from camio.images import ImageReadError
+
+    try:
+        result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
+                       test_images=args.test_images, image_list=args.image_list,
+                       test_image_list=args.test_image_list)
+    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 2
     s = result.summary
+    test_psnr = s["test_psnr"]
     print(f"model: {result.model_path}  Gaussians: {s['num_gaussians']}  train PSNR: {s['train_psnr']:.2f}  "
-          f"test PSNR: {s['test_psnr'] if s['test_psnr'] == s['test_psnr'] else 'n/a'}  "
+          f"test PSNR: {f'{test_psnr:.2f}' if test_psnr == test_psnr and test_psnr is not None else 'n/a'}  "
           f"training time: {s['wall_time_s']:.1f} s")
     return 0
+
+
+def _cli() -> int:
+    """``python -m splat_train``: :func:`main`, with a bad input (unreadable seed, camera model,
+    checkpoint or config) reported as one line naming it instead of a traceback (-v shows the
+    traceback). :func:`main` itself still raises, for callers and tests."""
+    try:
+        return main()
+    except (ValueError, KeyError, OSError) as exc:
+        log.debug("traceback", exc_info=True)
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        log.error("%s: %s", type(exc).__name__, msg)
+        return 2
 
 
 if __name__ == "__main__":
@@ -124,4 +144,4 @@ if __name__ == "__main__":
     from vggt_init.memory import retain_freed_memory
 
     retain_freed_memory()
-    sys.exit(main())
+    sys.exit(_cli())

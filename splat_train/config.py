@@ -1,4 +1,4 @@
-"""Training hyperparameters (PROTOCOL.md section 3 defaults) and the schedule they imply.
+"""Training hyperparameters (the evaluation protocol's defaults) and the schedule they imply.
 
 The seed code trained for 10k iterations: densify from iteration 500 to 10000 every 100,
 reset opacity every 3000, raise the SH degree every 1000 up to 3. A run with fewer iterations

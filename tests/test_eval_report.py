@@ -15,14 +15,19 @@ def test_report(tmp_path):
     assert main(["report", "--results", str(results), "--out", str(out), "--scenes", str(scenes),
                  "--max-views", "2"]) == 0
     page = (out / "index.html").read_text()
-    for title in ("Table I", "Table II", "Pose accuracy", "Run time", "Error against run time", "Renders"):
+    for title in ("Run status", "Table I", "Table II", "Pose accuracy", "Run time", "error against run time",
+                  "Renders"):
         assert title in page
     # every image the page references exists and is a PNG
     srcs = re.findall(r'<img src="([^"]+)"', page)
     assert srcs
     for s in srcs:
         assert (out / s).read_bytes()[:4] == b"\x89PNG"
-    assert "images/pareto.png" in srcs
+    # one Pareto plot per scene and view count (never one front across scenes)
+    assert "images/pareto__mip360__garden__n3.png" in srcs
+    assert sum("pareto__" in s for s in srcs) == 6
+    # the same words as the Markdown tables: yes/no, never True/False
+    assert ">True<" not in page and ">False<" not in page
     # 6 grids (3 scenes x 2 n), 2 views each; the failed COLMAP runs are "failed" cells with reasons
     assert page.count('<table class="grid">') == 6
     grid = page[page.index("mip360 / garden, n = 3"):]
@@ -70,3 +75,25 @@ def test_plots_folder_exists_with_nothing_to_plot(tmp_path):
     (tmp_path / "results").mkdir()
     assert run_plots(tmp_path / "results", tmp_path / "plots") == []
     assert (tmp_path / "plots").is_dir()
+
+
+def test_report_says_what_was_skipped_and_drops_empty_sections(tmp_path):
+    """An initialiser the demo skipped (skipped.json) is named with its reason in the run status;
+    Table I, which needs it, says why it is not shown instead of a row of dashes; no plots
+    means no empty plot heading."""
+    import shutil
+
+    from evaluation.report import run_report
+    from evaluation.run_status import write_skipped
+
+    results, _ = build(tmp_path / "fake")
+    for d in list(results.glob("*/*/n*/vggt")):
+        shutil.rmtree(d)
+    write_skipped(results, {"vggt": "no VGGT-1B checkpoint and the Hugging Face Hub cannot be reached"})
+    page = run_report(results, tmp_path / "r", plots=False).read_text()
+    status = page[page.index("Run status"):page.index("Table I")]
+    assert status.count(">skipped<") == 6 and "Hugging Face Hub cannot be reached" in status
+    assert ">ran<" in status or ">ran, no model<" in status
+    table_one = page[page.index("Table I"):]
+    assert "vggt did not run" in table_one[:600]
+    assert "error against run time" not in page and "No plots" in page

@@ -126,7 +126,8 @@ def test_plots_cli(tree, tmp_path):
     assert main(["plots", "--results", str(tree[0]), "--out", str(tmp_path / "p")]) == 0
     pngs = sorted((tmp_path / "p").rglob("*.png"))
     names = {p.name for p in pngs}
-    assert "pareto.png" in names and "mip360__garden__n3.png" in names and len(pngs) == 7
+    assert "pareto__mip360__garden__n3.png" in names and "mip360__garden__n3.png" in names
+    assert len(pngs) == 12  # 6 training-curve plots + one Pareto plot per scene and view count
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 
@@ -141,3 +142,27 @@ def test_run_that_never_produced_results_is_left_out(tmp_path):
     (ghost / "vggt_init.log").write_text("CheckpointNotFoundError: no VGGT checkpoint found\n")
     after = collect_runs(results)
     assert len(after) == len(before) and not (after.n == 9).any()
+
+
+def test_held_out_psnr_at_final_and_best_iteration(tmp_path):
+    """A run whose held-out PSNR peaks before the end: both numbers are recorded and shown."""
+    import pandas as pd
+
+    from eval_fake_results import build
+    from evaluation.results import collect_runs
+    from evaluation.tables import run_tables
+
+    results, _ = build(tmp_path / "fake")
+    log_path = sorted(results.rglob("log.parquet"))[0]
+    lg = pd.read_parquet(log_path)
+    ev = lg.index[lg["test_psnr"].notna()]
+    assert len(ev) >= 3
+    lg.loc[ev, "test_psnr"] = [20.0 + (5.0 if i == 1 else 0.5 * i) for i in range(len(ev))]
+    lg.to_parquet(log_path)
+    runs = collect_runs(results)
+    row = runs[runs["run_dir"].map(lambda d: log_path.is_relative_to(d))].iloc[0]
+    assert row["best_test_psnr"] == 25.0 and row["best_test_iter"] == float(lg.loc[ev[1], "iteration"])
+    assert row["final_test_psnr"] == 20.0 + 0.5 * (len(ev) - 1)
+    run_tables(results, tmp_path / "t")
+    md = (tmp_path / "t" / "tables.md").read_text()
+    assert "held-out PSNR final it." in md and "held-out PSNR best it." in md

@@ -2,8 +2,9 @@
 
 The catalogue table (and the known-bugs table) is parsed; every backticked ``tests/...``
 reference must be a node id that ``pytest --collect-only`` reports (a parametrised test may
-be named without its ``[...]``). The catalogue must keep at least 30 cases, spread over the
-stages the issue lists, and each known-bug test must be a strict xfail.
+be named without its ``[...]``). The catalogue must keep at least 70 cases, spread over the
+stages the issue lists, with the input cases also run through every image-reading stage's
+command line; each known-bug test must be a strict xfail.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def _is_collected(ref: str, ids: frozenset[str]) -> bool:
 
 def test_catalogue_has_enough_cases_over_every_stage():
     rows = _catalogue()
-    assert len(rows) >= 30, f"only {len(rows)} cases"
+    assert len(rows) >= 70, f"only {len(rows)} cases"
     assert [int(r[0]) for r in rows] == list(range(1, len(rows) + 1)), "cases must be numbered 1..N"
     for r in rows:
         assert len(r) == 5 and all(r), f"row {r[0]} must fill # | Stage | Input | Expected | Test"
@@ -84,6 +85,11 @@ def test_catalogue_has_enough_cases_over_every_stage():
     for needed in ("image loading", "vggt preprocessing", "vggt outputs", "bridge", "rasterizer", "trainer",
                    "alignment", "metrics", "colmap baseline"):
         assert needed in stages, f"no case for {needed}"
+    # bad input as users meet it: each stage command that reads images has its own CLI-level row
+    for cmd in ("python -m vggt_init", "python -m evaluation.colmap_baseline", "python -m splat_train",
+                "python -m evaluation images"):
+        cli_rows = [r for r in rows if cmd in r[1] and "tests/test_robustness_cli.py::" in r[4]]
+        assert cli_rows, f"no command-line case for `{cmd}`"
 
 
 def test_every_catalogued_test_is_collected():

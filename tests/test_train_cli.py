@@ -1,6 +1,7 @@
 """python -m splat_train end to end on a tiny generated scene (train, resume, render)."""
 
 import json
+import re
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -31,7 +32,9 @@ def test_cli_train_then_render(tmp_path, capsys):
             "--test-images", str(sc["test_images"]), "--image-list", str(tmp_path / "list.txt"),
             "--config", cfg, "--seed-rng", "3", "--checkpoint-every", "8", "--eval-every", "8", "-q"]
     assert main(argv) == 0
-    assert "test PSNR" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "test PSNR" in printed
+    assert re.search(r"test PSNR: (\d+\.\d\d|n/a) ", printed), printed  # 2 decimals, not 16
     s = json.loads((out / "train.json").read_text())
     assert s["num_train_views"] == 3 and s["num_test_views"] == 2
     assert s["config"]["seed"] == 3 and s["config"]["random_background"] is True

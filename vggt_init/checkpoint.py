@@ -5,7 +5,8 @@ Resolution order (first hit wins):
 2. the environment variable ``VGGT_CHECKPOINT``;
 3. the local Hugging Face cache for ``facebook/VGGT-1B`` (``model.safetensors``, then
    ``model.pt``);
-4. a download with huggingface_hub, unless offline (``HF_HUB_OFFLINE=1``) or it fails.
+4. a download with huggingface_hub, unless offline: ``HF_HUB_OFFLINE=1``, or the hub's host
+   cannot be reached within 3 s (one probe, no retries), or the download fails.
 Otherwise :class:`CheckpointNotFoundError` says where to put the file.
 
 Reading: ``.safetensors`` with safetensors; ``.pt``/``.pth``/``.bin`` with
@@ -37,6 +38,8 @@ __all__ = [
     "CheckpointFormatError",
     "StateDictMismatchError",
     "resolve_checkpoint",
+    "skip_reason",
+    "hub_unreachable_reason",
     "read_state_dict",
     "expected_shapes",
     "check_state_dict",
@@ -75,9 +78,37 @@ def _hf_cache_lookup(repo_id: str, filenames: Iterable[str], cache_dir: str | os
     return None
 
 
+HUB_PROBE_TIMEOUT_S = 3.0
+
+
+def hub_unreachable_reason(env: dict | None = None, timeout: float = HUB_PROBE_TIMEOUT_S) -> str | None:
+    """Why the Hugging Face Hub cannot be reached (None when a TCP connection opens).
+
+    One name lookup and one TCP connect to the hub's host (``HF_ENDPOINT``, default
+    huggingface.co) within ``timeout`` seconds. Without it, huggingface_hub retries each file
+    five times with back-off (about 48 s for the two file names) before giving up offline.
+    """
+    import socket
+    from urllib.parse import urlparse
+
+    env = dict(os.environ) if env is None else env
+    url = urlparse(env.get("HF_ENDPOINT") or "https://huggingface.co")
+    host = url.hostname or "huggingface.co"
+    port = url.port or (80 if url.scheme == "http" else 443)
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except OSError as exc:
+        return f"{host}:{port} cannot be reached ({exc.__class__.__name__}: {exc})"
+
+
 def _hf_download(repo_id: str, filenames: Iterable[str]) -> Path | None:
     from huggingface_hub import hf_hub_download
 
+    reason = hub_unreachable_reason()
+    if reason is not None:
+        log.warning("not downloading %s: the Hugging Face Hub at %s (offline?)", repo_id, reason)
+        return None
     last: Exception | None = None
     for name in filenames:
         try:
@@ -154,6 +185,27 @@ def resolve_checkpoint(
         if hit is not None:
             return hit
     raise CheckpointNotFoundError(_not_found_message(repo_id))
+
+
+def skip_reason(env: dict | None = None) -> str | None:
+    """Why VGGT cannot run here, in one sentence, or None (a checkpoint is in place, or the hub
+    can be reached and the job will download it). Used by the demo to skip VGGT up front
+    instead of letting its jobs fail."""
+    env = dict(os.environ) if env is None else env
+    try:
+        resolve_checkpoint(env=env, allow_download=False)
+        return None
+    except CheckpointNotFoundError as exc:
+        if env.get(ENV_VAR):
+            return str(exc)
+    if _offline(env):
+        return ("no VGGT-1B checkpoint (VGGT_CHECKPOINT unset, none in the Hugging Face cache) and "
+                "HF_HUB_OFFLINE is set, so it cannot be downloaded")
+    unreachable = hub_unreachable_reason(env)
+    if unreachable is not None:
+        return ("no VGGT-1B checkpoint (VGGT_CHECKPOINT unset, none in the Hugging Face cache) and "
+                f"the Hugging Face Hub cannot be reached: {unreachable}")
+    return None
 
 
 def read_state_dict(path: str | os.PathLike, keys: Iterable[str] | None = None) -> dict[str, torch.Tensor]:

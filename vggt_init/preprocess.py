@@ -104,33 +104,30 @@ class ImageGeometry:
 
 
 def _read_native(path: Path) -> np.ndarray:
-    """[h, w, c] array in the file's own type (uint8/uint16/float), straight alpha."""
+    """[h, w, c] array in the file's own type (uint8/uint16/float), straight alpha.
+
+    Decoded by :func:`camio.images.read_pixels`, the checked reader every stage shares, so a
+    truncated or corrupt file is an error naming it here too (not grey pixels).
+    """
     import OpenImageIO as oiio
 
-    if not path.is_file():
-        raise ImageInputError(f"image {path} does not exist")
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise ImageInputError(f"cannot open image {path}: {oiio.geterror() or 'unknown format'}")
+    from camio.images import ImageReadError, _open, read_pixels
+
     try:
-        spec = inp.spec()
-        fmt = spec.format.basetype
+        inp = _open(path)
+        try:
+            fmt = inp.spec().format.basetype
+        finally:
+            inp.close()
         if fmt == oiio.UINT8:
-            req = oiio.UINT8
+            req = "uint8"
         elif fmt in (oiio.UINT16, oiio.INT16):
-            req = oiio.UINT16
+            req = "uint16"
         else:
-            req = oiio.FLOAT
-        data = inp.read_image(0, 0, 0, spec.nchannels, req)
-        if data is None:
-            raise ImageInputError(f"cannot decode image {path}: {inp.geterror()}")
-    finally:
-        inp.close()
-    data = np.asarray(data)
-    if data.ndim == 2:
-        data = data[..., None]
+            req = "float"
+        data, _ = read_pixels(path, req)
+    except ImageReadError as exc:
+        raise ImageInputError(str(exc)) from None
     return data
 
 
