@@ -129,6 +129,42 @@ def _compare_outputs(saved: dict[tuple[int, str], Path], frames: list[int]) -> d
     return result
 
 
+_REUSE_PROBE = """
+import json, resource, sys
+from vggt_init.memory import heap_stats, retain_freed_memory
+applied = retain_freed_memory() if sys.argv[1] == "retain" else False
+import torch
+faults, arena = [], []
+for _ in range(5):
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    x = torch.empty(16 * 2**20, dtype=torch.float32)  # 64 MB
+    x.fill_(1.0)
+    del x
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+    arena.append((heap_stats() or {}).get("arena"))
+print(json.dumps({"retained": applied, "minor_faults": faults, "heap_arena_bytes": arena}))
+"""
+
+
+def reuse_probe() -> list[dict]:
+    """Page faults of a 64 MB tensor allocated, filled and freed 5 times, with glibc's defaults and
+    with freed memory kept (``vggt_init.memory``); huge-page allocation on, as in vggt_init.
+
+    Fault counts are kernel counters: they also depend on reclaim, huge-page splits and other
+    jobs, which is why they are measured here and not asserted in tests (tests/test_vggt_memory.py
+    checks glibc's bookkeeping instead).
+    """
+    rows = []
+    for mode in ("default", "retain"):
+        env = {k: v for k, v in os.environ.items() if k != "VGGT_INIT_RETAIN_MEMORY"}
+        env["THP_MEM_ALLOC_ENABLE"] = "1"
+        res = subprocess.run([sys.executable, "-c", _REUSE_PROBE, mode], capture_output=True, text=True, env=env)
+        if res.returncode != 0:
+            raise RuntimeError(res.stderr[-2000:])
+        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return rows
+
+
 def _machine() -> dict:
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -159,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-trim", action="store_true", help="no malloc_trim after building the weights")
     p.add_argument("--no-compare", action="store_true",
                    help="skip the bf16-vs-fp32 output comparison (outputs are kept in a temp dir otherwise)")
+    p.add_argument("--reuse-probe", action="store_true",
+                   help="only the page-fault probe: a 64 MB buffer re-allocated with and without freed memory kept")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--save", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -166,6 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         print(json.dumps(_child(args.frames[0], args.dtypes[0], args.size, args.threads, heads, args.seed, args.save,
                                 trim=not args.no_trim)))
+        return 0
+    if args.reuse_probe:
+        for r in reuse_probe():
+            print(f"freed memory {'kept    ' if r['retained'] else 'returned'}: minor faults per round "
+                  f"{r['minor_faults']}, heap arena MB {[a // 2**20 if a else a for a in r['heap_arena_bytes']]}")
+        print(f"load average: {os.getloadavg()} on {os.cpu_count()} CPUs")
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     log.info("RANDOM-WEIGHT speed/memory benchmark (outputs are meaningless, not results)")
