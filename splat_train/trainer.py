@@ -202,7 +202,8 @@ class Trainer:
                 "learning rates or check the seed PLY / cameras for extreme values.")
         loss.backward()
         if out["means2d"].grad is not None:
-            self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
+            # gsplat's means2d is [1, N, 2] (one camera); ours [N, 2]. Both in pixels.
+            self.strategy.update_state(self.state, out["means2d"].grad.reshape(-1, 2), out["radii"], out["visible"],
                                        cam.width, cam.height, it)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)

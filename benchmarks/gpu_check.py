@@ -1,0 +1,149 @@
+"""First GPU check (CUDA): VGGT fixtures on the GPU and our torch rasterizer against gsplat.
+
+    python benchmarks/gpu_check.py [--out DIR]
+
+What it does, each part independent (a failing part is recorded, the others still run):
+1. VGGT: the official reference fixtures (tests/data/vggt/shared) run on CUDA in float64 and
+   float32; max |ours - expected| per output against the float64 / float32 expectations.
+2. Rasterizer: one random scene (N Gaussians, SH degree 3) rendered on CUDA by our vectorised
+   torch backend and by gsplat (through splat_train's adapter): image difference, relative
+   difference of the gradients of every input, and the means2d gradient's shape.
+3. Timing of forward+backward for both, with peak GPU memory.
+Writes gpu_check.json. Not part of the test suite (CI has no GPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import traceback
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+FIX = ROOT / "tests" / "data" / "vggt" / "shared"
+
+
+def vggt_fixtures(device: str) -> dict:
+    from safetensors.torch import load_file
+
+    from vggt_init.model import VGGT, VGGTConfig
+
+    cfg = VGGTConfig.from_fixture_config(json.loads((FIX / "config.json").read_text()))
+    sd = load_file(str(FIX / "weights.safetensors"))
+    inputs = load_file(str(FIX / "inputs.safetensors"))
+    out = {}
+    for dtype, name in ((torch.float64, "expected.safetensors"), (torch.float32, "expected_fp32.safetensors")):
+        model = VGGT(cfg, heads=("camera", "depth", "point"))
+        model.load_state_dict({k: v for k, v in sd.items() if k.split(".")[0] in
+                               {"aggregator", "camera_head", "depth_head", "point_head"}}, strict=True)
+        model = model.to(device=device, dtype=dtype).eval()
+        exp = load_file(str(FIX / name))
+        with torch.inference_mode():
+            res = model(inputs["images"].to(device=device, dtype=dtype)[None])
+        errs = {k: float((res[k].double().cpu() - exp[k].double()).abs().max())
+                for k in ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf") if k in exp}
+        out[str(dtype).replace("torch.", "")] = {"max_abs_err": errs, "max": max(errs.values())}
+    return out
+
+
+def _scene(n: int, device: str, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * torch.tensor([1.0, 1.0, 0.5]) + torch.tensor([0.0, 0.0, 4.0])
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.rand(n, 3, generator=g) * 0.05 + 0.005
+    opac = torch.rand(n, generator=g) * 0.8 + 0.1
+    sh = torch.randn(n, 16, 3, generator=g) * 0.2
+    ts = [t.to(device).requires_grad_(True) for t in (means, quats, scales, opac, sh)]
+    return ts
+
+
+def _render(backend: str, ts, W: int, H: int):
+    from splat_train.rasterize import rasterize
+
+    dev = ts[0].device
+    view = torch.eye(4, device=dev)
+    K = torch.tensor([[0.9 * W, 0, W / 2], [0, 0.9 * W, H / 2], [0, 0, 1.0]], device=dev)
+    return rasterize(*ts, view, K, W, H, background=torch.zeros(3, device=dev), sh_degree=3, backend=backend)
+
+
+def rasterizer_parity(device: str, n: int = 20000, size: int = 256) -> dict:
+    res = {}
+    cot = None
+    grads = {}
+    for backend in ("torch", "gsplat"):
+        ts = _scene(n, device)
+        out = _render(backend, ts, size, size)
+        if cot is None:
+            cot = torch.randn(out["rgb"].shape, generator=torch.Generator().manual_seed(1)).to(device)
+        (out["rgb"] * cot).sum().backward()
+        m2g = out["means2d"].grad
+        grads[backend] = {"rgb": out["rgb"].detach(), "radii": out["radii"].detach(),
+                          **{k: t.grad.detach() for k, t in zip(("means", "quats", "scales", "opacities", "sh"), ts)},
+                          "means2d_grad": None if m2g is None else m2g.detach().reshape(-1, 2)}
+        res[f"{backend}_means2d_grad_shape"] = None if m2g is None else list(m2g.shape)
+    a, b = grads["torch"], grads["gsplat"]
+    res["rgb_max_abs_diff"] = float((a["rgb"] - b["rgb"]).abs().max())
+    res["rgb_mean_abs_diff"] = float((a["rgb"] - b["rgb"]).abs().mean())
+    vis = (a["radii"] > 0) & (b["radii"] > 0)
+    res["visible_torch_gsplat_both"] = [int((a["radii"] > 0).sum()), int((b["radii"] > 0).sum()), int(vis.sum())]
+    for k in ("means", "quats", "scales", "opacities", "sh", "means2d_grad"):
+        if a[k] is None or b[k] is None:
+            res[f"grad_rel_l2_{k}"] = None
+            continue
+        x, y = a[k][vis].double(), b[k][vis].double()
+        res[f"grad_rel_l2_{k}"] = float((x - y).norm() / x.norm().clamp_min(1e-30))
+    return res
+
+
+def rasterizer_timing(device: str, n: int = 100000, size: int = 512, reps: int = 10) -> dict:
+    out = {}
+    for backend in ("torch", "gsplat"):
+        ts = _scene(n, device)
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        for i in range(reps + 2):
+            if i == 2:
+                torch.cuda.synchronize()
+                t0 = time.perf_counter()
+            o = _render(backend, ts, size, size)
+            o["rgb"].sum().backward()
+        torch.cuda.synchronize()
+        out[backend] = {"fwd_bwd_ms": 1e3 * (time.perf_counter() - t0) / reps,
+                        "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20}
+    out["speedup_gsplat"] = out["torch"]["fwd_bwd_ms"] / out["gsplat"]["fwd_bwd_ms"]
+    out["case"] = f"{n} Gaussians, {size}x{size}, SH 3"
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out")
+    args = p.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("no CUDA device: this check needs a GPU")
+    report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__}
+    try:
+        import gsplat
+
+        report["gsplat"] = gsplat.__version__
+    except ImportError:
+        report["gsplat"] = None
+    for name, fn in (("vggt_fixtures", vggt_fixtures), ("rasterizer_parity", rasterizer_parity),
+                     ("rasterizer_timing", rasterizer_timing)):
+        t0 = time.perf_counter()
+        try:
+            report[name] = fn("cuda")
+        except Exception:  # noqa: BLE001  (record and go on: each part is independent)
+            report[name] = {"error": traceback.format_exc()[-3000:]}
+        report[name]["wall_s"] = time.perf_counter() - t0
+        print(name, json.dumps(report[name], indent=1), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "gpu_check.json").write_text(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
