@@ -21,7 +21,7 @@ from safetensors.torch import save_file
 from evaluation import lpips_convert
 from evaluation.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("two_threads")
 
 ALEX_CONVS = [0, 3, 6, 8, 10]
 VGG_CONVS = [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28]

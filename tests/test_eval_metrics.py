@@ -27,7 +27,7 @@ from evaluation.metrics import (
     to_bchw,
 )
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("two_threads")
 
 
 def _rand_pair(seed: int, h: int = 24, w: int = 31, noise: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

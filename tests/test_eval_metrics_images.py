@@ -16,7 +16,7 @@ from evaluation.images_cli import add_parser, evaluate_images, main, match_image
 from evaluation.lpips import LPIPS
 from evaluation.metrics import PSNR_CAP_DB
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("two_threads")
 
 
 @pytest.fixture
