@@ -5,6 +5,7 @@
     python -m benchmarks --only raster,cell      # a subset
     python -m benchmarks --compare benchmarks/out/benchmarks_OLD.json          # run, then ratios vs OLD
     python -m benchmarks --compare OLD.json NEW.json                          # ratios only, no run
+    python -m benchmarks --gpu                   # the GPU check (CUDA only; see benchmarks/gpu_check.py)
 
 Sections: ``raster`` runs benchmarks/bench_rasterizer.py (full mode, as a subprocess writing
 JSON; quick mode calls its functions in-process at tiny sizes); ``vggt`` runs
@@ -13,6 +14,12 @@ benchmarks/bench_vggt.py at n = 3, 6, 12, fp32 and bf16 with the full-size RANDO
 ``cell`` runs benchmarks/bench_cell.py. A section that is missing or fails is reported as
 such, never filled in. Results go to OUT/benchmarks_<time>.json with the timestamp, the git
 commit, the machine (CPU count, torch version and threads, load average) and each section.
+
+``--gpu`` runs the GPU check instead (benchmarks/gpu_check.py: VGGT fixtures on CUDA against the
+float64 expectation, our torch rasterizer against gsplat on one scene, forward and gradients and
+time, and the cell trained 10,000 iterations with gsplat with its peak GPU memory), writing
+OUT/benchmarks_gpu_<time>.json and a Markdown table beside it (.md). Without CUDA it exits 2
+with a message.
 """
 
 from __future__ import annotations
@@ -363,11 +370,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--vggt-frames", type=int, nargs="+", default=[3, 6, 12])
     p.add_argument("--compare", type=Path, nargs="+", metavar="JSON",
                    help="OLD.json: ratios of this run vs OLD; OLD.json NEW.json: ratios only, nothing is run")
+    p.add_argument("--gpu", action="store_true",
+                   help="the GPU check instead of the CPU sections (needs CUDA): VGGT fixtures on CUDA vs the "
+                        "float64 expectation, our torch rasterizer vs gsplat (forward, gradients, time), the "
+                        "cell trained with gsplat with its peak GPU memory; writes JSON and a Markdown table")
+    p.add_argument("--gpu-iterations", type=int, default=None,
+                   help="training iterations of the --gpu cell (default 10000, gpu_check.CELL_ITERATIONS)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
 
     setup_logging()
+    if args.gpu:
+        from benchmarks import gpu_check
+
+        return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info)
     if args.compare and len(args.compare) > 2:
         p.error("--compare takes OLD.json or OLD.json NEW.json")
     if args.compare and len(args.compare) == 2:

@@ -205,16 +205,22 @@ class LoadSampler:
 
 def run_cell(work: Path, scene_kind: str = "auto", n: int = 3, iterations: int = 2000, quick: bool = False,
              threads: int | None = None, vggt: bool = True, vggt_dtype: str = "fp32", vggt_size: int = 518,
-             inprocess: bool = False) -> dict:
-    """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc)."""
+             inprocess: bool = False, device: str | None = None, rasterizer: str | None = None) -> dict:
+    """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc).
+
+    ``device`` and ``rasterizer`` are passed to the training and render stages when given
+    (``python -m benchmarks --gpu`` runs the cell with ``cuda`` and ``gsplat``).
+    """
     with LoadSampler() as load:
-        result = _run_cell(work, scene_kind, n, iterations, quick, threads, vggt, vggt_dtype, vggt_size, inprocess)
+        result = _run_cell(work, scene_kind, n, iterations, quick, threads, vggt, vggt_dtype, vggt_size, inprocess,
+                           device, rasterizer)
     result["loadavg_during"] = load.summary()
     return result
 
 
 def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
-              vggt_dtype: str, vggt_size: int, inprocess: bool) -> dict:
+              vggt_dtype: str, vggt_size: int, inprocess: bool, device: str | None = None,
+              rasterizer: str | None = None) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     logs = work / "logs"
     times: dict[str, float] = {}
@@ -267,11 +273,15 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
                   "--test-cameras", str(work / "align" / "sparse" / "0"), "--test-images", str(test_dir)]
     if threads:
         train_args += ["--threads", str(threads)]
+    if device:
+        train_args += ["--device", device]
+    if rasterizer:
+        train_args += ["--rasterizer", rasterizer]
     stage("train", "splat_train", train_args)
     summary = json.loads((work / "train" / "train.json").read_text())
     stage("render", "splat_train", ["render", "--model", str(work / "train" / "model.ply"),
                                     "--cameras", str(work / "align" / "sparse" / "0"), "--images", str(test_dir),
-                                    "--out", str(work / "renders")])
+                                    "--out", str(work / "renders")] + (["--device", device] if device else []))
     metric_args = ["images", "--pred", str(work / "renders"), "--gt", str(test_dir), "--out", str(work / "metrics.json")]
     if quick:
         metric_args.append("--lpips-nets")  # an empty list: no LPIPS in the quick run
@@ -292,6 +302,8 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
             "final_gaussians": summary["num_gaussians"], "torch_threads": summary.get("torch_threads"),
             "test_psnr": summary.get("test_psnr"), "train_psnr": summary.get("train_psnr"),
             "peak_rss_mb": summary.get("peak_rss_mb"), "threads_arg": threads,
+            "device": summary.get("device"), "rasterizer": summary.get("rasterizer"),
+            "peak_cuda_mb": summary.get("peak_cuda_mb"),
             "test_curve": summary.get("test_curve"),
         },
         "metrics": {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg", "n_images")},

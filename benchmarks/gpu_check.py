@@ -1,6 +1,7 @@
-"""First GPU check (CUDA): VGGT fixtures on the GPU and our torch rasterizer against gsplat.
+"""The GPU check (CUDA): VGGT fixtures on the GPU, our torch rasterizer against gsplat, the cell.
 
-    python benchmarks/gpu_check.py [--out DIR]
+    python -m benchmarks --gpu [--out DIR] [--gpu-iterations 10000]     # the entry point
+    python benchmarks/gpu_check.py [--out DIR]                            # parts 1-3 only
 
 What it does, each part independent (a failing part is recorded, the others still run):
 1. VGGT: the official reference fixtures (tests/data/vggt/shared) run on CUDA in float64 and
@@ -9,21 +10,30 @@ What it does, each part independent (a failing part is recorded, the others stil
    torch backend and by gsplat (through splat_train's adapter): image difference, relative
    difference of the gradients of every input, and the means2d gradient's shape.
 3. Timing of forward+backward for both, with peak GPU memory.
-Writes gpu_check.json. Not part of the test suite (CI has no GPU).
+4. (``run_gpu`` only) the pipeline cell of benchmarks/bench_cell.py (fern n = 3 when
+   ../shared has it, else the synthetic scene) trained for 10,000 iterations on CUDA with the
+   rasterizer forced to gsplat: stage times, PSNR, and the training process's peak GPU memory
+   (``torch.cuda.max_memory_allocated``, from its train.json).
+Not part of the test suite (CI has no GPU); tests/test_benchmarks_gpu.py checks the CLI only.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
 
 import torch
 
+log = logging.getLogger("benchmarks")
 ROOT = Path(__file__).resolve().parents[1]
 FIX = ROOT / "tests" / "data" / "vggt" / "shared"
+CELL_ITERATIONS = 10_000  # the paper's training length
 
 
 def vggt_fixtures(device: str) -> dict:
@@ -118,30 +128,114 @@ def rasterizer_timing(device: str, n: int = 100000, size: int = 512, reps: int =
     return out
 
 
+def gpu_cell(iterations: int = CELL_ITERATIONS, scene: str = "auto") -> dict:
+    """The pipeline cell on CUDA with the gsplat rasterizer (benchmarks/bench_cell.py, no VGGT
+    forward: the fixtures part checks VGGT on the GPU)."""
+    sys.path.insert(0, str(ROOT))
+    from benchmarks import bench_cell
+
+    with tempfile.TemporaryDirectory(prefix="gpu_cell_") as tmp:
+        return bench_cell.run_cell(Path(tmp), scene, 3, iterations, vggt=False, device="cuda", rasterizer="gsplat")
+
+
+def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = ("vggt_fixtures", "rasterizer_parity",
+            "rasterizer_timing", "cell")) -> dict:
+    """Run the parts on CUDA (each independent: a failure is recorded as ``{"error": ...}``)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        raise RuntimeError("no CUDA device")
+    from splat_train._gsplat_backend import installed_version
+
+    report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "cuda": torch.version.cuda,
+              "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    fns = {"vggt_fixtures": vggt_fixtures, "rasterizer_parity": rasterizer_parity,
+           "rasterizer_timing": rasterizer_timing, "cell": lambda _dev: gpu_cell(cell_iterations)}
+    for name in parts:
+        t0 = time.perf_counter()
+        try:
+            report[name] = fns[name]("cuda")
+        except Exception:  # noqa: BLE001  (record and go on: each part is independent)
+            report[name] = {"error": traceback.format_exc()[-3000:]}
+        report[name]["wall_s"] = time.perf_counter() - t0
+        print(name, json.dumps(report[name], indent=1, default=str), flush=True)
+    return report
+
+
+def _f(x, spec: str = ".3g") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def format_gpu_table(r: dict) -> str:
+    """The report as a Markdown table (one row per measured number)."""
+    rows = [("device", r.get("device")), ("torch / CUDA / gsplat", f"{r.get('torch')} / {r.get('cuda')} / {r.get('gsplat')}")]
+    v = r.get("vggt_fixtures", {})
+    for dt in ("float64", "float32"):
+        if dt in v:
+            rows.append((f"VGGT fixtures on CUDA, {dt}: max abs err vs {dt} expectation", _f(v[dt]["max"])))
+    p = r.get("rasterizer_parity", {})
+    if "rgb_max_abs_diff" in p:
+        rows.append(("torch vs gsplat: rgb max / mean abs diff",
+                     f"{_f(p['rgb_max_abs_diff'])} / {_f(p['rgb_mean_abs_diff'])}"))
+        for k in ("means", "quats", "scales", "opacities", "sh", "means2d_grad"):
+            rows.append((f"torch vs gsplat: grad rel L2, {k}", _f(p.get(f"grad_rel_l2_{k}"))))
+        rows.append(("means2d grad shape (torch, gsplat)",
+                     f"{p.get('torch_means2d_grad_shape')}, {p.get('gsplat_means2d_grad_shape')}"))
+    t = r.get("rasterizer_timing", {})
+    if "torch" in t:
+        rows.append((f"fwd+bwd ms torch / gsplat ({t.get('case')})",
+                     f"{_f(t['torch']['fwd_bwd_ms'])} / {_f(t['gsplat']['fwd_bwd_ms'])} "
+                     f"(x{_f(t.get('speedup_gsplat'))})"))
+        rows.append(("peak GPU MB torch / gsplat", f"{_f(t['torch']['peak_gpu_mb'], '.0f')} / "
+                                                   f"{_f(t['gsplat']['peak_gpu_mb'], '.0f')}"))
+    c = r.get("cell", {})
+    if "train" in c:
+        tr = c["train"]
+        rows.append((f"cell {c.get('scene')} n={c.get('n')}, {c.get('iterations')} it, rasterizer",
+                     f"{tr.get('rasterizer')} on {tr.get('device')}"))
+        rows.append(("cell: train s (it/s)", f"{_f(tr.get('wall_s'), '.1f')} ({_f(tr.get('it_per_s'), '.1f')})"))
+        rows.append(("cell: peak GPU MB (training)", _f(tr.get("peak_cuda_mb"), ".0f")))
+        rows.append(("cell: Gaussians, test PSNR dB", f"{tr.get('final_gaussians')}, {_f(tr.get('test_psnr'), '.2f')}"))
+        rows.append(("cell: total s", _f(c.get("cell_total_s"), ".1f")))
+    for name in ("vggt_fixtures", "rasterizer_parity", "rasterizer_timing", "cell"):
+        if "error" in r.get(name, {}):
+            rows.append((f"{name}: FAILED", r[name]["error"].strip().splitlines()[-1][:120]))
+    lines = ["| check | result |", "|---|---|"] + [f"| {a} | {b} |" for a, b in rows]
+    return "\n".join(lines)
+
+
+def run_cli(out: Path, iterations: int | None = None, machine_info=None) -> int:
+    """``python -m benchmarks --gpu``: every part, JSON + Markdown into ``out``, the table printed.
+    Exits 2 with a message when torch sees no CUDA device."""
+    if not torch.cuda.is_available():
+        log.error("python -m benchmarks --gpu needs a CUDA GPU, and torch %s sees none here "
+                  "(torch.cuda.is_available() is False). On a GPU machine: install a CUDA build of torch, "
+                  "then pip install -e '.[gpu]' (README, 'GPU install').", torch.__version__)
+        return 2
+    from camio.atomic import write_json
+
+    report = run_gpu(iterations or CELL_ITERATIONS)
+    if machine_info is not None:
+        report["machine"] = machine_info()
+    stem = out / f"benchmarks_gpu_{time.strftime('%Y%m%d_%H%M%S')}"
+    write_json(stem.with_suffix(".json"), report)
+    table = format_gpu_table(report)
+    stem.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    log.info("saved %s.json and %s.md", stem, stem)
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out")
     args = p.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("no CUDA device: this check needs a GPU")
-    report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__}
-    try:
-        import gsplat
-
-        report["gsplat"] = gsplat.__version__
-    except ImportError:
-        report["gsplat"] = None
-    for name, fn in (("vggt_fixtures", vggt_fixtures), ("rasterizer_parity", rasterizer_parity),
-                     ("rasterizer_timing", rasterizer_timing)):
-        t0 = time.perf_counter()
-        try:
-            report[name] = fn("cuda")
-        except Exception:  # noqa: BLE001  (record and go on: each part is independent)
-            report[name] = {"error": traceback.format_exc()[-3000:]}
-        report[name]["wall_s"] = time.perf_counter() - t0
-        print(name, json.dumps(report[name], indent=1), flush=True)
+    report = run_gpu(parts=("vggt_fixtures", "rasterizer_parity", "rasterizer_timing"))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "gpu_check.json").write_text(json.dumps(report, indent=2))
+    print(format_gpu_table(report))
     return 0
 
 

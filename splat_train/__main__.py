@@ -48,6 +48,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-refine", action="store_true", default=None,
                    help="learn small corrections of the training camera poses")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
+                                        "CUDA), cpu, torch, reference or gsplat")
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
@@ -104,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
+                      rasterizer=args.rasterizer,
                       kernel_threads=args.kernel_threads)
     from camio.images import ImageReadError
 

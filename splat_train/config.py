@@ -36,7 +36,11 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", 
 DEFAULT_ITERATIONS = 1000
 
 # Config fields that do not change the optimisation result: they may differ on resume.
-RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads")
+# The rasterizer backend is among them: the backends are parity-tested against one reference
+# (tests/test_raster_parity.py, tests/test_raster_gsplat.py), so a run started on CPU may go on
+# on a GPU, and checkpoints written before the key existed still resume.
+RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads",
+                    "rasterizer")
 
 
 @dataclass
@@ -75,6 +79,9 @@ class TrainConfig:
         checkpoint_every, keep_checkpoints: checkpoint period and how many to keep.
         eval_every: held-out PSNR period (only with test cameras); 0 disables (final only).
         device: "auto" (CUDA when available), "cpu" or "cuda".
+        rasterizer: the :func:`splat_train.rasterize` backend; "auto" = the C++ kernel on CPU,
+            gsplat on CUDA when installed (else the PyTorch tile code, with a warning). The
+            backend that ran is logged and written to ``train.json`` (``rasterizer``).
         extent_from_points: the scene extent (position rate, world-size prune) is at least 1.1 x
             the median seed distance from the camera mean, not only the camera spread (see
             :func:`splat_train.data.scene_extent`); False keeps the plain 3DGS rule.
@@ -123,6 +130,7 @@ class TrainConfig:
     keep_checkpoints: int = 2
     eval_every: int = 200
     device: str = "auto"
+    rasterizer: str = "auto"
     num_threads: int = 1
     kernel_threads: int = 0
     extent_from_points: bool = True
@@ -143,6 +151,10 @@ class TrainConfig:
             raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        from splat_train.rasterize import BACKENDS
+
+        if self.rasterizer not in BACKENDS:
+            raise ValueError(f"rasterizer must be one of {BACKENDS}, got {self.rasterizer!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

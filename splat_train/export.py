@@ -42,29 +42,34 @@ def camera_tensors(cam: Camera, device: torch.device | str = "cpu") -> tuple[tor
 
 
 def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
-                  K: torch.Tensor, width: int, height: int, background: torch.Tensor) -> dict:
+                  K: torch.Tensor, width: int, height: int, background: torch.Tensor,
+                  backend: str = "auto") -> dict:
     """Rasterize the trainable Gaussians (:mod:`splat_train.gaussians`) into one camera.
 
     Args:
         cam_from_world: [4, 4] world -> OpenCV camera; K: [3, 3] pixels.
         background: [3] RGB.
+        backend: :func:`splat_train.rasterize` backend.
 
     Returns:
         The :func:`splat_train.rasterize` dict (``rgb`` [H, W, 3], ``means2d`` [N, 2], ...).
     """
     scales, opac, quats = activated(params)
     return rasterize(params["means"], quats, scales, opac, sh_coeffs(params, sh_degree),
-                     cam_from_world, K, width, height, background=background, sh_degree=sh_degree)
+                     cam_from_world, K, width, height, background=background, sh_degree=sh_degree,
+                     backend=backend)
 
 
 @torch.no_grad()
 def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[View],
                  background: torch.Tensor, out_dir: str | Path | None = None,
-                 cam_override: list[torch.Tensor] | None = None, desc: str = "render") -> dict[str, float]:
+                 cam_override: list[torch.Tensor] | None = None, desc: str = "render",
+                 backend: str = "auto") -> dict[str, float]:
     """Render every view; write PNGs into ``out_dir`` (if given); PSNR where a view has an image.
 
     Args:
         cam_override: optional [4, 4] cam_from_world per view (refined poses).
+        backend: :func:`splat_train.rasterize` backend.
 
     Returns:
         image name -> PSNR in dB (only views with an image).
@@ -75,7 +80,7 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
         cw, K = camera_tensors(v.camera, dev)
         if cam_override is not None:
             cw = cam_override[i].to(dev)
-        out = render_params(params, sh_degree, cw, K, v.camera.width, v.camera.height, background)
+        out = render_params(params, sh_degree, cw, K, v.camera.width, v.camera.height, background, backend)
         rgb = out["rgb"].clamp(0.0, 1.0)
         if v.image is not None:
             scores[v.name] = psnr(rgb, torch.as_tensor(v.image, device=dev))

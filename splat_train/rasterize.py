@@ -25,11 +25,12 @@ from splat_train import _reference
 from splat_train.projection import EPS2D, NEAR_PLANE, project_gaussians
 from splat_train.sh import num_sh_bases, sh_to_color
 
-__all__ = ["rasterize", "BACKENDS"]
+__all__ = ["rasterize", "resolve_backend", "BACKENDS"]
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "cpu", "cpu_v1", "torch", "reference", "gsplat")
+_warned_cuda_fallback = False  # resolve_backend warns once per process
 
 
 def _check(name: str, t: Tensor, shape: tuple) -> None:
@@ -40,11 +41,21 @@ def _check(name: str, t: Tensor, shape: tuple) -> None:
         raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
 
 
-def _choose_backend(backend: str, device: torch.device) -> str:
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """The backend that :func:`rasterize` runs for ``backend`` on tensors of ``device``.
+
+    ``"auto"`` resolves to "cpu" on CPU when the C++ kernel builds (else "torch"), "gsplat" on
+    CUDA when gsplat imports (else "torch", with a one-time warning: the pure-PyTorch tile
+    code is many times slower there), "torch" elsewhere. Any other name is returned as is.
+    Callers that record which backend ran (the trainer's ``train.json``) resolve once with
+    this function and pass the result to :func:`rasterize`.
+    """
+    global _warned_cuda_fallback
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend != "auto":
         return backend
+    device = torch.device(device)
     if device.type == "cpu":
         from splat_train import _cpu_kernel
 
@@ -52,7 +63,14 @@ def _choose_backend(backend: str, device: torch.device) -> str:
     if device.type == "cuda":
         from splat_train import _gsplat_backend
 
-        return "gsplat" if _gsplat_backend.available() else "torch"
+        if _gsplat_backend.available():
+            return "gsplat"
+        if not _warned_cuda_fallback:
+            _warned_cuda_fallback = True
+            log.warning("CUDA device but gsplat is not installed: the rasterizer falls back to the "
+                        "pure-PyTorch tile backend ('torch'), many times slower; install it with "
+                        "pip install -e '.[gpu]' (gsplat==%s)", _gsplat_backend.GSPLAT_VERSION)
+        return "torch"
     return "torch"
 
 
@@ -144,12 +162,14 @@ def rasterize(
         ``depth_accum / max(alpha, 1e-10)`` (0 where nothing is rendered),
         ``depth_accum`` [H, W] = sum_i w_i z_i (not normalised),
         ``means2d`` [N, 2] projected centres in pixels (COLMAP convention); after
-        ``backward()`` its ``.grad`` holds dL/d(means2d) in pixel units (to compare with
-        3DGS's NDC-based densification threshold, multiply x by W/2 and y by H/2),
-        ``radii`` [N] int32 3-sigma screen radius in pixels, 0 = culled,
+        ``backward()`` its ``.grad`` holds dL/d(means2d) in pixel units, [N, 2] for every
+        backend (to compare with 3DGS's NDC-based densification threshold, multiply x by W/2
+        and y by H/2, as :mod:`splat_train.densify` does),
+        ``radii`` [N] int32 3-sigma screen radius in pixels, 0 = culled (gsplat: the larger of
+        its per-axis 3.33-sigma radii),
         ``visible`` [N] bool (= radii > 0),
         ``depths`` [N] camera z of the means, ``conics`` [N, 3], ``colors`` [N, 3] the
-        evaluated per-Gaussian colours.
+        evaluated per-Gaussian colours (None with gsplat).
     """
     _check("means", means, (None, 3))
     n = means.shape[0]
@@ -177,7 +197,7 @@ def rasterize(
     if background is None:
         background = torch.zeros(3, device=dev, dtype=dt)
     _check("background", background, (3,))
-    which = _choose_backend(backend, dev)
+    which = resolve_backend(backend, dev)
 
     if which == "gsplat":
         from splat_train import _gsplat_backend

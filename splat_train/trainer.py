@@ -41,6 +41,7 @@ from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.losses import photometric_loss
 from splat_train.pose import PoseCorrections
+from splat_train.rasterize import resolve_backend
 from splat_train.runlog import RunLog
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer"]
@@ -83,6 +84,8 @@ class Trainer:
         self.cfg, self.out = cfg, Path(out_dir)
         self.sched = cfg.schedule()
         self.dev = _device(cfg.device)
+        self.backend = resolve_backend(cfg.rasterizer, self.dev)
+        log.info("rasterizer backend: %s (config %r, device %s)", self.backend, cfg.rasterizer, self.dev)
         self.train_views, self.test_views = train_views, test_views or []
         self.strategy = DensifyStrategy(
             densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,
@@ -192,7 +195,8 @@ class Trainer:
         idx = self.next_view()
         bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
-        out = render_params(self.params, deg, self.camera(idx), self.cams[idx][1], cam.width, cam.height, bg)
+        out = render_params(self.params, deg, self.camera(idx), self.cams[idx][1], cam.width, cam.height, bg,
+                            self.backend)
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
         if not torch.isfinite(loss.detach()):
             last = ckpt.latest_checkpoint(self.out)
@@ -202,8 +206,8 @@ class Trainer:
                 "learning rates or check the seed PLY / cameras for extreme values.")
         loss.backward()
         if out["means2d"].grad is not None:
-            # gsplat's means2d is [1, N, 2] (one camera); ours [N, 2]. Both in pixels.
-            self.strategy.update_state(self.state, out["means2d"].grad.reshape(-1, 2), out["radii"], out["visible"],
+            # [N, 2] in pixels for every backend (the rasterize contract; the gsplat adapter too)
+            self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
                                        cam.width, cam.height, it)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
@@ -221,7 +225,8 @@ class Trainer:
             return float("nan")
         deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.sh_degree)
         override = self.refined_cameras() if refined and self.pose is not None else None
-        scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate")
+        scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate",
+                              backend=self.backend)
         return float(np.mean(list(scores.values()))) if scores else float("nan")
 
     def run(self) -> TrainResult:
@@ -282,7 +287,7 @@ class Trainer:
             "rendered": [v.name for v in render_set], "scene_extent": self.extent,
             "peak_rss_mb": peak_rss_mb(),
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
-            "device": str(self.dev), "torch_threads": torch.get_num_threads(),
+            "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "schedule": self.sched.to_dict(), "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),
         }

@@ -53,6 +53,7 @@ def test_loss_decreases_and_outputs(scene, tmp_path):
     for key in ("iterations", "wall_time_s", "num_gaussians", "train_psnr", "test_psnr", "peak_rss_mb"):
         assert key in s
     assert s["test_psnr"] > 15 and s["train_psnr"] > 15
+    assert s["rasterizer"] == ("cpu" if trainer_mod._cpu_kernel.available() else "torch")  # the backend that ran
     assert sorted(p.name for p in (out / "renders").iterdir()) == ["view_01.png", "view_03.png"]
     cloud = read_gaussian_ply(out / "model.ply")
     assert len(cloud) == s["num_gaussians"] == res.summary["num_gaussians"]

@@ -118,6 +118,9 @@ def test_synthetic_scene_plans_every_stage(mixed):
     assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
     # the point head is used: the depth head is not asked for
     assert "--points-from point_head" in out and "--points-from depth" not in out
+    # VGGT asks for a GPU (resources gpu=1) and is told to use it when the job sees one
+    vggt_cmds = [line for line in out.splitlines() if "python -m vggt_init" in line]
+    assert vggt_cmds and all("--device auto --dtype auto" in c for c in vggt_cmds), vggt_cmds
     # the COLMAP baseline is given every core snakemake has (recorded in status.json)
     assert re.search(r"evaluation\.colmap_baseline .*--threads [1-9]", out)
 

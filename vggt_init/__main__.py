@@ -23,9 +23,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model.pt or model.safetensors (else $VGGT_CHECKPOINT, the HF cache, or a download)")
     p.add_argument("--model-config", type=Path,
                    help="JSON architecture in the fixtures' config.json format (default: VGGT-1B)")
-    p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32",
-                   help="bf16 runs the aggregator under autocast; heads stay fp32")
-    p.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    p.add_argument("--dtype", choices=("auto", "fp32", "bf16"),
+                   help="bf16 runs the aggregator under autocast; heads stay fp32. Default auto: bf16 on a "
+                        "CUDA GPU that supports it, else fp32")
+    p.add_argument("--device", help="auto (default: CUDA when available, else CPU), cpu or cuda[:N]")
     p.add_argument("--points-from", choices=("point_head", "depth"), default="point_head",
                    help="world points from the point head (paper) or depth head + cameras")
     p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 (most confident)")
@@ -55,9 +56,10 @@ def main(argv: list[str] | None = None) -> int:
 
     opts = RunOptions(
         images=args.images, out=args.out, image_list=args.image_list, checkpoint=args.checkpoint,
-        model_config=args.model_config, dtype=args.dtype, device=args.device, points_from=args.points_from,
-        max_points=args.max_points, mode=args.mode, image_size=args.image_size,
+        model_config=args.model_config, points_from=args.points_from, max_points=args.max_points,
+        mode=args.mode, image_size=args.image_size,
         frames_chunk_size=args.frames_chunk, max_memory_gb=args.max_memory_gb, threads=args.threads,
+        **{k: v for k, v in (("dtype", args.dtype), ("device", args.device)) if v is not None},  # else RunOptions'
     )
     try:
         run(opts)

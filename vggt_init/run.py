@@ -28,13 +28,42 @@ from vggt_init.model.config import VGGTConfig
 from vggt_init.model.fastpath import fast_paths_enabled
 from vggt_init.preprocess import ImageInputError, load_and_preprocess, to_model_input
 
-__all__ = ["RunOptions", "MemoryBudgetError", "estimate_memory_bytes", "available_memory_bytes", "run"]
+__all__ = ["RunOptions", "MemoryBudgetError", "DTYPES", "resolve_device", "resolve_dtype", "estimate_memory_bytes",
+           "available_memory_bytes", "run"]
 
 log = logging.getLogger(__name__)
 
 
 class MemoryBudgetError(MemoryError):
     """The run would not fit in memory; raised before anything large is allocated."""
+
+
+DTYPES = ("auto", "fp32", "bf16")
+
+
+def resolve_device(name: str) -> torch.device:
+    """``"auto"`` = the first CUDA device when torch sees one, else the CPU; ``"cpu"`` and
+    ``"cuda[:N]"`` as given (ValueError when CUDA is asked for and absent, or the name is bad)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {name!r}") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name} requested but no CUDA device is available; use --device auto or cpu")
+    return device
+
+
+def resolve_dtype(name: str, device: torch.device) -> str:
+    """``"auto"`` = ``"bf16"`` (the trunk under bf16 autocast, heads fp32) on a CUDA device that
+    supports bf16 (``torch.cuda.is_bf16_supported()``: Ampere or newer), else ``"fp32"`` (the
+    CPU included: bf16 there is slower and not the measured default); explicit names as given."""
+    if name not in DTYPES:
+        raise ValueError(f"dtype must be one of {DTYPES}, got {name!r}")
+    if name != "auto":
+        return name
+    return "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else "fp32"
 
 
 @dataclass
@@ -46,8 +75,8 @@ class RunOptions:
     image_list: Path | None = None
     checkpoint: Path | None = None
     model_config: Path | None = None
-    dtype: str = "fp32"  # or "bf16"
-    device: str = "cpu"
+    dtype: str = "auto"  # one of DTYPES; see resolve_dtype
+    device: str = "auto"  # "auto", "cpu" or "cuda[:N]"; see resolve_device
     points_from: str = "point_head"  # or "depth"
     max_points: int = 100_000
     mode: str = "crop"
@@ -133,11 +162,9 @@ def run(opts: RunOptions) -> dict:
     t_start = time.perf_counter()
     if opts.points_from not in ("point_head", "depth"):
         raise ValueError(f"points_from must be 'point_head' or 'depth', got {opts.points_from!r}")
-    if opts.dtype not in ("fp32", "bf16"):
-        raise ValueError(f"dtype must be 'fp32' or 'bf16', got {opts.dtype!r}")
-    device = torch.device(opts.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda requested but no CUDA device is available; use --device cpu")
+    device = resolve_device(opts.device)
+    dtype = resolve_dtype(opts.dtype, device)
+    log.info("device %s (asked: %s), dtype %s (asked: %s)", device, opts.device, dtype, opts.dtype)
     if opts.threads:
         torch.set_num_threads(opts.threads)
     out = Path(opts.out)
@@ -171,7 +198,7 @@ def run(opts: RunOptions) -> dict:
     with timed("load_model", log, times):
         model = load_model(config, checkpoint, heads=heads, device=device)
     trunk_dtype = None
-    if opts.dtype == "bf16":
+    if dtype == "bf16":
         trunk_dtype = torch.bfloat16
         model.cast_trunk_weights(torch.bfloat16)  # same numbers as autocast, half the trunk weights
     if memory_retained():
@@ -225,7 +252,7 @@ def run(opts: RunOptions) -> dict:
         "num_images": S,
         "input_hw": [H, W],
         "mode": opts.mode,
-        "dtype": opts.dtype,
+        "dtype": dtype,
         "device": str(device),
         "points_from": opts.points_from,
         "heads_built": list(model.heads),

@@ -6,7 +6,11 @@ functions, and the folders derived from a job's own files."""
 
 def vggt_args(wildcards):
     v = config["vggt"]
-    args = [f"--dtype {v['dtype']}", f"--points-from {v['points_from']}"]
+    args = [
+        f"--device {v['device']}",
+        f"--dtype {v['dtype']}",
+        f"--points-from {v['points_from']}",
+    ]
     if v["checkpoint"]:
         args.append(f"--checkpoint {v['checkpoint']}")
     if v["model_config"]:

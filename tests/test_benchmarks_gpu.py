@@ -1,0 +1,62 @@
+"""``python -m benchmarks --gpu`` without a GPU: --help works, the run exits 2 with a message;
+the report plumbing (JSON + Markdown, failed parts recorded) with the CUDA parts stubbed; the
+cell passes --device and --rasterizer to training and records them (on CPU, quick sizes)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from benchmarks import bench_cell, gpu_check
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_gpu_help_works_anywhere():
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--gpu", "--help"], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "--gpu" in proc.stdout and "gsplat" in proc.stdout
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-GPU message")
+def test_gpu_without_cuda_exits_with_message(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--gpu", "--out", str(tmp_path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "needs a CUDA GPU" in proc.stderr and ".[gpu]" in proc.stderr
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "Fake GPU")
+    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}})
+    monkeypatch.setattr(gpu_check, "rasterizer_parity", lambda dev: 1 / 0)
+    monkeypatch.setattr(gpu_check, "rasterizer_timing", lambda dev: {
+        "torch": {"fwd_bwd_ms": 50.0, "peak_gpu_mb": 900.0}, "gsplat": {"fwd_bwd_ms": 5.0, "peak_gpu_mb": 300.0},
+        "speedup_gsplat": 10.0, "case": "c"})
+    monkeypatch.setattr(gpu_check, "gpu_cell", lambda iterations: {
+        "scene": "fern", "n": 3, "iterations": iterations, "cell_total_s": 100.0,
+        "train": {"rasterizer": "gsplat", "device": "cuda", "wall_s": 60.0, "it_per_s": 166.0,
+                  "peak_cuda_mb": 1234.0, "final_gaussians": 10, "test_psnr": 20.0}})
+    assert gpu_check.run_cli(tmp_path, 7) == 0
+    (js,), (md,) = tmp_path.glob("benchmarks_gpu_*.json"), tmp_path.glob("benchmarks_gpu_*.md")
+    rep = json.loads(js.read_text())
+    assert rep["cell"]["iterations"] == 7 and "ZeroDivisionError" in rep["rasterizer_parity"]["error"]
+    table = md.read_text()
+    assert "| cell: peak GPU MB (training) | 1234 |" in table
+    assert "rasterizer_parity: FAILED" in table and "gsplat on cuda" in table
+    assert table in capsys.readouterr().out
+
+
+def test_cell_passes_device_and_rasterizer_to_training(tmp_path):
+    res = bench_cell.run_cell(tmp_path, "synthetic", 3, bench_cell.QUICK_ITERATIONS, quick=True, vggt=False,
+                              inprocess=True, device="cpu", rasterizer="torch")
+    assert res["train"]["rasterizer"] == "torch" and res["train"]["device"] == "cpu"
+    assert res["train"]["peak_cuda_mb"] is None
