@@ -15,8 +15,11 @@ SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
-# COLMAP baseline threads: the configured count, or every core snakemake was given.
-COLMAP_THREADS = config["colmap"]["threads"] or max(1, int(workflow.cores or 1))
+# COLMAP baseline threads: the configured count, or every core snakemake was given (one on a
+# cluster executor, which is given no --cores: set colmap.threads there).
+COLMAP_THREADS = config["colmap"]["threads"] or max(
+    1, int(workflow.resource_settings.cores or 1)
+)
 
 # The workflow's own helper script, found from the workflow (any working directory works).
 VIEWS_SCRIPT = str(

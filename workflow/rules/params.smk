@@ -13,6 +13,7 @@ def vggt_args(wildcards):
         args.append(f"--model-config {v['model_config']}")
     if v["image_size"]:
         args.append(f"--image-size {v['image_size']}")
+    args.append(f"--device {v['device']}")
     return " ".join(args)
 
 
@@ -109,6 +110,12 @@ def train_inputs(wildcards):
         out["test_cameras"] = f"{base}/align/sparse"
         out["test_images"] = f"{SCENE.format(**wildcards)}/test_images"
     return out
+
+
+def train_resume_dir(wildcards, output):
+    """Checkpoints of a training job: beside train/, outside the rule's outputs, so Snakemake
+    never deletes them as incomplete and a killed job's rerun resumes from them."""
+    return str(Path(output.model).parent.parent / "train_resume")
 
 
 def train_test_args(wildcards, input):
