@@ -41,13 +41,17 @@ def vggt_gpus(wildcards):
 
 
 def train_mem_mb(wildcards, attempt):
-    return math.ceil(config["train"]["mem_mb"] * max(1.0, int(wildcards.n) / 12) * attempt)
+    return math.ceil(
+        config["train"]["mem_mb"] * max(1.0, int(wildcards.n) / 12) * attempt
+    )
 
 
 def train_runtime(wildcards, attempt):
     t = config["train"]
     scale = max(1.0, int(wildcards.n) / 12) * t["iterations"] / 10000
-    return max(config["resources"]["runtime"], math.ceil(t["runtime"] * scale)) * attempt
+    return (
+        max(config["resources"]["runtime"], math.ceil(t["runtime"] * scale)) * attempt
+    )
 
 
 def train_gpus(wildcards):
