@@ -194,3 +194,40 @@ def test_killed_train_splats_rule_resumes_from_its_checkpoint(tmp_path):
     assert len(a) == len(b)
     for key in ("means", "sh_dc", "sh_rest", "opacity_logit", "log_scales", "quats"):
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+
+
+def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
+    """--resume-dir: checkpoints under RES/<hash>/ckpt, another hash's folder is stale and
+    removed, RES goes once the outputs are written; a checkpoint of other inputs in OUT/ckpt
+    is refused, naming the hash."""
+    from splat_train.config import load_config
+    from splat_train.data import load_views
+    from splat_train.trainer import inputs_digest, train
+
+    scene = write_scene(tmp_path / "scene", n_views=3)
+    cfg = load_config(None, iterations=6, downsample=None, seed=0, checkpoint_every=3, eval_every=None,
+                      pose_refine=None, device="cpu", num_threads=1)
+    views = load_views(scene["cameras"], scene["images"], None, cfg.downsample, tuple(cfg.background))
+    digest = inputs_digest(scene["seed"], views, cfg)
+    assert digest == inputs_digest(scene["seed"], views, cfg)
+    assert digest != inputs_digest(scene["seed"], views, load_config(None, iterations=7, device="cpu"))
+
+    res = tmp_path / "res"
+    (res / "0123456789abcdef" / "ckpt").mkdir(parents=True)  # another run's, stale
+    n = torch.get_num_threads()
+    try:
+        out = train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out", cfg, resume_dir=res)
+        assert out.summary["inputs_sha256"] == digest and not res.exists()
+
+        # a checkpoint of these inputs, then the seed changes: refused
+        train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out2", cfg)
+        seed = read_gaussian_ply(scene["seed"])
+        seed.means[0, 0] += 1e-3
+        from camio.ply import write_gaussian_ply
+
+        write_gaussian_ply(scene["seed"], seed)
+        (tmp_path / "out2" / "model.ply").unlink()
+        with pytest.raises(ValueError, match="other inputs"):
+            train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out2", cfg)
+    finally:
+        torch.set_num_threads(n)
