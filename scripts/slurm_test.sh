@@ -197,9 +197,9 @@ export PYTHONPATH="$WORK${PYTHONPATH:+:$PYTHONPATH}"
 T1=$(date +%s)
 say "workflow through SLURM (profile workflow/profiles/slurm, .test/config.yaml)"
 # COLMAP with one thread in both runs: it is bitwise repeatable only so (config schema)
-ONE_THREAD_COLMAP="colmap={'threads': 1}"
+printf 'colmap: {threads: 1}\n' >"$S/one_thread_colmap.yaml"
 (cd "$WORK" && exec "${SNAKEMAKE[@]}" --profile workflow/profiles/slurm --configfile .test/config.yaml \
-    --config "$ONE_THREAD_COLMAP" \
+    "$S/one_thread_colmap.yaml" \
     --default-resources slurm_account=snaketest --slurm-logdir "$S/jobs" --latency-wait 5 --retries 0 \
     --jobs 4 --slurm-init-seconds-before-status-checks 2 --seconds-between-status-checks 2 \
     >"$S/slurm_run.log" 2>&1) &
@@ -234,7 +234,7 @@ else
     T2=$(date +%s)
     say "the same config locally (snakemake --cores $CPUS)"
     (cd "$LOCAL" && PYTHONPATH="$LOCAL" "${SNAKEMAKE[@]}" --cores "$CPUS" --configfile .test/config.yaml \
-        --config "$ONE_THREAD_COLMAP" \
+        "$S/one_thread_colmap.yaml" \
         >"$S/local_run.log" 2>&1) || { tail -40 "$S/local_run.log"; say "FAIL: the local run failed"; exit 1; }
     T_LOCAL=$(( $(date +%s) - T2 ))
     LOCAL="$LOCAL/.test/results"
