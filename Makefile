@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 export VENV
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export VIRTUAL_ENV := $(abspath $(VENV))
-.PHONY: install demo test lint bench
+.PHONY: install demo test lint bench cluster-test
 
 install:
 	bash scripts/install.sh
@@ -24,3 +24,8 @@ lint: install
 
 bench: install
 	$(PY) -m benchmarks
+
+# The .test config through a real one-node SLURM (root on Debian; installs slurm-wlm, munge,
+# slurmdbd, mariadb-server with apt). Exit 3 of the script is a skip (not root, no apt).
+cluster-test: install
+	PYTHON=$(abspath $(PY)) bash scripts/slurm_test.sh || [ $$? -eq 3 ]

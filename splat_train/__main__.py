@@ -7,6 +7,7 @@ Train::
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
         [--eval-every M] [--pose-refine] [--device auto|cpu|cuda] [--threads T]
+        [--resume-dir DIR]
 
 Render a trained model into any camera set::
 
@@ -45,6 +46,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed-rng", type=int, dest="seed_rng", help="random seed (default 0)")
     p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
     p.add_argument("--eval-every", type=int, help="held-out PSNR period M (default 200)")
+    p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
+                                        "of OUT/ckpt (resume only from identical inputs; removed on success)")
     p.add_argument("--pose-refine", action="store_true", default=None,
                    help="learn small corrections of the training camera poses")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
@@ -113,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                        test_images=args.test_images, image_list=args.image_list,
-                       test_image_list=args.test_image_list)
+                       test_image_list=args.test_image_list, resume_dir=args.resume_dir)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
         log.error("%s: %s", type(exc).__name__, exc)
         return 2

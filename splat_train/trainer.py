@@ -12,13 +12,23 @@ All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its 
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
 uninterrupted run. Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text).
+
+Every checkpoint holds :func:`inputs_digest` (SHA-256 of the seed PLY's bytes, the decoded
+training images and cameras, and the result-changing config); a run resumes only from a
+checkpoint of the same digest. With ``resume_dir`` (the workflow's ``--resume-dir``) the
+checkpoints live in ``resume_dir/<digest>/ckpt`` instead of ``out/ckpt``, outside the job's
+outputs: a rerun with other inputs never finds a stale one, and the folder is removed once
+the outputs are written.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +54,7 @@ from splat_train.pose import PoseCorrections
 from splat_train.rasterize import resolve_backend
 from splat_train.runlog import RunLog
 
-__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer"]
+__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +75,23 @@ class TrainResult:
         return self.out_dir / "model.ply"
 
 
+def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfig) -> str:
+    """SHA-256 (hex) of what decides a run's result: the seed PLY's bytes, each training
+    view's name, camera (size, K, cam_from_world) and decoded pixels, and the config without
+    the keys that may change on resume (:data:`RESUME_FREE_KEYS`)."""
+    h = hashlib.sha256()
+    h.update(Path(seed_ply).read_bytes())
+    for v in train_views:
+        cam = v.camera
+        h.update(f"{v.name}|{cam.width}|{cam.height}".encode())
+        h.update(np.ascontiguousarray(cam.K, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(cam.cam_from_world, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(v.image).tobytes())
+    kept = {k: v for k, v in cfg.to_dict().items() if k not in RESUME_FREE_KEYS}
+    h.update(json.dumps(kept, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -78,10 +105,13 @@ class Trainer:
     """State of one run; :meth:`run` trains to ``cfg.iterations`` and writes the outputs."""
 
     def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
-                 test_views: list[View] | None = None) -> None:
+                 test_views: list[View] | None = None, ckpt_dir: str | Path | None = None,
+                 digest: str | None = None) -> None:
         if not train_views:
             raise ValueError("no training views")
         self.cfg, self.out = cfg, Path(out_dir)
+        self.ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else self.out  # holds ckpt/
+        self.digest = digest or inputs_digest(seed_ply, train_views, cfg)
         self.sched = cfg.schedule()
         self.dev = _device(cfg.device)
         self.backend = resolve_backend(cfg.rasterizer, self.dev)
@@ -129,6 +159,7 @@ class Trainer:
             "log": self.log.state_dict(),
             "wall_time_s": float(self.wall),
             "config": self.cfg.to_dict(),
+            "inputs_sha256": self.digest,
         }
 
     def restore(self, path: Path) -> None:
@@ -142,6 +173,10 @@ class Trainer:
                              "use another --out or delete its ckpt/ folder to start again")
         if list(data["train_names"]) != [v.name for v in self.train_views]:
             raise ValueError(f"cannot resume from {path}: it was trained on other images; use another --out")
+        if data.get("inputs_sha256") != self.digest:
+            raise ValueError(f"cannot resume from {path}: it was trained from other inputs (seed, cameras or "
+                             f"images; inputs hash {data.get('inputs_sha256')} vs {self.digest}); "
+                             "use another --out or delete its ckpt/ folder to start again")
         self.params = {k: torch.nn.Parameter(v.to(self.dev)) for k, v in data["params"].items()}
         self.optimizer = make_optimizer(self.params, self.cfg, self.extent)
         self.optimizer.load_state_dict(data["optimizer"])
@@ -161,8 +196,8 @@ class Trainer:
         bad = [k for k, p in self.params.items() if not torch.isfinite(p).all()]
         if bad:
             raise NonFiniteLossError(f"non-finite parameters {bad} at iteration {self.iteration}; "
-                                     f"not checkpointed; last good: {ckpt.latest_checkpoint(self.out)}")
-        return ckpt.save_checkpoint(self.out, self.iteration, self.payload(), self.cfg.keep_checkpoints)
+                                     f"not checkpointed; last good: {ckpt.latest_checkpoint(self.ckpt_dir)}")
+        return ckpt.save_checkpoint(self.ckpt_dir, self.iteration, self.payload(), self.cfg.keep_checkpoints)
 
     # ---------------------------------------------------------------- training
     @property
@@ -199,7 +234,7 @@ class Trainer:
                             self.backend)
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
         if not torch.isfinite(loss.detach()):
-            last = ckpt.latest_checkpoint(self.out)
+            last = ckpt.latest_checkpoint(self.ckpt_dir)
             raise NonFiniteLossError(
                 f"loss is {loss.item()} at iteration {it} (view {cam.name!r}); the run stops. "
                 f"Last good checkpoint: {last or 'none (no checkpoint written yet)'}. Lower the "
@@ -231,7 +266,7 @@ class Trainer:
 
     def run(self) -> TrainResult:
         cfg = self.cfg
-        latest = ckpt.latest_checkpoint(self.out)
+        latest = ckpt.latest_checkpoint(self.ckpt_dir)
         if latest is not None:
             self.restore(latest)
         t_start = time.perf_counter()
@@ -288,7 +323,8 @@ class Trainer:
             "peak_rss_mb": peak_rss_mb(),
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
             "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
-            "resumed_from": self.resumed_from, "schedule": self.sched.to_dict(), "config": cfg.to_dict(),
+            "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
+            "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),
         }
         if self.pose is not None:
@@ -305,7 +341,8 @@ class Trainer:
 def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
           cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
           test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None,
-          test_image_list: str | Path | list[str] | None = None) -> TrainResult:
+          test_image_list: str | Path | list[str] | None = None,
+          resume_dir: str | Path | None = None) -> TrainResult:
     """Train 3DGS from a seed PLY and posed images; resume from ``out_dir/ckpt`` if present.
 
     Args:
@@ -318,6 +355,9 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         image_list: restrict training to these names (a file or a list).
         test_image_list: restrict the held-out views to these names (e.g. when the test
             cameras folder is the Bridge's folder of every camera).
+        resume_dir: keep checkpoints in ``resume_dir/<inputs digest>/ckpt`` (not ``out_dir/ckpt``);
+            folders of other digests there are stale and removed at the start, this run's is
+            removed after its outputs are written.
 
     Raises:
         NonFiniteLossError: the loss became non-finite (the last checkpoint stays in ckpt/).
@@ -339,4 +379,18 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
              len(train_views), len(test_views))
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    return Trainer(cfg, seed, train_views, out_dir, test_views).run()
+    digest = inputs_digest(seed, train_views, cfg)
+    if resume_dir is None:
+        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest).run()
+    resume_dir = Path(resume_dir)
+    own = resume_dir / digest[:16]
+    for stale in (p for p in resume_dir.iterdir() if p != own) if resume_dir.is_dir() else ():
+        log.info("removing %s: checkpoints of other inputs or config", stale)
+        shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
+    result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest).run()
+    shutil.rmtree(own, ignore_errors=True)
+    try:
+        resume_dir.rmdir()
+    except OSError:
+        pass
+    return result

@@ -8,12 +8,16 @@ configuration in this process (what the CLI calls: ``load_config`` then ``train`
 both here and in the child), which saves two interpreter start-ups.
 The kill also checks atomic writes: every checkpoint left behind must load, and no
 model.ply / train.json may exist (they are written only at the end).
+
+The workflow's ``train_splats`` rule is killed the same way (snakemake and its job, SIGKILL)
+and rerun: it resumes from the checkpoint it keeps in ``train_resume/``, outside its outputs.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -107,3 +111,123 @@ def test_sigkilled_training_resumes_to_identical_model(tmp_path):
     assert list(lb["iteration"]) == list(range(1, ITERATIONS + 1))  # no gap, no duplicate
     np.testing.assert_array_equal(la["loss"].to_numpy(), lb["loss"].to_numpy())
     np.testing.assert_array_equal(la["num_gaussians"].to_numpy(), lb["num_gaussians"].to_numpy())
+
+
+# ----------------------------------------------------------------------------- the workflow rule
+
+REPO = Path(__file__).resolve().parents[1]
+RULE_ITERATIONS, RULE_CKPT_EVERY = 300, 10
+
+
+def _workflow_config(tmp_path: Path) -> Path:
+    """.test/config.yaml cut to one training run (oracle, 3 views), checkpointing often."""
+    import yaml
+
+    cfg = yaml.safe_load((REPO / ".test" / "config.yaml").read_text())
+    cfg.update(results="results", views=[3], initialisers=["oracle"])
+    cfg["vggt"].update(checkpoint=str(REPO / cfg["vggt"]["checkpoint"]),
+                       model_config=str(REPO / cfg["vggt"]["model_config"]))
+    cfg["train"].update(iterations=RULE_ITERATIONS, checkpoint_every=RULE_CKPT_EVERY, threads=1)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _snakemake_cmd(tmp_path: Path, target: str, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "snakemake", target, "--cores", "1", "--snakefile", str(REPO / "Snakefile"),
+            "--directory", str(tmp_path), "--configfile", str(tmp_path / "config.yaml"), *extra]
+
+
+def test_killed_train_splats_rule_resumes_from_its_checkpoint(tmp_path):
+    """The real rule: SIGKILL snakemake and its training job (a node lost) once a checkpoint is
+    in train_resume/, rerun the rule: it resumes from iteration k > 0 (same inputs: hash checked)
+    and its model equals an uninterrupted run of the same command, bit for bit (one thread)."""
+    pytest.importorskip("snakemake")
+    _workflow_config(tmp_path)
+    run = tmp_path / "results" / "ci" / "tiny" / "n3" / "oracle" / "gated"
+    target = str(run.relative_to(tmp_path) / "train" / "model.ply")
+    env = {**_env(), "PYTHONPATH": str(REPO)}
+    log = open(tmp_path / "snakemake_killed.log", "w")
+    proc = subprocess.Popen(_snakemake_cmd(tmp_path, target), env=env, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    resume = run / "train_resume"
+    try:
+        deadline = time.monotonic() + 600
+        while not list(resume.glob("*/ckpt/ckpt_*.pt")):
+            assert proc.poll() is None, (tmp_path / "snakemake_killed.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "no training checkpoint after 600 s"
+            time.sleep(0.002)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+        log.close()
+    assert not (run / "train" / "train.json").exists(), "training finished before the kill"
+    (ckpt_dir,) = resume.glob("*/ckpt")
+    killed_at = max(i for i, _ in list_checkpoints(ckpt_dir.parent))
+    assert 0 < killed_at < RULE_ITERATIONS
+
+    subprocess.run(_snakemake_cmd(tmp_path, target, "--unlock"), env=env, check=True, capture_output=True)
+    rerun = subprocess.run(_snakemake_cmd(tmp_path, target, "--rerun-incomplete"), env=env,
+                           capture_output=True, text=True, timeout=600)
+    assert rerun.returncode == 0, (rerun.stdout + rerun.stderr)[-4000:]
+    train_log = (run / "logs" / "train.log").read_text()
+    resumed = re.search(r"resumed from \S+ at iteration (\d+)", train_log)
+    assert resumed and int(resumed.group(1)) >= killed_at > 0, train_log[-2000:]
+    summary = json.loads((run / "train" / "train.json").read_text())
+    assert summary["resumed_from"] and summary["inputs_sha256"].startswith(ckpt_dir.parent.name)
+    assert not resume.exists(), "the checkpoints of a finished run were left behind"
+
+    # the uninterrupted reference: the rule's own command into another folder (from -p)
+    dry = subprocess.run(_snakemake_cmd(tmp_path, target, "-n", "-p", "--forcerun", "train_splats"), env=env,
+                         capture_output=True, text=True, timeout=300, check=True)
+    cmd = re.search(r"^(?:Shell command: )?(python -m splat_train .*)$", dry.stdout + dry.stderr, re.M).group(1)
+    cmd = cmd.split(" > ")[0].replace(str(run.relative_to(tmp_path) / "train_resume"),
+                                      str(tmp_path / "ref_resume"))
+    cmd = cmd.replace(f"--out {run.relative_to(tmp_path)}/train", f"--out {tmp_path / 'ref'}")
+    subprocess.run(cmd, shell=True, cwd=tmp_path, env=env, check=True, capture_output=True, timeout=600)
+    a, b = read_gaussian_ply(tmp_path / "ref" / "model.ply"), read_gaussian_ply(run / "train" / "model.ply")
+    assert len(a) == len(b)
+    for key in ("means", "sh_dc", "sh_rest", "opacity_logit", "log_scales", "quats"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+
+
+def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
+    """--resume-dir: checkpoints under RES/<hash>/ckpt, another hash's folder is stale and
+    removed, RES goes once the outputs are written; a checkpoint of other inputs in OUT/ckpt
+    is refused, naming the hash."""
+    from splat_train.config import load_config
+    from splat_train.data import load_views
+    from splat_train.trainer import inputs_digest, train
+
+    scene = write_scene(tmp_path / "scene", n_views=3)
+    cfg = load_config(None, iterations=6, downsample=None, seed=0, checkpoint_every=3, eval_every=None,
+                      pose_refine=None, device="cpu", num_threads=1)
+    views = load_views(scene["cameras"], scene["images"], None, cfg.downsample, tuple(cfg.background))
+    digest = inputs_digest(scene["seed"], views, cfg)
+    assert digest == inputs_digest(scene["seed"], views, cfg)
+    assert digest != inputs_digest(scene["seed"], views, load_config(None, iterations=7, device="cpu"))
+
+    res = tmp_path / "res"
+    (res / "0123456789abcdef" / "ckpt").mkdir(parents=True)  # another run's, stale
+    n = torch.get_num_threads()
+    try:
+        out = train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out", cfg, resume_dir=res)
+        assert out.summary["inputs_sha256"] == digest and not res.exists()
+
+        # a checkpoint of these inputs, then the seed changes: refused
+        train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out2", cfg)
+        seed = read_gaussian_ply(scene["seed"])
+        seed.means[0, 0] += 1e-3
+        from camio.ply import write_gaussian_ply
+
+        write_gaussian_ply(scene["seed"], seed)
+        (tmp_path / "out2" / "model.ply").unlink()
+        with pytest.raises(ValueError, match="other inputs"):
+            train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out2", cfg)
+    finally:
+        torch.set_num_threads(n)

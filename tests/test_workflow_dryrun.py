@@ -1,6 +1,7 @@
 """Dry runs of the Snakemake workflow on configs that differ in what a scene needs: only
-the jobs that apply are planned. Also: config schema errors name the key, the SLURM profile
-plans the same DAG with GPU resources on VGGT and training."""
+the jobs that apply are planned. Also: config schema errors name the key, the SLURM profiles
+ask for a GPU only where the device is CUDA, CPUs = threads, and command-line overrides
+keep the rules' memory and runtime."""
 
 from __future__ import annotations
 
@@ -187,15 +188,78 @@ def test_config_errors_name_the_key(tmp_path, mutate, message):
     assert "Error validating config" in out and message in out
 
 
-def test_slurm_profile_dry_run(tmp_path):
+def _resources(block: str) -> dict:
+    """The ``resources:`` line of a dry-run job block as a dict of strings."""
+    line = re.search(r"^\s*resources: (.*)$", block, re.M).group(1)
+    return dict(kv.split("=", 1) for kv in line.split(", "))
+
+
+def _threads(block: str) -> int:
+    m = re.search(r"^\s*threads: (\d+)$", block, re.M)
+    return int(m.group(1)) if m else 1
+
+
+def _blocks(out: str, rule: str) -> list[str]:
+    return [b for b in re.split(r"\n(?=\[)", out) if re.search(rf"^(?:rule|checkpoint) {rule}:", b, re.M)]
+
+
+def _slurm_dry_run(tmp_path, profile: str, *args: str, cfg: dict | None = None):
     pytest.importorskip("snakemake_executor_plugin_slurm")
-    profile = REPO / "workflow" / "profiles" / "slurm"
-    counts, out = dry_run(tmp_path, synth_config(views=[3]), "--profile", str(profile))
+    # a dry run caps threads at --cores (1 by default); the SLURM executor has no cap
+    return dry_run(tmp_path, cfg or synth_config(views=[3]), "--profile",
+                   str(REPO / "workflow" / "profiles" / profile), "--cores", "64", *args)
+
+
+def test_slurm_cpu_profile_asks_no_gpu_and_cpus_equal_threads(tmp_path):
+    counts, out = _slurm_dry_run(tmp_path, "slurm", cfg=synth_config(views=[3], vggt={"threads": 4}))
     assert jobs(counts, "vggt_init") == 1 and jobs(counts, "train_splats") == 2
-    blocks = re.split(r"\n(?=\[)", out)
-    vggt = next(b for b in blocks if "rule vggt_init:" in b)
-    train = next(b for b in blocks if "rule train_splats:" in b)
-    colmap = next(b for b in blocks if "rule colmap_baseline:" in b)
-    for job in (vggt, train):
-        assert "gpu=1" in job and "slurm_partition=gpu" in job
-    assert "gpu=" not in colmap and "slurm_partition=cpu" in colmap
+    shell_blocks = [b for b in re.split(r"\n(?=\[)", out) if re.search(r"^(?:rule|checkpoint) \w+:", b, re.M)
+                    and "Shell command:" in b and "Shell command: None" not in b]  # targets run nothing
+    assert shell_blocks
+    for block in shell_blocks:
+        res = _resources(block)
+        assert res.get("gpu", "0") == "0", block
+        assert int(res["cpus_per_task"]) == _threads(block), block
+        assert int(res["runtime"]) > 0 and int(res["mem_mb"]) > 0, block
+    assert _resources(_blocks(out, "vggt_init")[0])["cpus_per_task"] == "4"
+    train = _resources(_blocks(out, "train_splats")[0])
+    assert "--device auto" in out and "--resume-dir" in out
+    # synth_config: 10 iterations -> the floor of 30 minutes; 6000 MB at <= 12 views
+    assert train["runtime"] == "30" and train["mem_mb"] == "6000"
+
+
+def test_slurm_gpu_profile_asks_a_gpu_for_vggt_and_training_only(tmp_path):
+    counts, out = _slurm_dry_run(tmp_path, "slurm-gpu")
+    for rule in ("vggt_init", "train_splats"):
+        for block in _blocks(out, rule):
+            res = _resources(block)
+            assert res["gpu"] == "1" and res["slurm_partition"] == "gpu", block
+            assert "--device cuda" in block
+    for rule in ("colmap_baseline", "oracle_init", "image_metrics", "bridge_predictions"):
+        for block in _blocks(out, rule):
+            assert _resources(block).get("gpu", "0") == "0", block
+
+
+def test_slurm_command_line_overrides_keep_the_rules_resources(tmp_path):
+    """--default-resources / --set-resources / --set-threads on the command line replace the
+    profile's blocks, but memory, runtime and CPUs live in the rules and stay."""
+    _, out = _slurm_dry_run(tmp_path, "slurm", "--default-resources", "slurm_account=myproj",
+                            "slurm_partition=short", "--set-resources", "train_splats:runtime=600",
+                            "--set-threads", "synth_scene=2")
+    colmap = _resources(_blocks(out, "colmap_baseline")[0])
+    assert colmap["mem_mb"] == "8000" and colmap["runtime"] == "120"
+    assert colmap["slurm_account"] == "myproj" and colmap["slurm_partition"] == "short"
+    train = _resources(_blocks(out, "train_splats")[0])
+    assert train["runtime"] == "600" and train["mem_mb"] == "6000"
+    synth = _blocks(out, "synth_scene")[0]
+    assert _threads(synth) == 2 and _resources(synth)["cpus_per_task"] == "2"
+
+
+def test_cluster_resources_scale_with_views_and_resolution(tmp_path):
+    cfg = synth_config(views=[24], vggt={"image_size": 518, "mem_mb": 12000, "runtime": 30},
+                       train={"iterations": 20000, "mem_mb": 6000, "runtime": 180})
+    _, out = dry_run(tmp_path, cfg)
+    vggt = _resources(_blocks(out, "vggt_init")[0])
+    assert vggt["mem_mb"] == "24000" and vggt["runtime"] == "60"  # 24 views = 2 x 12
+    train = _resources(_blocks(out, "train_splats")[0])
+    assert train["mem_mb"] == "12000" and train["runtime"] == str(180 * 2 * 2)

@@ -19,6 +19,8 @@ rule bridge_predictions:
     threads: 1
     resources:
         mem_mb=4000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         args=bridge_args,
@@ -47,6 +49,8 @@ rule bridge_colmap:
     threads: 1
     resources:
         mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         model=init_model_dir,
         out=out_dir,

@@ -4,6 +4,7 @@
     scenes.smk    scene discovery: format, reference cameras, undistortion, splits, initialisers
     params.smk    stage arguments, input functions and parameters of the rules
     planning.smk  target planning (what each stage target asks for)
+    resources.smk cluster resources: memory, runtime, CPUs and GPUs of each job
 
 Layout of the outputs (R = config["results"]):
 
@@ -28,3 +29,4 @@ include: "config.smk"
 include: "scenes.smk"
 include: "params.smk"
 include: "planning.smk"
+include: "resources.smk"

@@ -15,8 +15,16 @@ SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"
 
-# COLMAP baseline threads: the configured count, or every core snakemake was given.
-COLMAP_THREADS = config["colmap"]["threads"] or max(1, int(workflow.cores or 1))
+# COLMAP baseline threads: the configured count, or (0) every core snakemake was given. Under
+# a cluster executor the submitting snakemake has no --cores and the job's own snakemake has
+# `--cores all`, so 0 would ask SLURM for 1 CPU and then start a step with all of them: there
+# it means 1 (set colmap.threads for more).
+if config["colmap"]["threads"]:
+    COLMAP_THREADS = config["colmap"]["threads"]
+elif workflow.non_local_exec or workflow.remote_exec:
+    COLMAP_THREADS = 1
+else:
+    COLMAP_THREADS = max(1, int(workflow.resource_settings.cores or 1))
 
 # The workflow's own helper script, found from the workflow (any working directory works).
 VIEWS_SCRIPT = str(

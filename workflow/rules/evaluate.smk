@@ -16,6 +16,8 @@ rule image_metrics:
     threads: 1
     resources:
         mem_mb=3000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         lpips=lpips_args,
     shell:
@@ -39,6 +41,8 @@ rule tables:
     threads: 1
     resources:
         mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         results=results_of_output,
         out=out_dir,
@@ -62,6 +66,8 @@ rule plots:
     threads: 1
     resources:
         mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         results=results_of_input,
     shell:
@@ -80,6 +86,8 @@ rule initialiser_notes:
     threads: 1
     resources:
         mem_mb=200,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         script=VIEWS_SCRIPT,
         skipped=skipped_initialisers_json,
@@ -104,6 +112,8 @@ rule report:
     threads: 1
     resources:
         mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         results=results_of_output,
         out=out_dir,

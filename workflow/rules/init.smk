@@ -18,8 +18,10 @@ rule vggt_init:
         "../envs/project.yaml"
     threads: config["vggt"]["threads"]
     resources:
-        mem_mb=config["vggt"]["mem_mb"],
-        gpu=1,
+        mem_mb=vggt_mem_mb,
+        runtime=vggt_runtime,
+        gpu=vggt_gpus,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         args=vggt_args,
@@ -42,7 +44,9 @@ rule colmap_baseline:
         "../envs/project.yaml"
     threads: COLMAP_THREADS
     resources:
-        mem_mb=4000,
+        mem_mb=colmap_mem_mb,
+        runtime=colmap_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         args=colmap_args,
@@ -66,6 +70,8 @@ checkpoint colmap_index:
     threads: 1
     resources:
         mem_mb=200,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         script=VIEWS_SCRIPT,
     shell:
@@ -89,6 +95,8 @@ rule oracle_init:
     threads: 1
     resources:
         mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         args=oracle_args,
@@ -113,6 +121,8 @@ rule posed_init:
     threads: 1
     resources:
         mem_mb=4000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         args=posed_args,
@@ -137,6 +147,8 @@ rule pose_eval:
     threads: 1
     resources:
         mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         model=init_model_dir,
         gate=gate_args,

@@ -115,6 +115,12 @@ def train_inputs(wildcards):
     return out
 
 
+def train_resume_dir(wildcards, output):
+    """Checkpoints of a training job: beside train/, outside the rule's outputs, so Snakemake
+    never deletes them as incomplete and a killed job's rerun resumes from them."""
+    return str(Path(output.model).parent.parent / "train_resume")
+
+
 def train_test_args(wildcards, input):
     if "test_cameras" in input.keys():
         return (

@@ -13,6 +13,8 @@ rule synth_scene:
     threads: 1
     resources:
         mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         args=synth_args,
     shell:
@@ -33,6 +35,8 @@ rule convert_scene:
     threads: 1
     resources:
         mem_mb=4000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         args=convert_args,
     shell:
@@ -53,6 +57,8 @@ rule undistort_scene:
     threads: 1
     resources:
         mem_mb=4000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         args=convert_args,
     shell:
@@ -73,6 +79,8 @@ rule split_scene:
     threads: 1
     resources:
         mem_mb=500,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         args=split_args,
     shell:
@@ -93,6 +101,8 @@ rule train_list:
     threads: 1
     resources:
         mem_mb=200,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         script=VIEWS_SCRIPT,
     shell:
@@ -115,6 +125,8 @@ rule test_images:
     threads: 1
     resources:
         mem_mb=200,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         script=VIEWS_SCRIPT,
     shell:

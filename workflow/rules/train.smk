@@ -19,6 +19,8 @@ rule align_test_cameras:
     threads: 1
     resources:
         mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
     shell:
@@ -42,19 +44,26 @@ rule train_splats:
         "../envs/project.yaml"
     threads: config["train"]["threads"]
     resources:
-        mem_mb=config["train"]["mem_mb"],
-        gpu=1,
+        mem_mb=train_mem_mb,
+        runtime=train_runtime,
+        gpu=train_gpus,
+        cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
         iterations=config["train"]["iterations"],
         seed=config["train"]["seed"],
         eval_every=config["train"]["eval_every"],
+        checkpoint_every=config["train"]["checkpoint_every"],
+        device=config["train"]["device"],
+        resume=train_resume_dir,
         test=train_test_args,
     shell:
         "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
         "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
         "--iterations {params.iterations} --seed-rng {params.seed} "
-        "--eval-every {params.eval_every} --threads {threads} {params.test} > {log} 2>&1"
+        "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
+        "--resume-dir {params.resume} --device {params.device} --threads {threads} "
+        "{params.test} > {log} 2>&1"
 
 
 rule render_test:
@@ -73,6 +82,8 @@ rule render_test:
     threads: 1
     resources:
         mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
     shell:
         "python -m splat_train render --model {input.model} --cameras {input.cameras}/0 "
         "--images {input.test_images} --out {output} > {log} 2>&1"
