@@ -6,7 +6,7 @@ Train::
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
-        [--eval-every M] [--pose-refine] [--device auto|cpu|cuda] [--threads T]
+        [--eval-every M] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
 
 Render a trained model into any camera set::
 
@@ -46,7 +46,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
     p.add_argument("--eval-every", type=int, help="held-out PSNR period M (default 200)")
     p.add_argument("--pose-refine", action="store_true", default=None,
-                   help="learn small corrections of the training camera poses")
+                   help="learn small corrections of the training camera poses (first camera and scale "
+                        "fixed); writes OUT/cameras_refined")
+    p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
+                   help="with --pose-refine, also learn a focal-length correction per camera")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
@@ -103,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                      pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
+                      pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device, num_threads=args.threads,
                       kernel_threads=args.kernel_threads)
     from camio.images import ImageReadError
 
