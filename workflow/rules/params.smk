@@ -119,6 +119,27 @@ def train_test_args(wildcards, input):
     return ""
 
 
+def pose_refine_args(wildcards):
+    """splat_train's pose-refinement switches (train.pose_refine, train.pose_refine_focal)."""
+    t = config["train"]
+    if not t["pose_refine"]:
+        return ""
+    return "--pose-refine" + (" --pose-refine-focal" if t["pose_refine_focal"] else "")
+
+
+def heldout_cameras(wildcards):
+    """The held-out cameras the renders use: aligned with the refined training cameras when
+    pose refinement is on (align_refined/), else with the initialiser's (align/)."""
+    base = MODE.format(**wildcards)
+    folder = "align_refined" if config["train"]["pose_refine"] else "align"
+    return f"{base}/{folder}/sparse"
+
+
+def refined_cameras_dir(wildcards, input):
+    """The trainer's refined training cameras, beside its train.json (input.summary)."""
+    return f"{Path(input.summary).parent}/cameras_refined"
+
+
 # ----------------------------------------------------------------------------- params
 # Folders passed to the CLIs are derived from each job's own files (no hard-coded prefixes).
 
