@@ -24,3 +24,17 @@ def test_pose_refinement_switch(tmp_path):
     assert re.search(r"python -m splat_train .*--pose-refine(?! --pose-refine-focal)", out)
     assert re.search(r"evaluation align --pred \S+/train/cameras_refined --train-cameras refined", out)
     assert re.search(r"splat_train render .*--cameras \S+/align_refined/sparse/0", out)
+
+
+def test_bundle_adjusted_initialisers(tmp_path):
+    cfg = synth_config(views=[3], initialisers=["oracle", "oracle_ba", "posed_ba", "vggt_ba"],
+                       ba={"refine_focal": True})
+    counts, out = dry_run(tmp_path, cfg)
+    assert jobs(counts, "ba_predictions") == 2 and jobs(counts, "ba_posed") == 1
+    assert jobs(counts, "oracle_init") == 1 and jobs(counts, "posed_init") == 1 and jobs(counts, "vggt_init") == 1
+    # every refined initialiser is evaluated and trained like the others
+    assert jobs(counts, "pose_eval") == 4 and jobs(counts, "train_splats") == 4
+    assert jobs(counts, "bridge_predictions") == 3 and jobs(counts, "bridge_colmap") == 1
+    assert re.search(r"evaluation\.ba_init --init \S+/n3/posed --images .*--seed-points triangulated", out)
+    assert re.search(r"evaluation\.ba_init --init \S+/n3/vggt --images .*--refine-focal", out)
+    assert "--min-points" not in out  # null: the step's own default

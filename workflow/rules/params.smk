@@ -56,6 +56,39 @@ def posed_args(wildcards):
     )
 
 
+def ba_args(wildcards):
+    """evaluation.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
+    b = config["ba"]
+    args = [f"--seed {b['seed']}"]
+    if b["refine_focal"]:
+        args.append("--refine-focal")
+    if b["min_points"]:
+        args.append(f"--min-points {b['min_points']}")
+    if wildcards.base == "posed":
+        args.append("--seed-points triangulated")
+    return " ".join(args)
+
+
+def ba_base_inputs(wildcards):
+    """The base initialiser's finished-run marker (its sparse/0 lies beside it) and, for VGGT
+    and the oracle, its predictions.npz (the dense seed)."""
+    run = RUN.format(
+        dataset=wildcards.dataset,
+        scene=wildcards.scene,
+        n=wildcards.n,
+        init=wildcards.base,
+    )
+    out = {"init": f"{run}/{init_marker_of(wildcards.base)}"}
+    if wildcards.base in ("vggt", "oracle"):
+        out["predictions"] = f"{run}/predictions.npz"
+    return out
+
+
+def ba_base_dir(wildcards, input):
+    """The base initialiser's output folder (beside its finished-run marker, input.init)."""
+    return str(Path(input.init).parent)
+
+
 def bridge_args(wildcards):
     b = config["bridge"]
     args = [f"--mode {wildcards.mode}"]
