@@ -11,10 +11,15 @@ pixel xy [M, 2] and point indices [M]). The model goes to pycolmap through a COL
 back into a SparseModel in the same frame.
 
 Gauge (7 degrees of freedom that reprojection cannot see): the first camera of the model (as
-given, e.g. sorted by name) is held constant (6: rotation and position) and one translation
-coordinate of another camera (pycolmap's ``TWO_CAMS_FROM_WORLD`` gauge; COLMAP picks that
-camera), which fixes the scale. The first camera is therefore unchanged to the printed precision
-and the scale is that of the input, so a seed in the input's units stays valid.
+given, e.g. sorted by name) is held constant (6: rotation and position) and, during the solve,
+one translation coordinate of another camera (pycolmap's ``TWO_CAMS_FROM_WORLD`` gauge; COLMAP
+picks that camera). That coordinate of cam_from_world's t is not a length of the scene, so the
+solution's scale can drift (15 % measured on the synthetic scene); afterwards the whole solution
+is scaled about the first camera's centre so that the RMS distance of the camera centres from it
+equals the input's (:func:`rescale_about_first_camera`, a similarity: reprojection errors are
+unchanged). The first camera is therefore unchanged and the scale is the input's, so a seed in
+the input's units (dense predicted depths) stays valid. This is the gauge of the training-time
+refinement too (:mod:`splat_train.pose`).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import numpy as np
 from camio.cameras import project_points
 from camio.colmap import SparseModel, read_model, write_text_model
 
-__all__ = ["reprojection_errors", "bundle_adjust"]
+__all__ = ["reprojection_errors", "rescale_about_first_camera", "bundle_adjust"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +58,34 @@ def reprojection_errors(model: SparseModel) -> np.ndarray:
     return np.concatenate(errs) if errs else np.zeros(0)
 
 
+def rescale_about_first_camera(model: SparseModel, ref_cameras: list) -> tuple[SparseModel, float]:
+    """Scale ``model`` about its first camera's centre C_0 to the spread of ``ref_cameras``:
+
+        s = sqrt(sum_c ||C_ref_c - C_ref_0||^2 / sum_c ||C_c - C_0||^2),
+        X' = C_0 + s (X - C_0) for every point and camera centre, rotations unchanged.
+
+    Args:
+        model: cameras (first one = the fixed camera) and points [N, 3], world frame.
+        ref_cameras: the cameras whose spread to restore, same order.
+
+    Returns:
+        (the rescaled model, s).
+    """
+    from camio.cameras import Camera
+
+    c = np.stack([cam.center for cam in model.cameras])  # [C, 3] world
+    r = np.stack([cam.center for cam in ref_cameras])
+    den, num = float(((c - c[0]) ** 2).sum()), float(((r - r[0]) ** 2).sum())
+    s = float(np.sqrt(num / den)) if den > 1e-24 and num > 1e-24 else 1.0
+    cams = []
+    for cam, ci in zip(model.cameras, c):
+        new_c = c[0] + s * (ci - c[0])
+        cams.append(Camera(cam.name, cam.width, cam.height, cam.K.copy(),
+                           np.concatenate([cam.R, (-cam.R @ new_c)[:, None]], axis=1)))
+    pts = c[0] + s * (np.asarray(model.points, np.float64) - c[0]) if len(model.points) else model.points
+    return SparseModel(cams, pts, model.colors, model.observations, model.camera_models), s
+
+
 def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px: float | None = 1.0,
                   max_iterations: int = 100, num_threads: int = 1) -> tuple[SparseModel, dict]:
     """Refine the cameras and points of ``model`` by bundle adjustment (module docstring).
@@ -68,7 +101,7 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
     Returns:
         (refined model, same names and order; stats: ``reproj_error_px_before`` / ``after``
         (means), ``n_points``, ``n_observations``, ``termination``, ``usable``, ``wall_time_s``,
-        ``gauge``, ``refine_focal``).
+        ``gauge``, ``gauge_rescale`` (the scale s applied after the solve), ``refine_focal``).
     """
     import pycolmap
 
@@ -107,7 +140,8 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
         shutil.rmtree(work, ignore_errors=True)
     by_name = {c.name: c for c in out.cameras}
     cams = [by_name[c.name] for c in model.cameras]
-    refined = SparseModel(cams, out.points, out.colors, out.observations, out.camera_models)
+    refined, scale = rescale_about_first_camera(
+        SparseModel(cams, out.points, out.colors, out.observations, out.camera_models), model.cameras)
     after = reprojection_errors(refined)
     stats = {
         "reproj_error_px_before": float(before.mean()) if len(before) else None,
@@ -115,8 +149,9 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
         "n_points": int(len(refined.points)), "n_observations": int(len(after)),
         "termination": str(summary.termination_type).split(".")[-1],
         "usable": bool(summary.is_solution_usable()),
-        "gauge": f"first camera {first!r} constant; one translation coordinate of another camera "
-                 "(pycolmap TWO_CAMS_FROM_WORLD): scale fixed",
+        "gauge": f"first camera {first!r} constant; scale: RMS centre distance from it restored "
+                 "(solved with pycolmap's TWO_CAMS_FROM_WORLD gauge)",
+        "gauge_rescale": scale,
         "refine_focal": bool(refine_focal), "wall_time_s": time.perf_counter() - t0,
     }
     log.info("bundle adjustment: %d cameras, %d points, %d observations, reprojection %.3f -> %.3f px (%s) "

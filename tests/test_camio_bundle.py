@@ -50,6 +50,8 @@ def test_exact_correspondences_reduce_reprojection_and_pose_error():
     assert [c.name for c in refined.cameras] == [c.name for c in noisy]
     np.testing.assert_allclose(refined.cameras[0].cam_from_world, noisy[0].cam_from_world, atol=1e-9)
     np.testing.assert_allclose(refined.cameras[1].K, noisy[1].K)  # focal not refined by default
+    spread = lambda cams: sum(np.sum((c.center - cams[0].center) ** 2) for c in cams)  # noqa: E731
+    assert spread(refined.cameras) == pytest.approx(spread(noisy), rel=1e-9)  # the scale is the input's
 
 
 def test_refine_focal_recovers_a_wrong_focal():
