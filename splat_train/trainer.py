@@ -41,7 +41,7 @@ from splat_train.densify import DensifyStrategy
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.losses import photometric_loss
-from splat_train.pose import PoseCorrections, pose_lr_factor
+from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.runlog import RunLog
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer"]
@@ -107,7 +107,8 @@ class Trainer:
         self.state = DensifyStrategy.init_state(len(self.params["means"]), self.dev)
         self.pose = self.pose_opt = None
         if cfg.pose_refine:
-            self.pose = PoseCorrections(len(train_views), self.dev, refine_focal=cfg.pose_refine_focal)
+            self.pose = PoseCorrections(len(train_views), self.dev, refine_focal=cfg.pose_refine_focal,
+                                        trans_scale=camera_spread([c[0] for c in self.cams]))
             groups = [{"params": [self.pose.delta], "lr": cfg.lr_pose, "name": "pose"}]
             if self.pose.log_focal is not None:
                 groups.append({"params": [self.pose.log_focal], "lr": cfg.lr_focal, "name": "focal"})
@@ -319,7 +320,8 @@ class Trainer:
                                           "max_log_focal": (None if self.pose.log_focal is None else
                                                             float(self.pose.log_focal.detach().abs().max())),
                                           "max_rot_rad": float(d[:, :3].norm(dim=1).max()),
-                                          "max_trans": float(d[:, 3:].norm(dim=1).max())}
+                                          "max_trans": float(d[:, 3:].norm(dim=1).max()) * self.pose.trans_scale,
+                                          "trans_scale": self.pose.trans_scale}
         write_json(out / "train.json", summary)
         log.info("trained %d iterations in %.1f s (training time): %d Gaussians, train PSNR %.2f, "
                  "test PSNR %s -> %s", cfg.iterations, self.wall, self.num_gaussians, train_psnr,
