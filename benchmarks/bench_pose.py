@@ -215,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     record = {"mode": mode, "base": args.base, "orientations": args.orientations, "noise": NOISE, "refine_config": args.refine_config, "loadavg_start": os.getloadavg(), "cpu_count": os.cpu_count(),
               "results": {}, "settings": {}}
     t0 = time.perf_counter()
+    path = out / f"bench_pose_{time.strftime('%Y%m%d_%H%M%S')}{'_quick' if args.quick else ''}.json"
     for kind in args.scenes:
         s = dict(SETTINGS[kind][mode])
         if args.iterations:
@@ -226,13 +227,14 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(run_one(scene, args.n, seed, s, work / mode / kind / f"seed{seed}", args.refine_config,
                                 args.base if kind == "synthetic" else "posed", args.orientations))
             log.info("%s seed %d: %s", kind, seed, json.dumps(rows[-1], default=str))
-        record["results"][kind] = rows
+            record["results"][kind] = rows
+            write_json(path, record)  # after every seed: a long run interrupted keeps what it has
+            print(f"{kind} seed {seed} done ({time.perf_counter() - t0:.0f} s)", flush=True)
     record["loadavg_end"] = os.getloadavg()
     record["wall_s"] = time.perf_counter() - t0
     print(format_table(record["results"]))
     print(f"\nwall {record['wall_s']:.0f} s, load average {record['loadavg_start'][0]:.1f} -> "
           f"{record['loadavg_end'][0]:.1f} ({record['cpu_count']} CPUs)")
-    path = out / f"bench_pose_{time.strftime('%Y%m%d_%H%M%S')}{'_quick' if args.quick else ''}.json"
     write_json(path, record)
     print(f"saved {path}")
     return 0
