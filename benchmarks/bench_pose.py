@@ -1,19 +1,22 @@
 """Camera refinement benchmark (issue 19): bundle adjustment and training-time pose refinement,
-starting from the ground-truth-pose initialiser with the VGGT-calibrated pose noise.
+starting from ground-truth poses with the VGGT-calibrated pose noise.
 
-    python benchmarks/bench_pose.py --quick          # synthetic 128 px + fern at 1/32, 3 seeds
-    python benchmarks/bench_pose.py                  # synthetic 256 px + fern images_8 (train at 1/2)
-        [--scenes synthetic fern] [--seeds 0 1 2] [--n 6] [--iterations N] [--out DIR]
+    python benchmarks/bench_pose.py --quick          # synthetic 128 px + fern images_8 trained at 1/4, 3 seeds
+    python benchmarks/bench_pose.py                  # synthetic 256 px + fern images_8 trained at 1/2
+        [--scenes synthetic fern] [--seeds 0 1 2] [--n 6] [--base oracle|posed]
+        [--orientations auto|always] [--refine-config JSON] [--iterations N] [--out DIR]
 
-Per scene and seed: ``posed`` with noise (:data:`NOISE`: RMS rotation 1.3 deg, centre noise 3 %
-of the trajectory radius, which gave ATE about 3 % of the radius and relative rotation error
-about 1.3 deg, VGGT's level in PROTOCOL.md section 4), then four runs through the Bridge
-(uniform: posed seeds from triangulated points) and the trainer:
+Per scene and seed the initialiser gets :data:`NOISE` (RMS rotation 1.1 deg per camera, centre
+noise 6 % of the trajectory radius, which measures as ATE about 3 % of the radius and relative
+rotation error about 1.3 deg, VGGT's level in the issue): on the synthetic scene the oracle
+(``--base oracle``: exact depth unprojected through the noisy cameras, a dense seed; ``posed``
+also works), on fern ``posed`` (points triangulated from the noisy poses). Then four runs
+through the Bridge and the trainer (trainer defaults):
 
 * ``posed``: no refinement;
 * ``posed+refine``: training-time pose refinement (test cameras aligned with the refined
   training cameras);
-* ``posed_ba``: bundle adjustment (:mod:`evaluation.ba_init`, triangulated seed);
+* ``posed_ba``: bundle adjustment (:mod:`evaluation.ba_init`);
 * ``posed_ba+refine``: both.
 
 Printed: ATE (% of the RMS trajectory radius, after Sim(3)) and mean relative rotation error
@@ -21,7 +24,8 @@ Printed: ATE (% of the RMS trajectory radius, after Sim(3)) and mean relative ro
 refinement; held-out PSNR of every run (test cameras = reference cameras brought into the
 model frame by the Sim(3) fitted on the training cameras the run ends with). The mean over
 seeds and every per-seed number are saved as JSON in ``--out`` (default
-``benchmarks/out/``, git-ignored) with the load average at start and end.
+``benchmarks/out/``, git-ignored; written after every seed) with the load average at start
+and end. Numbers: benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -167,7 +171,8 @@ def format_table(results: dict) -> str:
     lines = []
     for kind, rows in results.items():
         k = len(rows)
-        lines.append(f"\n{kind}: n = {rows[0]['n']}, {k} seeds (mean; ATE % of radius / rel. rot. deg / held-out PSNR dB)")
+        lines.append(f"\n{kind}: n = {rows[0]['n']}, {k} seeds "
+                     "(mean; ATE % of radius / rel. rot. deg / held-out PSNR dB)")
         lines.append(f"{'cameras':<28}{'ATE %':>8}{'rot deg':>9}{'PSNR':>8}")
         table = [("posed + noise (before)", ("before",), ("posed",)),
                  ("after bundle adjustment", ("after_ba",), ("posed_ba",)),
@@ -212,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     work = Path(args.work) if args.work else out / "bench_pose_work"
     mode = "quick" if args.quick else "full"
-    record = {"mode": mode, "base": args.base, "orientations": args.orientations, "noise": NOISE, "refine_config": args.refine_config, "loadavg_start": os.getloadavg(), "cpu_count": os.cpu_count(),
+    record = {"mode": mode, "base": args.base, "orientations": args.orientations, "noise": NOISE,
+              "refine_config": args.refine_config, "loadavg_start": os.getloadavg(), "cpu_count": os.cpu_count(),
               "results": {}, "settings": {}}
     t0 = time.perf_counter()
     path = out / f"bench_pose_{time.strftime('%Y%m%d_%H%M%S')}{'_quick' if args.quick else ''}.json"
