@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", "load_config"]
+__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
 # Chosen from measured CPU runs on the 256x192 synthetic scene (`python -m camio synth`, 12
 # training views, ground-truth seed through the Bridge, 1 thread on a shared 2-core machine):
@@ -37,6 +37,9 @@ DEFAULT_ITERATIONS = 1000
 
 # Config fields that do not change the optimisation result: they may differ on resume.
 RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads")
+# Config fields that only matter with pose_refine: a run without refinement may resume a
+# checkpoint that differs in them (or predates them).
+POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", "lr_focal")
 
 
 @dataclass

@@ -34,7 +34,7 @@ from camio.colmap import write_text_model
 from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
-from splat_train.config import RESUME_FREE_KEYS, TrainConfig
+from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig
 from splat_train import _cpu_kernel
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
@@ -138,7 +138,10 @@ class Trainer:
         """Continue from checkpoint ``path`` (its config and training views must match)."""
         data = ckpt.load_checkpoint(path, self.dev)
         old, new = data["config"], self.cfg.to_dict()
-        diff = sorted(k for k in new if k not in RESUME_FREE_KEYS and old.get(k) != new[k])
+        free = set(RESUME_FREE_KEYS)
+        if not new["pose_refine"] and not old.get("pose_refine"):
+            free |= set(POSE_KEYS)  # unused without refinement (and absent from older checkpoints)
+        diff = sorted(k for k in new if k not in free and old.get(k) != new[k])
         if diff:
             raise ValueError(f"cannot resume from {path}: its config differs in {diff} "
                              f"({ {k: old.get(k) for k in diff} } vs { {k: new[k] for k in diff} }); "

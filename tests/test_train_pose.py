@@ -115,3 +115,29 @@ def test_refinement_off_leaves_the_cameras_and_zero_rate_does_nothing(pose_scene
     _train(pose_scene, tmp_path / "zero", iterations=20, pose_refine=True, lr_pose=0.0)
     for a, b in zip(read_model(tmp_path / "zero" / "cameras_refined").cameras, pose_scene["given"]):
         np.testing.assert_allclose(a.cam_from_world, b.cam_from_world, atol=1e-6)
+
+
+def test_resume_with_refinement_is_exact(pose_scene, tmp_path, monkeypatch):
+    from splat_train import trainer as trainer_mod
+
+    over = dict(iterations=30, checkpoint_every=10, pose_refine=True, pose_refine_focal=True, lr_focal=1e-3)
+    _train(pose_scene, tmp_path / "full", **over)
+    real, calls = trainer_mod.photometric_loss, {"n": 0}
+
+    def killed(*args):
+        calls["n"] += 1
+        if calls["n"] == 25:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _train(pose_scene, tmp_path / "part", **over)
+    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    res = _train(pose_scene, tmp_path / "part", **over)
+    assert res.summary["resumed_from"].endswith("ckpt_0000020.pt")
+    for a, b in zip(read_model(tmp_path / "full" / "cameras_refined").cameras,
+                    read_model(tmp_path / "part" / "cameras_refined").cameras):
+        np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
+        np.testing.assert_array_equal(a.K, b.K)
+    assert res.summary["pose_correction"]["max_log_focal"] > 0
