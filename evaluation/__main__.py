@@ -46,7 +46,8 @@ def _cmd_align(args) -> int:
 
     run_align(args.pred, args.ref, args.train_names, args.test_names, args.out, n=args.n,
               images_dir=args.images, image_scale=args.image_scale,
-              use_orientations=args.orientations, collinear_tol=args.collinear_tol)
+              use_orientations=args.orientations, collinear_tol=args.collinear_tol,
+              train_cameras=args.train_cameras)
     return 0
 
 
@@ -130,6 +131,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto")
     p.add_argument("--collinear-tol", type=float, default=0.1,
                    help="sigma2/sigma1 of the centres below which they count as collinear")
+    p.add_argument("--train-cameras", choices=["initialiser", "refined"], default="initialiser",
+                   help="what --pred holds (recorded in align.json): the initialiser's cameras, or the "
+                        "training cameras refined during training (splat_train --pose-refine)")
     p.add_argument("--out", required=True, help="output folder (align.json, sparse/0)")
     p.set_defaults(func=_cmd_align)
 

@@ -5,7 +5,9 @@ Outputs (``--out DIR``):
 
 * ``DIR/align.json``: the similarity (``scale``, ``R``, ``t``, direction prediction ->
   reference), per-camera centre and rotation residuals, ``rmse``, ``collinearity``,
-  ``collinear``, ``used_orientations``, the training and test names used, and
+  ``collinear``, ``used_orientations``, the training and test names used, ``train_cameras``
+  (which training cameras the fit used: "initialiser", or "refined" = the trainer's
+  ``cameras_refined`` after pose refinement, issue 19), and
   ``intrinsics``: which intrinsics the test cameras carry ("reference", scaled to the
   test image size, as the seed code did).
 * ``DIR/sparse/0/*.txt``: the reference TEST cameras brought into the prediction frame
@@ -25,7 +27,10 @@ from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.align import fit_sim3_cameras, transform_cam_from_world
 
-__all__ = ["load_names", "test_cameras_in_model_frame", "run_align"]
+__all__ = ["load_names", "test_cameras_in_model_frame", "run_align", "TRAIN_CAMERAS"]
+
+# Which training cameras the Sim(3) was fitted on (align.json ``train_cameras``).
+TRAIN_CAMERAS = ("initialiser", "refined")
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +113,8 @@ def test_cameras_in_model_frame(ref_cameras: list[Camera], sim, size: tuple[int,
 def run_align(pred_dir: str | Path, ref_dir: str | Path, train_names: str | Path,
               test_names: str | Path | None, out: str | Path, n: int | None = None,
               images_dir: str | Path | None = None, image_scale: float | None = None,
-              use_orientations: str = "auto", collinear_tol: float = 0.1) -> dict:
+              use_orientations: str = "auto", collinear_tol: float = 0.1,
+              train_cameras: str = "initialiser") -> dict:
     """Fit the alignment and write ``align.json`` and ``sparse/0`` (see the module docstring).
 
     Args:
@@ -120,10 +126,14 @@ def run_align(pred_dir: str | Path, ref_dir: str | Path, train_names: str | Path
         n: training-view count, to pick the list from a split.json.
         images_dir: folder of the test images; their sizes set the test camera size.
         image_scale: size factor when ``images_dir`` is not given (None: reference size).
+        train_cameras: what ``pred_dir`` holds, recorded in align.json: "initialiser" or
+            "refined" (the training cameras after pose refinement).
 
     Returns:
         The align.json record.
     """
+    if train_cameras not in TRAIN_CAMERAS:
+        raise ValueError(f"train_cameras must be one of {TRAIN_CAMERAS}, got {train_cameras!r}")
     t0 = time.perf_counter()
     out = Path(out)
     pred = read_model(pred_dir)
@@ -155,7 +165,7 @@ def run_align(pred_dir: str | Path, ref_dir: str | Path, train_names: str | Path
         **al.to_json(),
         "pred": str(pred_dir), "ref": str(ref_dir),
         "train_names": train, "test_names": present, "test_names_missing": missing,
-        "intrinsics": "reference",
+        "intrinsics": "reference", "train_cameras": train_cameras,
         "test_image_sizes": {c.name: [c.width, c.height] for c in cams},
         "wall_time_s": time.perf_counter() - t0,
     }

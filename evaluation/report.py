@@ -153,6 +153,18 @@ def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
     return out
 
 
+def _heldout_cameras_note(runs: pd.DataFrame) -> list[str]:
+    """One sentence: which training cameras the held-out Sim(3) alignments used (issue 19)."""
+    if "heldout_cameras" not in runs or runs["heldout_cameras"].isna().all():
+        return []
+    counts = runs["heldout_cameras"].dropna().value_counts().sort_index()
+    words = {"initialiser": "the initialiser's training cameras",
+             "refined": "the training cameras refined during training (pose refinement)"}
+    text = "; ".join(f"{words.get(k, k)}: {v} run{'s' if v != 1 else ''}" for k, v in counts.items())
+    return [f"<p>Held-out test cameras were aligned (Sim(3) on the training-camera centres) with "
+            f"{html.escape(text)}.</p>"]
+
+
 def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | None = None,
                gate: GateConfig = GateConfig(), max_views: int = 4, plots: bool = True) -> Path:
     """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
@@ -174,6 +186,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
                  f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
                  + " ".join(success_criteria_text(gate, html=True)) + "</p>"]
         parts += _initialiser_notes(Path(results), runs)
+        parts += _heldout_cameras_note(runs)
         empty = []
         for title, df in tables.items():
             if title in notes:

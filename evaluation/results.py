@@ -26,6 +26,8 @@ file               what is read
                    for under ``{results}/benchmarks/{dataset}/{scene}/n{n}/{init}/``; a file's
                    stage is guessed from its name (init/vggt/colmap/oracle, bridge, train,
                    eval/metrics/pose/render)
+``align.json``     ``train_cameras`` (column ``heldout_cameras``): which training cameras the
+                   held-out Sim(3) used; ``align_refined/align.json`` (pose refinement on) wins
 ``renders/``       rendered test views (report only)
 =================  ==========================================================================
 
@@ -67,12 +69,13 @@ RUN_COLUMNS = [
     "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
-    "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "run_dir",
+    "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "heldout_cameras",
+    "run_dir",
 ]
 
 
 _RESERVED = {"sparse", "repeats", "benchmarks", "logs", "ckpt", "init", "eval", "train", "bridge",
-             "renders", "align", "cameras_refined"}
+             "renders", "align", "align_refined", "cameras_refined"}
 
 
 def mode_dirs(run_dir: Path) -> list[Path]:
@@ -317,6 +320,9 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
             host = b["max_rss"] if math.isnan(host) else max(host, b["max_rss"])
     rec["peak_mem_mb"], rec["peak_gpu_mb"] = host, gpu
 
+    refined = (run_dir / mode if mode else run_dir) / "align_refined" / "align.json"
+    align = _json(refined if refined.is_file() else find("align.json"))
+    rec["heldout_cameras"] = align.get("train_cameras", "initialiser") if align else None
     rep = status.get("repeats") or {}
     rec["repeats"] = _first(rep, "n_runs")
     rec["repeats_success_rate"] = _first(rep, "success_paper_rate", "success_rate")

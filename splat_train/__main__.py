@@ -6,8 +6,8 @@ Train::
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
-        [--eval-every M] [--pose-refine] [--device auto|cpu|cuda] [--threads T]
-        [--resume-dir DIR]
+        [--eval-every M] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
+        [--resume-dir DIR] [--rasterizer BACKEND]
 
 Render a trained model into any camera set::
 
@@ -49,7 +49,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
                                         "of OUT/ckpt (resume only from identical inputs; removed on success)")
     p.add_argument("--pose-refine", action="store_true", default=None,
-                   help="learn small corrections of the training camera poses")
+                   help="learn small corrections of the training camera poses (first camera and scale "
+                        "fixed); writes OUT/cameras_refined")
+    p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
+                   help="with --pose-refine, also learn a focal-length correction per camera")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
@@ -108,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                      pose_refine=args.pose_refine, device=args.device, num_threads=args.threads,
-                      rasterizer=args.rasterizer,
+                      pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
+                      num_threads=args.threads, rasterizer=args.rasterizer,
                       kernel_threads=args.kernel_threads)
     from camio.images import ImageReadError
 

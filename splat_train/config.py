@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", "load_config"]
+__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
 # Chosen from measured CPU runs on the 256x192 synthetic scene (`python -m camio synth`, 12
 # training views, ground-truth seed through the Bridge, 1 thread on a shared 2-core machine):
@@ -41,6 +41,9 @@ DEFAULT_ITERATIONS = 1000
 # on a GPU, and checkpoints written before the key existed still resume.
 RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads",
                     "rasterizer")
+# Config fields that only matter with pose_refine: a run without refinement may resume a
+# checkpoint that differs in them (or predates them).
+POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", "lr_focal")
 
 
 @dataclass
@@ -71,10 +74,16 @@ class TrainConfig:
         prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
         max_gaussians: densification stops adding Gaussians above this count (None: no cap).
         schedule_reference_iterations, scale_schedule: see the module docstring.
-        pose_refine: learn small se(3) corrections of the training cameras (off by default).
-        lr_pose: Adam rate of the pose corrections (rotation in radians, translation in
-            scene units).
+        pose_refine: learn small se(3) corrections of the training cameras (off by default;
+            the first camera and the scale stay fixed, :mod:`splat_train.pose`).
+        lr_pose: Adam rate of the pose corrections (rotation in radians, translation in units
+            of the RMS distance of the training-camera centres from the first one).
         pose_refine_from: first iteration at which the poses move (the Gaussians settle first).
+        pose_warmup: the pose (and focal) rate ramps linearly from 0 to its value over this
+            many iterations after ``pose_refine_from`` (0: no ramp).
+        pose_refine_focal: with ``pose_refine``, also learn one log-focal correction per
+            camera (fx and fy scaled together).
+        lr_focal: Adam rate of the log-focal corrections.
         downsample: integer area-downsampling factor of the training images.
         checkpoint_every, keep_checkpoints: checkpoint period and how many to keep.
         eval_every: held-out PSNR period (only with test cameras); 0 disables (final only).
@@ -123,8 +132,15 @@ class TrainConfig:
     schedule_reference_iterations: int = 10000
     scale_schedule: bool = True
     pose_refine: bool = False
+    # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
+    # 1e-3 from iteration 1 walked the cameras away on fern (ATE 1.5 -> 30 % of the radius) while
+    # the Gaussians were still a blur; 1e-4 after 100 iterations with a 100-iteration ramp lowered
+    # both errors on both scenes (benchmarks/README.md).
     lr_pose: float = 1e-4
-    pose_refine_from: int = 0
+    pose_refine_from: int = 100
+    pose_warmup: int = 100
+    pose_refine_focal: bool = False
+    lr_focal: float = 1e-4
     downsample: int = 1
     checkpoint_every: int = 500
     keep_checkpoints: int = 2
@@ -149,6 +165,9 @@ class TrainConfig:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.keep_checkpoints < 1:
             raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
+        if self.pose_refine_from < 0 or self.pose_warmup < 0:
+            raise ValueError(f"pose_refine_from and pose_warmup must be >= 0, got "
+                             f"{self.pose_refine_from} and {self.pose_warmup}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
         from splat_train.rasterize import BACKENDS

@@ -64,11 +64,12 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
 def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[View],
                  background: torch.Tensor, out_dir: str | Path | None = None,
                  cam_override: list[torch.Tensor] | None = None, desc: str = "render",
-                 backend: str = "auto") -> dict[str, float]:
+                 K_override: list[torch.Tensor] | None = None, backend: str = "auto") -> dict[str, float]:
     """Render every view; write PNGs into ``out_dir`` (if given); PSNR where a view has an image.
 
     Args:
         cam_override: optional [4, 4] cam_from_world per view (refined poses).
+        K_override: optional [3, 3] intrinsics per view in its image pixels (refined focal).
         backend: :func:`splat_train.rasterize` backend.
 
     Returns:
@@ -80,6 +81,8 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
         cw, K = camera_tensors(v.camera, dev)
         if cam_override is not None:
             cw = cam_override[i].to(dev)
+        if K_override is not None:
+            K = K_override[i].to(dev)
         out = render_params(params, sh_degree, cw, K, v.camera.width, v.camera.height, background, backend)
         rgb = out["rgb"].clamp(0.0, 1.0)
         if v.image is not None:

@@ -179,7 +179,7 @@ def rasterize(
     if not (isinstance(cam_from_world, Tensor) and cam_from_world.shape in ((4, 4), (3, 4))):
         raise ValueError(f"cam_from_world must be a [4, 4] or [3, 4] tensor, got {getattr(cam_from_world, 'shape', type(cam_from_world))}")
     _check("K", K, (3, 3))
-    if float(K[0, 1]) != 0.0:
+    if float(K[0, 1].detach()) != 0.0:
         raise ValueError("K must have zero skew (K[0, 1] == 0); undistort / re-fit the camera first")
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"width and height must be positive, got {width}x{height}")

@@ -4,7 +4,8 @@ One iteration (1-based ``it``): set the position rate (exponential decay x scene
 the next training view from a shuffled stack (refilled with a new permutation when empty, as
 3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
 (+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
-view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled), the
+view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled, their
+rate ramped by :func:`splat_train.pose.pose_lr_factor` and their scale gauge restored), the
 held-out evaluation when due, then densify / prune / reset opacity when the schedule says so
 (:mod:`splat_train.densify`), then the checkpoint when due.
 
@@ -43,14 +44,14 @@ from camio.colmap import write_text_model
 from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
-from splat_train.config import RESUME_FREE_KEYS, TrainConfig
+from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig
 from splat_train import _cpu_kernel
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.losses import photometric_loss
-from splat_train.pose import PoseCorrections
+from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.rasterize import resolve_backend
 from splat_train.runlog import RunLog
 
@@ -139,8 +140,12 @@ class Trainer:
         self.state = DensifyStrategy.init_state(len(self.params["means"]), self.dev)
         self.pose = self.pose_opt = None
         if cfg.pose_refine:
-            self.pose = PoseCorrections(len(train_views), self.dev)
-            self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=cfg.lr_pose)
+            self.pose = PoseCorrections(len(train_views), self.dev, refine_focal=cfg.pose_refine_focal,
+                                        trans_scale=camera_spread([c[0] for c in self.cams]))
+            groups = [{"params": [self.pose.delta], "lr": cfg.lr_pose, "name": "pose"}]
+            if self.pose.log_focal is not None:
+                groups.append({"params": [self.pose.log_focal], "lr": cfg.lr_focal, "name": "focal"})
+            self.pose_opt = torch.optim.Adam(groups)
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -151,7 +156,8 @@ class Trainer:
             "params": {k: p.detach().clone() for k, p in self.params.items()},
             "optimizer": self.optimizer.state_dict(),
             "strategy_state": {k: v.clone() for k, v in self.state.items()},
-            "pose": None if self.pose is None else {"delta": self.pose.delta.detach().clone(),
+            "pose": None if self.pose is None else {"state": {k: v.detach().clone() for k, v in
+                                                              self.pose.state_dict().items()},
                                                     "optimizer": self.pose_opt.state_dict()},
             "rng": self.gen.get_state(),
             "view_stack": torch.tensor(self.stack, dtype=torch.int64),
@@ -166,7 +172,10 @@ class Trainer:
         """Continue from checkpoint ``path`` (its config and training views must match)."""
         data = ckpt.load_checkpoint(path, self.dev)
         old, new = data["config"], self.cfg.to_dict()
-        diff = sorted(k for k in new if k not in RESUME_FREE_KEYS and old.get(k) != new[k])
+        free = set(RESUME_FREE_KEYS)
+        if not new["pose_refine"] and not old.get("pose_refine"):
+            free |= set(POSE_KEYS)  # unused without refinement (and absent from older checkpoints)
+        diff = sorted(k for k in new if k not in free and old.get(k) != new[k])
         if diff:
             raise ValueError(f"cannot resume from {path}: its config differs in {diff} "
                              f"({ {k: old.get(k) for k in diff} } vs { {k: new[k] for k in diff} }); "
@@ -182,7 +191,7 @@ class Trainer:
         self.optimizer.load_state_dict(data["optimizer"])
         self.state = {k: v.to(self.dev) for k, v in data["strategy_state"].items()}
         if self.pose is not None:
-            self.pose.delta.data.copy_(data["pose"]["delta"])
+            self.pose.load_state_dict(data["pose"]["state"])
             self.pose_opt.load_state_dict(data["pose"]["optimizer"])
         self.gen.set_state(data["rng"])
         self.stack = [int(x) for x in data["view_stack"].tolist()]
@@ -215,9 +224,21 @@ class Trainer:
             cw = self.pose(idx, cw)
         return cw
 
+    def intrinsics(self, idx: int) -> torch.Tensor:
+        K = self.cams[idx][1]
+        if self.pose is not None and self.iteration >= self.cfg.pose_refine_from:
+            K = self.pose.intrinsics(idx, K)
+        return K
+
     def refined_cameras(self) -> list[torch.Tensor]:
+        """[4, 4] cam_from_world per training view (refined when pose refinement is on)."""
         with torch.no_grad():
             return [self.camera(i).detach() for i in range(len(self.train_views))]
+
+    def refined_intrinsics(self) -> list[torch.Tensor]:
+        """[3, 3] K per training view (refined with focal refinement)."""
+        with torch.no_grad():
+            return [self.intrinsics(i).detach() for i in range(len(self.train_views))]
 
     def step(self) -> dict[str, float]:
         """One optimisation iteration (``self.iteration`` is advanced first)."""
@@ -230,7 +251,7 @@ class Trainer:
         idx = self.next_view()
         bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
-        out = render_params(self.params, deg, self.camera(idx), self.cams[idx][1], cam.width, cam.height, bg,
+        out = render_params(self.params, deg, self.camera(idx), self.intrinsics(idx), cam.width, cam.height, bg,
                             self.backend)
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
         if not torch.isfinite(loss.detach()):
@@ -247,8 +268,12 @@ class Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.pose_opt is not None:
+            f = pose_lr_factor(it, cfg.pose_refine_from, cfg.pose_warmup)
+            for g in self.pose_opt.param_groups:
+                g["lr"] = f * (cfg.lr_pose if g["name"] == "pose" else cfg.lr_focal)
             self.pose_opt.step()
             self.pose_opt.zero_grad(set_to_none=True)
+            self.pose.fix_scale_([c[0] for c in self.cams])
         with torch.no_grad():
             mse = float(((out["rgb"].detach() - self.targets[idx]) ** 2).mean())
         return {"loss": loss.item(), "l1": l1.item(), "ssim": s.item(),
@@ -260,8 +285,9 @@ class Trainer:
             return float("nan")
         deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.sh_degree)
         override = self.refined_cameras() if refined and self.pose is not None else None
+        k_override = self.refined_intrinsics() if refined and self.pose is not None else None
         scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate",
-                              backend=self.backend)
+                              K_override=k_override, backend=self.backend)
         return float(np.mean(list(scores.values()))) if scores else float("nan")
 
     def run(self) -> TrainResult:
@@ -311,8 +337,11 @@ class Trainer:
         test_psnr = self.evaluate(self.test_views, out / "renders") if self.test_views else float("nan")
         train_psnr = self.evaluate(self.train_views, None if self.test_views else out / "renders", refined=True)
         if self.pose is not None:
-            cams = [Camera(v.name, v.camera.width, v.camera.height, v.camera.K, cw.cpu().double().numpy()[:3])
-                    for v, cw in zip(self.train_views, self.refined_cameras())]
+            # at the training image size; K is the refined one with focal refinement
+            cams = [Camera(v.name, v.camera.width, v.camera.height,
+                           (v.camera.K if self.pose.log_focal is None else K.cpu().double().numpy()),
+                           cw.cpu().double().numpy()[:3])
+                    for v, cw, K in zip(self.train_views, self.refined_cameras(), self.refined_intrinsics())]
             write_text_model(out / "cameras_refined", cams)
         summary = {
             "iterations": cfg.iterations, "wall_time_s": self.wall, "session_time_s": session_s,
@@ -329,8 +358,13 @@ class Trainer:
         }
         if self.pose is not None:
             d = self.pose.delta.detach().cpu()
-            summary["pose_correction"] = {"max_rot_rad": float(d[:, :3].norm(dim=1).max()),
-                                          "max_trans": float(d[:, 3:].norm(dim=1).max())}
+            summary["pose_correction"] = {"fixed_camera": self.train_views[0].name,
+                                          "gauge": "first camera and the RMS centre distance from it fixed",
+                                          "max_log_focal": (None if self.pose.log_focal is None else
+                                                            float(self.pose.log_focal.detach().abs().max())),
+                                          "max_rot_rad": float(d[:, :3].norm(dim=1).max()),
+                                          "max_trans": float(d[:, 3:].norm(dim=1).max()) * self.pose.trans_scale,
+                                          "trans_scale": self.pose.trans_scale}
         write_json(out / "train.json", summary)
         log.info("trained %d iterations in %.1f s (training time): %d Gaussians, train PSNR %.2f, "
                  "test PSNR %s -> %s", cfg.iterations, self.wall, self.num_gaussians, train_psnr,

@@ -76,3 +76,30 @@ def write_scene(root: Path, n_views: int = 4, width: int = 32, height: int = 24,
     if test_cams:
         paths.update(test_cameras=root / "test_sparse" / "0", test_images=root / "test_images")
     return paths
+
+
+def write_pose_scene(root: Path, n_views: int = 5, width: int = 64, rot_deg: float = 1.5,
+                     trans_frac: float = 0.03, seed: int = 1) -> dict:
+    """A scene for pose refinement: exact Gaussians (a cube of 150, enough depth range that a
+    small rotation and a sideways shift do not look alike), exact images, and training cameras
+    perturbed by the oracle's noise model with the first camera left exact (the gauge).
+
+    Returns:
+        paths ``seed``, ``cameras`` (perturbed), ``images``, and ``truth`` / ``given``: the
+        exact and perturbed camera lists.
+    """
+    from evaluation.oracle import OracleNoise, perturb_cameras
+
+    rng = np.random.default_rng(0)
+    n = 150
+    gt = GaussianCloud.from_points(rng.uniform(-0.8, 0.8, (n, 3)), rng.uniform(0.05, 0.95, (n, 3)),
+                                   np.full(n, 0.9), np.full(n, 0.08), sh_degree=3)
+    cams = make_cameras(n_views, width, width * 3 // 4)
+    for c in cams:
+        write_image(root / "images" / c.name, render_cloud(gt, c))
+    noisy = perturb_cameras(cams, OracleNoise(rot_deg=rot_deg, trans_frac=trans_frac), np.random.default_rng(seed))
+    noisy[0] = cams[0]
+    write_text_model(root / "sparse" / "0", noisy)
+    write_gaussian_ply(root / "seed.ply", gt)
+    return {"seed": root / "seed.ply", "cameras": root / "sparse" / "0", "images": root / "images",
+            "truth": cams, "given": noisy}

@@ -249,6 +249,27 @@ def test_align_cli(tmp_path):
     assert rec["scale"] == pytest.approx(1 / sim.s, rel=1e-9)
     assert rec["names"] == sorted(train) and rec["test_names"] == test
     assert rec["intrinsics"] == "reference" and rec["rmse"] < 1e-9
+    assert rec["train_cameras"] == "initialiser"
+    # the same fit labelled as refined training cameras (issue 19); the label is recorded, the
+    # results reader prefers align_refined/ and the report names it
+    rc = main(["align", "--pred", str(tmp_path / "pred"), "--ref", str(tmp_path / "ref"),
+               "--train-names", str(tmp_path / "split.json"), "--n", "3", "--image-scale", "0.125",
+               "--train-cameras", "refined", "--out", str(tmp_path / "run" / "align_refined")])
+    assert rc == 0
+    (tmp_path / "run" / "align").mkdir()
+    (tmp_path / "run" / "align" / "align.json").write_text((tmp_path / "out" / "align.json").read_text())
+    from evaluation.report import _heldout_cameras_note
+    from evaluation.results import read_run
+
+    runs_dir = tmp_path / "res" / "ds" / "sc" / "n3"
+    runs_dir.mkdir(parents=True)
+    (tmp_path / "run").rename(runs_dir / "vggt")
+    rec_run = read_run(runs_dir / "vggt")
+    assert rec_run["heldout_cameras"] == "refined"
+    import pandas as pd
+
+    note = _heldout_cameras_note(pd.DataFrame([rec_run]))
+    assert "refined during training" in note[0]
     model = read_model(tmp_path / "out")
     assert model.names == test
     for cam in model.cameras:

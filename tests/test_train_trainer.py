@@ -127,7 +127,7 @@ def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch)
 
 def test_pose_refinement_changes_cameras(scene, tmp_path):
     out = tmp_path / "pose"
-    res = _train(scene, out, iterations=12, pose_refine=True, lr_pose=1e-3, densify_until=0)
+    res = _train(scene, out, iterations=12, pose_refine=True, lr_pose=1e-3, densify_until=0, pose_refine_from=0)
     assert res.summary["pose_correction"]["max_rot_rad"] > 0
     refined = read_model(out / "cameras_refined")
     given = read_model(scene["cameras"])

@@ -13,7 +13,7 @@ rule bridge_predictions:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="vggt|oracle",
+        init="vggt|oracle|vggt_ba|oracle_ba",
     conda:
         "../envs/project.yaml"
     threads: 1
@@ -42,7 +42,7 @@ rule bridge_colmap:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="colmap|posed",
+        init="colmap|posed|posed_ba",
         mode="uniform",
     conda:
         "../envs/project.yaml"

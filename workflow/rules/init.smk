@@ -1,5 +1,5 @@
 # Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle, the ground-truth-pose
-# initialiser on posed scenes) and pose accuracy.
+# initialiser on posed scenes), their bundle-adjusted variants (*_ba) and pose accuracy.
 
 
 rule vggt_init:
@@ -129,6 +129,65 @@ rule posed_init:
     shell:
         "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+
+
+rule ba_predictions:
+    input:
+        unpack(ba_base_inputs),
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        predictions=temp(f"{SCENE}/n{{n}}/{{base}}_ba/predictions.npz"),
+        model=directory(f"{SCENE}/n{{n}}/{{base}}_ba/sparse"),
+        status=f"{SCENE}/n{{n}}/{{base}}_ba/status.json",
+    log:
+        f"{SCENE}/n{{n}}/{{base}}_ba/logs/ba_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/{{base}}_ba/benchmarks/ba_init.tsv"
+    wildcard_constraints:
+        base="vggt|oracle",
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    params:
+        init=ba_base_dir,
+        out=out_dir,
+        args=ba_args,
+    shell:
+        "python -m evaluation.ba_init --init {params.init} --images {input.scene}/images "
+        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
+        "> {log} 2>&1"
+
+
+rule ba_posed:
+    input:
+        unpack(ba_base_inputs),
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        model=directory(f"{SCENE}/n{{n}}/{{base}}_ba/sparse"),
+        status=f"{SCENE}/n{{n}}/{{base}}_ba/status.json",
+    log:
+        f"{SCENE}/n{{n}}/{{base}}_ba/logs/ba_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/{{base}}_ba/benchmarks/ba_init.tsv"
+    wildcard_constraints:
+        base="posed",
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    params:
+        init=ba_base_dir,
+        out=out_dir,
+        args=ba_args,
+    shell:
+        "python -m evaluation.ba_init --init {params.init} --images {input.scene}/images "
+        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
+        "> {log} 2>&1"
 
 
 rule pose_eval:

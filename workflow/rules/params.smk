@@ -60,6 +60,39 @@ def posed_args(wildcards):
     )
 
 
+def ba_args(wildcards):
+    """evaluation.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
+    b = config["ba"]
+    args = [f"--seed {b['seed']}"]
+    if b["refine_focal"]:
+        args.append("--refine-focal")
+    if b["min_points"]:
+        args.append(f"--min-points {b['min_points']}")
+    if wildcards.base == "posed":
+        args.append("--seed-points triangulated")
+    return " ".join(args)
+
+
+def ba_base_inputs(wildcards):
+    """The base initialiser's finished-run marker (its sparse/0 lies beside it) and, for VGGT
+    and the oracle, its predictions.npz (the dense seed)."""
+    run = RUN.format(
+        dataset=wildcards.dataset,
+        scene=wildcards.scene,
+        n=wildcards.n,
+        init=wildcards.base,
+    )
+    out = {"init": f"{run}/{init_marker_of(wildcards.base)}"}
+    if wildcards.base in ("vggt", "oracle"):
+        out["predictions"] = f"{run}/predictions.npz"
+    return out
+
+
+def ba_base_dir(wildcards, input):
+    """The base initialiser's output folder (beside its finished-run marker, input.init)."""
+    return str(Path(input.init).parent)
+
+
 def bridge_args(wildcards):
     b = config["bridge"]
     args = [f"--mode {wildcards.mode}"]
@@ -127,6 +160,27 @@ def train_test_args(wildcards, input):
             f"--test-cameras {input.test_cameras}/0 --test-images {input.test_images}"
         )
     return ""
+
+
+def pose_refine_args(wildcards):
+    """splat_train's pose-refinement switches (train.pose_refine, train.pose_refine_focal)."""
+    t = config["train"]
+    if not t["pose_refine"]:
+        return ""
+    return "--pose-refine" + (" --pose-refine-focal" if t["pose_refine_focal"] else "")
+
+
+def heldout_cameras(wildcards):
+    """The held-out cameras the renders use: aligned with the refined training cameras when
+    pose refinement is on (align_refined/), else with the initialiser's (align/)."""
+    base = MODE.format(**wildcards)
+    folder = "align_refined" if config["train"]["pose_refine"] else "align"
+    return f"{base}/{folder}/sparse"
+
+
+def refined_cameras_dir(wildcards, input):
+    """The trainer's refined training cameras, beside its train.json (input.summary)."""
+    return f"{Path(input.summary).parent}/cameras_refined"
 
 
 # ----------------------------------------------------------------------------- params

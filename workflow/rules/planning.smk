@@ -57,6 +57,8 @@ def run_targets(dataset, scene, n, init, stage):
         out.append(f"{m}/train/model.ply")
         if stage == "train" or not (heldout and aligned):
             continue
+        if config["train"]["pose_refine"]:
+            out.append(f"{m}/align_refined/align.json")
         out.append(f"{m}/renders")
         if stage == "render":
             continue

@@ -159,6 +159,11 @@ def scene_views(dataset, scene):
 _NOT_APPLICABLE = {
     "oracle": (has_gt_geometry, "it needs ground-truth depth (synthetic scenes only)"),
     "posed": (has_reference, "it needs reference cameras and the scene has none"),
+    "oracle_ba": (
+        has_gt_geometry,
+        "it needs ground-truth depth (synthetic scenes only)",
+    ),
+    "posed_ba": (has_reference, "it needs reference cameras and the scene has none"),
 }
 _told = set()
 
@@ -200,5 +205,10 @@ def skipped_initialisers_json(wildcards=None):
 
 
 def init_modes(init):
-    """Bridge modes of an initialiser: COLMAP and posed have no confidence, so uniform only."""
-    return ["uniform"] if init in ("colmap", "posed") else config["bridge"]["modes"]
+    """Bridge modes of an initialiser: COLMAP and posed (with or without bundle adjustment)
+    have no confidence, so uniform only."""
+    return (
+        ["uniform"]
+        if init in ("colmap", "posed", "posed_ba")
+        else config["bridge"]["modes"]
+    )

@@ -1,4 +1,6 @@
-# Held-out cameras in the model frame, 3DGS optimisation and the held-out renders.
+# Held-out cameras in the model frame, 3DGS optimisation and the held-out renders. With
+# train.pose_refine the renders use the test cameras aligned with the refined training cameras
+# (align_refined/); align/ (initialiser cameras) still feeds the held-out curve during training.
 
 
 rule align_test_cameras:
@@ -57,19 +59,49 @@ rule train_splats:
         device=config["train"]["device"],
         resume=train_resume_dir,
         test=train_test_args,
+        pose=pose_refine_args,
     shell:
         "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
         "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
         "--iterations {params.iterations} --seed-rng {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
         "--resume-dir {params.resume} --device {params.device} --threads {threads} "
-        "{params.test} > {log} 2>&1"
+        "{params.test} {params.pose} > {log} 2>&1"
+
+
+rule align_refined_cameras:
+    input:
+        summary=f"{MODE}/train/train.json",
+        split=f"{SCENE}/split.json",
+        scene=scene_dir,
+        test_images=f"{SCENE}/test_images",
+    output:
+        info=f"{MODE}/align_refined/align.json",
+        cameras=directory(f"{MODE}/align_refined/sparse"),
+    log:
+        f"{MODE}/logs/align_refined.log",
+    benchmark:
+        f"{MODE}/benchmarks/align_refined.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    params:
+        out=out_dir,
+        pred=refined_cameras_dir,
+    shell:
+        "python -m evaluation align --pred {params.pred} --train-cameras refined "
+        "--ref {input.scene}/sparse/0 --train-names {input.split} --n {wildcards.n} "
+        "--images {input.test_images} --out {params.out} > {log} 2>&1"
 
 
 rule render_test:
     input:
         model=f"{MODE}/train/model.ply",
-        cameras=f"{MODE}/align/sparse",
+        cameras=heldout_cameras,
         test_images=f"{SCENE}/test_images",
     output:
         directory(f"{MODE}/renders"),
