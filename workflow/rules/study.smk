@@ -149,7 +149,7 @@ rule study_report:
         mem_mb=2000,
     params:
         cells=study_cells_json,
-        root=f"{R}/study",
+        root=study_root,
     shell:
         "python -m evaluation study --results {params.root} --cells {params.cells:q} "
         "--write-cells {output.cells} --out {params.root}/report "

@@ -40,10 +40,8 @@ def study_run_targets(wildcards=None):
                             cell=cell, seed=seed, dataset=ds, scene=sc, n=n, mode=mode
                         )
                         out += [f"{m}/metrics.json", f"{m}/floaters.json"]
-                    out.append(
-                        f"{SRUN.format(cell=cell, seed=seed, dataset=ds, scene=sc, n=n)}"
-                        "/pose.json"
-                    )
+                    run = SRUN.format(cell=cell, seed=seed, dataset=ds, scene=sc, n=n)
+                    out.append(f"{run}/pose.json")
     return out
 
 
@@ -85,6 +83,11 @@ def study_train_inputs(wildcards):
         "test_cameras": f"{base}/align/sparse",
         "test_images": s["test_images"],
     }
+
+
+def study_root(wildcards, output):
+    """R/study, the folder of the study_report rule's cells.json output."""
+    return str(Path(output.cells).parent)
 
 
 def study_cells_json(wildcards=None):
