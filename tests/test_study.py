@@ -161,3 +161,53 @@ def test_summarise_and_paired_differences_known_numbers():
     assert d["psnr_mean"] == pytest.approx(diffs.mean())
     assert d["psnr_hw"] == pytest.approx(T975[4] * diffs.std(ddof=1) / math.sqrt(5), rel=1e-12)
     assert d["ssim_mean"] == 0.0 and d["ssim_hw"] == 0.0
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered")):
+    """A study tree with the files the report reads (metrics, floaters, training log)."""
+    import json
+
+    rng = np.random.default_rng(0)
+    for cell in cells:
+        for s in seeds:
+            run = root / cell / f"s{s}" / "synthetic" / "bundled" / "n3" / "oracle"
+            run.mkdir(parents=True)
+            (run / "status.json").write_text(json.dumps({"success_paper": True, "registered": 3, "noise": {}}))
+            (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 1.0 + s, "rel_rot_err_mean_deg": 0.5}))
+            for m in modes:
+                d = run / m
+                (d / "train").mkdir(parents=True)
+                (d / "metrics.json").write_text(json.dumps(
+                    {"psnr": 20 + rng.normal(), "ssim": 0.5, "lpips_alex": 0.3, "n_images": 3}))
+                (d / "floaters.json").write_text(json.dumps(
+                    {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
+                (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 100 + s, "iterations": 20}))
+                pd.DataFrame({"iteration": [10, 20], "wall_time_s": [1.0, 2.0],
+                              "test_psnr": [19.0, 20.0], "num_gaussians": [90, 100]}).to_parquet(
+                    d / "train" / "log.parquet")
+
+
+def test_run_study_reports_every_mode_with_an_interval(tmp_path):
+    from evaluation.report import _study_section
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study")
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "study" / "report", cells).read_text()
+    assert "| cell | gated | uniform | filtered |" in md
+    assert "gated − uniform (paired by seed)" in md and "filtered − uniform" in md
+    psnr = md.split("PSNR (final) [dB]")[1].split("##")[0]
+    rows = [r for r in psnr.splitlines() if r.startswith("| zero") or r.startswith("| rot_deg-2")]
+    assert len(rows) == 2 and all(r.count("±") == 3 for r in rows)
+    assert "never VGGT" in md
+    plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
+    assert plots == ["synthetic__bundled__n3__axis_rot_deg__zero.png", "synthetic__bundled__n3__psnr_vs_time.png"]
+    # the regular HTML report embeds the section with its plots
+    images = tmp_path / "images"
+    images.mkdir()
+    section = "".join(_study_section(tmp_path, images))
+    assert "Initialisation study" in section and 'src="images/study/' in section
+    assert (images / "study" / plots[0]).is_file()
