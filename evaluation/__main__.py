@@ -8,6 +8,8 @@ Commands:
   tables   results tree -> runs.parquet + tables.md
   plots    training curves and the error / run-time Pareto plot (PNG)
   report   one static HTML report with tables, plots and render grids
+  floaters floater measure of Gaussian models against a synthetic scene's surface
+  study    the initialisation study's report (docs/init-study.md)
 """
 
 from __future__ import annotations
@@ -69,6 +71,36 @@ def _cmd_report(args) -> int:
     from evaluation.report import run_report
 
     run_report(args.results, args.out, scenes_dir=args.scenes, gate=_gate(args), max_views=args.max_views)
+    return 0
+
+
+def _cmd_floaters(args) -> int:
+    from evaluation.floaters import run_floaters
+
+    models = {}
+    for item in args.model:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--model takes NAME=PLY, got {item!r}")
+        models[name] = path
+    run_floaters(models, args.align, args.scene, args.out, args.tau_rel)
+    return 0
+
+
+def _cmd_study(args) -> int:
+    import json
+    from pathlib import Path
+
+    from camio.atomic import write_json
+    from evaluation.study import run_study
+
+    cells = {}
+    if args.cells:
+        text = args.cells if args.cells.lstrip().startswith("{") else Path(args.cells).read_text()
+        cells = json.loads(text)
+    if args.write_cells:
+        write_json(args.write_cells, cells)
+    run_study(args.results, args.out, cells)
     return 0
 
 
@@ -156,6 +188,23 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--max-views", type=int, default=4, help="test views per render grid")
     _add_gate_args(p)
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("floaters", help="floater measure against a synthetic scene's surface")
+    p.add_argument("--model", nargs="+", required=True, help="NAME=PLY (e.g. seed=... final=...)")
+    p.add_argument("--align", required=True, help="align.json of the run (model frame -> reference)")
+    p.add_argument("--scene", required=True, help="prepared synthetic scene (synthetic.json, sparse/0)")
+    p.add_argument("--tau-rel", type=float, default=None,
+                   help="threshold as a fraction of the reference trajectory radius "
+                   "(default: evaluation.floaters.TAU_REL)")
+    p.add_argument("--out", required=True, help="floaters.json to write")
+    p.set_defaults(func=_cmd_floaters)
+
+    p = sub.add_parser("study", help="the initialisation study's report (docs/init-study.md)")
+    p.add_argument("--results", required=True, help="the study tree (R/study)")
+    p.add_argument("--out", required=True, help="report folder (study.md, plots/, index.html)")
+    p.add_argument("--cells", help="the expanded grid: JSON text or a file (evaluation.study_grid)")
+    p.add_argument("--write-cells", help="also write the grid to this JSON file")
+    p.set_defaults(func=_cmd_study)
     return parser
 
 

@@ -18,6 +18,18 @@ it can be studied with known errors:
 * Confidence (VGGT's is always > 1): c = 1 + conf_scale * exp(-|e| / s + N(0, conf_noise^2)),
   s = max(depth_rel, 1e-3): large injected errors get low confidence; ``conf_noise`` makes
   the confidence an imperfect indicator. Background: c = 1.
+* Confidence informativeness, ``conf_mode`` (the one definition; the values c above are only
+  re-assigned among one view's foreground pixels, so every mode has the same distribution of
+  confidence values and differs only in what it says about the error):
+
+  - ``ranked``: c as above (decreases with |e|: it ranks the injected error correctly);
+  - ``noise``: the view's foreground values in a random order (independent of the error);
+  - ``anti``: the view's foreground values in reversed rank order (the pixel whose ``ranked``
+    confidence is the k-th lowest gets the k-th highest: confidence grows with |e|).
+
+  The permutation for ``noise`` uses its own generator (seeded by ``seed``), so the cameras,
+  depths and outliers of a seed are the same in every mode. Only the depth error is ranked:
+  camera noise is not reflected in the confidence, in any mode.
 
 Everything is deterministic given ``seed``. Frames: cameras are cam_from_world in the
 reference (world) frame, OpenCV axes; pixels follow the COLMAP centre convention (camio).
@@ -36,10 +48,12 @@ from camio.atomic import save_npz, write_json
 from camio.cameras import Camera, camera_center, scale_intrinsics
 from camio.colmap import read_model, write_text_model
 
-__all__ = ["OracleNoise", "rotation_from_axis_angle", "perturb_cameras", "unproject_depth",
-           "make_oracle_predictions", "run_oracle"]
+__all__ = ["CONF_MODES", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
+           "unproject_depth", "reassign_confidence", "make_oracle_predictions", "run_oracle"]
 
 log = logging.getLogger(__name__)
+
+CONF_MODES = ("ranked", "noise", "anti")
 
 
 @dataclass
@@ -53,6 +67,7 @@ class OracleNoise:
         outlier_frac: fraction of pixels with e ~ U(-0.5, 0.5).
         conf_scale: confidence range above 1.
         conf_noise: log-normal noise on the confidence (0 = confidence ranks errors exactly).
+        conf_mode: confidence informativeness, one of :data:`CONF_MODES` (module docstring).
     """
 
     rot_deg: float = 0.0
@@ -61,9 +76,14 @@ class OracleNoise:
     outlier_frac: float = 0.0
     conf_scale: float = 10.0
     conf_noise: float = 0.0
+    conf_mode: str = "ranked"
 
     def __post_init__(self) -> None:
+        if self.conf_mode not in CONF_MODES:
+            raise ValueError(f"conf_mode must be one of {CONF_MODES}, got {self.conf_mode!r}")
         for key, val in asdict(self).items():
+            if key == "conf_mode":
+                continue
             if not np.isfinite(val) or val < 0:
                 raise ValueError(f"oracle noise {key} must be finite and >= 0, got {val}")
         if self.outlier_frac > 1:
@@ -128,6 +148,36 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
     return (p_cam - t) @ R  # R^T (p - t), row-vector form
 
 
+def reassign_confidence(conf: np.ndarray, valid: np.ndarray, mode: str,
+                        rng: np.random.Generator) -> np.ndarray:
+    """One view's confidence re-assigned among its foreground pixels (``conf_mode``, module
+    docstring): ``ranked`` unchanged, ``noise`` a random permutation, ``anti`` reversed ranks.
+
+    Args:
+        conf: [h, w] ``ranked`` confidence of the view.
+        valid: [h, w] bool, foreground pixels (background keeps its value).
+        mode: one of :data:`CONF_MODES`.
+        rng: generator of the ``noise`` permutation (not drawn from otherwise).
+
+    Returns:
+        [h, w] confidence with the same multiset of foreground values.
+    """
+    if mode not in CONF_MODES:
+        raise ValueError(f"conf_mode must be one of {CONF_MODES}, got {mode!r}")
+    if mode == "ranked":
+        return conf
+    out = np.array(conf, copy=True)
+    vals = conf[valid]
+    if mode == "noise":
+        out[valid] = rng.permutation(vals)
+    else:  # anti: the k-th lowest gets the k-th highest value
+        order = np.argsort(vals, kind="stable")
+        flipped = np.empty_like(vals)
+        flipped[order] = np.sort(vals)[::-1]
+        out[valid] = flipped
+    return out
+
+
 def make_oracle_predictions(scene: str | Path, names: list[str], noise: OracleNoise,
                             seed: int = 0, downsample: int = 1) -> tuple[dict, list[Camera]]:
     """Build the predictions arrays for the training ``names`` of a ground-truth scene.
@@ -157,6 +207,7 @@ def make_oracle_predictions(scene: str | Path, names: list[str], noise: OracleNo
     depth_dir = scene / "gt" / "depth"
     gt_cams = [ref.camera(n) for n in names]
     rng = np.random.default_rng(seed)
+    perm_rng = np.random.default_rng([seed, 1])  # conf_mode "noise" only: keeps rng's stream
     noisy = perturb_cameras(gt_cams, noise, rng)
 
     depths = []
@@ -188,6 +239,7 @@ def make_oracle_predictions(scene: str | Path, names: list[str], noise: OracleNo
             log_c = log_c + rng.normal(0, noise.conf_noise, zs.shape)
         conf = 1 + noise.conf_scale * np.exp(log_c)
         conf = np.where(valid, conf, 1.0)
+        conf = reassign_confidence(conf, valid, noise.conf_mode, perm_rng)
         pts.append(unproject_depth(zn, cam.K, cam.cam_from_world, rows, colsi))
         confs.append(conf)
         dep.append(np.where(valid, zn, 0.0))
@@ -269,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--conf-scale", type=float, default=10.0)
     p.add_argument("--conf-noise", type=float, default=0.0,
                    help="log-normal noise on the confidence (0 = perfect ranking)")
+    p.add_argument("--conf-mode", choices=CONF_MODES, default="ranked",
+                   help="confidence informativeness: ranked (ranks the depth error), noise "
+                   "(random order), anti (reversed ranks); see the module docstring")
     p.add_argument("--downsample", type=int, default=1, help="prediction grid stride")
     p.add_argument("--max-points", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -286,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         raise SystemExit("give the training images: --split JSON --n N, --image-list or --names")
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
-                        args.conf_scale, args.conf_noise)
+                        args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError
 
     try:

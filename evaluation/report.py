@@ -165,6 +165,20 @@ def _heldout_cameras_note(runs: pd.DataFrame) -> list[str]:
             f"{html.escape(text)}.</p>"]
 
 
+def _study_section(results: Path, images: Path) -> list[str]:
+    """The initialisation study's section (``results/study/report/section.html``, written by
+    ``python -m evaluation study``) with its plots copied to ``images/study/``; [] without one."""
+    import shutil
+
+    study = results / "study" / "report"
+    section = study / "section.html"
+    if not section.is_file():
+        return []
+    if (study / "plots").is_dir():
+        shutil.copytree(study / "plots", images / "study")
+    return [section.read_text().replace('src="plots/', 'src="images/study/')]
+
+
 def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | None = None,
                gate: GateConfig = GateConfig(), max_views: int = 4, plots: bool = True) -> Path:
     """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
@@ -205,6 +219,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         else:
             parts.append("<p>No plots: no run has a training log or both a run time and a held-out "
                          "PSNR (training off?).</p>")
+        parts += _study_section(Path(results), images)
         parts.append("<h2>Renders (one column per initialiser that produced them, as headed; "
                      "then the ground truth)</h2>")
         n_grids = 0

@@ -101,6 +101,7 @@ rule report:
         notes=f"{R}/initialisers.json",
         plots=plot_dirs,
         scenes=prepared_scenes,
+        study=study_final_targets,
     output:
         f"{R}/report/index.html",
     log:

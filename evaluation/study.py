@@ -1,0 +1,373 @@
+"""The initialisation study's report: per-run records -> per-cell means with 95 % intervals
+over seeds, paired mode differences, Markdown tables, plots and an HTML section.
+
+Input: the study tree (workflow/rules/study_plan.smk)
+``{root}/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/{mode}/`` read with
+:func:`evaluation.results.read_run` (metrics.json, train.json, log.parquet, pose.json of the
+oracle) plus ``floaters.json`` (:mod:`evaluation.floaters`); ``cells`` (the expanded grid,
+:func:`evaluation.study_grid.expand_cells`) names each cell's axis, level and base.
+
+Interval (the one definition): for k >= 2 seeds, mean +- t_{0.975, k-1} * sd / sqrt(k), sd the
+sample standard deviation (ddof 1); k = 1 gives no interval (NaN half-width). Paired
+differences (mode A - mode B) are taken per seed (the modes of a seed share the same oracle
+output) and get the same interval.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import logging
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from camio.atomic import atomic_dir, write_json
+from evaluation.results import read_run
+
+__all__ = ["MEASURES", "t_interval", "find_study_runs", "collect_study", "summarise", "paired_differences",
+           "study_markdown", "study_plots", "run_study"]
+
+log = logging.getLogger(__name__)
+
+# column -> (label, unit, digits): the measures of docs/init-study.md, in table order
+MEASURES = {
+    "psnr": ("PSNR (final)", "dB", 2),
+    "best_test_psnr": ("PSNR (best it.)", "dB", 2),
+    "best_test_iter": ("best iteration", "it.", 0),
+    "ssim": ("SSIM (final)", "", 3),
+    "lpips": ("LPIPS (final)", "", 3),
+    "num_gaussians": ("Gaussians (final)", "count", 0),
+    "floater_seed": ("floater frac. (seed)", "fraction", 3),
+    "floater_final": ("floater frac. (final)", "fraction", 3),
+}
+POSE_MEASURES = {"ate_pct_radius": ("ATE", "% radius", 2), "rel_rot_err_mean_deg": ("rel. rot. err.", "deg", 2)}
+DIFF_MEASURES = ("psnr", "ssim", "lpips", "floater_final")
+MODES = ("gated", "uniform", "filtered")
+_SEED = re.compile(r"^s(\d+)$")
+_N = re.compile(r"^n(\d+)$")
+
+
+def t_interval(values) -> tuple[float, float, int]:
+    """(mean, 95 % half-width, k) over the finite values (see the module docstring)."""
+    from scipy.stats import t
+
+    x = np.asarray(values, np.float64)
+    x = x[np.isfinite(x)]
+    k = len(x)
+    if k == 0:
+        return math.nan, math.nan, 0
+    if k == 1:
+        return float(x[0]), math.nan, 1
+    half = float(t.ppf(0.975, k - 1) * x.std(ddof=1) / math.sqrt(k))
+    return float(x.mean()), half, k
+
+
+def find_study_runs(root: str | Path) -> list[tuple[str, int, Path, str]]:
+    """(cell, seed, oracle run folder, mode) of every mode folder under ``root``, sorted."""
+    root = Path(root)
+    out = []
+    for run in sorted(root.glob("*/s*/*/*/n*/oracle")):
+        cell, seed = run.parts[-6], run.parts[-5]
+        if not (_SEED.match(seed) and _N.match(run.parent.name)):
+            continue
+        for m in sorted(p for p in run.iterdir() if p.is_dir() and p.name in MODES):
+            out.append((cell, int(_SEED.match(seed).group(1)), run, m.name))
+    return out
+
+
+def _floaters(path: Path) -> dict:
+    if not path.is_file():
+        return {"floater_seed": math.nan, "floater_final": math.nan, "floater_tau": math.nan}
+    d = json.loads(path.read_text())
+    get = lambda k: (d.get(k) or {}).get("floater_frac")  # noqa: E731
+    return {"floater_seed": float(get("seed") if get("seed") is not None else math.nan),
+            "floater_final": float(get("final") if get("final") is not None else math.nan),
+            "floater_tau": float(d.get("tau", math.nan))}
+
+
+def collect_study(root: str | Path, cells: dict | None = None) -> pd.DataFrame:
+    """One row per (cell, seed, dataset, scene, n, mode): read_run's columns, ``lpips``
+    (alex when present, else vgg; ``lpips_net`` says which), the floater fractions, the cell's
+    axis / level / base and its oracle noise."""
+    cells = cells or {}
+    rows = []
+    for cell, seed, run, mode in find_study_runs(root):
+        rec = read_run(run, mode=mode)
+        rec.update(cell=cell, seed=seed, **_floaters(run / mode / "floaters.json"))
+        net = "alex" if not math.isnan(rec["lpips_alex"]) else "vgg"
+        rec["lpips"], rec["lpips_net"] = rec[f"lpips_{net}"], net
+        info = cells.get(cell, {})
+        rec.update(axis=info.get("axis"), level=info.get("level"), base=info.get("base"))
+        status = run / "status.json"
+        noise = json.loads(status.read_text()).get("noise", {}) if status.is_file() else {}
+        rec.update({f"noise_{k}": v for k, v in noise.items()})
+        rows.append(rec)
+    df = pd.DataFrame(rows)
+    log.info("study: %d runs under %s", len(df), root)
+    return df
+
+
+def _cell_order(df: pd.DataFrame, cells: dict | None) -> list[str]:
+    present = list(dict.fromkeys(df["cell"]))
+    if not cells:
+        return sorted(present)
+    return [c for c in cells if c in present] + sorted(set(present) - set(cells))
+
+
+def summarise(runs: pd.DataFrame, measures=tuple(MEASURES) + tuple(POSE_MEASURES)) -> pd.DataFrame:
+    """Mean, 95 % half-width and seed count of each measure per (dataset, scene, n, cell, mode):
+    columns ``{m}_mean``, ``{m}_hw``, ``{m}_k``."""
+    keys = ["dataset", "scene", "n", "cell", "bridge_mode"]
+    rows = []
+    for key, g in runs.groupby(keys, sort=False):
+        rec = dict(zip(keys, key))
+        for m in measures:
+            rec[f"{m}_mean"], rec[f"{m}_hw"], rec[f"{m}_k"] = t_interval(g[m]) if m in g else (math.nan,) * 2 + (0,)
+        rows.append(rec)
+    return pd.DataFrame(rows)
+
+
+def paired_differences(runs: pd.DataFrame, a: str, b: str, measures=DIFF_MEASURES) -> pd.DataFrame:
+    """Per (dataset, scene, n, cell): mean and 95 % interval of (mode a - mode b), paired by seed."""
+    keys = ["dataset", "scene", "n", "cell"]
+    rows = []
+    for key, g in runs.groupby(keys, sort=False):
+        pa = g[g["bridge_mode"] == a].set_index("seed")
+        pb = g[g["bridge_mode"] == b].set_index("seed")
+        common = pa.index.intersection(pb.index)
+        if not len(common):
+            continue
+        rec = dict(zip(keys, key))
+        for m in measures:
+            rec[f"{m}_mean"], rec[f"{m}_hw"], rec[f"{m}_k"] = t_interval(pa.loc[common, m] - pb.loc[common, m])
+        rows.append(rec)
+    return pd.DataFrame(rows)
+
+
+def _fmt(mean: float, hw: float, digits: int) -> str:
+    if mean is None or not np.isfinite(mean):
+        return "-"
+    if hw is None or not np.isfinite(hw):
+        return f"{mean:.{digits}f} (no interval: 1 seed)"
+    return f"{mean:.{digits}f} ± {hw:.{digits}f}"
+
+
+def _cell_label(cell: str, cells: dict) -> str:
+    info = cells.get(cell) or {}
+    base = info.get("base")
+    if info.get("axis") and base and base != "zero":
+        return f"{cell} (on {base})"
+    return cell
+
+
+def _md_table(header: list[str], rows: list[list[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def measure_tables(summary: pd.DataFrame, order: list[str], cells: dict) -> dict[str, tuple[list, list]]:
+    """{title: (header, rows)}: one table per (dataset, scene, n) and measure, a row per cell,
+    a column per mode, each entry mean ± 95 % half-width."""
+    out = {}
+    modes = [m for m in MODES if m in set(summary["bridge_mode"])]
+    for (ds, sc, n), g in summary.groupby(["dataset", "scene", "n"], sort=True):
+        for m, (label, unit, digits) in {**MEASURES, **POSE_MEASURES}.items():
+            if m in POSE_MEASURES:  # a property of the oracle output: the same for every mode
+                g1 = g.drop_duplicates("cell")
+                rows = [[_cell_label(c, cells), _fmt(*g1[g1["cell"] == c][[f"{m}_mean", f"{m}_hw"]].iloc[0], digits)]
+                        for c in order if (g1["cell"] == c).any()]
+                header = ["cell", f"{label} [{unit}]"]
+            else:
+                rows = []
+                for c in order:
+                    gc = g[g["cell"] == c].set_index("bridge_mode")
+                    if gc.empty:
+                        continue
+                    rows.append([_cell_label(c, cells)] + [
+                        _fmt(gc.loc[md, f"{m}_mean"], gc.loc[md, f"{m}_hw"], digits) if md in gc.index else "-"
+                        for md in modes])
+                header = ["cell"] + modes
+                label = f"{label}" + (f" [{unit}]" if unit else "")
+            out[f"{ds}/{sc}, n = {n}: {label}"] = (header, rows)
+    return out
+
+
+def difference_tables(runs: pd.DataFrame, order: list[str], cells: dict) -> dict[str, tuple[list, list]]:
+    """{title: (header, rows)}: gated - uniform and filtered - uniform, paired by seed."""
+    out = {}
+    for a in ("gated", "filtered"):
+        d = paired_differences(runs, a, "uniform")
+        if d.empty:
+            continue
+        for (ds, sc, n), g in d.groupby(["dataset", "scene", "n"], sort=True):
+            header = ["cell"] + [f"Δ {MEASURES[m][0]}" for m in DIFF_MEASURES]
+            rows = []
+            for c in order:
+                r = g[g["cell"] == c]
+                if r.empty:
+                    continue
+                r = r.iloc[0]
+                rows.append([_cell_label(c, cells)] + [_fmt(r[f"{m}_mean"], r[f"{m}_hw"], MEASURES[m][2])
+                                                       for m in DIFF_MEASURES])
+            out[f"{ds}/{sc}, n = {n}: {a} − uniform (paired by seed)"] = (header, rows)
+    return out
+
+
+def _pyplot():
+    from evaluation.plots import _pyplot as pp
+
+    return pp()
+
+
+def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Path) -> list[Path]:
+    """Per (dataset, scene, n): for each axis, PSNR and floater fraction against the level
+    (mean and 95 % interval, one line per mode, the base cell at the axis's reference level);
+    and held-out PSNR against training wall time for the zero cell and the named points."""
+    plt = _pyplot()
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    axes = {}
+    for name, info in cells.items():
+        if info.get("axis"):
+            axes.setdefault((info["axis"], info["base"]), []).append(name)
+    modes = [m for m in MODES if m in set(summary["bridge_mode"])]
+    for (ds, sc, n), g in summary.groupby(["dataset", "scene", "n"], sort=True):
+        for (param, base), names in axes.items():
+            fig, axs = plt.subplots(1, 2, figsize=(10, 3.6))
+            base_level = cells[base]["noise"][param]
+            levels = [base_level] + [cells[c]["level"] for c in names]
+            numeric = all(isinstance(v, (int, float)) for v in levels)
+            xs = levels if numeric else list(range(len(levels)))
+            for mode in modes:
+                gm = g[g["bridge_mode"] == mode].set_index("cell")
+                for ax, m in zip(axs, ("psnr", "floater_final")):
+                    ys = [gm.loc[c, f"{m}_mean"] if c in gm.index else np.nan for c in [base] + names]
+                    es = [gm.loc[c, f"{m}_hw"] if c in gm.index else np.nan for c in [base] + names]
+                    ax.errorbar(xs, ys, yerr=np.nan_to_num(es), marker="o", capsize=3, label=mode)
+            for ax, m in zip(axs, ("psnr", "floater_final")):
+                ax.set_xlabel(param + ("" if base == "zero" else f" (on {base})"))
+                ax.set_ylabel(f"{MEASURES[m][0]} [{MEASURES[m][1]}]")
+                if not numeric:
+                    ax.set_xticks(xs, [str(v) for v in levels])
+                ax.grid(alpha=0.3)
+            axs[0].legend()
+            fig.suptitle(f"{ds}/{sc}, n = {n}: {param} (mean, 95 % interval over seeds)")
+            fig.tight_layout()
+            p = out / f"{ds}__{sc}__n{n}__axis_{param}__{base}.png"
+            fig.savefig(p, dpi=90)
+            plt.close(fig)
+            paths.append(p)
+        # error against time: zero cell and the named operating points
+        points = [c for c, info in cells.items() if not info.get("axis")] or sorted(set(g["cell"]))
+        sub = runs[(runs["dataset"] == ds) & (runs["scene"] == sc) & (runs["n"] == n) & runs["cell"].isin(points)]
+        if sub.empty:
+            continue
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for (cell, mode), gm in sub.groupby(["cell", "bridge_mode"], sort=True):
+            curves = []
+            for run_dir in gm["run_dir"]:
+                f = Path(run_dir) / "train" / "log.parquet"
+                if f.is_file():
+                    lg = pd.read_parquet(f, columns=["iteration", "wall_time_s", "test_psnr"]).dropna()
+                    curves.append(lg.set_index("iteration"))
+            if not curves:
+                continue
+            cat = pd.concat(curves, axis=1, keys=range(len(curves)))
+            t = cat.xs("wall_time_s", axis=1, level=1).mean(axis=1)
+            y = cat.xs("test_psnr", axis=1, level=1).mean(axis=1)
+            ax.plot(t, y, marker=".", label=f"{cell} / {mode}")
+        ax.set_xlabel("training wall time [s] (mean over seeds)")
+        ax.set_ylabel("held-out PSNR [dB] (mean over seeds)")
+        ax.set_title(f"{ds}/{sc}, n = {n}: error against time")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        p = out / f"{ds}__{sc}__n{n}__psnr_vs_time.png"
+        fig.savefig(p, dpi=90)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating "
+                   "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "
+                   "ATE and rotation errors the paper reports for VGGT), not VGGT output.")
+
+
+def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots: list[Path],
+                   out_dir: Path) -> str:
+    order = _cell_order(runs, cells)
+    k = runs.groupby(["dataset", "scene", "n", "cell", "bridge_mode"])["seed"].nunique()
+    lpips_nets = sorted(set(runs["lpips_net"]))
+    parts = ["# Initialisation study", "", SIMULATION_NOTE, "",
+             f"{len(runs)} runs; {runs['cell'].nunique()} cells; seeds per cell and mode: "
+             f"{int(k.min())}-{int(k.max())}; training iterations: "
+             f"{', '.join(str(int(i)) for i in sorted(runs['iterations'].dropna().unique()))}; "
+             f"LPIPS network: {', '.join(lpips_nets)}. Every entry: mean ± 95 % t-interval half-width "
+             "over seeds (evaluation/study.py).", "", "## Cells", ""]
+    rows = []
+    for c in order:
+        info = cells.get(c, {})
+        noise = info.get("noise") or {}
+        rows.append([c, str(info.get("axis") or "-"), str(info.get("base") or "-")]
+                    + [str(noise.get(key, "-")) for key in ("rot_deg", "trans_frac", "depth_rel", "outlier_frac",
+                                                            "conf_noise", "conf_mode")])
+    parts.append(_md_table(["cell", "axis", "base", "rot_deg", "trans_frac", "depth_rel", "outlier_frac",
+                            "conf_noise", "conf_mode"], rows))
+    for title, (header, rows) in {**measure_tables(summary, order, cells),
+                                  **difference_tables(runs, order, cells)}.items():
+        parts += ["", f"## {title}", "", _md_table(header, rows)]
+    if plots:
+        parts += ["", "## Plots", ""]
+        parts += [f"![{p.stem}]({p.relative_to(out_dir).as_posix()})" for p in plots]
+    return "\n".join(parts) + "\n"
+
+
+def _md_to_html_table(header, rows) -> str:
+    h = "".join(f"<th>{html.escape(x)}</th>" for x in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots: list[Path],
+                       img_prefix: str) -> str:
+    """The study as an HTML section (h2 + tables + plots); images at ``img_prefix + name``."""
+    order = _cell_order(runs, cells)
+    parts = ["<h2>Initialisation study (oracle cells; mean ± 95 % interval over seeds)</h2>",
+             f"<p>{html.escape(SIMULATION_NOTE)}</p>"]
+    for title, (header, rows) in {**measure_tables(summary, order, cells),
+                                  **difference_tables(runs, order, cells)}.items():
+        parts += [f"<h3>{html.escape(title)}</h3>", _md_to_html_table(header, rows)]
+    for p in plots:
+        parts.append(f'<p><img src="{html.escape(img_prefix + p.name)}" alt="{html.escape(p.stem)}"></p>')
+    return "\n".join(parts)
+
+
+def run_study(root: str | Path, out: str | Path, cells: dict | None = None) -> Path:
+    """Write ``out/``: study.md, runs.csv, summary.csv, plots/*.png, section.html, index.html."""
+    root, out = Path(root), Path(out)
+    cells = cells or {}
+    runs = collect_study(root, cells)
+    if runs.empty:
+        raise ValueError(f"no study runs under {root} ({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/oracle/{{mode}})")
+    summary = summarise(runs)
+    with atomic_dir(out) as tmp:
+        plots = study_plots(runs, summary, cells, tmp / "plots")
+        runs.to_csv(tmp / "runs.csv", index=False)
+        summary.to_csv(tmp / "summary.csv", index=False)
+        (tmp / "study.md").write_text(study_markdown(runs, summary, cells, plots, tmp))
+        section = study_section_html(runs, summary, cells, plots, "plots/")
+        (tmp / "section.html").write_text(section)
+        (tmp / "index.html").write_text(
+            "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Initialisation study</title>"
+            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}"
+            "td,th{border:1px solid #ccc;padding:3px 6px}</style></head><body>"
+            + section + "</body></html>\n")
+        write_json(tmp / "cells.json", cells)
+    log.info("study: %d runs, %d cells, %d plots -> %s", len(runs), runs["cell"].nunique(), len(plots), out)
+    return out / "study.md"

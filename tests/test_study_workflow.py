@@ -1,0 +1,49 @@
+"""Dry runs of the initialisation study's configs: the grid expands into the expected jobs
+(cells x seeds x view counts x Bridge modes), and a config without `study:` plans none."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from evaluation.study_grid import expand_cells
+from test_workflow_dryrun import REPO, SNAKEMAKE, dry_run, jobs, synth_config
+
+pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
+
+STUDY_RULES = ("study_oracle", "study_pose_eval", "study_bridge", "study_align", "study_train",
+               "study_render", "study_metrics", "study_floaters")
+
+
+@pytest.mark.parametrize("name", ["init_study_quick.yaml", "init_study.yaml"])
+def test_study_config_plans_the_grid(tmp_path, name):
+    cfg = yaml.safe_load((REPO / "config" / name).read_text())
+    cfg["results"] = "results"
+    counts, out = dry_run(tmp_path, cfg)
+    cells = expand_cells(cfg["study"])
+    runs = len(cells) * len(cfg["study"]["seeds"]) * len(cfg["views"])
+    modes = len(cfg["bridge"]["modes"])
+    assert jobs(counts, "study_oracle") == runs
+    assert jobs(counts, "study_pose_eval") == runs
+    for rule in STUDY_RULES[2:]:
+        assert jobs(counts, rule) == runs * modes, rule
+    assert jobs(counts, "study_report") == 1
+    assert "vggt_like_sim" in cells and "zero" in cells
+    for cell in cells:
+        assert f"results/study/{cell}/s0/synthetic/bundled/n3/oracle/gated/floaters.json" in out
+    # the study section waits for the study: the report comes after it
+    assert jobs(counts, "report") == 1
+
+
+def test_no_study_section_plans_no_study_jobs(tmp_path):
+    counts, _ = dry_run(tmp_path, synth_config(initialisers=["oracle"]))
+    assert all(jobs(counts, rule) == 0 for rule in STUDY_RULES + ("study_report",))
+    assert jobs(counts, "train_splats") > 0
+
+
+def test_study_axis_with_an_unknown_param_is_a_config_error(tmp_path):
+    cfg = synth_config(initialisers=["oracle"], study={"seeds": [0], "axes": [{"param": "focal", "levels": [1]}]})
+    _, out = dry_run(tmp_path, cfg, expect_ok=False)
+    assert "focal" in out

@@ -1,0 +1,94 @@
+"""Planning of the initialisation study (rules: study.smk; docs/init-study.md): the grid
+expanded from the config's `study:` section, its layout, targets and stage arguments. Empty
+when the config has no `study:` section.
+
+Layout (R = config["results"]):
+    R/study/cells.json                                               the expanded grid
+    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/           oracle output, pose.json
+    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/{mode}/    bridge/ align/ train/
+                                             renders/ metrics.json floaters.json
+    R/study/report/                          study.md, runs.csv, cells.csv, plots/, index.html
+"""
+
+from evaluation.study_grid import expand_cells
+
+STUDY = config.get("study")
+STUDY_CELLS = expand_cells(STUDY) if STUDY else {}
+SRUN = f"{R}/study/{{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/oracle"
+SMODE = f"{SRUN}/{{mode}}"
+
+
+wildcard_constraints:
+    cell=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
+    seed=r"\d+",
+
+
+def study_scenes():
+    """(dataset, scene) pairs of the study: the scenes with ground-truth geometry."""
+    return [(ds, sc) for ds, sc in all_scenes() if has_gt_geometry(ds, sc)]
+
+
+def study_run_targets(wildcards=None):
+    """metrics.json and floaters.json of every cell x seed x scene x n x mode."""
+    out = []
+    for cell in STUDY_CELLS:
+        for seed in STUDY["seeds"]:
+            for ds, sc in study_scenes():
+                for n in scene_views(ds, sc):
+                    for mode in config["bridge"]["modes"]:
+                        m = SMODE.format(
+                            cell=cell, seed=seed, dataset=ds, scene=sc, n=n, mode=mode
+                        )
+                        out += [f"{m}/metrics.json", f"{m}/floaters.json"]
+                    run = SRUN.format(cell=cell, seed=seed, dataset=ds, scene=sc, n=n)
+                    out.append(f"{run}/pose.json")
+    return out
+
+
+def study_final_targets(wildcards=None):
+    """The study report when the config has a study section, else nothing."""
+    return [f"{R}/study/report/study.md"] if STUDY else []
+
+
+def study_oracle_args(wildcards):
+    """Oracle CLI arguments of one cell and seed (downsample and conf_scale: config oracle)."""
+    noise = STUDY_CELLS[wildcards.cell]["noise"]
+    o = config["oracle"]
+    args = [f"--{k.replace('_', '-')} {v}" for k, v in noise.items()]
+    args += [
+        f"--seed {wildcards.seed}",
+        f"--conf-scale {o['conf_scale']}",
+        f"--downsample {o['downsample']}",
+    ]
+    return " ".join(args)
+
+
+def study_scene_inputs(wildcards):
+    return {
+        "scene": scene_dir(wildcards),
+        "image_list": f"{SCENE.format(**wildcards)}/n{wildcards.n}/train.txt",
+        "split": f"{SCENE.format(**wildcards)}/split.json",
+        "test_images": f"{SCENE.format(**wildcards)}/test_images",
+    }
+
+
+def study_train_inputs(wildcards):
+    base = SMODE.format(**wildcards)
+    s = study_scene_inputs(wildcards)
+    return {
+        "seed": f"{base}/bridge/seed.ply",
+        "cameras": f"{base}/bridge/sparse",
+        "scene": s["scene"],
+        "image_list": s["image_list"],
+        "test_cameras": f"{base}/align/sparse",
+        "test_images": s["test_images"],
+    }
+
+
+def study_root(wildcards, output):
+    """R/study, the folder of the study_report rule's cells.json output."""
+    return str(Path(output.cells).parent)
+
+
+def study_cells_json(wildcards=None):
+    return json.dumps(STUDY_CELLS)
