@@ -37,16 +37,18 @@ MB64 = 64 * 2**20
 # made while the 64 MB block is free may be carved out of it, after which the next 64 MB
 # request no longer fits and the heap grows instead (glibc's best fit, not a kernel effect).
 # PYTHONHASHSEED is fixed by _run: hash randomisation changes the interpreter's own allocations.
-_SCRIPT = textwrap.dedent("""
+ROUNDS = 6
+_SCRIPT = textwrap.dedent(f"""
+    ROUNDS = {ROUNDS}
     import json, sys
     from vggt_init.memory import heap_stats, memory_retained, retain_freed_memory
     applied = retain_freed_memory() if sys.argv[1] == "retain" else False
     import torch
     if heap_stats() is None:
-        print(json.dumps({"no_mallinfo2": True}))
+        print(json.dumps({{"no_mallinfo2": True}}))
         sys.exit(0)
-    rounds = [None] * 4
-    for i in range(4):
+    rounds = [None] * ROUNDS
+    for i in range(ROUNDS):
         before = heap_stats()
         x = torch.empty(16 * 2**20, dtype=torch.float32)  # 64 MB
         x.fill_(1.0)
@@ -55,7 +57,7 @@ _SCRIPT = textwrap.dedent("""
         del x
         rounds[i] = (before, held, heap_stats(), ptr)
     rounds = [dict(before=b, held=h, freed=f, ptr=p) for b, h, f, p in rounds]
-    print(json.dumps({"applied": applied, "retained": memory_retained(), "rounds": rounds}))
+    print(json.dumps({{"applied": applied, "retained": memory_retained(), "rounds": rounds}}))
 """)
 
 
@@ -86,7 +88,7 @@ def test_retained_memory_is_reused_from_the_heap():
     assert default["applied"] is False and default["retained"] is False
     assert retained["applied"] is True and retained["retained"] is True
     _assert_mmapped_each_round(default)
-    first, *later = retained["rounds"]
+    first, second, *steady = retained["rounds"]
     # retained: never mmap'd; the first round grows the heap by the block ...
     for r in retained["rounds"]:
         assert r["held"]["mmapped"] == r["before"]["mmapped"], r
@@ -94,9 +96,16 @@ def test_retained_memory_is_reused_from_the_heap():
     # ... which stays in the process when freed (not trimmed) ...
     for r in retained["rounds"]:
         assert r["freed"]["free_in_heap"] >= MB64 and r["freed"]["arena"] == r["held"]["arena"], r
-    # ... and is reused by the next allocation of the same size: no new heap, same address
-    for r in later:
-        assert r["held"]["arena"] == first["held"]["arena"] and r["ptr"] == first["ptr"], (first, r)
+    # ... and is reused: from the third round on, the same address and no new heap. The second
+    # round may grow the heap once (at most one more block): torch asks for the block 2 MB
+    # aligned, which malloc serves as 64 + 2 MB with the leading pad returned as a free chunk;
+    # small allocations made while the block is held (tensor metadata, Python objects) can be
+    # placed in that pad, depending on the heap's earlier layout (which varies with address
+    # randomisation through id-based hashing), and the freed block then lacks the 2 MB of slack
+    # once. One clean-clone CI run in about eight saw this; the layout repeats after it.
+    assert second["held"]["arena"] - first["held"]["arena"] <= MB64 + 2 * 2**21, (first, second)
+    for r in steady:
+        assert r["held"]["arena"] == second["held"]["arena"] and r["ptr"] == second["ptr"], (second, r)
 
 
 def test_environment_switch_turns_it_off():
