@@ -19,6 +19,8 @@ from camio.atomic import atomic_dir
 from camio.cameras import Camera, qvec_to_rotmat, rotmat_to_qvec
 
 __all__ = [
+    "MATCHING_THREADS",
+    "cpu_matching_options",
     "SparseModel",
     "UnsupportedCameraModelError",
     "PINHOLE_MODELS",
@@ -89,6 +91,29 @@ class SparseModel:
             {k: v for k, v in self.observations.items() if k in wanted},
             {k: v for k, v in self.camera_models.items() if k in wanted},
         )
+
+
+# pycolmap 4.x wheels link a pthreads OpenBLAS statically, and the CPU SIFT matcher calls its
+# sgemm (through faiss's exact k-NN) from every matcher thread at once. That OpenBLAS build
+# is not safe for concurrent callers: its buffer table races and prints
+# "BLAS : Bad memory unallocation!" on stdout, and upstream reports a crash in
+# blas_memory_alloc from the same call path (colmap/colmap#3648). Measured with the 3-image
+# baseline CLI on 2 cores: 11 of 400 runs as shipped; 30 of 800 with OPENBLAS_NUM_THREADS=1
+# or OMP_NUM_THREADS=1 (no help); 0 of 700 with one matcher thread (this code), 0 of 400 with
+# every stage on one thread. Cost: exhaustive matching of 12 fern images_8 views takes 2.1 s instead of
+# 1.6 s. Extraction and mapping keep every core.
+MATCHING_THREADS = 1
+
+
+def cpu_matching_options():
+    """pycolmap ``FeatureMatchingOptions`` for CPU matching on :data:`MATCHING_THREADS`
+    threads (see the comment above it). Every caller of ``pycolmap.match_*`` uses this."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = MATCHING_THREADS
+    matching.use_gpu = False
+    return matching
 
 
 def find_model_dir(path: str | Path) -> Path:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.cameras import Camera, rotmat_to_qvec
-from camio.colmap import SparseModel, read_model
+from camio.colmap import SparseModel, cpu_matching_options, read_model
 
 __all__ = ["triangulate_known_poses"]
 
@@ -33,7 +33,8 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
     Args:
         image_dir: folder holding every ``camera.name``.
         cameras: the posed pinhole cameras (>= 2).
-        num_threads: threads for extraction and matching (1 = reproducible).
+        num_threads: threads for extraction and triangulation (1 = reproducible); matching
+            always runs on :data:`camio.colmap.MATCHING_THREADS`.
         max_image_size, max_num_features: SIFT settings (the COLMAP baseline's defaults).
         seed: pycolmap's PRNG and RANSAC seed.
 
@@ -87,9 +88,7 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
                 ids[im.name] = (im.image_id, im.camera_id)
         finally:
             database.close()
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = num_threads
-        matching.use_gpu = False
+        matching = cpu_matching_options()  # one thread: see camio.colmap.MATCHING_THREADS
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.atomic import atomic_dir, write_json
+from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import ImageReadError, check_images
 from camio.logs import peak_rss_mb
 from evaluation.pose import paper_success
@@ -67,8 +68,11 @@ class ColmapSettings:
         max_num_features: SIFT features per image.
         guided_matching: guided matching after geometric verification.
         camera_model: the single shared camera model ("PINHOLE").
-        num_threads: threads for extraction, matching and mapping; None or 0 = every
-            available core (:func:`available_cores`); 1 = bitwise reproducible.
+        num_threads: threads for extraction and mapping; None or 0 = every available core
+            (:func:`available_cores`); 1 = bitwise reproducible. Matching always runs on
+            :data:`camio.colmap.MATCHING_THREADS` (1): pycolmap's bundled OpenBLAS is not safe
+            for concurrent matcher threads.
+        matching_threads: the matcher's thread count (recorded in ``status.json``).
     """
 
     def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
@@ -79,6 +83,7 @@ class ColmapSettings:
         self.guided_matching = bool(guided_matching)
         self.camera_model = str(camera_model)
         self.num_threads = available_cores() if not num_threads else int(num_threads)
+        self.matching_threads = MATCHING_THREADS
 
     def to_json(self) -> dict:
         return dict(vars(self))
@@ -131,10 +136,8 @@ def _options(settings: ColmapSettings, seed: int):
     extraction.use_gpu = False
     extraction.sift.max_num_features = settings.max_num_features
 
-    matching = pycolmap.FeatureMatchingOptions()
+    matching = cpu_matching_options()  # one matcher thread: camio.colmap.MATCHING_THREADS
     matching.guided_matching = settings.guided_matching
-    matching.num_threads = settings.num_threads
-    matching.use_gpu = False
 
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
@@ -204,7 +207,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         "points": 0, "reason": None, "wall_time_s": None, "seed": int(seed),
         "registered_names": [], "num_models": 0, "fy_over_fx": None,
         "mean_reproj_error_px": None, "settings": settings.to_json(),
-        "num_threads": settings.num_threads,
+        "num_threads": settings.num_threads, "matching_threads": settings.matching_threads,
     }
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))

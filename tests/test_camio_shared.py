@@ -57,6 +57,8 @@ def test_fern_reprojection_subpixel(fern_undistorted, tmp_path):
     reference poses, intrinsics, undistortion and pixel convention all agree."""
     import pycolmap
 
+    from camio.colmap import cpu_matching_options
+
     s = fern_undistorted
     names = s.names[:6]
     db = tmp_path / "db.db"
@@ -64,9 +66,7 @@ def test_fern_reprojection_subpixel(fern_undistorted, tmp_path):
     ext.num_threads = 2
     pycolmap.extract_features(db, s.image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               extraction_options=ext, device=pycolmap.Device.cpu)
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = 2
-    pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(db, matching_options=cpu_matching_options(), device=pycolmap.Device.cpu)
     d = pycolmap.Database.open(str(db))
     ids = {im.image_id: im.name for im in d.read_all_images()}
     cams = {c.name: c for c in s.model.cameras}

@@ -138,3 +138,34 @@ def test_settings_follow_the_protocol():
         (3200, 16384, True, "PINHOLE")
     assert s.num_threads == available_cores() >= 1  # every available core by default
     assert ColmapSettings(num_threads=1).num_threads == 1
+
+
+def test_matching_runs_on_one_thread_whatever_the_core_count(scene, tmp_path, monkeypatch):
+    """pycolmap's bundled OpenBLAS races when several CPU matcher threads call sgemm at once
+    (``camio.colmap.MATCHING_THREADS``): every ``match_exhaustive`` call, in the baseline and in
+    the posed triangulation, gets one matcher thread, while extraction keeps the thread count
+    asked for and status.json records both."""
+    import pycolmap
+
+    from camio.colmap import read_model
+    from camio.triangulate import triangulate_known_poses
+
+    seen: list[tuple[str, int]] = []
+    real_extract, real_match = pycolmap.extract_features, pycolmap.match_exhaustive
+
+    def extract(*args, **kwargs):
+        seen.append(("extract", kwargs["extraction_options"].num_threads))
+        return real_extract(*args, **kwargs)
+
+    def match(*args, **kwargs):
+        seen.append(("match", kwargs["matching_options"].num_threads))
+        return real_match(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "extract_features", extract)
+    monkeypatch.setattr(pycolmap, "match_exhaustive", match)
+    status = run_colmap(scene / "images", TRAIN, tmp_path / "baseline", seed=0,
+                        settings=ColmapSettings(num_threads=2))
+    assert status["num_threads"] == 2 and status["matching_threads"] == 1
+    cams = [c for c in read_model(scene / "sparse" / "0").cameras if c.name in TRAIN]
+    triangulate_known_poses(scene / "images", cams, num_threads=2)
+    assert seen == [("extract", 2), ("match", 1), ("extract", 2), ("match", 1)]
