@@ -90,23 +90,14 @@ def test_unit_reader_rejects_damaged_image(tmp_path, kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_vggt_init_cli_rejects_damaged_image(tmp_path, kind):
+@pytest.mark.parametrize("module", ("vggt_init", "evaluation.colmap_baseline"))
+def test_image_reading_cli_rejects_damaged_image(tmp_path, module, kind):
+    """The two stages that read the training images exit 2 naming the file and write nothing:
+    VGGT never preprocesses it, pycolmap never sees it (no status.json at all)."""
     folder, names, bad = _image_folder(tmp_path, kind)
     (tmp_path / "train.txt").write_text("\n".join(names) + "\n")
     out = tmp_path / "out"
-    proc = _run(["-m", "vggt_init", "--images", str(folder), "--image-list",
-                 str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
-    _assert_clean_failure(proc, bad, out)
-    assert proc.returncode == 2
-
-
-@pytest.mark.parametrize("kind", KINDS)
-def test_colmap_baseline_cli_rejects_damaged_image(tmp_path, kind):
-    """pycolmap never sees the file: no status.json with success=True (nor any status)."""
-    folder, names, bad = _image_folder(tmp_path, kind)
-    (tmp_path / "train.txt").write_text("\n".join(names) + "\n")
-    out = tmp_path / "out"
-    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--image-list",
+    proc = _run(["-m", module, "--images", str(folder), "--image-list",
                  str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
     _assert_clean_failure(proc, bad, out)
     assert proc.returncode == 2
