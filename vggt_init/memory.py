@@ -25,6 +25,17 @@ reused for the same request (seen with ``THP_MEM_ALLOC_ENABLE=0``: a 64 MB buffe
 and freed in a loop moved up the heap each round). tests/test_vggt_memory.py runs with huge
 pages on.
 
+Reuse is not guaranteed even then, so the tests assert only what the settings control (heap,
+not mmap; kept, not unmapped). glibc serves a small request made between the free and the
+next large request from the start of the freed large chunk (splitting it), after which the
+chunk is a few bytes short of the large request and the heap grows instead. A C probe with
+the same settings: malloc(64 MB), a 100-byte guard, then per round free + malloc(64 MB): the
+same address every round; with a malloc(200) between the free and the malloc(64 MB): the
+200 bytes land at the old block's address and the 64 MB block moves to a new 64 MB of heap
+(once in that probe; every round in a CI run whose other threads allocated in between). The
+memory stays in the process either way (no unmap, no trim); what the growth costs is first
+touches of the new pages, which ``benchmarks/bench_vggt.py --reuse-probe`` measures.
+
 Only glibc (Linux) is affected; elsewhere both functions do nothing and return False. The
 settings are process-wide: the ``vggt_init`` CLI applies them, library users opt in.
 ``VGGT_INIT_RETAIN_MEMORY=0`` (environment) turns :func:`retain_freed_memory` off.
