@@ -166,7 +166,8 @@ def test_summarise_and_paired_differences_known_numbers():
 # ----------------------------------------------------------------------------- report
 
 
-def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered")):
+def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered"),
+                     along_run=False):
     """A study tree with the files the report reads (metrics, floaters, training log)."""
     import json
 
@@ -185,9 +186,11 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
                 (d / "floaters.json").write_text(json.dumps(
                     {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
                 (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 100 + s, "iterations": 20}))
-                pd.DataFrame({"iteration": [10, 20], "wall_time_s": [1.0, 2.0],
-                              "test_psnr": [19.0, 20.0], "num_gaussians": [90, 100]}).to_parquet(
-                    d / "train" / "log.parquet")
+                lg = {"iteration": [10, 20], "wall_time_s": [1.0, 2.0], "test_psnr": [19.0, 20.0],
+                      "num_gaussians": [90, 100]}
+                if along_run:  # SSIM best at 10, LPIPS best (lowest) at 20
+                    lg.update(test_ssim=[0.6 + 0.01 * s, 0.55], test_lpips=[0.4, 0.35 - 0.01 * s])
+                pd.DataFrame(lg).to_parquet(d / "train" / "log.parquet")
 
 
 def test_run_study_reports_every_mode_with_an_interval(tmp_path):
@@ -205,9 +208,36 @@ def test_run_study_reports_every_mode_with_an_interval(tmp_path):
     assert "never VGGT" in md
     plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
     assert plots == ["synthetic__bundled__n3__axis_rot_deg__zero.png", "synthetic__bundled__n3__psnr_vs_time.png"]
+    # a log without SSIM / LPIPS along the run (older runs): no such tables, no error
+    assert "SSIM (best it." not in md and "held-out LPIPS" not in md and "held-out PSNR [dB] along the run" in md
     # the regular HTML report embeds the section with its plots
     images = tmp_path / "images"
     images.mkdir()
     section = "".join(_study_section(tmp_path, images))
     assert "Initialisation study" in section and 'src="images/study/' in section
     assert (images / "study" / plots[0]).is_file()
+
+
+def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_run(tmp_path):
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", along_run=True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "study" / "report", cells).read_text()
+    # best = highest SSIM (iteration 10), lowest LPIPS (iteration 20); mean over seeds 0, 1, 2
+    ssim = md.split("SSIM (best it.: highest)")[1].split("##")[0]
+    assert "| zero | 0.610 ± 0.025 | 0.610 ± 0.025 | 0.610 ± 0.025 |" in ssim
+    assert "| zero | 10 ± 0 |" in md.split("best SSIM iteration [it.]")[1].split("##")[0]
+    lpips = md.split("LPIPS (best it.: lowest)")[1].split("##")[0]
+    assert "| zero | 0.340 ± 0.025 |" in lpips
+    assert "| zero | 20 ± 0 |" in md.split("best LPIPS iteration [it.]")[1].split("##")[0]
+    # along the run: only the point cells (zero here), a column per evaluation iteration
+    along = md.split("held-out LPIPS-alex along the run (lower is better)")[1].split("##")[0]
+    assert "| cell | mode | it. 10 | it. 20 | training time at the last [s] |" in along
+    assert "| zero | gated | 0.400 ± 0.000 | 0.340 ± 0.025 | 2.0 |" in along
+    assert "rot_deg-2" not in along
+    assert "held-out SSIM along the run (higher is better)" in md
+    plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
+    assert {"synthetic__bundled__n3__ssim_vs_time.png", "synthetic__bundled__n3__lpips_vs_time.png"} <= set(plots)
+    curves = pd.read_csv(tmp_path / "study" / "report" / "curves.csv")
+    assert len(curves) == 2 * 3 * 3 * 2 and {"test_ssim", "test_lpips", "wall_time_s"} <= set(curves)
