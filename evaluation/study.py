@@ -14,6 +14,13 @@ training wall time (:func:`collect_curves`; tables and plots for the zero cell a
 points). LPIPS along the run exists only when training ran with ``eval_lpips``; otherwise
 those entries are "-".
 
+Reference initialisers (``references``: regular run folders ``R/{dataset}/{scene}/n{n}/{init}``,
+e.g. the COLMAP baseline of the same views and training budget): one run each, no seeds, so
+no interval; shown as one row per (dataset, scene, n) beside the cells with their success
+(registered / training views, and the reason when it failed). COLMAP has no confidence: its one
+Bridge mode is ``uniform`` (the workflow's ``init_modes``), so gated and filtered do not apply.
+A failed COLMAP (``success_paper`` false, nothing trained) is a row that says so.
+
 Interval (the one definition): for k >= 2 seeds, mean +- t_{0.975, k-1} * sd / sqrt(k), sd the
 sample standard deviation (ddof 1); k = 1 gives no interval (NaN half-width). Paired
 differences (mode A - mode B) are taken per seed (the modes of a seed share the same oracle
@@ -38,7 +45,7 @@ from evaluation.results import read_run
 
 __all__ = ["MEASURES", "CURVE_MEASURES", "t_interval", "find_study_runs", "collect_study", "collect_curves",
            "best_along_run", "summarise", "paired_differences", "along_run_tables", "study_markdown",
-           "study_plots", "run_study"]
+           "study_plots", "collect_references", "reference_tables", "run_study"]
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +187,58 @@ def collect_study(root: str | Path, cells: dict | None = None) -> pd.DataFrame:
     df = pd.DataFrame(rows)
     log.info("study: %d runs under %s", len(df), root)
     return df
+
+
+def collect_references(run_dirs) -> pd.DataFrame:
+    """One row per reference run folder ``R/{dataset}/{scene}/n{n}/{init}``: read_run's
+    columns of its (first) Bridge-mode folder, or of the run alone when nothing was trained
+    (a failed COLMAP), plus ``lpips`` / ``lpips_net`` and :func:`best_along_run`."""
+    rows = []
+    for d in run_dirs or []:
+        run = Path(d)
+        if not run.is_dir():
+            log.warning("study: reference run %s does not exist; skipped", run)
+            continue
+        modes = [m for m in MODES if (run / m).is_dir()]
+        rec = read_run(run, mode=modes[0] if modes else None)
+        rec["bridge_mode"] = modes[0] if modes else None
+        net = "alex" if not math.isnan(rec["lpips_alex"]) else "vgg"
+        rec["lpips"], rec["lpips_net"] = rec[f"lpips_{net}"], net
+        rec.update(best_along_run(_read_log(run / modes[0]) if modes else None))
+        rows.append(rec)
+    return pd.DataFrame(rows)
+
+
+_REF_COLUMNS = [("ate_pct_radius", "ATE [% radius]", 2), ("rel_rot_err_mean_deg", "rel. rot. err. [deg]", 2),
+                ("psnr", "PSNR (final) [dB]", 2), ("best_test_psnr", "PSNR (best it.) [dB]", 2),
+                ("ssim", "SSIM (final)", 3), ("best_test_ssim", "SSIM (best it.: highest)", 3),
+                ("lpips", "LPIPS (final)", 3), ("best_test_lpips", "LPIPS (best it.: lowest)", 3),
+                ("num_gaussians", "Gaussians (final)", 0)]
+
+
+def _one(v, digits: int) -> str:
+    v = float(v) if v is not None else math.nan
+    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
+
+
+def reference_tables(refs: pd.DataFrame) -> dict[str, tuple[list, list]]:
+    """{title: (header, rows)}: per (dataset, scene, n), a row per reference initialiser
+    (one run, no interval), its success first."""
+    out = {}
+    if refs is None or refs.empty:
+        return out
+    for (ds, sc, n), g in refs.groupby(["dataset", "scene", "n"], sort=True):
+        rows = []
+        for r in g.to_dict("records"):
+            reg = "?" if not np.isfinite(float(r.get("registered", math.nan))) else str(int(r["registered"]))
+            ok = bool(r.get("success_paper"))
+            status = f"yes ({reg}/{int(n)} registered)" if ok else f"no: {r.get('reason') or 'failed'} ({reg}/{int(n)})"
+            mode = r.get("bridge_mode")
+            rows.append([str(r["init"]), mode if isinstance(mode, str) else "-", status]
+                        + [_one(r.get(c), d) for c, _, d in _REF_COLUMNS])
+        out[f"{ds}/{sc}, n = {n}: reference initialisers (one regular run each, no seeds)"] = (
+            ["init", "Bridge mode", "success"] + [label for _, label, _ in _REF_COLUMNS], rows)
+    return out
 
 
 def _cell_order(df: pd.DataFrame, cells: dict | None) -> list[str]:
@@ -413,14 +472,20 @@ SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), n
                    "ATE and rotation errors the paper reports for VGGT), not VGGT output.")
 
 
-def _all_tables(runs, summary, cells, curves) -> dict[str, tuple[list, list]]:
+def _all_tables(runs, summary, cells, curves, refs=None) -> dict[str, tuple[list, list]]:
     order = _cell_order(runs, cells)
-    return {**measure_tables(summary, order, cells), **difference_tables(runs, order, cells),
+    return {**reference_tables(refs), **measure_tables(summary, order, cells),
+            **difference_tables(runs, order, cells),
             **along_run_tables(collect_curves(runs) if curves is None else curves, order, cells)}
 
 
+REFERENCE_NOTE = ("Reference initialisers (e.g. the COLMAP baseline) are the regular runs of the same views and "
+                  "training budget: one run each, no seeds, no interval, Bridge mode uniform (COLMAP has no "
+                  "confidence, so gated and filtered do not apply); a failed COLMAP is reported as such.")
+
+
 def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots: list[Path],
-                   out_dir: Path, curves: pd.DataFrame | None = None) -> str:
+                   out_dir: Path, curves: pd.DataFrame | None = None, refs: pd.DataFrame | None = None) -> str:
     order = _cell_order(runs, cells)
     k = runs.groupby(["dataset", "scene", "n", "cell", "bridge_mode"])["seed"].nunique()
     lpips_nets = sorted(set(runs["lpips_net"]))
@@ -442,7 +507,9 @@ def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots
                                                             "conf_noise", "conf_mode")])
     parts.append(_md_table(["cell", "axis", "base", "rot_deg", "trans_frac", "depth_rel", "outlier_frac",
                             "conf_noise", "conf_mode"], rows))
-    for title, (header, rows) in _all_tables(runs, summary, cells, curves).items():
+    if refs is not None and not refs.empty:
+        parts += ["", REFERENCE_NOTE]
+    for title, (header, rows) in _all_tables(runs, summary, cells, curves, refs).items():
         parts += ["", f"## {title}", "", _md_table(header, rows)]
     if plots:
         parts += ["", "## Plots", ""]
@@ -457,20 +524,24 @@ def _md_to_html_table(header, rows) -> str:
 
 
 def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots: list[Path],
-                       img_prefix: str, curves: pd.DataFrame | None = None) -> str:
+                       img_prefix: str, curves: pd.DataFrame | None = None,
+                       refs: pd.DataFrame | None = None) -> str:
     """The study as an HTML section (h2 + tables + plots); images at ``img_prefix + name``."""
     parts = ["<h2>Initialisation study (oracle cells; mean ± 95 % interval over seeds)</h2>",
              f"<p>{html.escape(SIMULATION_NOTE)}</p>"]
-    for title, (header, rows) in _all_tables(runs, summary, cells, curves).items():
+    if refs is not None and not refs.empty:
+        parts.append(f"<p>{html.escape(REFERENCE_NOTE)}</p>")
+    for title, (header, rows) in _all_tables(runs, summary, cells, curves, refs).items():
         parts += [f"<h3>{html.escape(title)}</h3>", _md_to_html_table(header, rows)]
     for p in plots:
         parts.append(f'<p><img src="{html.escape(img_prefix + p.name)}" alt="{html.escape(p.stem)}"></p>')
     return "\n".join(parts)
 
 
-def run_study(root: str | Path, out: str | Path, cells: dict | None = None) -> Path:
+def run_study(root: str | Path, out: str | Path, cells: dict | None = None, references=None) -> Path:
     """Write ``out/``: study.md, runs.csv, summary.csv, curves.csv (:func:`collect_curves`),
-    plots/*.png, section.html, index.html."""
+    references.csv (:func:`collect_references` of the ``references`` run folders), plots/*.png,
+    section.html, index.html."""
     root, out = Path(root), Path(out)
     cells = cells or {}
     runs = collect_study(root, cells)
@@ -479,13 +550,15 @@ def run_study(root: str | Path, out: str | Path, cells: dict | None = None) -> P
     summary = summarise(runs)
     t0 = time.perf_counter()
     curves = collect_curves(runs)
+    refs = collect_references(references)
     with atomic_dir(out) as tmp:
         plots = study_plots(runs, summary, cells, tmp / "plots", curves)
         runs.to_csv(tmp / "runs.csv", index=False)
         summary.to_csv(tmp / "summary.csv", index=False)
         curves.to_csv(tmp / "curves.csv", index=False)
-        (tmp / "study.md").write_text(study_markdown(runs, summary, cells, plots, tmp, curves))
-        section = study_section_html(runs, summary, cells, plots, "plots/", curves)
+        refs.to_csv(tmp / "references.csv", index=False)
+        (tmp / "study.md").write_text(study_markdown(runs, summary, cells, plots, tmp, curves, refs))
+        section = study_section_html(runs, summary, cells, plots, "plots/", curves, refs)
         (tmp / "section.html").write_text(section)
         (tmp / "index.html").write_text(
             "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Initialisation study</title>"
@@ -493,6 +566,7 @@ def run_study(root: str | Path, out: str | Path, cells: dict | None = None) -> P
             "td,th{border:1px solid #ccc;padding:3px 6px}</style></head><body>"
             + section + "</body></html>\n")
         write_json(tmp / "cells.json", cells)
-    log.info("study: %d runs, %d cells, %d plots -> %s (%.1f s)", len(runs), runs["cell"].nunique(), len(plots),
+    log.info("study: %d runs, %d cells, %d reference runs (%d succeeded), %d plots -> %s (%.1f s)", len(runs),
+             runs["cell"].nunique(), len(refs), int(refs["success_paper"].sum()) if len(refs) else 0, len(plots),
              out, time.perf_counter() - t0)
     return out / "study.md"

@@ -241,3 +241,49 @@ def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_ru
     assert {"synthetic__bundled__n3__ssim_vs_time.png", "synthetic__bundled__n3__lpips_vs_time.png"} <= set(plots)
     curves = pd.read_csv(tmp_path / "study" / "report" / "curves.csv")
     assert len(curves) == 2 * 3 * 3 * 2 and {"test_ssim", "test_lpips", "wall_time_s"} <= set(curves)
+
+
+def _fake_colmap_run(root, n, ok):
+    """A regular COLMAP run folder R/synthetic/bundled/n{n}/colmap: trained (uniform) when it
+    succeeded, only status.json when it failed (what the workflow leaves)."""
+    import json
+
+    run = root / "synthetic" / "bundled" / f"n{n}" / "colmap"
+    run.mkdir(parents=True)
+    (run / "status.json").write_text(json.dumps(
+        {"success_paper": ok, "aligned_ok": ok, "registered": n if ok else 0, "n_images": n, "points": 50 if ok else 0,
+         "reason": None if ok else "no model: the incremental mapper found no initial image pair"}))
+    if ok:
+        (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 15.8, "rel_rot_err_mean_deg": 11.9}))
+        d = run / "uniform"
+        (d / "train").mkdir(parents=True)
+        (d / "metrics.json").write_text(json.dumps({"psnr": 14.54, "ssim": 0.31, "lpips_alex": 0.52, "n_images": 3}))
+        (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 700, "iterations": 20}))
+        pd.DataFrame({"iteration": [10, 20], "wall_time_s": [1.0, 2.0], "test_psnr": [15.0, 14.6],
+                      "test_ssim": [0.33, 0.31], "test_lpips": [0.55, 0.52], "num_gaussians": [600, 700]}).to_parquet(
+            d / "train" / "log.parquet")
+    return run
+
+
+def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(tmp_path):
+    from evaluation.__main__ import main
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", along_run=True)
+    ok = _fake_colmap_run(tmp_path, 3, True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "report", cells, references=[ok]).read_text()
+    table = md.split("n = 3: reference initialisers (one regular run each, no seeds)")[1].split("##")[0]
+    assert "| colmap | uniform | yes (3/3 registered) | 15.80 | 11.90 | 14.54 | 15.00 | 0.310 | 0.330 | 0.520 | " \
+           "0.520 | 700 |" in table
+    assert "COLMAP has no confidence" in md
+    # a failed COLMAP (nothing trained) is a row that says so, through the CLI as the workflow calls it
+    failed = _fake_colmap_run(tmp_path / "other", 3, False)
+    assert main(["study", "--results", str(tmp_path / "study"), "--out", str(tmp_path / "report2"),
+                 "--reference", str(ok), "--reference", str(failed)]) == 0
+    md = (tmp_path / "report2" / "study.md").read_text()
+    rows = [r for r in md.splitlines() if r.startswith("| colmap |")]
+    assert len(rows) == 2
+    assert rows[1].startswith("| colmap | - | no: no model: the incremental mapper found no initial image pair (0/3) | -")
+    refs = pd.read_csv(tmp_path / "report2" / "references.csv")
+    assert list(refs["success_paper"]) == [True, False]

@@ -35,6 +35,13 @@ def test_study_config_plans_the_grid(tmp_path, name):
         assert f"results/study/{cell}/s0/synthetic/bundled/n3/oracle/gated/floaters.json" in out
     # the study section waits for the study: the report comes after it
     assert jobs(counts, "report") == 1
+    # COLMAP as a reference row: the regular COLMAP run of every n, then the report (its
+    # trained stages are planned after the colmap_index checkpoint: a failure stops there)
+    assert cfg["study"]["references"] == ["colmap"]
+    assert jobs(counts, "colmap_baseline") == len(cfg["views"]) and jobs(counts, "colmap_index") == 1
+    report = out.split("rule study_report:")[1]
+    for n in cfg["views"]:
+        assert f"--reference results/synthetic/bundled/n{n}/colmap" in report
 
 
 def test_no_study_section_plans_no_study_jobs(tmp_path):
@@ -47,3 +54,16 @@ def test_study_axis_with_an_unknown_param_is_a_config_error(tmp_path):
     cfg = synth_config(initialisers=["oracle"], study={"seeds": [0], "axes": [{"param": "focal", "levels": [1]}]})
     _, out = dry_run(tmp_path, cfg, expect_ok=False)
     assert "focal" in out
+
+
+def test_study_reference_must_be_a_configured_initialiser(tmp_path):
+    cfg = synth_config(initialisers=["oracle"], study={"seeds": [0], "references": ["colmap"]})
+    _, out = dry_run(tmp_path, cfg, expect_ok=False)
+    assert "study.references ['colmap'] must also be in `initialisers`" in out
+
+
+def test_study_without_references_plans_no_colmap(tmp_path):
+    cfg = synth_config(initialisers=["oracle"], views=[3], study={"seeds": [0]})
+    counts, out = dry_run(tmp_path, cfg)
+    assert jobs(counts, "study_report") == 1 and jobs(counts, "colmap_baseline") == 0
+    assert "--reference" not in out

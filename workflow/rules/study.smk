@@ -134,6 +134,7 @@ rule study_floaters:
 rule study_report:
     input:
         study_run_targets,
+        study_reference_targets,
     output:
         md=f"{R}/study/report/study.md",
         html=f"{R}/study/report/index.html",
@@ -150,7 +151,8 @@ rule study_report:
     params:
         cells=study_cells_json,
         root=study_root,
+        refs=study_reference_args,
     shell:
         "python -m evaluation study --results {params.root} --cells {params.cells:q} "
-        "--write-cells {output.cells} --out {params.root}/report "
+        "--write-cells {output.cells} --out {params.root}/report {params.refs} "
         "> {log} 2>&1"

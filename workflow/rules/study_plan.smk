@@ -8,12 +8,24 @@ Layout (R = config["results"]):
     R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/{mode}/    bridge/ align/ train/
                                              renders/ metrics.json floaters.json
     R/study/report/                          study.md, runs.csv, cells.csv, plots/, index.html
+
+Reference initialisers (`study.references`, e.g. COLMAP): their regular runs
+R/{dataset}/{scene}/n{n}/{init}/ (planning.smk's run_targets, through the colmap_index
+checkpoint: a failed COLMAP stops at its status.json and is reported as failed) are inputs of
+the study report, which shows them as one row each beside the cells.
 """
 
 from evaluation.study_grid import expand_cells
 
 STUDY = config.get("study")
 STUDY_CELLS = expand_cells(STUDY) if STUDY else {}
+STUDY_REFERENCES = list((STUDY or {}).get("references", []))
+_missing_refs = [i for i in STUDY_REFERENCES if i not in config["initialisers"]]
+if _missing_refs:
+    raise ValueError(
+        f"study.references {_missing_refs} must also be in `initialisers` "
+        f"({config['initialisers']}): the study reports their regular runs"
+    )
 SRUN = f"{R}/study/{{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/oracle"
 SMODE = f"{SRUN}/{{mode}}"
 
@@ -43,6 +55,34 @@ def study_run_targets(wildcards=None):
                     run = SRUN.format(cell=cell, seed=seed, dataset=ds, scene=sc, n=n)
                     out.append(f"{run}/pose.json")
     return out
+
+
+def study_reference_runs():
+    """(init, dataset, scene, n) of every reference run of the study."""
+    return [
+        (init, ds, sc, n)
+        for init in STUDY_REFERENCES
+        for ds, sc in study_scenes()
+        if init in scene_inits(ds, sc)
+        for n in scene_views(ds, sc)
+    ]
+
+
+def study_reference_targets(wildcards=None):
+    """The regular runs' files the report reads (run_targets: a failed COLMAP gives only its
+    status.json; read through the colmap_index checkpoint)."""
+    out = []
+    for init, ds, sc, n in study_reference_runs():
+        out += run_targets(ds, sc, n, init, "all")
+    return out
+
+
+def study_reference_args(wildcards=None):
+    """--reference RUN_DIR for every reference run (evaluation study)."""
+    return " ".join(
+        f"--reference {RUN.format(dataset=ds, scene=sc, n=n, init=init)}"
+        for init, ds, sc, n in study_reference_runs()
+    )
 
 
 def study_final_targets(wildcards=None):
