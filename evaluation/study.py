@@ -2,9 +2,10 @@
 over seeds, paired mode differences, Markdown tables, plots and an HTML section.
 
 Input: the study tree (workflow/rules/study_plan.smk)
-``{root}/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/{mode}/`` read with
-:func:`evaluation.results.read_run` (metrics.json, train.json, log.parquet, pose.json of the
-oracle) plus ``floaters.json`` (:mod:`evaluation.floaters`); ``cells`` (the expanded grid,
+``{root}/{cell}/s{seed}/{dataset}/{scene}/n{n}/{init}/{mode}/`` (``init`` one of
+:data:`STUDY_INITS`: the oracle, or the posed initialiser on scenes with reference cameras)
+read with :func:`evaluation.results.read_run` (metrics.json, train.json, log.parquet, pose.json
+of the initialiser) plus ``floaters.json`` (only where the scene has a ground-truth mesh) (:mod:`evaluation.floaters`); ``cells`` (the expanded grid,
 :func:`evaluation.study_grid.expand_cells`) names each cell's axis, level and base.
 
 Along the run: the trainer's held-out evaluations (``train/log.parquet`` columns ``test_psnr``,
@@ -70,6 +71,7 @@ DIFF_MEASURES = ("psnr", "ssim", "lpips", "floater_final")
 CURVE_MEASURES = {"test_psnr": ("held-out PSNR", "dB", 2, True), "test_ssim": ("held-out SSIM", "", 3, True),
                   "test_lpips": ("held-out LPIPS-alex", "", 3, False)}
 MODES = ("gated", "uniform", "filtered")
+STUDY_INITS = ("oracle", "posed")  # what a study cell can degrade (config study.initialiser)
 _SEED = re.compile(r"^s(\d+)$")
 _N = re.compile(r"^n(\d+)$")
 
@@ -90,10 +92,10 @@ def t_interval(values) -> tuple[float, float, int]:
 
 
 def find_study_runs(root: str | Path) -> list[tuple[str, int, Path, str]]:
-    """(cell, seed, oracle run folder, mode) of every mode folder under ``root``, sorted."""
+    """(cell, seed, initialiser run folder, mode) of every mode folder under ``root``, sorted."""
     root = Path(root)
     out = []
-    for run in sorted(root.glob("*/s*/*/*/n*/oracle")):
+    for run in sorted(r for init in STUDY_INITS for r in root.glob(f"*/s*/*/*/n*/{init}")):
         cell, seed = run.parts[-6], run.parts[-5]
         if not (_SEED.match(seed) and _N.match(run.parent.name)):
             continue
@@ -406,7 +408,8 @@ def along_run_tables(curves: pd.DataFrame, order: list[str], cells: dict) -> dic
 
 def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Path,
                 curves: pd.DataFrame | None = None) -> list[Path]:
-    """Per (dataset, scene, n): for each axis, PSNR and floater fraction against the level
+    """Per (dataset, scene, n): for each axis, PSNR and floater fraction (SSIM where no run has
+    a floater measure) against the level
     (mean and 95 % interval, one line per mode, the base cell at the axis's reference level);
     and each held-out measure along the run (PSNR, SSIM, LPIPS where logged) against training
     wall time for the zero cell and the named points."""
@@ -420,6 +423,8 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
             axes.setdefault((info["axis"], info["base"]), []).append(name)
     modes = [m for m in MODES if m in set(summary["bridge_mode"])]
     for (ds, sc, n), g in summary.groupby(["dataset", "scene", "n"], sort=True):
+        # the floater fraction needs a ground-truth mesh; without one (posed cells) plot SSIM
+        panels = ("psnr", "floater_final" if np.isfinite(g["floater_final_mean"].astype(float)).any() else "ssim")
         for (param, base), names in axes.items():
             fig, axs = plt.subplots(1, 2, figsize=(10, 3.6))
             base_level = cells[base]["noise"][param]
@@ -428,13 +433,13 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
             xs = levels if numeric else list(range(len(levels)))
             for mode in modes:
                 gm = g[g["bridge_mode"] == mode].set_index("cell")
-                for ax, m in zip(axs, ("psnr", "floater_final")):
+                for ax, m in zip(axs, panels):
                     ys = [gm.loc[c, f"{m}_mean"] if c in gm.index else np.nan for c in [base] + names]
                     es = [gm.loc[c, f"{m}_hw"] if c in gm.index else np.nan for c in [base] + names]
                     ax.errorbar(xs, ys, yerr=np.nan_to_num(es), marker="o", capsize=3, label=mode)
-            for ax, m in zip(axs, ("psnr", "floater_final")):
+            for ax, m in zip(axs, panels):
                 ax.set_xlabel(param + ("" if base == "zero" else f" (on {base})"))
-                ax.set_ylabel(f"{MEASURES[m][0]} [{MEASURES[m][1]}]")
+                ax.set_ylabel(MEASURES[m][0] + (f" [{MEASURES[m][1]}]" if MEASURES[m][1] else ""))
                 if not numeric:
                     ax.set_xticks(xs, [str(v) for v in levels])
                 ax.grid(alpha=0.3)
@@ -470,6 +475,15 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
 SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating "
                    "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "
                    "ATE and rotation errors the paper reports for VGGT), not VGGT output.")
+POSED_NOTE = ("Every cell is the posed initialiser (the scene's reference cameras, estimated from all of its "
+              "images, and points triangulated with them; evaluation/posed.py) with the oracle's seeded noise, "
+              "never VGGT. It has no confidence: Bridge mode uniform only; no floater measure without a "
+              "ground-truth mesh.")
+
+
+def _init_note(runs: pd.DataFrame) -> str:
+    inits = set(runs["init"]) if "init" in runs else {"oracle"}
+    return " ".join(([SIMULATION_NOTE] if "oracle" in inits else []) + ([POSED_NOTE] if "posed" in inits else []))
 
 
 def _all_tables(runs, summary, cells, curves, refs=None) -> dict[str, tuple[list, list]]:
@@ -489,7 +503,7 @@ def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots
     order = _cell_order(runs, cells)
     k = runs.groupby(["dataset", "scene", "n", "cell", "bridge_mode"])["seed"].nunique()
     lpips_nets = sorted(set(runs["lpips_net"]))
-    parts = ["# Initialisation study", "", SIMULATION_NOTE, "",
+    parts = ["# Initialisation study", "", _init_note(runs), "",
              f"{len(runs)} runs; {runs['cell'].nunique()} cells; seeds per cell and mode: "
              f"{int(k.min())}-{int(k.max())}; training iterations: "
              f"{', '.join(str(int(i)) for i in sorted(runs['iterations'].dropna().unique()))}; "
@@ -527,8 +541,9 @@ def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, p
                        img_prefix: str, curves: pd.DataFrame | None = None,
                        refs: pd.DataFrame | None = None) -> str:
     """The study as an HTML section (h2 + tables + plots); images at ``img_prefix + name``."""
-    parts = ["<h2>Initialisation study (oracle cells; mean ± 95 % interval over seeds)</h2>",
-             f"<p>{html.escape(SIMULATION_NOTE)}</p>"]
+    inits = ", ".join(sorted(set(runs["init"]))) if "init" in runs else "oracle"
+    parts = [f"<h2>Initialisation study ({html.escape(inits)} cells; mean ± 95 % interval over seeds)</h2>",
+             f"<p>{html.escape(_init_note(runs))}</p>"]
     if refs is not None and not refs.empty:
         parts.append(f"<p>{html.escape(REFERENCE_NOTE)}</p>")
     for title, (header, rows) in _all_tables(runs, summary, cells, curves, refs).items():
@@ -546,7 +561,8 @@ def run_study(root: str | Path, out: str | Path, cells: dict | None = None, refe
     cells = cells or {}
     runs = collect_study(root, cells)
     if runs.empty:
-        raise ValueError(f"no study runs under {root} ({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/oracle/{{mode}})")
+        raise ValueError(f"no study runs under {root} ({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/{{init}}/{{mode}}, "
+                         f"init one of {STUDY_INITS})")
     summary = summarise(runs)
     t0 = time.perf_counter()
     curves = collect_curves(runs)

@@ -167,14 +167,14 @@ def test_summarise_and_paired_differences_known_numbers():
 
 
 def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered"),
-                     along_run=False):
+                     along_run=False, init="oracle", scene="bundled"):
     """A study tree with the files the report reads (metrics, floaters, training log)."""
     import json
 
     rng = np.random.default_rng(0)
     for cell in cells:
         for s in seeds:
-            run = root / cell / f"s{s}" / "synthetic" / "bundled" / "n3" / "oracle"
+            run = root / cell / f"s{s}" / "synthetic" / scene / "n3" / init
             run.mkdir(parents=True)
             (run / "status.json").write_text(json.dumps({"success_paper": True, "registered": 3, "noise": {}}))
             (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 1.0 + s, "rel_rot_err_mean_deg": 0.5}))
@@ -183,8 +183,9 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
                 (d / "train").mkdir(parents=True)
                 (d / "metrics.json").write_text(json.dumps(
                     {"psnr": 20 + rng.normal(), "ssim": 0.5, "lpips_alex": 0.3, "n_images": 3}))
-                (d / "floaters.json").write_text(json.dumps(
-                    {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
+                if init == "oracle":  # no floater measure without a ground-truth mesh
+                    (d / "floaters.json").write_text(json.dumps(
+                        {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
                 (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 100 + s, "iterations": 20}))
                 lg = {"iteration": [10, 20], "wall_time_s": [1.0, 2.0], "test_psnr": [19.0, 20.0],
                       "num_gaussians": [90, 100]}
@@ -287,3 +288,17 @@ def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(t
     assert rows[1].startswith("| colmap | - | no: no model: the incremental mapper found no initial image pair (0/3) | -")
     refs = pd.read_csv(tmp_path / "report2" / "references.csv")
     assert list(refs["success_paper"]) == [True, False]
+
+
+def test_run_study_reads_posed_cells(tmp_path):
+    """The real-scene arm's tree: posed cells, mode uniform only, no floaters.json."""
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", modes=("uniform",), init="posed", scene="fern", along_run=True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "report", cells).read_text()
+    assert "posed initialiser" in md and "never VGGT" in md and "oracle (ground truth" not in md
+    assert "| cell | uniform |" in md and "floater frac." not in md and "− uniform" not in md
+    assert "synthetic/fern, n = 3: SSIM (best it.: highest)" in md
+    runs = pd.read_csv(tmp_path / "report" / "runs.csv")
+    assert set(runs["init"]) == {"posed"} and len(runs) == 6
