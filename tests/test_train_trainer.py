@@ -281,3 +281,19 @@ def test_heldout_lpips_on_images_too_small_for_alexnet_is_null_not_an_error(scen
     df = pq.read_table(tmp_path / "run" / "log.parquet").to_pandas()
     assert df["test_lpips"].isna().all() and df["test_ssim"].notna().sum() == 1
     assert res.summary["test_curve"]["test_lpips"] == [None]
+
+
+def test_runlog_resumes_a_checkpoint_from_before_the_heldout_ssim_lpips_columns():
+    """A checkpoint's log written before test_ssim / test_lpips existed loads with them null."""
+    from splat_train.runlog import RunLog
+
+    old = {c: torch.tensor([1.0, 2.0], dtype=torch.float64)
+           for c in ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians")}
+    old["test_psnr"] = torch.tensor([float("nan"), 20.0], dtype=torch.float64)
+    log = RunLog()
+    log.load_state_dict(old)
+    log.append(iteration=3, wall_time_s=0.0, loss=0.0, l1=0.0, ssim=0.0, train_psnr=0.0, num_gaussians=1,
+               test_psnr=21.0, test_ssim=0.5, test_lpips=0.4)
+    c = log.test_curve()
+    assert c["iterations"] == [2, 3] and c["test_ssim"] == [None, 0.5] and c["test_lpips"] == [None, 0.4]
+    assert (c["best_ssim_iteration"], c["best_lpips_iteration"], c["best_iteration"]) == (3, 3, 3)
