@@ -5,7 +5,8 @@ Input: the study tree (workflow/rules/study_plan.smk)
 ``{root}/{cell}/s{seed}/{dataset}/{scene}/n{n}/{init}/{mode}/`` (``init`` one of
 :data:`STUDY_INITS`: the oracle, or the posed initialiser on scenes with reference cameras)
 read with :func:`evaluation.results.read_run` (metrics.json, train.json, log.parquet, pose.json
-of the initialiser) plus ``floaters.json`` (only where the scene has a ground-truth mesh) (:mod:`evaluation.floaters`); ``cells`` (the expanded grid,
+of the initialiser) plus ``floaters.json`` (:mod:`evaluation.floaters`; only where the scene
+has a ground-truth mesh); ``cells`` (the expanded grid,
 :func:`evaluation.study_grid.expand_cells`) names each cell's axis, level and base.
 
 Along the run: the trainer's held-out evaluations (``train/log.parquet`` columns ``test_psnr``,
@@ -561,8 +562,8 @@ def run_study(root: str | Path, out: str | Path, cells: dict | None = None, refe
     cells = cells or {}
     runs = collect_study(root, cells)
     if runs.empty:
-        raise ValueError(f"no study runs under {root} ({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/{{init}}/{{mode}}, "
-                         f"init one of {STUDY_INITS})")
+        raise ValueError(f"no study runs under {root} "
+                         f"({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/{{init}}/{{mode}}, init one of {STUDY_INITS})")
     summary = summarise(runs)
     t0 = time.perf_counter()
     curves = collect_curves(runs)

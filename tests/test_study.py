@@ -285,7 +285,8 @@ def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(t
     md = (tmp_path / "report2" / "study.md").read_text()
     rows = [r for r in md.splitlines() if r.startswith("| colmap |")]
     assert len(rows) == 2
-    assert rows[1].startswith("| colmap | - | no: no model: the incremental mapper found no initial image pair (0/3) | -")
+    assert rows[1].startswith("| colmap | - | no: no model: the incremental mapper found no initial image pair "
+                              "(0/3) | -")
     refs = pd.read_csv(tmp_path / "report2" / "references.csv")
     assert list(refs["success_paper"]) == [True, False]
 
