@@ -100,7 +100,7 @@ def _cmd_study(args) -> int:
         cells = json.loads(text)
     if args.write_cells:
         write_json(args.write_cells, cells)
-    run_study(args.results, args.out, cells)
+    run_study(args.results, args.out, cells, references=args.reference)
     return 0
 
 
@@ -203,6 +203,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--results", required=True, help="the study tree (R/study)")
     p.add_argument("--out", required=True, help="report folder (study.md, plots/, index.html)")
     p.add_argument("--cells", help="the expanded grid: JSON text or a file (evaluation.study_grid)")
+    p.add_argument("--reference", action="append", default=[],
+                   help="a regular run folder R/{dataset}/{scene}/n{n}/{init} (e.g. COLMAP) to report as a "
+                        "reference row beside the cells (repeatable; a failed run is a reported row)")
     p.add_argument("--write-cells", help="also write the grid to this JSON file")
     p.set_defaults(func=_cmd_study)
     return parser

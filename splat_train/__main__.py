@@ -6,7 +6,7 @@ Train::
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
-        [--eval-every M] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
+        [--eval-every M] [--eval-lpips | --no-eval-lpips] [--lpips-weights PATH] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
         [--resume-dir DIR] [--rasterizer BACKEND]
 
 Render a trained model into any camera set::
@@ -45,7 +45,12 @@ def _train_parser() -> argparse.ArgumentParser:
                                      "(keys of splat_train.config.TrainConfig)")
     p.add_argument("--seed-rng", type=int, dest="seed_rng", help="random seed (default 0)")
     p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=int, help="held-out PSNR period M (default 200)")
+    p.add_argument("--eval-every", type=int, help="held-out evaluation period M (PSNR, SSIM; default 200)")
+    p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
+                   help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
+    p.add_argument("--lpips-weights", dest="lpips_weights",
+                   help="LPIPS weights folder or alex.safetensors (default: $LPIPS_WEIGHTS_DIR, then the "
+                        "user cache; see evaluation.lpips)")
     p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
                                         "of OUT/ckpt (resume only from identical inputs; removed on success)")
     p.add_argument("--pose-refine", action="store_true", default=None,
@@ -113,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
                       num_threads=args.threads, rasterizer=args.rasterizer,
-                      kernel_threads=args.kernel_threads)
+                      kernel_threads=args.kernel_threads, eval_lpips=args.eval_lpips,
+                      lpips_weights=args.lpips_weights)
     from camio.images import ImageReadError
 
     try:

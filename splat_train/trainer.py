@@ -11,7 +11,9 @@ held-out evaluation when due, then densify / prune / reset opacity when the sche
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
-uninterrupted run. Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
+uninterrupted run. The held-out evaluation scores PSNR, SSIM and, with ``eval_lpips``, LPIPS-alex
+(:mod:`splat_train.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``.
+Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text).
 
 Every checkpoint holds :func:`inputs_digest` (SHA-256 of the seed PLY's bytes, the decoded
@@ -50,6 +52,7 @@ from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
+from splat_train.heldout import LPIPS_NET, HeldoutScorer
 from splat_train.losses import photometric_loss
 from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.rasterize import resolve_backend
@@ -146,6 +149,7 @@ class Trainer:
             if self.pose.log_focal is not None:
                 groups.append({"params": [self.pose.log_focal], "lr": cfg.lr_focal, "name": "focal"})
             self.pose_opt = torch.optim.Adam(groups)
+        self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -279,16 +283,27 @@ class Trainer:
         return {"loss": loss.item(), "l1": l1.item(), "ssim": s.item(),
                 "train_psnr": -10 * math.log10(max(mse, 1e-20))}
 
-    def evaluate(self, views: list[View], out_dir: Path | None = None, refined: bool = False) -> float:
-        """Mean PSNR over ``views`` at the current SH degree (NaN without views)."""
+    def evaluate(self, views: list[View], out_dir: Path | None = None, refined: bool = False,
+                 scorer: HeldoutScorer | None = None) -> float:
+        """Mean PSNR over ``views`` at the current SH degree (NaN without views); with
+        ``scorer``, every render is also scored by it (SSIM, LPIPS: :meth:`evaluate_heldout`)."""
         if not views:
             return float("nan")
         deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.sh_degree)
         override = self.refined_cameras() if refined and self.pose is not None else None
         k_override = self.refined_intrinsics() if refined and self.pose is not None else None
         scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate",
-                              K_override=k_override, backend=self.backend)
+                              K_override=k_override, backend=self.backend, on_render=scorer)
         return float(np.mean(list(scores.values()))) if scores else float("nan")
+
+    def evaluate_heldout(self) -> dict[str, float]:
+        """Mean held-out PSNR, SSIM and LPIPS (NaN when off or absent) over the test views:
+        the ``test_*`` columns of log.parquet (:mod:`splat_train.heldout`)."""
+        if self.scorer is None:
+            return {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
+        self.scorer.reset()
+        self.evaluate(self.test_views, scorer=self.scorer)
+        return self.scorer.means()
 
     def run(self) -> TrainResult:
         cfg = self.cfg
@@ -305,24 +320,27 @@ class Trainer:
             rec = self.step()
             self.wall += time.perf_counter() - t0
             it = self.iteration
-            test_psnr = float("nan")
+            held = {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
             if self.test_views and cfg.eval_every > 0 and (it % cfg.eval_every == 0 or it == cfg.iterations):
                 te = time.perf_counter()
-                test_psnr = self.evaluate(self.test_views)
+                held = self.evaluate_heldout()
                 eval_time += time.perf_counter() - te
+            test_psnr = held["psnr"]
             # densify / prune / opacity reset after the held-out evaluation, as 3DGS orders its
             # loop: a test PSNR logged at a reset iteration measures the model, not the reset
             t0 = time.perf_counter()
             self.strategy.step(self.params, self.optimizer, self.state, it, self.extent, self.gen)
             self.wall += time.perf_counter() - t0
             self.log.append(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
-                            test_psnr=test_psnr, **rec)
+                            test_psnr=test_psnr, test_ssim=held["ssim"], test_lpips=held["lpips"], **rec)
             if it % 10 == 0 or it == cfg.iterations:
                 bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['train_psnr']:.2f}", n=self.num_gaussians)
             if it % every_log == 0:
-                log.info("it %d/%d loss %.4f psnr %.2f n %d%s (%.2f it/s)", it, cfg.iterations, rec["loss"],
+                log.info("it %d/%d loss %.4f psnr %.2f n %d%s%s (%.2f it/s)", it, cfg.iterations, rec["loss"],
                          rec["train_psnr"], self.num_gaussians,
-                         "" if math.isnan(test_psnr) else f" test psnr {test_psnr:.2f}", it / max(self.wall, 1e-9))
+                         "" if math.isnan(test_psnr) else f" test psnr {test_psnr:.2f} ssim {held['ssim']:.4f}",
+                         "" if math.isnan(held["lpips"]) else f" lpips {held['lpips']:.4f}",
+                         it / max(self.wall, 1e-9))
             if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
                 self.save()
                 self.log.write_parquet(self.out / "log.parquet")
@@ -355,6 +373,8 @@ class Trainer:
             "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
             "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),
+            "heldout_lpips": {"enabled": bool(cfg.eval_lpips), "net": LPIPS_NET,
+                              "weights": None if self.scorer is None else self.scorer.weights},
         }
         if self.pose is not None:
             d = self.pose.delta.detach().cpu()

@@ -166,14 +166,15 @@ def test_summarise_and_paired_differences_known_numbers():
 # ----------------------------------------------------------------------------- report
 
 
-def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered")):
+def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered"),
+                     along_run=False, init="oracle", scene="bundled"):
     """A study tree with the files the report reads (metrics, floaters, training log)."""
     import json
 
     rng = np.random.default_rng(0)
     for cell in cells:
         for s in seeds:
-            run = root / cell / f"s{s}" / "synthetic" / "bundled" / "n3" / "oracle"
+            run = root / cell / f"s{s}" / "synthetic" / scene / "n3" / init
             run.mkdir(parents=True)
             (run / "status.json").write_text(json.dumps({"success_paper": True, "registered": 3, "noise": {}}))
             (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 1.0 + s, "rel_rot_err_mean_deg": 0.5}))
@@ -182,12 +183,15 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
                 (d / "train").mkdir(parents=True)
                 (d / "metrics.json").write_text(json.dumps(
                     {"psnr": 20 + rng.normal(), "ssim": 0.5, "lpips_alex": 0.3, "n_images": 3}))
-                (d / "floaters.json").write_text(json.dumps(
-                    {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
+                if init == "oracle":  # no floater measure without a ground-truth mesh
+                    (d / "floaters.json").write_text(json.dumps(
+                        {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
                 (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 100 + s, "iterations": 20}))
-                pd.DataFrame({"iteration": [10, 20], "wall_time_s": [1.0, 2.0],
-                              "test_psnr": [19.0, 20.0], "num_gaussians": [90, 100]}).to_parquet(
-                    d / "train" / "log.parquet")
+                lg = {"iteration": [10, 20], "wall_time_s": [1.0, 2.0], "test_psnr": [19.0, 20.0],
+                      "num_gaussians": [90, 100]}
+                if along_run:  # SSIM best at 10, LPIPS best (lowest) at 20
+                    lg.update(test_ssim=[0.6 + 0.01 * s, 0.55], test_lpips=[0.4, 0.35 - 0.01 * s])
+                pd.DataFrame(lg).to_parquet(d / "train" / "log.parquet")
 
 
 def test_run_study_reports_every_mode_with_an_interval(tmp_path):
@@ -205,9 +209,97 @@ def test_run_study_reports_every_mode_with_an_interval(tmp_path):
     assert "never VGGT" in md
     plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
     assert plots == ["synthetic__bundled__n3__axis_rot_deg__zero.png", "synthetic__bundled__n3__psnr_vs_time.png"]
+    # a log without SSIM / LPIPS along the run (older runs): no such tables, no error
+    assert "SSIM (best it." not in md and "held-out LPIPS" not in md and "held-out PSNR [dB] along the run" in md
     # the regular HTML report embeds the section with its plots
     images = tmp_path / "images"
     images.mkdir()
     section = "".join(_study_section(tmp_path, images))
     assert "Initialisation study" in section and 'src="images/study/' in section
     assert (images / "study" / plots[0]).is_file()
+
+
+def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_run(tmp_path):
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", along_run=True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "study" / "report", cells).read_text()
+    # best = highest SSIM (iteration 10), lowest LPIPS (iteration 20); mean over seeds 0, 1, 2
+    ssim = md.split("SSIM (best it.: highest)")[1].split("##")[0]
+    assert "| zero | 0.610 ± 0.025 | 0.610 ± 0.025 | 0.610 ± 0.025 |" in ssim
+    assert "| zero | 10 ± 0 |" in md.split("best SSIM iteration [it.]")[1].split("##")[0]
+    lpips = md.split("LPIPS (best it.: lowest)")[1].split("##")[0]
+    assert "| zero | 0.340 ± 0.025 |" in lpips
+    assert "| zero | 20 ± 0 |" in md.split("best LPIPS iteration [it.]")[1].split("##")[0]
+    # along the run: only the point cells (zero here), a column per evaluation iteration
+    along = md.split("held-out LPIPS-alex along the run (lower is better)")[1].split("##")[0]
+    assert "| cell | mode | it. 10 | it. 20 | training time at the last [s] |" in along
+    assert "| zero | gated | 0.400 ± 0.000 | 0.340 ± 0.025 | 2.0 |" in along
+    assert "rot_deg-2" not in along
+    assert "held-out SSIM along the run (higher is better)" in md
+    plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
+    assert {"synthetic__bundled__n3__ssim_vs_time.png", "synthetic__bundled__n3__lpips_vs_time.png"} <= set(plots)
+    curves = pd.read_csv(tmp_path / "study" / "report" / "curves.csv")
+    assert len(curves) == 2 * 3 * 3 * 2 and {"test_ssim", "test_lpips", "wall_time_s"} <= set(curves)
+
+
+def _fake_colmap_run(root, n, ok):
+    """A regular COLMAP run folder R/synthetic/bundled/n{n}/colmap: trained (uniform) when it
+    succeeded, only status.json when it failed (what the workflow leaves)."""
+    import json
+
+    run = root / "synthetic" / "bundled" / f"n{n}" / "colmap"
+    run.mkdir(parents=True)
+    (run / "status.json").write_text(json.dumps(
+        {"success_paper": ok, "aligned_ok": ok, "registered": n if ok else 0, "n_images": n, "points": 50 if ok else 0,
+         "reason": None if ok else "no model: the incremental mapper found no initial image pair"}))
+    if ok:
+        (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 15.8, "rel_rot_err_mean_deg": 11.9}))
+        d = run / "uniform"
+        (d / "train").mkdir(parents=True)
+        (d / "metrics.json").write_text(json.dumps({"psnr": 14.54, "ssim": 0.31, "lpips_alex": 0.52, "n_images": 3}))
+        (d / "train" / "train.json").write_text(json.dumps({"num_gaussians": 700, "iterations": 20}))
+        pd.DataFrame({"iteration": [10, 20], "wall_time_s": [1.0, 2.0], "test_psnr": [15.0, 14.6],
+                      "test_ssim": [0.33, 0.31], "test_lpips": [0.55, 0.52], "num_gaussians": [600, 700]}).to_parquet(
+            d / "train" / "log.parquet")
+    return run
+
+
+def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(tmp_path):
+    from evaluation.__main__ import main
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", along_run=True)
+    ok = _fake_colmap_run(tmp_path, 3, True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "report", cells, references=[ok]).read_text()
+    table = md.split("n = 3: reference initialisers (one regular run each, no seeds)")[1].split("##")[0]
+    assert "| colmap | uniform | yes (3/3 registered) | 15.80 | 11.90 | 14.54 | 15.00 | 0.310 | 0.330 | 0.520 | " \
+           "0.520 | 700 |" in table
+    assert "COLMAP has no confidence" in md
+    # a failed COLMAP (nothing trained) is a row that says so, through the CLI as the workflow calls it
+    failed = _fake_colmap_run(tmp_path / "other", 3, False)
+    assert main(["study", "--results", str(tmp_path / "study"), "--out", str(tmp_path / "report2"),
+                 "--reference", str(ok), "--reference", str(failed)]) == 0
+    md = (tmp_path / "report2" / "study.md").read_text()
+    rows = [r for r in md.splitlines() if r.startswith("| colmap |")]
+    assert len(rows) == 2
+    assert rows[1].startswith("| colmap | - | no: no model: the incremental mapper found no initial image pair "
+                              "(0/3) | -")
+    refs = pd.read_csv(tmp_path / "report2" / "references.csv")
+    assert list(refs["success_paper"]) == [True, False]
+
+
+def test_run_study_reads_posed_cells(tmp_path):
+    """The real-scene arm's tree: posed cells, mode uniform only, no floaters.json."""
+    from evaluation.study import run_study
+
+    _fake_study_tree(tmp_path / "study", modes=("uniform",), init="posed", scene="fern", along_run=True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "report", cells).read_text()
+    assert "posed initialiser" in md and "never VGGT" in md and "oracle (ground truth" not in md
+    assert "| cell | uniform |" in md and "floater frac." not in md and "− uniform" not in md
+    assert "synthetic/fern, n = 3: SSIM (best it.: highest)" in md
+    runs = pd.read_csv(tmp_path / "report" / "runs.csv")
+    assert set(runs["init"]) == {"posed"} and len(runs) == 6

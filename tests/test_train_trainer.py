@@ -198,3 +198,102 @@ def test_runlog_test_curve_keeps_best_and_last():
     assert (c["best_iteration"], c["best_test_psnr"]) == (400, 14.5)
     assert (c["last_iteration"], c["last_test_psnr"]) == (600, 13.0)
     assert RunLog().test_curve()["best_iteration"] is None
+
+
+def _random_lpips_weights(folder):
+    """alex.safetensors with seeded random LPIPS weights: the test needs no download."""
+    from safetensors.torch import save_file
+
+    from evaluation.lpips import LPIPS, WEIGHTS_FORMAT
+
+    torch.manual_seed(0)
+    m = LPIPS("alex")
+    for p in m.lins.parameters():  # non-negative heads, like the trained ones
+        p.data = p.data.abs()
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file(m.state_dict(), str(folder / "alex.safetensors"), metadata={"format": WEIGHTS_FORMAT, "net": "alex"})
+    return folder
+
+
+@pytest.fixture(scope="module")
+def lpips_scene(tmp_path_factory, one_thread):
+    """AlexNet's pooling needs >= 31 px a side: the 32 x 24 scene is too small for LPIPS."""
+    return write_scene(tmp_path_factory.mktemp("scene48"), n_views=4, n_test=2, width=48, height=36)
+
+
+def test_heldout_ssim_and_lpips_along_the_run_agree_with_the_evaluation_metrics(lpips_scene, tmp_path):
+    """log.parquet's test_ssim / test_lpips are evaluation.metrics.ssim and LPIPS-alex of the
+    same float renders: recomputed here in float64 from the final model (no densification or
+    reset after the last evaluation), they agree to 1e-5 (the trainer scores in float32)."""
+    from evaluation.lpips import load_lpips, lpips_distance
+    from evaluation.metrics import ssim as eval_ssim
+    from splat_train.data import load_views
+    from splat_train.export import render_views
+    from splat_train.trainer import Trainer
+
+    weights = _random_lpips_weights(tmp_path / "lpips")
+    cfg = TrainConfig(**{**SMALL, "densify_until": 0, "opacity_reset_every": 1000, "eval_lpips": True,
+                         "lpips_weights": str(weights)})
+    scene = lpips_scene
+    views = load_views(scene["cameras"], scene["images"])
+    tests = load_views(scene["test_cameras"], scene["test_images"])
+    tr = Trainer(cfg, scene["seed"], views, tmp_path / "run", tests)
+    res = tr.run()
+    table = pq.read_table(tmp_path / "run" / "log.parquet")
+    assert tuple(table.column_names) == LOG_COLUMNS and {"test_ssim", "test_lpips"} <= set(LOG_COLUMNS)
+    df = table.to_pandas().set_index("iteration")
+    ev = df[df["test_psnr"].notna()]
+    assert list(ev.index) == [12, 24] and ev["test_ssim"].notna().all() and ev["test_lpips"].notna().all()
+    assert df["test_ssim"].isna().sum() == df["test_lpips"].isna().sum() == len(df) - 2
+
+    renders = {}
+    deg = tr.sched.sh_degree_at(tr.iteration, cfg.sh_degree)
+    render_views(tr.params, deg, tests, tr.bg, on_render=lambda n, rgb, gt: renders.update({n: (rgb, gt)}))
+    model = load_lpips("alex", weights)
+    ssim64 = [float(eval_ssim(rgb.double().permute(2, 0, 1), gt.double().permute(2, 0, 1))[0])
+              for rgb, gt in renders.values()]
+    lpips64 = [float(lpips_distance(model, rgb.permute(2, 0, 1), gt.permute(2, 0, 1), dtype=torch.float64)[0])
+               for rgb, gt in renders.values()]
+    assert df.loc[24, "test_ssim"] == pytest.approx(np.mean(ssim64), abs=1e-5)
+    assert df.loc[24, "test_lpips"] == pytest.approx(np.mean(lpips64), abs=1e-5)
+    c = res.summary["test_curve"]
+    assert c["iterations"] == [12, 24] and len(c["test_ssim"]) == len(c["test_lpips"]) == 2
+    assert c["last_test_lpips"] == pytest.approx(df.loc[24, "test_lpips"])
+    assert c["best_test_ssim"] == max(c["test_ssim"]) and c["best_test_lpips"] == min(c["test_lpips"])
+    assert c["best_lpips_iteration"] in (12, 24)
+    assert res.summary["heldout_lpips"] == {"enabled": True, "net": "alex",
+                                            "weights": str(weights / "alex.safetensors")}
+
+
+def test_heldout_lpips_is_off_by_default_and_null_not_zero(scene, tmp_path):
+    assert TrainConfig().eval_lpips is False  # the one default (splat_train/config.py)
+    res = _train(scene, tmp_path / "run", iterations=12)
+    df = pq.read_table(tmp_path / "run" / "log.parquet").to_pandas()
+    assert df["test_lpips"].isna().all() and df["test_ssim"].notna().sum() == 1
+    c = res.summary["test_curve"]
+    assert c["test_lpips"] == [None] and c["best_lpips_iteration"] is None and 0 < c["test_ssim"][0] <= 1
+    assert res.summary["heldout_lpips"]["enabled"] is False
+
+
+def test_heldout_lpips_on_images_too_small_for_alexnet_is_null_not_an_error(scene, tmp_path):
+    weights = _random_lpips_weights(tmp_path / "lpips")
+    res = _train(scene, tmp_path / "run", iterations=12, eval_lpips=True, lpips_weights=str(weights))
+    df = pq.read_table(tmp_path / "run" / "log.parquet").to_pandas()
+    assert df["test_lpips"].isna().all() and df["test_ssim"].notna().sum() == 1
+    assert res.summary["test_curve"]["test_lpips"] == [None]
+
+
+def test_runlog_resumes_a_checkpoint_from_before_the_heldout_ssim_lpips_columns():
+    """A checkpoint's log written before test_ssim / test_lpips existed loads with them null."""
+    from splat_train.runlog import RunLog
+
+    old = {c: torch.tensor([1.0, 2.0], dtype=torch.float64)
+           for c in ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians")}
+    old["test_psnr"] = torch.tensor([float("nan"), 20.0], dtype=torch.float64)
+    log = RunLog()
+    log.load_state_dict(old)
+    log.append(iteration=3, wall_time_s=0.0, loss=0.0, l1=0.0, ssim=0.0, train_psnr=0.0, num_gaussians=1,
+               test_psnr=21.0, test_ssim=0.5, test_lpips=0.4)
+    c = log.test_curve()
+    assert c["iterations"] == [2, 3] and c["test_ssim"] == [None, 0.5] and c["test_lpips"] == [None, 0.4]
+    assert (c["best_ssim_iteration"], c["best_lpips_iteration"], c["best_iteration"]) == (3, 3, 3)

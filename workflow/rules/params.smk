@@ -170,6 +170,13 @@ def pose_refine_args(wildcards):
     return "--pose-refine" + (" --pose-refine-focal" if t["pose_refine_focal"] else "")
 
 
+def train_lpips_args(wildcards):
+    """--eval-lpips / --no-eval-lpips from train.eval_lpips; nothing when null (the trainer's
+    default, splat_train.config, decides)."""
+    v = config["train"]["eval_lpips"]
+    return "" if v is None else ("--eval-lpips" if v else "--no-eval-lpips")
+
+
 def heldout_cameras(wildcards):
     """The held-out cameras the renders use: aligned with the refined training cameras when
     pose refinement is on (align_refined/), else with the initialiser's (align/)."""

@@ -1,33 +1,86 @@
-# The initialisation study (docs/init-study.md): the oracle degraded one axis at a time, each
+# The initialisation study (docs/init-study.md): the oracle (or, with study.initialiser: posed,
+# the posed initialiser) degraded one axis at a time, each
 # cell x seed x view count x Bridge mode trained and evaluated with the regular stage rules
 # (reused with `use rule ... with:`, so each stage's command stays in one place), plus the
 # floater measure and the study report. Planning and layout: study_plan.smk. Nothing here is
 # requested unless the config has a `study:` section.
 
 
-rule study_oracle:
-    input:
-        scene=scene_dir,
-        image_list=f"{SCENE}/n{{n}}/train.txt",
-    output:
-        predictions=temp(f"{SRUN}/predictions.npz"),
-        model=directory(f"{SRUN}/sparse"),
-        status=f"{SRUN}/status.json",
-    log:
-        f"{SRUN}/logs/oracle_init.log",
-    benchmark:
-        f"{SRUN}/benchmarks/oracle_init.tsv"
-    conda:
-        "../envs/project.yaml"
-    threads: 1
-    resources:
-        mem_mb=2000,
-    params:
-        out=out_dir,
-        args=study_oracle_args,
-    shell:
-        "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
-        "--out {params.out} {params.args} > {log} 2>&1"
+if STUDY_INIT == "oracle":
+
+    rule study_oracle:
+        input:
+            scene=scene_dir,
+            image_list=f"{SCENE}/n{{n}}/train.txt",
+        output:
+            predictions=temp(f"{SRUN}/predictions.npz"),
+            model=directory(f"{SRUN}/sparse"),
+            status=f"{SRUN}/status.json",
+        log:
+            f"{SRUN}/logs/oracle_init.log",
+        benchmark:
+            f"{SRUN}/benchmarks/oracle_init.tsv"
+        conda:
+            "../envs/project.yaml"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        params:
+            out=out_dir,
+            args=study_oracle_args,
+        shell:
+            "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
+            "--out {params.out} {params.args} > {log} 2>&1"
+
+    use rule bridge_predictions as study_bridge with:
+        input:
+            predictions=f"{SRUN}/predictions.npz",
+        output:
+            seed=f"{SMODE}/bridge/seed.ply",
+            info=f"{SMODE}/bridge/bridge.json",
+            cameras=directory(f"{SMODE}/bridge/sparse"),
+        log:
+            f"{SMODE}/logs/bridge.log",
+        benchmark:
+            f"{SMODE}/benchmarks/bridge.tsv"
+
+else:
+
+    rule study_posed:
+        input:
+            scene=scene_dir,
+            image_list=f"{SCENE}/n{{n}}/train.txt",
+        output:
+            model=directory(f"{SRUN}/sparse"),
+            status=f"{SRUN}/status.json",
+        log:
+            f"{SRUN}/logs/posed_init.log",
+        benchmark:
+            f"{SRUN}/benchmarks/posed_init.tsv"
+        conda:
+            "../envs/project.yaml"
+        threads: 1
+        resources:
+            mem_mb=4000,
+        params:
+            out=out_dir,
+            args=study_posed_args,
+        shell:
+            "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
+            "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+
+    use rule bridge_colmap as study_bridge with:
+        input:
+            init=f"{SRUN}/status.json",
+            scene=scene_dir,
+        output:
+            seed=f"{SMODE}/bridge/seed.ply",
+            info=f"{SMODE}/bridge/bridge.json",
+            cameras=directory(f"{SMODE}/bridge/sparse"),
+        log:
+            f"{SMODE}/logs/bridge.log",
+        benchmark:
+            f"{SMODE}/benchmarks/bridge.tsv"
 
 
 use rule pose_eval as study_pose_eval with:
@@ -41,19 +94,6 @@ use rule pose_eval as study_pose_eval with:
         f"{SRUN}/logs/pose_eval.log",
     benchmark:
         f"{SRUN}/benchmarks/pose_eval.tsv"
-
-
-use rule bridge_predictions as study_bridge with:
-    input:
-        predictions=f"{SRUN}/predictions.npz",
-    output:
-        seed=f"{SMODE}/bridge/seed.ply",
-        info=f"{SMODE}/bridge/bridge.json",
-        cameras=directory(f"{SMODE}/bridge/sparse"),
-    log:
-        f"{SMODE}/logs/bridge.log",
-    benchmark:
-        f"{SMODE}/benchmarks/bridge.tsv"
 
 
 use rule align_test_cameras as study_align with:
@@ -134,6 +174,7 @@ rule study_floaters:
 rule study_report:
     input:
         study_run_targets,
+        study_reference_targets,
     output:
         md=f"{R}/study/report/study.md",
         html=f"{R}/study/report/index.html",
@@ -150,7 +191,8 @@ rule study_report:
     params:
         cells=study_cells_json,
         root=study_root,
+        refs=study_reference_args,
     shell:
         "python -m evaluation study --results {params.root} --cells {params.cells:q} "
-        "--write-cells {output.cells} --out {params.root}/report "
+        "--write-cells {output.cells} --out {params.root}/report {params.refs} "
         "> {log} 2>&1"

@@ -4,17 +4,46 @@ when the config has no `study:` section.
 
 Layout (R = config["results"]):
     R/study/cells.json                                               the expanded grid
-    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/           oracle output, pose.json
-    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/oracle/{mode}/    bridge/ align/ train/
-                                             renders/ metrics.json floaters.json
+    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/{init}/           initialiser output, pose.json
+    R/study/{cell}/s{seed}/{dataset}/{scene}/n{n}/{init}/{mode}/    bridge/ align/ train/
+                                             renders/ metrics.json floaters.json (GT mesh only)
+    {init} = study.initialiser: oracle (default; scenes with ground-truth geometry, every
+    Bridge mode) or posed (scenes with reference cameras; uniform only: no confidence).
     R/study/report/                          study.md, runs.csv, cells.csv, plots/, index.html
+
+Reference initialisers (`study.references`, e.g. COLMAP): their regular runs
+R/{dataset}/{scene}/n{n}/{init}/ (planning.smk's run_targets, through the colmap_index
+checkpoint: a failed COLMAP stops at its status.json and is reported as failed) are inputs of
+the study report, which shows them as one row each beside the cells.
 """
 
 from evaluation.study_grid import expand_cells
 
 STUDY = config.get("study")
 STUDY_CELLS = expand_cells(STUDY) if STUDY else {}
-SRUN = f"{R}/study/{{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/oracle"
+STUDY_INIT = (STUDY or {}).get("initialiser", "oracle")
+# the noise keys the posed initialiser implements (evaluation/posed.py): it has no confidence
+POSED_NOISE = ("rot_deg", "trans_frac", "depth_rel", "outlier_frac")
+if STUDY_INIT == "posed":
+    _conf_cells = [
+        c
+        for c, info in STUDY_CELLS.items()
+        if info["noise"].get("conf_noise", 0)
+        or info["noise"].get("conf_mode", "ranked") != "ranked"
+    ]
+    if _conf_cells:
+        raise ValueError(
+            f"study cells {_conf_cells} set conf_noise / conf_mode, but study.initialiser "
+            "'posed' has no confidence (only rot_deg, trans_frac, depth_rel, outlier_frac apply)"
+        )
+STUDY_REFERENCES = list((STUDY or {}).get("references", []))
+_missing_refs = [i for i in STUDY_REFERENCES if i not in config["initialisers"]]
+if _missing_refs:
+    raise ValueError(
+        f"study.references {_missing_refs} must also be in `initialisers` "
+        f"({config['initialisers']}): the study reports their regular runs"
+    )
+SRUN = f"{R}/study/{{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/{STUDY_INIT}"
 SMODE = f"{SRUN}/{{mode}}"
 
 
@@ -24,25 +53,58 @@ wildcard_constraints:
 
 
 def study_scenes():
-    """(dataset, scene) pairs of the study: the scenes with ground-truth geometry."""
-    return [(ds, sc) for ds, sc in all_scenes() if has_gt_geometry(ds, sc)]
+    """(dataset, scene) pairs of the study: the scenes with ground-truth geometry (oracle) or
+    with reference cameras (posed)."""
+    ok = has_gt_geometry if STUDY_INIT == "oracle" else has_reference
+    return [(ds, sc) for ds, sc in all_scenes() if ok(ds, sc)]
 
 
 def study_run_targets(wildcards=None):
-    """metrics.json and floaters.json of every cell x seed x scene x n x mode."""
+    """metrics.json of every cell x seed x scene x n x mode, and floaters.json where the scene
+    has a ground-truth mesh (the floater measure needs it)."""
     out = []
     for cell in STUDY_CELLS:
         for seed in STUDY["seeds"]:
             for ds, sc in study_scenes():
                 for n in scene_views(ds, sc):
-                    for mode in config["bridge"]["modes"]:
+                    for mode in init_modes(STUDY_INIT):
                         m = SMODE.format(
                             cell=cell, seed=seed, dataset=ds, scene=sc, n=n, mode=mode
                         )
-                        out += [f"{m}/metrics.json", f"{m}/floaters.json"]
+                        out.append(f"{m}/metrics.json")
+                        if has_gt_geometry(ds, sc):
+                            out.append(f"{m}/floaters.json")
                     run = SRUN.format(cell=cell, seed=seed, dataset=ds, scene=sc, n=n)
                     out.append(f"{run}/pose.json")
     return out
+
+
+def study_reference_runs():
+    """(init, dataset, scene, n) of every reference run of the study."""
+    return [
+        (init, ds, sc, n)
+        for init in STUDY_REFERENCES
+        for ds, sc in study_scenes()
+        if init in scene_inits(ds, sc)
+        for n in scene_views(ds, sc)
+    ]
+
+
+def study_reference_targets(wildcards=None):
+    """The regular runs' files the report reads (run_targets: a failed COLMAP gives only its
+    status.json; read through the colmap_index checkpoint)."""
+    out = []
+    for init, ds, sc, n in study_reference_runs():
+        out += run_targets(ds, sc, n, init, "all")
+    return out
+
+
+def study_reference_args(wildcards=None):
+    """--reference RUN_DIR for every reference run (evaluation study)."""
+    return " ".join(
+        f"--reference {RUN.format(dataset=ds, scene=sc, n=n, init=init)}"
+        for init, ds, sc, n in study_reference_runs()
+    )
 
 
 def study_final_targets(wildcards=None):
@@ -61,6 +123,13 @@ def study_oracle_args(wildcards):
         f"--downsample {o['downsample']}",
     ]
     return " ".join(args)
+
+
+def study_posed_args(wildcards):
+    """Posed-initialiser CLI arguments of one cell and seed (its noise keys, POSED_NOISE)."""
+    noise = STUDY_CELLS[wildcards.cell]["noise"]
+    args = [f"--{k.replace('_', '-')} {noise[k]}" for k in POSED_NOISE if k in noise]
+    return " ".join(args + [f"--seed {wildcards.seed}"])
 
 
 def study_scene_inputs(wildcards):

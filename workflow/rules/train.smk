@@ -60,13 +60,14 @@ rule train_splats:
         resume=train_resume_dir,
         test=train_test_args,
         pose=pose_refine_args,
+        lpips=train_lpips_args,
     shell:
         "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
         "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
         "--iterations {params.iterations} --seed-rng {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
         "--resume-dir {params.resume} --device {params.device} --threads {threads} "
-        "{params.test} {params.pose} > {log} 2>&1"
+        "{params.test} {params.pose} {params.lpips} > {log} 2>&1"
 
 
 rule align_refined_cameras:

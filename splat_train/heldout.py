@@ -1,0 +1,85 @@
+"""Held-out measures along a run: PSNR, SSIM and (optional) LPIPS of the trainer's renders.
+
+The trainer's periodic evaluation (``TrainConfig.eval_every``) renders every test view and
+scores the float render, clamped to [0, 1], against the test image, both ``[H, W, 3]`` RGB in
+[0, 1] in the view's pixel grid:
+
+* PSNR: :func:`splat_train.losses.psnr` (float64 MSE), dB;
+* SSIM: :func:`splat_train.losses.ssim` (the 3DGS definition, the one
+  :func:`evaluation.metrics.ssim` also calls), computed in float32;
+* LPIPS: LPIPS v0.1 with the AlexNet backbone and the weights ``python -m evaluation images``
+  uses (:func:`evaluation.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
+  NaN (null in log.parquet) when it is off or the weights are absent, never 0.
+
+The means over the test views are the ``test_*`` columns of ``log.parquet``
+(:mod:`splat_train.runlog`). They differ from the final ``metrics.json`` only by the 8-bit
+quantisation of the PNGs that the evaluation stage reads.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from splat_train.losses import psnr, ssim
+
+__all__ = ["HeldoutScorer", "LPIPS_NET"]
+
+log = logging.getLogger(__name__)
+
+#: the LPIPS backbone along the run (the evaluation's default network for the study tables)
+LPIPS_NET = "alex"
+
+
+class HeldoutScorer:
+    """Scores renders against test images and keeps the per-view values of one evaluation.
+
+    Args:
+        lpips: compute LPIPS (loads the AlexNet weights once, here).
+        lpips_weights: folder or file of the weights (None: the evaluation's search order).
+        device: where LPIPS runs (the renders' device).
+    """
+
+    def __init__(self, lpips: bool = False, lpips_weights: str | Path | None = None,
+                 device: torch.device | str = "cpu") -> None:
+        self.model = None
+        self.weights: str | None = None
+        self.per_view: dict[str, dict[str, float]] = {}
+        if lpips:
+            from evaluation.lpips import find_weights, load_lpips
+
+            t0 = time.perf_counter()
+            self.model = load_lpips(LPIPS_NET, lpips_weights, device)  # None (and a warning) if absent
+            if self.model is not None:
+                self.weights = str(find_weights(LPIPS_NET, lpips_weights))
+            log.info("held-out LPIPS-%s along the run: %s (%.2f s to load)", LPIPS_NET,
+                     self.weights or "weights absent, test_lpips stays null", time.perf_counter() - t0)
+
+    def reset(self) -> None:
+        self.per_view = {}
+
+    @torch.no_grad()
+    def __call__(self, name: str, rgb: torch.Tensor, target: torch.Tensor) -> None:
+        """Score one view: ``rgb`` and ``target`` are [H, W, 3] in [0, 1] on one device."""
+        rec = {"psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target)), "lpips": math.nan}
+        if self.model is not None:
+            from evaluation.lpips import lpips_distance
+
+            try:
+                rec["lpips"] = float(lpips_distance(self.model, rgb.permute(2, 0, 1), target.permute(2, 0, 1))[0])
+            except RuntimeError as exc:  # AlexNet's pooling needs images of >= 31 px a side
+                log.warning("held-out LPIPS off for the rest of the run: view %s (%d x %d px) cannot be scored "
+                            "(%s); test_lpips stays null", name, rgb.shape[1], rgb.shape[0], exc)
+                self.model = None
+        self.per_view[name] = rec
+
+    def means(self) -> dict[str, float]:
+        """Mean of each measure over the views scored since :meth:`reset` (NaN without views)."""
+        if not self.per_view:
+            return {"psnr": math.nan, "ssim": math.nan, "lpips": math.nan}
+        return {k: float(np.mean([r[k] for r in self.per_view.values()])) for k in ("psnr", "ssim", "lpips")}
