@@ -6,7 +6,8 @@ Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (be
 * ``project``: EWA projection with autograd graph (float64 maths), forward only; for the
   "cpu" backend the fused C++ projection + SH (``_cpu_project``), forward only;
 * ``sh``: SH degree-3 colour, forward only (torch; 0 for "cpu", fused into ``project``);
-* ``bin``: depth sort + tile lists (``tile_pairs_cpu``);
+* ``bin``: depth sort + tile lists (``bin_cpu``; for "cpu" with the footprints, i.e. the tight
+  lists and the footprint pass that the blend then reuses);
 * ``blend_fwd`` / ``blend_bwd``: the C++ blending kernel forward / backward (raw entries,
   including the per-pair gradient reduction);
 * ``total_fwd`` / ``total_fwd_bwd``: the whole ``rasterize`` call and its backward
@@ -62,8 +63,10 @@ def profile(n: int, size: int, backend: str, reps: int) -> dict[str, float]:
         proj = project_gaussians(means, quats, scales, eye, K, size, size)
         feats = torch.cat([sh_to_color(3, sh, means, torch.zeros(3)), proj.depths[:, None]], 1).contiguous()
     fns = _cpu_kernel.backend_functions(backend)
-    res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size), reps)
-    bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size)
+    # "cpu" bins with the footprints (tight tile lists, as rasterize does); "cpu_v1" by rectangle
+    kw = {"means2d": proj.means2d, "conics": proj.conics, "opacities": opac.detach()} if backend == "cpu" else {}
+    res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size, **kw), reps)
+    bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size, **kw)
     fwd = lambda: fns.forward_raw(proj.means2d, proj.conics, feats, opac.detach(), bins, size, size)  # noqa: E731
     res["blend_fwd"] = _best(fwd, reps)
     accum, t_final, last, _ = fwd()
