@@ -150,6 +150,24 @@ inline Vec<double>::v vexp(Vec<double>::v x) {
   return r;
 }
 
+// 1 / x for x in [0.01, 1] (1 - alpha). float with AVX-512: the 14-bit estimate and one
+// Newton step (~2^-28 relative, within an ulp or two of the division, at a fraction of its
+// cost); float64 and other builds divide.
+inline Vec<float>::v recip(Vec<float>::v x) {
+#if defined(__AVX512F__)
+  __m512 xv, r;
+  std::memcpy(&xv, &x, 64);
+  r = _mm512_rcp14_ps(xv);
+  r = _mm512_mul_ps(r, _mm512_fnmadd_ps(xv, r, _mm512_set1_ps(2.0f)));
+  Vec<float>::v out;
+  std::memcpy(&out, &r, 64);
+  return out;
+#else
+  return splat<Vec<float>::v>(1.0f) / x;
+#endif
+}
+inline Vec<double>::v recip(Vec<double>::v x) { return splat<Vec<double>::v>(1.0) / x; }
+
 // Where a Gaussian can reach alpha >= 1/255 inside a tile: the ellipse q = d^T conic d <= r2 =
 // 2 ln(255 op) (+1% + 1e-3 margin; the scalar kernel's footprint rule). Computed once per
 // Gaussian (splat2_footprint: a log, a sqrt and divisions that would otherwise run per tile
@@ -468,7 +486,10 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       int i0, i1;
       row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
-      V g_mx{}, g_my{}, g_a{}, g_b{}, g_c{}, g_op{}, g_f[MAXF];
+      // per lane: G0 = sum over rows of dL/dG (masked), G1 = sum dy dL/dG, G2 = sum dy^2 dL/dG;
+      // dx is constant along a lane, so the five conic/mean gradients follow from these three
+      // once per pair (v_power = op dL/dG, power = -(a dx^2 + c dy^2) / 2 - b dx dy)
+      V G0{}, G1{}, G2{}, g_f[MAXF];
       for (int64_t f = 0; f < Fa; ++f) g_f[f] = V{};
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
@@ -486,35 +507,35 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const M m = pos & (lk < last[i]) & (alpha >= splat<V>(Consts<T>::alpha_min));
         if (!any_lane(m)) continue;
         any = true;
-        const V one_m = splat<V>(T(1)) - alpha;
-        const V inv_one_m = splat<V>(T(1)) / one_m;
+        const V inv_one_m = recip(splat<V>(T(1)) - alpha);
         const V Tfront = Tr[i] * inv_one_m;
-        const V w = alpha * Tfront;
+        const V am = m ? alpha : V{};  // lanes outside the mask leave rec and g_f unchanged
+        const V wm = am * Tfront;
         V v_alpha{};
         for (int64_t f = 0; f < Fa; ++f) {
-          const V fv = splat<V>(fg[f]);
           V& rp = rec[i * MAXF + f];
           const V vp = vacc[i * MAXF + f];
-          g_f[f] += m ? w * vp : V{};
-          v_alpha += (fv - rp) * vp;
-          rp = m ? alpha * fv + one_m * rp : rp;
+          const V d = splat<V>(fg[f]) - rp;
+          g_f[f] += wm * vp;
+          v_alpha += d * vp;
+          rp += am * d;  // alpha f + (1 - alpha) rp
         }
         v_alpha = v_alpha * Tfront - vTT[i] * inv_one_m;
         Tr[i] = m ? Tfront : Tr[i];
         const M m2 = m & (raw <= splat<V>(Consts<T>::alpha_max));
         const V vG = m2 ? G * v_alpha : V{};
-        g_op += vG;
-        const V v_power = splat<V>(op) * vG;
-        const V dyv = splat<V>(dy);
-        g_mx += v_power * -(splat<V>(a) * dx + splat<V>(b) * dyv);
-        g_my += v_power * -(splat<V>(c) * dyv + splat<V>(b) * dx);
-        g_a += v_power * splat<V>(T(-0.5)) * dx * dx;
-        g_b += v_power * -(dx * dyv);
-        g_c += v_power * splat<V>(T(-0.5) * dy * dy);
+        G0 += vG;
+        G1 += vG * splat<V>(dy);
+        G2 += vG * splat<V>(dy * dy);
       }
       if (!any) continue;
-      gp[0] = hsum<T>(g_mx); gp[1] = hsum<T>(g_my); gp[2] = hsum<T>(g_a);
-      gp[3] = hsum<T>(g_b); gp[4] = hsum<T>(g_c); gp[5] = hsum<T>(g_op);
+      const V S0 = splat<V>(op) * G0, S1 = splat<V>(op) * G1;
+      gp[0] = hsum<T>(-(splat<V>(a) * dx * S0 + splat<V>(b) * S1));
+      gp[1] = hsum<T>(-(splat<V>(c) * S1 + splat<V>(b) * dx * S0));
+      gp[2] = hsum<T>(splat<V>(T(-0.5)) * dx * dx * S0);
+      gp[3] = hsum<T>(-(dx * S1));
+      gp[4] = T(-0.5) * op * hsum<T>(G2);
+      gp[5] = hsum<T>(G0);
       for (int64_t f = 0; f < Fa; ++f) gp[6 + f] = hsum<T>(g_f[f]);
     }
   }
