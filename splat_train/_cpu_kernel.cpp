@@ -270,9 +270,11 @@ inline void row_range(const double* fp, double my, double py0, int rows, int& i0
 inline bool row_hits(const double* fp, double mx, double dy, double px0, int cols) {
   const double hw2 = fp[2] - dy * dy * fp[3];
   if (hw2 < -1e-6 * fp[2]) return false;
-  const double hw = std::sqrt(std::max(hw2, 0.0)) * (1 + 1e-6) + 1.0;
+  // hit when sqrt(max(hw2, 0)) (1 + 1e-6) + 1 reaches the nearer end of [px0 + 0.5,
+  // px0 + cols - 0.5] from xc; squared (no sqrt per row), with a slightly wider factor
   const double xc = mx + fp[1] * dy;
-  return xc + hw >= px0 + 0.5 && xc - hw <= px0 + cols - 0.5;
+  const double e = std::max(px0 + 0.5 - xc, xc - (px0 + cols - 0.5)) - 1.0;
+  return e <= 0 || std::max(hw2, 0.0) * (1 + 4e-6) >= e * e;
 }
 
 // Tile columns [c0, c1) of tile row ty (within the rectangle r = (x0, x1, y0, y1)) where
