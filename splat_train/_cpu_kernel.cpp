@@ -171,29 +171,18 @@ inline Vec<double>::v recip(Vec<double>::v x) { return splat<Vec<double>::v>(1.0
 // Where a Gaussian can reach alpha >= 1/255 inside a tile: the ellipse q = d^T conic d <= r2 =
 // 2 ln(255 op) (+1% + 1e-3 margin; the scalar kernel's footprint rule). Computed once per
 // Gaussian (splat2_footprint: a log, a sqrt and divisions that would otherwise run per tile
-// pair) as one 64-byte record fp[FP * g ..] = (half, b / a, r2 / a, det / a^2, mx, my, dy*,
-// tiles), used by
+// pair) as one 64-byte record fp[FP * g ..] = (half, b / a, r2 / a, det / a^2, mx, my, dy*, 0),
+// used by
 // row_range(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3);
 // row_hits(): whether the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
 // sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres;
-// binning (for_tiles): "tiles", the tile rectangle of the ellipse's bounding box (4 int16
-// packed in the last double, within the 3-sigma rectangle), and per tile row the span where
-// row_hits() can hold (tile_span; dy* is the row offset of the ellipse's rightmost point).
+// binning (for_tiles, from a separate int16 record): the tile rectangle of the ellipse's
+// bounding box (within the 3-sigma rectangle), and per tile row the span where row_hits() can
+// hold (tile_spans; dy* is the row offset of the ellipse's rightmost point).
 // All only skip work whose pixels the blending rules skip anyway. half < 0: opacity below
 // 1/255, nothing to blend. Not positive definite (never after the 0.3 dilation): every row
 // and column (half = r2 / a = 1e300).
 constexpr int FP = 8;
-
-inline void pack_tiles(const int64_t* r, double* slot) {
-  int16_t t[4];
-  for (int k = 0; k < 4; ++k) t[k] = (int16_t)r[k];
-  std::memcpy(slot, t, 8);
-}
-inline void unpack_tiles(const double* slot, int64_t* r) {
-  int16_t t[4];
-  std::memcpy(t, slot, 8);
-  for (int k = 0; k < 4; ++k) r[k] = t[k];
-}
 
 // The tile rectangle [x0, x1) x [y0, y1) of the tiles that hold a pixel centre within one
 // pixel (the blend's margin, plus slack for rounding) of the footprint's bounding box:
@@ -218,8 +207,12 @@ inline void bbox_tiles(const double* fp, const int64_t* r, int64_t* out) {
   if (out[1] <= out[0] || out[3] <= out[2]) { out[1] = out[0]; out[3] = out[2]; }
 }
 
-inline void tile_span(const double* fp, int64_t ty, const int64_t* r, int64_t& c0, int64_t& c1);
-constexpr int SPAN_ROWS = 16;  // tile rows whose spans the footprint pass stores per Gaussian
+template <typename Fn> inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn);
+// Binning record per Gaussian (int16, 64 bytes: one cache line for the depth-ordered passes):
+// its tiles (x0, x1, y0, y1), then the column span (c0, c1) of each of its first SPAN_ROWS tile
+// rows (all of them when the box is at most SPAN_ROWS rows tall).
+constexpr int SPAN_ROWS = 14;
+constexpr int SPREC = 4 + 2 * SPAN_ROWS;
 inline bool use_spans(const double* fp, const int64_t* r) {
   return r[1] - r[0] >= 2 && r[3] - r[2] >= 2 && fp[0] < 1e299;
 }
@@ -243,17 +236,23 @@ inline void footprint(T a, T b, T c, T op, T mx, T my, const int64_t* rect, doub
     // tangent point of the rightmost slice end: d/ddy (b1 dy + sqrt(f2 - f3 dy^2)) = 0
     fp[6] = fp[1] * std::sqrt(fp[2] / (fp[3] * (fp[3] + fp[1] * fp[1])));
   }
-  if (rect) {
+  if (rect && spans) {
     int64_t t[4];
     bbox_tiles(fp, rect, t);
-    pack_tiles(t, fp + 7);
-    if (spans && use_spans(fp, t) && t[3] - t[2] <= SPAN_ROWS)
-      for (int64_t y = t[2]; y < t[3]; ++y) {
-        int64_t c0, c1;
-        tile_span(fp, y, t, c0, c1);
-        spans[2 * (y - t[2])] = (int16_t)c0;
-        spans[2 * (y - t[2]) + 1] = (int16_t)c1;
+    for (int k = 0; k < 4; ++k) spans[k] = (int16_t)t[k];
+    if (t[3] - t[2] <= SPAN_ROWS) {
+      if (use_spans(fp, t)) {
+        tile_spans(fp, t, [&](int64_t y, int64_t c0, int64_t c1) {
+          spans[4 + 2 * (y - t[2])] = (int16_t)c0;
+          spans[5 + 2 * (y - t[2])] = (int16_t)c1;
+        });
+      } else {
+        for (int64_t y = t[2]; y < t[3]; ++y) {
+          spans[4 + 2 * (y - t[2])] = (int16_t)t[0];
+          spans[5 + 2 * (y - t[2])] = (int16_t)t[1];
+        }
       }
+    }
   }
 }
 
@@ -277,36 +276,47 @@ inline bool row_hits(const double* fp, double mx, double dy, double px0, int col
   return e <= 0 || std::max(hw2, 0.0) * (1 + 4e-6) >= e * e;
 }
 
-// Tile columns [c0, c1) of tile row ty (within the rectangle r = (x0, x1, y0, y1)) where
-// row_hits() can hold for a row that row_range() visits: a superset, so binning only the
-// pairs of this span changes no pixel and no gradient (the dropped pairs would blend nothing).
-// Over the band of row offsets dy the tile row's pixel centres span (widened by 1e-3 px for
-// the float32 rounding of dy in the blend, clipped to |dy| <= half), the slice's right end
-// xc + hw = mx + fp1 dy + sqrt(fp2 - fp3 dy^2) is concave where the root is real and linear
-// (fp1 dy, hw clamped to 0) outside: its maximum is at the tangent point dy* (clamped into the
-// band) or at an end of the band; the left end likewise (at -dy*). Then one pixel (the
-// blend's margin) plus a relative 1e-6 of slack; a tile is kept when the x range reaches its
-// pixel centres, as in row_hits().
-inline void tile_span(const double* fp, int64_t ty, const int64_t* r, int64_t& c0, int64_t& c1) {
-  c0 = r[0];
-  c1 = r[1];
+// fn(ty, c0, c1) for each tile row ty of the rectangle r = (x0, x1, y0, y1): the tile columns
+// [c0, c1) within r where row_hits() can hold for a row that row_range() visits. A superset,
+// so binning only these pairs changes no pixel and no gradient (the dropped pairs would blend
+// nothing). The row offsets dy = my - y of tile row ty's pixel centres lie in the band
+// [my - 16 (ty + 1), my - 16 ty] (half a pixel of slack each side, more than the float32
+// rounding of dy in the blend), clipped to |dy| <= half + 1e-3. Over a band the slice's right
+// end xc + hw = mx + fp1 dy + sqrt(fp2 - fp3 dy^2) is concave where the root is real and
+// linear (fp1 dy, hw clamped to 0) outside: its maximum is at the tangent point dy* if the band
+// holds it, else at an end of the band; the left end likewise (at -dy*). Adjacent bands share
+// their ends, so each end's root is taken once. Then one pixel (the blend's margin) plus a
+// relative 1e-6 of slack; a tile is kept when the x range reaches its pixel centres, as in
+// row_hits().
+template <typename Fn>
+inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
   const double mx = fp[4], my = fp[5], b1 = fp[1], f2 = fp[2], f3 = fp[3], dstar = fp[6];
-  const double py0 = (double)(ty * TILE);
-  const double lo = std::max(my - (py0 + TILE - 0.5) - 1e-3, -fp[0] - 1e-3);
-  const double hi = std::min(my - (py0 + 0.5) + 1e-3, fp[0] + 1e-3);
-  if (!(lo <= hi)) return;  // cannot happen inside the bounding box: keep the row
-  const double hlo = std::sqrt(std::max(f2 - lo * lo * f3, 0.0));
-  const double hhi = std::sqrt(std::max(f2 - hi * hi * f3, 0.0));
-  const double dp = std::min(std::max(dstar, lo), hi), dm = std::min(std::max(-dstar, lo), hi);
-  const double xr = std::max(std::max(b1 * dp + std::sqrt(std::max(f2 - dp * dp * f3, 0.0)), b1 * lo + hlo), b1 * hi + hhi);
-  const double xl = std::min(std::min(b1 * dm - std::sqrt(std::max(f2 - dm * dm * f3, 0.0)), b1 * lo - hlo), b1 * hi - hhi);
-  const double slack = 1.0 + 1e-3 + 1e-6 * (std::fabs(mx) + std::fabs(b1) * (std::fabs(lo) + std::fabs(hi)) + std::sqrt(f2));
-  // tile tx is hit when xmax >= 16 tx + 0.5 and xmin <= 16 tx + 15.5
-  const double t0 = std::ceil((mx + xl - slack - (TILE - 0.5)) / TILE), t1 = std::floor((mx + xr + slack - 0.5) / TILE) + 1;
-  if (std::isnan(t0) || std::isnan(t1)) return;
-  if (!(t0 < t1)) { c1 = c0; return; }
-  if (t0 > (double)c0) c0 = t0 >= (double)c1 ? c1 : (int64_t)t0;
-  if (t1 < (double)c1) c1 = t1 <= (double)c0 ? c0 : (int64_t)t1;
+  const double H = fp[0] + 1e-3;
+  const double slack = 1.0 + 1e-3 + 1e-6 * (std::fabs(mx) + std::fabs(b1) * H + std::sqrt(f2));
+  auto hw = [&](double d) { return std::sqrt(std::max(f2 - d * d * f3, 0.0)); };
+  double e1 = std::min(std::max(my - (double)(r[2] * TILE), -H), H);  // band top end (larger dy)
+  double h1 = hw(e1);
+  for (int64_t y = r[2]; y < r[3]; ++y) {
+    const double e0 = std::min(std::max(my - (double)((y + 1) * TILE), -H), H);
+    const double h0 = hw(e0);
+    double xr = std::max(b1 * e0 + h0, b1 * e1 + h1);
+    double xl = std::min(b1 * e0 - h0, b1 * e1 - h1);
+    if (dstar > e0 && dstar < e1) xr = std::max(xr, b1 * dstar + hw(dstar));
+    if (-dstar > e0 && -dstar < e1) xl = std::min(xl, -b1 * dstar - hw(dstar));
+    e1 = e0;
+    h1 = h0;
+    int64_t c0 = r[0], c1 = r[1];
+    // tile tx is hit when xmax >= 16 tx + 0.5 and xmin <= 16 tx + 15.5
+    const double t0 = std::ceil((mx + xl - slack - (TILE - 0.5)) / TILE);
+    const double t1 = std::floor((mx + xr + slack - 0.5) / TILE) + 1;
+    if (!(t0 < t1)) {
+      if (!std::isnan(t0) && !std::isnan(t1)) c1 = c0;
+    } else {
+      if (t0 > (double)c0) c0 = t0 >= (double)c1 ? c1 : (int64_t)t0;
+      if (t1 < (double)c1) c1 = t1 <= (double)c0 ? c0 : (int64_t)t1;
+    }
+    fn(y, c0, c1);
+  }
 }
 
 // Binning visits Gaussians in depth order, i.e. at random addresses: fetch the rectangle and
@@ -315,9 +325,7 @@ inline void tile_span(const double* fp, int64_t ty, const int64_t* r, int64_t& c
 constexpr int64_t PREFETCH = 8;
 inline void prefetch_gaussian(const int64_t* rect, const double* fps, const int16_t* sps, int64_t g) {
   if (fps) {
-    __builtin_prefetch(fps + FP * g);
-    __builtin_prefetch(fps + FP * g + FP - 1);  // the record's one line, or two if unaligned
-    __builtin_prefetch(sps + 2 * SPAN_ROWS * g);
+    __builtin_prefetch(sps + SPREC * g);
   } else {
     __builtin_prefetch(rect + 4 * g);
   }
@@ -327,24 +335,26 @@ inline void prefetch_gaussian(const int64_t* rect, const double* fps, const int1
 // footprints its rectangle r; with them the footprint's bounding-box tiles, and where that has
 // two or more rows and columns only each row's span (with one row or one column every tile of
 // the box is reached: the ellipse is connected and touches every row and column of its box).
-// The spans of boxes up to SPAN_ROWS tile rows tall come from the footprint pass (sp), taller
-// ones are computed here.
+// From the binning record sp when given (taller boxes: their spans computed here from fp).
 template <typename Fn>
 inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
   int64_t r[4];
-  if (fp) unpack_tiles(fp + 7, r);
-  else for (int k = 0; k < 4; ++k) r[k] = rect[k];
-  const bool spans = fp && use_spans(fp, r);
-  const bool stored = spans && r[3] - r[2] <= SPAN_ROWS;
-  for (int64_t y = r[2]; y < r[3]; ++y) {
-    int64_t c0 = r[0], c1 = r[1];
-    if (stored) {
-      c0 = sp[2 * (y - r[2])];
-      c1 = sp[2 * (y - r[2]) + 1];
-    } else if (spans) {
-      tile_span(fp, y, r, c0, c1);
-    }
-    for (int64_t x = c0; x < c1; ++x) fn(y, x);
+  if (!sp) {
+    for (int64_t y = rect[2]; y < rect[3]; ++y)
+      for (int64_t x = rect[0]; x < rect[1]; ++x) fn(y, x);
+    return;
+  }
+  for (int k = 0; k < 4; ++k) r[k] = sp[k];
+  if (r[3] - r[2] <= SPAN_ROWS) {
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = sp[4 + 2 * (y - r[2])]; x < sp[5 + 2 * (y - r[2])]; ++x) fn(y, x);
+  } else if (use_spans(fp, r)) {
+    tile_spans(fp, r, [&](int64_t y, int64_t c0, int64_t c1) {
+      for (int64_t x = c0; x < c1; ++x) fn(y, x);
+    });
+  } else {
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = r[0]; x < r[1]; ++x) fn(y, x);
   }
 }
 
@@ -626,7 +636,7 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 // rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so each
 // Gaussian's pair gradients lie next to each other for splat2_reduce. The output does not depend
 // on the number of threads. A Gaussian's tiles: its rectangle rect [N, 4], and with fp
-// (footprints [FP N] and spans [2 SPAN_ROWS N] computed with the rectangles, may be null) only
+// (footprints [FP N] and binning records [SPREC N] computed with the rectangles, may be null) only
 // the tiles its alpha >= 1/255 ellipse can reach (for_tiles).
 void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                       const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
@@ -638,7 +648,7 @@ void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, cons
       const int64_t g = order[k];
       if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
       int64_t a = 0;
-      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + 2 * SPAN_ROWS * g : nullptr, [&](int64_t y, int64_t x) {
+      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         ++cnt[y * tiles_x + x];
         ++a;
       });
@@ -658,7 +668,7 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       const int64_t g = order[k];
       if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
       int64_t q = ps[k];
-      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + 2 * SPAN_ROWS * g : nullptr, [&](int64_t y, int64_t x) {
+      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
         gauss[pos] = g;
         pslot[pos] = q++;
@@ -669,20 +679,20 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
 }
 
 // fp [FP N] float64: per-Gaussian footprint (see footprint()); with rect [4 N] and sp
-// [2 SPAN_ROWS N] int16 (both may be null) also its tiles for binning (for_tiles). Chunks of 4096 Gaussians.
+// [SPREC N] int16 (both may be null) also its binning record (tiles and spans, for_tiles). Chunks of 4096 Gaussians.
 void splat2_footprint_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
     for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
       footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + 2 * SPAN_ROWS * g : nullptr);
+                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_footprint_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
     for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
       footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                        rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + 2 * SPAN_ROWS * g : nullptr);
+                        rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,

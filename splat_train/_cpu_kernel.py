@@ -40,7 +40,7 @@ __all__ = [
 
 KERNELS = ("cpu", "cpu_v1")
 _BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
-_SPAN_ROWS = 16  # tile-row spans stored per Gaussian by the footprint pass (SPAN_ROWS in the C++)
+_SPAN_RECORD = 32  # int16 binning record per Gaussian: tiles + 14 row spans (SPREC in the C++)
 
 
 def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
@@ -183,7 +183,7 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         if means2d is not None and kernel == "cpu" and max(tiles_x, tiles_y) < 2**15:  # int16 tile rectangles
             dt = means2d.dtype
             mu, co, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, opacities))
-            spans = torch.empty(r.shape[0], _SPAN_ROWS, 2, dtype=torch.int16)
+            spans = torch.empty(r.shape[0], _SPAN_RECORD, dtype=torch.int16)
             fp = _footprints(lib, mu, co, op, _suffix(dt), r, spans)
         fpp = _ptr(fp) if fp is not None else None
         spp = _ptr(spans) if spans is not None else None
@@ -261,8 +261,8 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
 def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix: str,
                 rect: Tensor | None = None, spans: Tensor | None = None) -> Tensor:
     """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
-    contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 16, 2]
-    int16 also its tiles (binning; spans is written)."""
+    contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
+    also its binning record (tiles and per-row spans; spans is written)."""
     fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
     _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
                   _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
