@@ -82,6 +82,36 @@ def test_tight_tile_lists_change_no_pixel_and_no_gradient(dtype, seed):
         assert torch.equal(a, b), name
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_tall_gaussians_spans_computed_on_the_fly(dtype):
+    """Boxes taller than the 14 tile rows whose spans the footprint pass stores take the other
+    branch of for_tiles (spans computed while binning): still bit-identical to the rectangle
+    lists."""
+    from splat_train._cpu_kernel import backward_raw, forward_raw
+
+    W, H = 120, 400  # 25 tile rows
+    means, quats, scales, opac, K = _scene(80, 7, dtype, W, H)
+    scales[:20, 0] = 2.5  # long (sigma ~70 px), rotated by the random quaternions, opaque
+    scales[:20, 1] = 0.05
+    opac[:20] = 0.9
+    with torch.no_grad():
+        proj = project_gaussians(means, quats, scales, torch.eye(4, dtype=dtype), K, W, H)
+    r = proj.rect
+    assert ((r[:, 3] - r[:, 2]) > 14).sum() >= 3, "no box is tall enough to exercise the branch"
+    feats = torch.rand(means.shape[0], 4, generator=torch.Generator().manual_seed(3), dtype=dtype)
+    full, tight = _bins_pair(proj, opac, W, H)
+    assert tight.gauss.numel() < full.gauss.numel()
+    outs = []
+    for bins in (full, tight):
+        accum, t_final, last, count = forward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H)
+        v_acc = torch.randn(accum.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+        v_t = torch.randn(t_final.shape, generator=torch.Generator().manual_seed(2), dtype=dtype)
+        grads = backward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H, t_final, last, v_acc, v_t)
+        outs.append((accum, t_final, count, grads))
+    for name, a, b in zip(("accum", "T", "count", "grads"), outs[0], outs[1]):
+        assert torch.equal(a, b), name
+
+
 def test_low_opacity_gaussian_matches_reference():
     """A faint wide Gaussian (opacity 0.02: alpha < 1/255 beyond ~2.0 sigma, so most of its
     3-sigma rectangle's tiles are dropped) and a thin diagonal one (its rectangle's corner
