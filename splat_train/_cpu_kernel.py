@@ -316,8 +316,11 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
     v = torch.zeros(n, 6 + nf, dtype=dt)
     # trailing feature channels whose cotangent is zero everywhere are skipped (exact)
-    nz = torch.nonzero(v_accum.reshape(-1, nf).ne(0).any(0)).flatten()
-    n_active = int(nz[-1]) + 1 if nz.numel() else 0
+    # (one strided pass per trailing channel checked: usually two, the depth and the blue
+    # channel, instead of a comparison over all channels and a reduction)
+    n_active = nf
+    while n_active > 0 and not bool(v_accum[..., n_active - 1].any()):
+        n_active -= 1
     with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
         v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
         _run_threaded(
