@@ -157,7 +157,7 @@ inline Vec<float>::v recip(Vec<float>::v x) {
 #if defined(__AVX512F__)
   __m512 xv, r;
   std::memcpy(&xv, &x, 64);
-  r = _mm512_rcp14_ps(xv);
+  r = _mm512_maskz_rcp14_ps(0xFFFF, xv);  // (the unmasked form trips -Wmaybe-uninitialized in GCC 12's header)
   r = _mm512_mul_ps(r, _mm512_fnmadd_ps(xv, r, _mm512_set1_ps(2.0f)));
   Vec<float>::v out;
   std::memcpy(&out, &r, 64);
