@@ -9,7 +9,7 @@ a synthetic scene: N Gaussians uniformly in the view frustum at depth 2..6, scal
 the mean spacing (log-normal spread), random rotations, opacities 0.05..0.95, focal = width.
 
 Reported per configuration: seconds per iteration (best of --reps), iterations per second,
-tile-Gaussian pairs, Gaussian-pixel pairs actually blended (from the kernel's per-pixel
+tile-Gaussian pairs (3-sigma rectangles, and the "cpu" kernel's tighter lists), Gaussian-pixel pairs actually blended (from the kernel's per-pixel
 counts) and blended pairs per second; and the distance to an operation-count bound: a
 measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
 
@@ -99,11 +99,14 @@ def count_pairs(n: int, width: int, height: int) -> dict:
     with torch.no_grad():
         proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
         bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        tight = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height, "cpu", proj.means2d,
+                                    proj.conics, params[3])
         feats = torch.zeros(n, 4)
         _, t_final, _, count = _cpu_kernel.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
     return {
         "visible": int(proj.visible.sum()),
-        "tile_pairs": int(bins.gauss.numel()),
+        "tile_pairs": int(bins.gauss.numel()),  # 3-sigma rectangles (cpu_v1, torch)
+        "tile_pairs_tight": int(tight.gauss.numel()),  # the "cpu" kernel's lists (alpha >= 1/255 tiles)
         "blended_pairs": int(count.sum()),
         "mean_alpha": float((1 - t_final).mean()),
     }

@@ -6,7 +6,8 @@ Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (be
 * ``project``: EWA projection with autograd graph (float64 maths), forward only; for the
   "cpu" backend the fused C++ projection + SH (``_cpu_project``), forward only;
 * ``sh``: SH degree-3 colour, forward only (torch; 0 for "cpu", fused into ``project``);
-* ``bin``: depth sort + tile lists (``tile_pairs_cpu``);
+* ``bin``: depth sort + tile lists (``bin_cpu``; for "cpu" with the footprints, i.e. the tight
+  lists and the footprint pass that the blend then reuses);
 * ``blend_fwd`` / ``blend_bwd``: the C++ blending kernel forward / backward (raw entries,
   including the per-pair gradient reduction);
 * ``total_fwd`` / ``total_fwd_bwd``: the whole ``rasterize`` call and its backward
@@ -14,11 +15,13 @@ Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (be
   the backward of projection and SH plus glue.
 
     python benchmarks/profile_rasterizer.py --sizes 100000x256 100000x512 --backend cpu
+    python benchmarks/profile_rasterizer.py --cpu-time   # CPU ms on one thread (loaded box, A/B of builds)
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import sys
 import time
@@ -31,12 +34,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.bench_rasterizer import make_scene  # noqa: E402
 
 
+_CLOCK = time.perf_counter
+
+
 def _best(fn, reps: int) -> float:
     best = float("inf")
     for _ in range(reps):
-        t0 = time.perf_counter()
+        t0 = _CLOCK()
         fn()
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, _CLOCK() - t0)
     return best
 
 
@@ -62,8 +68,12 @@ def profile(n: int, size: int, backend: str, reps: int) -> dict[str, float]:
         proj = project_gaussians(means, quats, scales, eye, K, size, size)
         feats = torch.cat([sh_to_color(3, sh, means, torch.zeros(3)), proj.depths[:, None]], 1).contiguous()
     fns = _cpu_kernel.backend_functions(backend)
-    res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size), reps)
-    bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size)
+    # "cpu" bins with the footprints (tight tile lists, as rasterize does); "cpu_v1" by rectangle
+    kw = {"means2d": proj.means2d, "conics": proj.conics, "opacities": opac.detach()} if backend == "cpu" else {}
+    if kw and "means2d" not in inspect.signature(_cpu_kernel.bin_cpu).parameters:
+        kw = {}  # an older tree (before the tight tile lists): rectangle bins
+    res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size, **kw), reps)
+    bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, size, size, **kw)
     fwd = lambda: fns.forward_raw(proj.means2d, proj.conics, feats, opac.detach(), bins, size, size)  # noqa: E731
     res["blend_fwd"] = _best(fwd, reps)
     accum, t_final, last, _ = fwd()
@@ -91,12 +101,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the kernel uses --kernel-threads)")
     ap.add_argument("--kernel-threads", type=int, default=2)
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time by the calling thread's CPU time (sets torch and kernel threads to 1): robust to "
+                         "waiting for a core on a loaded box, for comparing builds")
     args = ap.parse_args(argv)
+    if args.cpu_time:
+        global _CLOCK
+        _CLOCK = time.thread_time
+        args.threads = args.kernel_threads = 1
     torch.set_num_threads(args.threads)
     from splat_train import _cpu_kernel
 
     _cpu_kernel.set_kernel_threads(args.kernel_threads)
-    print(f"load average {os.getloadavg()}, torch threads {args.threads}, kernel threads {args.kernel_threads}")
+    print(f"load average {os.getloadavg()}, torch threads {args.threads}, kernel threads {args.kernel_threads}"
+          + (", CPU time of the calling thread" if args.cpu_time else ", wall clock"))
     keys = ["project", "sh", "bin", "blend_fwd", "blend_bwd", "autograd_rest", "total_fwd", "total_fwd_bwd"]
     print(f"{'backend':>8} {'case':>12} " + " ".join(f"{k:>13}" for k in keys) + "  (ms)")
     for s in args.sizes:

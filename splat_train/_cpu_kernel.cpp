@@ -150,28 +150,110 @@ inline Vec<double>::v vexp(Vec<double>::v x) {
   return r;
 }
 
+// 1 / x for x in [0.01, 1] (1 - alpha). float with AVX-512: the 14-bit estimate and one
+// Newton step (~2^-28 relative, within an ulp or two of the division, at a fraction of its
+// cost); float64 and other builds divide.
+inline Vec<float>::v recip(Vec<float>::v x) {
+#if defined(__AVX512F__)
+  __m512 xv, r;
+  std::memcpy(&xv, &x, 64);
+  r = _mm512_maskz_rcp14_ps(0xFFFF, xv);  // (the unmasked form trips -Wmaybe-uninitialized in GCC 12's header)
+  r = _mm512_mul_ps(r, _mm512_fnmadd_ps(xv, r, _mm512_set1_ps(2.0f)));
+  Vec<float>::v out;
+  std::memcpy(&out, &r, 64);
+  return out;
+#else
+  return splat<Vec<float>::v>(1.0f) / x;
+#endif
+}
+inline Vec<double>::v recip(Vec<double>::v x) { return splat<Vec<double>::v>(1.0) / x; }
+
 // Where a Gaussian can reach alpha >= 1/255 inside a tile: the ellipse q = d^T conic d <= r2 =
 // 2 ln(255 op) (+1% + 1e-3 margin; the scalar kernel's footprint rule). Computed once per
 // Gaussian (splat2_footprint: a log, a sqrt and divisions that would otherwise run per tile
-// pair) as fp[4 g ..] = (half, b / a, r2 / a, det / a^2):
-// rows(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3);
-// hits(): whether the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
-// sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres.
-// Both only skip work whose pixels the blending rules skip anyway. half < 0: opacity below
+// pair) as one 64-byte record fp[FP * g ..] = (half, b / a, r2 / a, det / a^2, mx, my, dy*, 0),
+// used by
+// row_range(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3);
+// row_hits(): whether the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
+// sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres;
+// binning (for_tiles, from a separate int16 record): the tile rectangle of the ellipse's
+// bounding box (within the 3-sigma rectangle), and per tile row the span where row_hits() can
+// hold (tile_spans; dy* is the row offset of the ellipse's rightmost point).
+// All only skip work whose pixels the blending rules skip anyway. half < 0: opacity below
 // 1/255, nothing to blend. Not positive definite (never after the 0.3 dilation): every row
 // and column (half = r2 / a = 1e300).
+constexpr int FP = 8;
+
+// The tile rectangle [x0, x1) x [y0, y1) of the tiles that hold a pixel centre within one
+// pixel (the blend's margin, plus slack for rounding) of the footprint's bounding box:
+// rows |dy| <= half + 1e-3 (the float32 rounding of dy in the blend), x within the widest
+// slice sqrt(r2 / a (1 + b^2 / (a c - b^2))) of the centre, clipped to the 3-sigma rectangle r.
+inline void bbox_tiles(const double* fp, const int64_t* r, int64_t* out) {
+  for (int k = 0; k < 4; ++k) out[k] = r[k];
+  if (fp[0] < 0) { out[1] = out[0]; out[3] = out[2]; return; }
+  if (!(fp[0] < 1e299)) return;
+  const double mx = fp[4], my = fp[5], b1 = fp[1], f2 = fp[2], f3 = fp[3];
+  const double X = std::sqrt(f2 * (f3 + b1 * b1) / f3);
+  const double slack = 1.0 + 1e-3 + 2e-3 * std::fabs(b1) + 1e-6 * (std::fabs(mx) + X);
+  const double ys = fp[0] + 1e-3 + 1e-6 * std::fabs(my);
+  const double t[4] = {std::ceil((mx - X - slack - (TILE - 0.5)) / TILE), std::floor((mx + X + slack - 0.5) / TILE) + 1,
+                       std::ceil((my - ys - (TILE - 0.5)) / TILE), std::floor((my + ys - 0.5) / TILE) + 1};
+  for (int k = 0; k < 4; ++k)
+    if (std::isnan(t[k])) return;
+  for (int k = 0; k < 4; k += 2) {
+    if (t[k] > (double)out[k]) out[k] = t[k] >= (double)out[k + 1] ? out[k + 1] : (int64_t)t[k];
+    if (t[k + 1] < (double)out[k + 1]) out[k + 1] = t[k + 1] <= (double)out[k] ? out[k] : (int64_t)t[k + 1];
+  }
+  if (out[1] <= out[0] || out[3] <= out[2]) { out[1] = out[0]; out[3] = out[2]; }
+}
+
+template <typename Fn> inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn);
+// Binning record per Gaussian (int16, 64 bytes: one cache line for the depth-ordered passes):
+// its tiles (x0, x1, y0, y1), then the column span (c0, c1) of each of its first SPAN_ROWS tile
+// rows (all of them when the box is at most SPAN_ROWS rows tall).
+constexpr int SPAN_ROWS = 14;
+constexpr int SPREC = 4 + 2 * SPAN_ROWS;
+inline bool use_spans(const double* fp, const int64_t* r) {
+  return r[1] - r[0] >= 2 && r[3] - r[2] >= 2 && fp[0] < 1e299;
+}
+
 template <typename T>
-inline void footprint(T a, T b, T c, T op, double* fp) {
-  if (op < Consts<T>::alpha_min) { fp[0] = -1; fp[1] = fp[2] = fp[3] = 0; return; }
-  if (!((a > 0) && (c > 0) && (a * c - b * b > 0))) { fp[0] = fp[2] = 1e300; fp[1] = fp[3] = 0; return; }
-  const double lim = std::max(255.0 * (double)op, 1.0);
-  const double r2 = (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
-  const double da = a, db = b, dc = c;
-  const double det_a = (da * dc - db * db) / da;
-  fp[0] = std::sqrt(r2 / det_a) + 1e-3;
-  fp[1] = db / da;
-  fp[2] = r2 / da;
-  fp[3] = det_a / da;
+inline void footprint(T a, T b, T c, T op, T mx, T my, const int64_t* rect, double* fp, int16_t* spans) {
+  fp[4] = mx; fp[5] = my; fp[6] = 0; fp[7] = 0;
+  if (op < Consts<T>::alpha_min) {
+    fp[0] = -1; fp[1] = fp[2] = fp[3] = 0;
+  } else if (!((a > 0) && (c > 0) && (a * c - b * b > 0))) {
+    fp[0] = fp[2] = 1e300; fp[1] = fp[3] = 0;
+  } else {
+    const double lim = std::max(255.0 * (double)op, 1.0);
+    const double r2 = (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
+    const double da = a, db = b, dc = c;
+    const double det_a = (da * dc - db * db) / da;
+    fp[0] = std::sqrt(r2 / det_a) + 1e-3;
+    fp[1] = db / da;
+    fp[2] = r2 / da;
+    fp[3] = det_a / da;
+    // tangent point of the rightmost slice end: d/ddy (b1 dy + sqrt(f2 - f3 dy^2)) = 0
+    fp[6] = fp[1] * std::sqrt(fp[2] / (fp[3] * (fp[3] + fp[1] * fp[1])));
+  }
+  if (rect && spans) {
+    int64_t t[4];
+    bbox_tiles(fp, rect, t);
+    for (int k = 0; k < 4; ++k) spans[k] = (int16_t)t[k];
+    if (t[3] - t[2] <= SPAN_ROWS) {
+      if (use_spans(fp, t)) {
+        tile_spans(fp, t, [&](int64_t y, int64_t c0, int64_t c1) {
+          spans[4 + 2 * (y - t[2])] = (int16_t)c0;
+          spans[5 + 2 * (y - t[2])] = (int16_t)c1;
+        });
+      } else {
+        for (int64_t y = t[2]; y < t[3]; ++y) {
+          spans[4 + 2 * (y - t[2])] = (int16_t)t[0];
+          spans[5 + 2 * (y - t[2])] = (int16_t)t[1];
+        }
+      }
+    }
+  }
 }
 
 inline void row_range(const double* fp, double my, double py0, int rows, int& i0, int& i1) {
@@ -187,9 +269,93 @@ inline void row_range(const double* fp, double my, double py0, int rows, int& i0
 inline bool row_hits(const double* fp, double mx, double dy, double px0, int cols) {
   const double hw2 = fp[2] - dy * dy * fp[3];
   if (hw2 < -1e-6 * fp[2]) return false;
-  const double hw = std::sqrt(std::max(hw2, 0.0)) * (1 + 1e-6) + 1.0;
+  // hit when sqrt(max(hw2, 0)) (1 + 1e-6) + 1 reaches the nearer end of [px0 + 0.5,
+  // px0 + cols - 0.5] from xc; squared (no sqrt per row), with a slightly wider factor
   const double xc = mx + fp[1] * dy;
-  return xc + hw >= px0 + 0.5 && xc - hw <= px0 + cols - 0.5;
+  const double e = std::max(px0 + 0.5 - xc, xc - (px0 + cols - 0.5)) - 1.0;
+  return e <= 0 || std::max(hw2, 0.0) * (1 + 4e-6) >= e * e;
+}
+
+// fn(ty, c0, c1) for each tile row ty of the rectangle r = (x0, x1, y0, y1): the tile columns
+// [c0, c1) within r where row_hits() can hold for a row that row_range() visits. A superset,
+// so binning only these pairs changes no pixel and no gradient (the dropped pairs would blend
+// nothing). The row offsets dy = my - y of tile row ty's pixel centres lie in the band
+// [my - 16 (ty + 1), my - 16 ty] (half a pixel of slack each side, more than the float32
+// rounding of dy in the blend), clipped to |dy| <= half + 1e-3. Over a band the slice's right
+// end xc + hw = mx + fp1 dy + sqrt(fp2 - fp3 dy^2) is concave where the root is real and
+// linear (fp1 dy, hw clamped to 0) outside: its maximum is at the tangent point dy* if the band
+// holds it, else at an end of the band; the left end likewise (at -dy*). Adjacent bands share
+// their ends, so each end's root is taken once. Then one pixel (the blend's margin) plus a
+// relative 1e-6 of slack; a tile is kept when the x range reaches its pixel centres, as in
+// row_hits().
+template <typename Fn>
+inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
+  const double mx = fp[4], my = fp[5], b1 = fp[1], f2 = fp[2], f3 = fp[3], dstar = fp[6];
+  const double H = fp[0] + 1e-3;
+  const double slack = 1.0 + 1e-3 + 1e-6 * (std::fabs(mx) + std::fabs(b1) * H + std::sqrt(f2));
+  auto hw = [&](double d) { return std::sqrt(std::max(f2 - d * d * f3, 0.0)); };
+  double e1 = std::min(std::max(my - (double)(r[2] * TILE), -H), H);  // band top end (larger dy)
+  double h1 = hw(e1);
+  for (int64_t y = r[2]; y < r[3]; ++y) {
+    const double e0 = std::min(std::max(my - (double)((y + 1) * TILE), -H), H);
+    const double h0 = hw(e0);
+    double xr = std::max(b1 * e0 + h0, b1 * e1 + h1);
+    double xl = std::min(b1 * e0 - h0, b1 * e1 - h1);
+    if (dstar > e0 && dstar < e1) xr = std::max(xr, b1 * dstar + hw(dstar));
+    if (-dstar > e0 && -dstar < e1) xl = std::min(xl, -b1 * dstar - hw(dstar));
+    e1 = e0;
+    h1 = h0;
+    int64_t c0 = r[0], c1 = r[1];
+    // tile tx is hit when xmax >= 16 tx + 0.5 and xmin <= 16 tx + 15.5
+    const double t0 = std::ceil((mx + xl - slack - (TILE - 0.5)) / TILE);
+    const double t1 = std::floor((mx + xr + slack - 0.5) / TILE) + 1;
+    if (!(t0 < t1)) {
+      if (!std::isnan(t0) && !std::isnan(t1)) c1 = c0;
+    } else {
+      if (t0 > (double)c0) c0 = t0 >= (double)c1 ? c1 : (int64_t)t0;
+      if (t1 < (double)c1) c1 = t1 <= (double)c0 ? c0 : (int64_t)t1;
+    }
+    fn(y, c0, c1);
+  }
+}
+
+// Binning visits Gaussians in depth order, i.e. at random addresses: fetch the rectangle and
+// footprint a few Gaussians ahead (the loop over tiles is too branchy for the CPU to overlap
+// those misses by itself).
+constexpr int64_t PREFETCH = 8;
+inline void prefetch_gaussian(const int64_t* rect, const double* fps, const int16_t* sps, int64_t g) {
+  if (fps) {
+    __builtin_prefetch(sps + SPREC * g);
+  } else {
+    __builtin_prefetch(rect + 4 * g);
+  }
+}
+
+// The tiles of one Gaussian, tile rows in order, each row's span left to right: without
+// footprints its rectangle r; with them the footprint's bounding-box tiles, and where that has
+// two or more rows and columns only each row's span (with one row or one column every tile of
+// the box is reached: the ellipse is connected and touches every row and column of its box).
+// From the binning record sp when given (taller boxes: their spans computed here from fp).
+template <typename Fn>
+inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
+  int64_t r[4];
+  if (!sp) {
+    for (int64_t y = rect[2]; y < rect[3]; ++y)
+      for (int64_t x = rect[0]; x < rect[1]; ++x) fn(y, x);
+    return;
+  }
+  for (int k = 0; k < 4; ++k) r[k] = sp[k];
+  if (r[3] - r[2] <= SPAN_ROWS) {
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = sp[4 + 2 * (y - r[2])]; x < sp[5 + 2 * (y - r[2])]; ++x) fn(y, x);
+  } else if (use_spans(fp, r)) {
+    tile_spans(fp, r, [&](int64_t y, int64_t c0, int64_t c1) {
+      for (int64_t x = c0; x < c1; ++x) fn(y, x);
+    });
+  } else {
+    for (int64_t y = r[2]; y < r[3]; ++y)
+      for (int64_t x = r[0]; x < r[1]; ++x) fn(y, x);
+  }
 }
 
 template <typename T>
@@ -226,7 +392,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const T op = opac[g];
-      const double* fp = fps + 4 * g;
+      const double* fp = fps + FP * g;
       if (fp[0] < 0) continue;
       int i0, i1;
       row_range(fp, (double)my, (double)y0, rows, i0, i1);
@@ -327,12 +493,15 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const T op = opac[g];
-      const double* fp = fps + 4 * g;
+      const double* fp = fps + FP * g;
       if (fp[0] < 0) continue;
       int i0, i1;
       row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
-      V g_mx{}, g_my{}, g_a{}, g_b{}, g_c{}, g_op{}, g_f[MAXF];
+      // per lane: G0 = sum over rows of dL/dG (masked), G1 = sum dy dL/dG, G2 = sum dy^2 dL/dG;
+      // dx is constant along a lane, so the five conic/mean gradients follow from these three
+      // once per pair (v_power = op dL/dG, power = -(a dx^2 + c dy^2) / 2 - b dx dy)
+      V G0{}, G1{}, G2{}, g_f[MAXF];
       for (int64_t f = 0; f < Fa; ++f) g_f[f] = V{};
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
@@ -350,35 +519,35 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const M m = pos & (lk < last[i]) & (alpha >= splat<V>(Consts<T>::alpha_min));
         if (!any_lane(m)) continue;
         any = true;
-        const V one_m = splat<V>(T(1)) - alpha;
-        const V inv_one_m = splat<V>(T(1)) / one_m;
+        const V inv_one_m = recip(splat<V>(T(1)) - alpha);
         const V Tfront = Tr[i] * inv_one_m;
-        const V w = alpha * Tfront;
+        const V am = m ? alpha : V{};  // lanes outside the mask leave rec and g_f unchanged
+        const V wm = am * Tfront;
         V v_alpha{};
         for (int64_t f = 0; f < Fa; ++f) {
-          const V fv = splat<V>(fg[f]);
           V& rp = rec[i * MAXF + f];
           const V vp = vacc[i * MAXF + f];
-          g_f[f] += m ? w * vp : V{};
-          v_alpha += (fv - rp) * vp;
-          rp = m ? alpha * fv + one_m * rp : rp;
+          const V d = splat<V>(fg[f]) - rp;
+          g_f[f] += wm * vp;
+          v_alpha += d * vp;
+          rp += am * d;  // alpha f + (1 - alpha) rp
         }
         v_alpha = v_alpha * Tfront - vTT[i] * inv_one_m;
         Tr[i] = m ? Tfront : Tr[i];
         const M m2 = m & (raw <= splat<V>(Consts<T>::alpha_max));
         const V vG = m2 ? G * v_alpha : V{};
-        g_op += vG;
-        const V v_power = splat<V>(op) * vG;
-        const V dyv = splat<V>(dy);
-        g_mx += v_power * -(splat<V>(a) * dx + splat<V>(b) * dyv);
-        g_my += v_power * -(splat<V>(c) * dyv + splat<V>(b) * dx);
-        g_a += v_power * splat<V>(T(-0.5)) * dx * dx;
-        g_b += v_power * -(dx * dyv);
-        g_c += v_power * splat<V>(T(-0.5) * dy * dy);
+        G0 += vG;
+        G1 += vG * splat<V>(dy);
+        G2 += vG * splat<V>(dy * dy);
       }
       if (!any) continue;
-      gp[0] = hsum<T>(g_mx); gp[1] = hsum<T>(g_my); gp[2] = hsum<T>(g_a);
-      gp[3] = hsum<T>(g_b); gp[4] = hsum<T>(g_c); gp[5] = hsum<T>(g_op);
+      const V S0 = splat<V>(op) * G0, S1 = splat<V>(op) * G1;
+      gp[0] = hsum<T>(-(splat<V>(a) * dx * S0 + splat<V>(b) * S1));
+      gp[1] = hsum<T>(-(splat<V>(c) * S1 + splat<V>(b) * dx * S0));
+      gp[2] = hsum<T>(splat<V>(T(-0.5)) * dx * dx * S0);
+      gp[3] = hsum<T>(-(dx * S1));
+      gp[4] = T(-0.5) * op * hsum<T>(G2);
+      gp[5] = hsum<T>(G0);
       for (int64_t f = 0; f < Fa; ++f) gp[6 + f] = hsum<T>(g_f[f]);
     }
   }
@@ -408,7 +577,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 9; }
+int splat2_abi_version() { return 10; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -460,58 +629,70 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 // Tile lists by a parallel counting sort, in two passes over NCH fixed chunks of the depth
 // order (chunk c = ranks [c M / NCH, (c + 1) M / NCH)), each pass a work item per chunk from a
 // shared counter: splat2_bin_count writes counts [NCH, n_tiles] (the chunk's pairs per tile) and
-// the pair count (rectangle area) of every rank into area [M]; the caller turns these into
-// offsets [n_tiles + 1], the chunk's first position per tile, base [NCH, n_tiles], and ps [M + 1]
+// the pair count of every rank into area [M]; the caller turns these into offsets
+// [n_tiles + 1], the chunk's first position per tile, base [NCH, n_tiles], and ps [M + 1]
 // (prefix sums of the areas); splat2_bin_scatter then writes gauss [P] (each tile's list in
 // front-to-back order, as one sequential counting sort would) and pslot [P]: pair k of Gaussian
 // rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so each
 // Gaussian's pair gradients lie next to each other for splat2_reduce. The output does not depend
-// on the number of threads.
-void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
-                      int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
+// on the number of threads. A Gaussian's tiles: its rectangle rect [N, 4], and with fp
+// (footprints [FP N] and binning records [SPREC N] computed with the rectangles, may be null) only
+// the tiles its alpha >= 1/255 ellipse can reach (for_tiles).
+void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
+                      const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cnt = counts + c * n_tiles;
     for (int64_t t = 0; t < n_tiles; ++t) cnt[t] = 0;
-    for (int64_t k = c * m / nch; k < (c + 1) * m / nch; ++k) {
-      const int64_t* r = rect + 4 * order[k];
-      for (int64_t y = r[2]; y < r[3]; ++y)
-        for (int64_t x = r[0]; x < r[1]; ++x) ++cnt[y * tiles_x + x];
-      area[k] = (r[1] - r[0]) * (r[3] - r[2]);
+    const int64_t k1 = (c + 1) * m / nch;
+    for (int64_t k = c * m / nch; k < k1; ++k) {
+      const int64_t g = order[k];
+      if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
+      int64_t a = 0;
+      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
+        ++cnt[y * tiles_x + x];
+        ++a;
+      });
+      area[k] = a;
     }
   }
 }
 
-void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, int64_t tiles_x,
-                        int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
+void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
+                        const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
                         int64_t* gauss, int64_t* pslot, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
-    for (int64_t k = c * m / nch; k < (c + 1) * m / nch; ++k) {
+    const int64_t k1 = (c + 1) * m / nch;
+    for (int64_t k = c * m / nch; k < k1; ++k) {
       const int64_t g = order[k];
-      const int64_t* r = rect + 4 * g;
+      if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
       int64_t q = ps[k];
-      for (int64_t y = r[2]; y < r[3]; ++y)
-        for (int64_t x = r[0]; x < r[1]; ++x) {
-          const int64_t pos = cursor[y * tiles_x + x]++;
-          gauss[pos] = g;
-          pslot[pos] = q++;
-        }
+      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
+        const int64_t pos = cursor[y * tiles_x + x]++;
+        gauss[pos] = g;
+        pslot[pos] = q++;
+      });
     }
     delete[] cursor;
   }
 }
 
-// fp [4 N] float64: per-Gaussian footprint (see footprint()); chunks of 4096 Gaussians.
-void splat2_footprint_f32(int64_t n, const float* co, const float* op, double* fp, int64_t* nth) {
+// fp [FP N] float64: per-Gaussian footprint (see footprint()); with rect [4 N] and sp
+// [SPREC N] int16 (both may be null) also its binning record (tiles and spans, for_tiles). Chunks of 4096 Gaussians.
+void splat2_footprint_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
+                          double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
     for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], fp + 4 * g);
+      footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
-void splat2_footprint_f64(int64_t n, const double* co, const double* op, double* fp, int64_t* nth) {
+void splat2_footprint_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
+                          double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
     for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], fp + 4 * g);
+      footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                        rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,

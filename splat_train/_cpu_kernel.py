@@ -40,6 +40,7 @@ __all__ = [
 
 KERNELS = ("cpu", "cpu_v1")
 _BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
+_SPAN_RECORD = 32  # int16 binning record per Gaussian: tiles + 14 row spans (SPREC in the C++)
 
 
 def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
@@ -51,12 +52,12 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
         getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 14 if v2 else [i64] * 5 + [vp] * 12
         getattr(lib, f"{pre}backward_{dt}").restype = None
         if v2:
-            getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp]
+            getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
             getattr(lib, f"splat2_footprint_{dt}").restype = None
     if v2:
-        lib.splat2_bin_count.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp]
+        lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
         lib.splat2_bin_count.restype = None
-        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
+        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
         lib.splat2_bin_scatter.restype = None
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
@@ -72,7 +73,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 9, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 10, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -117,6 +118,10 @@ class Bins:
         ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
         pslot: [P] gradient slot of each pair; Gaussian ``order[r]`` owns slots
             ps[r]:ps[r + 1] ("cpu" only).
+        fp: [N, 8] float64 footprints ("cpu" with means2d, conics and opacities given to
+            :func:`bin_cpu`): then the lists hold only the tiles each Gaussian's alpha >= 1/255
+            ellipse can reach, and the kernels reuse the footprints (so they must be called
+            with the same means2d, conics and opacities).
     """
 
     offsets: Tensor
@@ -126,6 +131,7 @@ class Bins:
     order: Tensor | None = None
     ps: Tensor | None = None
     pslot: Tensor | None = None
+    fp: Tensor | None = None
 
 
 def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
@@ -142,16 +148,23 @@ def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
     return order[:m]
 
 
-def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int, kernel: str = "cpu") -> Bins:
+def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int, kernel: str = "cpu",
+            means2d: Tensor | None = None, conics: Tensor | None = None, opacities: Tensor | None = None) -> Bins:
     """Depth order and per-tile Gaussian lists in C (counting sort).
 
     Args:
         depths: [N] camera z. rect: [N, 4] tile rectangle (x_min, x_max, y_min, y_max), max
             exclusive. visible: [N] bool. width, height: image size in pixels.
         kernel: "cpu" (radix depth sort, also the per-Gaussian pair lists) or "cpu_v1".
+        means2d [N, 2], conics [N, 3], opacities [N]: optional ("cpu" only, all three, one
+            dtype): keep, within each rectangle, only the tiles where the Gaussian's alpha can
+            reach 1/255 (the blend's own footprint test, see ``tile_span`` in
+            ``_cpu_kernel.cpp``); the dropped pairs would blend no pixel, so images and
+            gradients are unchanged while binning, blending and reduction visit fewer pairs.
 
     Returns:
-        :class:`Bins`, the same lists as :func:`splat_train._tiles.tile_pairs`.
+        :class:`Bins`; without the footprint arguments the same lists as
+        :func:`splat_train._tiles.tile_pairs`, with them a subsequence of each tile's list.
     """
     lib = load_library(kernel)
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -166,12 +179,20 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
             gauss = torch.empty(total, dtype=torch.int64)
             lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
             return Bins(offsets, gauss, tiles_x, tiles_y)
+        fp = spans = None
+        if means2d is not None and kernel == "cpu" and max(tiles_x, tiles_y) < 2**15:  # int16 tile rectangles
+            dt = means2d.dtype
+            mu, co, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, opacities))
+            spans = torch.empty(r.shape[0], _SPAN_RECORD, dtype=torch.int16)
+            fp = _footprints(lib, mu, co, op, _suffix(dt), r, spans)
+        fpp = _ptr(fp) if fp is not None else None
+        spp = _ptr(spans) if spans is not None else None
         order = _depth_order(lib, depths, visible)
         m = order.numel()
         counts = torch.empty(_BIN_CHUNKS, n_tiles, dtype=torch.int64)
         area = torch.empty(m, dtype=torch.int64)
-        _run_threaded(lib.splat2_bin_count, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(counts),
-                      _ptr(area))
+        _run_threaded(lib.splat2_bin_count, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
+                      _ptr(counts), _ptr(area))
         per_tile = counts.sum(0)
         offsets = torch.zeros(n_tiles + 1, dtype=torch.int64)
         torch.cumsum(per_tile, 0, out=offsets[1:])
@@ -181,9 +202,9 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         total = int(offsets[-1])
         gauss = torch.empty(total, dtype=torch.int64)
         pslot = torch.empty(total, dtype=torch.int64)
-        _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), tiles_x, n_tiles, _BIN_CHUNKS, _ptr(base),
-                      _ptr(ps), _ptr(gauss), _ptr(pslot))
-    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot)
+        _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
+                      _ptr(base), _ptr(ps), _ptr(gauss), _ptr(pslot))
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot, fp)
 
 
 def tile_pairs_cpu(
@@ -222,7 +243,7 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     last = torch.empty(height, width, dtype=torch.int32)
     count = torch.empty(height, width, dtype=torch.int32)
     if kernel == "cpu":
-        fp = _footprints(lib, co, op, suffix)
+        fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
         _run_threaded(
             getattr(lib, f"splat2_forward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
@@ -237,10 +258,15 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     return accum, t_final, last, count
 
 
-def _footprints(lib, conics: Tensor, opacities: Tensor, suffix: str) -> Tensor:
-    """[N, 4] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach)."""
-    fp = torch.empty(conics.shape[0], 4, dtype=torch.float64)
-    _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities), _ptr(fp))
+def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix: str,
+                rect: Tensor | None = None, spans: Tensor | None = None) -> Tensor:
+    """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
+    contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
+    also its binning record (tiles and per-row spans; spans is written)."""
+    fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
+    _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
+                  _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
+                  None if spans is None else _ptr(spans))
     return fp
 
 
@@ -287,11 +313,14 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
             _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
         )
         return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
-    fp = _footprints(lib, co, op, suffix)
+    fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
     v = torch.zeros(n, 6 + nf, dtype=dt)
     # trailing feature channels whose cotangent is zero everywhere are skipped (exact)
-    nz = torch.nonzero(v_accum.reshape(-1, nf).ne(0).any(0)).flatten()
-    n_active = int(nz[-1]) + 1 if nz.numel() else 0
+    # (one strided pass per trailing channel checked: usually two, the depth and the blue
+    # channel, instead of a comparison over all channels and a reduction)
+    n_active = nf
+    while n_active > 0 and not bool(v_accum[..., n_active - 1].any()):
+        n_active -= 1
     with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
         v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
         _run_threaded(
@@ -318,7 +347,7 @@ def backend_functions(kernel: str) -> KernelFunctions:
     """Raw (no-autograd) entries of kernel ``kernel`` ("cpu" or "cpu_v1")."""
     _kernel(kernel)
     return KernelFunctions(
-        tile_pairs=lambda *a: bin_cpu(*a, kernel=kernel),
+        tile_pairs=lambda *a, **kw: bin_cpu(*a, kernel=kernel, **kw),
         forward_raw=lambda *a: forward_raw(*a, kernel=kernel),
         backward_raw=lambda *a: backward_raw(*a, kernel=kernel),
     )
@@ -366,6 +395,10 @@ def blend_cpu(
         raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
     if load_library(kernel) is None:
         raise RuntimeError(f"CPU rasterizer kernel {kernel!r} unavailable: {build_error(kernel)}; use backend='torch'")
-    bins = bin_cpu(depths, rect, visible, width, height, kernel)
     dt = means2d.dtype
-    return _BlendCPU.apply(means2d, conics.to(dt), features.to(dt), opacities.to(dt), bins, width, height, kernel)
+    conics, features, opacities = conics.to(dt), features.to(dt), opacities.to(dt)
+    if kernel == "cpu":  # tight tile lists (only tiles the alpha >= 1/255 ellipse reaches)
+        bins = bin_cpu(depths, rect, visible, width, height, kernel, means2d, conics, opacities)
+    else:
+        bins = bin_cpu(depths, rect, visible, width, height, kernel)
+    return _BlendCPU.apply(means2d, conics, features, opacities, bins, width, height, kernel)
