@@ -14,6 +14,9 @@
 #
 # Environment: KEEP=1 keeps the temporary folder (logs of the daemons and of both runs);
 # LOCAL_RESULTS=DIR reuses the results of an earlier local run of .test/config.yaml.
+# SLURM_TEST_ETC_CONF (default /etc/slurm/slurm.conf) and SLURM_TEST_TMP (default /tmp) move
+# the linked configuration and the state folder; SLURM_TEST_PREFLIGHT_ONLY=1 stops after checking
+# that the configuration path is free (tests/test_slurm_preflight.py).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
@@ -24,9 +27,31 @@ skip() { say "SKIP: $*"; exit "$SKIP"; }
 [[ $(id -u) -eq 0 ]] || skip "needs root (it installs and starts SLURM daemons)"
 [[ -f /etc/debian_version ]] || skip "needs Debian or Ubuntu (apt packages slurm-wlm, slurmdbd, munge, mariadb-server)"
 
-if [[ -e /etc/slurm/slurm.conf || -L /etc/slurm/slurm.conf ]]; then
-    skip "/etc/slurm/slurm.conf exists (a configured SLURM, or a run of this test in progress); this test sets up its own cluster"
+# /etc/slurm/slurm.conf must be free: this test links its own configuration there for the run.
+# A link into a folder of this test whose run was killed (SIGKILL, power loss: no cleanup ran)
+# is removed with that folder, so one killed run does not turn every later run into a skip. The
+# run counts as killed when the PID it recorded is gone and no process names its folder.
+ETC_CONF="${SLURM_TEST_ETC_CONF:-/etc/slurm/slurm.conf}"
+STATE_PREFIX="${SLURM_TEST_TMP:-/tmp}/slurm-test."
+run_is_alive() {  # run_is_alive DIR: a process of the test run that owns DIR still exists
+    local dir=$1 pid
+    pid="$(cat "$dir/owner.pid" 2>/dev/null || true)"
+    [[ -n $pid ]] && kill -0 "$pid" 2>/dev/null && return 0
+    pgrep -f -- "$dir" >/dev/null 2>&1 && return 0
+    return 1
+}
+if [[ -L $ETC_CONF ]]; then
+    PREV="$(readlink "$ETC_CONF")"; PREV_DIR="${PREV%/slurm.conf}"
+    if [[ $PREV == "$STATE_PREFIX"*/slurm.conf && ${PREV_DIR#"$STATE_PREFIX"} != */* ]] \
+        && ! run_is_alive "$PREV_DIR"; then
+        say "removing what a killed run of this test left: $ETC_CONF -> $PREV (no process of that run is alive)"
+        rm -f "$ETC_CONF"; rm -rf "$PREV_DIR"
+    fi
 fi
+if [[ -e $ETC_CONF || -L $ETC_CONF ]]; then
+    skip "$ETC_CONF exists (a configured SLURM, or a run of this test in progress); this test sets up its own cluster"
+fi
+[[ ${SLURM_TEST_PREFLIGHT_ONLY:-0} == 1 ]] && { say "preflight only: $ETC_CONF is free"; exit 0; }
 
 T0=$(date +%s)
 PKGS=(slurm-wlm slurmdbd munge mariadb-server)
@@ -46,8 +71,9 @@ SNAKEMAKE=("$PY" -m snakemake)
 "$PY" -c "import snakemake_executor_plugin_slurm" 2>/dev/null \
     || { say "FAIL: snakemake-executor-plugin-slurm is not installed for $PY"; exit 1; }
 
-S="$(mktemp -d /tmp/slurm-test.XXXXXX)"
+S="$(mktemp -d "${STATE_PREFIX}XXXXXX")"
 chmod 755 "$S"
+echo $$ >"$S/owner.pid"
 PIDS=()
 SNAKE_PID=
 cleanup() {
@@ -67,7 +93,7 @@ cleanup() {
         fi
     done
     [[ -z ${CREATED_RUN_MUNGE:-} ]] || rm -rf /run/munge
-    [[ -z ${LINKED_CONF:-} ]] || rm -f /etc/slurm/slurm.conf
+    [[ -z ${LINKED_CONF:-} ]] || rm -f "$ETC_CONF"
     if [[ ${KEEP:-0} == 1 || ($rc -ne 0 && $rc -ne $SKIP) ]]; then say "logs kept in $S"; else rm -rf "$S"; fi
     exit "$rc"
 }
@@ -173,8 +199,8 @@ printf 'CgroupPlugin=autodetect\n' >"$S/cgroup.conf"
 export SLURM_CONF="$S/slurm.conf"
 # srun inside a job (the executor plugin's job step) reads /etc/slurm/slurm.conf whatever
 # SLURM_CONF says: link ours there for the run (checked free above).
-mkdir -p /etc/slurm
-ln -s "$S/slurm.conf" /etc/slurm/slurm.conf; LINKED_CONF=1
+mkdir -p "$(dirname "$ETC_CONF")"
+ln -s "$S/slurm.conf" "$ETC_CONF"; LINKED_CONF=1
 
 start "$S/slurmdbd.out" slurmdbd -D
 wait_for 60 slurmdbd sacctmgr -n list cluster
