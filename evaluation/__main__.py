@@ -100,7 +100,7 @@ def _cmd_study(args) -> int:
         cells = json.loads(text)
     if args.write_cells:
         write_json(args.write_cells, cells)
-    run_study(args.results, args.out, cells, references=args.reference)
+    run_study(args.results, args.out, cells, references=args.reference, seeds=args.seeds, views=args.views)
     return 0
 
 
@@ -207,6 +207,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="a regular run folder R/{dataset}/{scene}/n{n}/{init} (e.g. COLMAP) to report as a "
                         "reference row beside the cells (repeatable; a failed run is a reported row)")
     p.add_argument("--write-cells", help="also write the grid to this JSON file")
+    p.add_argument("--seeds", type=int, nargs="+",
+                   help="report only these seeds (default: every seed found); with --cells and --views, "
+                        "runs of an earlier grid in the same tree are left out (logged)")
+    p.add_argument("--views", type=int, nargs="+", help="report only these view counts n (default: every n found)")
     p.set_defaults(func=_cmd_study)
     return parser
 

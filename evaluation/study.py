@@ -168,14 +168,36 @@ def collect_curves(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True)[cols] if parts else pd.DataFrame(columns=cols)
 
 
-def collect_study(root: str | Path, cells: dict | None = None) -> pd.DataFrame:
-    """One row per (cell, seed, dataset, scene, n, mode): read_run's columns, ``lpips``
-    (alex when present, else vgg; ``lpips_net`` says which), the best SSIM / LPIPS along the
-    run (:func:`best_along_run`), the floater fractions, the cell's axis / level / base and its
-    oracle noise."""
+def planned_runs(found, cells: dict | None = None, seeds=None, views=None):
+    """Split :func:`find_study_runs` output into the runs the grid plans and the rest.
+
+    A study tree can hold runs of an earlier grid (other views, seeds or cells, e.g. an
+    interrupted run of another config): a run counts only when its cell is in ``cells`` (when
+    given), its seed in ``seeds`` and its view count (the ``n{n}`` folder) in ``views``.
+    Returns (kept, left_out), both lists of the same tuples."""
+    keep, left = [], []
+    for cell, seed, run, mode in found:
+        n = int(_N.match(run.parent.name).group(1))
+        ok = ((not cells or cell in cells) and (seeds is None or seed in seeds)
+              and (views is None or n in views))
+        (keep if ok else left).append((cell, seed, run, mode))
+    return keep, left
+
+
+def collect_study(root: str | Path, cells: dict | None = None, seeds=None, views=None) -> pd.DataFrame:
+    """One row per (cell, seed, dataset, scene, n, mode) that the grid plans
+    (:func:`planned_runs`): read_run's columns, ``lpips`` (alex when present, else vgg;
+    ``lpips_net`` says which), the best SSIM / LPIPS along the run (:func:`best_along_run`),
+    the floater fractions, the cell's axis / level / base and its oracle noise."""
     cells = cells or {}
+    found, left = planned_runs(find_study_runs(root), cells, seeds, views)
+    if left:
+        log.warning("study: left out %d run folders under %s that the grid does not plan "
+                    "(cells %s, seeds %s, views %s), e.g. %s", len(left), root,
+                    "as given" if cells else "any", seeds if seeds is not None else "any",
+                    views if views is not None else "any", left[0][2] / left[0][3])
     rows = []
-    for cell, seed, run, mode in find_study_runs(root):
+    for cell, seed, run, mode in found:
         rec = read_run(run, mode=mode)
         rec.update(cell=cell, seed=seed, **_floaters(run / mode / "floaters.json"))
         rec.update(best_along_run(_read_log(run / mode)))
@@ -554,13 +576,15 @@ def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, p
     return "\n".join(parts)
 
 
-def run_study(root: str | Path, out: str | Path, cells: dict | None = None, references=None) -> Path:
+def run_study(root: str | Path, out: str | Path, cells: dict | None = None, references=None,
+              seeds=None, views=None) -> Path:
     """Write ``out/``: study.md, runs.csv, summary.csv, curves.csv (:func:`collect_curves`),
     references.csv (:func:`collect_references` of the ``references`` run folders), plots/*.png,
-    section.html, index.html."""
+    section.html, index.html. Only the runs the grid plans are read (``cells``, ``seeds``,
+    ``views``: :func:`planned_runs`)."""
     root, out = Path(root), Path(out)
     cells = cells or {}
-    runs = collect_study(root, cells)
+    runs = collect_study(root, cells, seeds, views)
     if runs.empty:
         raise ValueError(f"no study runs under {root} "
                          f"({{cell}}/s{{seed}}/{{dataset}}/{{scene}}/n{{n}}/{{init}}/{{mode}}, init one of {STUDY_INITS})")

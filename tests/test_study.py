@@ -167,14 +167,14 @@ def test_summarise_and_paired_differences_known_numbers():
 
 
 def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered"),
-                     along_run=False, init="oracle", scene="bundled"):
+                     along_run=False, init="oracle", scene="bundled", n=3):
     """A study tree with the files the report reads (metrics, floaters, training log)."""
     import json
 
     rng = np.random.default_rng(0)
     for cell in cells:
         for s in seeds:
-            run = root / cell / f"s{s}" / "synthetic" / scene / "n3" / init
+            run = root / cell / f"s{s}" / "synthetic" / scene / f"n{n}" / init
             run.mkdir(parents=True)
             (run / "status.json").write_text(json.dumps({"success_paper": True, "registered": 3, "noise": {}}))
             (run / "pose.json").write_text(json.dumps({"ate_pct_radius": 1.0 + s, "rel_rot_err_mean_deg": 0.5}))
@@ -217,6 +217,32 @@ def test_run_study_reports_every_mode_with_an_interval(tmp_path):
     section = "".join(_study_section(tmp_path, images))
     assert "Initialisation study" in section and 'src="images/study/' in section
     assert (images / "study" / plots[0]).is_file()
+
+
+def test_study_cli_reports_only_the_planned_grid(tmp_path, capfd):
+    """Runs of an earlier grid left in the same tree (other n, seed or cell, e.g. an
+    interrupted run of another config) are not mixed into the report's intervals."""
+    import json
+
+    from evaluation.__main__ import main
+
+    root = tmp_path / "study"
+    _fake_study_tree(root)                                   # the grid: n = 3, seeds 0-2
+    _fake_study_tree(root, seeds=(0,), n=6)                  # an earlier partial n = 6 run
+    _fake_study_tree(root, cells=("zero",), seeds=(7,))      # a seed the grid does not plan
+    _fake_study_tree(root, cells=("trans_frac-0.1",), seeds=(0,))  # a cell it does not plan
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    args = ["study", "--results", str(root), "--cells", json.dumps(cells)]
+    assert main(args + ["--out", str(tmp_path / "planned"), "--seeds", "0", "1", "2", "--views", "3"]) == 0
+    runs = pd.read_csv(tmp_path / "planned" / "runs.csv")
+    assert sorted(runs["n"].unique()) == [3] and sorted(runs["seed"].unique()) == [0, 1, 2]
+    assert sorted(runs["cell"].unique()) == ["rot_deg-2", "zero"] and len(runs) == 2 * 3 * 3
+    assert "left out 12 run folders" in capfd.readouterr().err
+    md = (tmp_path / "planned" / "study.md").read_text()
+    assert "n = 6" not in md and "| zero |" in md
+    # without a plan (the report alone on a tree) every run found is reported, as before
+    assert main(["study", "--results", str(root), "--out", str(tmp_path / "all")]) == 0
+    assert len(pd.read_csv(tmp_path / "all" / "runs.csv")) == 18 + 12
 
 
 def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_run(tmp_path):

@@ -42,6 +42,9 @@ def test_study_config_plans_the_grid(tmp_path, name):
     report = out.split("rule study_report:")[1]
     for n in cfg["views"]:
         assert f"--reference results/synthetic/bundled/n{n}/colmap" in report
+    # the report reads only the planned grid, never other runs left in the tree
+    plan = " ".join(str(x) for x in cfg["study"]["seeds"]), " ".join(str(n) for n in sorted(cfg["views"]))
+    assert f"--seeds {plan[0]} --views {plan[1]}" in report
 
 
 def test_no_study_section_plans_no_study_jobs(tmp_path):

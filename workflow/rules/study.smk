@@ -192,7 +192,8 @@ rule study_report:
         cells=study_cells_json,
         root=study_root,
         refs=study_reference_args,
+        plan=study_plan_args,
     shell:
         "python -m evaluation study --results {params.root} --cells {params.cells:q} "
-        "--write-cells {output.cells} --out {params.root}/report {params.refs} "
+        "--write-cells {output.cells} --out {params.root}/report {params.refs} {params.plan} "
         "> {log} 2>&1"

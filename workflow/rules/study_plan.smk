@@ -154,6 +154,13 @@ def study_train_inputs(wildcards):
     }
 
 
+def study_plan_args(wildcards=None):
+    """--seeds / --views of the planned grid, so the report leaves out other runs in the tree."""
+    views = sorted({int(n) for ds, sc in study_scenes() for n in scene_views(ds, sc)})
+    seeds = " ".join(str(s) for s in STUDY["seeds"])
+    return f"--seeds {seeds} --views {' '.join(str(n) for n in views)}"
+
+
 def study_root(wildcards, output):
     """R/study, the folder of the study_report rule's cells.json output."""
     return str(Path(output.cells).parent)
