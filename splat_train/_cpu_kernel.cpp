@@ -117,6 +117,20 @@ template <typename T> inline T hsum(typename Vec<T>::v v) {
     for (int l = 0; l < w; ++l) s[l] += s[l + w];
   return s[0];
 }
+#if defined(__AVX2__) || defined(__AVX512F__)
+// The same tree in registers (lane l + lane l + w for w = 8, 4, 2, 1; float addition commutes,
+// so the sums are bit-identical): the generic version went through a stack array, ~9 of them
+// per (tile, Gaussian) pair in the backward.
+template <> inline float hsum<float>(Vec<float>::v v) {
+  __m256 h[2];
+  std::memcpy(h, &v, 64);
+  const __m256 s8 = _mm256_add_ps(h[0], h[1]);
+  const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_extractf128_ps(s8, 1));
+  const __m128 s2 = _mm_add_ps(s4, _mm_movehl_ps(s4, s4));
+  const __m128 s1 = _mm_add_ss(s2, _mm_shuffle_ps(s2, s2, 1));
+  return _mm_cvtss_f32(s1);
+}
+#endif
 
 // exp for power <= 0 (callers mask out the rest). float: Cephes expf polynomial on
 // x = n ln2 + r, |r| <= ln2 / 2, scaled by 2^n through the exponent bits; below -87 -> 0.
