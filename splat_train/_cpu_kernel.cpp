@@ -333,6 +333,168 @@ inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
   }
 }
 
+// footprint() with its binning record for 8 Gaussians at once, one per double lane (the
+// footprint pass is per Gaussian and was scalar, branchy double code: ~10 ms of a 100k
+// Gaussian, 512x512 forward). Each lane computes what footprint() computes (the same double
+// expressions; branches become per-lane selects, the opacity and definiteness tests and the
+// log stay per lane in T); tile_spans() runs over the rows of the tallest lane with its per-row
+// state in lanes. Lanes l >= nl are padding (copies of the first Gaussian), never written.
+namespace fpv {
+typedef double D __attribute__((vector_size(64)));
+typedef int64_t Mk __attribute__((vector_size(64)));
+constexpr int LN = 8;
+inline D bc(double x) { return D{x, x, x, x, x, x, x, x}; }
+inline D vmax(D a, D b) { return a < b ? b : a; }  // std::max
+inline D vmin(D a, D b) { return b < a ? b : a; }  // std::min
+inline D vabs(D x) { return x < bc(0.0) ? -x : x; }
+inline D vsqrt(D x) {
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_sqrt_pd(0xFF, v);  // (masked: the unmasked form trips -Wuninitialized in GCC 12's header)
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_sqrt_pd(v[0]);
+  v[1] = _mm256_sqrt_pd(v[1]);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = std::sqrt(x[l]);
+#endif
+  return r;
+}
+template <int MODE> inline D vround(D x) {  // MODE 1: floor, 2: ceil
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_roundscale_pd(0xFF, v, MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_round_pd(v[0], MODE | _MM_FROUND_NO_EXC);
+  v[1] = _mm256_round_pd(v[1], MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = MODE == 1 ? std::floor(x[l]) : std::ceil(x[l]);
+#endif
+  return r;
+}
+inline D vfloor(D x) { return vround<1>(x); }
+inline D vceil(D x) { return vround<2>(x); }
+inline Mk isnan(D x) { return x != x; }
+
+// Clip [t_lo, t_hi) (doubles, maybe NaN) into [lo, hi) as bbox_tiles() and tile_spans() do.
+inline void clip(D t_lo, D t_hi, D& lo, D& hi) {
+  lo = t_lo > lo ? (t_lo >= hi ? hi : t_lo) : lo;
+  hi = t_hi < hi ? (t_hi <= lo ? lo : t_hi) : hi;
+}
+
+template <typename T>
+void footprint_block(int64_t g0, int nl, const T* co, const T* op, const T* mu, const int64_t* rect,
+                     double* fps, int16_t* sps) {
+  D a, b, c, mx, my, r2;
+  Mk low, npd;  // opacity below 1/255; not positive definite
+  for (int l = 0; l < LN; ++l) {
+    const int64_t g = g0 + (l < nl ? l : 0);
+    const T ta = co[3 * g], tb = co[3 * g + 1], tc = co[3 * g + 2], to = op[g];
+    a[l] = ta; b[l] = tb; c[l] = tc;
+    mx[l] = mu[2 * g]; my[l] = mu[2 * g + 1];
+    low[l] = to < Consts<T>::alpha_min ? -1 : 0;
+    npd[l] = !low[l] && !((ta > 0) && (tc > 0) && (ta * tc - tb * tb > 0)) ? -1 : 0;
+    const double lim = std::max(255.0 * (double)to, 1.0);
+    r2[l] = (low[l] || npd[l]) ? 1.0 : (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
+  }
+  const Mk pd = ~(low | npd);
+  const D det_a = (a * c - b * b) / a;
+  const D f0v = vsqrt(r2 / det_a) + 1e-3, f1v = b / a, f2v = r2 / a, f3v = det_a / a;
+  const D f6v = f1v * vsqrt(f2v / (f3v * (f3v + f1v * f1v)));
+  const D zero = bc(0.0);
+  const D f[8] = {pd ? f0v : (low ? bc(-1.0) : bc(1e300)), pd ? f1v : zero,
+                  pd ? f2v : (low ? zero : bc(1e300)), pd ? f3v : zero, mx, my, pd ? f6v : zero, zero};
+  for (int l = 0; l < nl; ++l)
+    for (int k = 0; k < FP; ++k) fps[FP * (g0 + l) + k] = f[k][l];
+  if (!rect || !sps) return;
+  // bbox_tiles()
+  D t[4];
+  for (int l = 0; l < LN; ++l)
+    for (int k = 0; k < 4; ++k) t[k][l] = (double)rect[4 * (g0 + (l < nl ? l : 0)) + k];
+  const Mk finite = f[0] < bc(1e299);  // false for the 1e300 of npd lanes (and inf, NaN)
+  {
+    const D b1 = f[1], f2 = f[2], f3 = f[3];
+    const D X = vsqrt(f2 * (f3 + b1 * b1) / f3);
+    const D slack = 1.0 + 1e-3 + 2e-3 * vabs(b1) + 1e-6 * (vabs(mx) + X);
+    const D ys = f[0] + 1e-3 + 1e-6 * vabs(my);
+    const D tt[4] = {vceil((mx - X - slack - (TILE - 0.5)) / TILE), vfloor((mx + X + slack - 0.5) / TILE) + 1,
+                     vceil((my - ys - (TILE - 0.5)) / TILE), vfloor((my + ys - 0.5) / TILE) + 1};
+    const Mk use = ~low & finite & ~(isnan(tt[0]) | isnan(tt[1]) | isnan(tt[2]) | isnan(tt[3]));
+    D o[4] = {t[0], t[1], t[2], t[3]};
+    clip(tt[0], tt[1], o[0], o[1]);
+    clip(tt[2], tt[3], o[2], o[3]);
+    const Mk empty = (o[1] <= o[0]) | (o[3] <= o[2]);
+    o[1] = empty ? o[0] : o[1];
+    o[3] = empty ? o[2] : o[3];
+    for (int k = 0; k < 4; ++k) t[k] = use ? o[k] : t[k];
+    t[1] = low ? t[0] : t[1];
+    t[3] = low ? t[2] : t[3];
+  }
+  const D rows = t[3] - t[2];
+  const Mk spans_on = finite & (t[1] - t[0] >= 2.0) & (rows >= 2.0) & (rows <= (double)SPAN_ROWS);
+  int max_rows = 0;
+  for (int l = 0; l < nl; ++l) {
+    int16_t* sp = sps + SPREC * (g0 + l);
+    for (int k = 0; k < 4; ++k) sp[k] = (int16_t)t[k][l];
+    if (rows[l] <= SPAN_ROWS) {
+      if (spans_on[l]) {
+        max_rows = std::max(max_rows, (int)rows[l]);
+      } else {
+        for (int y = 0; y < (int)rows[l]; ++y) {
+          sp[4 + 2 * y] = (int16_t)t[0][l];
+          sp[5 + 2 * y] = (int16_t)t[1][l];
+        }
+      }
+    }
+  }
+  if (max_rows == 0) return;
+  // tile_spans() over the rows of the tallest lane
+  const D b1 = f[1], f2 = f[2], f3 = f[3], dstar = f[6];
+  const D H = f[0] + 1e-3;
+  const D slack = 1.0 + 1e-3 + 1e-6 * (vabs(mx) + vabs(b1) * H + vsqrt(f2));
+  auto hw = [&](D d) { return vsqrt(vmax(f2 - d * d * f3, zero)); };
+  const D hstar = hw(dstar);
+  D e1 = vmin(vmax(my - t[2] * TILE, -H), H);
+  D h1 = hw(e1);
+  for (int y = 0; y < max_rows; ++y) {
+    const D e0 = vmin(vmax(my - (t[2] + (y + 1)) * TILE, -H), H);
+    const D h0 = hw(e0);
+    D xr = vmax(b1 * e0 + h0, b1 * e1 + h1);
+    D xl = vmin(b1 * e0 - h0, b1 * e1 - h1);
+    xr = (dstar > e0) & (dstar < e1) ? vmax(xr, b1 * dstar + hstar) : xr;
+    xl = (-dstar > e0) & (-dstar < e1) ? vmin(xl, -b1 * dstar - hstar) : xl;
+    e1 = e0;
+    h1 = h0;
+    D c0 = t[0], c1 = t[1];
+    const D t0 = vceil((mx + xl - slack - (TILE - 0.5)) / TILE);
+    const D t1 = vfloor((mx + xr + slack - 0.5) / TILE) + 1;
+    const Mk ordered = t0 < t1;
+    D k0 = c0, k1 = c1;
+    clip(t0, t1, k0, k1);
+    const Mk collapse = ~ordered & ~isnan(t0) & ~isnan(t1);
+    c1 = ordered ? k1 : (collapse ? c0 : c1);
+    c0 = ordered ? k0 : c0;
+    for (int l = 0; l < nl; ++l) {
+      if (!spans_on[l] || y >= (int)rows[l]) continue;
+      int16_t* sp = sps + SPREC * (g0 + l);
+      sp[4 + 2 * y] = (int16_t)c0[l];
+      sp[5 + 2 * y] = (int16_t)c1[l];
+    }
+  }
+}
+}  // namespace fpv
+
 // Binning visits Gaussians in depth order, i.e. at random addresses: fetch the rectangle and
 // footprint a few Gaussians ahead (the loop over tiles is too branchy for the CPU to overlap
 // those misses by itself).
@@ -726,16 +888,14 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
 void splat2_footprint_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
-    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); g += fpv::LN)
+      fpv::footprint_block<float>(g, (int)std::min<int64_t>(fpv::LN, n - g), co, op, mu, rect, fp, sp);
 }
 void splat2_footprint_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
-    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                        rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); g += fpv::LN)
+      fpv::footprint_block<double>(g, (int)std::min<int64_t>(fpv::LN, n - g), co, op, mu, rect, fp, sp);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,
