@@ -335,7 +335,8 @@ inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
 
 // footprint() with its binning record for 8 Gaussians at once, one per double lane (the
 // footprint pass is per Gaussian and was scalar, branchy double code: ~10 ms of a 100k
-// Gaussian, 512x512 forward). Each lane computes what footprint() computes (the same double
+// Gaussian, 512x512 forward; the scalar footprint() stays as the reference it must match,
+// splat2_footprint_scalar_*). Each lane computes what footprint() computes (the same double
 // expressions; branches become per-lane selects, the opacity and definiteness tests and the
 // log stay per lane in T); tile_spans() runs over the rows of the tallest lane with its per-row
 // state in lanes. Lanes l >= nl are padding (copies of the first Gaussian), never written.
@@ -513,25 +514,27 @@ inline void prefetch_gaussian(const int64_t* rect, const double* fps, const int1
 // the box is reached: the ellipse is connected and touches every row and column of its box).
 // From the binning record sp when given (taller boxes: their spans computed here from fp).
 template <typename Fn>
-inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
+inline void for_rows(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
   int64_t r[4];
   if (!sp) {
-    for (int64_t y = rect[2]; y < rect[3]; ++y)
-      for (int64_t x = rect[0]; x < rect[1]; ++x) fn(y, x);
+    for (int64_t y = rect[2]; y < rect[3]; ++y) fn(y, rect[0], rect[1]);
     return;
   }
   for (int k = 0; k < 4; ++k) r[k] = sp[k];
   if (r[3] - r[2] <= SPAN_ROWS) {
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = sp[4 + 2 * (y - r[2])]; x < sp[5 + 2 * (y - r[2])]; ++x) fn(y, x);
+    for (int64_t y = r[2]; y < r[3]; ++y) fn(y, (int64_t)sp[4 + 2 * (y - r[2])], (int64_t)sp[5 + 2 * (y - r[2])]);
   } else if (use_spans(fp, r)) {
-    tile_spans(fp, r, [&](int64_t y, int64_t c0, int64_t c1) {
-      for (int64_t x = c0; x < c1; ++x) fn(y, x);
-    });
+    tile_spans(fp, r, fn);
   } else {
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = r[0]; x < r[1]; ++x) fn(y, x);
+    for (int64_t y = r[2]; y < r[3]; ++y) fn(y, r[0], r[1]);
   }
+}
+// The same tiles one by one (for_rows gives each tile row's span [c0, c1)).
+template <typename Fn>
+inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
+  for_rows(rect, fp, sp, [&](int64_t y, int64_t c0, int64_t c1) {
+    for (int64_t x = c0; x < c1; ++x) fn(y, x);
+  });
 }
 
 template <typename T>
@@ -782,7 +785,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 10; }
+int splat2_abi_version() { return 11; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -846,19 +849,30 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                       const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
-    int64_t* cnt = counts + c * n_tiles;
-    for (int64_t t = 0; t < n_tiles; ++t) cnt[t] = 0;
+    // per tile row a difference array (+1 at c0, -1 at c1, one spare column): two updates per
+    // tile row of a Gaussian instead of one per tile, then a prefix sum along each row
+    const int64_t tiles_y = n_tiles / tiles_x, stride = tiles_x + 1;
+    int64_t* diff = new int64_t[tiles_y * stride]();
     const int64_t k1 = (c + 1) * m / nch;
     for (int64_t k = c * m / nch; k < k1; ++k) {
       const int64_t g = order[k];
       if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
       int64_t a = 0;
-      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
-        ++cnt[y * tiles_x + x];
-        ++a;
-      });
+      for_rows(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr,
+               [&](int64_t y, int64_t c0, int64_t c1) {
+                 if (c1 <= c0) return;
+                 ++diff[y * stride + c0];
+                 --diff[y * stride + c1];
+                 a += c1 - c0;
+               });
       area[k] = a;
     }
+    int64_t* cnt = counts + c * n_tiles;
+    for (int64_t y = 0; y < tiles_y; ++y) {
+      int64_t run = 0;
+      for (int64_t x = 0; x < tiles_x; ++x) cnt[y * tiles_x + x] = (run += diff[y * stride + x]);
+    }
+    delete[] diff;
   }
 }
 
@@ -896,6 +910,20 @@ void splat2_footprint_f64(int64_t n, const double* co, const double* op, const d
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
     for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); g += fpv::LN)
       fpv::footprint_block<double>(g, (int)std::min<int64_t>(fpv::LN, n - g), co, op, mu, rect, fp, sp);
+}
+// The scalar footprint() per Gaussian: the reference the vector pass above must match exactly
+// (tests/test_raster_tile_culling.py compares them), not used by the rasterizer.
+void splat2_footprint_scalar_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
+                                 double* fp, int16_t* sp) {
+  for (int64_t g = 0; g < n; ++g)
+    footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                     rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+}
+void splat2_footprint_scalar_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
+                                 double* fp, int16_t* sp) {
+  for (int64_t g = 0; g < n; ++g)
+    footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                      rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int64_t* gs, const float* m, const float* co,

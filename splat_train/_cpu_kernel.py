@@ -54,6 +54,8 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
         if v2:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
             getattr(lib, f"splat2_footprint_{dt}").restype = None
+            getattr(lib, f"splat2_footprint_scalar_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp]
+            getattr(lib, f"splat2_footprint_scalar_{dt}").restype = None
     if v2:
         lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
         lib.splat2_bin_count.restype = None
@@ -73,7 +75,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 10, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 11, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
