@@ -539,7 +539,7 @@ inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, 
 
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
-                  const int64_t* offsets, const int64_t* gauss, const T* means2d,
+                  const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
                   T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
@@ -622,9 +622,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
 // photometric loss), and their gradient rows stay 0.
 template <typename T>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                   const int64_t* offsets, const int64_t* gauss, const T* means2d,
+                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T, const int64_t* pslot,
+                   const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
                    T* v_pair, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
@@ -785,7 +785,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 11; }
+int splat2_abi_version() { return 12; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -878,7 +878,7 @@ void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, cons
 
 void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                         const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
-                        int64_t* gauss, int64_t* pslot, int64_t* next) {
+                        int32_t* gauss, int32_t* pslot, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
@@ -889,8 +889,8 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       int64_t q = ps[k];
       for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
-        gauss[pos] = g;
-        pslot[pos] = q++;
+        gauss[pos] = (int32_t)g;
+        pslot[pos] = (int32_t)q++;
       });
     }
     delete[] cursor;
@@ -926,29 +926,29 @@ void splat2_footprint_scalar_f64(int64_t n, const double* co, const double* op, 
                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
-                        const int64_t* off, const int64_t* gs, const float* m, const float* co,
+                        const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
   forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
-                        const int64_t* off, const int64_t* gs, const double* m, const double* co,
+                        const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
   forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                         const int64_t* off, const int64_t* gs, const float* m, const float* co,
+                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
-                         const int32_t* last, const float* vacc, const float* vT, const int64_t* pslot,
+                         const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
                          float* vpair, int64_t* nth) {
   backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                         const int64_t* off, const int64_t* gs, const double* m,
+                         const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         const int64_t* pslot, double* vpair, int64_t* nth) {
+                         const int32_t* pslot, double* vpair, int64_t* nth) {
   backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,

@@ -75,7 +75,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 11, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 12, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -114,11 +114,12 @@ class Bins:
     Attributes:
         offsets: [T + 1] tile t owns pairs offsets[t]:offsets[t + 1] (T = tiles_x * tiles_y,
             t = ty * tiles_x + tx).
-        gauss: [P] Gaussian index per pair, front to back within a tile.
+        gauss: [P] Gaussian index per pair, front to back within a tile (int32 for "cpu",
+            int64 for "cpu_v1").
         tiles_x, tiles_y: tile grid.
         order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
         ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
-        pslot: [P] gradient slot of each pair; Gaussian ``order[r]`` owns slots
+        pslot: [P] int32 gradient slot of each pair; Gaussian ``order[r]`` owns slots
             ps[r]:ps[r + 1] ("cpu" only).
         fp: [N, 8] float64 footprints ("cpu" with means2d, conics and opacities given to
             :func:`bin_cpu`): then the lists hold only the tiles each Gaussian's alpha >= 1/255
@@ -202,8 +203,12 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         ps = torch.zeros(m + 1, dtype=torch.int64)
         torch.cumsum(area, 0, out=ps[1:])
         total = int(offsets[-1])
-        gauss = torch.empty(total, dtype=torch.int64)
-        pslot = torch.empty(total, dtype=torch.int64)
+        if total >= 2**31:
+            raise ValueError(f"{total} tile-Gaussian pairs: the 'cpu' kernel indexes pairs with int32 (< 2**31)")
+        # int32 lists: half the bytes of int64 for the scatter's ~2 random writes per pair and
+        # for every read in the blend (N and the pair count stay far below 2**31 on a CPU)
+        gauss = torch.empty(total, dtype=torch.int32)
+        pslot = torch.empty(total, dtype=torch.int32)
         _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
                       _ptr(base), _ptr(ps), _ptr(gauss), _ptr(pslot))
     return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot, fp)
@@ -218,7 +223,7 @@ def tile_pairs_cpu(
     all pairs.
     """
     b = bin_cpu(depths, rect, visible, width, height, kernel)
-    return b.offsets, b.gauss, b.tiles_x, b.tiles_y
+    return b.offsets, b.gauss.to(torch.int64), b.tiles_x, b.tiles_y
 
 
 def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int, kernel: str = "cpu"):
