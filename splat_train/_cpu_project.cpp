@@ -17,8 +17,10 @@
 // ymm with AVX2, four xmm or scalar code elsewhere). Branches are per-lane selects, so every
 // lane computes exactly what the scalar per-Gaussian code did (same operations, same order);
 // the inputs are transposed into the lanes and the results back (a partial last block pads its
-// lanes with a harmless Gaussian and writes only the real ones). Per Gaussian that made the
-// forward ~12 -> ~4 ms and the backward ~19 -> ~7 ms at 100k Gaussians (SH degree 3, one core).
+// lanes with a harmless Gaussian and writes only the real ones). That made the forward
+// ~12 -> ~5 ms and the backward ~20 -> ~9.5 ms at 100k Gaussians (SH degree 3, one core; the
+// SH part, ~2.5 + ~6.5 ms, is mostly moving 48 coefficients per Gaussian in and out of lanes:
+// AVX2 gathers and an in-register 8x8 transpose were both tried and were not faster).
 
 #include <algorithm>
 #include <cmath>
