@@ -620,6 +620,14 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     }
     for (int i = 0; i < rows; ++i) {
       const int64_t row = (y0 + i) * W + x0;
+      if (sizeof(T) == 4 && cols == TILE) {  // a full row: three plain 64-byte copies
+        std::memcpy(out_T + row, &Tr[i], sizeof(V));
+        std::memcpy(out_last + row, &last[i], sizeof(M));
+        std::memcpy(out_count + row, &count[i], sizeof(M));
+        for (int j = 0; j < cols; ++j)
+          for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
+        continue;
+      }
       for (int j = 0; j < cols; ++j) {
         out_T[row + j] = Tr[i][j];
         out_last[row + j] = (int32_t)last[i][j];
@@ -667,6 +675,18 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       for (int64_t f = 0; f < Fa; ++f) rec[i * MAXF + f] = vacc[i * MAXF + f] = V{};
       if (i >= rows) continue;
       const int64_t row = (y0 + i) * W + x0;
+      if (sizeof(T) == 4 && cols == TILE) {  // a full row: vector loads (float: M is int32)
+        std::memcpy(&Tr[i], out_T + row, sizeof(V));
+        V vt;
+        std::memcpy(&vt, v_T + row, sizeof(V));
+        vTT[i] = vt * Tr[i];  // dL/dT_final * T_final
+        std::memcpy(&last[i], out_last + row, sizeof(M));
+        for (int j = 0; j < TILE; ++j) row_last[i] = std::max(row_last[i], (int)last[i][j]);
+        for (int j = 0; j < cols; ++j)
+          for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
+        max_last = std::max<int64_t>(max_last, row_last[i]);
+        continue;
+      }
       for (int j = 0; j < cols; ++j) {
         const T tf = out_T[row + j];
         Tr[i][j] = tf;
