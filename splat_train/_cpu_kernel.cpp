@@ -537,6 +537,41 @@ inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, 
   });
 }
 
+// 16 pixels x 4 interleaved channels (64 floats, pixel-major as in accum [H, W, 4]) <->
+// 4 per-channel 16-lane vectors, by two rounds of two-input shuffles (no per-lane moves).
+#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
+#define SPLAT_SHUFFLE 1
+inline void deinterleave4(const float* src, Vec<float>::v* out) {
+  typedef Vec<float>::v V;
+  V v[4];
+  std::memcpy(v, src, sizeof(v));
+#define SPLAT_D4(f)                                                                                  \
+  {                                                                                                  \
+    const V a = __builtin_shufflevector(v[0], v[1], f, f + 4, f + 8, f + 12, f + 16, f + 20, f + 24, \
+                                        f + 28, 0, 0, 0, 0, 0, 0, 0, 0);                             \
+    const V b = __builtin_shufflevector(v[2], v[3], f, f + 4, f + 8, f + 12, f + 16, f + 20, f + 24, \
+                                        f + 28, 0, 0, 0, 0, 0, 0, 0, 0);                             \
+    out[f] = __builtin_shufflevector(a, b, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23);  \
+  }
+  SPLAT_D4(0) SPLAT_D4(1) SPLAT_D4(2) SPLAT_D4(3)
+#undef SPLAT_D4
+}
+inline void interleave4(const Vec<float>::v* in, float* dst) {
+  typedef Vec<float>::v V;
+  // pixels 0-7 of channels (0, 1) and (2, 3) paired, then the four channels per pixel
+  const V lo01 = __builtin_shufflevector(in[0], in[1], 0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+  const V hi01 = __builtin_shufflevector(in[0], in[1], 8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+  const V lo23 = __builtin_shufflevector(in[2], in[3], 0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+  const V hi23 = __builtin_shufflevector(in[2], in[3], 8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+  V o[4];
+  o[0] = __builtin_shufflevector(lo01, lo23, 0, 1, 16, 17, 2, 3, 18, 19, 4, 5, 20, 21, 6, 7, 22, 23);
+  o[1] = __builtin_shufflevector(lo01, lo23, 8, 9, 24, 25, 10, 11, 26, 27, 12, 13, 28, 29, 14, 15, 30, 31);
+  o[2] = __builtin_shufflevector(hi01, hi23, 0, 1, 16, 17, 2, 3, 18, 19, 4, 5, 20, 21, 6, 7, 22, 23);
+  o[3] = __builtin_shufflevector(hi01, hi23, 8, 9, 24, 25, 10, 11, 26, 27, 12, 13, 28, 29, 14, 15, 30, 31);
+  std::memcpy(dst, o, sizeof(o));
+}
+#endif
+
 // The blend reads five arrays per tile-Gaussian pair at the Gaussian's index (mean, conic,
 // opacity, features, footprint): in depth order these are scattered over ~10 MB at 100k
 // Gaussians, so each pair waited on several cache misses. Fetch them PAIR_PREFETCH pairs ahead.
@@ -624,6 +659,12 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         std::memcpy(out_T + row, &Tr[i], sizeof(V));
         std::memcpy(out_last + row, &last[i], sizeof(M));
         std::memcpy(out_count + row, &count[i], sizeof(M));
+#ifdef SPLAT_SHUFFLE
+        if (F == 4) {
+          interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * MAXF]), reinterpret_cast<float*>(out_accum + row * 4));
+          continue;
+        }
+#endif
         for (int j = 0; j < cols; ++j)
           for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
         continue;
@@ -682,6 +723,15 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         vTT[i] = vt * Tr[i];  // dL/dT_final * T_final
         std::memcpy(&last[i], out_last + row, sizeof(M));
         for (int j = 0; j < TILE; ++j) row_last[i] = std::max(row_last[i], (int)last[i][j]);
+#ifdef SPLAT_SHUFFLE
+        if (F == 4) {
+          Vec<float>::v ch[4];
+          deinterleave4(reinterpret_cast<const float*>(v_accum + row * 4), ch);
+          for (int64_t f = 0; f < Fa; ++f) std::memcpy(&vacc[i * MAXF + f], &ch[f], sizeof(V));
+          max_last = std::max<int64_t>(max_last, row_last[i]);
+          continue;
+        }
+#endif
         for (int j = 0; j < cols; ++j)
           for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
         max_last = std::max<int64_t>(max_last, row_last[i]);
