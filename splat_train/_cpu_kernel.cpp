@@ -689,7 +689,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
                    const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
-                   T* v_pair, int64_t* next_tile) {
+                   T* v_pair, uint8_t* live, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -757,7 +757,11 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         for (int64_t q = from; q < S; ++q) p[q] = T(0);
       }
     };
-    for (int64_t k = k0 + max_last; k < k1; ++k) clear(v_pair + pslot[k] * S, 0);
+    // pairs k0 + max_last .. k1 (behind every pixel's last contributor: in a saturated tile
+    // most of its list) blend nothing; their rows are not written (clearing them was ~6-8 ms
+    // of random writes at 100k 512x512) and live[k] = 0 tells the reduction to skip them
+    std::memset(live + k0, 1, (size_t)max_last);
+    std::memset(live + k0 + max_last, 0, (size_t)(k1 - k0 - max_last));
     for (int64_t k = k0 + max_last - 1; k >= k0; --k) {
       if (k - PAIR_PREFETCH >= k0) prefetch_pair(gauss[k - PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       T* gp = v_pair + pslot[k] * S;
@@ -831,7 +835,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
 // order; its slots are ps[r] .. ps[r+1], contiguous). Chunks of ranks from a shared counter;
 // each Gaussian is summed by one thread in a fixed order, so the result is deterministic.
 template <typename T, int SC>
-inline void reduce_rows(int64_t S, const T* src, int64_t rows, T* out) {
+inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
   // SC > 0: the row length S as a compile-time constant, so the sums stay in registers (the
   // generic loop below keeps them in memory: out may alias v_pair as far as the compiler
   // knows, so it reloads and stores every partial sum, ~3x slower at 1.1 M pairs).
@@ -839,14 +843,16 @@ inline void reduce_rows(int64_t S, const T* src, int64_t rows, T* out) {
   T acc[L];
   const int64_t n = SC > 0 ? SC : S;
   for (int64_t s = 0; s < n; ++s) acc[s] = T(0);
-  for (int64_t j = 0; j < rows; ++j, src += n)
+  for (int64_t j = 0; j < rows; ++j, src += n) {
+    if (!live[sp[j]]) continue;  // a pair the backward did not reach (row unwritten)
     for (int64_t s = 0; s < n; ++s) acc[s] += src[s];
+  }
   for (int64_t s = 0; s < n; ++s) out[s] = acc[s];
 }
 
 template <typename T>
 void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const T* v_pair,
-                 T* v_out, int64_t* next_chunk) {
+                 const int32_t* slot_pair, const uint8_t* live, T* v_out, int64_t* next_chunk) {
   constexpr int64_t CHUNK = 2048;
   for (int64_t ch; (ch = __atomic_fetch_add(next_chunk, 1, __ATOMIC_RELAXED)) * CHUNK < m;) {
     const int64_t r1 = std::min(m, (ch + 1) * CHUNK);
@@ -854,14 +860,16 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
       T* out = v_out + order[r] * S;
       const T* src = v_pair + ps[r] * S;
       const int64_t rows = ps[r + 1] - ps[r];
+      const int32_t* sp = slot_pair + ps[r];
       if (S == 10) {  // F = 4: RGB + depth, the rasterizer's case
-        reduce_rows<T, 10>(S, src, rows, out);
+        reduce_rows<T, 10>(S, src, rows, sp, live, out);
       } else if (S <= 6 + MAXF) {
-        reduce_rows<T, 0>(S, src, rows, out);
+        reduce_rows<T, 0>(S, src, rows, sp, live, out);
       } else {
         for (int64_t s = 0; s < S; ++s) out[s] = T(0);
         for (int64_t j = 0; j < rows; ++j)
-          for (int64_t s = 0; s < S; ++s) out[s] += src[j * S + s];
+          if (live[sp[j]])
+            for (int64_t s = 0; s < S; ++s) out[s] += src[j * S + s];
       }
     }
   }
@@ -871,7 +879,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 12; }
+int splat2_abi_version() { return 13; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -964,7 +972,7 @@ void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, cons
 
 void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                         const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
-                        int32_t* gauss, int32_t* pslot, int64_t* next) {
+                        int32_t* gauss, int32_t* pslot, int32_t* slot_pair, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
@@ -976,6 +984,7 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
         gauss[pos] = (int32_t)g;
+        slot_pair[q] = (int32_t)pos;  // the inverse of pslot (sequential writes)
         pslot[pos] = (int32_t)q++;
       });
     }
@@ -1027,23 +1036,23 @@ void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
                          const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
-                         float* vpair, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+                         float* vpair, uint8_t* live, int64_t* nth) {
+  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         const int32_t* pslot, double* vpair, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+                         const int32_t* pslot, double* vpair, uint8_t* live, int64_t* nth) {
+  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
-                       const float* v_pair, float* v_out, int64_t* nth) {
-  reduce_impl<float>(m, order, ps, S, v_pair, v_out, nth);
+                       const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
+  reduce_impl<float>(m, order, ps, S, v_pair, sp, live, v_out, nth);
 }
 void splat2_reduce_f64(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
-                       const double* v_pair, double* v_out, int64_t* nth) {
-  reduce_impl<double>(m, order, ps, S, v_pair, v_out, nth);
+                       const double* v_pair, const int32_t* sp, const uint8_t* live, double* v_out, int64_t* nth) {
+  reduce_impl<double>(m, order, ps, S, v_pair, sp, live, v_out, nth);
 }
 
 }  // extern "C"
