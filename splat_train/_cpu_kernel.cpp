@@ -679,8 +679,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   }
 }
 
-// Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c, v_op,
-// v_feat[0..F)); every row of the tile's pairs is written (zeros where nothing contributed).
+// Per pair k the gradient row v_pair[pslot[k] * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
+// v_op, v_feat[0..F)), written for the pairs k0 .. k0 + max_last of each tile (zeros where
+// nothing contributed); live[k] = 1 for those, 0 for the rest (never written, never read).
 // Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
 // of channels Fa..F-1 is zero everywhere (their terms are exactly zero: the depth channel of a
 // photometric loss), and their gradient rows stay 0.
