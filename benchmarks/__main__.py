@@ -88,7 +88,7 @@ def raster_section(quick: bool, threads: int) -> dict:
     torch.set_num_threads(threads)
     ref_case, fast_case = (300, 32, 32), (2000, 64, 64)
     backends = ["cpu", "reference"] if _cpu_kernel.available() else ["torch", "reference"]
-    gflops = br.matmul_gflops(threads, size=256, reps=3)
+    gflops = br.matmul_gflops(threads, size=256, min_seconds=0.0, min_reps=3)  # smoke: a quick probe
     runs = []
     for backend, (n, w, h) in [(b, ref_case) for b in backends] + [("cpu", fast_case)] * ("cpu" in backends):
         t = br.time_iteration(backend, n, w, h, reps=1 if backend == "reference" else 2)

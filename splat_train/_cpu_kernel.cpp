@@ -117,6 +117,20 @@ template <typename T> inline T hsum(typename Vec<T>::v v) {
     for (int l = 0; l < w; ++l) s[l] += s[l + w];
   return s[0];
 }
+#if defined(__AVX2__) || defined(__AVX512F__)
+// The same tree in registers (lane l + lane l + w for w = 8, 4, 2, 1; float addition commutes,
+// so the sums are bit-identical): the generic version went through a stack array, ~9 of them
+// per (tile, Gaussian) pair in the backward.
+template <> inline float hsum<float>(Vec<float>::v v) {
+  __m256 h[2];
+  std::memcpy(h, &v, 64);
+  const __m256 s8 = _mm256_add_ps(h[0], h[1]);
+  const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_extractf128_ps(s8, 1));
+  const __m128 s2 = _mm_add_ps(s4, _mm_movehl_ps(s4, s4));
+  const __m128 s1 = _mm_add_ss(s2, _mm_shuffle_ps(s2, s2, 1));
+  return _mm_cvtss_f32(s1);
+}
+#endif
 
 // exp for power <= 0 (callers mask out the rest). float: Cephes expf polynomial on
 // x = n ln2 + r, |r| <= ln2 / 2, scaled by 2^n through the exponent bits; below -87 -> 0.
@@ -319,6 +333,169 @@ inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
   }
 }
 
+// footprint() with its binning record for 8 Gaussians at once, one per double lane (the
+// footprint pass is per Gaussian and was scalar, branchy double code: ~10 ms of a 100k
+// Gaussian, 512x512 forward; the scalar footprint() stays as the reference it must match,
+// splat2_footprint_scalar_*). Each lane computes what footprint() computes (the same double
+// expressions; branches become per-lane selects, the opacity and definiteness tests and the
+// log stay per lane in T); tile_spans() runs over the rows of the tallest lane with its per-row
+// state in lanes. Lanes l >= nl are padding (copies of the first Gaussian), never written.
+namespace fpv {
+typedef double D __attribute__((vector_size(64)));
+typedef int64_t Mk __attribute__((vector_size(64)));
+constexpr int LN = 8;
+inline D bc(double x) { return D{x, x, x, x, x, x, x, x}; }
+inline D vmax(D a, D b) { return a < b ? b : a; }  // std::max
+inline D vmin(D a, D b) { return b < a ? b : a; }  // std::min
+inline D vabs(D x) { return x < bc(0.0) ? -x : x; }
+inline D vsqrt(D x) {
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_sqrt_pd(0xFF, v);  // (masked: the unmasked form trips -Wuninitialized in GCC 12's header)
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_sqrt_pd(v[0]);
+  v[1] = _mm256_sqrt_pd(v[1]);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = std::sqrt(x[l]);
+#endif
+  return r;
+}
+template <int MODE> inline D vround(D x) {  // MODE 1: floor, 2: ceil
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_roundscale_pd(0xFF, v, MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_round_pd(v[0], MODE | _MM_FROUND_NO_EXC);
+  v[1] = _mm256_round_pd(v[1], MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = MODE == 1 ? std::floor(x[l]) : std::ceil(x[l]);
+#endif
+  return r;
+}
+inline D vfloor(D x) { return vround<1>(x); }
+inline D vceil(D x) { return vround<2>(x); }
+inline Mk isnan(D x) { return x != x; }
+
+// Clip [t_lo, t_hi) (doubles, maybe NaN) into [lo, hi) as bbox_tiles() and tile_spans() do.
+inline void clip(D t_lo, D t_hi, D& lo, D& hi) {
+  lo = t_lo > lo ? (t_lo >= hi ? hi : t_lo) : lo;
+  hi = t_hi < hi ? (t_hi <= lo ? lo : t_hi) : hi;
+}
+
+template <typename T>
+void footprint_block(int64_t g0, int nl, const T* co, const T* op, const T* mu, const int64_t* rect,
+                     double* fps, int16_t* sps) {
+  D a, b, c, mx, my, r2;
+  Mk low, npd;  // opacity below 1/255; not positive definite
+  for (int l = 0; l < LN; ++l) {
+    const int64_t g = g0 + (l < nl ? l : 0);
+    const T ta = co[3 * g], tb = co[3 * g + 1], tc = co[3 * g + 2], to = op[g];
+    a[l] = ta; b[l] = tb; c[l] = tc;
+    mx[l] = mu[2 * g]; my[l] = mu[2 * g + 1];
+    low[l] = to < Consts<T>::alpha_min ? -1 : 0;
+    npd[l] = !low[l] && !((ta > 0) && (tc > 0) && (ta * tc - tb * tb > 0)) ? -1 : 0;
+    const double lim = std::max(255.0 * (double)to, 1.0);
+    r2[l] = (low[l] || npd[l]) ? 1.0 : (double)(T)(2.0 * std::log(lim) * 1.01 + 1e-3);
+  }
+  const Mk pd = ~(low | npd);
+  const D det_a = (a * c - b * b) / a;
+  const D f0v = vsqrt(r2 / det_a) + 1e-3, f1v = b / a, f2v = r2 / a, f3v = det_a / a;
+  const D f6v = f1v * vsqrt(f2v / (f3v * (f3v + f1v * f1v)));
+  const D zero = bc(0.0);
+  const D f[8] = {pd ? f0v : (low ? bc(-1.0) : bc(1e300)), pd ? f1v : zero,
+                  pd ? f2v : (low ? zero : bc(1e300)), pd ? f3v : zero, mx, my, pd ? f6v : zero, zero};
+  for (int l = 0; l < nl; ++l)
+    for (int k = 0; k < FP; ++k) fps[FP * (g0 + l) + k] = f[k][l];
+  if (!rect || !sps) return;
+  // bbox_tiles()
+  D t[4];
+  for (int l = 0; l < LN; ++l)
+    for (int k = 0; k < 4; ++k) t[k][l] = (double)rect[4 * (g0 + (l < nl ? l : 0)) + k];
+  const Mk finite = f[0] < bc(1e299);  // false for the 1e300 of npd lanes (and inf, NaN)
+  {
+    const D b1 = f[1], f2 = f[2], f3 = f[3];
+    const D X = vsqrt(f2 * (f3 + b1 * b1) / f3);
+    const D slack = 1.0 + 1e-3 + 2e-3 * vabs(b1) + 1e-6 * (vabs(mx) + X);
+    const D ys = f[0] + 1e-3 + 1e-6 * vabs(my);
+    const D tt[4] = {vceil((mx - X - slack - (TILE - 0.5)) / TILE), vfloor((mx + X + slack - 0.5) / TILE) + 1,
+                     vceil((my - ys - (TILE - 0.5)) / TILE), vfloor((my + ys - 0.5) / TILE) + 1};
+    const Mk use = ~low & finite & ~(isnan(tt[0]) | isnan(tt[1]) | isnan(tt[2]) | isnan(tt[3]));
+    D o[4] = {t[0], t[1], t[2], t[3]};
+    clip(tt[0], tt[1], o[0], o[1]);
+    clip(tt[2], tt[3], o[2], o[3]);
+    const Mk empty = (o[1] <= o[0]) | (o[3] <= o[2]);
+    o[1] = empty ? o[0] : o[1];
+    o[3] = empty ? o[2] : o[3];
+    for (int k = 0; k < 4; ++k) t[k] = use ? o[k] : t[k];
+    t[1] = low ? t[0] : t[1];
+    t[3] = low ? t[2] : t[3];
+  }
+  const D rows = t[3] - t[2];
+  const Mk spans_on = finite & (t[1] - t[0] >= 2.0) & (rows >= 2.0) & (rows <= (double)SPAN_ROWS);
+  int max_rows = 0;
+  for (int l = 0; l < nl; ++l) {
+    int16_t* sp = sps + SPREC * (g0 + l);
+    for (int k = 0; k < 4; ++k) sp[k] = (int16_t)t[k][l];
+    if (rows[l] <= SPAN_ROWS) {
+      if (spans_on[l]) {
+        max_rows = std::max(max_rows, (int)rows[l]);
+      } else {
+        for (int y = 0; y < (int)rows[l]; ++y) {
+          sp[4 + 2 * y] = (int16_t)t[0][l];
+          sp[5 + 2 * y] = (int16_t)t[1][l];
+        }
+      }
+    }
+  }
+  if (max_rows == 0) return;
+  // tile_spans() over the rows of the tallest lane
+  const D b1 = f[1], f2 = f[2], f3 = f[3], dstar = f[6];
+  const D H = f[0] + 1e-3;
+  const D slack = 1.0 + 1e-3 + 1e-6 * (vabs(mx) + vabs(b1) * H + vsqrt(f2));
+  auto hw = [&](D d) { return vsqrt(vmax(f2 - d * d * f3, zero)); };
+  const D hstar = hw(dstar);
+  D e1 = vmin(vmax(my - t[2] * TILE, -H), H);
+  D h1 = hw(e1);
+  for (int y = 0; y < max_rows; ++y) {
+    const D e0 = vmin(vmax(my - (t[2] + (y + 1)) * TILE, -H), H);
+    const D h0 = hw(e0);
+    D xr = vmax(b1 * e0 + h0, b1 * e1 + h1);
+    D xl = vmin(b1 * e0 - h0, b1 * e1 - h1);
+    xr = (dstar > e0) & (dstar < e1) ? vmax(xr, b1 * dstar + hstar) : xr;
+    xl = (-dstar > e0) & (-dstar < e1) ? vmin(xl, -b1 * dstar - hstar) : xl;
+    e1 = e0;
+    h1 = h0;
+    D c0 = t[0], c1 = t[1];
+    const D t0 = vceil((mx + xl - slack - (TILE - 0.5)) / TILE);
+    const D t1 = vfloor((mx + xr + slack - 0.5) / TILE) + 1;
+    const Mk ordered = t0 < t1;
+    D k0 = c0, k1 = c1;
+    clip(t0, t1, k0, k1);
+    const Mk collapse = ~ordered & ~isnan(t0) & ~isnan(t1);
+    c1 = ordered ? k1 : (collapse ? c0 : c1);
+    c0 = ordered ? k0 : c0;
+    for (int l = 0; l < nl; ++l) {
+      if (!spans_on[l] || y >= (int)rows[l]) continue;
+      int16_t* sp = sps + SPREC * (g0 + l);
+      sp[4 + 2 * y] = (int16_t)c0[l];
+      sp[5 + 2 * y] = (int16_t)c1[l];
+    }
+  }
+}
+}  // namespace fpv
+
 // Binning visits Gaussians in depth order, i.e. at random addresses: fetch the rectangle and
 // footprint a few Gaussians ahead (the loop over tiles is too branchy for the CPU to overlap
 // those misses by itself).
@@ -337,30 +514,81 @@ inline void prefetch_gaussian(const int64_t* rect, const double* fps, const int1
 // the box is reached: the ellipse is connected and touches every row and column of its box).
 // From the binning record sp when given (taller boxes: their spans computed here from fp).
 template <typename Fn>
-inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
+inline void for_rows(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
   int64_t r[4];
   if (!sp) {
-    for (int64_t y = rect[2]; y < rect[3]; ++y)
-      for (int64_t x = rect[0]; x < rect[1]; ++x) fn(y, x);
+    for (int64_t y = rect[2]; y < rect[3]; ++y) fn(y, rect[0], rect[1]);
     return;
   }
   for (int k = 0; k < 4; ++k) r[k] = sp[k];
   if (r[3] - r[2] <= SPAN_ROWS) {
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = sp[4 + 2 * (y - r[2])]; x < sp[5 + 2 * (y - r[2])]; ++x) fn(y, x);
+    for (int64_t y = r[2]; y < r[3]; ++y) fn(y, (int64_t)sp[4 + 2 * (y - r[2])], (int64_t)sp[5 + 2 * (y - r[2])]);
   } else if (use_spans(fp, r)) {
-    tile_spans(fp, r, [&](int64_t y, int64_t c0, int64_t c1) {
-      for (int64_t x = c0; x < c1; ++x) fn(y, x);
-    });
+    tile_spans(fp, r, fn);
   } else {
-    for (int64_t y = r[2]; y < r[3]; ++y)
-      for (int64_t x = r[0]; x < r[1]; ++x) fn(y, x);
+    for (int64_t y = r[2]; y < r[3]; ++y) fn(y, r[0], r[1]);
   }
+}
+// The same tiles one by one (for_rows gives each tile row's span [c0, c1)).
+template <typename Fn>
+inline void for_tiles(const int64_t* rect, const double* fp, const int16_t* sp, Fn&& fn) {
+  for_rows(rect, fp, sp, [&](int64_t y, int64_t c0, int64_t c1) {
+    for (int64_t x = c0; x < c1; ++x) fn(y, x);
+  });
+}
+
+// 16 pixels x 4 interleaved channels (64 floats, pixel-major as in accum [H, W, 4]) <->
+// 4 per-channel 16-lane vectors, by two rounds of two-input shuffles (no per-lane moves).
+#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
+#define SPLAT_SHUFFLE 1
+inline void deinterleave4(const float* src, Vec<float>::v* out) {
+  typedef Vec<float>::v V;
+  V v[4];
+  std::memcpy(v, src, sizeof(v));
+#define SPLAT_D4(f)                                                                                  \
+  {                                                                                                  \
+    const V a = __builtin_shufflevector(v[0], v[1], f, f + 4, f + 8, f + 12, f + 16, f + 20, f + 24, \
+                                        f + 28, 0, 0, 0, 0, 0, 0, 0, 0);                             \
+    const V b = __builtin_shufflevector(v[2], v[3], f, f + 4, f + 8, f + 12, f + 16, f + 20, f + 24, \
+                                        f + 28, 0, 0, 0, 0, 0, 0, 0, 0);                             \
+    out[f] = __builtin_shufflevector(a, b, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23);  \
+  }
+  SPLAT_D4(0) SPLAT_D4(1) SPLAT_D4(2) SPLAT_D4(3)
+#undef SPLAT_D4
+}
+inline void interleave4(const Vec<float>::v* in, float* dst) {
+  typedef Vec<float>::v V;
+  // pixels 0-7 of channels (0, 1) and (2, 3) paired, then the four channels per pixel
+  const V lo01 = __builtin_shufflevector(in[0], in[1], 0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+  const V hi01 = __builtin_shufflevector(in[0], in[1], 8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+  const V lo23 = __builtin_shufflevector(in[2], in[3], 0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+  const V hi23 = __builtin_shufflevector(in[2], in[3], 8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+  V o[4];
+  o[0] = __builtin_shufflevector(lo01, lo23, 0, 1, 16, 17, 2, 3, 18, 19, 4, 5, 20, 21, 6, 7, 22, 23);
+  o[1] = __builtin_shufflevector(lo01, lo23, 8, 9, 24, 25, 10, 11, 26, 27, 12, 13, 28, 29, 14, 15, 30, 31);
+  o[2] = __builtin_shufflevector(hi01, hi23, 0, 1, 16, 17, 2, 3, 18, 19, 4, 5, 20, 21, 6, 7, 22, 23);
+  o[3] = __builtin_shufflevector(hi01, hi23, 8, 9, 24, 25, 10, 11, 26, 27, 12, 13, 28, 29, 14, 15, 30, 31);
+  std::memcpy(dst, o, sizeof(o));
+}
+#endif
+
+// The blend reads five arrays per tile-Gaussian pair at the Gaussian's index (mean, conic,
+// opacity, features, footprint): in depth order these are scattered over ~10 MB at 100k
+// Gaussians, so each pair waited on several cache misses. Fetch them PAIR_PREFETCH pairs ahead.
+constexpr int64_t PAIR_PREFETCH = 2;
+template <typename T>
+inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T* opac, const T* feat, int64_t F,
+                          const double* fps) {
+  __builtin_prefetch(means2d + 2 * g);
+  __builtin_prefetch(conics + 3 * g);
+  __builtin_prefetch(opac + g);
+  __builtin_prefetch(feat + g * F);
+  __builtin_prefetch(fps + FP * g);
 }
 
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
-                  const int64_t* offsets, const int64_t* gauss, const T* means2d,
+                  const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
                   T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
@@ -388,6 +616,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     }
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
+      if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       const int64_t g = gauss[k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
@@ -426,6 +655,20 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     }
     for (int i = 0; i < rows; ++i) {
       const int64_t row = (y0 + i) * W + x0;
+      if (sizeof(T) == 4 && cols == TILE) {  // a full row: three plain 64-byte copies
+        std::memcpy(out_T + row, &Tr[i], sizeof(V));
+        std::memcpy(out_last + row, &last[i], sizeof(M));
+        std::memcpy(out_count + row, &count[i], sizeof(M));
+#ifdef SPLAT_SHUFFLE
+        if (F == 4) {
+          interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * MAXF]), reinterpret_cast<float*>(out_accum + row * 4));
+          continue;
+        }
+#endif
+        for (int j = 0; j < cols; ++j)
+          for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
+        continue;
+      }
       for (int j = 0; j < cols; ++j) {
         out_T[row + j] = Tr[i][j];
         out_last[row + j] = (int32_t)last[i][j];
@@ -436,17 +679,18 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   }
 }
 
-// Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c, v_op,
-// v_feat[0..F)); every row of the tile's pairs is written (zeros where nothing contributed).
+// Per pair k the gradient row v_pair[pslot[k] * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
+// v_op, v_feat[0..F)), written for the pairs k0 .. k0 + max_last of each tile (zeros where
+// nothing contributed); live[k] = 1 for those, 0 for the rest (never written, never read).
 // Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
 // of channels Fa..F-1 is zero everywhere (their terms are exactly zero: the depth channel of a
 // photometric loss), and their gradient rows stay 0.
 template <typename T>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                   const int64_t* offsets, const int64_t* gauss, const T* means2d,
+                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T, const int64_t* pslot,
-                   T* v_pair, int64_t* next_tile) {
+                   const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
+                   T* v_pair, uint8_t* live, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -473,6 +717,27 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       for (int64_t f = 0; f < Fa; ++f) rec[i * MAXF + f] = vacc[i * MAXF + f] = V{};
       if (i >= rows) continue;
       const int64_t row = (y0 + i) * W + x0;
+      if (sizeof(T) == 4 && cols == TILE) {  // a full row: vector loads (float: M is int32)
+        std::memcpy(&Tr[i], out_T + row, sizeof(V));
+        V vt;
+        std::memcpy(&vt, v_T + row, sizeof(V));
+        vTT[i] = vt * Tr[i];  // dL/dT_final * T_final
+        std::memcpy(&last[i], out_last + row, sizeof(M));
+        for (int j = 0; j < TILE; ++j) row_last[i] = std::max(row_last[i], (int)last[i][j]);
+#ifdef SPLAT_SHUFFLE
+        if (F == 4) {
+          Vec<float>::v ch[4];
+          deinterleave4(reinterpret_cast<const float*>(v_accum + row * 4), ch);
+          for (int64_t f = 0; f < Fa; ++f) std::memcpy(&vacc[i * MAXF + f], &ch[f], sizeof(V));
+          max_last = std::max<int64_t>(max_last, row_last[i]);
+          continue;
+        }
+#endif
+        for (int j = 0; j < cols; ++j)
+          for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
+        max_last = std::max<int64_t>(max_last, row_last[i]);
+        continue;
+      }
       for (int j = 0; j < cols; ++j) {
         const T tf = out_T[row + j];
         Tr[i][j] = tf;
@@ -483,18 +748,31 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       }
       max_last = std::max<int64_t>(max_last, row_last[i]);
     }
-    for (int64_t k = k0 + max_last; k < k1; ++k)
-      for (int64_t q = 0; q < S; ++q) v_pair[pslot[k] * S + q] = T(0);
+    // Rows are written once each (zeros where the pair blends nothing): a zeroing loop over the
+    // runtime S compiled to a memset call per pair, ~4% of a 512x512 forward+backward; with
+    // S = 10 (F = 4, the rasterizer's case) a fixed-size clear is a few inline stores.
+    auto clear = [S](T* p, int64_t from) {
+      if (S == 10 && from == 0) {
+        std::memset(p, 0, 10 * sizeof(T));
+      } else {
+        for (int64_t q = from; q < S; ++q) p[q] = T(0);
+      }
+    };
+    // pairs k0 + max_last .. k1 (behind every pixel's last contributor: in a saturated tile
+    // most of its list) blend nothing; their rows are not written (clearing them was ~6-8 ms
+    // of random writes at 100k 512x512) and live[k] = 0 tells the reduction to skip them
+    std::memset(live + k0, 1, (size_t)max_last);
+    std::memset(live + k0 + max_last, 0, (size_t)(k1 - k0 - max_last));
     for (int64_t k = k0 + max_last - 1; k >= k0; --k) {
+      if (k - PAIR_PREFETCH >= k0) prefetch_pair(gauss[k - PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       T* gp = v_pair + pslot[k] * S;
-      for (int64_t q = 0; q < S; ++q) gp[q] = T(0);
       const int32_t local = (int32_t)(k - k0);
       const int64_t g = gauss[k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const T op = opac[g];
       const double* fp = fps + FP * g;
-      if (fp[0] < 0) continue;
+      if (fp[0] < 0) { clear(gp, 0); continue; }
       int i0, i1;
       row_range(fp, (double)my, (double)y0, rows, i0, i1);
       const T* fg = feat + g * F;
@@ -540,7 +818,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         G1 += vG * splat<V>(dy);
         G2 += vG * splat<V>(dy * dy);
       }
-      if (!any) continue;
+      if (!any) { clear(gp, 0); continue; }
       const V S0 = splat<V>(op) * G0, S1 = splat<V>(op) * G1;
       gp[0] = hsum<T>(-(splat<V>(a) * dx * S0 + splat<V>(b) * S1));
       gp[1] = hsum<T>(-(splat<V>(c) * S1 + splat<V>(b) * dx * S0));
@@ -549,6 +827,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       gp[4] = T(-0.5) * op * hsum<T>(G2);
       gp[5] = hsum<T>(G0);
       for (int64_t f = 0; f < Fa; ++f) gp[6 + f] = hsum<T>(g_f[f]);
+      clear(gp, 6 + Fa);
     }
   }
 }
@@ -556,18 +835,42 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
 // v_out[g] = sum of the pair gradient slots of Gaussian g (rank r = its position in the depth
 // order; its slots are ps[r] .. ps[r+1], contiguous). Chunks of ranks from a shared counter;
 // each Gaussian is summed by one thread in a fixed order, so the result is deterministic.
+template <typename T, int SC>
+inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
+  // SC > 0: the row length S as a compile-time constant, so the sums stay in registers (the
+  // generic loop below keeps them in memory: out may alias v_pair as far as the compiler
+  // knows, so it reloads and stores every partial sum, ~3x slower at 1.1 M pairs).
+  constexpr int L = SC > 0 ? SC : 6 + MAXF;
+  T acc[L];
+  const int64_t n = SC > 0 ? SC : S;
+  for (int64_t s = 0; s < n; ++s) acc[s] = T(0);
+  for (int64_t j = 0; j < rows; ++j, src += n) {
+    if (!live[sp[j]]) continue;  // a pair the backward did not reach (row unwritten)
+    for (int64_t s = 0; s < n; ++s) acc[s] += src[s];
+  }
+  for (int64_t s = 0; s < n; ++s) out[s] = acc[s];
+}
+
 template <typename T>
 void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const T* v_pair,
-                 T* v_out, int64_t* next_chunk) {
+                 const int32_t* slot_pair, const uint8_t* live, T* v_out, int64_t* next_chunk) {
   constexpr int64_t CHUNK = 2048;
   for (int64_t ch; (ch = __atomic_fetch_add(next_chunk, 1, __ATOMIC_RELAXED)) * CHUNK < m;) {
     const int64_t r1 = std::min(m, (ch + 1) * CHUNK);
     for (int64_t r = ch * CHUNK; r < r1; ++r) {
       T* out = v_out + order[r] * S;
-      for (int64_t s = 0; s < S; ++s) out[s] = T(0);
-      for (int64_t j = ps[r]; j < ps[r + 1]; ++j) {
-        const T* src = v_pair + j * S;
-        for (int64_t s = 0; s < S; ++s) out[s] += src[s];
+      const T* src = v_pair + ps[r] * S;
+      const int64_t rows = ps[r + 1] - ps[r];
+      const int32_t* sp = slot_pair + ps[r];
+      if (S == 10) {  // F = 4: RGB + depth, the rasterizer's case
+        reduce_rows<T, 10>(S, src, rows, sp, live, out);
+      } else if (S <= 6 + MAXF) {
+        reduce_rows<T, 0>(S, src, rows, sp, live, out);
+      } else {
+        for (int64_t s = 0; s < S; ++s) out[s] = T(0);
+        for (int64_t j = 0; j < rows; ++j)
+          if (live[sp[j]])
+            for (int64_t s = 0; s < S; ++s) out[s] += src[j * S + s];
       }
     }
   }
@@ -577,7 +880,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 10; }
+int splat2_abi_version() { return 13; }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -641,25 +944,36 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                       const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, int64_t* counts, int64_t* area, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
-    int64_t* cnt = counts + c * n_tiles;
-    for (int64_t t = 0; t < n_tiles; ++t) cnt[t] = 0;
+    // per tile row a difference array (+1 at c0, -1 at c1, one spare column): two updates per
+    // tile row of a Gaussian instead of one per tile, then a prefix sum along each row
+    const int64_t tiles_y = n_tiles / tiles_x, stride = tiles_x + 1;
+    int64_t* diff = new int64_t[tiles_y * stride]();
     const int64_t k1 = (c + 1) * m / nch;
     for (int64_t k = c * m / nch; k < k1; ++k) {
       const int64_t g = order[k];
       if (k + PREFETCH < k1) prefetch_gaussian(rect, fps, sps, order[k + PREFETCH]);
       int64_t a = 0;
-      for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
-        ++cnt[y * tiles_x + x];
-        ++a;
-      });
+      for_rows(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr,
+               [&](int64_t y, int64_t c0, int64_t c1) {
+                 if (c1 <= c0) return;
+                 ++diff[y * stride + c0];
+                 --diff[y * stride + c1];
+                 a += c1 - c0;
+               });
       area[k] = a;
     }
+    int64_t* cnt = counts + c * n_tiles;
+    for (int64_t y = 0; y < tiles_y; ++y) {
+      int64_t run = 0;
+      for (int64_t x = 0; x < tiles_x; ++x) cnt[y * tiles_x + x] = (run += diff[y * stride + x]);
+    }
+    delete[] diff;
   }
 }
 
 void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                         const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
-                        int64_t* gauss, int64_t* pslot, int64_t* next) {
+                        int32_t* gauss, int32_t* pslot, int32_t* slot_pair, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
@@ -670,8 +984,9 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       int64_t q = ps[k];
       for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
-        gauss[pos] = g;
-        pslot[pos] = q++;
+        gauss[pos] = (int32_t)g;
+        slot_pair[q] = (int32_t)pos;  // the inverse of pslot (sequential writes)
+        pslot[pos] = (int32_t)q++;
       });
     }
     delete[] cursor;
@@ -683,50 +998,62 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
 void splat2_footprint_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
-    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                       rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); g += fpv::LN)
+      fpv::footprint_block<float>(g, (int)std::min<int64_t>(fpv::LN, n - g), co, op, mu, rect, fp, sp);
 }
 void splat2_footprint_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
                           double* fp, int16_t* sp, int64_t* nth) {
   for (int64_t ch; (ch = __atomic_fetch_add(nth, 1, __ATOMIC_RELAXED)) * 4096 < n;)
-    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); ++g)
-      footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
-                        rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+    for (int64_t g = ch * 4096; g < std::min(n, (ch + 1) * 4096); g += fpv::LN)
+      fpv::footprint_block<double>(g, (int)std::min<int64_t>(fpv::LN, n - g), co, op, mu, rect, fp, sp);
+}
+// The scalar footprint() per Gaussian: the reference the vector pass above must match exactly
+// (tests/test_raster_tile_culling.py compares them), not used by the rasterizer.
+void splat2_footprint_scalar_f32(int64_t n, const float* co, const float* op, const float* mu, const int64_t* rect,
+                                 double* fp, int16_t* sp) {
+  for (int64_t g = 0; g < n; ++g)
+    footprint<float>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                     rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
+}
+void splat2_footprint_scalar_f64(int64_t n, const double* co, const double* op, const double* mu, const int64_t* rect,
+                                 double* fp, int16_t* sp) {
+  for (int64_t g = 0; g < n; ++g)
+    footprint<double>(co[3 * g], co[3 * g + 1], co[3 * g + 2], op[g], mu[2 * g], mu[2 * g + 1],
+                      rect ? rect + 4 * g : nullptr, fp + FP * g, sp ? sp + SPREC * g : nullptr);
 }
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
-                        const int64_t* off, const int64_t* gs, const float* m, const float* co,
+                        const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
   forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
-                        const int64_t* off, const int64_t* gs, const double* m, const double* co,
+                        const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
   forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                         const int64_t* off, const int64_t* gs, const float* m, const float* co,
+                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
-                         const int32_t* last, const float* vacc, const float* vT, const int64_t* pslot,
-                         float* vpair, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+                         const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
+                         float* vpair, uint8_t* live, int64_t* nth) {
+  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
-                         const int64_t* off, const int64_t* gs, const double* m,
+                         const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         const int64_t* pslot, double* vpair, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, nth);
+                         const int32_t* pslot, double* vpair, uint8_t* live, int64_t* nth) {
+  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
-                       const float* v_pair, float* v_out, int64_t* nth) {
-  reduce_impl<float>(m, order, ps, S, v_pair, v_out, nth);
+                       const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
+  reduce_impl<float>(m, order, ps, S, v_pair, sp, live, v_out, nth);
 }
 void splat2_reduce_f64(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
-                       const double* v_pair, double* v_out, int64_t* nth) {
-  reduce_impl<double>(m, order, ps, S, v_pair, v_out, nth);
+                       const double* v_pair, const int32_t* sp, const uint8_t* live, double* v_out, int64_t* nth) {
+  reduce_impl<double>(m, order, ps, S, v_pair, sp, live, v_out, nth);
 }
 
 }  // extern "C"

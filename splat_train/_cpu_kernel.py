@@ -49,20 +49,22 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     for dt in ("f32", "f64"):
         getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (12 if v2 else 11)
         getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 14 if v2 else [i64] * 5 + [vp] * 12
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 15 if v2 else [i64] * 5 + [vp] * 12
         getattr(lib, f"{pre}backward_{dt}").restype = None
         if v2:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
             getattr(lib, f"splat2_footprint_{dt}").restype = None
+            getattr(lib, f"splat2_footprint_scalar_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp]
+            getattr(lib, f"splat2_footprint_scalar_{dt}").restype = None
     if v2:
         lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
         lib.splat2_bin_count.restype = None
-        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
+        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, vp]
         lib.splat2_bin_scatter.restype = None
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
         for dt in ("f32", "f64"):
-            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp]
+            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp, vp, vp]
             getattr(lib, f"splat2_reduce_{dt}").restype = None
         lib.splat2_simd_bits.restype = ctypes.c_int
     else:
@@ -73,7 +75,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 10, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 13, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -112,12 +114,17 @@ class Bins:
     Attributes:
         offsets: [T + 1] tile t owns pairs offsets[t]:offsets[t + 1] (T = tiles_x * tiles_y,
             t = ty * tiles_x + tx).
-        gauss: [P] Gaussian index per pair, front to back within a tile.
+        gauss: [P] Gaussian index per pair, front to back within a tile (int32 for "cpu",
+            int64 for "cpu_v1").
         tiles_x, tiles_y: tile grid.
         order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
         ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
-        pslot: [P] gradient slot of each pair; Gaussian ``order[r]`` owns slots
+        pslot: [P] int32 gradient slot of each pair; Gaussian ``order[r]`` owns slots
             ps[r]:ps[r + 1] ("cpu" only).
+        slot_pair: [P] int32 per slot its pair (the inverse of ``pslot``, "cpu" only): the
+            reduction skips the slots of pairs the backward did not reach (behind every
+            pixel's last contributor; it marks them in a [P] byte map), whose rows it never
+            writes.
         fp: [N, 8] float64 footprints ("cpu" with means2d, conics and opacities given to
             :func:`bin_cpu`): then the lists hold only the tiles each Gaussian's alpha >= 1/255
             ellipse can reach, and the kernels reuse the footprints (so they must be called
@@ -132,6 +139,7 @@ class Bins:
     ps: Tensor | None = None
     pslot: Tensor | None = None
     fp: Tensor | None = None
+    slot_pair: Tensor | None = None
 
 
 def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
@@ -200,11 +208,16 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         ps = torch.zeros(m + 1, dtype=torch.int64)
         torch.cumsum(area, 0, out=ps[1:])
         total = int(offsets[-1])
-        gauss = torch.empty(total, dtype=torch.int64)
-        pslot = torch.empty(total, dtype=torch.int64)
+        if total >= 2**31:
+            raise ValueError(f"{total} tile-Gaussian pairs: the 'cpu' kernel indexes pairs with int32 (< 2**31)")
+        # int32 lists: half the bytes of int64 for the scatter's ~2 random writes per pair and
+        # for every read in the blend (N and the pair count stay far below 2**31 on a CPU)
+        gauss = torch.empty(total, dtype=torch.int32)
+        pslot = torch.empty(total, dtype=torch.int32)
+        slot_pair = torch.empty(total, dtype=torch.int32)
         _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
-                      _ptr(base), _ptr(ps), _ptr(gauss), _ptr(pslot))
-    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot, fp)
+                      _ptr(base), _ptr(ps), _ptr(gauss), _ptr(pslot), _ptr(slot_pair))
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot, fp, slot_pair)
 
 
 def tile_pairs_cpu(
@@ -216,7 +229,7 @@ def tile_pairs_cpu(
     all pairs.
     """
     b = bin_cpu(depths, rect, visible, width, height, kernel)
-    return b.offsets, b.gauss, b.tiles_x, b.tiles_y
+    return b.offsets, b.gauss.to(torch.int64), b.tiles_x, b.tiles_y
 
 
 def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int, kernel: str = "cpu"):
@@ -275,9 +288,10 @@ _workspace_lock = threading.Lock()
 
 
 def _pair_buffer(rows: int, cols: int, dtype: torch.dtype) -> Tensor:
-    """A reused [rows, cols] scratch buffer (grow-only, one per dtype): the per-pair gradient
-    rows are fully rewritten by every backward, and a fresh 60 MB allocation per iteration
-    (1.5 M pairs at 100k Gaussians, 512x512) costs its page faults every time."""
+    """A reused [rows, cols] scratch buffer (grow-only, one per dtype): every backward rewrites
+    the rows of the pairs it reaches and the reduction reads only those (the byte map ``live``),
+    and a fresh 60 MB allocation per iteration (1.5 M pairs at 100k Gaussians, 512x512) costs
+    its page faults every time."""
     buf = _workspace.get(dtype)
     if buf is None or buf.numel() < rows * cols:
         buf = torch.empty(max(rows * cols, 1), dtype=dtype)
@@ -321,16 +335,19 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     n_active = nf
     while n_active > 0 and not bool(v_accum[..., n_active - 1].any()):
         n_active -= 1
-    with _workspace_lock:  # "cpu" writes every pair row, so the buffer needs no clearing
+    # the buffer needs no clearing: "cpu" writes the row of every pair it reaches and the
+    # reduction reads only those (live: one byte per pair, written by the backward)
+    live = torch.empty(bins.gauss.numel(), dtype=torch.uint8)
+    with _workspace_lock:
         v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
         _run_threaded(
             getattr(lib, f"splat2_backward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
             _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(bins.pslot),
-            _ptr(v_pair),
+            _ptr(v_pair), _ptr(live),
         )
         _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
-                      6 + nf, _ptr(v_pair), _ptr(v))
+                      6 + nf, _ptr(v_pair), _ptr(bins.slot_pair), _ptr(live), _ptr(v))
     return v
 
 

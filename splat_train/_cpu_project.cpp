@@ -11,10 +11,24 @@
 // near, eps2d, camera centre in world (3), width, height. One thread per chunk of 1024
 // Gaussians from a shared counter; every Gaussian is independent, so results do not depend on
 // the thread count.
+//
+// Vectorised across Gaussians: blocks of LN = 8 Gaussians run the same double-precision code
+// with one Gaussian per lane (GCC/Clang vector extensions: one zmm register with AVX-512, two
+// ymm with AVX2, four xmm or scalar code elsewhere). Branches are per-lane selects, so every
+// lane computes exactly what the scalar per-Gaussian code did (same operations, same order);
+// the inputs are transposed into the lanes and the results back (a partial last block pads its
+// lanes with a harmless Gaussian and writes only the real ones). That made the forward
+// ~12 -> ~5 ms and the backward ~20 -> ~9.5 ms at 100k Gaussians (SH degree 3, one core; the
+// SH part, ~2.5 + ~6.5 ms, is mostly moving 48 coefficients per Gaussian in and out of lanes:
+// AVX2 gathers and an in-register 8x8 transpose were both tried and were not faster).
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#if defined(__AVX2__) || defined(__AVX512F__) || defined(__SSE2__)
+#include <immintrin.h>
+#endif
 
 namespace {
 
@@ -26,6 +40,60 @@ constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.45704579946
                           0.3731763325901154, -0.4570457994644658, 1.445305721320277,
                           -0.5900435899266435};
 constexpr int64_t CHUNK = 1024;
+constexpr int LN = 8;  // Gaussians per vector
+
+typedef double D __attribute__((vector_size(8 * LN)));
+typedef int64_t Mk __attribute__((vector_size(8 * LN)));
+
+inline D bc(double x) { return D{x, x, x, x, x, x, x, x}; }
+// std::max / std::min semantics (the first argument wins ties and NaN comparisons)
+inline D vmax(D a, D b) { return a < b ? b : a; }
+inline D vmin(D a, D b) { return b < a ? b : a; }
+inline Mk isfin(D x) { return (x - x) == bc(0.0); }  // false for inf and NaN
+inline D vsqrt(D x) {
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_sqrt_pd(0xFF, v);  // (masked: the unmasked form trips -Wuninitialized in GCC 12's header)
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_sqrt_pd(v[0]);
+  v[1] = _mm256_sqrt_pd(v[1]);
+  std::memcpy(&r, v, 64);
+#elif defined(__SSE2__)
+  __m128d v[4];
+  std::memcpy(v, &x, 64);
+  for (int k = 0; k < 4; ++k) v[k] = _mm_sqrt_pd(v[k]);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = std::sqrt(x[l]);
+#endif
+  return r;
+}
+// floor / ceil (mode 1 / 2 of the rounding instructions)
+template <int MODE> inline D vround(D x) {
+  D r;
+#if defined(__AVX512F__)
+  __m512d v;
+  std::memcpy(&v, &x, 64);
+  v = _mm512_maskz_roundscale_pd(0xFF, v, MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, &v, 64);
+#elif defined(__AVX__)
+  __m256d v[2];
+  std::memcpy(v, &x, 64);
+  v[0] = _mm256_round_pd(v[0], MODE | _MM_FROUND_NO_EXC);
+  v[1] = _mm256_round_pd(v[1], MODE | _MM_FROUND_NO_EXC);
+  std::memcpy(&r, v, 64);
+#else
+  for (int l = 0; l < LN; ++l) r[l] = MODE == 1 ? std::floor(x[l]) : std::ceil(x[l]);
+#endif
+  return r;
+}
+inline D vfloor(D x) { return vround<1>(x); }
+inline D vceil(D x) { return vround<2>(x); }
 
 struct Cam {
   double R[9], t[3], fx, fy, cx, cy, near, eps2d, cc[3];
@@ -45,85 +113,102 @@ struct Cam {
   }
 };
 
-// Everything the forward computes for one Gaussian, kept for the backward.
-struct Proj {
-  double p[3];      // camera-frame mean
-  double zs;        // z, or 1 when behind the near plane
-  bool in_front, ok;
-  double u, v;
-  double tx, ty;    // Jacobian evaluation point (clamped)
-  bool clx, cly;    // clamp active
-  double J[6];      // 2x3
-  double q[4];      // normalised quaternion (w, x, y, z)
-  double qn;        // max(|q|, 1e-12)
-  double Rq[9];     // rotation of the Gaussian
-  double M[9];      // Rq diag(s)
-  double Sig[9];    // world covariance
-  double T[6];      // J R
-  double a, b, c;   // dilated 2D covariance
-  double det;
+// One block of LN Gaussians, transposed into lanes (double), with everything the forward
+// computes that the backward reuses.
+struct Block {
+  int nl;               // real lanes (the rest are padding)
+  D m[3], q0[4], s[3];  // inputs
+  D p[3];               // camera-frame mean
+  D zs;                 // z, or 1 when behind the near plane
+  Mk ok;
+  D u, v;
+  D tx, ty;             // Jacobian evaluation point (clamped)
+  Mk clx, cly;          // clamp active
+  D J0, J2, J4, J5;     // the non-zero entries of the 2x3 Jacobian
+  D q[4];               // normalised quaternion (w, x, y, z)
+  D qn;                 // max(|q|, 1e-12)
+  D Rq[9];              // rotation of the Gaussian
+  D M[9];               // Rq diag(s)
+  D Sig[9];             // world covariance
+  D T[6];               // J R
+  D a, b, c;            // dilated 2D covariance
+  D det;
 };
 
 template <typename T>
-inline void project_one(const Cam& cam, const T* mean, const T* quat, const T* scale, Proj& P) {
-  const double m[3] = {(double)mean[0], (double)mean[1], (double)mean[2]};
+inline void load_block(int64_t i0, int64_t n, const T* means, const T* quats, const T* scales, Block& B) {
+  B.nl = (int)std::min<int64_t>(LN, n - i0);
+  for (int l = 0; l < LN; ++l) {
+    const bool real = l < B.nl;
+    const int64_t i = i0 + (real ? l : 0);
+    for (int k = 0; k < 3; ++k) B.m[k][l] = (double)means[3 * i + k];
+    for (int k = 0; k < 4; ++k) B.q0[k][l] = (double)quats[4 * i + k];
+    for (int k = 0; k < 3; ++k) B.s[k][l] = (double)scales[3 * i + k];
+  }
+}
+
+// The per-Gaussian projection (splat_train/projection.py), lane-wise.
+inline void project_block(const Cam& cam, Block& P) {
   for (int r = 0; r < 3; ++r)
-    P.p[r] = cam.R[3 * r] * m[0] + cam.R[3 * r + 1] * m[1] + cam.R[3 * r + 2] * m[2] + cam.t[r];
-  const double z = P.p[2];
-  P.in_front = z >= cam.near;
-  P.zs = P.in_front ? z : 1.0;
-  const double x = P.p[0], y = P.p[1], zs = P.zs;
+    P.p[r] = cam.R[3 * r] * P.m[0] + cam.R[3 * r + 1] * P.m[1] + cam.R[3 * r + 2] * P.m[2] + cam.t[r];
+  const D z = P.p[2];
+  const Mk in_front = z >= bc(cam.near);
+  P.zs = in_front ? z : bc(1.0);
+  const D x = P.p[0], y = P.p[1], zs = P.zs;
   P.u = cam.fx * x / zs + cam.cx;
   P.v = cam.fy * y / zs + cam.cy;
-  const double xz = x / zs, yz = y / zs;
-  const double cxz = std::min(std::max(xz, -cam.lxn), cam.lxp);
-  const double cyz = std::min(std::max(yz, -cam.lyn), cam.lyp);
+  const D xz = x / zs, yz = y / zs;
+  const D cxz = vmin(vmax(xz, bc(-cam.lxn)), bc(cam.lxp));
+  const D cyz = vmin(vmax(yz, bc(-cam.lyn)), bc(cam.lyp));
   P.clx = cxz != xz;
   P.cly = cyz != yz;
   P.tx = zs * cxz;
   P.ty = zs * cyz;
-  P.J[0] = cam.fx / zs; P.J[1] = 0; P.J[2] = -cam.fx * P.tx / (zs * zs);
-  P.J[3] = 0; P.J[4] = cam.fy / zs; P.J[5] = -cam.fy * P.ty / (zs * zs);
-  const double q0[4] = {(double)quat[0], (double)quat[1], (double)quat[2], (double)quat[3]};
-  const double nrm = std::sqrt(q0[0] * q0[0] + q0[1] * q0[1] + q0[2] * q0[2] + q0[3] * q0[3]);
-  P.qn = std::max(nrm, 1e-12);
+  P.J0 = cam.fx / zs; P.J2 = -cam.fx * P.tx / (zs * zs);
+  P.J4 = cam.fy / zs; P.J5 = -cam.fy * P.ty / (zs * zs);
+  const D* q0 = P.q0;
+  const D nrm = vsqrt(q0[0] * q0[0] + q0[1] * q0[1] + q0[2] * q0[2] + q0[3] * q0[3]);
+  P.qn = vmax(nrm, bc(1e-12));
   for (int i = 0; i < 4; ++i) P.q[i] = q0[i] / P.qn;
-  const double w = P.q[0], qx = P.q[1], qy = P.q[2], qz = P.q[3];
-  double* R = P.Rq;
+  const D w = P.q[0], qx = P.q[1], qy = P.q[2], qz = P.q[3];
+  D* R = P.Rq;
   R[0] = 1 - 2 * (qy * qy + qz * qz); R[1] = 2 * (qx * qy - w * qz); R[2] = 2 * (qx * qz + w * qy);
   R[3] = 2 * (qx * qy + w * qz); R[4] = 1 - 2 * (qx * qx + qz * qz); R[5] = 2 * (qy * qz - w * qx);
   R[6] = 2 * (qx * qz - w * qy); R[7] = 2 * (qy * qz + w * qx); R[8] = 1 - 2 * (qx * qx + qy * qy);
-  const double s[3] = {(double)scale[0], (double)scale[1], (double)scale[2]};
   for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) P.M[3 * i + j] = R[3 * i + j] * s[j];
+    for (int j = 0; j < 3; ++j) P.M[3 * i + j] = R[3 * i + j] * P.s[j];
   for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j)
+    for (int j = i; j < 3; ++j) {
       P.Sig[3 * i + j] = P.M[3 * i] * P.M[3 * j] + P.M[3 * i + 1] * P.M[3 * j + 1] + P.M[3 * i + 2] * P.M[3 * j + 2];
-  for (int i = 0; i < 2; ++i)
-    for (int j = 0; j < 3; ++j)
-      P.T[3 * i + j] = P.J[3 * i] * cam.R[j] + P.J[3 * i + 1] * cam.R[3 + j] + P.J[3 * i + 2] * cam.R[6 + j];
-  double TS[6];  // T Sig
+      P.Sig[3 * j + i] = P.Sig[3 * i + j];
+    }
+  // T = J R with J = [[J0, 0, J2], [0, J4, J5]]
+  for (int j = 0; j < 3; ++j) {
+    P.T[j] = P.J0 * cam.R[j] + P.J2 * cam.R[6 + j];
+    P.T[3 + j] = P.J4 * cam.R[3 + j] + P.J5 * cam.R[6 + j];
+  }
+  D TS[6];  // T Sig
   for (int i = 0; i < 2; ++i)
     for (int j = 0; j < 3; ++j)
       TS[3 * i + j] = P.T[3 * i] * P.Sig[j] + P.T[3 * i + 1] * P.Sig[3 + j] + P.T[3 * i + 2] * P.Sig[6 + j];
-  const double c00 = TS[0] * P.T[0] + TS[1] * P.T[1] + TS[2] * P.T[2];
-  const double c01 = TS[0] * P.T[3] + TS[1] * P.T[4] + TS[2] * P.T[5];
-  const double c11 = TS[3] * P.T[3] + TS[4] * P.T[4] + TS[5] * P.T[5];
+  const D c00 = TS[0] * P.T[0] + TS[1] * P.T[1] + TS[2] * P.T[2];
+  const D c01 = TS[0] * P.T[3] + TS[1] * P.T[4] + TS[2] * P.T[5];
+  const D c11 = TS[3] * P.T[3] + TS[4] * P.T[4] + TS[5] * P.T[5];
   P.a = c00 + cam.eps2d;
   P.b = c01;
   P.c = c11 + cam.eps2d;
   P.det = P.a * P.c - P.b * P.b;
-  P.ok = P.in_front && std::isfinite(P.det) && P.det > 0 && std::isfinite(P.u) && std::isfinite(P.v);
+  P.ok = in_front & isfin(P.det) & (P.det > bc(0.0)) & isfin(P.u) & isfin(P.v);
 }
 
-// Real SH basis values b[16] for a unit direction d (3DGS order and signs, see sh.py).
-inline void sh_basis(int deg, const double* d, double* b) {
-  const double x = d[0], y = d[1], z = d[2];
-  b[0] = C0;
+// Real SH basis values b[16] for unit directions d (3DGS order and signs, see sh.py).
+inline void sh_basis(int deg, const D* d, D* b) {
+  const D x = d[0], y = d[1], z = d[2];
+  b[0] = bc(C0);
   if (deg < 1) return;
   b[1] = -C1 * y; b[2] = C1 * z; b[3] = -C1 * x;
   if (deg < 2) return;
-  const double xx = x * x, yy = y * y, zz = z * z;
+  const D xx = x * x, yy = y * y, zz = z * z;
   b[4] = C2[0] * x * y; b[5] = C2[1] * y * z; b[6] = C2[2] * (2 * zz - xx - yy);
   b[7] = C2[3] * x * z; b[8] = C2[4] * (xx - yy);
   if (deg < 3) return;
@@ -133,33 +218,47 @@ inline void sh_basis(int deg, const double* d, double* b) {
   b[15] = C3[6] * x * (xx - 3 * yy);
 }
 
-// d/d(x, y, z) of each basis function: g[3 k + axis].
-inline void sh_basis_grad(int deg, const double* d, double* g) {
-  const double x = d[0], y = d[1], z = d[2];
-  for (int i = 0; i < 48; ++i) g[i] = 0;
+// vd[axis] += s[k] * d/d(axis) basis_k for k = 1 .. nb - 1 (the non-zero entries of the
+// basis gradient, k in order, axes x, y, z; a zero entry adds nothing).
+inline void sh_grad_dot(int deg, const D* d, const D* s, D* vd) {
+  const D x = d[0], y = d[1], z = d[2];
   if (deg < 1) return;
-  g[3 * 1 + 1] = -C1; g[3 * 2 + 2] = C1; g[3 * 3 + 0] = -C1;
+  vd[1] += s[1] * -C1; vd[2] += s[2] * C1; vd[0] += s[3] * -C1;
   if (deg < 2) return;
-  const double xx = x * x, yy = y * y, zz = z * z;
-  g[12] = C2[0] * y; g[13] = C2[0] * x;
-  g[16] = C2[1] * z; g[17] = C2[1] * y;
-  g[18] = C2[2] * -2 * x; g[19] = C2[2] * -2 * y; g[20] = C2[2] * 4 * z;
-  g[21] = C2[3] * z; g[23] = C2[3] * x;
-  g[24] = C2[4] * 2 * x; g[25] = C2[4] * -2 * y;
+  const D xx = x * x, yy = y * y, zz = z * z;
+  vd[0] += s[4] * (C2[0] * y); vd[1] += s[4] * (C2[0] * x);
+  vd[1] += s[5] * (C2[1] * z); vd[2] += s[5] * (C2[1] * y);
+  vd[0] += s[6] * (C2[2] * -2 * x); vd[1] += s[6] * (C2[2] * -2 * y); vd[2] += s[6] * (C2[2] * 4 * z);
+  vd[0] += s[7] * (C2[3] * z); vd[2] += s[7] * (C2[3] * x);
+  vd[0] += s[8] * (C2[4] * 2 * x); vd[1] += s[8] * (C2[4] * -2 * y);
   if (deg < 3) return;
-  g[27] = C3[0] * 6 * x * y; g[28] = C3[0] * (3 * xx - 3 * yy);
-  g[30] = C3[1] * y * z; g[31] = C3[1] * x * z; g[32] = C3[1] * x * y;
-  g[33] = C3[2] * -2 * x * y; g[34] = C3[2] * (4 * zz - xx - 3 * yy); g[35] = C3[2] * 8 * y * z;
-  g[36] = C3[3] * -6 * x * z; g[37] = C3[3] * -6 * y * z; g[38] = C3[3] * (6 * zz - 3 * xx - 3 * yy);
-  g[39] = C3[4] * (4 * zz - 3 * xx - yy); g[40] = C3[4] * -2 * x * y; g[41] = C3[4] * 8 * x * z;
-  g[42] = C3[5] * 2 * x * z; g[43] = C3[5] * -2 * y * z; g[44] = C3[5] * (xx - yy);
-  g[45] = C3[6] * (3 * xx - 3 * yy); g[46] = C3[6] * -6 * x * y;
+  vd[0] += s[9] * (C3[0] * 6 * x * y); vd[1] += s[9] * (C3[0] * (3 * xx - 3 * yy));
+  vd[0] += s[10] * (C3[1] * y * z); vd[1] += s[10] * (C3[1] * x * z); vd[2] += s[10] * (C3[1] * x * y);
+  vd[0] += s[11] * (C3[2] * -2 * x * y); vd[1] += s[11] * (C3[2] * (4 * zz - xx - 3 * yy));
+  vd[2] += s[11] * (C3[2] * 8 * y * z);
+  vd[0] += s[12] * (C3[3] * -6 * x * z); vd[1] += s[12] * (C3[3] * -6 * y * z);
+  vd[2] += s[12] * (C3[3] * (6 * zz - 3 * xx - 3 * yy));
+  vd[0] += s[13] * (C3[4] * (4 * zz - 3 * xx - yy)); vd[1] += s[13] * (C3[4] * -2 * x * y);
+  vd[2] += s[13] * (C3[4] * 8 * x * z);
+  vd[0] += s[14] * (C3[5] * 2 * x * z); vd[1] += s[14] * (C3[5] * -2 * y * z); vd[2] += s[14] * (C3[5] * (xx - yy));
+  vd[0] += s[15] * (C3[6] * (3 * xx - 3 * yy)); vd[1] += s[15] * (C3[6] * -6 * x * y);
 }
 
-inline void view_dir(const Cam& cam, const double* m, double* d, double& norm) {
-  double v[3] = {m[0] - cam.cc[0], m[1] - cam.cc[1], m[2] - cam.cc[2]};
-  norm = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-  for (int i = 0; i < 3; ++i) d[i] = norm > 1e-12 ? v[i] / std::max(norm, 1e-12) : 0.0;
+inline void view_dir(const Cam& cam, const D* m, D* d, D& norm) {
+  const D v[3] = {m[0] - cam.cc[0], m[1] - cam.cc[1], m[2] - cam.cc[2]};
+  norm = vsqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+  const Mk far = norm > bc(1e-12);
+  const D den = vmax(norm, bc(1e-12));
+  for (int i = 0; i < 3; ++i) d[i] = far ? v[i] / den : bc(0.0);
+}
+
+// The first nb SH coefficients of the block's Gaussians, transposed: co[3 k + ch][lane].
+template <typename T>
+inline void load_sh(const Block& B, int64_t i0, int64_t sh_k, int nb, const T* sh, D* co) {
+  for (int l = 0; l < LN; ++l) {
+    const T* src = sh + (i0 + (l < B.nl ? l : 0)) * sh_k * 3;
+    for (int j = 0; j < 3 * nb; ++j) co[j][l] = (double)src[j];
+  }
 }
 
 template <typename T>
@@ -169,45 +268,56 @@ void forward_impl(int64_t n, const double* camp, const T* means, const T* quats,
                   int64_t* next) {
   const Cam cam(camp);
   const int64_t gx = (cam.W + tile - 1) / tile, gy = (cam.H + tile - 1) / tile;
+  const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
   for (int64_t ch; (ch = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) * CHUNK < n;) {
     const int64_t i1 = std::min(n, (ch + 1) * CHUNK);
-    for (int64_t i = ch * CHUNK; i < i1; ++i) {
-      Proj P;
-      project_one(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
-      const double a = P.ok ? P.a : 1.0, b = P.ok ? P.b : 0.0, c = P.ok ? P.c : 1.0;
-      const double det = a * c - b * b;
-      conics[3 * i] = (T)(c / det); conics[3 * i + 1] = (T)(-b / det); conics[3 * i + 2] = (T)(a / det);
-      cov2d[3 * i] = (T)a; cov2d[3 * i + 1] = (T)b; cov2d[3 * i + 2] = (T)c;
-      const double mid = 0.5 * (a + c);
-      const double lam = mid + std::sqrt(std::max(mid * mid - det, 0.1));
-      const double radius = std::ceil(3.0 * std::sqrt(lam));
-      const double px = (P.ok ? P.u : 0.0) - 0.5, py = (P.ok ? P.v : 0.0) - 0.5;
-      const double big = 1e9;
-      auto cl = [&](double val, int64_t hi) {
-        const double f = std::floor(std::min(std::max(val, -1.0), big));
-        return (int64_t)std::min(std::max(f, 0.0), (double)hi);
+    for (int64_t ib = ch * CHUNK; ib < i1; ib += LN) {
+      Block P;
+      load_block(ib, n, means, quats, scales, P);
+      project_block(cam, P);
+      const Mk ok = P.ok;
+      const D a = ok ? P.a : bc(1.0), b = ok ? P.b : bc(0.0), c = ok ? P.c : bc(1.0);
+      const D det = a * c - b * b;
+      const D co0 = c / det, co1 = -b / det, co2 = a / det;
+      const D mid = 0.5 * (a + c);
+      const D lam = mid + vsqrt(vmax(mid * mid - det, bc(0.1)));
+      const D radius = vceil(3.0 * vsqrt(lam));
+      const D u = ok ? P.u : bc(0.0), v = ok ? P.v : bc(0.0), zd = ok ? P.p[2] : bc(0.0);
+      const D px = u - 0.5, py = v - 0.5;
+      const double dt = (double)tile;
+      auto cl = [&](D val, int64_t hi) {
+        const D f = vfloor(vmin(vmax(val, bc(-1.0)), bc(1e9)));
+        return vmin(vmax(f, bc(0.0)), bc((double)hi));
       };
-      int64_t r[4] = {cl((px - radius) / tile, gx), cl((px + radius + tile - 1) / tile, gx),
-                      cl((py - radius) / tile, gy), cl((py + radius + tile - 1) / tile, gy)};
-      const bool vis = P.ok && (r[1] - r[0]) * (r[3] - r[2]) > 0;
-      visible[i] = vis;
-      radii[i] = vis ? (int32_t)std::min(radius, 1073741824.0) : 0;
-      for (int k = 0; k < 4; ++k) rect[4 * i + k] = vis ? r[k] : 0;
-      means2d[2 * i] = (T)(P.ok ? P.u : 0.0);
-      means2d[2 * i + 1] = (T)(P.ok ? P.v : 0.0);
-      depths[i] = (T)(P.ok ? P.p[2] : 0.0);
+      const D rr[4] = {cl((px - radius) / dt, gx), cl((px + radius + (dt - 1)) / dt, gx),
+                       cl((py - radius) / dt, gy), cl((py + radius + (dt - 1)) / dt, gy)};
+      D col[3];
       if (sh_deg >= 0) {
-        const double m[3] = {(double)means[3 * i], (double)means[3 * i + 1], (double)means[3 * i + 2]};
-        double d[3], norm, basis[16];
-        view_dir(cam, m, d, norm);
+        D d[3], norm, basis[16], co[48];
+        view_dir(cam, P.m, d, norm);
         sh_basis((int)sh_deg, d, basis);
-        const int nb = (int)((sh_deg + 1) * (sh_deg + 1));
-        const T* co = sh + i * sh_k * 3;
+        load_sh(P, ib, sh_k, nb, sh, co);
         for (int ch3 = 0; ch3 < 3; ++ch3) {
-          double v = 0;
-          for (int k = 0; k < nb; ++k) v += basis[k] * (double)co[3 * k + ch3];
-          colors[3 * i + ch3] = (T)std::max(v + 0.5, 0.0);
+          D s = bc(0.0);
+          for (int k = 0; k < nb; ++k) s += basis[k] * co[3 * k + ch3];
+          col[ch3] = vmax(s + 0.5, bc(0.0));
         }
+      }
+      for (int l = 0; l < P.nl; ++l) {
+        const int64_t i = ib + l;
+        conics[3 * i] = (T)co0[l]; conics[3 * i + 1] = (T)co1[l]; conics[3 * i + 2] = (T)co2[l];
+        cov2d[3 * i] = (T)a[l]; cov2d[3 * i + 1] = (T)b[l]; cov2d[3 * i + 2] = (T)c[l];
+        int64_t r[4];
+        for (int k = 0; k < 4; ++k) r[k] = (int64_t)rr[k][l];
+        const bool vis = ok[l] && (r[1] - r[0]) * (r[3] - r[2]) > 0;
+        visible[i] = vis;
+        radii[i] = vis ? (int32_t)std::min(radius[l], 1073741824.0) : 0;
+        for (int k = 0; k < 4; ++k) rect[4 * i + k] = vis ? r[k] : 0;
+        means2d[2 * i] = (T)u[l];
+        means2d[2 * i + 1] = (T)v[l];
+        depths[i] = (T)zd[l];
+        if (sh_deg >= 0)
+          for (int ch3 = 0; ch3 < 3; ++ch3) colors[3 * i + ch3] = (T)col[ch3][l];
       }
     }
   }
@@ -219,99 +329,116 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
                    const T* v_depths, const T* v_colors, T* v_means, T* v_quats, T* v_scales,
                    T* v_sh, int64_t* next) {
   const Cam cam(camp);
+  const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
   for (int64_t ch; (ch = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) * CHUNK < n;) {
     const int64_t i1 = std::min(n, (ch + 1) * CHUNK);
-    for (int64_t i = ch * CHUNK; i < i1; ++i) {
-      double vm[3] = {0, 0, 0}, vq[4] = {0, 0, 0, 0}, vs[3] = {0, 0, 0};
-      Proj P;
-      project_one(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
-      if (P.ok) {
+    for (int64_t ib = ch * CHUNK; ib < i1; ib += LN) {
+      Block P;
+      load_block(ib, n, means, quats, scales, P);
+      project_block(cam, P);
+      D g0, g1, g2, vu, vv, vdep, vcin[3];
+      for (int l = 0; l < LN; ++l) {
+        const int64_t i = ib + (l < P.nl ? l : 0);
+        g0[l] = (double)v_conics[3 * i]; g1[l] = (double)v_conics[3 * i + 1]; g2[l] = (double)v_conics[3 * i + 2];
+        vu[l] = (double)v_means2d[2 * i]; vv[l] = (double)v_means2d[2 * i + 1];
+        vdep[l] = (double)v_depths[i];
+        if (sh_deg >= 0)
+          for (int k = 0; k < 3; ++k) vcin[k][l] = (double)v_colors[3 * i + k];
+      }
+      D vm[3], vq[4], vs[3] = {bc(0.0), bc(0.0), bc(0.0)};
+      {
         // conic (c, -b, a) / det -> (a, b, c)
-        const double a = P.a, b = P.b, c = P.c, det = P.det, d2 = det * det;
-        const double g0 = (double)v_conics[3 * i], g1 = (double)v_conics[3 * i + 1], g2 = (double)v_conics[3 * i + 2];
-        const double va = g0 * (-c * c / d2) + g1 * (b * c / d2) + g2 * (1 / det - a * c / d2);
-        const double vb = g0 * (2 * b * c / d2) + g1 * (-1 / det - 2 * b * b / d2) + g2 * (2 * a * b / d2);
-        const double vc = g0 * (1 / det - a * c / d2) + g1 * (a * b / d2) + g2 * (-a * a / d2);
+        const D a = P.a, b = P.b, c = P.c, det = P.det, d2 = det * det;
+        const D va = g0 * (-c * c / d2) + g1 * (b * c / d2) + g2 * (1 / det - a * c / d2);
+        const D vb = g0 * (2 * b * c / d2) + g1 * (-1 / det - 2 * b * b / d2) + g2 * (2 * a * b / d2);
+        const D vc = g0 * (1 / det - a * c / d2) + g1 * (a * b / d2) + g2 * (-a * a / d2);
         // cov = T Sig T^T, with b read from cov[0, 1]: symmetric cotangent Vs
-        const double Vs[4] = {va, 0.5 * vb, 0.5 * vb, vc};
-        double VT[6];  // Vs T (2x3)
+        const D Vs[4] = {va, 0.5 * vb, 0.5 * vb, vc};
+        D VT[6];  // Vs T (2x3)
         for (int r = 0; r < 2; ++r)
           for (int j = 0; j < 3; ++j) VT[3 * r + j] = Vs[2 * r] * P.T[j] + Vs[2 * r + 1] * P.T[3 + j];
-        double vSig[9];  // T^T Vs T
+        D vSig[9];  // T^T Vs T
         for (int r = 0; r < 3; ++r)
           for (int j = 0; j < 3; ++j) vSig[3 * r + j] = P.T[r] * VT[j] + P.T[3 + r] * VT[3 + j];
-        double vT[6];  // 2 Vs T Sig
+        D vT[6];  // 2 Vs T Sig
         for (int r = 0; r < 2; ++r)
           for (int j = 0; j < 3; ++j)
             vT[3 * r + j] = 2 * (VT[3 * r] * P.Sig[j] + VT[3 * r + 1] * P.Sig[3 + j] + VT[3 * r + 2] * P.Sig[6 + j]);
-        double vJ[6];  // vT R^T
+        D vJ[6];  // vT R^T
         for (int r = 0; r < 2; ++r)
           for (int j = 0; j < 3; ++j)
             vJ[3 * r + j] = vT[3 * r] * cam.R[3 * j] + vT[3 * r + 1] * cam.R[3 * j + 1] + vT[3 * r + 2] * cam.R[3 * j + 2];
         // Sig = M M^T -> vM = 2 vSig M; M = Rq diag(s)
-        double vRq[9];
+        D vRq[9];
         for (int r = 0; r < 3; ++r)
           for (int j = 0; j < 3; ++j) {
-            const double vMrj = 2 * (vSig[3 * r] * P.M[j] + vSig[3 * r + 1] * P.M[3 + j] + vSig[3 * r + 2] * P.M[6 + j]);
+            const D vMrj = 2 * (vSig[3 * r] * P.M[j] + vSig[3 * r + 1] * P.M[3 + j] + vSig[3 * r + 2] * P.M[6 + j]);
             vs[j] += vMrj * P.Rq[3 * r + j];
-            vRq[3 * r + j] = vMrj * (double)scales[3 * i + j];
+            vRq[3 * r + j] = vMrj * P.s[j];
           }
-        const double w = P.q[0], x = P.q[1], y = P.q[2], z = P.q[3];
-        const double* g = vRq;
-        double vqn[4];
+        const D w = P.q[0], x = P.q[1], y = P.q[2], z = P.q[3];
+        const D* g = vRq;
+        D vqn[4];
         vqn[0] = 2 * (x * (g[7] - g[5]) + y * (g[2] - g[6]) + z * (g[3] - g[1]));
         vqn[1] = 2 * (-2 * x * (g[4] + g[8]) + y * (g[1] + g[3]) + z * (g[2] + g[6]) + w * (g[7] - g[5]));
         vqn[2] = 2 * (-2 * y * (g[0] + g[8]) + x * (g[1] + g[3]) + z * (g[5] + g[7]) + w * (g[2] - g[6]));
         vqn[3] = 2 * (-2 * z * (g[0] + g[4]) + x * (g[2] + g[6]) + y * (g[5] + g[7]) + w * (g[3] - g[1]));
-        if (P.qn > 1e-12) {
-          const double dot = vqn[0] * w + vqn[1] * x + vqn[2] * y + vqn[3] * z;
-          for (int k = 0; k < 4; ++k) vq[k] = (vqn[k] - P.q[k] * dot) / P.qn;
-        } else {
-          for (int k = 0; k < 4; ++k) vq[k] = vqn[k] / 1e-12;
-        }
+        const Mk big = P.qn > bc(1e-12);
+        const D dot = vqn[0] * w + vqn[1] * x + vqn[2] * y + vqn[3] * z;
+        for (int k = 0; k < 4; ++k) vq[k] = big ? (vqn[k] - P.q[k] * dot) / P.qn : vqn[k] / 1e-12;
         // J (at tx, ty, z) and the projection (u, v, z) -> camera point
-        const double zs = P.zs, fx = cam.fx, fy = cam.fy;
-        const double vu = (double)v_means2d[2 * i], vv = (double)v_means2d[2 * i + 1];
-        double vx = vu * fx / zs, vy = vv * fy / zs;
-        double vz = -vu * fx * P.p[0] / (zs * zs) - vv * fy * P.p[1] / (zs * zs) + (double)v_depths[i];
+        const D zs = P.zs;
+        const double fx = cam.fx, fy = cam.fy;
+        D vx = vu * fx / zs, vy = vv * fy / zs;
+        D vz = -vu * fx * P.p[0] / (zs * zs) - vv * fy * P.p[1] / (zs * zs) + vdep;
         vz += vJ[0] * (-fx / (zs * zs)) + vJ[4] * (-fy / (zs * zs));
         vz += vJ[2] * (2 * fx * P.tx / (zs * zs * zs)) + vJ[5] * (2 * fy * P.ty / (zs * zs * zs));
-        const double vtx = vJ[2] * (-fx / (zs * zs)), vty = vJ[5] * (-fy / (zs * zs));
-        if (P.clx) vz += vtx * (P.tx / zs); else vx += vtx;
-        if (P.cly) vz += vty * (P.ty / zs); else vy += vty;
-        const double vp[3] = {vx, vy, vz};
-        for (int j = 0; j < 3; ++j) vm[j] = cam.R[j] * vp[0] + cam.R[3 + j] * vp[1] + cam.R[6 + j] * vp[2];
+        const D vtx = vJ[2] * (-fx / (zs * zs)), vty = vJ[5] * (-fy / (zs * zs));
+        vz = P.clx ? vz + vtx * (P.tx / zs) : vz;
+        vx = P.clx ? vx : vx + vtx;
+        vz = P.cly ? vz + vty * (P.ty / zs) : vz;
+        vy = P.cly ? vy : vy + vty;
+        const D zero = bc(0.0);
+        for (int j = 0; j < 3; ++j)
+          vm[j] = P.ok ? cam.R[j] * vx + cam.R[3 + j] * vy + cam.R[6 + j] * vz : zero;
+        for (int k = 0; k < 4; ++k) vq[k] = P.ok ? vq[k] : zero;
+        for (int j = 0; j < 3; ++j) vs[j] = P.ok ? vs[j] : zero;
       }
+      D vco[48];
       if (sh_deg >= 0) {
-        const double m[3] = {(double)means[3 * i], (double)means[3 * i + 1], (double)means[3 * i + 2]};
-        double d[3], norm, basis[16], bg[48];
-        view_dir(cam, m, d, norm);
+        D d[3], norm, basis[16], co[48];
+        view_dir(cam, P.m, d, norm);
         sh_basis((int)sh_deg, d, basis);
-        const int nb = (int)((sh_deg + 1) * (sh_deg + 1));
-        const T* co = sh + i * sh_k * 3;
-        T* vco = v_sh + i * sh_k * 3;
-        double vcol[3];
+        load_sh(P, ib, sh_k, nb, sh, co);
+        D vcol[3];
         for (int ch3 = 0; ch3 < 3; ++ch3) {
-          double v = 0;
-          for (int k = 0; k < nb; ++k) v += basis[k] * (double)co[3 * k + ch3];
-          vcol[ch3] = (v + 0.5 >= 0.0) ? (double)v_colors[3 * i + ch3] : 0.0;
+          D v = bc(0.0);
+          for (int k = 0; k < nb; ++k) v += basis[k] * co[3 * k + ch3];
+          vcol[ch3] = (v + 0.5 >= bc(0.0)) ? vcin[ch3] : bc(0.0);
         }
-        for (int k = 0; k < sh_k; ++k)
-          for (int ch3 = 0; ch3 < 3; ++ch3) vco[3 * k + ch3] = (T)(k < nb ? basis[k] * vcol[ch3] : 0.0);
-        if (sh_deg >= 1 && norm > 1e-12) {
-          sh_basis_grad((int)sh_deg, d, bg);
-          double vd[3] = {0, 0, 0};
-          for (int k = 1; k < nb; ++k) {
-            const double s = (double)co[3 * k] * vcol[0] + (double)co[3 * k + 1] * vcol[1] + (double)co[3 * k + 2] * vcol[2];
-            for (int j = 0; j < 3; ++j) vd[j] += s * bg[3 * k + j];
-          }
-          const double dot = vd[0] * d[0] + vd[1] * d[1] + vd[2] * d[2];
-          for (int j = 0; j < 3; ++j) vm[j] += (vd[j] - d[j] * dot) / norm;
+        for (int k = 0; k < nb; ++k)
+          for (int ch3 = 0; ch3 < 3; ++ch3) vco[3 * k + ch3] = basis[k] * vcol[ch3];
+        if (sh_deg >= 1) {
+          D sk[16], vd[3] = {bc(0.0), bc(0.0), bc(0.0)};
+          for (int k = 1; k < nb; ++k)
+            sk[k] = co[3 * k] * vcol[0] + co[3 * k + 1] * vcol[1] + co[3 * k + 2] * vcol[2];
+          sh_grad_dot((int)sh_deg, d, sk, vd);
+          const D dot = vd[0] * d[0] + vd[1] * d[1] + vd[2] * d[2];
+          const Mk far = norm > bc(1e-12);
+          for (int j = 0; j < 3; ++j) vm[j] = far ? vm[j] + (vd[j] - d[j] * dot) / norm : vm[j];
         }
       }
-      for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j];
-      for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j];
-      for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j];
+      for (int l = 0; l < P.nl; ++l) {
+        const int64_t i = ib + l;
+        for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
+        for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
+        for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
+        if (sh_deg >= 0) {
+          T* dst = v_sh + i * sh_k * 3;
+          for (int j = 0; j < 3 * nb; ++j) dst[j] = (T)vco[j][l];
+          for (int64_t j = 3 * nb; j < 3 * sh_k; ++j) dst[j] = T(0);
+        }
+      }
     }
   }
 }

@@ -150,3 +150,41 @@ def test_low_opacity_gaussian_matches_reference():
     for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), cpu[1], ref[1]):
         assert b.abs().max() > 0, name
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9 * (1 + b.abs().max().item()), msg=name)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_vector_footprint_pass_matches_scalar(dtype):
+    """The footprint pass runs 8 Gaussians per vector; its records (footprints and binning
+    spans) must equal the scalar footprint() bit for bit, padding lanes of a partial last
+    block and the special cases included (opacity below 1/255, not positive definite,
+    enormous, thin and rotated, and tall boxes whose spans are not stored)."""
+    from splat_train._cpu_build import ptr
+    from splat_train._cpu_kernel import _footprints, load_library
+
+    W, H = 200, 330
+    n = 1003  # not a multiple of 8
+    means, quats, scales, opac, K = _scene(n, 11, dtype, W, H)
+    g = torch.Generator().manual_seed(5)
+    scales[:40, 0] = 2.5  # tall and wide
+    scales[40:80] *= torch.exp(3 * torch.randn(40, 3, generator=g, dtype=dtype))
+    opac[80:100] = torch.rand(20, generator=g, dtype=dtype) * (1.0 / 255.0)
+    with torch.no_grad():
+        proj = project_gaussians(means, quats, scales, torch.eye(4, dtype=dtype), K, W, H)
+    mu, co, op = proj.means2d.contiguous(), proj.conics.clone(), opac.contiguous()
+    co[100:104] = torch.tensor([1.0, 2.0, 1.0], dtype=dtype)  # not positive definite
+    co[104:106] = torch.tensor([1e-30, 0.0, 1e-30], dtype=dtype)  # huge footprint
+    rect = proj.rect.to(torch.int64).contiguous()
+    assert ((rect[:, 3] - rect[:, 2]) > 14).any()
+    lib = load_library("cpu")
+    sfx = "f32" if dtype == torch.float32 else "f64"
+    outs = []
+    for vector in (True, False):
+        sp = torch.full((n, 32), -7, dtype=torch.int16)
+        if vector:
+            fp = _footprints(lib, mu, co, op, sfx, rect, sp)
+        else:
+            fp = torch.empty(n, 8, dtype=torch.float64)
+            getattr(lib, f"splat2_footprint_scalar_{sfx}")(n, ptr(co), ptr(op), ptr(mu), ptr(rect), ptr(fp), ptr(sp))
+        outs.append((fp, sp))
+    assert torch.equal(outs[0][0], outs[1][0])
+    assert torch.equal(outs[0][1], outs[1][1])
