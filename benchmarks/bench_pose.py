@@ -35,10 +35,15 @@ import json
 import logging
 import os
 import shutil
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+# Import this tree's packages, not whichever checkout an editable install points at (a bench
+# run from a second checkout otherwise measures the first).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 log = logging.getLogger("bench_pose")
 

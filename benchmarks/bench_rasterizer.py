@@ -34,6 +34,10 @@ from pathlib import Path
 
 import torch
 
+# Import this tree's packages, not whichever checkout an editable install points at (a bench
+# run from a second checkout otherwise measures the first).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 log = logging.getLogger("bench_rasterizer")
 OUT = Path(__file__).parent / "out"
 
