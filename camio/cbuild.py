@@ -30,14 +30,16 @@ def find_compiler() -> str | None:
 
 
 def build_shared(source: Path, flags: list[str], cache_dir: Path, prefix: str, cxx: str,
-                 timeout: float = 300) -> Path:
+                 timeout: float = 300, headers: tuple[Path, ...] = ()) -> Path:
     """Compile ``source`` to ``cache_dir/{prefix}_{hash}.so`` unless that file exists; return its path.
 
-    ``flags`` must include ``-shared -fPIC``. The compile writes a temporary file and renames it
-    into place, so concurrent builders race harmlessly. Raises RuntimeError (with the compiler's
-    stderr tail) when the compile fails, subprocess.TimeoutExpired after ``timeout`` seconds.
+    ``flags`` must include ``-shared -fPIC``. ``headers``: local headers the source includes;
+    their bytes join the hash, so editing one rebuilds every source that names it. The compile
+    writes a temporary file and renames it into place, so concurrent builders race harmlessly.
+    Raises RuntimeError (with the compiler's stderr tail) when the compile fails,
+    subprocess.TimeoutExpired after ``timeout`` seconds.
     """
-    src = Path(source).read_bytes()
+    src = Path(source).read_bytes() + b"".join(Path(h).read_bytes() for h in headers)
     key = hashlib.sha256(src + " ".join([cxx, *flags]).encode() + os.uname().machine.encode()).hexdigest()[:16]
     target = Path(cache_dir) / f"{prefix}_{key}.so"
     if target.exists():

@@ -45,6 +45,10 @@ _SIMD_FLAGS = {
     "avx2": ["-mavx2", "-mfma"],
     "none": [],
 }
+# Local headers the kernel sources include (part of every kernel's cache key).
+_HEADERS = tuple(sorted(_HERE.glob("_cpu_*.h")))
+
+
 def _cpu_flags() -> set[str]:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -104,7 +108,8 @@ class Kernel:
             for level in (_simd_choices() if self.simd else ["none"]):
                 flags = _BASE_FLAGS + _SIMD_FLAGS[level] + _extra_flags()
                 try:
-                    lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx)))
+                    lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx,
+                                                       headers=_HEADERS)))
                     version = getattr(lib, self.abi_fn)()
                     if version != self.abi:
                         raise RuntimeError(f"kernel ABI version mismatch ({version} != {self.abi})")

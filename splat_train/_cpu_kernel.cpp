@@ -39,6 +39,8 @@
 #include <immintrin.h>
 #endif
 
+#include "_cpu_vec8d.h"
+
 namespace {
 
 constexpr int TILE = 16;
@@ -341,51 +343,8 @@ inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
 // log stay per lane in T); tile_spans() runs over the rows of the tallest lane with its per-row
 // state in lanes. Lanes l >= nl are padding (copies of the first Gaussian), never written.
 namespace fpv {
-typedef double D __attribute__((vector_size(64)));
-typedef int64_t Mk __attribute__((vector_size(64)));
-constexpr int LN = 8;
-inline D bc(double x) { return D{x, x, x, x, x, x, x, x}; }
-inline D vmax(D a, D b) { return a < b ? b : a; }  // std::max
-inline D vmin(D a, D b) { return b < a ? b : a; }  // std::min
+using namespace vec8d;  // D, Mk, LN, bc, vmax, vmin, vsqrt, vfloor, vceil
 inline D vabs(D x) { return x < bc(0.0) ? -x : x; }
-inline D vsqrt(D x) {
-  D r;
-#if defined(__AVX512F__)
-  __m512d v;
-  std::memcpy(&v, &x, 64);
-  v = _mm512_maskz_sqrt_pd(0xFF, v);  // (masked: the unmasked form trips -Wuninitialized in GCC 12's header)
-  std::memcpy(&r, &v, 64);
-#elif defined(__AVX__)
-  __m256d v[2];
-  std::memcpy(v, &x, 64);
-  v[0] = _mm256_sqrt_pd(v[0]);
-  v[1] = _mm256_sqrt_pd(v[1]);
-  std::memcpy(&r, v, 64);
-#else
-  for (int l = 0; l < LN; ++l) r[l] = std::sqrt(x[l]);
-#endif
-  return r;
-}
-template <int MODE> inline D vround(D x) {  // MODE 1: floor, 2: ceil
-  D r;
-#if defined(__AVX512F__)
-  __m512d v;
-  std::memcpy(&v, &x, 64);
-  v = _mm512_maskz_roundscale_pd(0xFF, v, MODE | _MM_FROUND_NO_EXC);
-  std::memcpy(&r, &v, 64);
-#elif defined(__AVX__)
-  __m256d v[2];
-  std::memcpy(v, &x, 64);
-  v[0] = _mm256_round_pd(v[0], MODE | _MM_FROUND_NO_EXC);
-  v[1] = _mm256_round_pd(v[1], MODE | _MM_FROUND_NO_EXC);
-  std::memcpy(&r, v, 64);
-#else
-  for (int l = 0; l < LN; ++l) r[l] = MODE == 1 ? std::floor(x[l]) : std::ceil(x[l]);
-#endif
-  return r;
-}
-inline D vfloor(D x) { return vround<1>(x); }
-inline D vceil(D x) { return vround<2>(x); }
 inline Mk isnan(D x) { return x != x; }
 
 // Clip [t_lo, t_hi) (doubles, maybe NaN) into [lo, hi) as bbox_tiles() and tile_spans() do.

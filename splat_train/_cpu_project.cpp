@@ -30,6 +30,8 @@
 #include <immintrin.h>
 #endif
 
+#include "_cpu_vec8d.h"
+
 namespace {
 
 constexpr double C0 = 0.28209479177387814;
@@ -40,60 +42,10 @@ constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.45704579946
                           0.3731763325901154, -0.4570457994644658, 1.445305721320277,
                           -0.5900435899266435};
 constexpr int64_t CHUNK = 1024;
-constexpr int LN = 8;  // Gaussians per vector
 
-typedef double D __attribute__((vector_size(8 * LN)));
-typedef int64_t Mk __attribute__((vector_size(8 * LN)));
+using namespace vec8d;  // D, Mk, LN (Gaussians per vector), bc, vmax, vmin, vsqrt, vfloor, vceil
 
-inline D bc(double x) { return D{x, x, x, x, x, x, x, x}; }
-// std::max / std::min semantics (the first argument wins ties and NaN comparisons)
-inline D vmax(D a, D b) { return a < b ? b : a; }
-inline D vmin(D a, D b) { return b < a ? b : a; }
 inline Mk isfin(D x) { return (x - x) == bc(0.0); }  // false for inf and NaN
-inline D vsqrt(D x) {
-  D r;
-#if defined(__AVX512F__)
-  __m512d v;
-  std::memcpy(&v, &x, 64);
-  v = _mm512_maskz_sqrt_pd(0xFF, v);  // (masked: the unmasked form trips -Wuninitialized in GCC 12's header)
-  std::memcpy(&r, &v, 64);
-#elif defined(__AVX__)
-  __m256d v[2];
-  std::memcpy(v, &x, 64);
-  v[0] = _mm256_sqrt_pd(v[0]);
-  v[1] = _mm256_sqrt_pd(v[1]);
-  std::memcpy(&r, v, 64);
-#elif defined(__SSE2__)
-  __m128d v[4];
-  std::memcpy(v, &x, 64);
-  for (int k = 0; k < 4; ++k) v[k] = _mm_sqrt_pd(v[k]);
-  std::memcpy(&r, v, 64);
-#else
-  for (int l = 0; l < LN; ++l) r[l] = std::sqrt(x[l]);
-#endif
-  return r;
-}
-// floor / ceil (mode 1 / 2 of the rounding instructions)
-template <int MODE> inline D vround(D x) {
-  D r;
-#if defined(__AVX512F__)
-  __m512d v;
-  std::memcpy(&v, &x, 64);
-  v = _mm512_maskz_roundscale_pd(0xFF, v, MODE | _MM_FROUND_NO_EXC);
-  std::memcpy(&r, &v, 64);
-#elif defined(__AVX__)
-  __m256d v[2];
-  std::memcpy(v, &x, 64);
-  v[0] = _mm256_round_pd(v[0], MODE | _MM_FROUND_NO_EXC);
-  v[1] = _mm256_round_pd(v[1], MODE | _MM_FROUND_NO_EXC);
-  std::memcpy(&r, v, 64);
-#else
-  for (int l = 0; l < LN; ++l) r[l] = MODE == 1 ? std::floor(x[l]) : std::ceil(x[l]);
-#endif
-  return r;
-}
-inline D vfloor(D x) { return vround<1>(x); }
-inline D vceil(D x) { return vround<2>(x); }
 
 struct Cam {
   double R[9], t[3], fx, fy, cx, cy, near, eps2d, cc[3];
