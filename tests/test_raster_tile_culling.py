@@ -54,14 +54,24 @@ def _bins_pair(proj, opac, W, H):
     return full, tight
 
 
+def _blend(proj, feats, opac, bins, W, H):
+    """(accum, T, per-pixel count, gradients) of the kernel's forward and backward with ``bins``
+    (the same seeded output cotangents for every call)."""
+    from splat_train._cpu_kernel import backward_raw, forward_raw
+
+    accum, t_final, last, count = forward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H)
+    v_acc = torch.randn(accum.shape, generator=torch.Generator().manual_seed(1), dtype=accum.dtype)
+    v_t = torch.randn(t_final.shape, generator=torch.Generator().manual_seed(2), dtype=t_final.dtype)
+    grads = backward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H, t_final, last, v_acc, v_t)
+    return accum, t_final, count, grads
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_tight_tile_lists_change_no_pixel_and_no_gradient(dtype, seed):
     """Forward (image, transmittance, per-pixel counts) and per-Gaussian gradients from the
     tight lists are bit-identical to those of the full 3-sigma rectangles, while the lists are
     much shorter; any pair dropped where alpha reaches 1/255 would change a pixel."""
-    from splat_train._cpu_kernel import backward_raw, forward_raw
-
     W, H = 100, 84  # partial edge tiles
     means, quats, scales, opac, K = _scene(600, seed, dtype, W, H)
     with torch.no_grad():
@@ -70,13 +80,7 @@ def test_tight_tile_lists_change_no_pixel_and_no_gradient(dtype, seed):
     feats = torch.rand(means.shape[0], 4, generator=g, dtype=dtype)
     full, tight = _bins_pair(proj, opac, W, H)
     assert tight.gauss.numel() < 0.85 * full.gauss.numel(), "the tight test drops too little to be exercised"
-    outs = []
-    for bins in (full, tight):
-        accum, t_final, last, count = forward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H)
-        v_acc = torch.randn(accum.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
-        v_t = torch.randn(t_final.shape, generator=torch.Generator().manual_seed(2), dtype=dtype)
-        grads = backward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H, t_final, last, v_acc, v_t)
-        outs.append((accum, t_final, count, grads))
+    outs = [_blend(proj, feats, opac, bins, W, H) for bins in (full, tight)]
     assert outs[0][2].sum() > W * H  # Gaussians overlap: the blend order matters
     for name, a, b in zip(("accum", "T", "count", "grads"), outs[0], outs[1]):
         assert torch.equal(a, b), name
@@ -87,8 +91,6 @@ def test_tall_gaussians_spans_computed_on_the_fly(dtype):
     """Boxes taller than the 14 tile rows whose spans the footprint pass stores take the other
     branch of for_tiles (spans computed while binning): still bit-identical to the rectangle
     lists."""
-    from splat_train._cpu_kernel import backward_raw, forward_raw
-
     W, H = 120, 400  # 25 tile rows
     means, quats, scales, opac, K = _scene(80, 7, dtype, W, H)
     scales[:20, 0] = 2.5  # long (sigma ~70 px), rotated by the random quaternions, opaque
@@ -101,13 +103,7 @@ def test_tall_gaussians_spans_computed_on_the_fly(dtype):
     feats = torch.rand(means.shape[0], 4, generator=torch.Generator().manual_seed(3), dtype=dtype)
     full, tight = _bins_pair(proj, opac, W, H)
     assert tight.gauss.numel() < full.gauss.numel()
-    outs = []
-    for bins in (full, tight):
-        accum, t_final, last, count = forward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H)
-        v_acc = torch.randn(accum.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
-        v_t = torch.randn(t_final.shape, generator=torch.Generator().manual_seed(2), dtype=dtype)
-        grads = backward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H, t_final, last, v_acc, v_t)
-        outs.append((accum, t_final, count, grads))
+    outs = [_blend(proj, feats, opac, bins, W, H) for bins in (full, tight)]
     for name, a, b in zip(("accum", "T", "count", "grads"), outs[0], outs[1]):
         assert torch.equal(a, b), name
 
