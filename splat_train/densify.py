@@ -180,13 +180,15 @@ class DensifyStrategy:
         """
         if iteration >= self.densify_until:
             return
-        g = means2d_grad.detach().clone()
-        g[:, 0] *= width / 2.0
-        g[:, 1] *= height / 2.0
+        # dense masked updates (no boolean indexing: each mask index is a nonzero + gather +
+        # scatter over N, ~13 ms per iteration at 200k Gaussians; this is ~2 ms, same values)
+        g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        norm = torch.linalg.vector_norm(g, dim=-1)
         vis = visible & torch.isfinite(g).all(1)
-        state["grad2d"][vis] += g[vis].norm(dim=-1)
-        state["count"][vis] += 1
-        state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis].float())
+        state["grad2d"].add_(torch.where(vis, norm, 0.0))
+        state["count"].add_(vis)
+        torch.where(vis, torch.maximum(state["max_radii"], radii.float()), state["max_radii"],
+                    out=state["max_radii"])
 
     def step(self, params: Params, optimizer: torch.optim.Optimizer, state: dict[str, torch.Tensor],
              iteration: int, extent: float, generator: torch.Generator | None = None) -> dict[str, int]:
