@@ -1,0 +1,62 @@
+"""The profiling scripts on a trainer checkpoint, run as a user runs them (subprocess):
+``benchmarks/profile_iteration.py`` continues the checkpoint's run and times each phase
+without writing into the run; ``benchmarks/profile_rasterizer.py --checkpoint`` profiles the
+checkpoint's Gaussians."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from _train_scene import write_scene
+from splat_train.config import TrainConfig
+from splat_train.trainer import train
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("profile")
+    scene = write_scene(root / "scene", n_views=3)
+    cfg = TrainConfig(iterations=12, densify_from=2, densify_until=30, densify_every=5, opacity_reset_every=100,
+                      scale_schedule=False, checkpoint_every=6, keep_checkpoints=3, eval_every=0, device="cpu")
+    train(scene["seed"], scene["cameras"], scene["images"], root / "run", cfg)
+    ckpt = root / "run" / "ckpt" / "ckpt_0000012.pt"
+    assert ckpt.is_file()
+    return scene, ckpt
+
+
+def _script(name: str, *args) -> str:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    res = subprocess.run([sys.executable, str(REPO / "benchmarks" / name), *map(str, args)],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return res.stdout
+
+
+def test_profile_iteration_continues_the_checkpoint_and_writes_nothing(run):
+    scene, ckpt = run
+    before = sorted(p.name for p in ckpt.parent.parent.rglob("*"))
+    out = _script("profile_iteration.py", "--checkpoint", ckpt, "--seed", scene["seed"], "--cameras",
+                  scene["cameras"], "--images", scene["images"], "--steps", 6, "--warmup", 1)
+    # warm-up iteration 13, timed 14-19: the densify step at 15 runs inside the timed window
+    assert "iterations 14-19" in out, out
+    for phase in ("render", "loss", "backward", "densify_state", "adam", "strategy"):
+        line = next(x for x in out.splitlines() if x.strip().startswith(phase))
+        assert float(line.split()[1]) >= 0.0
+    strategy_ms = float(next(x for x in out.splitlines() if x.strip().startswith("strategy")).split()[1])
+    assert strategy_ms > 0.0  # the densification at iteration 15 was timed
+    assert sorted(p.name for p in ckpt.parent.parent.rglob("*")) == before
+
+
+def test_profile_rasterizer_reads_a_checkpoint(run):
+    scene, ckpt = run
+    out = _script("profile_rasterizer.py", "--checkpoint", ckpt, "--cameras", scene["cameras"], "--view", 1,
+                  "--reps", 1)
+    row = next(x for x in out.splitlines() if x.split()[:1] == ["cpu"])
+    n = int(row.split()[1].split("@")[0])
+    assert n > 0 and row.split()[1].endswith("@32x24")
+    assert all(float(v) == float(v) for v in row.split()[2:])  # finite numbers, no NaN
