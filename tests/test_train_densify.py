@@ -118,3 +118,59 @@ def test_strategy_clones_small_splits_large_prunes_transparent():
     assert state["grad2d"].shape == (7,) and float(state["count"].sum()) == 0
     # no densification outside the window; reset on its period
     assert strat.step(params, opt, state, iteration=11, extent=1.0)["cloned"] == 0
+
+
+def _three_step_reference(strat, params, opt, state, iteration, extent, generator):
+    """Clone, split, prune as three rewrites (duplicate, split, remove): what the fused
+    ``_densify_and_prune`` must equal."""
+    n = params["means"].shape[0]
+    grads = state["grad2d"] / state["count"].clamp_min(1)
+    high = grads >= strat.grad_threshold
+    big = torch.exp(params["scales"].detach()).amax(1) > strat.percent_dense * extent
+    clone_mask, split_mask = high & ~big, high & big
+    n_clone = duplicate(params, opt, clone_mask)
+    radii = torch.cat([state["max_radii"], state["max_radii"][clone_mask]])
+    split_mask = torch.cat([split_mask, split_mask.new_zeros(n_clone)])
+    split(params, opt, split_mask, generator)
+    radii = torch.cat([radii[~split_mask], radii.new_zeros(2 * int(split_mask.sum()))])
+    prune = torch.sigmoid(params["opacity"].detach()) < strat.prune_opacity
+    if iteration > strat.opacity_reset_every:
+        prune |= radii > strat.prune_screen_size
+        prune |= torch.exp(params["scales"].detach()).amax(1) > strat.prune_world_size * extent
+    n_pruned = remove(params, opt, prune)
+    assert n_pruned == int(prune.sum())
+    return {"cloned": n_clone, "split": int(split_mask.sum()), "pruned": n_pruned}
+
+
+@pytest.mark.parametrize("iteration", [200, 3100])  # before / after the first opacity reset
+def test_fused_densify_equals_clone_split_prune_in_three_steps(iteration):
+    """One gather per tensor gives exactly the rows, values, Adam moments and random draws of
+    duplicate -> split -> remove (all three paths taken, pruning of clones and children too)."""
+    n = 400
+    runs = []
+    for _ in range(2):
+        params, opt = _setup(n=n, seed=3)
+        g = torch.Generator().manual_seed(5)
+        with torch.no_grad():
+            params["scales"][:] = torch.log(0.001 + 0.012 * torch.rand(n, 3, generator=g))  # small and big
+            params["opacity"][:] = 4 * torch.randn(n, generator=g)  # some below the prune threshold
+        strat = DensifyStrategy(densify_from=0, densify_until=10000, densify_every=100, opacity_reset_every=3000,
+                                prune_world_size=0.0115)
+        state = strat.init_state(n)
+        state["grad2d"][:] = 4e-4 * torch.rand(n, generator=g)
+        state["count"][:] = 1 + torch.randint(0, 3, (n,), generator=g)
+        state["max_radii"][:] = 30 * torch.rand(n, generator=g)
+        runs.append((params, opt, state, strat))
+    p_ref, opt_ref, st_ref, strat_ref = runs[0]
+    want = _three_step_reference(strat_ref, p_ref, opt_ref, st_ref, iteration, 1.0, torch.Generator().manual_seed(9))
+    p_new, opt_new, st_new, strat_new = runs[1]
+    got = strat_new._densify_and_prune(p_new, opt_new, st_new, iteration, 1.0, torch.Generator().manual_seed(9))
+    assert got == want and min(want.values()) > 0, (got, want)
+    m = p_ref["means"].shape[0]
+    _check_consistent(p_new, opt_new, m)
+    for k in PARAM_NAMES:
+        assert torch.equal(p_new[k], p_ref[k]), k
+        s_new, s_ref = opt_new.state[p_new[k]], opt_ref.state[p_ref[k]]
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(s_new[key], s_ref[key]), (k, key)
+    assert st_new["grad2d"].shape == (m,) and float(st_new["count"].sum()) == 0
