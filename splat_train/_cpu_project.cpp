@@ -226,20 +226,26 @@ struct SH {
 };
 
 // The first nb SH coefficients of the block's Gaussians, transposed: co[3 k + ch][lane].
-template <typename T>
-inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+template <int NB, typename T>
+inline void load_sh_n(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+  const int nr = NB > 0 ? 3 * (NB - 1) : 3 * (nb - 1);
   for (int l = 0; l < LN; ++l) {
     const int64_t i = i0 + (l < B.nl ? l : 0);
     const T* dc = sh.dc + i * sh.dc_stride;
     const T* src = sh.rest + i * sh.rest_stride;
     for (int j = 0; j < 3; ++j) co[j][l] = (double)dc[j];
-    for (int j = 0; j < 3 * (nb - 1); ++j) co[3 + j][l] = (double)src[j];
+    for (int j = 0; j < nr; ++j) co[3 + j][l] = (double)src[j];
   }
+}
+template <typename T>
+inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+  if (nb == 16) load_sh_n<16>(B, i0, nb, sh, co);  // degree 3: constant trip counts
+  else load_sh_n<0>(B, i0, nb, sh, co);
 }
 
 template <typename T>
 void forward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
-                  int64_t sh_deg, const SH<T>& sh, int64_t tile, T* means2d, T* conics,
+                  int64_t sh_deg, const SH<T> sh, int64_t tile, T* means2d, T* conics,
                   T* cov2d, T* depths, int32_t* radii, int64_t* rect, uint8_t* visible, T* colors,
                   int64_t* next) {
   const Cam cam(camp);
@@ -299,9 +305,19 @@ void forward_impl(int64_t n, const double* camp, const T* means, const T* quats,
   }
 }
 
+// Lane l of the coefficient gradients vco into its rows: dc[0..2], rest[0 .. 3 rest_k - 1]
+// (zeros past coefficient nb - 1). NB > 0: nb == NB (constant trip counts).
+template <int NB, typename T>
+inline void store_sh_n(const D* vco, int l, int nb, T* dc, T* rest, int64_t rest_k) {
+  const int nr = NB > 0 ? 3 * (NB - 1) : 3 * (nb - 1);
+  for (int j = 0; j < 3; ++j) dc[j] = (T)vco[j][l];
+  for (int j = 0; j < nr; ++j) rest[j] = (T)vco[3 + j][l];
+  for (int64_t j = nr; j < 3 * rest_k; ++j) rest[j] = T(0);
+}
+
 template <typename T>
 void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
-                   int64_t sh_deg, const SH<T>& sh, const T* v_means2d, const T* v_conics,
+                   int64_t sh_deg, const SH<T> sh, const T* v_means2d, const T* v_conics,
                    const T* v_depths, const T* v_colors, T* v_means, T* v_quats, T* v_scales,
                    T* v_dc, T* v_rest, int64_t* next) {
   const Cam cam(camp);
@@ -410,11 +426,8 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
         for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
         for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
         if (sh_deg >= 0) {  // v_dc, v_rest: the layout of sh (strides dc_stride, rest_stride)
-          T* dst = v_dc + i * sh.dc_stride;
-          for (int j = 0; j < 3; ++j) dst[j] = (T)vco[j][l];
-          dst = v_rest + i * sh.rest_stride;
-          for (int j = 0; j < 3 * (nb - 1); ++j) dst[j] = (T)vco[3 + j][l];
-          for (int64_t j = 3 * (nb - 1); j < 3 * sh.rest_k; ++j) dst[j] = T(0);
+          if (nb == 16) store_sh_n<16>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
+          else store_sh_n<0>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
         }
       }
     }
