@@ -8,6 +8,11 @@ iteration (benchmarks/profile_rasterizer.py).
 
 Only for leaf-free cameras: when ``cam_from_world`` or ``K`` requires grad (pose refinement)
 the caller must use the torch path, which differentiates through the camera.
+
+SH coefficients come as one [N, K, 3] tensor or as the pair (DC [N, 3], rest [N, K - 1, 3]),
+the trainer's ``sh_dc`` / ``sh_rest``, read in place with their gradients written directly
+(no per-iteration concatenation and slice-gradient copy). Large gradient buffers are reused
+from a small pool once nothing else references them (see ``_grad_buffer``).
 """
 
 from __future__ import annotations
