@@ -20,7 +20,16 @@
 // lanes with a harmless Gaussian and writes only the real ones). That made the forward
 // ~12 -> ~5 ms and the backward ~20 -> ~9.5 ms at 100k Gaussians (SH degree 3, one core; the
 // SH part, ~2.5 + ~6.5 ms, is mostly moving 48 coefficients per Gaussian in and out of lanes:
-// AVX2 gathers and an in-register 8x8 transpose were both tried and were not faster).
+// AVX2 gathers and an in-register 8x8 transpose were both tried and were not faster; so were,
+// on this AMD EPYC (Zen 4, AVX-512), 8x8 double transposes in zmm registers (masked float
+// loads / stores, 24 shuffles per 8 coefficients) for the rest coefficients' load and the
+// gradient's store, and software prefetch of the next blocks' SH rows: 206k Gaussians, one
+// thread, forward / backward 10.0 / 21.2 ms as here, 11.0 / 21.8 (load) and 11.1 / 22.5 ms
+// (load + store), the same binaries timed in one process).
+//
+// The SH coefficients come as a DC pointer and a rest pointer with row strides, so the
+// trainer's sh_dc [N, 3] and sh_rest [N, 15, 3] parameters are read (and their gradients
+// written) in place, and one [N, K, 3] tensor is the special case rest = dc + 3.
 
 #include <algorithm>
 #include <cmath>
@@ -204,18 +213,39 @@ inline void view_dir(const Cam& cam, const D* m, D* d, D& norm) {
   for (int i = 0; i < 3; ++i) d[i] = far ? v[i] / den : bc(0.0);
 }
 
-// The first nb SH coefficients of the block's Gaussians, transposed: co[3 k + ch][lane].
+// Where the SH coefficients of Gaussian i live: the DC term (3 values) at dc + i * dc_stride,
+// coefficients 1 .. rest_k at rest + i * rest_stride (3 per coefficient). One [N, K, 3] tensor
+// is dc = sh, rest = sh + 3, both strides 3 K, rest_k = K - 1; separate [N, 3] and
+// [N, K - 1, 3] tensors (the trainer's sh_dc / sh_rest parameters) need no concatenation.
 template <typename T>
-inline void load_sh(const Block& B, int64_t i0, int64_t sh_k, int nb, const T* sh, D* co) {
+struct SH {
+  const T* dc;
+  int64_t dc_stride;
+  const T* rest;
+  int64_t rest_stride, rest_k;
+};
+
+// The first nb SH coefficients of the block's Gaussians, transposed: co[3 k + ch][lane].
+template <int NB, typename T>
+inline void load_sh_n(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+  const int nr = NB > 0 ? 3 * (NB - 1) : 3 * (nb - 1);
   for (int l = 0; l < LN; ++l) {
-    const T* src = sh + (i0 + (l < B.nl ? l : 0)) * sh_k * 3;
-    for (int j = 0; j < 3 * nb; ++j) co[j][l] = (double)src[j];
+    const int64_t i = i0 + (l < B.nl ? l : 0);
+    const T* dc = sh.dc + i * sh.dc_stride;
+    const T* src = sh.rest + i * sh.rest_stride;
+    for (int j = 0; j < 3; ++j) co[j][l] = (double)dc[j];
+    for (int j = 0; j < nr; ++j) co[3 + j][l] = (double)src[j];
   }
+}
+template <typename T>
+inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+  if (nb == 16) load_sh_n<16>(B, i0, nb, sh, co);  // degree 3: constant trip counts
+  else load_sh_n<0>(B, i0, nb, sh, co);
 }
 
 template <typename T>
 void forward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
-                  int64_t sh_deg, int64_t sh_k, const T* sh, int64_t tile, T* means2d, T* conics,
+                  int64_t sh_deg, const SH<T> sh, int64_t tile, T* means2d, T* conics,
                   T* cov2d, T* depths, int32_t* radii, int64_t* rect, uint8_t* visible, T* colors,
                   int64_t* next) {
   const Cam cam(camp);
@@ -248,7 +278,7 @@ void forward_impl(int64_t n, const double* camp, const T* means, const T* quats,
         D d[3], norm, basis[16], co[48];
         view_dir(cam, P.m, d, norm);
         sh_basis((int)sh_deg, d, basis);
-        load_sh(P, ib, sh_k, nb, sh, co);
+        load_sh(P, ib, nb, sh, co);
         for (int ch3 = 0; ch3 < 3; ++ch3) {
           D s = bc(0.0);
           for (int k = 0; k < nb; ++k) s += basis[k] * co[3 * k + ch3];
@@ -275,11 +305,21 @@ void forward_impl(int64_t n, const double* camp, const T* means, const T* quats,
   }
 }
 
+// Lane l of the coefficient gradients vco into its rows: dc[0..2], rest[0 .. 3 rest_k - 1]
+// (zeros past coefficient nb - 1). NB > 0: nb == NB (constant trip counts).
+template <int NB, typename T>
+inline void store_sh_n(const D* vco, int l, int nb, T* dc, T* rest, int64_t rest_k) {
+  const int nr = NB > 0 ? 3 * (NB - 1) : 3 * (nb - 1);
+  for (int j = 0; j < 3; ++j) dc[j] = (T)vco[j][l];
+  for (int j = 0; j < nr; ++j) rest[j] = (T)vco[3 + j][l];
+  for (int64_t j = nr; j < 3 * rest_k; ++j) rest[j] = T(0);
+}
+
 template <typename T>
 void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
-                   int64_t sh_deg, int64_t sh_k, const T* sh, const T* v_means2d, const T* v_conics,
+                   int64_t sh_deg, const SH<T> sh, const T* v_means2d, const T* v_conics,
                    const T* v_depths, const T* v_colors, T* v_means, T* v_quats, T* v_scales,
-                   T* v_sh, int64_t* next) {
+                   T* v_dc, T* v_rest, int64_t* next) {
   const Cam cam(camp);
   const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
   for (int64_t ch; (ch = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) * CHUNK < n;) {
@@ -361,7 +401,7 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
         D d[3], norm, basis[16], co[48];
         view_dir(cam, P.m, d, norm);
         sh_basis((int)sh_deg, d, basis);
-        load_sh(P, ib, sh_k, nb, sh, co);
+        load_sh(P, ib, nb, sh, co);
         D vcol[3];
         for (int ch3 = 0; ch3 < 3; ++ch3) {
           D v = bc(0.0);
@@ -385,10 +425,9 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
         for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
         for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
         for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
-        if (sh_deg >= 0) {
-          T* dst = v_sh + i * sh_k * 3;
-          for (int j = 0; j < 3 * nb; ++j) dst[j] = (T)vco[j][l];
-          for (int64_t j = 3 * nb; j < 3 * sh_k; ++j) dst[j] = T(0);
+        if (sh_deg >= 0) {  // v_dc, v_rest: the layout of sh (strides dc_stride, rest_stride)
+          if (nb == 16) store_sh_n<16>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
+          else store_sh_n<0>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
         }
       }
     }
@@ -399,37 +438,31 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
 
 extern "C" {
 
-int splat_project_abi_version() { return 1; }
+// ABI 2: the SH coefficients as DC and rest pointers with row strides (was one [N, K, 3] array).
+int splat_project_abi_version() { return 2; }
 
-void splat_project_forward_f32(int64_t n, const double* cam, const float* means, const float* quats,
-                               const float* scales, int64_t sh_deg, int64_t sh_k, const float* sh,
-                               int64_t tile, float* means2d, float* conics, float* cov2d, float* depths,
-                               int32_t* radii, int64_t* rect, uint8_t* visible, float* colors, int64_t* next) {
-  forward_impl<float>(n, cam, means, quats, scales, sh_deg, sh_k, sh, tile, means2d, conics, cov2d, depths,
-                      radii, rect, visible, colors, next);
-}
-void splat_project_forward_f64(int64_t n, const double* cam, const double* means, const double* quats,
-                               const double* scales, int64_t sh_deg, int64_t sh_k, const double* sh,
-                               int64_t tile, double* means2d, double* conics, double* cov2d, double* depths,
-                               int32_t* radii, int64_t* rect, uint8_t* visible, double* colors, int64_t* next) {
-  forward_impl<double>(n, cam, means, quats, scales, sh_deg, sh_k, sh, tile, means2d, conics, cov2d, depths,
-                       radii, rect, visible, colors, next);
-}
-void splat_project_backward_f32(int64_t n, const double* cam, const float* means, const float* quats,
-                                const float* scales, int64_t sh_deg, int64_t sh_k, const float* sh,
-                                const float* v_means2d, const float* v_conics, const float* v_depths,
-                                const float* v_colors, float* v_means, float* v_quats, float* v_scales,
-                                float* v_sh, int64_t* next) {
-  backward_impl<float>(n, cam, means, quats, scales, sh_deg, sh_k, sh, v_means2d, v_conics, v_depths, v_colors,
-                       v_means, v_quats, v_scales, v_sh, next);
-}
-void splat_project_backward_f64(int64_t n, const double* cam, const double* means, const double* quats,
-                                const double* scales, int64_t sh_deg, int64_t sh_k, const double* sh,
-                                const double* v_means2d, const double* v_conics, const double* v_depths,
-                                const double* v_colors, double* v_means, double* v_quats, double* v_scales,
-                                double* v_sh, int64_t* next) {
-  backward_impl<double>(n, cam, means, quats, scales, sh_deg, sh_k, sh, v_means2d, v_conics, v_depths, v_colors,
-                        v_means, v_quats, v_scales, v_sh, next);
-}
+#define SPLAT_PROJECT_ENTRIES(T, SFX)                                                                  \
+  void splat_project_forward_##SFX(int64_t n, const double* cam, const T* means, const T* quats,       \
+                                   const T* scales, int64_t sh_deg, const T* sh_dc, int64_t dc_stride, \
+                                   const T* sh_rest, int64_t rest_stride, int64_t rest_k, int64_t tile, \
+                                   T* means2d, T* conics, T* cov2d, T* depths, int32_t* radii,          \
+                                   int64_t* rect, uint8_t* visible, T* colors, int64_t* next) {         \
+    const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
+    forward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, tile, means2d, conics, cov2d, depths,     \
+                    radii, rect, visible, colors, next);                                                \
+  }                                                                                                     \
+  void splat_project_backward_##SFX(int64_t n, const double* cam, const T* means, const T* quats,      \
+                                    const T* scales, int64_t sh_deg, const T* sh_dc, int64_t dc_stride, \
+                                    const T* sh_rest, int64_t rest_stride, int64_t rest_k,             \
+                                    const T* v_means2d, const T* v_conics, const T* v_depths,          \
+                                    const T* v_colors, T* v_means, T* v_quats, T* v_scales, T* v_dc,   \
+                                    T* v_rest, int64_t* next) {                                        \
+    const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
+    backward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, v_means2d, v_conics, v_depths,          \
+                     v_colors, v_means, v_quats, v_scales, v_dc, v_rest, next);                         \
+  }
+
+SPLAT_PROJECT_ENTRIES(float, f32)
+SPLAT_PROJECT_ENTRIES(double, f64)
 
 }  // extern "C"

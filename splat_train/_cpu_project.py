@@ -8,11 +8,17 @@ iteration (benchmarks/profile_rasterizer.py).
 
 Only for leaf-free cameras: when ``cam_from_world`` or ``K`` requires grad (pose refinement)
 the caller must use the torch path, which differentiates through the camera.
+
+SH coefficients come as one [N, K, 3] tensor or as the pair (DC [N, 3], rest [N, K - 1, 3]),
+the trainer's ``sh_dc`` / ``sh_rest``, read in place with their gradients written directly
+(no per-iteration concatenation and slice-gradient copy). Large gradient buffers are reused
+from a small pool once nothing else references them (see ``_grad_buffer``).
 """
 
 from __future__ import annotations
 
 import ctypes
+import threading
 
 import torch
 from torch import Tensor
@@ -29,17 +35,18 @@ __all__ = ["available", "project_sh_cpu"]
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     i64, vp = ctypes.c_int64, ctypes.c_void_p
+    sh = [i64, vp, i64, vp, i64, i64]  # sh_deg, dc, dc_stride, rest, rest_stride, rest_k
     for dt in ("f32", "f64"):
         f = getattr(lib, f"splat_project_forward_{dt}")
-        f.argtypes = [i64, vp, vp, vp, vp, i64, i64, vp, i64] + [vp] * 9
+        f.argtypes = [i64, vp, vp, vp, vp] + sh + [i64] + [vp] * 9
         f.restype = None
         b = getattr(lib, f"splat_project_backward_{dt}")
-        b.argtypes = [i64, vp, vp, vp, vp, i64, i64] + [vp] * 10
+        b.argtypes = [i64, vp, vp, vp, vp] + sh + [vp] * 10
         b.restype = None
     return lib
 
 
-_KERNELS.setdefault("project", _Kernel("project", "_cpu_project.cpp", 1, True, "splat_project_abi_version", _declare))
+_KERNELS.setdefault("project", _Kernel("project", "_cpu_project.cpp", 2, True, "splat_project_abi_version", _declare))
 
 
 def available() -> bool:
@@ -60,47 +67,109 @@ def _camera_block(cam_from_world: Tensor, K: Tensor, width: int, height: int, ne
     ]).contiguous()
 
 
+def _sh_layout(dc: Tensor, rest: Tensor | None) -> tuple[Tensor, int, Tensor, int, int]:
+    """(dc, dc_stride, rest, rest_stride, rest_k) for the kernel's SH arguments: ``rest`` None
+    means ``dc`` is one [N, K, 3] tensor (DC at column 0, the rest after it)."""
+    if rest is None:
+        k = dc.shape[1]
+        return dc, 3 * k, dc, 3 * k, k - 1
+    return dc, 3, rest, 3 * rest.shape[1], rest.shape[1]
+
+
+def _sh_ptrs(dc: Tensor, rest: Tensor | None) -> list:
+    dc, dcs, rest_t, rs, rk = _sh_layout(dc, rest)
+    elt = dc.element_size()
+    # one [N, K, 3] tensor: the rest starts 3 values after its DC term
+    rp = _ptr(rest_t) + (3 * elt if rest is None else 0) if rk > 0 else None
+    return [_ptr(dc), dcs, rp, rs, rk]
+
+
+# Gradient buffers: fresh allocations of the size of sh_rest's gradient (37 MB at 206k Gaussians)
+# are mmapped by glibc and page-faulted in every iteration (~18 ms of CPU time on the 2-core dev
+# VM, as long as the kernel's whole backward). Gradients of at least _POOL_MIN_BYTES are taken
+# from storages that this module keeps and that nothing else references any more (the trainer's
+# zero_grad(set_to_none=True) drops the previous iteration's .grad); the kernel overwrites every
+# element, so reuse changes no value. A storage still referenced anywhere (a .grad kept across
+# iterations, a view of one) is never handed out again: a fresh one is allocated instead.
+_POOL_MIN_BYTES = 1 << 20
+_POOL_PER_SHAPE = 4
+_pool: dict[tuple, list] = {}
+_pool_lock = threading.Lock()
+_use_count = getattr(torch._C, "_storage_Use_Count", None)
+
+
+def _grad_buffer(like: Tensor) -> Tensor:
+    """An uninitialised contiguous tensor of ``like``'s shape and dtype, for a gradient that the
+    kernel overwrites entirely (pooled when large, see above)."""
+    if _use_count is None or like.numel() * like.element_size() < _POOL_MIN_BYTES:
+        return torch.empty(like.shape, dtype=like.dtype)
+    key = (tuple(like.shape), like.dtype)
+    with _pool_lock:
+        for k in [k for k in _pool if k[0][0] != key[0][0]]:  # another Gaussian count: drop
+            del _pool[k]
+        entries = _pool.setdefault(key, [])
+        for st in entries:
+            if _use_count(st._cdata) == 1:  # only the pool's own reference is left
+                return torch.empty(0, dtype=like.dtype).set_(st, 0, like.shape)
+        t = torch.empty(like.shape, dtype=like.dtype)
+        if len(entries) < _POOL_PER_SHAPE:
+            entries.append(t.untyped_storage())
+        return t
+
+
 class _ProjectSH(torch.autograd.Function):
+    """``sh_dc``: [N, K, 3] coefficients with ``sh_rest`` None, or [N, 3] DC terms with
+    ``sh_rest`` [N, K - 1, 3] the other coefficients (gradients then land in two contiguous
+    tensors of those shapes: no concatenation, no copy of a slice's gradient)."""
+
     @staticmethod
-    def forward(ctx, means, quats, scales, sh, cam, sh_degree, width, height):
+    def forward(ctx, means, quats, scales, sh_dc, sh_rest, cam, sh_degree, width, height):
         lib = _KERNELS["project"].load()
         dt = means.dtype
         sfx = _suffix(dt)
         m, q, s = (t.detach().to(dt).contiguous() for t in (means, quats, scales))
         n = m.shape[0]
         deg = -1 if sh_degree is None else int(sh_degree)
-        shc = sh.detach().to(dt).contiguous() if deg >= 0 else m.new_zeros(0)
-        sh_k = shc.shape[1] if deg >= 0 else 0
+        dc = sh_dc.detach().to(dt).contiguous() if deg >= 0 else m.new_zeros(0)
+        rest = sh_rest.detach().to(dt).contiguous() if deg >= 0 and sh_rest is not None else None
+        shp = _sh_ptrs(dc, rest) if deg >= 0 else [None, 0, None, 0, 0]
         means2d, conics, cov2d = m.new_empty(n, 2), m.new_empty(n, 3), m.new_empty(n, 3)
         depths, colors = m.new_empty(n), (m.new_empty(n, 3) if deg >= 0 else m.new_zeros(n, 3))
         radii = torch.empty(n, dtype=torch.int32)
         rect = torch.empty(n, 4, dtype=torch.int64)
         visible = torch.empty(n, dtype=torch.bool)
         _run_threaded(getattr(lib, f"splat_project_forward_{sfx}"), n, _ptr(cam), _ptr(m), _ptr(q), _ptr(s), deg,
-                      sh_k, _ptr(shc), TILE_SIZE, _ptr(means2d), _ptr(conics), _ptr(cov2d), _ptr(depths),
+                      *shp, TILE_SIZE, _ptr(means2d), _ptr(conics), _ptr(cov2d), _ptr(depths),
                       _ptr(radii), _ptr(rect), _ptr(visible), _ptr(colors))
-        ctx.save_for_backward(m, q, s, shc, cam)
+        ctx.save_for_backward(m, q, s, dc, rest, cam)
         ctx.deg = deg
         ctx.mark_non_differentiable(cov2d, radii, rect, visible)
         return means2d, conics, depths, colors, cov2d, radii, rect, visible
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, v_colors, *_):
-        m, q, s, shc, cam = ctx.saved_tensors
+        m, q, s, dc, rest, cam = ctx.saved_tensors
         lib = _KERNELS["project"].load()
-        dt, n = m.dtype, m.shape[0]
+        dt, n, deg = m.dtype, m.shape[0], ctx.deg
 
         def prep(v, *shape):
             return torch.zeros(*shape, dtype=dt) if v is None else v.to(dt).contiguous()
 
         v_means2d, v_conics, v_depths, v_colors = (prep(v_means2d, n, 2), prep(v_conics, n, 3),
                                                    prep(v_depths, n), prep(v_colors, n, 3))
-        v_m, v_q, v_s = torch.empty_like(m), torch.empty_like(q), torch.empty_like(s)
-        v_sh = torch.empty_like(shc)
+        v_m, v_q, v_s, v_dc = _grad_buffer(m), _grad_buffer(q), _grad_buffer(s), _grad_buffer(dc)
+        v_rest = _grad_buffer(rest) if rest is not None else None
+        if deg >= 0:
+            shp, vshp = _sh_ptrs(dc, rest), _sh_ptrs(v_dc, v_rest)
+            vsh = [vshp[0], vshp[2]]  # same layout as the coefficients
+        else:
+            shp, vsh = [None, 0, None, 0, 0], [None, None]
         _run_threaded(getattr(lib, f"splat_project_backward_{_suffix(dt)}"), n, _ptr(cam), _ptr(m), _ptr(q),
-                      _ptr(s), ctx.deg, shc.shape[1] if ctx.deg >= 0 else 0, _ptr(shc), _ptr(v_means2d),
-                      _ptr(v_conics), _ptr(v_depths), _ptr(v_colors), _ptr(v_m), _ptr(v_q), _ptr(v_s), _ptr(v_sh))
-        return v_m, v_q, v_s, (v_sh if ctx.deg >= 0 else None), None, None, None, None
+                      _ptr(s), deg, *shp, _ptr(v_means2d), _ptr(v_conics), _ptr(v_depths), _ptr(v_colors),
+                      _ptr(v_m), _ptr(v_q), _ptr(v_s), *vsh)
+        if deg < 0:
+            return v_m, v_q, v_s, None, None, None, None, None, None
+        return v_m, v_q, v_s, v_dc, v_rest, None, None, None, None
 
 
 def project_sh_cpu(
@@ -121,7 +190,9 @@ def project_sh_cpu(
     Args:
         means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3]: world-frame Gaussians.
         colors: [N, 3] RGB when ``sh_degree`` is None (returned as is), else [N, K, 3] SH
-            coefficients (K >= (sh_degree + 1) ** 2).
+            coefficients (K >= (sh_degree + 1) ** 2) or the pair (DC [N, 3], rest [N, K - 1, 3]),
+            e.g. the trainer's ``sh_dc`` and ``sh_rest`` parameters: read in place and given
+            their gradients directly, with no [N, K, 3] concatenation per call.
         cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera (no gradient: see module doc).
         K: [3, 3] intrinsics; width, height: image size; near, eps2d as in
             :func:`splat_train.projection.project_gaussians`.
@@ -133,9 +204,14 @@ def project_sh_cpu(
     if cam_from_world.requires_grad or K.requires_grad:
         raise ValueError("project_sh_cpu does not differentiate the camera; use project_gaussians for pose refinement")
     cam = _camera_block(cam_from_world, K, width, height, near, eps2d)
-    sh = colors if sh_degree is not None else None
+    sh_dc = sh_rest = None
+    if sh_degree is not None:
+        sh_dc, sh_rest = colors if isinstance(colors, (tuple, list)) else (colors, None)
+        k = sh_dc.shape[1] if sh_rest is None else 1 + sh_rest.shape[1]
+        if k < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} SH coefficients, got {k}")
     means2d, conics, depths, rgb, cov2d, radii, rect, visible = _ProjectSH.apply(
-        means, quats, scales, sh, cam, sh_degree, int(width), int(height))
+        means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height))
     proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=depths, radii=radii, rect=rect,
                      visible=visible)
     return proj, (colors if sh_degree is None else rgb)

@@ -20,7 +20,7 @@ from camio.images import write_image
 from camio.logs import progress
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
-from splat_train.gaussians import activated, params_from_cloud, sh_coeffs
+from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import psnr
 from splat_train.rasterize import rasterize
 
@@ -56,7 +56,10 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
         The :func:`splat_train.rasterize` dict (``rgb`` [H, W, 3], ``means2d`` [N, 2], ...).
     """
     scales, opac, quats = activated(params)
-    return rasterize(params["means"], quats, scales, opac, sh_coeffs(params, sh_degree),
+    # SH as the (sh_dc, sh_rest) pair: the fused CPU projection reads both parameters in place
+    # and writes their gradients directly (no [N, 16, 3] concatenation and slice-gradient copy,
+    # ~35 ms of CPU time per iteration at 206k Gaussians); other backends concatenate
+    return rasterize(params["means"], quats, scales, opac, (params["sh_dc"], params["sh_rest"]),
                      cam_from_world, K, width, height, background=background, sh_degree=sh_degree,
                      backend=backend)
 

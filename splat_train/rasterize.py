@@ -141,7 +141,11 @@ def rasterize(
         opacities: [N] in [0, 1] (already through the sigmoid).
         colors: [N, 3] RGB when ``sh_degree`` is None, else [N, K, 3] SH coefficients with
             K >= (sh_degree + 1) ** 2; colour = max(SH(view dir) + 0.5, 0), view direction
-            from the camera centre to the mean.
+            from the camera centre to the mean. SH may also come as the pair (DC [N, 3],
+            rest [N, K - 1, 3]) (the trainer's ``sh_dc`` / ``sh_rest``): the "cpu" backend's
+            fused projection then reads both in place and writes their gradients directly
+            (no [N, K, 3] concatenation, no copy of a slice's gradient); other paths
+            concatenate them.
         cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera.
         K: [3, 3] intrinsics in pixels of this image size (zero skew).
         width, height: image size in pixels.
@@ -184,20 +188,33 @@ def rasterize(
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"width and height must be positive, got {width}x{height}")
     width, height = int(width), int(height)
+    sh_pair = isinstance(colors, (tuple, list))
     if sh_degree is None:
         _check("colors", colors, (n, 3))
     else:
-        _check("colors (SH coefficients)", colors, (n, None, 3))
-        if colors.shape[1] < num_sh_bases(sh_degree):
+        if sh_pair:
+            if len(colors) != 2:
+                raise ValueError(f"colors as SH (dc, rest) must be a pair, got {len(colors)} tensors")
+            _check("colors[0] (SH DC terms)", colors[0], (n, 3))
+            _check("colors[1] (SH rest)", colors[1], (n, None, 3))
+            k = 1 + colors[1].shape[1]
+        else:
+            _check("colors (SH coefficients)", colors, (n, None, 3))
+            k = colors.shape[1]
+        if k < num_sh_bases(sh_degree):
             raise ValueError(
                 f"sh_degree={sh_degree} needs >= {num_sh_bases(sh_degree)} SH coefficients per "
-                f"Gaussian, got {colors.shape[1]}; lower sh_degree or pass [N, 16, 3] coefficients"
+                f"Gaussian, got {k}; lower sh_degree or pass [N, 16, 3] coefficients"
             )
     dev, dt = means.device, means.dtype
     if background is None:
         background = torch.zeros(3, device=dev, dtype=dt)
     _check("background", background, (3,))
     which = resolve_backend(backend, dev)
+    fused = which == "cpu" and _fused_projection_ok(means, cam_from_world, K)
+    if sh_pair and not fused:  # the fused projection reads the pair in place; the rest want one tensor
+        dc, rest = colors
+        colors = torch.cat([dc[:, None, :], rest[:, : num_sh_bases(sh_degree) - 1, :]], dim=1)
 
     if which == "gsplat":
         from splat_train import _gsplat_backend
@@ -207,7 +224,7 @@ def rasterize(
             background, sh_degree, near_plane,
         )
 
-    if which == "cpu" and _fused_projection_ok(means, cam_from_world, K):
+    if fused:
         from splat_train import _cpu_project
 
         proj, rgb_g = _cpu_project.project_sh_cpu(

@@ -90,3 +90,35 @@ def test_project_sh_refuses_a_camera_that_needs_gradients():
     params, cw, K, W, H = make_scene(1, n=10)
     with pytest.raises(ValueError, match="pose refinement"):
         _cpu_project.project_sh_cpu(*params[:3], params[3], 3, cw.clone().requires_grad_(True), K, W, H, 0.01, 0.3)
+
+
+@pytest.mark.parametrize("deg", [0, 1, 3])
+def test_sh_pair_matches_one_tensor_and_pooled_gradients_accumulate(deg):
+    """SH as the (dc, rest) pair gives bit-identical colours and gradients to the [N, 16, 3]
+    tensor; with gradients large enough for the module's buffer pool, a .grad kept across two
+    backward passes accumulates (the pool never hands out a storage still referenced)."""
+    params, cw, K, W, H = make_scene(5, n=6000, dtype=torch.float32)
+    means, quats, scales, sh = (t.detach() for t in params)
+    dc = sh[:, 0].clone().requires_grad_(True)
+    rest = sh[:, 1:].clone().requires_grad_(True)
+    assert rest.numel() * rest.element_size() >= _cpu_project._POOL_MIN_BYTES
+    whole = sh.clone().requires_grad_(True)
+    g = torch.Generator().manual_seed(2)
+    cot = [torch.randn(6000, k, generator=g) for k in (2, 3, 3)]
+
+    def once(colors):
+        proj, rgb = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
+        torch.autograd.backward([proj.means2d, proj.conics, rgb], cot)
+        return rgb.detach()
+
+    assert torch.equal(once((dc, rest)), once(whole))
+    assert torch.equal(dc.grad, whole.grad[:, 0]) and torch.equal(rest.grad, whole.grad[:, 1:])
+    first = rest.grad.clone()
+    assert first[:, (deg + 1) ** 2 - 1:].eq(0).all() and bool(first.abs().sum() > 0) == (deg > 0)
+    once((dc, rest))  # rest.grad is still held: accumulated into, not overwritten
+    torch.testing.assert_close(rest.grad, 2 * first)
+    kept = rest.grad
+    rest.grad = None
+    once((dc, rest))
+    torch.testing.assert_close(kept, 2 * first)  # a gradient someone still holds is left alone
+    assert torch.equal(rest.grad, first)
