@@ -11,14 +11,12 @@ the caller must use the torch path, which differentiates through the camera.
 
 SH coefficients come as one [N, K, 3] tensor or as the pair (DC [N, 3], rest [N, K - 1, 3]),
 the trainer's ``sh_dc`` / ``sh_rest``, read in place with their gradients written directly
-(no per-iteration concatenation and slice-gradient copy). Large gradient buffers are reused
-from a small pool once nothing else references them (see ``_grad_buffer``).
+(no per-iteration concatenation and slice-gradient copy).
 """
 
 from __future__ import annotations
 
 import ctypes
-import threading
 
 import torch
 from torch import Tensor
@@ -84,39 +82,6 @@ def _sh_ptrs(dc: Tensor, rest: Tensor | None) -> list:
     return [_ptr(dc), dcs, rp, rs, rk]
 
 
-# Gradient buffers: fresh allocations of the size of sh_rest's gradient (37 MB at 206k Gaussians)
-# are mmapped by glibc and page-faulted in every iteration (~18 ms of CPU time on the 2-core dev
-# VM, as long as the kernel's whole backward). Gradients of at least _POOL_MIN_BYTES are taken
-# from storages that this module keeps and that nothing else references any more (the trainer's
-# zero_grad(set_to_none=True) drops the previous iteration's .grad); the kernel overwrites every
-# element, so reuse changes no value. A storage still referenced anywhere (a .grad kept across
-# iterations, a view of one) is never handed out again: a fresh one is allocated instead.
-_POOL_MIN_BYTES = 1 << 20
-_POOL_PER_SHAPE = 4
-_pool: dict[tuple, list] = {}
-_pool_lock = threading.Lock()
-_use_count = getattr(torch._C, "_storage_Use_Count", None)
-
-
-def _grad_buffer(like: Tensor) -> Tensor:
-    """An uninitialised contiguous tensor of ``like``'s shape and dtype, for a gradient that the
-    kernel overwrites entirely (pooled when large, see above)."""
-    if _use_count is None or like.numel() * like.element_size() < _POOL_MIN_BYTES:
-        return torch.empty(like.shape, dtype=like.dtype)
-    key = (tuple(like.shape), like.dtype)
-    with _pool_lock:
-        for k in [k for k in _pool if k[0][0] != key[0][0]]:  # another Gaussian count: drop
-            del _pool[k]
-        entries = _pool.setdefault(key, [])
-        for st in entries:
-            if _use_count(st._cdata) == 1:  # only the pool's own reference is left
-                return torch.empty(0, dtype=like.dtype).set_(st, 0, like.shape)
-        t = torch.empty(like.shape, dtype=like.dtype)
-        if len(entries) < _POOL_PER_SHAPE:
-            entries.append(t.untyped_storage())
-        return t
-
-
 class _ProjectSH(torch.autograd.Function):
     """``sh_dc``: [N, K, 3] coefficients with ``sh_rest`` None, or [N, 3] DC terms with
     ``sh_rest`` [N, K - 1, 3] the other coefficients (gradients then land in two contiguous
@@ -157,8 +122,8 @@ class _ProjectSH(torch.autograd.Function):
 
         v_means2d, v_conics, v_depths, v_colors = (prep(v_means2d, n, 2), prep(v_conics, n, 3),
                                                    prep(v_depths, n), prep(v_colors, n, 3))
-        v_m, v_q, v_s, v_dc = _grad_buffer(m), _grad_buffer(q), _grad_buffer(s), _grad_buffer(dc)
-        v_rest = _grad_buffer(rest) if rest is not None else None
+        v_m, v_q, v_s, v_dc = (torch.empty(t.shape, dtype=t.dtype) for t in (m, q, s, dc))
+        v_rest = torch.empty(rest.shape, dtype=rest.dtype) if rest is not None else None
         if deg >= 0:
             shp, vshp = _sh_ptrs(dc, rest), _sh_ptrs(v_dc, v_rest)
             vsh = [vshp[0], vshp[2]]  # same layout as the coefficients
