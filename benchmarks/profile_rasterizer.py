@@ -22,6 +22,11 @@ Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (be
 trainer checkpoint (``splat_train`` ckpt/ folder) seen from one camera of a COLMAP model
 (``--cameras``, ``--view`` index), e.g. the 200k small Gaussians of the 10,000-iteration fern
 cell, whose cost profile differs from the synthetic scene's (more, smaller footprints).
+
+Memory: this script runs with glibc's default malloc settings, so a fresh buffer above the mmap
+threshold (sh_rest's 37 MB gradient at 206k Gaussians) is faulted in on every call; the
+``splat_train`` CLI keeps freed memory (``vggt_init.memory.retain_freed_memory``), and
+``profile_iteration.py`` does the same, so use that one for what a training run pays.
 """
 
 from __future__ import annotations
