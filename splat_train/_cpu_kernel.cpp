@@ -545,13 +545,15 @@ inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T*
   __builtin_prefetch(fps + FP * g);
 }
 
-template <typename T>
-void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
+// FC > 0: F == FC as a compile-time constant (4: RGB + depth, the rasterizer's case).
+template <typename T, int FC>
+void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F_rt,
                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
                   T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
+  const int64_t F = FC > 0 ? FC : F_rt;
   const int64_t n_tiles = tiles_x * tiles_y;
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
@@ -591,13 +593,11 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       for (int i = i0; i < i1; ++i) {
         if (!alive[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
-        if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
         const M pos = power <= splat<V>(T(0));
         V alpha = splat<V>(op) * vexp(pos ? power : splat<V>(T(0)));
         alpha = alpha < splat<V>(Consts<T>::alpha_max) ? alpha : splat<V>(Consts<T>::alpha_max);
         const M valid = pos & (alpha >= splat<V>(Consts<T>::alpha_min)) & ~done[i];
-        if (!any_lane(valid)) continue;
         const V test_T = Tr[i] * (splat<V>(T(1)) - alpha);
         const M stop = valid & (test_T < splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
@@ -644,14 +644,17 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
 // Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
 // of channels Fa..F-1 is zero everywhere (their terms are exactly zero: the depth channel of a
 // photometric loss), and their gradient rows stay 0.
-template <typename T>
-void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa,
+// FC > 0: Fa == FC as a compile-time constant (the feature loops unrolled, their sums in
+// registers; 3 and 4 are the rasterizer's photometric and RGB + depth cases).
+template <typename T, int FC>
+void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa_rt,
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
                    const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
                    T* v_pair, uint8_t* live, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
+  const int64_t Fa = FC > 0 ? FC : Fa_rt;
   const int64_t n_tiles = tiles_x * tiles_y;
   const int64_t S = 6 + F;
   V lane;
@@ -754,8 +757,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const V raw = splat<V>(op) * G;
         const V alpha = raw < splat<V>(Consts<T>::alpha_max) ? raw : splat<V>(Consts<T>::alpha_max);
         const M m = pos & (lk < last[i]) & (alpha >= splat<V>(Consts<T>::alpha_min));
-        if (!any_lane(m)) continue;
-        any = true;
+        any |= any_lane(m);
         const V inv_one_m = recip(splat<V>(T(1)) - alpha);
         const V Tfront = Tr[i] * inv_one_m;
         const V am = m ? alpha : V{};  // lanes outside the mask leave rec and g_f unchanged
@@ -984,27 +986,47 @@ void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4) {
+    forward_impl<float, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else {
+    forward_impl<float, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  }
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4) {
+    forward_impl<double, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else {
+    forward_impl<double, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  }
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
                          const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
                          float* vpair, uint8_t* live, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  if (Fa == 3) {
+    backward_impl<float, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  } else if (Fa == 4) {
+    backward_impl<float, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  } else {
+    backward_impl<float, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  }
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
                          const int32_t* pslot, double* vpair, uint8_t* live, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  if (Fa == 3) {
+    backward_impl<double, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  } else if (Fa == 4) {
+    backward_impl<double, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  } else {
+    backward_impl<double, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  }
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
                        const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
