@@ -15,11 +15,11 @@
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
 //   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
-//   that pair's own gradient slot: tiles write disjoint slots, so threads never share an
-//   accumulator. The slots of one Gaussian are contiguous (splat2_bin numbers them), and
-//   splat2_reduce sums them in a fixed order with sequential reads: the gradient does not
-//   depend on the thread count or on the scheduling at all (stronger than per-thread [N]
-//   buffers, whose sum depends on which thread took which tile).
+//   that pair's own gradient row (row k for pair k: tiles write disjoint rows, in sequence,
+//   so threads never share an accumulator). splat2_reduce sums the rows of each Gaussian in a
+//   fixed order (its slots, numbered by splat2_bin_scatter, give its pairs: slot_pair): the
+//   gradient does not depend on the thread count or on the scheduling at all (stronger than
+//   per-thread [N] buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
 //   tile lists by a counting sort over fixed chunks in parallel (splat2_bin_count / _scatter).
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
@@ -638,7 +638,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   }
 }
 
-// Per pair k the gradient row v_pair[pslot[k] * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
+// Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
 // v_op, v_feat[0..F)), written for the pairs k0 .. k0 + max_last of each tile (zeros where
 // nothing contributed); live[k] = 1 for those, 0 for the rest (never written, never read).
 // Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
@@ -650,7 +650,7 @@ template <typename T, int FC>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa_rt,
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
+                   const int32_t* out_last, const T* v_accum, const T* v_T,
                    T* v_pair, uint8_t* live, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
@@ -727,7 +727,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
     std::memset(live + k0 + max_last, 0, (size_t)(k1 - k0 - max_last));
     for (int64_t k = k0 + max_last - 1; k >= k0; --k) {
       if (k - PAIR_PREFETCH >= k0) prefetch_pair(gauss[k - PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
-      T* gp = v_pair + pslot[k] * S;
+      // row k: the tile's rows are written in sequence (by the Gaussian's slot instead, they
+      // were ~430k scattered 40-byte writes, ~6 ms of a ~75 ms backward on the fern cell)
+      T* gp = v_pair + k * S;
       const int32_t local = (int32_t)(k - k0);
       const int64_t g = gauss[k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
@@ -793,11 +795,13 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   }
 }
 
-// v_out[g] = sum of the pair gradient slots of Gaussian g (rank r = its position in the depth
+// v_out[g] = sum of the pair gradient rows of Gaussian g (rank r = its position in the depth
+// order; its slots ps[r] .. ps[r+1] name its pairs: row slot_pair[j] for slot j, read in slot
+// order, the next rows prefetched).
 // order; its slots are ps[r] .. ps[r+1], contiguous). Chunks of ranks from a shared counter;
 // each Gaussian is summed by one thread in a fixed order, so the result is deterministic.
 template <typename T, int SC>
-inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
+inline void reduce_rows(int64_t S, const T* v_pair, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
   // SC > 0: the row length S as a compile-time constant, so the sums stay in registers (the
   // generic loop below keeps them in memory: out may alias v_pair as far as the compiler
   // knows, so it reloads and stores every partial sum, ~3x slower at 1.1 M pairs).
@@ -805,12 +809,16 @@ inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp
   T acc[L];
   const int64_t n = SC > 0 ? SC : S;
   for (int64_t s = 0; s < n; ++s) acc[s] = T(0);
-  for (int64_t j = 0; j < rows; ++j, src += n) {
-    if (!live[sp[j]]) continue;  // a pair the backward did not reach (row unwritten)
+  for (int64_t j = 0; j < rows; ++j) {
+    const int64_t k = sp[j];
+    if (!live[k]) continue;  // a pair the backward did not reach (row unwritten)
+    const T* src = v_pair + k * n;
     for (int64_t s = 0; s < n; ++s) acc[s] += src[s];
   }
   for (int64_t s = 0; s < n; ++s) out[s] = acc[s];
 }
+
+constexpr int64_t RED_PREFETCH = 16;  // slots ahead
 
 template <typename T>
 void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const T* v_pair,
@@ -818,20 +826,25 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
   constexpr int64_t CHUNK = 2048;
   for (int64_t ch; (ch = __atomic_fetch_add(next_chunk, 1, __ATOMIC_RELAXED)) * CHUNK < m;) {
     const int64_t r1 = std::min(m, (ch + 1) * CHUNK);
+    const int64_t pend = ps[r1];
     for (int64_t r = ch * CHUNK; r < r1; ++r) {
       T* out = v_out + order[r] * S;
-      const T* src = v_pair + ps[r] * S;
       const int64_t rows = ps[r + 1] - ps[r];
       const int32_t* sp = slot_pair + ps[r];
+      // the rows of the next Gaussians (random addresses: pairs are numbered tile by tile)
+      for (int64_t j = ps[r] + RED_PREFETCH; j < std::min(ps[r + 1] + RED_PREFETCH, pend); ++j) {
+        __builtin_prefetch(v_pair + (int64_t)slot_pair[j] * S);
+        __builtin_prefetch(v_pair + (int64_t)slot_pair[j] * S + S - 1);
+      }
       if (S == 10) {  // F = 4: RGB + depth, the rasterizer's case
-        reduce_rows<T, 10>(S, src, rows, sp, live, out);
+        reduce_rows<T, 10>(S, v_pair, rows, sp, live, out);
       } else if (S <= 6 + MAXF) {
-        reduce_rows<T, 0>(S, src, rows, sp, live, out);
+        reduce_rows<T, 0>(S, v_pair, rows, sp, live, out);
       } else {
         for (int64_t s = 0; s < S; ++s) out[s] = T(0);
         for (int64_t j = 0; j < rows; ++j)
           if (live[sp[j]])
-            for (int64_t s = 0; s < S; ++s) out[s] += src[j * S + s];
+            for (int64_t s = 0; s < S; ++s) out[s] += v_pair[(int64_t)sp[j] * S + s];
       }
     }
   }
@@ -841,7 +854,7 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 14; }
+int splat2_abi_version() { return 15; }
 
 // 1 + the last feature channel f < F with a nonzero value (x != 0: NaN counts, -0.0 does not)
 // among the n pixels of v [n, F] (contiguous), 0 if none: the backward skips the trailing
@@ -915,9 +928,9 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 // the pair count of every rank into area [M]; the caller turns these into offsets
 // [n_tiles + 1], the chunk's first position per tile, base [NCH, n_tiles], and ps [M + 1]
 // (prefix sums of the areas); splat2_bin_scatter then writes gauss [P] (each tile's list in
-// front-to-back order, as one sequential counting sort would) and pslot [P]: pair k of Gaussian
-// rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so each
-// Gaussian's pair gradients lie next to each other for splat2_reduce. The output does not depend
+// front-to-back order, as one sequential counting sort would) and slot_pair [P]: Gaussian rank
+// r owns slots ps[r] .. ps[r+1] (its tiles row-major), slot j names its pair slot_pair[j], so
+// splat2_reduce finds each Gaussian's pair gradients. The output does not depend
 // on the number of threads. A Gaussian's tiles: its rectangle rect [N, 4], and with fp
 // (footprints [FP N] and binning records [SPREC N] computed with the rectangles, may be null) only
 // the tiles its alpha >= 1/255 ellipse can reach (for_tiles).
@@ -953,7 +966,7 @@ void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, cons
 
 void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                         const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
-                        int32_t* gauss, int32_t* pslot, int32_t* slot_pair, int64_t* next) {
+                        int32_t* gauss, int32_t* slot_pair, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
@@ -965,8 +978,7 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
         gauss[pos] = (int32_t)g;
-        slot_pair[q] = (int32_t)pos;  // the inverse of pslot (sequential writes)
-        pslot[pos] = (int32_t)q++;
+        slot_pair[q++] = (int32_t)pos;  // sequential writes
       });
     }
     delete[] cursor;
@@ -1024,27 +1036,27 @@ void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
-                         const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
+                         const int32_t* last, const float* vacc, const float* vT,
                          float* vpair, uint8_t* live, int64_t* nth) {
   if (Fa == 3) {
-    backward_impl<float, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<float, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   } else if (Fa == 4) {
-    backward_impl<float, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<float, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   } else {
-    backward_impl<float, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<float, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   }
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         const int32_t* pslot, double* vpair, uint8_t* live, int64_t* nth) {
+                         double* vpair, uint8_t* live, int64_t* nth) {
   if (Fa == 3) {
-    backward_impl<double, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<double, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   } else if (Fa == 4) {
-    backward_impl<double, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<double, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   } else {
-    backward_impl<double, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+    backward_impl<double, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
   }
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,

@@ -49,7 +49,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     for dt in ("f32", "f64"):
         getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (12 if v2 else 11)
         getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 15 if v2 else [i64] * 5 + [vp] * 12
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 14 if v2 else [i64] * 5 + [vp] * 12
         getattr(lib, f"{pre}backward_{dt}").restype = None
         if v2:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
@@ -59,7 +59,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     if v2:
         lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
         lib.splat2_bin_count.restype = None
-        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, vp]
+        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
         lib.splat2_bin_scatter.restype = None
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
@@ -77,7 +77,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 14, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 15, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -121,12 +121,11 @@ class Bins:
         tiles_x, tiles_y: tile grid.
         order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
         ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
-        pslot: [P] int32 gradient slot of each pair; Gaussian ``order[r]`` owns slots
-            ps[r]:ps[r + 1] ("cpu" only).
-        slot_pair: [P] int32 per slot its pair (the inverse of ``pslot``, "cpu" only): the
-            reduction skips the slots of pairs the backward did not reach (behind every
-            pixel's last contributor; it marks them in a [P] byte map), whose rows it never
-            writes.
+        slot_pair: [P] int32 per slot its pair ("cpu" only): Gaussian ``order[r]`` owns slots
+            ps[r]:ps[r + 1] (its tiles row-major), and the backward writes pair k's gradients
+            to row k, so the reduction sums rows slot_pair[ps[r]:ps[r + 1]]; it skips the
+            pairs the backward did not reach (behind every pixel's last contributor; it marks
+            them in a [P] byte map), whose rows it never writes.
         fp: [N, 8] float64 footprints ("cpu" with means2d, conics and opacities given to
             :func:`bin_cpu`): then the lists hold only the tiles each Gaussian's alpha >= 1/255
             ellipse can reach, and the kernels reuse the footprints (so they must be called
@@ -139,7 +138,6 @@ class Bins:
     tiles_y: int
     order: Tensor | None = None
     ps: Tensor | None = None
-    pslot: Tensor | None = None
     fp: Tensor | None = None
     slot_pair: Tensor | None = None
 
@@ -236,11 +234,10 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         # int32 lists: half the bytes of int64 for the scatter's ~2 random writes per pair and
         # for every read in the blend (N and the pair count stay far below 2**31 on a CPU)
         gauss = torch.empty(total, dtype=torch.int32)
-        pslot = torch.empty(total, dtype=torch.int32)
         slot_pair = torch.empty(total, dtype=torch.int32)
         _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
-                      _ptr(base), _ptr(ps), _ptr(gauss), _ptr(pslot), _ptr(slot_pair))
-    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, pslot, fp, slot_pair)
+                      _ptr(base), _ptr(ps), _ptr(gauss), _ptr(slot_pair))
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, fp, slot_pair)
 
 
 def tile_pairs_cpu(
@@ -364,7 +361,7 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
         _run_threaded(
             getattr(lib, f"splat2_backward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(bins.pslot),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t),
             _ptr(v_pair), _ptr(live),
         )
         _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
