@@ -825,7 +825,59 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       const V adx2 = splat<V>(a) * dx * dx;
       const M lk = splat<M>((typename Vec<T>::mi)local);
       bool any = false;
-      for (int i = i0; i < i1; ++i) {
+      int i = i0;
+      // two rows per step, each statement for both (as in forward_impl: two interleaved exp
+      // chains). A row that the one-row loop would skip (no contributor left in it, or
+      // row_hits() false) is fully masked here (m false: it adds +0 to sums that are never
+      // -0 and changes no state), and the sums take row i before row i + 1 as in that loop:
+      // bit-identical.
+      for (; i + 1 < i1; i += 2) {
+        T dy[2];
+        bool act[2];
+        for (int q = 0; q < 2; ++q) {
+          dy[q] = my - (T(y0 + i + q) + T(0.5));
+          act[q] = local < row_last[i + q] && row_hits(fp, (double)mx, (double)dy[q], (double)x0, cols);
+        }
+        if (!act[0] && !act[1]) continue;
+        V power[2], G[2], raw[2], alpha[2], inv_one_m[2], Tfront[2], am[2], wm[2], v_alpha[2], vG[2];
+        M pos[2], m[2], m2[2];
+        for (int q = 0; q < 2; ++q)
+          power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
+        for (int q = 0; q < 2; ++q) pos[q] = power[q] <= splat<V>(T(0));
+        for (int q = 0; q < 2; ++q) G[q] = pos[q] ? power[q] : splat<V>(T(0));
+        vexp2(G);
+        for (int q = 0; q < 2; ++q) raw[q] = splat<V>(op) * G[q];
+        for (int q = 0; q < 2; ++q)
+          alpha[q] = raw[q] < splat<V>(Consts<T>::alpha_max) ? raw[q] : splat<V>(Consts<T>::alpha_max);
+        for (int q = 0; q < 2; ++q)
+          m[q] = act[q] ? pos[q] & (lk < last[i + q]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) : M{};
+        any |= any_lane(m[0] | m[1]);
+        for (int q = 0; q < 2; ++q) inv_one_m[q] = recip(splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < 2; ++q) Tfront[q] = Tr[i + q] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) am[q] = m[q] ? alpha[q] : V{};
+        for (int q = 0; q < 2; ++q) wm[q] = am[q] * Tfront[q];
+        for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
+        for (int64_t f = 0; f < Fa; ++f) {
+          for (int q = 0; q < 2; ++q) {
+            V& rp = rec[(i + q) * MAXF + f];
+            const V vp = vacc[(i + q) * MAXF + f];
+            const V d = splat<V>(fg[f]) - rp;
+            g_f[f] += wm[q] * vp;
+            v_alpha[q] += d * vp;
+            rp += am[q] * d;
+          }
+        }
+        for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) Tr[i + q] = m[q] ? Tfront[q] : Tr[i + q];
+        for (int q = 0; q < 2; ++q) m2[q] = m[q] & (raw[q] <= splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) vG[q] = m2[q] ? G[q] * v_alpha[q] : V{};
+        for (int q = 0; q < 2; ++q) {
+          G0 += vG[q];
+          G1 += vG[q] * splat<V>(dy[q]);
+          G2 += vG[q] * splat<V>(dy[q] * dy[q]);
+        }
+      }
+      for (; i < i1; ++i) {
         if (local >= row_last[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
         if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
