@@ -34,6 +34,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <utility>
 #if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
@@ -160,42 +161,43 @@ inline Vec<float>::v vexp(Vec<float>::v x) {
   V res = p * scale;
   return tiny ? splat<V>(0.0f) : res;
 }
-// vexp of two vectors with the steps interleaved (two independent dependency chains in program
-// order: the forward blends two tile rows per step, see forward_impl). Per lane as vexp.
-inline void vexp2(Vec<float>::v* x) {
+// vexp of NQ vectors with the steps interleaved (independent dependency chains in program
+// order: the blend loops take several tile rows per step, see forward_impl). Per lane as vexp.
+template <int NQ> inline void vexpn(Vec<float>::v* x) {
   typedef Vec<float>::v V;
   typedef Vec<float>::m M;
-  M tiny[2];
-  V t[2], n[2], r[2], p[2];
-  M ni[2], bits[2];
+  M tiny[NQ];
+  V t[NQ], n[NQ], r[NQ], p[NQ];
+  M ni[NQ], bits[NQ];
   const V magic = splat<V>(12582912.0f);
-  for (int q = 0; q < 2; ++q) tiny[q] = x[q] < splat<V>(-87.0f);
-  for (int q = 0; q < 2; ++q) x[q] = tiny[q] ? splat<V>(-87.0f) : x[q];
-  for (int q = 0; q < 2; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
-  for (int q = 0; q < 2; ++q) n[q] = t[q] - magic;
-  for (int q = 0; q < 2; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
-  for (int q = 0; q < 2; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
-  for (int q = 0; q < 2; ++q) p[q] = splat<V>(1.9875691500e-4f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
-  for (int q = 0; q < 2; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
-  for (int q = 0; q < 2; ++q) ni[q] = __builtin_convertvector(n[q], M);
-  for (int q = 0; q < 2; ++q) bits[q] = (ni[q] + 127) << 23;
-  for (int q = 0; q < 2; ++q) {
+  for (int q = 0; q < NQ; ++q) tiny[q] = x[q] < splat<V>(-87.0f);
+  for (int q = 0; q < NQ; ++q) x[q] = tiny[q] ? splat<V>(-87.0f) : x[q];
+  for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
+  for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
+  for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
+  for (int q = 0; q < NQ; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = splat<V>(1.9875691500e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
+  for (int q = 0; q < NQ; ++q) ni[q] = __builtin_convertvector(n[q], M);
+  for (int q = 0; q < NQ; ++q) bits[q] = (ni[q] + 127) << 23;
+  for (int q = 0; q < NQ; ++q) {
     V scale;
     std::memcpy(&scale, &bits[q], sizeof(V));
     const V res = p[q] * scale;
     x[q] = tiny[q] ? splat<V>(0.0f) : res;
   }
 }
+inline void vexp2(Vec<float>::v* x) { vexpn<2>(x); }
 inline Vec<double>::v vexp(Vec<double>::v x);
-inline void vexp2(Vec<double>::v* x) {
-  x[0] = vexp(x[0]);
-  x[1] = vexp(x[1]);
+template <int NQ> inline void vexpn(Vec<double>::v* x) {
+  for (int q = 0; q < NQ; ++q) x[q] = vexp(x[q]);
 }
+inline void vexp2(Vec<double>::v* x) { vexpn<2>(x); }
 inline Vec<double>::v vexp(Vec<double>::v x) {
   Vec<double>::v r;
   for (int l = 0; l < TILE; ++l) r[l] = std::exp(x[l]);
@@ -629,43 +631,51 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       const V adx2 = splat<V>(a) * dx * dx;
       const typename Vec<T>::mi lk = (typename Vec<T>::mi)(k - k0 + 1);
       int i = i0;
-      // two rows per step, each statement for both (q = 0, 1): a row's exp is a long
-      // dependency chain, and one row at a time left the out-of-order core about one chain
-      // to work on; two interleaved chains overlap. The same per-lane arithmetic as the
-      // one-row loop below (a dead row's lanes are all done, so masked): bit-identical.
-      for (; i + 1 < i1; i += 2) {
-        if (!alive[i] && !alive[i + 1]) continue;
-        T dy[2];
-        V power[2], alpha[2], test_T[2], w[2];
-        M pos[2], valid[2], stop[2], contrib[2];
-        for (int q = 0; q < 2; ++q) dy[q] = my - (T(y0 + i + q) + T(0.5));
-        for (int q = 0; q < 2; ++q)
+      // four (then two) rows per step, each statement for all of them (q = 0 .. NQ - 1): a
+      // row's exp is a long dependency chain, and one row at a time left the out-of-order
+      // core about one chain to work on; interleaved chains overlap. The same per-lane
+      // arithmetic as the one-row loop below (a dead row's lanes are all done, so masked):
+      // bit-identical.
+      auto rows_step = [&](auto nq, int i) {
+        constexpr int NQ = decltype(nq)::value;
+        bool none = true;
+        for (int q = 0; q < NQ; ++q) none &= !alive[i + q];
+        if (none) return;
+        T dy[NQ];
+        V power[NQ], alpha[NQ], test_T[NQ], w[NQ];
+        M pos[NQ], valid[NQ], stop[NQ], contrib[NQ];
+        for (int q = 0; q < NQ; ++q) dy[q] = my - (T(y0 + i + q) + T(0.5));
+        for (int q = 0; q < NQ; ++q)
           power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
-        for (int q = 0; q < 2; ++q) pos[q] = power[q] <= splat<V>(T(0));
-        for (int q = 0; q < 2; ++q) alpha[q] = pos[q] ? power[q] : splat<V>(T(0));
-        vexp2(alpha);
-        for (int q = 0; q < 2; ++q) alpha[q] = splat<V>(op) * alpha[q];
-        for (int q = 0; q < 2; ++q)
+        for (int q = 0; q < NQ; ++q) pos[q] = power[q] <= splat<V>(T(0));
+        for (int q = 0; q < NQ; ++q) alpha[q] = pos[q] ? power[q] : splat<V>(T(0));
+        vexpn<NQ>(alpha);
+        for (int q = 0; q < NQ; ++q) alpha[q] = splat<V>(op) * alpha[q];
+        for (int q = 0; q < NQ; ++q)
           alpha[q] = alpha[q] < splat<V>(Consts<T>::alpha_max) ? alpha[q] : splat<V>(Consts<T>::alpha_max);
-        for (int q = 0; q < 2; ++q) valid[q] = pos[q] & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
-        for (int q = 0; q < 2; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
-        for (int q = 0; q < 2; ++q) stop[q] = valid[q] & (test_T[q] < splat<V>(Consts<T>::t_min));
-        for (int q = 0; q < 2; ++q) contrib[q] = valid[q] & ~stop[q];
-        for (int q = 0; q < 2; ++q) w[q] = contrib[q] ? alpha[q] * Tr[i + q] : splat<V>(T(0));
+        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
+        for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & (test_T[q] < splat<V>(Consts<T>::t_min));
+        for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
+        for (int q = 0; q < NQ; ++q) w[q] = contrib[q] ? alpha[q] * Tr[i + q] : splat<V>(T(0));
         for (int64_t f = 0; f < F; ++f)
-          for (int q = 0; q < 2; ++q) acc[(i + q) * MAXF + f] += w[q] * splat<V>(fg[f]);
-        for (int q = 0; q < 2; ++q) {
+          for (int q = 0; q < NQ; ++q) acc[(i + q) * MAXF + f] += w[q] * splat<V>(fg[f]);
+        for (int q = 0; q < NQ; ++q) {
           Tr[i + q] = contrib[q] ? test_T[q] : Tr[i + q];
           last[i + q] = contrib[q] ? splat<M>(lk) : last[i + q];
           count[i + q] -= contrib[q];
         }
-        if (any_lane(stop[0] | stop[1])) {
-          for (int q = 0; q < 2; ++q) {
+        M any_stop = stop[0];
+        for (int q = 1; q < NQ; ++q) any_stop |= stop[q];
+        if (any_lane(any_stop)) {
+          for (int q = 0; q < NQ; ++q) {
             done[i + q] |= stop[q];
             if (alive[i + q] && all_lanes(done[i + q])) { alive[i + q] = false; --n_alive; }
           }
         }
-      }
+      };
+      for (; i + 3 < i1; i += 4) rows_step(std::integral_constant<int, 4>{}, i);
+      for (; i + 1 < i1; i += 2) rows_step(std::integral_constant<int, 2>{}, i);
       for (; i < i1; ++i) {
         if (!alive[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
