@@ -11,7 +11,10 @@
 // * Forward: per tile, Gaussians front to back; each Gaussian visits only the tile rows its
 //   alpha >= 1/255 ellipse can reach, and there all 16 pixels of a row at once, with per-lane
 //   masks for the skip (power > 0, alpha < 1/255) and stop (T (1 - alpha) < 1e-4) rules. A row
-//   whose pixels have all stopped is skipped; the tile ends when every row has.
+//   whose pixels have all stopped is skipped; the tile ends when every row has. Rows go four
+//   or two per step with their exp chains interleaved and no per-row branch on the masks
+//   (the loop is latency-bound: a row is one long dependency chain); the backward likewise
+//   two per step.
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
 //   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
