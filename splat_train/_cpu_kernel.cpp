@@ -11,15 +11,18 @@
 // * Forward: per tile, Gaussians front to back; each Gaussian visits only the tile rows its
 //   alpha >= 1/255 ellipse can reach, and there all 16 pixels of a row at once, with per-lane
 //   masks for the skip (power > 0, alpha < 1/255) and stop (T (1 - alpha) < 1e-4) rules. A row
-//   whose pixels have all stopped is skipped; the tile ends when every row has.
+//   whose pixels have all stopped is skipped; the tile ends when every row has. Rows go four
+//   or two per step with their exp chains interleaved and no per-row branch on the masks
+//   (the loop is latency-bound: a row is one long dependency chain); the backward likewise
+//   two per step.
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
 //   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
-//   that pair's own gradient slot: tiles write disjoint slots, so threads never share an
-//   accumulator. The slots of one Gaussian are contiguous (splat2_bin numbers them), and
-//   splat2_reduce sums them in a fixed order with sequential reads: the gradient does not
-//   depend on the thread count or on the scheduling at all (stronger than per-thread [N]
-//   buffers, whose sum depends on which thread took which tile).
+//   that pair's own gradient row (row k for pair k: tiles write disjoint rows, in sequence,
+//   so threads never share an accumulator). splat2_reduce sums the rows of each Gaussian in a
+//   fixed order (its slots, numbered by splat2_bin_scatter, give its pairs: slot_pair): the
+//   gradient does not depend on the thread count or on the scheduling at all (stronger than
+//   per-thread [N] buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
 //   tile lists by a counting sort over fixed chunks in parallel (splat2_bin_count / _scatter).
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
@@ -34,6 +37,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <utility>
 #if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
@@ -160,6 +164,43 @@ inline Vec<float>::v vexp(Vec<float>::v x) {
   V res = p * scale;
   return tiny ? splat<V>(0.0f) : res;
 }
+// vexp of NQ vectors with the steps interleaved (independent dependency chains in program
+// order: the blend loops take several tile rows per step, see forward_impl). Per lane as vexp.
+template <int NQ> inline void vexpn(Vec<float>::v* x) {
+  typedef Vec<float>::v V;
+  typedef Vec<float>::m M;
+  M tiny[NQ];
+  V t[NQ], n[NQ], r[NQ], p[NQ];
+  M ni[NQ], bits[NQ];
+  const V magic = splat<V>(12582912.0f);
+  for (int q = 0; q < NQ; ++q) tiny[q] = x[q] < splat<V>(-87.0f);
+  for (int q = 0; q < NQ; ++q) x[q] = tiny[q] ? splat<V>(-87.0f) : x[q];
+  for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
+  for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
+  for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
+  for (int q = 0; q < NQ; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = splat<V>(1.9875691500e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
+  for (int q = 0; q < NQ; ++q) ni[q] = __builtin_convertvector(n[q], M);
+  for (int q = 0; q < NQ; ++q) bits[q] = (ni[q] + 127) << 23;
+  for (int q = 0; q < NQ; ++q) {
+    V scale;
+    std::memcpy(&scale, &bits[q], sizeof(V));
+    const V res = p[q] * scale;
+    x[q] = tiny[q] ? splat<V>(0.0f) : res;
+  }
+}
+inline void vexp2(Vec<float>::v* x) { vexpn<2>(x); }
+inline Vec<double>::v vexp(Vec<double>::v x);
+template <int NQ> inline void vexpn(Vec<double>::v* x) {
+  for (int q = 0; q < NQ; ++q) x[q] = vexp(x[q]);
+}
+inline void vexp2(Vec<double>::v* x) { vexpn<2>(x); }
 inline Vec<double>::v vexp(Vec<double>::v x) {
   Vec<double>::v r;
   for (int l = 0; l < TILE; ++l) r[l] = std::exp(x[l]);
@@ -534,7 +575,9 @@ inline void interleave4(const Vec<float>::v* in, float* dst) {
 // The blend reads five arrays per tile-Gaussian pair at the Gaussian's index (mean, conic,
 // opacity, features, footprint): in depth order these are scattered over ~10 MB at 100k
 // Gaussians, so each pair waited on several cache misses. Fetch them PAIR_PREFETCH pairs ahead.
-constexpr int64_t PAIR_PREFETCH = 2;
+// (4 rather than 2 since the row loop has no per-row branches: a pair now takes fewer cycles;
+// fern checkpoint forward ~54 -> ~52 ms CPU.)
+constexpr int64_t PAIR_PREFETCH = 4;
 template <typename T>
 inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T* opac, const T* feat, int64_t F,
                           const double* fps) {
@@ -545,13 +588,15 @@ inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T*
   __builtin_prefetch(fps + FP * g);
 }
 
-template <typename T>
-void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F,
+// FC > 0: F == FC as a compile-time constant (4: RGB + depth, the rasterizer's case).
+template <typename T, int FC>
+void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F_rt,
                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
                   T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
+  const int64_t F = FC > 0 ? FC : F_rt;
   const int64_t n_tiles = tiles_x * tiles_y;
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
@@ -588,16 +633,60 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const typename Vec<T>::mi lk = (typename Vec<T>::mi)(k - k0 + 1);
-      for (int i = i0; i < i1; ++i) {
+      int i = i0;
+      // four (then two) rows per step, each statement for all of them (q = 0 .. NQ - 1): a
+      // row's exp is a long dependency chain, and one row at a time left the out-of-order
+      // core about one chain to work on; interleaved chains overlap. The same per-lane
+      // arithmetic as the one-row loop below (a dead row's lanes are all done, so masked):
+      // bit-identical.
+      auto rows_step = [&](auto nq, int i) {
+        constexpr int NQ = decltype(nq)::value;
+        bool none = true;
+        for (int q = 0; q < NQ; ++q) none &= !alive[i + q];
+        if (none) return;
+        T dy[NQ];
+        V power[NQ], alpha[NQ], test_T[NQ], w[NQ];
+        M pos[NQ], valid[NQ], stop[NQ], contrib[NQ];
+        for (int q = 0; q < NQ; ++q) dy[q] = my - (T(y0 + i + q) + T(0.5));
+        for (int q = 0; q < NQ; ++q)
+          power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
+        for (int q = 0; q < NQ; ++q) pos[q] = power[q] <= splat<V>(T(0));
+        for (int q = 0; q < NQ; ++q) alpha[q] = pos[q] ? power[q] : splat<V>(T(0));
+        vexpn<NQ>(alpha);
+        for (int q = 0; q < NQ; ++q) alpha[q] = splat<V>(op) * alpha[q];
+        for (int q = 0; q < NQ; ++q)
+          alpha[q] = alpha[q] < splat<V>(Consts<T>::alpha_max) ? alpha[q] : splat<V>(Consts<T>::alpha_max);
+        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
+        for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & (test_T[q] < splat<V>(Consts<T>::t_min));
+        for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
+        for (int q = 0; q < NQ; ++q) w[q] = contrib[q] ? alpha[q] * Tr[i + q] : splat<V>(T(0));
+        for (int64_t f = 0; f < F; ++f)
+          for (int q = 0; q < NQ; ++q) acc[(i + q) * MAXF + f] += w[q] * splat<V>(fg[f]);
+        for (int q = 0; q < NQ; ++q) {
+          Tr[i + q] = contrib[q] ? test_T[q] : Tr[i + q];
+          last[i + q] = contrib[q] ? splat<M>(lk) : last[i + q];
+          count[i + q] -= contrib[q];
+        }
+        M any_stop = stop[0];
+        for (int q = 1; q < NQ; ++q) any_stop |= stop[q];
+        if (any_lane(any_stop)) {
+          for (int q = 0; q < NQ; ++q) {
+            done[i + q] |= stop[q];
+            if (alive[i + q] && all_lanes(done[i + q])) { alive[i + q] = false; --n_alive; }
+          }
+        }
+      };
+      for (; i + 3 < i1; i += 4) rows_step(std::integral_constant<int, 4>{}, i);
+      for (; i + 1 < i1; i += 2) rows_step(std::integral_constant<int, 2>{}, i);
+      for (; i < i1; ++i) {
         if (!alive[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
-        if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
         const M pos = power <= splat<V>(T(0));
         V alpha = splat<V>(op) * vexp(pos ? power : splat<V>(T(0)));
         alpha = alpha < splat<V>(Consts<T>::alpha_max) ? alpha : splat<V>(Consts<T>::alpha_max);
         const M valid = pos & (alpha >= splat<V>(Consts<T>::alpha_min)) & ~done[i];
-        if (!any_lane(valid)) continue;
         const V test_T = Tr[i] * (splat<V>(T(1)) - alpha);
         const M stop = valid & (test_T < splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
@@ -638,20 +727,23 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   }
 }
 
-// Per pair k the gradient row v_pair[pslot[k] * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
+// Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
 // v_op, v_feat[0..F)), written for the pairs k0 .. k0 + max_last of each tile (zeros where
 // nothing contributed); live[k] = 1 for those, 0 for the rest (never written, never read).
 // Only the first Fa feature channels are visited: the caller passes Fa < F when the cotangent
 // of channels Fa..F-1 is zero everywhere (their terms are exactly zero: the depth channel of a
 // photometric loss), and their gradient rows stay 0.
-template <typename T>
-void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa,
+// FC > 0: Fa == FC as a compile-time constant (the feature loops unrolled, their sums in
+// registers; 3 and 4 are the rasterizer's photometric and RGB + depth cases).
+template <typename T, int FC>
+void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa_rt,
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T, const int32_t* pslot,
+                   const int32_t* out_last, const T* v_accum, const T* v_T,
                    T* v_pair, uint8_t* live, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
+  const int64_t Fa = FC > 0 ? FC : Fa_rt;
   const int64_t n_tiles = tiles_x * tiles_y;
   const int64_t S = 6 + F;
   V lane;
@@ -724,7 +816,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
     std::memset(live + k0 + max_last, 0, (size_t)(k1 - k0 - max_last));
     for (int64_t k = k0 + max_last - 1; k >= k0; --k) {
       if (k - PAIR_PREFETCH >= k0) prefetch_pair(gauss[k - PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
-      T* gp = v_pair + pslot[k] * S;
+      // row k: the tile's rows are written in sequence (by the Gaussian's slot instead, they
+      // were ~430k scattered 40-byte writes, ~6 ms of a ~75 ms backward on the fern cell)
+      T* gp = v_pair + k * S;
       const int32_t local = (int32_t)(k - k0);
       const int64_t g = gauss[k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
@@ -744,7 +838,59 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       const V adx2 = splat<V>(a) * dx * dx;
       const M lk = splat<M>((typename Vec<T>::mi)local);
       bool any = false;
-      for (int i = i0; i < i1; ++i) {
+      int i = i0;
+      // two rows per step, each statement for both (as in forward_impl: two interleaved exp
+      // chains). A row that the one-row loop would skip (no contributor left in it, or
+      // row_hits() false) is fully masked here (m false: it adds +0 to sums that are never
+      // -0 and changes no state), and the sums take row i before row i + 1 as in that loop:
+      // bit-identical.
+      for (; i + 1 < i1; i += 2) {
+        T dy[2];
+        bool act[2];
+        for (int q = 0; q < 2; ++q) {
+          dy[q] = my - (T(y0 + i + q) + T(0.5));
+          act[q] = local < row_last[i + q] && row_hits(fp, (double)mx, (double)dy[q], (double)x0, cols);
+        }
+        if (!act[0] && !act[1]) continue;
+        V power[2], G[2], raw[2], alpha[2], inv_one_m[2], Tfront[2], am[2], wm[2], v_alpha[2], vG[2];
+        M pos[2], m[2], m2[2];
+        for (int q = 0; q < 2; ++q)
+          power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
+        for (int q = 0; q < 2; ++q) pos[q] = power[q] <= splat<V>(T(0));
+        for (int q = 0; q < 2; ++q) G[q] = pos[q] ? power[q] : splat<V>(T(0));
+        vexp2(G);
+        for (int q = 0; q < 2; ++q) raw[q] = splat<V>(op) * G[q];
+        for (int q = 0; q < 2; ++q)
+          alpha[q] = raw[q] < splat<V>(Consts<T>::alpha_max) ? raw[q] : splat<V>(Consts<T>::alpha_max);
+        for (int q = 0; q < 2; ++q)
+          m[q] = act[q] ? pos[q] & (lk < last[i + q]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) : M{};
+        any |= any_lane(m[0] | m[1]);
+        for (int q = 0; q < 2; ++q) inv_one_m[q] = recip(splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < 2; ++q) Tfront[q] = Tr[i + q] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) am[q] = m[q] ? alpha[q] : V{};
+        for (int q = 0; q < 2; ++q) wm[q] = am[q] * Tfront[q];
+        for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
+        for (int64_t f = 0; f < Fa; ++f) {
+          for (int q = 0; q < 2; ++q) {
+            V& rp = rec[(i + q) * MAXF + f];
+            const V vp = vacc[(i + q) * MAXF + f];
+            const V d = splat<V>(fg[f]) - rp;
+            g_f[f] += wm[q] * vp;
+            v_alpha[q] += d * vp;
+            rp += am[q] * d;
+          }
+        }
+        for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) Tr[i + q] = m[q] ? Tfront[q] : Tr[i + q];
+        for (int q = 0; q < 2; ++q) m2[q] = m[q] & (raw[q] <= splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) vG[q] = m2[q] ? G[q] * v_alpha[q] : V{};
+        for (int q = 0; q < 2; ++q) {
+          G0 += vG[q];
+          G1 += vG[q] * splat<V>(dy[q]);
+          G2 += vG[q] * splat<V>(dy[q] * dy[q]);
+        }
+      }
+      for (; i < i1; ++i) {
         if (local >= row_last[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
         if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
@@ -754,8 +900,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const V raw = splat<V>(op) * G;
         const V alpha = raw < splat<V>(Consts<T>::alpha_max) ? raw : splat<V>(Consts<T>::alpha_max);
         const M m = pos & (lk < last[i]) & (alpha >= splat<V>(Consts<T>::alpha_min));
-        if (!any_lane(m)) continue;
-        any = true;
+        any |= any_lane(m);
         const V inv_one_m = recip(splat<V>(T(1)) - alpha);
         const V Tfront = Tr[i] * inv_one_m;
         const V am = m ? alpha : V{};  // lanes outside the mask leave rec and g_f unchanged
@@ -791,11 +936,13 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   }
 }
 
-// v_out[g] = sum of the pair gradient slots of Gaussian g (rank r = its position in the depth
+// v_out[g] = sum of the pair gradient rows of Gaussian g (rank r = its position in the depth
+// order; its slots ps[r] .. ps[r+1] name its pairs: row slot_pair[j] for slot j, read in slot
+// order, the next rows prefetched).
 // order; its slots are ps[r] .. ps[r+1], contiguous). Chunks of ranks from a shared counter;
 // each Gaussian is summed by one thread in a fixed order, so the result is deterministic.
 template <typename T, int SC>
-inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
+inline void reduce_rows(int64_t S, const T* v_pair, int64_t rows, const int32_t* sp, const uint8_t* live, T* out) {
   // SC > 0: the row length S as a compile-time constant, so the sums stay in registers (the
   // generic loop below keeps them in memory: out may alias v_pair as far as the compiler
   // knows, so it reloads and stores every partial sum, ~3x slower at 1.1 M pairs).
@@ -803,12 +950,16 @@ inline void reduce_rows(int64_t S, const T* src, int64_t rows, const int32_t* sp
   T acc[L];
   const int64_t n = SC > 0 ? SC : S;
   for (int64_t s = 0; s < n; ++s) acc[s] = T(0);
-  for (int64_t j = 0; j < rows; ++j, src += n) {
-    if (!live[sp[j]]) continue;  // a pair the backward did not reach (row unwritten)
+  for (int64_t j = 0; j < rows; ++j) {
+    const int64_t k = sp[j];
+    if (!live[k]) continue;  // a pair the backward did not reach (row unwritten)
+    const T* src = v_pair + k * n;
     for (int64_t s = 0; s < n; ++s) acc[s] += src[s];
   }
   for (int64_t s = 0; s < n; ++s) out[s] = acc[s];
 }
+
+constexpr int64_t RED_PREFETCH = 16;  // slots ahead
 
 template <typename T>
 void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const T* v_pair,
@@ -816,20 +967,25 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
   constexpr int64_t CHUNK = 2048;
   for (int64_t ch; (ch = __atomic_fetch_add(next_chunk, 1, __ATOMIC_RELAXED)) * CHUNK < m;) {
     const int64_t r1 = std::min(m, (ch + 1) * CHUNK);
+    const int64_t pend = ps[r1];
     for (int64_t r = ch * CHUNK; r < r1; ++r) {
       T* out = v_out + order[r] * S;
-      const T* src = v_pair + ps[r] * S;
       const int64_t rows = ps[r + 1] - ps[r];
       const int32_t* sp = slot_pair + ps[r];
+      // the rows of the next Gaussians (random addresses: pairs are numbered tile by tile)
+      for (int64_t j = ps[r] + RED_PREFETCH; j < std::min(ps[r + 1] + RED_PREFETCH, pend); ++j) {
+        __builtin_prefetch(v_pair + (int64_t)slot_pair[j] * S);
+        __builtin_prefetch(v_pair + (int64_t)slot_pair[j] * S + S - 1);
+      }
       if (S == 10) {  // F = 4: RGB + depth, the rasterizer's case
-        reduce_rows<T, 10>(S, src, rows, sp, live, out);
+        reduce_rows<T, 10>(S, v_pair, rows, sp, live, out);
       } else if (S <= 6 + MAXF) {
-        reduce_rows<T, 0>(S, src, rows, sp, live, out);
+        reduce_rows<T, 0>(S, v_pair, rows, sp, live, out);
       } else {
         for (int64_t s = 0; s < S; ++s) out[s] = T(0);
         for (int64_t j = 0; j < rows; ++j)
           if (live[sp[j]])
-            for (int64_t s = 0; s < S; ++s) out[s] += src[j * S + s];
+            for (int64_t s = 0; s < S; ++s) out[s] += v_pair[(int64_t)sp[j] * S + s];
       }
     }
   }
@@ -839,7 +995,26 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 
 extern "C" {
 
-int splat2_abi_version() { return 13; }
+int splat2_abi_version() { return 15; }
+
+// 1 + the last feature channel f < F with a nonzero value (x != 0: NaN counts, -0.0 does not)
+// among the n pixels of v [n, F] (contiguous), 0 if none: the backward skips the trailing
+// channels whose cotangent is zero everywhere. One pass over v (a strided torch .any() per
+// channel cost ~4 ms each at 185k pixels).
+int64_t splat2_active_f32(int64_t n, int64_t F, const float* v) {
+  int64_t act = 0;
+  for (int64_t i = 0; i < n && act < F; ++i)
+    for (int64_t f = F - 1; f >= act; --f)
+      if (v[i * F + f] != 0.0f) { act = f + 1; break; }
+  return act;
+}
+int64_t splat2_active_f64(int64_t n, int64_t F, const double* v) {
+  int64_t act = 0;
+  for (int64_t i = 0; i < n && act < F; ++i)
+    for (int64_t f = F - 1; f >= act; --f)
+      if (v[i * F + f] != 0.0) { act = f + 1; break; }
+  return act;
+}
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -894,9 +1069,9 @@ int64_t splat2_depth_order_f32(int64_t n, const float* depths, const uint8_t* vi
 // the pair count of every rank into area [M]; the caller turns these into offsets
 // [n_tiles + 1], the chunk's first position per tile, base [NCH, n_tiles], and ps [M + 1]
 // (prefix sums of the areas); splat2_bin_scatter then writes gauss [P] (each tile's list in
-// front-to-back order, as one sequential counting sort would) and pslot [P]: pair k of Gaussian
-// rank r gets gradient slot pslot[k] in ps[r] .. ps[r+1] (its tiles row-major), so each
-// Gaussian's pair gradients lie next to each other for splat2_reduce. The output does not depend
+// front-to-back order, as one sequential counting sort would) and slot_pair [P]: Gaussian rank
+// r owns slots ps[r] .. ps[r+1] (its tiles row-major), slot j names its pair slot_pair[j], so
+// splat2_reduce finds each Gaussian's pair gradients. The output does not depend
 // on the number of threads. A Gaussian's tiles: its rectangle rect [N, 4], and with fp
 // (footprints [FP N] and binning records [SPREC N] computed with the rectangles, may be null) only
 // the tiles its alpha >= 1/255 ellipse can reach (for_tiles).
@@ -932,7 +1107,7 @@ void splat2_bin_count(int64_t m, const int64_t* order, const int64_t* rect, cons
 
 void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, const double* fps,
                         const int16_t* sps, int64_t tiles_x, int64_t n_tiles, int64_t nch, const int64_t* base, const int64_t* ps,
-                        int32_t* gauss, int32_t* pslot, int32_t* slot_pair, int64_t* next) {
+                        int32_t* gauss, int32_t* slot_pair, int64_t* next) {
   for (int64_t c; (c = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) < nch;) {
     int64_t* cursor = new int64_t[n_tiles];
     for (int64_t t = 0; t < n_tiles; ++t) cursor[t] = base[c * n_tiles + t];
@@ -944,8 +1119,7 @@ void splat2_bin_scatter(int64_t m, const int64_t* order, const int64_t* rect, co
       for_tiles(rect + 4 * g, fps ? fps + FP * g : nullptr, fps ? sps + SPREC * g : nullptr, [&](int64_t y, int64_t x) {
         const int64_t pos = cursor[y * tiles_x + x]++;
         gauss[pos] = (int32_t)g;
-        slot_pair[q] = (int32_t)pos;  // the inverse of pslot (sequential writes)
-        pslot[pos] = (int32_t)q++;
+        slot_pair[q++] = (int32_t)pos;  // sequential writes
       });
     }
     delete[] cursor;
@@ -984,27 +1158,47 @@ void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_impl<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4) {
+    forward_impl<float, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else {
+    forward_impl<float, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  }
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_impl<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4) {
+    forward_impl<double, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else {
+    forward_impl<double, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  }
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
-                         const int32_t* last, const float* vacc, const float* vT, const int32_t* pslot,
+                         const int32_t* last, const float* vacc, const float* vT,
                          float* vpair, uint8_t* live, int64_t* nth) {
-  backward_impl<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+  if (Fa == 3) {
+    backward_impl<float, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else if (Fa == 4) {
+    backward_impl<float, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else {
+    backward_impl<float, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  }
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         const int32_t* pslot, double* vpair, uint8_t* live, int64_t* nth) {
-  backward_impl<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, pslot, vpair, live, nth);
+                         double* vpair, uint8_t* live, int64_t* nth) {
+  if (Fa == 3) {
+    backward_impl<double, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else if (Fa == 4) {
+    backward_impl<double, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else {
+    backward_impl<double, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  }
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
                        const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
