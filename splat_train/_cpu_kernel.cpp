@@ -135,6 +135,28 @@ SPLAT_CMP(vle, <=)
 SPLAT_CMP(vge, >=)
 #undef SPLAT_CMP
 #endif
+// dst += a * b, dst = m ? a : dst on a vector in memory. With AVX-512 the plain statements.
+// Otherwise written part by part into dst: the plain forms built the 64-byte result as one
+// value first (an XImode temporary) and copied it over in 16-byte pieces through general
+// registers (movq / vpinsrq / xmm stores, the hottest instructions of the AVX2 forward).
+#if SPLAT_NATIVE_BYTES == 64
+#define vfma_to(dst, a, b) ((dst) += (a) * (b))
+#define vsel_to(dst, m, a) ((dst) = (m) ? (a) : (dst))
+#else
+template <typename X> inline void vfma_to(X& dst, X a, X b) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<X>::U ua{a}, ub{b};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] += ua.part[h] * ub.part[h];
+}
+template <typename M, typename X> inline void vsel_to(X& dst, M m, X a) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<M>::U um{m};
+  typename Parts<X>::U ua{a};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] = um.part[h] ? ua.part[h] : d[h];
+}
+#endif
 
 // Lane reductions of a comparison mask (all bits of a lane set or clear).
 template <typename M> inline bool any_lane(M m) {
@@ -717,10 +739,10 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
         for (int q = 0; q < NQ; ++q) w[q] = vsel(contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f)
-          for (int q = 0; q < NQ; ++q) acc[(i + q) * MAXF + f] += w[q] * splat<V>(fg[f]);
+          for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * MAXF + f], w[q], splat<V>(fg[f]));
         for (int q = 0; q < NQ; ++q) {
-          Tr[i + q] = vsel(contrib[q], test_T[q], Tr[i + q]);
-          last[i + q] = vsel(contrib[q], splat<M>(lk), last[i + q]);
+          vsel_to(Tr[i + q], contrib[q], test_T[q]);
+          vsel_to(last[i + q], contrib[q], splat<M>(lk));
           count[i + q] -= contrib[q];
         }
         M any_stop = stop[0];
@@ -746,9 +768,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         const M stop = valid & vlt(test_T, splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
         const V w = vsel(contrib, alpha * Tr[i], splat<V>(T(0)));
-        for (int64_t f = 0; f < F; ++f) acc[i * MAXF + f] += w * splat<V>(fg[f]);
-        Tr[i] = vsel(contrib, test_T, Tr[i]);
-        last[i] = vsel(contrib, splat<M>(lk), last[i]);
+        for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * MAXF + f], w, splat<V>(fg[f]));
+        vsel_to(Tr[i], contrib, test_T);
+        vsel_to(last[i], contrib, splat<M>(lk));
         count[i] -= contrib;
         if (any_lane(stop)) {
           done[i] |= stop;
@@ -930,19 +952,19 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
             V& rp = rec[(i + q) * MAXF + f];
             const V vp = vacc[(i + q) * MAXF + f];
             const V d = splat<V>(fg[f]) - rp;
-            g_f[f] += wm[q] * vp;
-            v_alpha[q] += d * vp;
-            rp += am[q] * d;
+            vfma_to(g_f[f], wm[q], vp);
+            vfma_to(v_alpha[q], d, vp);
+            vfma_to(rp, am[q], d);
           }
         }
         for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
-        for (int q = 0; q < 2; ++q) Tr[i + q] = vsel(m[q], Tfront[q], Tr[i + q]);
+        for (int q = 0; q < 2; ++q) vsel_to(Tr[i + q], m[q], Tfront[q]);
         for (int q = 0; q < 2; ++q) m2[q] = m[q] & vle(raw[q], splat<V>(Consts<T>::alpha_max));
         for (int q = 0; q < 2; ++q) vG[q] = vsel(m2[q], G[q] * v_alpha[q], V{});
         for (int q = 0; q < 2; ++q) {
           G0 += vG[q];
-          G1 += vG[q] * splat<V>(dy[q]);
-          G2 += vG[q] * splat<V>(dy[q] * dy[q]);
+          vfma_to(G1, vG[q], splat<V>(dy[q]));
+          vfma_to(G2, vG[q], splat<V>(dy[q] * dy[q]));
         }
       }
       for (; i < i1; ++i) {
@@ -965,17 +987,17 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
           V& rp = rec[i * MAXF + f];
           const V vp = vacc[i * MAXF + f];
           const V d = splat<V>(fg[f]) - rp;
-          g_f[f] += wm * vp;
-          v_alpha += d * vp;
-          rp += am * d;  // alpha f + (1 - alpha) rp
+          vfma_to(g_f[f], wm, vp);
+          vfma_to(v_alpha, d, vp);
+          vfma_to(rp, am, d);  // alpha f + (1 - alpha) rp
         }
         v_alpha = v_alpha * Tfront - vTT[i] * inv_one_m;
-        Tr[i] = vsel(m, Tfront, Tr[i]);
+        vsel_to(Tr[i], m, Tfront);
         const M m2 = m & vle(raw, splat<V>(Consts<T>::alpha_max));
         const V vG = vsel(m2, G * v_alpha, V{});
         G0 += vG;
-        G1 += vG * splat<V>(dy);
-        G2 += vG * splat<V>(dy * dy);
+        vfma_to(G1, vG, splat<V>(dy));
+        vfma_to(G2, vG, splat<V>(dy * dy));
       }
       if (!any) { clear(gp, 0); continue; }
       const V S0 = splat<V>(op) * G0, S1 = splat<V>(op) * G1;
