@@ -142,6 +142,10 @@ SPLAT_CMP(vge, >=)
 #if SPLAT_NATIVE_BYTES == 64
 #define vfma_to(dst, a, b) ((dst) += (a) * (b))
 #define vsel_to(dst, m, a) ((dst) = (m) ? (a) : (dst))
+#define vsel2_to(dst, m, a, b) ((dst) = (m) ? (a) : (b))
+#define vlt_to(dst, a, b) ((dst) = (a) < (b))
+#define vle_to(dst, a, b) ((dst) = (a) <= (b))
+#define vge_to(dst, a, b) ((dst) = (a) >= (b))
 #else
 template <typename X> inline void vfma_to(X& dst, X a, X b) {
   typedef typename Parts<X>::p P __attribute__((may_alias));
@@ -156,6 +160,25 @@ template <typename M, typename X> inline void vsel_to(X& dst, M m, X a) {
   P* d = reinterpret_cast<P*>(&dst);
   for (int h = 0; h < Parts<X>::n; ++h) d[h] = um.part[h] ? ua.part[h] : d[h];
 }
+template <typename M, typename X> inline void vsel2_to(X& dst, M m, X a, X b) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<M>::U um{m};
+  typename Parts<X>::U ua{a}, ub{b};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] = um.part[h] ? ua.part[h] : ub.part[h];
+}
+#define SPLAT_CMP_TO(name, op)                                                              \
+  template <typename X> inline void name(typename MaskOf<X>::type& dst, X a, X b) {         \
+    typedef typename MaskOf<X>::type M;                                                     \
+    typedef typename Parts<M>::p Q __attribute__((may_alias));                              \
+    typename Parts<X>::U ua{a}, ub{b};                                                      \
+    Q* d = reinterpret_cast<Q*>(&dst);                                                      \
+    for (int h = 0; h < Parts<X>::n; ++h) d[h] = ua.part[h] op ub.part[h];                  \
+  }
+SPLAT_CMP_TO(vlt_to, <)
+SPLAT_CMP_TO(vle_to, <=)
+SPLAT_CMP_TO(vge_to, >=)
+#undef SPLAT_CMP_TO
 #endif
 
 // Lane reductions of a comparison mask (all bits of a lane set or clear).
@@ -250,8 +273,8 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
   V t[NQ], n[NQ], r[NQ], p[NQ];
   M ni[NQ], bits[NQ];
   const V magic = splat<V>(12582912.0f);
-  for (int q = 0; q < NQ; ++q) tiny[q] = vlt(x[q], splat<V>(-87.0f));
-  for (int q = 0; q < NQ; ++q) x[q] = vsel(tiny[q], splat<V>(-87.0f), x[q]);
+  for (int q = 0; q < NQ; ++q) vlt_to(tiny[q], x[q], splat<V>(-87.0f));
+  for (int q = 0; q < NQ; ++q) vsel_to(x[q], tiny[q], splat<V>(-87.0f));
   for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
   for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
   for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
@@ -269,7 +292,7 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
     V scale;
     std::memcpy(&scale, &bits[q], sizeof(V));
     const V res = p[q] * scale;
-    x[q] = vsel(tiny[q], splat<V>(0.0f), res);
+    vsel2_to(x[q], tiny[q], splat<V>(0.0f), res);
   }
 }
 inline void vexp2(Vec<float>::v* x) { vexpn<2>(x); }
@@ -727,17 +750,28 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) dy[q] = my - (T(y0 + i + q) + T(0.5));
         for (int q = 0; q < NQ; ++q)
           power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
-        for (int q = 0; q < NQ; ++q) pos[q] = vle(power[q], splat<V>(T(0)));
-        for (int q = 0; q < NQ; ++q) alpha[q] = vsel(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < NQ; ++q) vle_to(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < NQ; ++q) vsel2_to(alpha[q], pos[q], power[q], splat<V>(T(0)));
         vexpn<NQ>(alpha);
         for (int q = 0; q < NQ; ++q) alpha[q] = splat<V>(op) * alpha[q];
+#if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < NQ; ++q)
-          alpha[q] = vsel(vlt(alpha[q], splat<V>(Consts<T>::alpha_max)), alpha[q], splat<V>(Consts<T>::alpha_max));
-        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & vge(alpha[q], splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
+          alpha[q] = alpha[q] < splat<V>(Consts<T>::alpha_max) ? alpha[q] : splat<V>(Consts<T>::alpha_max);
+        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
         for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
-        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & vlt(test_T[q], splat<V>(Consts<T>::t_min));
+        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & (test_T[q] < splat<V>(Consts<T>::t_min));
+#else  // the same, each compare and select written into its (memory) destination part by part
+        M lt_max[NQ];
+        for (int q = 0; q < NQ; ++q) vlt_to(lt_max[q], alpha[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < NQ; ++q) vsel2_to(alpha[q], lt_max[q], alpha[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < NQ; ++q) vge_to(valid[q], alpha[q], splat<V>(Consts<T>::alpha_min));
+        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & valid[q] & ~done[i + q];
+        for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < NQ; ++q) vlt_to(stop[q], test_T[q], splat<V>(Consts<T>::t_min));
+        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & stop[q];
+#endif
         for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
-        for (int q = 0; q < NQ; ++q) w[q] = vsel(contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
+        for (int q = 0; q < NQ; ++q) vsel2_to(w[q], contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f)
           for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * MAXF + f], w[q], splat<V>(fg[f]));
         for (int q = 0; q < NQ; ++q) {
