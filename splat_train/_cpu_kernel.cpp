@@ -967,18 +967,29 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         M pos[2], m[2], m2[2];
         for (int q = 0; q < 2; ++q)
           power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
-        for (int q = 0; q < 2; ++q) pos[q] = vle(power[q], splat<V>(T(0)));
-        for (int q = 0; q < 2; ++q) G[q] = vsel(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < 2; ++q) vle_to(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < 2; ++q) vsel2_to(G[q], pos[q], power[q], splat<V>(T(0)));
         vexp2(G);
         for (int q = 0; q < 2; ++q) raw[q] = splat<V>(op) * G[q];
+#if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < 2; ++q)
-          alpha[q] = vsel(vlt(raw[q], splat<V>(Consts<T>::alpha_max)), raw[q], splat<V>(Consts<T>::alpha_max));
+          alpha[q] = raw[q] < splat<V>(Consts<T>::alpha_max) ? raw[q] : splat<V>(Consts<T>::alpha_max);
         for (int q = 0; q < 2; ++q)
-          m[q] = act[q] ? pos[q] & vlt(lk, last[i + q]) & vge(alpha[q], splat<V>(Consts<T>::alpha_min)) : M{};
+          m[q] = act[q] ? pos[q] & (lk < last[i + q]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) : M{};
+#else  // the same, each compare and select written into its destination part by part (forward_impl)
+        M tmp[2];
+        for (int q = 0; q < 2; ++q) vlt_to(tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) vsel2_to(alpha[q], tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) {
+          vlt_to(m[q], lk, last[i + q]);
+          vge_to(tmp[q], alpha[q], splat<V>(Consts<T>::alpha_min));
+          m[q] = act[q] ? pos[q] & m[q] & tmp[q] : M{};
+        }
+#endif
         any |= any_lane(m[0] | m[1]);
         for (int q = 0; q < 2; ++q) inv_one_m[q] = recip(splat<V>(T(1)) - alpha[q]);
         for (int q = 0; q < 2; ++q) Tfront[q] = Tr[i + q] * inv_one_m[q];
-        for (int q = 0; q < 2; ++q) am[q] = vsel(m[q], alpha[q], V{});
+        for (int q = 0; q < 2; ++q) vsel2_to(am[q], m[q], alpha[q], V{});
         for (int q = 0; q < 2; ++q) wm[q] = am[q] * Tfront[q];
         for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
         for (int64_t f = 0; f < Fa; ++f) {
@@ -993,8 +1004,13 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         }
         for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
         for (int q = 0; q < 2; ++q) vsel_to(Tr[i + q], m[q], Tfront[q]);
-        for (int q = 0; q < 2; ++q) m2[q] = m[q] & vle(raw[q], splat<V>(Consts<T>::alpha_max));
-        for (int q = 0; q < 2; ++q) vG[q] = vsel(m2[q], G[q] * v_alpha[q], V{});
+#if SPLAT_NATIVE_BYTES == 64
+        for (int q = 0; q < 2; ++q) m2[q] = m[q] & (raw[q] <= splat<V>(Consts<T>::alpha_max));
+#else
+        for (int q = 0; q < 2; ++q) vle_to(m2[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) m2[q] = m[q] & m2[q];
+#endif
+        for (int q = 0; q < 2; ++q) vsel2_to(vG[q], m2[q], G[q] * v_alpha[q], V{});
         for (int q = 0; q < 2; ++q) {
           G0 += vG[q];
           vfma_to(G1, vG[q], splat<V>(dy[q]));
