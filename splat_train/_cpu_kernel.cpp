@@ -25,6 +25,22 @@
 //   per-thread [N] buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
 //   tile lists by a counting sort over fixed chunks in parallel (splat2_bin_count / _scatter).
+// * AVX2 / SSE2 builds (no register holds the 64-byte vector): GCC 12 scalarises comparisons
+//   and ?: selects on it (per lane a scalar compare or blend with stack stores and reloads), and
+//   a 64-byte value returned or assigned as a whole goes through a temporary copied in 8- and
+//   16-byte pieces through general registers (then read back as 32 bytes: store-forwarding
+//   stalls). That made the AVX2 blend 7-10x slower than the AVX-512 one and no faster than
+//   SSE2. The blend's compares and selects go through vlt / vle / vge / vsel and the *_to forms
+//   (vlt_to, vsel_to, vsel2_to, vfma_to: into a destination in memory), which in these builds
+//   work on the native-width parts (two ymm, four xmm) and write each part straight into the
+//   destination; with AVX-512 they are macros for the plain expressions (the AVX-512 code is
+//   unchanged instruction for instruction, and where the part-wise form needs a different
+//   statement sequence the AVX-512 one is kept under #if). The same per-lane operations:
+//   results bit-identical to before at every level. CPU ms, one thread, blend fwd / bwd, on a
+//   Zen 4 (forced levels): 100k Gaussians 512x512 AVX2 300 / 330 -> 44 / 79, SSE2 315 / 366 ->
+//   83 / 121, AVX-512 27 / 47; fern-cell checkpoint (206k, 497x372) AVX2 426 / 467 -> 72 / 130,
+//   SSE2 459 / 536 -> 131 / 198, AVX-512 44 / 76-83. (Taking the forward's rows two rather than
+//   four per step, or the one-row tail through the row step, measured no different for AVX2.)
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
 //   that it vectorises; float64 calls std::exp per lane (bit-identical to the scalar kernel's
 //   forward, which keeps the float64 parity tests at 1e-9).
