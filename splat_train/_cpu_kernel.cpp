@@ -999,7 +999,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         for (int q = 0; q < 2; ++q) {
           vlt_to(m[q], lk, last[i + q]);
           vge_to(tmp[q], alpha[q], splat<V>(Consts<T>::alpha_min));
-          m[q] = act[q] ? pos[q] & m[q] & tmp[q] : M{};
+          m[q] = pos[q] & m[q] & tmp[q] & splat<M>(act[q] ? -1 : 0);  // (not ?: on the vector: a copy)
         }
 #endif
         any |= any_lane(m[0] | m[1]);
