@@ -33,14 +33,16 @@
 //   SSE2. The blend's compares and selects go through vlt / vle / vge / vsel and the *_to forms
 //   (vlt_to, vsel_to, vsel2_to, vfma_to: into a destination in memory), which in these builds
 //   work on the native-width parts (two ymm, four xmm) and write each part straight into the
-//   destination; with AVX-512 they are macros for the plain expressions (the AVX-512 code is
-//   unchanged instruction for instruction, and where the part-wise form needs a different
-//   statement sequence the AVX-512 one is kept under #if). The same per-lane operations:
-//   results bit-identical to before at every level. CPU ms, one thread, blend fwd / bwd, on a
-//   Zen 4 (forced levels): 100k Gaussians 512x512 AVX2 300 / 330 -> 44 / 79, SSE2 315 / 366 ->
-//   83 / 121, AVX-512 27 / 47; fern-cell checkpoint (206k, 497x372) AVX2 426 / 467 -> 72 / 130,
-//   SSE2 459 / 536 -> 131 / 198, AVX-512 44 / 76-83. (Taking the forward's rows two rather than
-//   four per step, or the one-row tail through the row step, measured no different for AVX2.)
+//   destination; the row masks' any-lane tests OR them part by part (any_lane_of), and the
+//   backward's per-row flag is and-ed in rather than selected with ?:. With AVX-512 the helpers
+//   are macros for the plain expressions, and where the part-wise form needs a different
+//   statement sequence the AVX-512 one is kept under #if: the AVX-512 code is unchanged
+//   instruction for instruction. The same per-lane operations: results bit-identical to before
+//   at every level. CPU ms, one thread, blend fwd / bwd, Zen 4 with forced levels: 100k
+//   Gaussians 512x512 AVX2 300 / 330 -> 40 / 66, SSE2 315 / 366 -> 82 / 121 (AVX-512 27 / 48);
+//   fern-cell checkpoint (206k Gaussians, 497x372) AVX2 426 / 467 -> 66 / 112, SSE2 459 / 536
+//   -> 131 / 194 (AVX-512 43 / 74). (Taking the AVX2 forward's rows two rather than four per
+//   step, or its one-row tail through the row step, measured no different.)
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
 //   that it vectorises; float64 calls std::exp per lane (bit-identical to the scalar kernel's
 //   forward, which keeps the float64 parity tests at 1e-9).
