@@ -25,6 +25,24 @@
 //   per-thread [N] buffers, whose sum depends on which thread took which tile).
 // * Binning: depth order by a stable LSD radix sort of the float keys (splat2_depth_order),
 //   tile lists by a counting sort over fixed chunks in parallel (splat2_bin_count / _scatter).
+// * AVX2 / SSE2 builds (no register holds the 64-byte vector): GCC 12 scalarises comparisons
+//   and ?: selects on it (per lane a scalar compare or blend with stack stores and reloads), and
+//   a 64-byte value returned or assigned as a whole goes through a temporary copied in 8- and
+//   16-byte pieces through general registers (then read back as 32 bytes: store-forwarding
+//   stalls). That made the AVX2 blend 7-10x slower than the AVX-512 one and no faster than
+//   SSE2. The blend's compares and selects go through vlt / vle / vge / vsel and the *_to forms
+//   (vlt_to, vsel_to, vsel2_to, vfma_to: into a destination in memory), which in these builds
+//   work on the native-width parts (two ymm, four xmm) and write each part straight into the
+//   destination; the row masks' any-lane tests OR them part by part (any_lane_of), and the
+//   backward's per-row flag is and-ed in rather than selected with ?:. With AVX-512 the helpers
+//   are macros for the plain expressions, and where the part-wise form needs a different
+//   statement sequence the AVX-512 one is kept under #if: the AVX-512 code is unchanged
+//   instruction for instruction. The same per-lane operations: results bit-identical to before
+//   at every level. CPU ms, one thread, blend fwd / bwd, Zen 4 with forced levels: 100k
+//   Gaussians 512x512 AVX2 300 / 330 -> 40 / 66, SSE2 315 / 366 -> 82 / 121 (AVX-512 27 / 48);
+//   fern-cell checkpoint (206k Gaussians, 497x372) AVX2 426 / 467 -> 66 / 112, SSE2 459 / 536
+//   -> 131 / 194 (AVX-512 43 / 74). (Taking the AVX2 forward's rows two rather than four per
+//   step, or its one-row tail through the row step, measured no different.)
 // * exp: float32 uses a Cephes-style polynomial (max relative error ~2 ulp against expf) so
 //   that it vectorises; float64 calls std::exp per lane (bit-identical to the scalar kernel's
 //   forward, which keeps the float64 parity tests at 1e-9).
@@ -41,6 +59,8 @@
 #include <utility>
 #if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
+#elif defined(__SSE2__)
+#include <emmintrin.h>
 #endif
 
 #include "_cpu_vec8d.h"
@@ -81,6 +101,106 @@ template <typename V, typename E> inline V splat(E x0) {
   return V{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x};
 }
 
+// Lane-wise comparisons and selects: vlt/vle/vge(a, b) = a < b, <=, >= (a mask), vsel(m, a, b)
+// = m ? a : b. With AVX-512 these are the plain vector-extension expressions (one zmm each). In
+// the AVX2 and SSE2 builds, where no register holds the 64-byte vector, GCC 12 scalarises
+// comparisons and ?: on it (16 scalar compares / blends with stack stores and reloads per
+// statement; the AVX2 blend ran 7-10x slower than the AVX-512 one); written on its native-width
+// parts (two ymm, four xmm) through a union, each part is one vcmpps / vblendvps (cmpps and
+// and/andnot/or with SSE2). The same per-lane results.
+#if defined(__AVX512F__)
+#define SPLAT_NATIVE_BYTES 64
+#elif defined(__AVX__)
+#define SPLAT_NATIVE_BYTES 32
+#else
+#define SPLAT_NATIVE_BYTES 16
+#endif
+template <typename X> struct MaskOf;
+template <> struct MaskOf<Vec<float>::v> { typedef Vec<float>::m type; };
+template <> struct MaskOf<Vec<float>::m> { typedef Vec<float>::m type; };
+template <> struct MaskOf<Vec<double>::v> { typedef Vec<double>::m type; };
+template <> struct MaskOf<Vec<double>::m> { typedef Vec<double>::m type; };
+#if SPLAT_NATIVE_BYTES == 64
+// (macros: the very expressions the kernel used before, so the AVX-512 code is unchanged)
+#define vlt(a, b) ((a) < (b))
+#define vle(a, b) ((a) <= (b))
+#define vge(a, b) ((a) >= (b))
+#define vsel(m, a, b) ((m) ? (a) : (b))
+#else
+template <typename X> struct Parts {
+  typedef typename Elem<X>::type E;
+  typedef E p __attribute__((vector_size(SPLAT_NATIVE_BYTES)));
+  static constexpr int n = sizeof(X) / SPLAT_NATIVE_BYTES;
+  union U {
+    X x;
+    p part[n];
+  };
+};
+#define SPLAT_CMP(name, op)                                                  \
+  template <typename X> inline typename MaskOf<X>::type name(X a, X b) { \
+    typedef typename MaskOf<X>::type M;                                    \
+    typename Parts<X>::U ua{a}, ub{b};                                     \
+    typename Parts<M>::U r;                                                \
+    for (int h = 0; h < Parts<X>::n; ++h) r.part[h] = ua.part[h] op ub.part[h]; \
+    return r.x;                                                            \
+  }
+template <typename M, typename X> inline X vsel(M m, X a, X b) {
+  typename Parts<M>::U um{m};
+  typename Parts<X>::U ua{a}, ub{b};
+  for (int h = 0; h < Parts<X>::n; ++h) ua.part[h] = um.part[h] ? ua.part[h] : ub.part[h];
+  return ua.x;
+}
+SPLAT_CMP(vlt, <)
+SPLAT_CMP(vle, <=)
+SPLAT_CMP(vge, >=)
+#undef SPLAT_CMP
+#endif
+// dst += a * b, dst = m ? a : dst on a vector in memory. With AVX-512 the plain statements.
+// Otherwise written part by part into dst: the plain forms built the 64-byte result as one
+// value first (an XImode temporary) and copied it over in 16-byte pieces through general
+// registers (movq / vpinsrq / xmm stores, the hottest instructions of the AVX2 forward).
+#if SPLAT_NATIVE_BYTES == 64
+#define vfma_to(dst, a, b) ((dst) += (a) * (b))
+#define vsel_to(dst, m, a) ((dst) = (m) ? (a) : (dst))
+#define vsel2_to(dst, m, a, b) ((dst) = (m) ? (a) : (b))
+#define vlt_to(dst, a, b) ((dst) = (a) < (b))
+#define vle_to(dst, a, b) ((dst) = (a) <= (b))
+#define vge_to(dst, a, b) ((dst) = (a) >= (b))
+#else
+template <typename X> inline void vfma_to(X& dst, X a, X b) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<X>::U ua{a}, ub{b};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] += ua.part[h] * ub.part[h];
+}
+template <typename M, typename X> inline void vsel_to(X& dst, M m, X a) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<M>::U um{m};
+  typename Parts<X>::U ua{a};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] = um.part[h] ? ua.part[h] : d[h];
+}
+template <typename M, typename X> inline void vsel2_to(X& dst, M m, X a, X b) {
+  typedef typename Parts<X>::p P __attribute__((may_alias));
+  typename Parts<M>::U um{m};
+  typename Parts<X>::U ua{a}, ub{b};
+  P* d = reinterpret_cast<P*>(&dst);
+  for (int h = 0; h < Parts<X>::n; ++h) d[h] = um.part[h] ? ua.part[h] : ub.part[h];
+}
+#define SPLAT_CMP_TO(name, op)                                                              \
+  template <typename X> inline void name(typename MaskOf<X>::type& dst, X a, X b) {         \
+    typedef typename MaskOf<X>::type M;                                                     \
+    typedef typename Parts<M>::p Q __attribute__((may_alias));                              \
+    typename Parts<X>::U ua{a}, ub{b};                                                      \
+    Q* d = reinterpret_cast<Q*>(&dst);                                                      \
+    for (int h = 0; h < Parts<X>::n; ++h) d[h] = ua.part[h] op ub.part[h];                  \
+  }
+SPLAT_CMP_TO(vlt_to, <)
+SPLAT_CMP_TO(vle_to, <=)
+SPLAT_CMP_TO(vge_to, >=)
+#undef SPLAT_CMP_TO
+#endif
+
 // Lane reductions of a comparison mask (all bits of a lane set or clear).
 template <typename M> inline bool any_lane(M m) {
   int64_t r = 0;
@@ -115,6 +235,31 @@ template <> inline bool all_lanes(Vec<float>::m m) {
   return _mm256_testc_si256(_mm256_and_si256(v[0], v[1]), _mm256_set1_epi32(-1));
 }
 #endif
+#if SPLAT_NATIVE_BYTES != 64
+// any_lane(m[0] | ... | m[n - 1]) for masks in memory, OR-ed part by part: the OR of whole
+// 64-byte masks, passed on as one value, was copied in pieces and read back at once (a
+// store-forwarding stall in every row step of the AVX2 forward, ~12% of it).
+template <typename M> inline bool any_lane_of(const M* m, int n) {
+  typedef typename Parts<M>::p Q __attribute__((may_alias));
+  constexpr int NP = Parts<M>::n;
+  const Q* q = reinterpret_cast<const Q*>(m);
+  Q acc = q[0];
+  for (int h = 1; h < n * NP; ++h) acc |= q[h];
+#if defined(__AVX2__)
+  __m256i v;
+  std::memcpy(&v, &acc, sizeof(v));
+  return !_mm256_testz_si256(v, v);
+#elif defined(__SSE2__)
+  __m128i v;
+  std::memcpy(&v, &acc, sizeof(v));
+  return _mm_movemask_epi8(v) != 0;
+#else
+  int64_t r = 0;
+  for (int l = 0; l < (int)(sizeof(Q) / sizeof(acc[0])); ++l) r |= acc[l];
+  return r != 0;
+#endif
+}
+#endif
 template <typename T> inline T hsum(typename Vec<T>::v v) {
   // Fixed pairwise tree: the same order on every machine and vector width.
   T s[TILE];
@@ -143,8 +288,8 @@ template <> inline float hsum<float>(Vec<float>::v v) {
 inline Vec<float>::v vexp(Vec<float>::v x) {
   typedef Vec<float>::v V;
   typedef Vec<float>::m M;
-  const M tiny = x < splat<V>(-87.0f);
-  x = tiny ? splat<V>(-87.0f) : x;
+  const M tiny = vlt(x, splat<V>(-87.0f));
+  x = vsel(tiny, splat<V>(-87.0f), x);
   const V magic = splat<V>(12582912.0f);  // 1.5 * 2^23: round to nearest integer
   V t = x * splat<V>(1.44269504088896341f) + magic;
   const V n = t - magic;
@@ -162,7 +307,7 @@ inline Vec<float>::v vexp(Vec<float>::v x) {
   V scale;
   std::memcpy(&scale, &bits, sizeof(V));
   V res = p * scale;
-  return tiny ? splat<V>(0.0f) : res;
+  return vsel(tiny, splat<V>(0.0f), res);
 }
 // vexp of NQ vectors with the steps interleaved (independent dependency chains in program
 // order: the blend loops take several tile rows per step, see forward_impl). Per lane as vexp.
@@ -173,8 +318,8 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
   V t[NQ], n[NQ], r[NQ], p[NQ];
   M ni[NQ], bits[NQ];
   const V magic = splat<V>(12582912.0f);
-  for (int q = 0; q < NQ; ++q) tiny[q] = x[q] < splat<V>(-87.0f);
-  for (int q = 0; q < NQ; ++q) x[q] = tiny[q] ? splat<V>(-87.0f) : x[q];
+  for (int q = 0; q < NQ; ++q) vlt_to(tiny[q], x[q], splat<V>(-87.0f));
+  for (int q = 0; q < NQ; ++q) vsel_to(x[q], tiny[q], splat<V>(-87.0f));
   for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
   for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
   for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
@@ -192,7 +337,7 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
     V scale;
     std::memcpy(&scale, &bits[q], sizeof(V));
     const V res = p[q] * scale;
-    x[q] = tiny[q] ? splat<V>(0.0f) : res;
+    vsel2_to(x[q], tiny[q], splat<V>(0.0f), res);
   }
 }
 inline void vexp2(Vec<float>::v* x) { vexpn<2>(x); }
@@ -609,7 +754,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     M last[TILE], count[TILE], done[TILE];
     bool alive[TILE];
     const V pxc = lane + splat<V>(T(x0)) + splat<V>(T(0.5));  // == T(x0 + j) + 0.5 exactly
-    const M outside = lane >= splat<V>(T(cols));
+    const M outside = vge(lane, splat<V>(T(cols)));
     int n_alive = rows;
     for (int i = 0; i < TILE; ++i) {
       Tr[i] = splat<V>(T(1));
@@ -650,27 +795,43 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) dy[q] = my - (T(y0 + i + q) + T(0.5));
         for (int q = 0; q < NQ; ++q)
           power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
-        for (int q = 0; q < NQ; ++q) pos[q] = power[q] <= splat<V>(T(0));
-        for (int q = 0; q < NQ; ++q) alpha[q] = pos[q] ? power[q] : splat<V>(T(0));
+        for (int q = 0; q < NQ; ++q) vle_to(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < NQ; ++q) vsel2_to(alpha[q], pos[q], power[q], splat<V>(T(0)));
         vexpn<NQ>(alpha);
         for (int q = 0; q < NQ; ++q) alpha[q] = splat<V>(op) * alpha[q];
+#if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < NQ; ++q)
           alpha[q] = alpha[q] < splat<V>(Consts<T>::alpha_max) ? alpha[q] : splat<V>(Consts<T>::alpha_max);
         for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) & ~done[i + q];
         for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
         for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & (test_T[q] < splat<V>(Consts<T>::t_min));
+#else  // the same, each compare and select written into its (memory) destination part by part
+        M lt_max[NQ];
+        for (int q = 0; q < NQ; ++q) vlt_to(lt_max[q], alpha[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < NQ; ++q) vsel2_to(alpha[q], lt_max[q], alpha[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < NQ; ++q) vge_to(valid[q], alpha[q], splat<V>(Consts<T>::alpha_min));
+        for (int q = 0; q < NQ; ++q) valid[q] = pos[q] & valid[q] & ~done[i + q];
+        for (int q = 0; q < NQ; ++q) test_T[q] = Tr[i + q] * (splat<V>(T(1)) - alpha[q]);
+        for (int q = 0; q < NQ; ++q) vlt_to(stop[q], test_T[q], splat<V>(Consts<T>::t_min));
+        for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & stop[q];
+#endif
         for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
-        for (int q = 0; q < NQ; ++q) w[q] = contrib[q] ? alpha[q] * Tr[i + q] : splat<V>(T(0));
+        for (int q = 0; q < NQ; ++q) vsel2_to(w[q], contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f)
-          for (int q = 0; q < NQ; ++q) acc[(i + q) * MAXF + f] += w[q] * splat<V>(fg[f]);
+          for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * MAXF + f], w[q], splat<V>(fg[f]));
         for (int q = 0; q < NQ; ++q) {
-          Tr[i + q] = contrib[q] ? test_T[q] : Tr[i + q];
-          last[i + q] = contrib[q] ? splat<M>(lk) : last[i + q];
+          vsel_to(Tr[i + q], contrib[q], test_T[q]);
+          vsel_to(last[i + q], contrib[q], splat<M>(lk));
           count[i + q] -= contrib[q];
         }
+#if SPLAT_NATIVE_BYTES == 64
         M any_stop = stop[0];
         for (int q = 1; q < NQ; ++q) any_stop |= stop[q];
-        if (any_lane(any_stop)) {
+        const bool stopped = any_lane(any_stop);
+#else
+        const bool stopped = any_lane_of(stop, NQ);
+#endif
+        if (stopped) {
           for (int q = 0; q < NQ; ++q) {
             done[i + q] |= stop[q];
             if (alive[i + q] && all_lanes(done[i + q])) { alive[i + q] = false; --n_alive; }
@@ -683,17 +844,17 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         if (!alive[i]) continue;
         const T dy = my - (T(y0 + i) + T(0.5));
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
-        const M pos = power <= splat<V>(T(0));
-        V alpha = splat<V>(op) * vexp(pos ? power : splat<V>(T(0)));
-        alpha = alpha < splat<V>(Consts<T>::alpha_max) ? alpha : splat<V>(Consts<T>::alpha_max);
-        const M valid = pos & (alpha >= splat<V>(Consts<T>::alpha_min)) & ~done[i];
+        const M pos = vle(power, splat<V>(T(0)));
+        V alpha = splat<V>(op) * vexp(vsel(pos, power, splat<V>(T(0))));
+        alpha = vsel(vlt(alpha, splat<V>(Consts<T>::alpha_max)), alpha, splat<V>(Consts<T>::alpha_max));
+        const M valid = pos & vge(alpha, splat<V>(Consts<T>::alpha_min)) & ~done[i];
         const V test_T = Tr[i] * (splat<V>(T(1)) - alpha);
-        const M stop = valid & (test_T < splat<V>(Consts<T>::t_min));
+        const M stop = valid & vlt(test_T, splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
-        const V w = contrib ? alpha * Tr[i] : splat<V>(T(0));
-        for (int64_t f = 0; f < F; ++f) acc[i * MAXF + f] += w * splat<V>(fg[f]);
-        Tr[i] = contrib ? test_T : Tr[i];
-        last[i] = contrib ? splat<M>(lk) : last[i];
+        const V w = vsel(contrib, alpha * Tr[i], splat<V>(T(0)));
+        for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * MAXF + f], w, splat<V>(fg[f]));
+        vsel_to(Tr[i], contrib, test_T);
+        vsel_to(last[i], contrib, splat<M>(lk));
         count[i] -= contrib;
         if (any_lane(stop)) {
           done[i] |= stop;
@@ -856,18 +1017,33 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         M pos[2], m[2], m2[2];
         for (int q = 0; q < 2; ++q)
           power[q] = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
-        for (int q = 0; q < 2; ++q) pos[q] = power[q] <= splat<V>(T(0));
-        for (int q = 0; q < 2; ++q) G[q] = pos[q] ? power[q] : splat<V>(T(0));
+        for (int q = 0; q < 2; ++q) vle_to(pos[q], power[q], splat<V>(T(0)));
+        for (int q = 0; q < 2; ++q) vsel2_to(G[q], pos[q], power[q], splat<V>(T(0)));
         vexp2(G);
         for (int q = 0; q < 2; ++q) raw[q] = splat<V>(op) * G[q];
+#if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < 2; ++q)
           alpha[q] = raw[q] < splat<V>(Consts<T>::alpha_max) ? raw[q] : splat<V>(Consts<T>::alpha_max);
         for (int q = 0; q < 2; ++q)
           m[q] = act[q] ? pos[q] & (lk < last[i + q]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) : M{};
+#else  // the same, each compare and select written into its destination part by part (forward_impl)
+        M tmp[2];
+        for (int q = 0; q < 2; ++q) vlt_to(tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) vsel2_to(alpha[q], tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) {
+          vlt_to(m[q], lk, last[i + q]);
+          vge_to(tmp[q], alpha[q], splat<V>(Consts<T>::alpha_min));
+          m[q] = pos[q] & m[q] & tmp[q] & splat<M>(act[q] ? -1 : 0);  // (not ?: on the vector: a copy)
+        }
+#endif
+#if SPLAT_NATIVE_BYTES == 64
         any |= any_lane(m[0] | m[1]);
+#else
+        any |= any_lane_of(m, 2);
+#endif
         for (int q = 0; q < 2; ++q) inv_one_m[q] = recip(splat<V>(T(1)) - alpha[q]);
         for (int q = 0; q < 2; ++q) Tfront[q] = Tr[i + q] * inv_one_m[q];
-        for (int q = 0; q < 2; ++q) am[q] = m[q] ? alpha[q] : V{};
+        for (int q = 0; q < 2; ++q) vsel2_to(am[q], m[q], alpha[q], V{});
         for (int q = 0; q < 2; ++q) wm[q] = am[q] * Tfront[q];
         for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
         for (int64_t f = 0; f < Fa; ++f) {
@@ -875,19 +1051,24 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
             V& rp = rec[(i + q) * MAXF + f];
             const V vp = vacc[(i + q) * MAXF + f];
             const V d = splat<V>(fg[f]) - rp;
-            g_f[f] += wm[q] * vp;
-            v_alpha[q] += d * vp;
-            rp += am[q] * d;
+            vfma_to(g_f[f], wm[q], vp);
+            vfma_to(v_alpha[q], d, vp);
+            vfma_to(rp, am[q], d);
           }
         }
         for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
-        for (int q = 0; q < 2; ++q) Tr[i + q] = m[q] ? Tfront[q] : Tr[i + q];
+        for (int q = 0; q < 2; ++q) vsel_to(Tr[i + q], m[q], Tfront[q]);
+#if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < 2; ++q) m2[q] = m[q] & (raw[q] <= splat<V>(Consts<T>::alpha_max));
-        for (int q = 0; q < 2; ++q) vG[q] = m2[q] ? G[q] * v_alpha[q] : V{};
+#else
+        for (int q = 0; q < 2; ++q) vle_to(m2[q], raw[q], splat<V>(Consts<T>::alpha_max));
+        for (int q = 0; q < 2; ++q) m2[q] = m[q] & m2[q];
+#endif
+        for (int q = 0; q < 2; ++q) vsel2_to(vG[q], m2[q], G[q] * v_alpha[q], V{});
         for (int q = 0; q < 2; ++q) {
           G0 += vG[q];
-          G1 += vG[q] * splat<V>(dy[q]);
-          G2 += vG[q] * splat<V>(dy[q] * dy[q]);
+          vfma_to(G1, vG[q], splat<V>(dy[q]));
+          vfma_to(G2, vG[q], splat<V>(dy[q] * dy[q]));
         }
       }
       for (; i < i1; ++i) {
@@ -895,32 +1076,32 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const T dy = my - (T(y0 + i) + T(0.5));
         if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
-        const M pos = power <= splat<V>(T(0));
-        const V G = vexp(pos ? power : splat<V>(T(0)));
+        const M pos = vle(power, splat<V>(T(0)));
+        const V G = vexp(vsel(pos, power, splat<V>(T(0))));
         const V raw = splat<V>(op) * G;
-        const V alpha = raw < splat<V>(Consts<T>::alpha_max) ? raw : splat<V>(Consts<T>::alpha_max);
-        const M m = pos & (lk < last[i]) & (alpha >= splat<V>(Consts<T>::alpha_min));
+        const V alpha = vsel(vlt(raw, splat<V>(Consts<T>::alpha_max)), raw, splat<V>(Consts<T>::alpha_max));
+        const M m = pos & vlt(lk, last[i]) & vge(alpha, splat<V>(Consts<T>::alpha_min));
         any |= any_lane(m);
         const V inv_one_m = recip(splat<V>(T(1)) - alpha);
         const V Tfront = Tr[i] * inv_one_m;
-        const V am = m ? alpha : V{};  // lanes outside the mask leave rec and g_f unchanged
+        const V am = vsel(m, alpha, V{});  // lanes outside the mask leave rec and g_f unchanged
         const V wm = am * Tfront;
         V v_alpha{};
         for (int64_t f = 0; f < Fa; ++f) {
           V& rp = rec[i * MAXF + f];
           const V vp = vacc[i * MAXF + f];
           const V d = splat<V>(fg[f]) - rp;
-          g_f[f] += wm * vp;
-          v_alpha += d * vp;
-          rp += am * d;  // alpha f + (1 - alpha) rp
+          vfma_to(g_f[f], wm, vp);
+          vfma_to(v_alpha, d, vp);
+          vfma_to(rp, am, d);  // alpha f + (1 - alpha) rp
         }
         v_alpha = v_alpha * Tfront - vTT[i] * inv_one_m;
-        Tr[i] = m ? Tfront : Tr[i];
-        const M m2 = m & (raw <= splat<V>(Consts<T>::alpha_max));
-        const V vG = m2 ? G * v_alpha : V{};
+        vsel_to(Tr[i], m, Tfront);
+        const M m2 = m & vle(raw, splat<V>(Consts<T>::alpha_max));
+        const V vG = vsel(m2, G * v_alpha, V{});
         G0 += vG;
-        G1 += vG * splat<V>(dy);
-        G2 += vG * splat<V>(dy * dy);
+        vfma_to(G1, vG, splat<V>(dy));
+        vfma_to(G2, vG, splat<V>(dy * dy));
       }
       if (!any) { clear(gp, 0); continue; }
       const V S0 = splat<V>(op) * G0, S1 = splat<V>(op) * G1;
