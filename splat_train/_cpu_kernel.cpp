@@ -1172,6 +1172,31 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
   }
 }
 
+// backward_impl specialised for the usual active channel counts (RGB: 3, RGB + depth: 4).
+template <typename T>
+void backward_for_active(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
+                         const int64_t* off, const int32_t* gs, const T* m, const T* co, const T* op,
+                         const T* fe, const double* fp, const T* Tf, const int32_t* last, const T* vacc,
+                         const T* vT, T* vpair, uint8_t* live, int64_t* nth) {
+  if (Fa == 3) {
+    backward_impl<T, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else if (Fa == 4) {
+    backward_impl<T, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  } else {
+    backward_impl<T, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+  }
+}
+
+// See splat2_active_f32 below.
+template <typename T>
+int64_t active_channels(int64_t n, int64_t F, const T* v) {
+  int64_t act = 0;
+  for (int64_t i = 0; i < n && act < F; ++i)
+    for (int64_t f = F - 1; f >= act; --f)
+      if (v[i * F + f] != T(0)) { act = f + 1; break; }
+  return act;
+}
+
 }  // namespace
 
 extern "C" {
@@ -1182,20 +1207,8 @@ int splat2_abi_version() { return 15; }
 // among the n pixels of v [n, F] (contiguous), 0 if none: the backward skips the trailing
 // channels whose cotangent is zero everywhere. One pass over v (a strided torch .any() per
 // channel cost ~4 ms each at 185k pixels).
-int64_t splat2_active_f32(int64_t n, int64_t F, const float* v) {
-  int64_t act = 0;
-  for (int64_t i = 0; i < n && act < F; ++i)
-    for (int64_t f = F - 1; f >= act; --f)
-      if (v[i * F + f] != 0.0f) { act = f + 1; break; }
-  return act;
-}
-int64_t splat2_active_f64(int64_t n, int64_t F, const double* v) {
-  int64_t act = 0;
-  for (int64_t i = 0; i < n && act < F; ++i)
-    for (int64_t f = F - 1; f >= act; --f)
-      if (v[i * F + f] != 0.0) { act = f + 1; break; }
-  return act;
-}
+int64_t splat2_active_f32(int64_t n, int64_t F, const float* v) { return active_channels(n, F, v); }
+int64_t splat2_active_f64(int64_t n, int64_t F, const double* v) { return active_channels(n, F, v); }
 
 // Widest vector instruction set this build was compiled for: 512, 256 or 128 (bits).
 int splat2_simd_bits() {
@@ -1360,26 +1373,14 @@ void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F
                          const float* op, const float* fe, const double* fp, const float* Tf,
                          const int32_t* last, const float* vacc, const float* vT,
                          float* vpair, uint8_t* live, int64_t* nth) {
-  if (Fa == 3) {
-    backward_impl<float, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  } else if (Fa == 4) {
-    backward_impl<float, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  } else {
-    backward_impl<float, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  }
+  backward_for_active<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
                          double* vpair, uint8_t* live, int64_t* nth) {
-  if (Fa == 3) {
-    backward_impl<double, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  } else if (Fa == 4) {
-    backward_impl<double, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  } else {
-    backward_impl<double, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
-  }
+  backward_for_active<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
                        const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
