@@ -27,6 +27,7 @@ from splat_train._cpu_build import ptr as _ptr
 from splat_train._cpu_build import run_threaded as _run_threaded
 from splat_train._cpu_build import suffix as _suffix
 from splat_train.projection import TILE_SIZE, Projected
+from splat_train.sh import num_sh_bases
 
 __all__ = ["available", "project_sh_cpu"]
 
@@ -173,8 +174,8 @@ def project_sh_cpu(
     if sh_degree is not None:
         sh_dc, sh_rest = colors if isinstance(colors, (tuple, list)) else (colors, None)
         k = sh_dc.shape[1] if sh_rest is None else 1 + sh_rest.shape[1]
-        if k < (sh_degree + 1) ** 2:
-            raise ValueError(f"sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} SH coefficients, got {k}")
+        if k < num_sh_bases(sh_degree):
+            raise ValueError(f"sh_degree={sh_degree} needs {num_sh_bases(sh_degree)} SH coefficients, got {k}")
     means2d, conics, depths, rgb, cov2d, radii, rect, visible = _ProjectSH.apply(
         means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height))
     proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=depths, radii=radii, rect=rect,

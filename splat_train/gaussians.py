@@ -19,6 +19,7 @@ import torch
 
 from camio.ply import GaussianCloud
 from splat_train.config import TrainConfig
+from splat_train.sh import sh_concat
 
 __all__ = ["PARAM_NAMES", "params_from_cloud", "params_to_cloud", "make_optimizer",
            "activated", "sh_coeffs", "position_lr"]
@@ -88,5 +89,4 @@ def activated(params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tens
 
 def sh_coeffs(params: dict[str, torch.Tensor], degree: int) -> torch.Tensor:
     """The SH coefficients of the active ``degree``: [N, (degree + 1)^2, 3]."""
-    k = (degree + 1) ** 2
-    return torch.cat([params["sh_dc"][:, None, :], params["sh_rest"][:, : k - 1, :]], dim=1)
+    return sh_concat(params["sh_dc"], params["sh_rest"], degree)

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from splat_train import _reference
 from splat_train.projection import EPS2D, NEAR_PLANE, project_gaussians
-from splat_train.sh import num_sh_bases, sh_to_color
+from splat_train.sh import num_sh_bases, sh_concat, sh_to_color
 
 __all__ = ["rasterize", "resolve_backend", "BACKENDS"]
 
@@ -213,8 +213,7 @@ def rasterize(
     which = resolve_backend(backend, dev)
     fused = which == "cpu" and _fused_projection_ok(means, cam_from_world, K)
     if sh_pair and not fused:  # the fused projection reads the pair in place; the rest want one tensor
-        dc, rest = colors
-        colors = torch.cat([dc[:, None, :], rest[:, : num_sh_bases(sh_degree) - 1, :]], dim=1)
+        colors = sh_concat(*colors, sh_degree)
 
     if which == "gsplat":
         from splat_train import _gsplat_backend

@@ -40,6 +40,13 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
+def sh_concat(dc: Tensor, rest: Tensor, degree: int) -> Tensor:
+    """The coefficients of degree ``degree`` as one tensor: DC [N, 3] and the higher bands
+    rest [N, K - 1, 3] (K >= (degree + 1)^2, the trainer's ``sh_dc`` / ``sh_rest``) ->
+    [N, (degree + 1)^2, 3]."""
+    return torch.cat([dc[:, None, :], rest[:, : num_sh_bases(degree) - 1, :]], dim=1)
+
+
 def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     """Evaluate real SH up to ``degree`` (no +0.5 offset, no clamp).
 
