@@ -18,6 +18,7 @@ the result does not depend on the thread count.
 from __future__ import annotations
 
 import ctypes
+import math
 import threading
 from dataclasses import dataclass
 from typing import Callable
@@ -147,13 +148,12 @@ _scratch_lock = threading.Lock()
 
 
 def _scratch(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
-    """A reused scratch tensor (grow-only, one per name; callers hold ``_scratch_lock`` while
-    they use it): binning's temporaries (spans, the radix sort's buffers, pair counts) are
-    ~20 MB at 200k Gaussians, and fresh allocations of that size are fresh pages, so each
-    iteration paid their page faults (~3-4 ms of a ~17 ms binning)."""
-    numel = 1
-    for d in shape:
-        numel *= d
+    """A reused scratch tensor (grow-only, one per name; callers hold the lock that guards
+    that name while they use it: ``_scratch_lock`` for binning's, ``_workspace_lock`` for the
+    backward's pair gradients): binning's temporaries (spans, the radix sort's buffers, pair
+    counts) are ~20 MB at 200k Gaussians, and fresh allocations of that size are fresh pages,
+    so each iteration paid their page faults (~3-4 ms of a ~17 ms binning)."""
+    numel = math.prod(shape)
     buf = _scratch_bufs.get(name)
     if buf is None or buf.dtype != dtype or buf.numel() < numel:
         buf = torch.empty(max(numel, 1), dtype=dtype)
@@ -303,20 +303,8 @@ def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix:
     return fp
 
 
-_workspace: dict[torch.dtype, Tensor] = {}
+# Held while the backward uses its pair-gradient buffer (_scratch "pair_<dtype>").
 _workspace_lock = threading.Lock()
-
-
-def _pair_buffer(rows: int, cols: int, dtype: torch.dtype) -> Tensor:
-    """A reused [rows, cols] scratch buffer (grow-only, one per dtype): every backward rewrites
-    the rows of the pairs it reaches and the reduction reads only those (the byte map ``live``),
-    and a fresh 60 MB allocation per iteration (1.5 M pairs at 100k Gaussians, 512x512) costs
-    its page faults every time."""
-    buf = _workspace.get(dtype)
-    if buf is None or buf.numel() < rows * cols:
-        buf = torch.empty(max(rows * cols, 1), dtype=dtype)
-        _workspace[dtype] = buf
-    return buf[: rows * cols].view(rows, cols)
 
 
 def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int,
@@ -357,7 +345,9 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     # reduction reads only those (live: one byte per pair, written by the backward)
     live = torch.empty(bins.gauss.numel(), dtype=torch.uint8)
     with _workspace_lock:
-        v_pair = _pair_buffer(bins.gauss.numel(), 6 + nf, dt)
+        # reused across calls: a fresh 60 MB buffer per iteration (1.5 M pairs at 100k
+        # Gaussians, 512x512) cost its page faults every time
+        v_pair = _scratch(f"pair_{dt}", (bins.gauss.numel(), 6 + nf), dt)
         _run_threaded(
             getattr(lib, f"splat2_backward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
