@@ -168,7 +168,7 @@ def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
         return depth_order(depths, visible).contiguous()
     n = depths.numel()
     d = depths.detach().contiguous()
-    vis = visible.to(torch.uint8).contiguous()
+    vis = visible.contiguous().view(torch.uint8)  # bool is one byte 0/1: no copy
     order = torch.empty(n, dtype=torch.int64)
     buf = _scratch("sort_buf", (n,), torch.int64)
     keys = _scratch("sort_keys", (2 * n,), torch.int32)
@@ -385,6 +385,7 @@ class _BlendCPU(torch.autograd.Function):
         m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
         ctx.save_for_backward(m, co, fe, op, t_final, last)
         ctx.extra = (bins, width, height, kernel)
+        ctx.set_materialize_grads(False)  # an unused output's cotangent stays None (zeros made below)
         return accum, t_final
 
     @staticmethod

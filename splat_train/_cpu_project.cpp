@@ -246,8 +246,7 @@ inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) 
 template <typename T>
 void forward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
                   int64_t sh_deg, const SH<T> sh, int64_t tile, T* means2d, T* conics,
-                  T* cov2d, T* depths, int32_t* radii, int64_t* rect, uint8_t* visible, T* colors,
-                  int64_t* next) {
+                  T* cov2d, T* feat, int32_t* radii, int64_t* rect, uint8_t* visible, int64_t* next) {
   const Cam cam(camp);
   const int64_t gx = (cam.W + tile - 1) / tile, gy = (cam.H + tile - 1) / tile;
   const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
@@ -297,9 +296,8 @@ void forward_impl(int64_t n, const double* camp, const T* means, const T* quats,
         for (int k = 0; k < 4; ++k) rect[4 * i + k] = vis ? r[k] : 0;
         means2d[2 * i] = (T)u[l];
         means2d[2 * i + 1] = (T)v[l];
-        depths[i] = (T)zd[l];
-        if (sh_deg >= 0)
-          for (int ch3 = 0; ch3 < 3; ++ch3) colors[3 * i + ch3] = (T)col[ch3][l];
+        for (int ch3 = 0; ch3 < 3; ++ch3) feat[4 * i + ch3] = sh_deg >= 0 ? (T)col[ch3][l] : T(0);
+        feat[4 * i + 3] = (T)zd[l];
       }
     }
   }
@@ -317,8 +315,8 @@ inline void store_sh_n(const D* vco, int l, int nb, T* dc, T* rest, int64_t rest
 
 template <typename T>
 void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
-                   int64_t sh_deg, const SH<T> sh, const T* v_means2d, const T* v_conics,
-                   const T* v_depths, const T* v_colors, T* v_means, T* v_quats, T* v_scales,
+                   int64_t sh_deg, const SH<T> sh, const T* v_means2d, int64_t sm, const T* v_conics,
+                   int64_t sc, const T* v_feat, int64_t sf, T* v_means, T* v_quats, T* v_scales,
                    T* v_dc, T* v_rest, int64_t* next) {
   const Cam cam(camp);
   const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
@@ -331,11 +329,11 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
       D g0, g1, g2, vu, vv, vdep, vcin[3];
       for (int l = 0; l < LN; ++l) {
         const int64_t i = ib + (l < P.nl ? l : 0);
-        g0[l] = (double)v_conics[3 * i]; g1[l] = (double)v_conics[3 * i + 1]; g2[l] = (double)v_conics[3 * i + 2];
-        vu[l] = (double)v_means2d[2 * i]; vv[l] = (double)v_means2d[2 * i + 1];
-        vdep[l] = (double)v_depths[i];
+        g0[l] = (double)v_conics[sc * i]; g1[l] = (double)v_conics[sc * i + 1]; g2[l] = (double)v_conics[sc * i + 2];
+        vu[l] = (double)v_means2d[sm * i]; vv[l] = (double)v_means2d[sm * i + 1];
+        vdep[l] = (double)v_feat[sf * i + 3];
         if (sh_deg >= 0)
-          for (int k = 0; k < 3; ++k) vcin[k][l] = (double)v_colors[3 * i + k];
+          for (int k = 0; k < 3; ++k) vcin[k][l] = (double)v_feat[sf * i + k];
       }
       D vm[3], vq[4], vs[3] = {bc(0.0), bc(0.0), bc(0.0)};
       {
@@ -439,27 +437,31 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
 extern "C" {
 
 // ABI 2: the SH coefficients as DC and rest pointers with row strides (was one [N, K, 3] array).
-int splat_project_abi_version() { return 2; }
+// ABI 3: colour and depth leave the forward as one [N, 4] feature row (r, g, b, z: the blend's
+// input, no concatenation; colour 0 without SH), and the backward reads the cotangents of
+// means2d, conics and that row through row strides (sm, sc, sf elements): the blend backward's
+// [N, 6 + F] gradient columns are read in place, where torch copied each strided slice.
+int splat_project_abi_version() { return 3; }
 
 #define SPLAT_PROJECT_ENTRIES(T, SFX)                                                                  \
   void splat_project_forward_##SFX(int64_t n, const double* cam, const T* means, const T* quats,       \
                                    const T* scales, int64_t sh_deg, const T* sh_dc, int64_t dc_stride, \
                                    const T* sh_rest, int64_t rest_stride, int64_t rest_k, int64_t tile, \
-                                   T* means2d, T* conics, T* cov2d, T* depths, int32_t* radii,          \
-                                   int64_t* rect, uint8_t* visible, T* colors, int64_t* next) {         \
+                                   T* means2d, T* conics, T* cov2d, T* feat, int32_t* radii,            \
+                                   int64_t* rect, uint8_t* visible, int64_t* next) {                    \
     const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
-    forward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, tile, means2d, conics, cov2d, depths,     \
-                    radii, rect, visible, colors, next);                                                \
+    forward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, tile, means2d, conics, cov2d, feat,       \
+                    radii, rect, visible, next);                                                        \
   }                                                                                                     \
   void splat_project_backward_##SFX(int64_t n, const double* cam, const T* means, const T* quats,      \
                                     const T* scales, int64_t sh_deg, const T* sh_dc, int64_t dc_stride, \
                                     const T* sh_rest, int64_t rest_stride, int64_t rest_k,             \
-                                    const T* v_means2d, const T* v_conics, const T* v_depths,          \
-                                    const T* v_colors, T* v_means, T* v_quats, T* v_scales, T* v_dc,   \
-                                    T* v_rest, int64_t* next) {                                        \
+                                    const T* v_means2d, int64_t sm, const T* v_conics, int64_t sc,     \
+                                    const T* v_feat, int64_t sf, T* v_means, T* v_quats, T* v_scales,  \
+                                    T* v_dc, T* v_rest, int64_t* next) {                               \
     const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
-    backward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, v_means2d, v_conics, v_depths,          \
-                     v_colors, v_means, v_quats, v_scales, v_dc, v_rest, next);                         \
+    backward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, v_means2d, sm, v_conics, sc, v_feat, sf, \
+                     v_means, v_quats, v_scales, v_dc, v_rest, next);                                   \
   }
 
 SPLAT_PROJECT_ENTRIES(float, f32)

@@ -37,15 +37,15 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     sh = [i64, vp, i64, vp, i64, i64]  # sh_deg, dc, dc_stride, rest, rest_stride, rest_k
     for dt in ("f32", "f64"):
         f = getattr(lib, f"splat_project_forward_{dt}")
-        f.argtypes = [i64, vp, vp, vp, vp] + sh + [i64] + [vp] * 9
+        f.argtypes = [i64, vp, vp, vp, vp] + sh + [i64] + [vp] * 8
         f.restype = None
         b = getattr(lib, f"splat_project_backward_{dt}")
-        b.argtypes = [i64, vp, vp, vp, vp] + sh + [vp] * 10
+        b.argtypes = [i64, vp, vp, vp, vp] + sh + [vp, i64] * 3 + [vp] * 6
         b.restype = None
     return lib
 
 
-_KERNELS.setdefault("project", _Kernel("project", "_cpu_project.cpp", 2, True, "splat_project_abi_version", _declare))
+_KERNELS.setdefault("project", _Kernel("project", "_cpu_project.cpp", 3, True, "splat_project_abi_version", _declare))
 
 
 def available() -> bool:
@@ -83,10 +83,25 @@ def _sh_ptrs(dc: Tensor, rest: Tensor | None) -> list:
     return [_ptr(dc), dcs, rp, rs, rk]
 
 
+def _rows(v: Tensor | None, dt: torch.dtype, n: int, width: int) -> tuple[Tensor, int]:
+    """A cotangent [n, width] as (tensor, row stride in elements) for the kernel: read in place
+    when its rows are dense (e.g. the columns of the blend backward's [N, 6 + F] gradient),
+    else a contiguous copy; zeros for None."""
+    if v is None:
+        return torch.zeros(n, width, dtype=dt), width
+    if v.dtype != dt or v.shape != (n, width) or v.stride(1) != 1 or v.stride(0) < 0:
+        v = v.to(dt).contiguous()
+    return v, v.stride(0)
+
+
 class _ProjectSH(torch.autograd.Function):
     """``sh_dc``: [N, K, 3] coefficients with ``sh_rest`` None, or [N, 3] DC terms with
     ``sh_rest`` [N, K - 1, 3] the other coefficients (gradients then land in two contiguous
-    tensors of those shapes: no concatenation, no copy of a slice's gradient)."""
+    tensors of those shapes: no concatenation, no copy of a slice's gradient).
+
+    Outputs means2d [N, 2], conics [N, 3], feat [N, 4] = (r, g, b, depth) (colour 0 without
+    SH): the blend's feature rows as they are, no concatenation), then the non-differentiable
+    cov2d, radii, rect, visible."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, sh_dc, sh_rest, cam, sh_degree, width, height):
@@ -99,30 +114,25 @@ class _ProjectSH(torch.autograd.Function):
         dc = sh_dc.detach().to(dt).contiguous() if deg >= 0 else m.new_zeros(0)
         rest = sh_rest.detach().to(dt).contiguous() if deg >= 0 and sh_rest is not None else None
         shp = _sh_ptrs(dc, rest) if deg >= 0 else [None, 0, None, 0, 0]
-        means2d, conics, cov2d = m.new_empty(n, 2), m.new_empty(n, 3), m.new_empty(n, 3)
-        depths, colors = m.new_empty(n), (m.new_empty(n, 3) if deg >= 0 else m.new_zeros(n, 3))
+        means2d, conics, cov2d, feat = m.new_empty(n, 2), m.new_empty(n, 3), m.new_empty(n, 3), m.new_empty(n, 4)
         radii = torch.empty(n, dtype=torch.int32)
         rect = torch.empty(n, 4, dtype=torch.int64)
         visible = torch.empty(n, dtype=torch.bool)
         _run_threaded(getattr(lib, f"splat_project_forward_{sfx}"), n, _ptr(cam), _ptr(m), _ptr(q), _ptr(s), deg,
-                      *shp, TILE_SIZE, _ptr(means2d), _ptr(conics), _ptr(cov2d), _ptr(depths),
-                      _ptr(radii), _ptr(rect), _ptr(visible), _ptr(colors))
+                      *shp, TILE_SIZE, _ptr(means2d), _ptr(conics), _ptr(cov2d), _ptr(feat),
+                      _ptr(radii), _ptr(rect), _ptr(visible))
         ctx.save_for_backward(m, q, s, dc, rest, cam)
         ctx.deg = deg
+        ctx.set_materialize_grads(False)  # no zero tensors for unused outputs (None handled)
         ctx.mark_non_differentiable(cov2d, radii, rect, visible)
-        return means2d, conics, depths, colors, cov2d, radii, rect, visible
+        return means2d, conics, feat, cov2d, radii, rect, visible
 
     @staticmethod
-    def backward(ctx, v_means2d, v_conics, v_depths, v_colors, *_):
+    def backward(ctx, v_means2d, v_conics, v_feat, *_):
         m, q, s, dc, rest, cam = ctx.saved_tensors
         lib = _KERNELS["project"].load()
         dt, n, deg = m.dtype, m.shape[0], ctx.deg
-
-        def prep(v, *shape):
-            return torch.zeros(*shape, dtype=dt) if v is None else v.to(dt).contiguous()
-
-        v_means2d, v_conics, v_depths, v_colors = (prep(v_means2d, n, 2), prep(v_conics, n, 3),
-                                                   prep(v_depths, n), prep(v_colors, n, 3))
+        cots = [_rows(v, dt, n, w) for v, w in ((v_means2d, 2), (v_conics, 3), (v_feat, 4))]
         v_m, v_q, v_s, v_dc = (torch.empty(t.shape, dtype=t.dtype) for t in (m, q, s, dc))
         v_rest = torch.empty(rest.shape, dtype=rest.dtype) if rest is not None else None
         if deg >= 0:
@@ -131,7 +141,7 @@ class _ProjectSH(torch.autograd.Function):
         else:
             shp, vsh = [None, 0, None, 0, 0], [None, None]
         _run_threaded(getattr(lib, f"splat_project_backward_{_suffix(dt)}"), n, _ptr(cam), _ptr(m), _ptr(q),
-                      _ptr(s), deg, *shp, _ptr(v_means2d), _ptr(v_conics), _ptr(v_depths), _ptr(v_colors),
+                      _ptr(s), deg, *shp, *(x for t, st in cots for x in (_ptr(t), st)),
                       _ptr(v_m), _ptr(v_q), _ptr(v_s), *vsh)
         if deg < 0:
             return v_m, v_q, v_s, None, None, None, None, None, None
@@ -150,7 +160,7 @@ def project_sh_cpu(
     height: int,
     near: float,
     eps2d: float,
-) -> tuple[Projected, Tensor]:
+) -> tuple[Projected, Tensor, Tensor]:
     """Projection and per-Gaussian colour in one C pass (CPU tensors, float32 or float64).
 
     Args:
@@ -164,8 +174,10 @@ def project_sh_cpu(
             :func:`splat_train.projection.project_gaussians`.
 
     Returns:
-        (:class:`splat_train.projection.Projected`, colours [N, 3]), the values of
-        ``project_gaussians`` and ``sh_to_color`` (float64 maths) with their gradients.
+        (:class:`splat_train.projection.Projected`, colours [N, 3], feat [N, 4]): the values of
+        ``project_gaussians`` and ``sh_to_color`` (float64 maths) with their gradients; feat
+        is (colour, depth) per row, the blend's features with no concatenation (colour 0 when
+        ``sh_degree`` is None); ``Projected.depths`` and the SH colours are its columns.
     """
     if cam_from_world.requires_grad or K.requires_grad:
         raise ValueError("project_sh_cpu does not differentiate the camera; use project_gaussians for pose refinement")
@@ -176,8 +188,8 @@ def project_sh_cpu(
         k = sh_dc.shape[1] if sh_rest is None else 1 + sh_rest.shape[1]
         if k < num_sh_bases(sh_degree):
             raise ValueError(f"sh_degree={sh_degree} needs {num_sh_bases(sh_degree)} SH coefficients, got {k}")
-    means2d, conics, depths, rgb, cov2d, radii, rect, visible = _ProjectSH.apply(
+    means2d, conics, feat, cov2d, radii, rect, visible = _ProjectSH.apply(
         means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height))
-    proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=depths, radii=radii, rect=rect,
+    proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=feat[:, 3], radii=radii, rect=rect,
                      visible=visible)
-    return proj, (colors if sh_degree is None else rgb)
+    return proj, (colors if sh_degree is None else feat[:, :3]), feat

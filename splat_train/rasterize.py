@@ -226,9 +226,12 @@ def rasterize(
     if fused:
         from splat_train import _cpu_project
 
-        proj, rgb_g = _cpu_project.project_sh_cpu(
+        proj, rgb_g, feat = _cpu_project.project_sh_cpu(
             means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D)
+        # with SH the kernel's (colour, depth) rows are the blend's features as they are
+        features = feat if sh_degree is not None else None
     else:
+        features = None
         proj = project_gaussians(means, quats, scales, cam_from_world, K, width, height, near=near_plane, eps2d=EPS2D)
         if sh_degree is None:
             rgb_g = colors
@@ -239,7 +242,8 @@ def rasterize(
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    features = torch.cat([rgb_g.to(dt), proj.depths[:, None]], dim=1)
+    if features is None:
+        features = torch.cat([rgb_g.to(dt), proj.depths[:, None]], dim=1)
     accum, t_final = blend(
         which, means2d, proj.conics, features, opacities.to(dt), proj.depths, proj.rect,
         proj.visible, width, height,

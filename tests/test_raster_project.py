@@ -47,7 +47,7 @@ def run(fast: bool, params, cw, K, W, H, deg):
     means, quats, scales, sh = params
     colors = sh if deg is not None else sh[:, 0].detach().clone().requires_grad_(True)
     if fast:
-        proj, rgb = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
+        proj, rgb, _ = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
     else:
         proj = project_gaussians(means, quats, scales, cw, K, W, H)
         if deg is None:
@@ -106,7 +106,7 @@ def test_sh_pair_matches_one_tensor_and_gradients_accumulate(deg):
     cot = [torch.randn(6000, k, generator=g) for k in (2, 3, 3)]
 
     def once(colors):
-        proj, rgb = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
+        proj, rgb, _ = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
         torch.autograd.backward([proj.means2d, proj.conics, rgb], cot)
         return rgb.detach()
 
