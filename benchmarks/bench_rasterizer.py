@@ -18,6 +18,15 @@ measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
     python benchmarks/bench_rasterizer.py --threads 1 2  # compare thread counts
     python benchmarks/bench_rasterizer.py --no-reference --no-v1   # only the current kernel
 
+Threads and memory as the trainer runs them (``splat_train.config.TrainConfig``: torch ops on
+``num_threads = 1``, the C++ kernel on ``kernel_threads`` = every core; the CLI's malloc
+settings, :func:`vggt_init.memory.retain_freed_memory`): ``--threads T`` gives the kernel T
+threads and torch one. The matmul bound and the pure-torch backend ("torch", "reference") run
+on T torch threads. (Before 2026-11-25 the kernel rows ran on T torch threads too; torch's
+OpenMP workers then spin between its parallel regions on the cores the kernel's threads want:
+100k Gaussians at 256x256 took 37-56 ms per forward+backward that way, a steady 31 ms as the
+trainer runs it.)
+
 The machine is shared and noisy: compare ratios from one run, not absolute numbers across
 runs. Saves JSON to benchmarks/out/bench_rasterizer_<time>.json and prints a table.
 """
@@ -73,14 +82,26 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float
     return [p.to(dtype).requires_grad_(True) for p in params], K.to(dtype)
 
 
+def use_threads(backend: str, threads: int) -> None:
+    """The trainer's thread layout for ``backend`` on ``threads`` cores: the C++ kernels
+    ("cpu", "cpu_v1") on ``threads`` kernel threads with torch on one (TrainConfig defaults),
+    the pure-torch backends on ``threads`` torch threads."""
+    from splat_train import _cpu_kernel
+
+    kernel = backend in ("cpu", "cpu_v1")
+    torch.set_num_threads(1 if kernel else threads)
+    _cpu_kernel.set_kernel_threads(threads)
+
+
 def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> dict:
-    """Best-of-reps forward and forward+backward seconds for one backend and size."""
+    """Best-of-reps forward and forward+backward seconds for one backend and size (one
+    untimed warm-up first: the kernel's scratch buffers and the heap grow to size)."""
     from splat_train import rasterize
 
     params, K = make_scene(n, width, height)
     eye = torch.eye(4)
     fwd, total = [], []
-    for _ in range(reps):
+    for rep in range(reps + (backend != "reference")):
         for p in params:
             p.grad = None
         t0 = time.perf_counter()
@@ -88,8 +109,9 @@ def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> 
         t1 = time.perf_counter()
         (out["rgb"].sum() + out["alpha"].sum()).backward()
         t2 = time.perf_counter()
-        fwd.append(t1 - t0)
-        total.append(t2 - t0)
+        if rep or backend == "reference":
+            fwd.append(t1 - t0)
+            total.append(t2 - t0)
         del out
     return {"forward_s": min(fwd), "fwd_bwd_s": min(total), "reps": reps}
 
@@ -172,9 +194,11 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
             cases += ([("cpu_v1", *size)] if v1 else []) + [("cpu", *size)]
         pair_cache: dict = {}
         for backend, n, w, h in cases:
-            reps = 1 if backend == "reference" else (2 if backend == "torch" else 3)
+            reps = 1 if backend == "reference" else (2 if backend == "torch" else 5)
             log.info("threads=%d %s N=%d %dx%d ...", nt, backend, n, w, h)
+            use_threads(backend, nt)
             t = time_iteration(backend, n, w, h, reps)
+            t.update(torch_threads=torch.get_num_threads(), kernel_threads=_cpu_kernel.kernel_threads())
             if (n, w, h) not in pair_cache:
                 pair_cache[(n, w, h)] = count_pairs(n, w, h)
             pc = pair_cache[(n, w, h)]
@@ -225,7 +249,8 @@ def print_table(results: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--threads", type=int, nargs="+", default=[2], help="torch thread counts to measure")
+    ap.add_argument("--threads", type=int, nargs="+", default=[2],
+                    help="core counts to measure: kernel threads (torch at 1, as the trainer runs)")
     ap.add_argument("--quick", action="store_true", help="small sizes only (about a minute)")
     ap.add_argument("--no-reference", action="store_true", help="skip the slow dense reference")
     ap.add_argument("--no-v1", action="store_true", help="skip the scalar kernel (backend cpu_v1)")
@@ -233,8 +258,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
+    from vggt_init.memory import retain_freed_memory
 
     setup_logging()
+    retain_freed_memory()  # the splat_train CLI's malloc settings
     t0 = time.perf_counter()
     results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference, v1=not args.no_v1)
     results["wall_s"] = time.perf_counter() - t0

@@ -160,24 +160,33 @@ def kernel_threads() -> int:
     return _threads if _threads is not None else max(1, torch.get_num_threads())
 
 
-def run_threaded(fn, *args) -> None:
+def run_threaded(fn, *args, first=None):
     """Run a kernel entry on :func:`kernel_threads` threads sharing one work counter.
 
     ctypes drops the GIL during the call, so the threads run the C code concurrently.
+    ``first``: a callable (independent of ``fn``'s work, dropping the GIL for its own) that
+    the calling thread runs before it joins ``fn``: serial work overlapped with the parallel
+    work of the other threads, which share the counter, so the work is split the same way
+    whoever takes it. Returns ``first()``'s result (None without it).
     """
     global _pool
     nthreads = kernel_threads()
     counter = ctypes.c_int64(0)
     cptr = ctypes.addressof(counter)
     if nthreads == 1:
+        res = first() if first is not None else None
         fn(*args, cptr)
-        return
+        return res
     if _pool is None or _pool._max_workers < nthreads:
         _pool = ThreadPoolExecutor(max_workers=nthreads, thread_name_prefix="splat_cpu")
     futures = [_pool.submit(fn, *args, cptr) for _ in range(nthreads - 1)]
-    fn(*args, cptr)
-    for f in futures:
-        f.result()
+    try:
+        res = first() if first is not None else None
+    finally:
+        fn(*args, cptr)
+        for f in futures:
+            f.result()
+    return res
 
 
 def suffix(dt: torch.dtype) -> str:

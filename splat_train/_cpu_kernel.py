@@ -208,14 +208,17 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
             lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
             return Bins(offsets, gauss, tiles_x, tiles_y)
         fp = spans = None
+        sort = lambda: _depth_order(lib, depths, visible)  # noqa: E731
         if means2d is not None and kernel == "cpu" and max(tiles_x, tiles_y) < 2**15:  # int16 tile rectangles
             dt = means2d.dtype
             mu, co, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, opacities))
             spans = _scratch("spans", (r.shape[0], _SPAN_RECORD), torch.int16)
-            fp = _footprints(lib, mu, co, op, _suffix(dt), r, spans)
+            # the (serial) depth sort runs on this thread while the others start the footprints
+            fp, order = _footprints(lib, mu, co, op, _suffix(dt), r, spans, first=sort)
+        else:
+            order = sort()
         fpp = _ptr(fp) if fp is not None else None
         spp = _ptr(spans) if spans is not None else None
-        order = _depth_order(lib, depths, visible)
         m = order.numel()
         counts = _scratch("counts", (_BIN_CHUNKS, n_tiles), torch.int64)
         area = _scratch("area", (m,), torch.int64)
@@ -292,15 +295,16 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
 
 
 def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix: str,
-                rect: Tensor | None = None, spans: Tensor | None = None) -> Tensor:
+                rect: Tensor | None = None, spans: Tensor | None = None, first=None):
     """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
     contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
-    also its binning record (tiles and per-row spans; spans is written)."""
+    also its binning record (tiles and per-row spans; spans is written). With ``first`` (see
+    :func:`splat_train._cpu_build.run_threaded`): (footprints, ``first()``'s result)."""
     fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
-    _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
-                  _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
-                  None if spans is None else _ptr(spans))
-    return fp
+    res = _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
+                        _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
+                        None if spans is None else _ptr(spans), first=first)
+    return fp if first is None else (fp, res)
 
 
 # Held while the backward uses its pair-gradient buffer (_scratch "pair_<dtype>").
