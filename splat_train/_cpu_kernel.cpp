@@ -284,15 +284,17 @@ template <> inline float hsum<float>(Vec<float>::v v) {
 #endif
 
 // exp for power <= 0 (callers mask out the rest). float: Cephes expf polynomial on
-// x = n ln2 + r, |r| <= ln2 / 2, scaled by 2^n through the exponent bits; below -87 -> 0.
+// x = n ln2 + r, |r| <= ln2 / 2, scaled by 2^n through the exponent bits; below -20 -> 0.
 // With AVX-512 (vexpn): x clamped at -20 by one max and the scaling by one vscalefps (exact,
 // as the exponent-bit product is, for these normal results), where the other builds compare,
-// select, convert, add, shift, multiply and select: ~19 -> ~14 operations per vector. The same
-// value for every x >= -20; below, e^-20 (~2e-9) instead of e^x or 0, which no caller can see:
+// select, convert, add, shift, multiply and select: ~19 -> ~14 operations per vector; below
+// -20 it returns e^-20 (~2e-9). Either way the value below -20 is one no caller can see:
 // alpha = opacity e^x < 1/255 there, so the blending rules skip the lane (images and gradients
-// bit-identical). Not -87: e^-87 times an opacity is a subnormal float, and subnormal
-// arithmetic made the blend ~20% slower (most lanes of a small Gaussian's row are far below).
-// Fern checkpoint, one thread, CPU ms: forward 44 -> 40, backward 75 -> 70.
+// bit-identical to exact e^x). The cut was -87 (where expf underflows): e^x times an opacity
+// was then a subnormal float in some lanes, and subnormal arithmetic (most lanes of a small
+// Gaussian's row are far out) cost the blend 7-20%. Fern checkpoint, one thread, CPU ms, fwd /
+// bwd: AVX-512 44 / 75 -> 40 / 70 (clamping the AVX-512 form at -87 instead: 53 / 83);
+// AVX2 67 / 106 -> 61 / 98.
 template <int NQ> inline void vexpn(Vec<float>::v* x);
 inline Vec<float>::v vexp(Vec<float>::v x) {
 #if defined(__AVX512F__)
@@ -301,8 +303,8 @@ inline Vec<float>::v vexp(Vec<float>::v x) {
 #endif
   typedef Vec<float>::v V;
   typedef Vec<float>::m M;
-  const M tiny = vlt(x, splat<V>(-87.0f));
-  x = vsel(tiny, splat<V>(-87.0f), x);
+  const M tiny = vlt(x, splat<V>(-20.0f));
+  x = vsel(tiny, splat<V>(-20.0f), x);
   const V magic = splat<V>(12582912.0f);  // 1.5 * 2^23: round to nearest integer
   V t = x * splat<V>(1.44269504088896341f) + magic;
   const V n = t - magic;
@@ -361,8 +363,8 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
   V t[NQ], n[NQ], r[NQ], p[NQ];
   M ni[NQ], bits[NQ];
   const V magic = splat<V>(12582912.0f);
-  for (int q = 0; q < NQ; ++q) vlt_to(tiny[q], x[q], splat<V>(-87.0f));
-  for (int q = 0; q < NQ; ++q) vsel_to(x[q], tiny[q], splat<V>(-87.0f));
+  for (int q = 0; q < NQ; ++q) vlt_to(tiny[q], x[q], splat<V>(-20.0f));
+  for (int q = 0; q < NQ; ++q) vsel_to(x[q], tiny[q], splat<V>(-20.0f));
   for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
   for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
   for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
