@@ -120,6 +120,17 @@ def test_strategy_clones_small_splits_large_prunes_transparent():
     assert strat.step(params, opt, state, iteration=11, extent=1.0)["cloned"] == 0
 
 
+def test_update_state_skips_non_finite_gradients():
+    """A Gaussian whose view-space gradient has an inf or NaN component (or a norm that
+    overflows) adds nothing to the statistics; the others add their NDC norm."""
+    strat = DensifyStrategy(densify_from=0, densify_until=100)
+    state = strat.init_state(5)
+    g = torch.tensor([[3e-3, 4e-3], [float("nan"), 0.0], [0.0, float("inf")], [3e38, 3e38], [0.0, 0.0]])
+    strat.update_state(state, g, torch.full((5,), 2), torch.ones(5, dtype=torch.bool), 2, 2, iteration=1)
+    assert state["count"].tolist() == [1, 0, 0, 0, 1]
+    assert float(state["grad2d"][0]) == pytest.approx(5e-3) and bool(torch.isfinite(state["grad2d"]).all())
+
+
 def _three_step_reference(strat, params, opt, state, iteration, extent, generator):
     """Clone, split, prune as three rewrites (duplicate, split, remove): what the fused
     ``_densify_and_prune`` must equal."""
