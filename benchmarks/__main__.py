@@ -91,6 +91,7 @@ def raster_section(quick: bool, threads: int) -> dict:
     gflops = br.matmul_gflops(threads, size=256, min_seconds=0.0, min_reps=3)  # smoke: a quick probe
     runs = []
     for backend, (n, w, h) in [(b, ref_case) for b in backends] + [("cpu", fast_case)] * ("cpu" in backends):
+        br.use_threads(backend, threads)  # the trainer's layout, as bench_rasterizer.py times it
         t = br.time_iteration(backend, n, w, h, reps=1 if backend == "reference" else 2)
         pc = br.count_pairs(n, w, h) if "cpu" in backends else {"blended_pairs": None}
         rate = pc["blended_pairs"] / t["fwd_bwd_s"] if pc["blended_pairs"] is not None else None
