@@ -803,7 +803,9 @@ inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T*
 }
 
 // FC > 0: F == FC as a compile-time constant (4: RGB + depth, the rasterizer's case).
-template <typename T, int FC>
+// CNT: out_count is wanted (the per-pixel blend counts; benchmarks and tests): the
+// rasterizer passes none, which saves two of the ~40 vector operations per row.
+template <typename T, int FC, bool CNT>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F_rt,
                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
@@ -891,7 +893,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) {
           vsel_to(Tr[i + q], contrib[q], test_T[q]);
           vsel_to(last[i + q], contrib[q], splat<M>(lk));
-          count[i + q] -= contrib[q];
+          if constexpr (CNT) count[i + q] -= contrib[q];
         }
 #if SPLAT_NATIVE_BYTES == 64
         M any_stop = stop[0];
@@ -924,7 +926,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * MAXF + f], w, splat<V>(fg[f]));
         vsel_to(Tr[i], contrib, test_T);
         vsel_to(last[i], contrib, splat<M>(lk));
-        count[i] -= contrib;
+        if constexpr (CNT) count[i] -= contrib;
         if (any_lane(stop)) {
           done[i] |= stop;
           if (all_lanes(done[i])) { alive[i] = false; --n_alive; }
@@ -936,7 +938,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       if (sizeof(T) == 4 && cols == TILE) {  // a full row: three plain 64-byte copies
         std::memcpy(out_T + row, &Tr[i], sizeof(V));
         std::memcpy(out_last + row, &last[i], sizeof(M));
-        std::memcpy(out_count + row, &count[i], sizeof(M));
+        if (CNT) std::memcpy(out_count + row, &count[i], sizeof(M));
 #ifdef SPLAT_SHUFFLE
         if (F == 4) {
           interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * MAXF]), reinterpret_cast<float*>(out_accum + row * 4));
@@ -950,7 +952,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       for (int j = 0; j < cols; ++j) {
         out_T[row + j] = Tr[i][j];
         out_last[row + j] = (int32_t)last[i][j];
-        out_count[row + j] = (int32_t)count[i][j];
+        if (CNT) out_count[row + j] = (int32_t)count[i][j];
         for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
       }
     }
@@ -1436,20 +1438,28 @@ void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  if (F == 4) {
-    forward_impl<float, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4 && !cnt) {
+    forward_impl<float, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (F == 4) {
+    forward_impl<float, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (!cnt) {
+    forward_impl<float, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
   } else {
-    forward_impl<float, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<float, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
   }
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  if (F == 4) {
-    forward_impl<double, 4>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  if (F == 4 && !cnt) {
+    forward_impl<double, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (F == 4) {
+    forward_impl<double, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (!cnt) {
+    forward_impl<double, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
   } else {
-    forward_impl<double, 0>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<double, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
   }
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,

@@ -255,17 +255,20 @@ def tile_pairs_cpu(
     return b.offsets, b.gauss.to(torch.int64), b.tiles_x, b.tiles_y
 
 
-def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int, kernel: str = "cpu"):
+def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int, kernel: str = "cpu",
+                with_count: bool = True):
     """Run the forward kernel (no autograd).
 
     Args:
         means2d [N, 2], conics [N, 3], features [N, F], opacities [N] as in :func:`blend_cpu`
         (one dtype, float32 or float64); bins from :func:`bin_cpu` with the same ``kernel``.
+        with_count: also count the Gaussians blended into each pixel ("cpu": without, the
+            kernel skips that bookkeeping and count is None).
 
     Returns:
         accum [H, W, F], T_final [H, W], last [H, W] int32 (1 + index of the last
         contributing pair within the pixel's tile list, 0 if none) and count [H, W] int32
-        (Gaussians blended into the pixel).
+        (Gaussians blended into the pixel; None when not ``with_count``).
     """
     lib = load_library(kernel)
     dt = means2d.dtype
@@ -277,13 +280,14 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     accum = torch.empty(height, width, nf, dtype=dt)
     t_final = torch.empty(height, width, dtype=dt)
     last = torch.empty(height, width, dtype=torch.int32)
-    count = torch.empty(height, width, dtype=torch.int32)
+    count = torch.empty(height, width, dtype=torch.int32) if with_count or kernel != "cpu" else None
     if kernel == "cpu":
         fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
         _run_threaded(
             getattr(lib, f"splat2_forward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last),
+            None if count is None else _ptr(count),
         )
     else:
         _run_threaded(
@@ -385,7 +389,8 @@ def backend_functions(kernel: str) -> KernelFunctions:
 class _BlendCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, features, opacities, bins, width, height, kernel):
-        accum, t_final, last, _ = forward_raw(means2d, conics, features, opacities, bins, width, height, kernel)
+        accum, t_final, last, _ = forward_raw(means2d, conics, features, opacities, bins, width, height, kernel,
+                                              with_count=False)
         m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
         ctx.save_for_backward(m, co, fe, op, t_final, last)
         ctx.extra = (bins, width, height, kernel)
