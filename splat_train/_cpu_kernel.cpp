@@ -319,34 +319,27 @@ inline void hsum8(const Vec<float>::v* v, float* out) {
 // Gaussian's row are far out) cost the blend 7-20%. Fern checkpoint, one thread, CPU ms, fwd /
 // bwd: AVX-512 44 / 75 -> 40 / 70 (clamping the AVX-512 form at -87 instead: 53 / 83);
 // AVX2 67 / 106 -> 61 / 98.
+// The steps every exp form shares: n = round(x / ln 2) (by the 1.5 * 2^23 magic number),
+// r = x - n ln 2 (ln 2 in two parts), p = the Cephes polynomial, ~e^r; e^x = p 2^n.
+template <int NQ> inline void exp_reduce(const Vec<float>::v* x, Vec<float>::v* n, Vec<float>::v* p) {
+  typedef Vec<float>::v V;
+  V r[NQ];
+  const V magic = splat<V>(12582912.0f);
+  for (int q = 0; q < NQ; ++q) n[q] = (x[q] * splat<V>(1.44269504088896341f) + magic) - magic;
+  for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
+  for (int q = 0; q < NQ; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = splat<V>(1.9875691500e-4f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
+  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
+}
 template <int NQ> inline void vexpn(Vec<float>::v* x);
 inline Vec<float>::v vexp(Vec<float>::v x) {
-#if defined(__AVX512F__)
   vexpn<1>(&x);
   return x;
-#endif
-  typedef Vec<float>::v V;
-  typedef Vec<float>::m M;
-  const M tiny = vlt(x, splat<V>(-20.0f));
-  x = vsel(tiny, splat<V>(-20.0f), x);
-  const V magic = splat<V>(12582912.0f);  // 1.5 * 2^23: round to nearest integer
-  V t = x * splat<V>(1.44269504088896341f) + magic;
-  const V n = t - magic;
-  V r = x - n * splat<V>(0.693359375f);
-  r = r - n * splat<V>(-2.12194440e-4f);
-  V p = splat<V>(1.9875691500e-4f);
-  p = p * r + splat<V>(1.3981999507e-3f);
-  p = p * r + splat<V>(8.3334519073e-3f);
-  p = p * r + splat<V>(4.1665795894e-2f);
-  p = p * r + splat<V>(1.6666665459e-1f);
-  p = p * r + splat<V>(5.0000001201e-1f);
-  p = p * r * r + r + splat<V>(1.0f);
-  M ni = __builtin_convertvector(n, M);
-  M bits = (ni + 127) << 23;
-  V scale;
-  std::memcpy(&scale, &bits, sizeof(V));
-  V res = p * scale;
-  return vsel(tiny, splat<V>(0.0f), res);
 }
 // vexp of NQ vectors with the steps interleaved (independent dependency chains in program
 // order: the blend loops take several tile rows per step, see forward_impl). Per lane as vexp.
@@ -354,24 +347,14 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
   typedef Vec<float>::v V;
 #if defined(__AVX512F__)
   {
-    V n[NQ], r[NQ], p[NQ];
-    const V magic = splat<V>(12582912.0f);
+    V n[NQ], p[NQ];
     for (int q = 0; q < NQ; ++q) {
       __m512 xv;
       std::memcpy(&xv, &x[q], 64);
       xv = _mm512_max_ps(xv, _mm512_set1_ps(-20.0f));
       std::memcpy(&x[q], &xv, 64);
     }
-    for (int q = 0; q < NQ; ++q) n[q] = (x[q] * splat<V>(1.44269504088896341f) + magic) - magic;
-    for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
-    for (int q = 0; q < NQ; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
-    for (int q = 0; q < NQ; ++q) p[q] = splat<V>(1.9875691500e-4f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
-    for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
+    exp_reduce<NQ>(x, n, p);
     for (int q = 0; q < NQ; ++q) {
       __m512 pv, nv;
       std::memcpy(&pv, &p[q], 64);
@@ -384,22 +367,11 @@ template <int NQ> inline void vexpn(Vec<float>::v* x) {
 #endif
   typedef Vec<float>::m M;
   M tiny[NQ];
-  V t[NQ], n[NQ], r[NQ], p[NQ];
+  V n[NQ], p[NQ];
   M ni[NQ], bits[NQ];
-  const V magic = splat<V>(12582912.0f);
   for (int q = 0; q < NQ; ++q) vlt_to(tiny[q], x[q], splat<V>(-20.0f));
   for (int q = 0; q < NQ; ++q) vsel_to(x[q], tiny[q], splat<V>(-20.0f));
-  for (int q = 0; q < NQ; ++q) t[q] = x[q] * splat<V>(1.44269504088896341f) + magic;
-  for (int q = 0; q < NQ; ++q) n[q] = t[q] - magic;
-  for (int q = 0; q < NQ; ++q) r[q] = x[q] - n[q] * splat<V>(0.693359375f);
-  for (int q = 0; q < NQ; ++q) r[q] = r[q] - n[q] * splat<V>(-2.12194440e-4f);
-  for (int q = 0; q < NQ; ++q) p[q] = splat<V>(1.9875691500e-4f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.3981999507e-3f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(8.3334519073e-3f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(4.1665795894e-2f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(1.6666665459e-1f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] + splat<V>(5.0000001201e-1f);
-  for (int q = 0; q < NQ; ++q) p[q] = p[q] * r[q] * r[q] + r[q] + splat<V>(1.0f);
+  exp_reduce<NQ>(x, n, p);
   for (int q = 0; q < NQ; ++q) ni[q] = __builtin_convertvector(n[q], M);
   for (int q = 0; q < NQ; ++q) bits[q] = (ni[q] + 127) << 23;
   for (int q = 0; q < NQ; ++q) {
