@@ -1230,6 +1230,23 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
   }
 }
 
+// forward_impl specialised for F == 4 (RGB + depth, the rasterizer's case) and for whether the
+// per-pixel counts are wanted (cnt non-null).
+template <typename T>
+void forward_for(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, const int64_t* off,
+                 const int32_t* gs, const T* m, const T* co, const T* op, const T* fe, const double* fp,
+                 T* acc, T* Tf, int32_t* last, int32_t* cnt, int64_t* nth) {
+  if (F == 4 && !cnt) {
+    forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (F == 4) {
+    forward_impl<T, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else if (!cnt) {
+    forward_impl<T, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  } else {
+    forward_impl<T, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+  }
+}
+
 // backward_impl specialised for the usual active channel counts (RGB: 3, RGB + depth: 4).
 template <typename T>
 void backward_for_active(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
@@ -1410,29 +1427,13 @@ void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  if (F == 4 && !cnt) {
-    forward_impl<float, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else if (F == 4) {
-    forward_impl<float, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else if (!cnt) {
-    forward_impl<float, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else {
-    forward_impl<float, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  }
+  forward_for<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
                         int32_t* last, int32_t* cnt, int64_t* nth) {
-  if (F == 4 && !cnt) {
-    forward_impl<double, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else if (F == 4) {
-    forward_impl<double, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else if (!cnt) {
-    forward_impl<double, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  } else {
-    forward_impl<double, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
-  }
+  forward_for<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
