@@ -89,7 +89,7 @@ def _rows(v: Tensor | None, dt: torch.dtype, n: int, width: int) -> tuple[Tensor
     else a contiguous copy; zeros for None."""
     if v is None:
         return torch.zeros(n, width, dtype=dt), width
-    if v.dtype != dt or v.shape != (n, width) or v.stride(1) != 1 or v.stride(0) < 0:
+    if v.dtype != dt or v.shape != (n, width) or v.stride(1) != 1:
         v = v.to(dt).contiguous()
     return v, v.stride(0)
 
@@ -100,7 +100,7 @@ class _ProjectSH(torch.autograd.Function):
     tensors of those shapes: no concatenation, no copy of a slice's gradient).
 
     Outputs means2d [N, 2], conics [N, 3], feat [N, 4] = (r, g, b, depth) (colour 0 without
-    SH): the blend's feature rows as they are, no concatenation), then the non-differentiable
+    SH; the blend's feature rows as they are, no concatenation), then the non-differentiable
     cov2d, radii, rect, visible."""
 
     @staticmethod
