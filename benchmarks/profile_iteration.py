@@ -60,6 +60,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
 
 def profile_steps(tr, steps: int) -> dict[str, float]:
     """Seconds per phase summed over ``steps`` iterations of ``tr`` (advances its state)."""
+    from splat_train._cpu_adam import adam_step
     from splat_train.export import render_params
     from splat_train.losses import photometric_loss
 
@@ -88,7 +89,7 @@ def profile_steps(tr, steps: int) -> dict[str, float]:
             tr.strategy.update_state(tr.state, out["means2d"].grad, out["radii"], out["visible"],
                                      cam.width, cam.height, it)
         t0 = tick("densify_state", t0)
-        tr.optimizer.step()
+        adam_step(tr.optimizer)
         tr.optimizer.zero_grad(set_to_none=True)
         t0 = tick("adam", t0)
         tr.strategy.step(tr.params, tr.optimizer, tr.state, it, tr.extent, tr.gen)

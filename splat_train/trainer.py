@@ -48,6 +48,7 @@ from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
 from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig
 from splat_train import _cpu_kernel
+from splat_train._cpu_adam import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.export import camera_tensors, render_params, render_views
@@ -269,7 +270,7 @@ class Trainer:
             # [N, 2] in pixels for every backend (the rasterize contract; the gsplat adapter too)
             self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
                                        cam.width, cam.height, it)
-        self.optimizer.step()
+        adam_step(self.optimizer)  # on the CPU kernel's threads where it applies, else optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.pose_opt is not None:
             f = pose_lr_factor(it, cfg.pose_refine_from, cfg.pose_warmup)
