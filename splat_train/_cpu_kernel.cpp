@@ -511,12 +511,13 @@ inline void row_range(const double* fp, double my, double py0, int rows, int& i0
 
 inline bool row_hits(const double* fp, double mx, double dy, double px0, int cols) {
   const double hw2 = fp[2] - dy * dy * fp[3];
-  if (hw2 < -1e-6 * fp[2]) return false;
   // hit when sqrt(max(hw2, 0)) (1 + 1e-6) + 1 reaches the nearer end of [px0 + 0.5,
-  // px0 + cols - 0.5] from xc; squared (no sqrt per row), with a slightly wider factor
+  // px0 + cols - 0.5] from xc; squared (no sqrt per row), with a slightly wider factor.
+  // Without branches (the tests combined by & and |): the outcome varies from row to row,
+  // and its mispredictions cost the backward's row loop more than evaluating every term.
   const double xc = mx + fp[1] * dy;
   const double e = std::max(px0 + 0.5 - xc, xc - (px0 + cols - 0.5)) - 1.0;
-  return e <= 0 || std::max(hw2, 0.0) * (1 + 4e-6) >= e * e;
+  return !(hw2 < -1e-6 * fp[2]) & ((e <= 0) | (std::max(hw2, 0.0) * (1 + 4e-6) >= e * e));
 }
 
 // fn(ty, c0, c1) for each tile row ty of the rectangle r = (x0, x1, y0, y1): the tile columns
@@ -1053,7 +1054,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         bool act[2];
         for (int q = 0; q < 2; ++q) {
           dy[q] = my - (T(y0 + i + q) + T(0.5));
-          act[q] = local < row_last[i + q] && row_hits(fp, (double)mx, (double)dy[q], (double)x0, cols);
+          act[q] = (local < row_last[i + q]) & row_hits(fp, (double)mx, (double)dy[q], (double)x0, cols);
         }
         if (!act[0] && !act[1]) continue;
         V power[2], G[2], raw[2], alpha[2], inv_one_m[2], Tfront[2], am[2], wm[2], v_alpha[2], vG[2];

@@ -9,11 +9,17 @@
 //   m0 = F(a), m1 = F(b), m2 = F(a a), m3 = F(b b), m4 = F(a b)
 //   S = (2 m0 m1 + C1)(2 (m4 - m0 m1) + C2) / ((m0^2 + m1^2 + C1)((m2 - m0^2) + (m3 - m1^2) + C2))
 //   dL/da = F(G0) + 2 a F(G2) + b F(G4),  G_j = w dS/dm_j
-// Planes are [C, H, W] contiguous; work items are (channel, band of rows) from a shared counter,
-// each writing its own rows and its own partial sum (the result does not depend on the thread
-// count).
+// The images are read (and the gradient written) through element strides (sc, sy, sx) of
+// channel, row and column: [C, H, W] planes (sc = H W, sy = W, sx = 1) or the rasterizer's
+// [H, W, C] image (1, W C, C), which needs no transposed copy. The forward also sums |a - b|
+// (the L1 term of the 3DGS loss) and the backward adds wl1 sign(a - b) to the gradient, so
+// (1 - lambda) L1 + lambda (1 - SSIM) and its gradient take one pass each (the L1's five torch
+// ops forward and backward were ~2 ms of an iteration on one thread). Work items are (channel,
+// band of rows) from a shared counter, each writing its own rows and its own partial sums (the
+// result does not depend on the thread count).
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <vector>
 
@@ -53,6 +59,10 @@ inline void col_filter(int64_t H, int64_t W, int ws, const T* g, const T* tmp, i
 // Work items are (channel, band of `band` rows): C * ceil(H / band) items from a shared counter,
 // so both cores work on a 3-channel image (one channel per item left a core idle a third of the
 // time). A band's row pass also covers the r rows above and below it that its column pass reads.
+struct Layout {
+  int64_t sc, sy, sx;  // element strides of channel, row, column
+};
+
 struct Bands {
   int64_t H, band, nb;
   Bands(int64_t H_, int64_t band_) : H(H_), band(band_ > 0 ? band_ : H_), nb((H_ + band - 1) / band) {}
@@ -62,7 +72,7 @@ struct Bands {
 // sums[c * nb + b] = sum of the SSIM map over those rows.
 template <typename T>
 void forward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const T* g, const T* a, const T* b,
-                  T* m, double* sums, int64_t* next) {
+                  Layout L, T* m, double* sums, double* l1sums, int64_t* next) {
   const Bands bd(H, band);
   const int r = ws / 2;
   const int64_t P = H * W, PW = W + ws - 1, rows = std::min(H, bd.band + 2 * r);
@@ -71,19 +81,26 @@ void forward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const T
     const int64_t c = item / bd.nb, bi = item % bd.nb;
     const int64_t y0 = bi * bd.band, y1 = std::min(H, y0 + bd.band);
     const int64_t ylo = std::max<int64_t>(0, y0 - r), yhi = std::min(H, y1 + r), nr = yhi - ylo;
-    const T* ac = a + c * P;
-    const T* bc = b + c * P;
+    const T* ac = a + c * L.sc;
+    const T* bc = b + c * L.sc;
     T* mc = m + c * 5 * P;
+    double l1 = 0;
     for (int64_t y = ylo; y < yhi; ++y) {
-      const T* ar = ac + y * W;
-      const T* br = bc + y * W;
+      const T* ar = ac + y * L.sy;
+      const T* br = bc + y * L.sy;
       T* p0 = pad.data() + r;
       for (int64_t x = 0; x < W; ++x) {
-        p0[x] = ar[x];
-        p0[PW + x] = br[x];
-        p0[2 * PW + x] = ar[x] * ar[x];
-        p0[3 * PW + x] = br[x] * br[x];
-        p0[4 * PW + x] = ar[x] * br[x];
+        const T ax = ar[x * L.sx], bx = br[x * L.sx];
+        p0[x] = ax;
+        p0[PW + x] = bx;
+        p0[2 * PW + x] = ax * ax;
+        p0[3 * PW + x] = bx * bx;
+        p0[4 * PW + x] = ax * bx;
+      }
+      if (y >= y0 && y < y1) {
+        T rl1 = 0;
+        for (int64_t x = 0; x < W; ++x) rl1 += std::abs(p0[x] - p0[PW + x]);
+        l1 += (double)rl1;
       }
       for (int j = 0; j < 5; ++j) row_filter(W, ws, g, pad.data() + j * PW, tmp.data() + (j * nr + (y - ylo)) * W);
     }
@@ -98,13 +115,15 @@ void forward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const T
                         ((mu1_sq + mu2_sq + T(C1)) * (s11 + s22 + T(C2))));
     }
     sums[item] = total;
+    l1sums[item] = l1;
   }
 }
 
-// da = w * d(sum of the map)/da, from the filtered planes m of the forward; items as the forward.
+// da = w * d(sum of the map)/da + wl1 sign(a - b) (sign(0) = 0, as torch's abs backward), from
+// the filtered planes m of the forward, written with the images' strides; items as the forward.
 template <typename T>
 void backward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const T* g, const T* a, const T* b,
-                   const T* m, T w, T* da, int64_t* next) {
+                   Layout L, const T* m, T w, T wl1, T* da, int64_t* next) {
   const Bands bd(H, band);
   const int r = ws / 2;
   const int64_t P = H * W, PW = W + ws - 1, rows = std::min(H, bd.band + 2 * r);
@@ -113,8 +132,8 @@ void backward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const 
     const int64_t c = item / bd.nb, bi = item % bd.nb;
     const int64_t y0 = bi * bd.band, y1 = std::min(H, y0 + bd.band);
     const int64_t ylo = std::max<int64_t>(0, y0 - r), yhi = std::min(H, y1 + r), nr = yhi - ylo;
-    const T* ac = a + c * P;
-    const T* bc = b + c * P;
+    const T* ac = a + c * L.sc;
+    const T* bc = b + c * L.sc;
     const T* mc = m + c * 5 * P;
     for (int64_t y = ylo; y < yhi; ++y) {
       T* G = pad.data() + r;
@@ -136,10 +155,19 @@ void backward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const 
     }
     for (int64_t y = y0; y < y1; ++y) {
       for (int j = 0; j < 3; ++j) col_filter(H, W, ws, g, tmp.data() + j * nr * W, ylo, y, F3.data() + j * W);
-      T* dr = da + c * P + y * W;
-      const T* ar = ac + y * W;
-      const T* br = bc + y * W;
-      for (int64_t x = 0; x < W; ++x) dr[x] = F3[x] + T(2) * ar[x] * F3[W + x] + br[x] * F3[2 * W + x];
+      T* dr = da + c * L.sc + y * L.sy;
+      const T* ar = ac + y * L.sy;
+      const T* br = bc + y * L.sy;
+      if (wl1 == T(0)) {
+        for (int64_t x = 0; x < W; ++x)
+          dr[x * L.sx] = F3[x] + T(2) * ar[x * L.sx] * F3[W + x] + br[x * L.sx] * F3[2 * W + x];
+      } else {
+        for (int64_t x = 0; x < W; ++x) {
+          const T ax = ar[x * L.sx], bx = br[x * L.sx];
+          const T sg = ax > bx ? wl1 : (ax < bx ? -wl1 : T(0));
+          dr[x * L.sx] = F3[x] + T(2) * ax * F3[W + x] + bx * F3[2 * W + x] + sg;
+        }
+      }
     }
   }
 }
@@ -148,24 +176,22 @@ void backward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const 
 
 extern "C" {
 
-int splat_ssim_abi_version() { return 2; }
+int splat_ssim_abi_version() { return 3; }
 
-void splat_ssim_forward_f32(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const float* g,
-                            const float* a, const float* b, float* m, double* sums, int64_t* next) {
-  forward_impl<float>(C, H, W, (int)ws, band, g, a, b, m, sums, next);
-}
-void splat_ssim_forward_f64(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const double* g,
-                            const double* a, const double* b, double* m, double* sums, int64_t* next) {
-  forward_impl<double>(C, H, W, (int)ws, band, g, a, b, m, sums, next);
-}
-void splat_ssim_backward_f32(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const float* g,
-                             const float* a, const float* b, const float* m, double w, float* da, int64_t* next) {
-  backward_impl<float>(C, H, W, (int)ws, band, g, a, b, m, (float)w, da, next);
-}
-void splat_ssim_backward_f64(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const double* g,
-                             const double* a, const double* b, const double* m, double w, double* da,
-                             int64_t* next) {
-  backward_impl<double>(C, H, W, (int)ws, band, g, a, b, m, w, da, next);
-}
+// (sc, sy, sx): element strides of a, b and da (see the top of this file). sums, l1sums: one
+// partial sum per work item (SSIM map, |a - b|).
+#define SPLAT_SSIM_ENTRIES(T, sfx)                                                                                 \
+  void splat_ssim_forward_##sfx(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const T* g, const T* a, \
+                                const T* b, int64_t sc, int64_t sy, int64_t sx, T* m, double* sums,              \
+                                double* l1sums, int64_t* next) {                                                 \
+    forward_impl<T>(C, H, W, (int)ws, band, g, a, b, Layout{sc, sy, sx}, m, sums, l1sums, next);                 \
+  }                                                                                                              \
+  void splat_ssim_backward_##sfx(int64_t C, int64_t H, int64_t W, int64_t ws, int64_t band, const T* g,            \
+                                 const T* a, const T* b, int64_t sc, int64_t sy, int64_t sx, const T* m,          \
+                                 double w, double wl1, T* da, int64_t* next) {                                   \
+    backward_impl<T>(C, H, W, (int)ws, band, g, a, b, Layout{sc, sy, sx}, m, (T)w, (T)wl1, da, next);            \
+  }
+SPLAT_SSIM_ENTRIES(float, f32)
+SPLAT_SSIM_ENTRIES(double, f64)
 
 }  // extern "C"

@@ -24,20 +24,20 @@ from splat_train._cpu_build import ptr as _ptr
 from splat_train._cpu_build import run_threaded as _run_threaded
 from splat_train._cpu_build import suffix as _suffix
 
-__all__ = ["available", "ssim_cpu"]
+__all__ = ["available", "ssim_cpu", "l1_ssim_cpu"]
 
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     i64, vp, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
     for dt in ("f32", "f64"):
-        getattr(lib, f"splat_ssim_forward_{dt}").argtypes = [i64] * 5 + [vp] * 6
+        getattr(lib, f"splat_ssim_forward_{dt}").argtypes = [i64] * 5 + [vp] * 3 + [i64] * 3 + [vp] * 4
         getattr(lib, f"splat_ssim_forward_{dt}").restype = None
-        getattr(lib, f"splat_ssim_backward_{dt}").argtypes = [i64] * 5 + [vp] * 4 + [f64, vp, vp]
+        getattr(lib, f"splat_ssim_backward_{dt}").argtypes = [i64] * 5 + [vp] * 3 + [i64] * 3 + [vp, f64, f64, vp, vp]
         getattr(lib, f"splat_ssim_backward_{dt}").restype = None
     return lib
 
 
-_KERNELS.setdefault("ssim", _Kernel("ssim", "_cpu_ssim.cpp", 2, True, "splat_ssim_abi_version", _declare))
+_KERNELS.setdefault("ssim", _Kernel("ssim", "_cpu_ssim.cpp", 3, True, "splat_ssim_abi_version", _declare))
 
 
 # Rows per work item (items are channel x band): 64 keeps the row pass's halo (the 2 x 5 rows
@@ -58,32 +58,60 @@ def _window_1d(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
     return (g / g.sum()).to(dtype).contiguous()
 
 
-class _SSIMCPU(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, a, b, window_size, sigma):
-        lib = _KERNELS["ssim"].load()
-        dt = a.dtype
-        a_, b_ = a.detach().contiguous(), b.detach().to(dt).contiguous()
-        nc = a_.shape[0] * a_.shape[1]
-        H, W = a_.shape[2], a_.shape[3]
-        g = _window_1d(window_size, sigma, dt)
-        m = torch.empty(nc, 5, H, W, dtype=dt)
-        sums = torch.empty(nc * -(-H // BAND_ROWS), dtype=torch.float64)  # one partial sum per item
-        _run_threaded(getattr(lib, f"splat_ssim_forward_{_suffix(dt)}"), nc, H, W, window_size, BAND_ROWS, _ptr(g),
-                      _ptr(a_), _ptr(b_), _ptr(m), _ptr(sums))
-        ctx.save_for_backward(a_, b_, m, g)
-        ctx.dims = (nc, H, W, window_size)
-        return (sums.sum() / (nc * H * W)).to(dt)
+def _planes(img: Tensor, layout: str) -> tuple[Tensor, int, int, int, tuple[int, int, int]]:
+    """(contiguous image, planes, H, W, element strides (plane, row, column)) of a [B, C, H, W]
+    ("bchw") or [H, W, C] ("hwc") image."""
+    img = img.contiguous()
+    if layout == "hwc":
+        H, W, C = img.shape
+        return img, C, H, W, (1, W * C, C)
+    B, C, H, W = img.shape
+    return img, B * C, H, W, (H * W, W, 1)
+
+
+class _SSIML1CPU(torch.autograd.Function):
+    """(mean |a - b|, mean SSIM(a, b)) of two images of one layout, gradients for ``a`` only."""
 
     @staticmethod
-    def backward(ctx, v):
+    def forward(ctx, a, b, layout, window_size, sigma):
+        lib = _KERNELS["ssim"].load()
+        dt = a.dtype
+        a_, nc, H, W, st = _planes(a.detach(), layout)
+        b_ = _planes(b.detach().to(dt), layout)[0]
+        g = _window_1d(window_size, sigma, dt)
+        m = torch.empty(nc, 5, H, W, dtype=dt)
+        items = nc * -(-H // BAND_ROWS)
+        sums = torch.empty(2, items, dtype=torch.float64)  # per item: SSIM map sum, |a - b| sum
+        _run_threaded(getattr(lib, f"splat_ssim_forward_{_suffix(dt)}"), nc, H, W, window_size, BAND_ROWS, _ptr(g),
+                      _ptr(a_), _ptr(b_), *st, _ptr(m), _ptr(sums[0]), _ptr(sums[1]))
+        ctx.save_for_backward(a_, b_, m, g)
+        ctx.dims = (nc, H, W, window_size, st)
+        ctx.set_materialize_grads(False)
+        total = sums.sum(1) / (nc * H * W)
+        return total[1].to(dt), total[0].to(dt)
+
+    @staticmethod
+    def backward(ctx, v_l1, v_s):
         a_, b_, m, g = ctx.saved_tensors
-        nc, H, W, ws = ctx.dims
+        nc, H, W, ws, st = ctx.dims
+        n = nc * H * W
         lib = _KERNELS["ssim"].load()
         da = torch.empty_like(a_)
+        w = 0.0 if v_s is None else float(v_s) / n
+        wl1 = 0.0 if v_l1 is None else float(v_l1) / n
         _run_threaded(getattr(lib, f"splat_ssim_backward_{_suffix(a_.dtype)}"), nc, H, W, ws, BAND_ROWS, _ptr(g),
-                      _ptr(a_), _ptr(b_), _ptr(m), float(v) / (nc * H * W), _ptr(da))
-        return da, None, None, None
+                      _ptr(a_), _ptr(b_), *st, _ptr(m), w, wl1, _ptr(da))
+        return da, None, None, None, None
+
+
+def _check(img1: Tensor, img2: Tensor, dims: int, window_size: int) -> None:
+    if img1.shape != img2.shape or img1.dim() != dims:
+        want = "[B, C, H, W]" if dims == 4 else "[H, W, C]"
+        raise ValueError(f"need two {want} images of one shape, got {tuple(img1.shape)} and {tuple(img2.shape)}")
+    if img2.requires_grad:
+        raise ValueError("the CPU SSIM differentiates img1 only; img2 must not require grad")
+    if window_size % 2 != 1:
+        raise ValueError(f"window_size must be odd, got {window_size}")
 
 
 def ssim_cpu(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) -> Tensor:
@@ -96,11 +124,21 @@ def ssim_cpu(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1
     Returns:
         Scalar tensor (dtype of img1).
     """
-    if img1.shape != img2.shape or img1.dim() != 4:
-        raise ValueError(f"ssim_cpu needs two [B, C, H, W] images of one shape, got {tuple(img1.shape)} "
-                         f"and {tuple(img2.shape)}")
-    if img2.requires_grad:
-        raise ValueError("ssim_cpu differentiates img1 only; img2 must not require grad")
-    if window_size % 2 != 1:
-        raise ValueError(f"window_size must be odd, got {window_size}")
-    return _SSIMCPU.apply(img1, img2, int(window_size), float(sigma))
+    _check(img1, img2, 4, window_size)
+    return _SSIML1CPU.apply(img1, img2, "bchw", int(window_size), float(sigma))[1]
+
+
+def l1_ssim_cpu(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) -> tuple[Tensor, Tensor]:
+    """(mean |img1 - img2|, mean SSIM) of two [H, W, C] images (the rasterizer's layout, no
+    transposed copies) in one C++ pass, forward and backward: the two terms of the 3DGS loss
+    (:func:`splat_train.losses.photometric_loss`).
+
+    Args:
+        img1: [H, W, C] CPU float32/float64 image (gets the gradient of both terms).
+        img2: [H, W, C] the target (no gradient).
+
+    Returns:
+        (l1, ssim) scalar tensors (dtype of img1), both differentiable in img1.
+    """
+    _check(img1, img2, 3, window_size)
+    return _SSIML1CPU.apply(img1, img2, "hwc", int(window_size), float(sigma))

@@ -132,6 +132,16 @@ def photometric_loss(
     Returns:
         (loss, l1, ssim) scalars; loss carries the gradient.
     """
+    if (render.dim() == 3 and render.shape == target.shape and render.device.type == "cpu"
+            and target.device.type == "cpu" and not target.requires_grad
+            and render.dtype in (torch.float32, torch.float64)):
+        from splat_train import _cpu_ssim
+
+        if _cpu_ssim.available():
+            # both terms in one C++ pass on the [H, W, 3] images (no transposed copies, no
+            # per-term torch ops): the same values as the two calls below
+            l1, s = _cpu_ssim.l1_ssim_cpu(render, target.to(render.dtype))
+            return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
     l1 = l1_loss(render, target)
     s = _training_ssim(render, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s

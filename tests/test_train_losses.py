@@ -121,3 +121,46 @@ def test_training_loss_uses_the_same_ssim_as_the_reference():
     loss, l1, s = photometric_loss(render, target, 0.2)
     torch.testing.assert_close(s, ssim(render, target), rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(loss, 0.8 * l1 + 0.2 * (1 - ssim(render, target)), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+@pytest.mark.parametrize("shape", [(37, 53, 3), (9, 12, 3), (5, 30, 1)])
+def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
+    """The fused [H, W, C] pass of the training loss: L1 and SSIM values, the gradient of the
+    3DGS loss and of each term alone, as the torch reference (tolerances as above); equal
+    pixels (sign 0, as torch's abs backward) and a non-contiguous render (the rasterizer's
+    colour channels of a 4-channel buffer) included."""
+    from splat_train import _cpu_ssim
+
+    if not _cpu_ssim.available():
+        pytest.skip("SSIM kernel did not build")
+    g = torch.Generator().manual_seed(sum(shape))
+    buf = torch.rand(*shape[:2], shape[2] + 1, generator=g, dtype=dtype)
+    b = (buf[..., :shape[2]] + 0.2 * torch.randn(*shape, generator=g, dtype=dtype)).clamp(0, 1)
+    b[::3, ::2] = buf[::3, ::2, :shape[2]]  # ties: |a - b| = 0
+    buf.requires_grad_(True)
+    a = buf[..., :shape[2]]
+    assert not a.is_contiguous()
+    ref_l1, ref_s = l1_loss(a, b), ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None])
+    l1, s = _cpu_ssim.l1_ssim_cpu(a, b)
+    torch.testing.assert_close(l1, ref_l1, rtol=tol, atol=tol)
+    torch.testing.assert_close(s, ref_s, rtol=tol, atol=tol)
+    # the loss's weights, then each term alone (the other output's cotangent is None)
+    for got, ref in ((0.8 * l1 - 0.2 * s, 0.8 * ref_l1 - 0.2 * ref_s), (l1, ref_l1), (s, ref_s)):
+        (g_ref,) = torch.autograd.grad(ref, buf, retain_graph=True)
+        (g_got,) = torch.autograd.grad(got, buf, retain_graph=True)
+        torch.testing.assert_close(g_got, g_ref, rtol=tol, atol=tol * g_ref.abs().max().item())
+
+
+def test_photometric_loss_fused_path_equals_the_two_terms():
+    """photometric_loss on [H, W, 3] CPU images (the trainer's call, fused C++ pass) against
+    the composition of l1_loss and ssim, value and gradient, float64."""
+    g = torch.Generator().manual_seed(11)
+    render = torch.rand(24, 31, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(24, 31, 3, generator=g, dtype=torch.float64)
+    loss, l1, s = photometric_loss(render, target, 0.2)
+    ref = 0.8 * l1_loss(render, target) + 0.2 * (1 - ssim(render, target))
+    torch.testing.assert_close(loss, ref, rtol=1e-12, atol=1e-12)
+    (g_got,) = torch.autograd.grad(loss, render)
+    (g_ref,) = torch.autograd.grad(ref, render)
+    torch.testing.assert_close(g_got, g_ref, rtol=1e-12, atol=1e-12 * g_ref.abs().max().item())
