@@ -60,7 +60,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
 
 def profile_steps(tr, steps: int) -> dict[str, float]:
     """Seconds per phase summed over ``steps`` iterations of ``tr`` (advances its state)."""
-    from splat_train._cpu_adam import adam_step
+    from splat_train._cpu_optim import adam_step
     from splat_train.export import render_params
     from splat_train.losses import photometric_loss
 

@@ -195,6 +195,10 @@ class DensifyStrategy:
         """
         if iteration >= self.densify_until:
             return
+        from splat_train import _cpu_optim
+
+        if _cpu_optim.densify_stats(state, means2d_grad.detach(), radii, visible, width, height):
+            return  # the same accumulation in C on the kernel's threads (CPU float32)
         # dense masked updates (no boolean indexing: each mask index is a nonzero + gather +
         # scatter over N, ~13 ms per iteration at 200k Gaussians; this is ~2 ms, same values)
         g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])

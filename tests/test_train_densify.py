@@ -131,6 +131,38 @@ def test_update_state_skips_non_finite_gradients():
     assert float(state["grad2d"][0]) == pytest.approx(5e-3) and bool(torch.isfinite(state["grad2d"]).all())
 
 
+def test_update_state_c_path_equals_torch_path():
+    """The CPU float32 accumulation in C (splat_train._cpu_optim, taken for the rasterizer's
+    int32 radii and a [N, 2] view of its gradient buffer) gives the statistics of the torch
+    code (taken for int64 radii): hidden, NaN, inf and overflowing rows skipped, counts and
+    radii exact, norms to float32 rounding; three views accumulated."""
+    from splat_train import _cpu_optim
+
+    if not _cpu_optim.available():
+        pytest.skip("no C++ compiler for the CPU kernels")
+    strat = DensifyStrategy(densify_from=0, densify_until=100)
+    n = 50_000
+    gen = torch.Generator().manual_seed(3)
+    states = [strat.init_state(n), strat.init_state(n), strat.init_state(n)]
+    for view in range(3):
+        buf = torch.randn(n, 10, generator=gen) * 1e-3  # as the blend backward's [N, 10] rows
+        buf[::97, 0] = float("nan")
+        buf[5::89, 1] = float("inf")
+        buf[7::83, :2] = 3e38
+        radii = torch.randint(0, 40, (n,), generator=gen, dtype=torch.int32)
+        visible = torch.rand(n, generator=gen) < 0.8
+        g = buf[:, 0:2]
+        assert _cpu_optim.densify_stats(states[0], g, radii, visible, 497, 372)  # the C path
+        strat.update_state(states[1], g, radii.long(), visible, 497, 372, iteration=view)  # torch
+        strat.update_state(states[2], g, radii, visible, 497, 372, iteration=view)  # dispatches to C
+    c_state, t_state = states[0], states[1]
+    assert all(torch.equal(states[2][k], c_state[k]) for k in c_state)
+    assert torch.equal(c_state["count"], t_state["count"]) and float(c_state["count"].sum()) > 0
+    assert torch.equal(c_state["max_radii"], t_state["max_radii"])
+    torch.testing.assert_close(c_state["grad2d"], t_state["grad2d"], rtol=1e-6, atol=0.0)
+    assert bool(torch.isfinite(c_state["grad2d"]).all())
+
+
 def _three_step_reference(strat, params, opt, state, iteration, extent, generator):
     """Clone, split, prune as three rewrites (duplicate, split, remove): what the fused
     ``_densify_and_prune`` must equal."""

@@ -1,4 +1,6 @@
-// One Adam step over several float32 parameter tensors on the kernel's threads (issue 15).
+// The optimizer side of a training iteration on the kernel's threads (issue 15): one Adam step
+// over several float32 parameter tensors (splat_adam_f32) and the densification statistics
+// (splat_densify_stats_f32).
 //
 // Built and loaded like _cpu_kernel.cpp (plain C ABI, ctypes, no torch headers or OpenMP).
 // torch.optim.Adam (fused) runs on torch's intra-op threads, which the trainer keeps at one:
@@ -62,7 +64,7 @@ inline void adam_update(X& p, X g, X& m, X& v, float w1, float b2, float w2, flo
 
 extern "C" {
 
-int splat_adam_abi_version() { return 1; }
+int splat_optim_abi_version() { return 1; }
 
 // nt tensors: p[j], g[j], m[j], v[j] (float32, contiguous) of n[j] elements, with their own
 // step_size[j] and sqrt(bc2)[j]; chunk_start[j] = the first work item of tensor j (the running
@@ -98,6 +100,29 @@ void splat_adam_f32(int64_t nt, float* const* p, const float* const* g, float* c
       pj[i] = pv;
       mj[i] = mv;
       vj[i] = vv;
+    }
+  }
+}
+
+// The view-space gradient statistics of 3DGS densification for one view (the torch code of
+// splat_train.densify.DensifyStrategy.update_state, which stays for other devices and dtypes):
+// per Gaussian g with visible[g] and a finite norm = |(gx W / 2, gy H / 2)| (the gradient in
+// NDC units): grad2d[g] += norm, count[g] += 1, max_radii[g] = max(max_radii[g], radii[g]).
+// Elements independent: no dependence on the thread count. The eight [N] torch ops took
+// ~2.5 ms of an iteration at 200k Gaussians on one thread.
+void splat_densify_stats_f32(int64_t n, const float* grad, int64_t grad_stride, const int32_t* radii,
+                             const uint8_t* visible, double sx, double sy, float* grad2d, float* count,
+                             float* max_radii, int64_t* counter) {
+  const float fx = (float)sx, fy = (float)sy;
+  for (int64_t c; (c = __atomic_fetch_add(counter, 1, __ATOMIC_RELAXED)) * CHUNK < n;) {
+    const int64_t i1 = std::min(n, (c + 1) * CHUNK);
+    for (int64_t i = c * CHUNK; i < i1; ++i) {
+      const float gx = grad[i * grad_stride] * fx, gy = grad[i * grad_stride + 1] * fy;
+      const float nrm = std::sqrt(gx * gx + gy * gy);
+      if (!visible[i] || !(std::fabs(nrm) <= 3.4028234663852886e38f)) continue;  // hidden, inf or NaN
+      grad2d[i] += nrm;
+      count[i] += 1.0f;
+      max_radii[i] = std::max(max_radii[i], (float)radii[i]);
     }
   }
 }

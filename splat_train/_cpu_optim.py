@@ -1,4 +1,5 @@
-"""Adam on the CPU kernel's threads (``_cpu_adam.cpp``): :func:`adam_step`.
+"""The optimizer side of a training iteration on the CPU kernel's threads (``_cpu_optim.cpp``):
+:func:`adam_step` and :func:`densify_stats`.
 
 torch's fused Adam runs on torch's intra-op threads, which the trainer keeps at one (their
 OpenMP workers spin after each parallel region on the cores the rasterizer needs next). This
@@ -21,7 +22,7 @@ from splat_train._cpu_build import KERNEL_REGISTRY as _KERNELS
 from splat_train._cpu_build import Kernel as _Kernel
 from splat_train._cpu_build import run_threaded as _run_threaded
 
-__all__ = ["available", "adam_step"]
+__all__ = ["available", "adam_step", "densify_stats"]
 
 _CHUNK = 1 << 14  # CHUNK in the C++
 
@@ -30,15 +31,17 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     i64, vp, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
     lib.splat_adam_f32.argtypes = [i64] + [vp] * 7 + [dbl] * 3 + [vp, vp]  # ..., chunk_start, counter
     lib.splat_adam_f32.restype = None
+    lib.splat_densify_stats_f32.argtypes = [i64, vp, i64, vp, vp, dbl, dbl, vp, vp, vp, vp]
+    lib.splat_densify_stats_f32.restype = None
     return lib
 
 
-_KERNELS.setdefault("adam", _Kernel("adam", "_cpu_adam.cpp", 1, True, "splat_adam_abi_version", _declare))
+_KERNELS.setdefault("optim", _Kernel("optim", "_cpu_optim.cpp", 1, True, "splat_optim_abi_version", _declare))
 
 
 def available() -> bool:
-    """True when the Adam kernel is built and loaded."""
-    return _KERNELS["adam"].load() is not None
+    """True when the kernel is built and loaded."""
+    return _KERNELS["optim"].load() is not None
 
 
 def _supported(opt: torch.optim.Adam) -> bool:
@@ -60,7 +63,7 @@ def adam_step(opt: torch.optim.Adam) -> bool:
     if not isinstance(opt, torch.optim.Adam) or not _supported(opt) or not available():
         opt.step()
         return False
-    lib = _KERNELS["adam"].load()
+    lib = _KERNELS["optim"].load()
     ptrs: dict[str, list[int]] = {"p": [], "g": [], "m": [], "v": []}
     sizes, step_size, bc2_sqrt, starts = [], [], [], [0]
     betas = None
@@ -92,4 +95,30 @@ def adam_step(opt: torch.optim.Adam) -> bool:
         _run_threaded(lib.splat_adam_f32, nt, *args, arr(ctypes.c_int64, sizes), arr(ctypes.c_double, step_size),
                       arr(ctypes.c_double, bc2_sqrt), betas[0], betas[1], betas[2],
                       (ctypes.c_int64 * (nt + 1))(*starts))
+    return True
+
+
+def densify_stats(state: dict[str, torch.Tensor], means2d_grad: torch.Tensor, radii: torch.Tensor,
+                  visible: torch.Tensor, width: int, height: int) -> bool:
+    """:meth:`splat_train.densify.DensifyStrategy.update_state`'s accumulation in C (CPU float32
+    statistics, a float32 [N, 2] gradient with unit column stride, int32 radii); False (nothing
+    done) where it does not apply.
+
+    Args:
+        state: "grad2d", "count", "max_radii" [N] float32 (updated in place).
+        means2d_grad: [N, 2] d loss / d means2d in pixels; radii: [N] int32; visible: [N] bool.
+    """
+    g, st = means2d_grad, state
+    keys = ("grad2d", "count", "max_radii")
+    if (g.device.type != "cpu" or g.dtype != torch.float32 or g.dim() != 2 or g.shape[1] != 2 or g.stride(1) != 1
+            or radii.dtype != torch.int32 or not radii.is_contiguous() or visible.dtype != torch.bool
+            or not visible.is_contiguous() or not available()
+            or any(st[k].dtype != torch.float32 or not st[k].is_contiguous() or st[k].device.type != "cpu"
+                   for k in keys)):
+        return False
+    n = g.shape[0]
+    lib = _KERNELS["optim"].load()
+    _run_threaded(lib.splat_densify_stats_f32, n, g.data_ptr(), g.stride(0), radii.data_ptr(),
+                  visible.view(torch.uint8).data_ptr(), width / 2.0, height / 2.0,
+                  *(st[k].data_ptr() for k in keys))
     return True
