@@ -782,14 +782,16 @@ template <typename T, int FC, bool CNT>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F_rt,
                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
-                  T* out_T, int32_t* out_last, int32_t* out_count, int64_t* next_tile) {
+                  T* out_T, int32_t* out_last, int32_t* out_count, const int32_t* tile_order,
+                  int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t F = FC > 0 ? FC : F_rt;
   const int64_t n_tiles = tiles_x * tiles_y;
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
-  for (int64_t t; (t = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+  for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
     const int64_t tx = t % tiles_x, ty = t / tiles_x;
     const int64_t x0 = tx * TILE, y0 = ty * TILE;
     const int rows = (int)std::min<int64_t>(TILE, H - y0);
@@ -945,7 +947,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
                    const int32_t* out_last, const T* v_accum, const T* v_T,
-                   T* v_pair, uint8_t* live, int64_t* next_tile) {
+                   T* v_pair, uint8_t* live, const int32_t* tile_order, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t Fa = FC > 0 ? FC : Fa_rt;
@@ -953,7 +955,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   const int64_t S = 6 + F;
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
-  for (int64_t t; (t = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+  for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
     const int64_t tx = t % tiles_x, ty = t / tiles_x;
     const int64_t x0 = tx * TILE, y0 = ty * TILE;
     const int rows = (int)std::min<int64_t>(TILE, H - y0);
@@ -1236,15 +1239,15 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 template <typename T>
 void forward_for(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, const int64_t* off,
                  const int32_t* gs, const T* m, const T* co, const T* op, const T* fe, const double* fp,
-                 T* acc, T* Tf, int32_t* last, int32_t* cnt, int64_t* nth) {
+                 T* acc, T* Tf, int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
   if (F == 4 && !cnt) {
-    forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
   } else if (F == 4) {
-    forward_impl<T, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<T, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
   } else if (!cnt) {
-    forward_impl<T, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<T, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
   } else {
-    forward_impl<T, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+    forward_impl<T, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
   }
 }
 
@@ -1253,13 +1256,13 @@ template <typename T>
 void backward_for_active(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const T* m, const T* co, const T* op,
                          const T* fe, const double* fp, const T* Tf, const int32_t* last, const T* vacc,
-                         const T* vT, T* vpair, uint8_t* live, int64_t* nth) {
+                         const T* vT, T* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
   if (Fa == 3) {
-    backward_impl<T, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+    backward_impl<T, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
   } else if (Fa == 4) {
-    backward_impl<T, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+    backward_impl<T, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
   } else {
-    backward_impl<T, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+    backward_impl<T, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
   }
 }
 
@@ -1277,7 +1280,7 @@ int64_t active_channels(int64_t n, int64_t F, const T* v) {
 
 extern "C" {
 
-int splat2_abi_version() { return 15; }
+int splat2_abi_version() { return 16; }
 
 // 1 + the last feature channel f < F with a nonzero value (x != 0: NaN counts, -0.0 does not)
 // among the n pixels of v [n, F] (contiguous), 0 if none: the backward skips the trailing
@@ -1427,28 +1430,28 @@ void splat2_footprint_scalar_f64(int64_t n, const double* co, const double* op, 
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
-                        int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_for<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+                        int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
+  forward_for<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
-                        int32_t* last, int32_t* cnt, int64_t* nth) {
-  forward_for<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, nth);
+                        int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
+  forward_for<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
                          const int32_t* last, const float* vacc, const float* vT,
-                         float* vpair, uint8_t* live, int64_t* nth) {
-  backward_for_active<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+                         float* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
+  backward_for_active<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
                          const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         double* vpair, uint8_t* live, int64_t* nth) {
-  backward_for_active<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, nth);
+                         double* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
+  backward_for_active<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S,
                        const float* v_pair, const int32_t* sp, const uint8_t* live, float* v_out, int64_t* nth) {
