@@ -67,6 +67,12 @@ fi
 T_INSTALL=$(( $(date +%s) - T0 ))
 
 PY="${PYTHON:-python3}"
+# The workflow's shell commands run `python`, and the jobs (local or under SLURM) inherit this
+# environment: the interpreter this test was given (CI: the clone's .venv) goes first on PATH.
+# Without it a machine whose default python lacks the packages fails every job with
+# "No module named 'open3d'" (.ci/run calls this script outside make, which sets PATH itself).
+PY_DIR="$(dirname "$(command -v "$PY")")"
+export PATH="$PY_DIR:$PATH"
 SNAKEMAKE=("$PY" -m snakemake)
 "$PY" -c "import snakemake_executor_plugin_slurm" 2>/dev/null \
     || { say "FAIL: snakemake-executor-plugin-slurm is not installed for $PY"; exit 1; }
