@@ -65,7 +65,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
         lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
         lib.splat2_depth_order_f32.restype = i64
         for dt in ("f32", "f64"):
-            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp, vp, vp]
+            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp, i64, vp, vp, vp]
             getattr(lib, f"splat2_reduce_{dt}").restype = None
             getattr(lib, f"splat2_active_{dt}").argtypes = [i64, i64, vp]
             getattr(lib, f"splat2_active_{dt}").restype = i64
@@ -78,7 +78,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 16, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 17, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -136,6 +136,8 @@ class Bins:
             ones last left a thread idle while the other finished one: 2-thread blend at 93-95 %
             of the one-thread time / 2 on the fern checkpoint). Every tile is blended the same
             whichever thread takes it when: the order changes no result.
+        visible: [N] bool ("cpu" only): the Gaussians in ``order`` (the backward's reduction
+            zeroes the gradient rows of the others itself).
     """
 
     offsets: Tensor
@@ -147,6 +149,7 @@ class Bins:
     fp: Tensor | None = None
     slot_pair: Tensor | None = None
     tile_order: Tensor | None = None
+    visible: Tensor | None = None
 
 
 _scratch_bufs: dict[str, Tensor] = {}
@@ -247,7 +250,7 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         _run_threaded(lib.splat2_bin_scatter, m, _ptr(order), _ptr(r), fpp, spp, tiles_x, n_tiles, _BIN_CHUNKS,
                       _ptr(base), _ptr(ps), _ptr(gauss), _ptr(slot_pair))
     tile_order = torch.argsort(per_tile, descending=True, stable=True).to(torch.int32)
-    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, fp, slot_pair, tile_order)
+    return Bins(offsets, gauss, tiles_x, tiles_y, order, ps, fp, slot_pair, tile_order, visible.contiguous())
 
 
 def tile_pairs_cpu(
@@ -355,7 +358,9 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
         )
         return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
     fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
-    v = torch.zeros(n, 6 + nf, dtype=dt)
+    vis = bins.visible.view(torch.uint8) if bins.visible is not None and bins.visible.numel() == n else None
+    # the reduction writes every row: the Gaussians in order, and with vis the others' zeros
+    v = torch.empty(n, 6 + nf, dtype=dt) if vis is not None else torch.zeros(n, 6 + nf, dtype=dt)
     # trailing feature channels whose cotangent is zero everywhere are skipped (exact): one
     # pass in C over v_accum (two strided torch .any() calls, the depth and the blue channel,
     # cost ~8 ms CPU at 185k pixels)
@@ -374,7 +379,8 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
             _ptr(v_pair), _ptr(live), _tile_order(bins),
         )
         _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
-                      6 + nf, _ptr(v_pair), _ptr(bins.slot_pair), _ptr(live), _ptr(v))
+                      6 + nf, _ptr(v_pair), _ptr(bins.slot_pair), _ptr(live), n,
+                      None if vis is None else _ptr(vis), _ptr(v))
     return v
 
 
