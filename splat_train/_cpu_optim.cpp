@@ -46,7 +46,6 @@ inline V8 vsqrt(V8 x) {
   return x;
 }
 
-
 // The update of one element (or eight, X = V8): the same operations in the same order.
 template <typename X>
 inline void adam_update(X& p, X g, X& m, X& v, float w1, float b2, float w2, float ss, float bc, float e) {

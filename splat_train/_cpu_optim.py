@@ -45,6 +45,11 @@ def available() -> bool:
 
 
 def _supported(opt: torch.optim.Adam) -> bool:
+    """Whether :func:`adam_step` can run ``opt``'s step in C: one set of betas and eps, no
+    option it does not implement, CPU float32 contiguous parameters with their gradients and
+    torch's state already created."""
+    if len({(float(g["betas"][0]), float(g["betas"][1]), float(g["eps"])) for g in opt.param_groups}) != 1:
+        return False
     for group in opt.param_groups:
         if (group.get("weight_decay", 0) != 0 or group.get("amsgrad") or group.get("maximize")
                 or group.get("differentiable") or group.get("capturable")):
@@ -66,15 +71,9 @@ def adam_step(opt: torch.optim.Adam) -> bool:
     lib = _KERNELS["optim"].load()
     ptrs: dict[str, list[int]] = {"p": [], "g": [], "m": [], "v": []}
     sizes, step_size, bc2_sqrt, starts = [], [], [], [0]
-    betas = None
+    g0 = opt.param_groups[0]
+    betas = (float(g0["betas"][0]), float(g0["betas"][1]), float(g0["eps"]))  # the same in every group
     with torch.no_grad():
-        for group in opt.param_groups:
-            b1, b2 = group["betas"]
-            if betas is None:
-                betas = (float(b1), float(b2), float(group["eps"]))
-            elif betas != (float(b1), float(b2), float(group["eps"])):
-                opt.step()  # one set of betas and eps per call
-                return False
         for group in opt.param_groups:
             b1, b2 = group["betas"]
             for p in group["params"]:

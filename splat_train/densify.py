@@ -24,6 +24,8 @@ from typing import Callable
 
 import torch
 
+from splat_train import _cpu_optim
+
 __all__ = ["DensifyStrategy", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]
 
@@ -195,8 +197,6 @@ class DensifyStrategy:
         """
         if iteration >= self.densify_until:
             return
-        from splat_train import _cpu_optim
-
         if _cpu_optim.densify_stats(state, means2d_grad.detach(), radii, visible, width, height):
             return  # the same accumulation in C on the kernel's threads (CPU float32)
         # dense masked updates (no boolean indexing: each mask index is a nonzero + gather +

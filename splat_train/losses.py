@@ -108,15 +108,24 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
     return float("inf") if mse == 0.0 else -10.0 * math.log10(mse)
 
 
-def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train._cpu_ssim`) for CPU
-    float32/float64 images with a target that needs no gradient; the reference otherwise."""
+def _cpu_kernel_for(render: torch.Tensor, target: torch.Tensor):
+    """:mod:`splat_train._cpu_ssim` when it applies to these images (CPU float32/float64, one
+    shape, a target that needs no gradient, the kernel built), else None."""
     if (render.device.type == "cpu" and target.device.type == "cpu" and not target.requires_grad
             and render.dtype in (torch.float32, torch.float64) and render.shape == target.shape):
         from splat_train import _cpu_ssim
 
         if _cpu_ssim.available():
-            return _cpu_ssim.ssim_cpu(_to_bchw(render, "render"), _to_bchw(target, "target").to(render.dtype))
+            return _cpu_ssim
+    return None
+
+
+def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train._cpu_ssim`) for CPU
+    float32/float64 images with a target that needs no gradient; the reference otherwise."""
+    kernel = _cpu_kernel_for(render, target)
+    if kernel is not None:
+        return kernel.ssim_cpu(_to_bchw(render, "render"), _to_bchw(target, "target").to(render.dtype))
     return ssim(render, target)
 
 
@@ -132,16 +141,12 @@ def photometric_loss(
     Returns:
         (loss, l1, ssim) scalars; loss carries the gradient.
     """
-    if (render.dim() == 3 and render.shape == target.shape and render.device.type == "cpu"
-            and target.device.type == "cpu" and not target.requires_grad
-            and render.dtype in (torch.float32, torch.float64)):
-        from splat_train import _cpu_ssim
-
-        if _cpu_ssim.available():
-            # both terms in one C++ pass on the [H, W, 3] images (no transposed copies, no
-            # per-term torch ops): the same values as the two calls below
-            l1, s = _cpu_ssim.l1_ssim_cpu(render, target.to(render.dtype))
-            return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
+    kernel = _cpu_kernel_for(render, target) if render.dim() == 3 else None
+    if kernel is not None:
+        # both terms in one C++ pass on the [H, W, 3] images (no transposed copies, no
+        # per-term torch ops): the same values as the two calls below
+        l1, s = kernel.l1_ssim_cpu(render, target.to(render.dtype))
+        return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
     l1 = l1_loss(render, target)
     s = _training_ssim(render, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s

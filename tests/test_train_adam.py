@@ -80,9 +80,9 @@ def test_adam_step_is_deterministic_across_threads():
 
 
 def test_adam_step_falls_back_to_torch():
-    """A missing gradient, float64 parameters or weight decay: optimizer.step() runs (same
-    result as calling it directly)."""
-    for case in ("no_grad", "float64", "weight_decay"):
+    """A missing gradient, float64 parameters, weight decay or groups with different betas:
+    optimizer.step() runs (same result as calling it directly)."""
+    for case in ("no_grad", "float64", "weight_decay", "betas"):
         dtype = torch.float64 if case == "float64" else torch.float32
         a, opt_a = _setup(dtype, True)
         b, opt_b = _setup(dtype, True)
@@ -90,6 +90,8 @@ def test_adam_step_falls_back_to_torch():
             if case == "weight_decay":
                 for group in opt.param_groups:
                     group["weight_decay"] = 0.01
+            if case == "betas":
+                opt.param_groups[2]["betas"] = (0.8, 0.99)
         for step in range(2):
             for params in (a, b):
                 for k, v in _grads(step, dtype).items():
