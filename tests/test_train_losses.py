@@ -124,12 +124,14 @@ def test_training_loss_uses_the_same_ssim_as_the_reference():
 
 
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
-@pytest.mark.parametrize("shape", [(37, 53, 3), (9, 12, 3), (5, 30, 1)])
+@pytest.mark.parametrize("shape", [(37, 53, 3), (9, 12, 3), (5, 30, 1), (150, 141, 3)])
 def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
     """The fused [H, W, C] pass of the training loss: L1 and SSIM values, the gradient of the
     3DGS loss and of each term alone, as the torch reference (tolerances as above); equal
     pixels (sign 0, as torch's abs backward) and a non-contiguous render (the rasterizer's
-    colour channels of a 4-channel buffer) included."""
+    colour channels of a 4-channel buffer) included. 150 x 141: several bands of rows per
+    channel (BAND_ROWS = 64) and every block size of the filters (4 vectors, 1 vector and
+    scalar columns in both dtypes)."""
     from splat_train import _cpu_ssim
 
     if not _cpu_ssim.available():
@@ -150,6 +152,31 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
         (g_ref,) = torch.autograd.grad(ref, buf, retain_graph=True)
         (g_got,) = torch.autograd.grad(got, buf, retain_graph=True)
         torch.testing.assert_close(g_got, g_ref, rtol=tol, atol=tol * g_ref.abs().max().item())
+
+
+def test_cpu_l1_ssim_independent_of_thread_count(monkeypatch):
+    """Values and gradient bit-identical on 1 and 2 kernel threads (work items write their own
+    rows and partial sums, which are added in a fixed order)."""
+    from splat_train import _cpu_ssim
+    from splat_train._cpu_build import set_kernel_threads
+
+    if not _cpu_ssim.available():
+        pytest.skip("SSIM kernel did not build")
+    monkeypatch.delenv("SPLAT_TRAIN_KERNEL_THREADS", raising=False)
+    g = torch.Generator().manual_seed(5)
+    a = torch.rand(150, 141, 3, generator=g, requires_grad=True)
+    b = torch.rand(150, 141, 3, generator=g)
+    out = []
+    try:
+        for n in (1, 2):
+            set_kernel_threads(n)
+            l1, s = _cpu_ssim.l1_ssim_cpu(a, b)
+            (ga,) = torch.autograd.grad(0.8 * l1 - 0.2 * s, a)
+            out.append((l1.detach(), s.detach(), ga))
+    finally:
+        set_kernel_threads(None)
+    for x, y in zip(*out):
+        assert torch.equal(x, y)
 
 
 def test_photometric_loss_fused_path_equals_the_two_terms():
