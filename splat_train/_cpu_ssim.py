@@ -28,6 +28,7 @@ from splat_train._cpu_build import Kernel as _Kernel
 from splat_train._cpu_build import ptr as _ptr
 from splat_train._cpu_build import run_threaded as _run_threaded
 from splat_train._cpu_build import suffix as _suffix
+from splat_train.losses import gaussian_window_1d
 
 __all__ = ["available", "ssim_cpu", "l1_ssim_cpu"]
 
@@ -56,13 +57,6 @@ def available() -> bool:
     return _KERNELS["ssim"].load() is not None
 
 
-def _window_1d(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
-    """The 1D factor of :func:`splat_train.losses.gaussian_window` (same float64 maths)."""
-    x = torch.arange(size, dtype=torch.float64) - size // 2
-    g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
-    return (g / g.sum()).to(dtype).contiguous()
-
-
 def _planes(img: Tensor, layout: str) -> tuple[Tensor, int, int, int, tuple[int, int, int]]:
     """(contiguous image, planes, H, W, element strides (plane, row, column)) of a [B, C, H, W]
     ("bchw") or [H, W, C] ("hwc") image."""
@@ -83,7 +77,7 @@ class _SSIML1CPU(torch.autograd.Function):
         dt = a.dtype
         a_, nc, H, W, st = _planes(a.detach(), layout)
         b_ = _planes(b.detach().to(dt), layout)[0]
-        g = _window_1d(window_size, sigma, dt)
+        g = gaussian_window_1d(window_size, sigma, dtype=dt).contiguous()
         m = torch.empty(nc, 5, H, W, dtype=dt)
         items = nc * -(-H // BAND_ROWS)
         sums = torch.empty(2, items, dtype=torch.float64)  # per item: SSIM map sum, |a - b| sum
