@@ -787,6 +787,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t F = FC > 0 ? FC : F_rt;
+  // per-row feature slots: FC when it is a constant (the rows' accumulators packed, 4 KB for
+  // 16 rows of 4 channels), else MAXF
+  constexpr int64_t FS = FC > 0 ? FC : MAXF;
   const int64_t n_tiles = tiles_x * tiles_y;
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
@@ -796,7 +799,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     const int64_t x0 = tx * TILE, y0 = ty * TILE;
     const int rows = (int)std::min<int64_t>(TILE, H - y0);
     const int cols = (int)std::min<int64_t>(TILE, W - x0);
-    V Tr[TILE], acc[TILE * MAXF];
+    V Tr[TILE], acc[TILE * FS];
     M last[TILE], count[TILE], done[TILE];
     bool alive[TILE];
     const V pxc = lane + splat<V>(T(x0)) + splat<V>(T(0.5));  // == T(x0 + j) + 0.5 exactly
@@ -807,7 +810,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
       last[i] = count[i] = M{};
       done[i] = outside;
       alive[i] = i < rows;
-      for (int64_t f = 0; f < F; ++f) acc[i * MAXF + f] = V{};
+      for (int64_t f = 0; f < F; ++f) acc[i * FS + f] = V{};
     }
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
@@ -864,7 +867,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
         for (int q = 0; q < NQ; ++q) vsel2_to(w[q], contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f)
-          for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * MAXF + f], w[q], splat<V>(fg[f]));
+          for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * FS + f], w[q], splat<V>(fg[f]));
         for (int q = 0; q < NQ; ++q) {
           vsel_to(Tr[i + q], contrib[q], test_T[q]);
           vsel_to(last[i + q], contrib[q], splat<M>(lk));
@@ -898,7 +901,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         const M stop = valid & vlt(test_T, splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
         const V w = vsel(contrib, alpha * Tr[i], splat<V>(T(0)));
-        for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * MAXF + f], w, splat<V>(fg[f]));
+        for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * FS + f], w, splat<V>(fg[f]));
         vsel_to(Tr[i], contrib, test_T);
         vsel_to(last[i], contrib, splat<M>(lk));
         if constexpr (CNT) count[i] -= contrib;
@@ -916,19 +919,19 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         if (CNT) std::memcpy(out_count + row, &count[i], sizeof(M));
 #ifdef SPLAT_SHUFFLE
         if (F == 4) {
-          interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * MAXF]), reinterpret_cast<float*>(out_accum + row * 4));
+          interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * FS]), reinterpret_cast<float*>(out_accum + row * 4));
           continue;
         }
 #endif
         for (int j = 0; j < cols; ++j)
-          for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
+          for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
         continue;
       }
       for (int j = 0; j < cols; ++j) {
         out_T[row + j] = Tr[i][j];
         out_last[row + j] = (int32_t)last[i][j];
         if (CNT) out_count[row + j] = (int32_t)count[i][j];
-        for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * MAXF + f][j];
+        for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
       }
     }
   }
@@ -951,6 +954,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t Fa = FC > 0 ? FC : Fa_rt;
+  constexpr int64_t FS = FC > 0 ? FC : MAXF;  // per-row feature slots (see forward_impl)
   const int64_t n_tiles = tiles_x * tiles_y;
   const int64_t S = 6 + F;
   V lane;
@@ -963,7 +967,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
     const int cols = (int)std::min<int64_t>(TILE, W - x0);
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     if (k1 <= k0) continue;
-    V Tr[TILE], vTT[TILE], rec[TILE * MAXF], vacc[TILE * MAXF];
+    V Tr[TILE], vTT[TILE], rec[TILE * FS], vacc[TILE * FS];
     M last[TILE];
     int64_t max_last = 0;
     int row_last[TILE];
@@ -973,7 +977,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       vTT[i] = V{};
       last[i] = M{};
       row_last[i] = 0;
-      for (int64_t f = 0; f < Fa; ++f) rec[i * MAXF + f] = vacc[i * MAXF + f] = V{};
+      for (int64_t f = 0; f < Fa; ++f) rec[i * FS + f] = vacc[i * FS + f] = V{};
       if (i >= rows) continue;
       const int64_t row = (y0 + i) * W + x0;
       if (sizeof(T) == 4 && cols == TILE) {  // a full row: vector loads (float: M is int32)
@@ -987,13 +991,13 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         if (F == 4) {
           Vec<float>::v ch[4];
           deinterleave4(reinterpret_cast<const float*>(v_accum + row * 4), ch);
-          for (int64_t f = 0; f < Fa; ++f) std::memcpy(&vacc[i * MAXF + f], &ch[f], sizeof(V));
+          for (int64_t f = 0; f < Fa; ++f) std::memcpy(&vacc[i * FS + f], &ch[f], sizeof(V));
           max_last = std::max<int64_t>(max_last, row_last[i]);
           continue;
         }
 #endif
         for (int j = 0; j < cols; ++j)
-          for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
+          for (int64_t f = 0; f < Fa; ++f) vacc[i * FS + f][j] = v_accum[(row + j) * F + f];
         max_last = std::max<int64_t>(max_last, row_last[i]);
         continue;
       }
@@ -1003,7 +1007,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         vTT[i][j] = v_T[row + j] * tf;  // dL/dT_final * T_final
         last[i][j] = out_last[row + j];
         row_last[i] = std::max(row_last[i], (int)out_last[row + j]);
-        for (int64_t f = 0; f < Fa; ++f) vacc[i * MAXF + f][j] = v_accum[(row + j) * F + f];
+        for (int64_t f = 0; f < Fa; ++f) vacc[i * FS + f][j] = v_accum[(row + j) * F + f];
       }
       max_last = std::max<int64_t>(max_last, row_last[i]);
     }
@@ -1095,8 +1099,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
         for (int64_t f = 0; f < Fa; ++f) {
           for (int q = 0; q < 2; ++q) {
-            V& rp = rec[(i + q) * MAXF + f];
-            const V vp = vacc[(i + q) * MAXF + f];
+            V& rp = rec[(i + q) * FS + f];
+            const V vp = vacc[(i + q) * FS + f];
             const V d = splat<V>(fg[f]) - rp;
             vfma_to(g_f[f], wm[q], vp);
             vfma_to(v_alpha[q], d, vp);
@@ -1135,8 +1139,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         const V wm = am * Tfront;
         V v_alpha{};
         for (int64_t f = 0; f < Fa; ++f) {
-          V& rp = rec[i * MAXF + f];
-          const V vp = vacc[i * MAXF + f];
+          V& rp = rec[i * FS + f];
+          const V vp = vacc[i * FS + f];
           const V d = splat<V>(fg[f]) - rp;
           vfma_to(g_f[f], wm, vp);
           vfma_to(v_alpha, d, vp);
