@@ -25,7 +25,13 @@
 // loads / stores, 24 shuffles per 8 coefficients) for the rest coefficients' load and the
 // gradient's store, and software prefetch of the next blocks' SH rows: 206k Gaussians, one
 // thread, forward / backward 10.0 / 21.2 ms as here, 11.0 / 21.8 (load) and 11.1 / 22.5 ms
-// (load + store), the same binaries timed in one process).
+// (load + store), the same binaries timed in one process). What did pay, with AVX-512VL, for
+// float32 rows of degree 3 in full blocks (load_sh16_block / store_sh16_block): transposing in
+// float, 8 x 8 in ymm registers, with the conversion to or from double done on whole vectors,
+// and AVX-512 mask registers for the partial rows (AVX2's vmaskmovps stores made the backward
+// 4-5 ms slower on this CPU). 201k-Gaussian fern checkpoint, one thread, CPU ms, three
+// alternating rounds: forward 9.75-9.89 -> 8.70-8.73, backward (with the test loss's autograd)
+// 33.6-34.5 -> 31.2-31.7; bit-identical.
 //
 // The SH coefficients come as a DC pointer and a rest pointer with row strides, so the
 // trainer's sh_dc [N, 3] and sh_rest [N, 15, 3] parameters are read (and their gradients
@@ -237,8 +243,57 @@ inline void load_sh_n(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co
     for (int j = 0; j < nr; ++j) co[3 + j][l] = (double)src[j];
   }
 }
+#if defined(__AVX512VL__)
+// 8 x 8 float transpose: r[j] = coefficient j's 8 lanes in, r[l] = lane l's 8 coefficients out.
+inline void transpose8(__m256* r) {
+  const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+  const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+  const __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+  const __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+  const __m256 s0 = _mm256_shuffle_ps(t0, t2, 0x44), s1 = _mm256_shuffle_ps(t0, t2, 0xEE);
+  const __m256 s2 = _mm256_shuffle_ps(t1, t3, 0x44), s3 = _mm256_shuffle_ps(t1, t3, 0xEE);
+  const __m256 s4 = _mm256_shuffle_ps(t4, t6, 0x44), s5 = _mm256_shuffle_ps(t4, t6, 0xEE);
+  const __m256 s6 = _mm256_shuffle_ps(t5, t7, 0x44), s7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+  r[0] = _mm256_permute2f128_ps(s0, s4, 0x20); r[1] = _mm256_permute2f128_ps(s1, s5, 0x20);
+  r[2] = _mm256_permute2f128_ps(s2, s6, 0x20); r[3] = _mm256_permute2f128_ps(s3, s7, 0x20);
+  r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
+  r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
+}
+
+// load_sh_n<16> for a full block of float rows with rest_k = 15: per Gaussian one 8-float row
+// of the DC term and rest 0-4 (masked loads) and five of rest 5-44, six 8 x 8 transposes, then
+// each coefficient's lanes widened to double (exact, as the per-lane casts), instead of 48
+// scalar loads and conversions per Gaussian.
+inline void load_sh16_block(const float* dc, int64_t dc_stride, const float* rest, int64_t rest_stride, D* co) {
+  __m256 g[6][8];
+  const __m256i shift3 = _mm256_setr_epi32(0, 0, 0, 0, 1, 2, 3, 4);
+  for (int l = 0; l < LN; ++l) {
+    const float* d = dc + l * dc_stride;
+    const float* r = rest + l * rest_stride;
+    const __m256 vd = _mm256_maskz_loadu_ps(0x07, d);
+    const __m256 vr = _mm256_permutevar8x32_ps(_mm256_maskz_loadu_ps(0x1F, r), shift3);
+    g[0][l] = _mm256_blend_ps(vd, vr, 0xF8);
+    for (int q = 1; q < 6; ++q) g[q][l] = _mm256_loadu_ps(r + 8 * q - 3);
+  }
+  for (int q = 0; q < 6; ++q) transpose8(g[q]);
+  for (int j = 0; j < 48; ++j) {
+    __m512d w = _mm512_cvtps_pd(g[j / 8][j % 8]);
+    std::memcpy(&co[j], &w, 64);
+  }
+}
+#endif
+
 template <typename T>
 inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+#if defined(__AVX512VL__)
+  if constexpr (sizeof(T) == 4) {
+    if (nb == 16 && sh.rest_k == 15 && B.nl == LN) {
+      load_sh16_block((const float*)sh.dc + i0 * sh.dc_stride, sh.dc_stride, (const float*)sh.rest + i0 * sh.rest_stride,
+                      sh.rest_stride, co);
+      return;
+    }
+  }
+#endif
   if (nb == 16) load_sh_n<16>(B, i0, nb, sh, co);  // degree 3: constant trip counts
   else load_sh_n<0>(B, i0, nb, sh, co);
 }
@@ -312,6 +367,30 @@ inline void store_sh_n(const D* vco, int l, int nb, T* dc, T* rest, int64_t rest
   for (int j = 0; j < nr; ++j) rest[j] = (T)vco[3 + j][l];
   for (int64_t j = nr; j < 3 * rest_k; ++j) rest[j] = T(0);
 }
+
+#if defined(__AVX512VL__)
+// store_sh_n<16> for all eight lanes of a full block, float rows with rest_k = 15: each
+// gradient converted to float in its lanes (the same rounding as the per-lane (T) casts), then
+// six 8 x 8 transposes and per Gaussian one 3-float and five 8-float stores plus a 5-float one,
+// instead of 48 scalar conversions and stores per Gaussian.
+inline void store_sh16_block(const D* vco, float* dc, int64_t dc_stride, float* rest, int64_t rest_stride) {
+  typedef float F8 __attribute__((vector_size(32)));
+  __m256 g[6][8];
+  for (int j = 0; j < 48; ++j) {
+    const F8 f = __builtin_convertvector(vco[j], F8);
+    std::memcpy(&g[j / 8][j % 8], &f, 32);
+  }
+  for (int q = 0; q < 6; ++q) transpose8(g[q]);
+  const __m256i shift3 = _mm256_setr_epi32(3, 4, 5, 6, 7, 0, 0, 0);
+  for (int l = 0; l < LN; ++l) {
+    float* d = dc + l * dc_stride;
+    float* r = rest + l * rest_stride;
+    _mm256_mask_storeu_ps(d, 0x07, g[0][l]);  // values 0-2: the DC term
+    _mm256_mask_storeu_ps(r, 0x1F, _mm256_permutevar8x32_ps(g[0][l], shift3));  // 3-7: rest 0-4
+    for (int q = 1; q < 6; ++q) _mm256_storeu_ps(r + 8 * q - 3, g[q][l]);  // rest 8q-3 .. 8q+4
+  }
+}
+#endif
 
 template <typename T>
 void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
@@ -418,12 +497,22 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
           for (int j = 0; j < 3; ++j) vm[j] = far ? vm[j] + (vd[j] - d[j] * dot) / norm : vm[j];
         }
       }
+      bool sh_done = false;
+#if defined(__AVX512VL__)
+      if constexpr (sizeof(T) == 4) {
+        if (sh_deg >= 0 && nb == 16 && sh.rest_k == 15 && P.nl == LN) {
+          store_sh16_block(vco, (float*)v_dc + ib * sh.dc_stride, sh.dc_stride, (float*)v_rest + ib * sh.rest_stride,
+                           sh.rest_stride);
+          sh_done = true;
+        }
+      }
+#endif
       for (int l = 0; l < P.nl; ++l) {
         const int64_t i = ib + l;
         for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
         for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
         for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
-        if (sh_deg >= 0) {  // v_dc, v_rest: the layout of sh (strides dc_stride, rest_stride)
+        if (sh_deg >= 0 && !sh_done) {  // v_dc, v_rest: the layout of sh (strides dc_stride, rest_stride)
           if (nb == 16) store_sh_n<16>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
           else store_sh_n<0>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
         }
