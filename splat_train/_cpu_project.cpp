@@ -28,10 +28,10 @@
 // (load + store), the same binaries timed in one process). What did pay, with AVX-512VL, for
 // float32 rows of degree 3 in full blocks (load_sh16_block / store_sh16_block): transposing in
 // float, 8 x 8 in ymm registers, with the conversion to or from double done on whole vectors,
-// and AVX-512 mask registers for the partial rows (AVX2's vmaskmovps stores made the backward
-// 4-5 ms slower on this CPU). 201k-Gaussian fern checkpoint, one thread, CPU ms, three
-// alternating rounds: forward 9.75-9.89 -> 8.70-8.73, backward (with the test loss's autograd)
-// 33.6-34.5 -> 31.2-31.7; bit-identical.
+// and AVX-512 mask registers for the partial rows (with AVX2's vmaskmovps stores instead, the
+// projection backward measured 3.5-6 ms slower on this CPU, two rounds). 201k-Gaussian fern
+// checkpoint, one thread, CPU ms, three alternating rounds: forward 9.75-9.89 -> 8.70-8.73,
+// backward (with the test loss's autograd) 33.6-34.5 -> 31.2-31.7; bit-identical.
 //
 // The SH coefficients come as a DC pointer and a rest pointer with row strides, so the
 // trainer's sh_dc [N, 3] and sh_rest [N, 15, 3] parameters are read (and their gradients
