@@ -138,11 +138,11 @@ void forward_impl(int64_t C, int64_t H, int64_t W, int ws, int64_t band, const T
       for (int64_t y = y0; y < y1; ++y) col_filter(H, W, ws, g, tmp.data() + j * nr * W, ylo, y, mc + j * P + y * W);
     double total = 0;
     for (int64_t y = y0; y < y1; ++y) {
-      const T* r = mc + y * W;
+      const T* mrow = mc + y * W;
       for (int64_t x = 0; x < W; ++x) {  // the map's row (vectorised: no dependence between x)
-        const T m0 = r[x], m1 = r[P + x];
+        const T m0 = mrow[x], m1 = mrow[P + x];
         const T mu1_sq = m0 * m0, mu2_sq = m1 * m1, mu12 = m0 * m1;
-        const T s11 = r[2 * P + x] - mu1_sq, s22 = r[3 * P + x] - mu2_sq, s12 = r[4 * P + x] - mu12;
+        const T s11 = mrow[2 * P + x] - mu1_sq, s22 = mrow[3 * P + x] - mu2_sq, s12 = mrow[4 * P + x] - mu12;
         srow[x] = ((T(2) * mu12 + T(C1)) * (T(2) * s12 + T(C2))) / ((mu1_sq + mu2_sq + T(C1)) * (s11 + s22 + T(C2)));
       }
       total += lane_sum(W, [&](int64_t x) { return srow[x]; });
