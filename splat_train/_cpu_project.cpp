@@ -277,18 +277,30 @@ inline void load_sh16_block(const float* dc, int64_t dc_stride, const float* res
   }
   for (int q = 0; q < 6; ++q) transpose8(g[q]);
   for (int j = 0; j < 48; ++j) {
-    __m512d w = _mm512_cvtps_pd(g[j / 8][j % 8]);
+    // (masked: the unmasked form trips -Wmaybe-uninitialized in GCC 12's header)
+    const __m512d w = _mm512_maskz_cvtps_pd(0xFF, g[j / 8][j % 8]);
     std::memcpy(&co[j], &w, 64);
   }
 }
 #endif
 
+// Whether the block's SH rows take the transposed paths (load_sh16_block, store_sh16_block):
+// AVX-512VL, float rows of degree 3 stored with exactly 15 rest coefficients, a full block.
+template <typename T>
+inline bool sh16_block(const Block& B, int nb, const SH<T>& sh) {
+#if defined(__AVX512VL__)
+  return sizeof(T) == 4 && nb == 16 && sh.rest_k == 15 && B.nl == LN;
+#else
+  return false;
+#endif
+}
+
 template <typename T>
 inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
 #if defined(__AVX512VL__)
   if constexpr (sizeof(T) == 4) {
-    if (nb == 16 && sh.rest_k == 15 && B.nl == LN) {
-      load_sh16_block((const float*)sh.dc + i0 * sh.dc_stride, sh.dc_stride, (const float*)sh.rest + i0 * sh.rest_stride,
+    if (sh16_block(B, nb, sh)) {
+      load_sh16_block(sh.dc + i0 * sh.dc_stride, sh.dc_stride, sh.rest + i0 * sh.rest_stride,
                       sh.rest_stride, co);
       return;
     }
@@ -391,6 +403,24 @@ inline void store_sh16_block(const D* vco, float* dc, int64_t dc_stride, float* 
   }
 }
 #endif
+
+// The coefficient gradients vco of the block's real lanes into v_dc / v_rest (the layout of sh).
+template <typename T>
+inline void store_sh(const D* vco, const Block& B, int64_t i0, int nb, const SH<T>& sh, T* v_dc, T* v_rest) {
+#if defined(__AVX512VL__)
+  if constexpr (sizeof(T) == 4) {
+    if (sh16_block(B, nb, sh)) {
+      store_sh16_block(vco, v_dc + i0 * sh.dc_stride, sh.dc_stride, v_rest + i0 * sh.rest_stride, sh.rest_stride);
+      return;
+    }
+  }
+#endif
+  for (int l = 0; l < B.nl; ++l) {
+    const int64_t i = i0 + l;
+    if (nb == 16) store_sh_n<16>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
+    else store_sh_n<0>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
+  }
+}
 
 template <typename T>
 void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
@@ -497,26 +527,13 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
           for (int j = 0; j < 3; ++j) vm[j] = far ? vm[j] + (vd[j] - d[j] * dot) / norm : vm[j];
         }
       }
-      bool sh_done = false;
-#if defined(__AVX512VL__)
-      if constexpr (sizeof(T) == 4) {
-        if (sh_deg >= 0 && nb == 16 && sh.rest_k == 15 && P.nl == LN) {
-          store_sh16_block(vco, (float*)v_dc + ib * sh.dc_stride, sh.dc_stride, (float*)v_rest + ib * sh.rest_stride,
-                           sh.rest_stride);
-          sh_done = true;
-        }
-      }
-#endif
       for (int l = 0; l < P.nl; ++l) {
         const int64_t i = ib + l;
         for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
         for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
         for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
-        if (sh_deg >= 0 && !sh_done) {  // v_dc, v_rest: the layout of sh (strides dc_stride, rest_stride)
-          if (nb == 16) store_sh_n<16>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
-          else store_sh_n<0>(vco, l, nb, v_dc + i * sh.dc_stride, v_rest + i * sh.rest_stride, sh.rest_k);
-        }
       }
+      if (sh_deg >= 0) store_sh(vco, P, ib, nb, sh, v_dc, v_rest);
     }
   }
 }
