@@ -517,7 +517,7 @@ inline bool row_hits(const double* fp, double mx, double dy, double px0, int col
   // and its mispredictions cost the backward's row loop more than evaluating every term.
   const double xc = mx + fp[1] * dy;
   const double e = std::max(px0 + 0.5 - xc, xc - (px0 + cols - 0.5)) - 1.0;
-  return !(hw2 < -1e-6 * fp[2]) & ((e <= 0) | (std::max(hw2, 0.0) * (1 + 4e-6) >= e * e));
+  return (!(hw2 < -1e-6 * fp[2])) & ((e <= 0) | (std::max(hw2, 0.0) * (1 + 4e-6) >= e * e));
 }
 
 // fn(ty, c0, c1) for each tile row ty of the rectangle r = (x0, x1, y0, y1): the tile columns
