@@ -937,6 +937,123 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   }
 }
 
+#if defined(__AVX512F__)
+// forward_impl<float, 4, false> (the rasterizer's case) with its per-lane masks in AVX-512 mask
+// registers. Written with GCC's vector extensions, the masks were vectors of 16 ints: each
+// comparison result was widened into a zmm register (vmovdqa32 {z}), combined with vector
+// and / andnot, and narrowed again for every select (vpcmpneqd / vptestmd), `done` lived in
+// memory as a vector, and every `last` update was a load, a masked broadcast and a store;
+// the four-row step ran ~82 instructions per row. Here pos / valid / stop / contrib are
+// __mmask16 values, `done` a 16-bit mask per row, `last` a masked store, and the arithmetic
+// the very vector expressions of forward_impl (the same contractions): bit-identical to it.
+inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, const int64_t* offsets,
+                              const int32_t* gauss, const float* means2d, const float* conics, const float* opac,
+                              const float* feat, const double* fps, float* out_accum, float* out_T,
+                              int32_t* out_last, const int32_t* tile_order, int64_t* next_tile) {
+  typedef Vec<float>::v V;
+  constexpr int64_t F = 4;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  V lane;
+  for (int l = 0; l < TILE; ++l) lane[l] = float(l);
+  const __m512 zero = _mm512_setzero_ps(), amin = _mm512_set1_ps(Consts<float>::alpha_min),
+               amax = _mm512_set1_ps(Consts<float>::alpha_max), tmin = _mm512_set1_ps(Consts<float>::t_min);
+  for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
+    const int64_t tx = t % tiles_x, ty = t / tiles_x;
+    const int64_t x0 = tx * TILE, y0 = ty * TILE;
+    const int rows = (int)std::min<int64_t>(TILE, H - y0);
+    const int cols = (int)std::min<int64_t>(TILE, W - x0);
+    V Tr[TILE], acc[TILE * F];
+    __m512i last[TILE];
+    __mmask16 done[TILE];
+    bool alive[TILE];
+    const V pxc = lane + splat<V>(float(x0)) + splat<V>(0.5f);
+    const __mmask16 outside = (__mmask16)(0xFFFFu << cols);  // lanes j >= cols
+    int n_alive = rows;
+    for (int i = 0; i < TILE; ++i) {
+      Tr[i] = splat<V>(1.0f);
+      last[i] = _mm512_setzero_si512();
+      done[i] = outside;
+      alive[i] = i < rows;
+      for (int64_t f = 0; f < F; ++f) acc[i * F + f] = V{};
+    }
+    const int64_t k0 = offsets[t], k1 = offsets[t + 1];
+    for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
+      if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
+      const int64_t g = gauss[k];
+      const float mx = means2d[2 * g], my = means2d[2 * g + 1];
+      const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+      const float op = opac[g];
+      const double* fp = fps + FP * g;
+      if (fp[0] < 0) continue;
+      int i0, i1;
+      row_range(fp, (double)my, (double)y0, rows, i0, i1);
+      const float* fg = feat + g * F;
+      const V dx = splat<V>(mx) - pxc;
+      const V adx2 = splat<V>(a) * dx * dx;
+      const __m512i lk = _mm512_set1_epi32((int32_t)(k - k0 + 1));
+      auto rows_step = [&](auto nq, int i) {
+        constexpr int NQ = decltype(nq)::value;
+        bool none = true;
+        for (int q = 0; q < NQ; ++q) none &= !alive[i + q];
+        if (none) return;
+        float dy[NQ];
+        V power[NQ], alpha[NQ];
+        __mmask16 pos[NQ], stops[NQ], any_stop = 0;
+        for (int q = 0; q < NQ; ++q) dy[q] = my - (float(y0 + i + q) + 0.5f);
+        for (int q = 0; q < NQ; ++q)
+          power[q] = splat<V>(-0.5f) * (adx2 + splat<V>(c * dy[q] * dy[q])) - splat<V>(b) * dx * splat<V>(dy[q]);
+        for (int q = 0; q < NQ; ++q) pos[q] = _mm512_cmp_ps_mask(power[q], zero, _CMP_LE_OQ);
+        for (int q = 0; q < NQ; ++q) alpha[q] = _mm512_maskz_mov_ps(pos[q], power[q]);
+        vexpn<NQ>(alpha);
+        for (int q = 0; q < NQ; ++q) alpha[q] = splat<V>(op) * alpha[q];
+        for (int q = 0; q < NQ; ++q) alpha[q] = _mm512_min_ps(alpha[q], amax);  // alpha < amax ? alpha : amax
+        for (int q = 0; q < NQ; ++q) {
+          const __mmask16 valid = _mm512_mask_cmp_ps_mask(pos[q] & (__mmask16)~done[i + q], alpha[q], amin, _CMP_GE_OQ);
+          const V test_T = Tr[i + q] * (splat<V>(1.0f) - alpha[q]);
+          const __mmask16 stop = _mm512_mask_cmp_ps_mask(valid, test_T, tmin, _CMP_LT_OQ);
+          const __mmask16 contrib = valid & (__mmask16)~stop;
+          const V w = _mm512_maskz_mul_ps(contrib, alpha[q], Tr[i + q]);
+          for (int64_t f = 0; f < F; ++f) acc[(i + q) * F + f] += w * splat<V>(fg[f]);
+          Tr[i + q] = _mm512_mask_mov_ps(Tr[i + q], contrib, test_T);
+          _mm512_mask_storeu_epi32(&last[i + q], contrib, lk);
+          stops[q] = stop;
+          any_stop |= stop;
+        }
+        if (any_stop) {
+          for (int q = 0; q < NQ; ++q) {
+            done[i + q] |= stops[q];
+            if (alive[i + q] && done[i + q] == 0xFFFF) { alive[i + q] = false; --n_alive; }
+          }
+        }
+      };
+      int i = i0;
+      for (; i + 3 < i1; i += 4) rows_step(std::integral_constant<int, 4>{}, i);
+      for (; i + 1 < i1; i += 2) rows_step(std::integral_constant<int, 2>{}, i);
+      for (; i < i1; ++i) rows_step(std::integral_constant<int, 1>{}, i);
+    }
+    for (int i = 0; i < rows; ++i) {
+      const int64_t row = (y0 + i) * W + x0;
+      if (cols == TILE) {  // a full row: plain 64-byte copies
+        std::memcpy(out_T + row, &Tr[i], sizeof(V));
+        std::memcpy(out_last + row, &last[i], sizeof(V));
+#ifdef SPLAT_SHUFFLE
+        interleave4(&acc[i * F], out_accum + row * 4);
+        continue;
+#endif
+      }
+      int32_t lst[TILE];
+      std::memcpy(lst, &last[i], sizeof(lst));
+      for (int j = 0; j < cols; ++j) {
+        out_T[row + j] = Tr[i][j];
+        out_last[row + j] = lst[j];
+        for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * F + f][j];
+      }
+    }
+  }
+}
+#endif
+
 // Per pair k the gradient row v_pair[k * (6 + F) + ...] = (v_mx, v_my, v_a, v_b, v_c,
 // v_op, v_feat[0..F)), written for the pairs k0 .. k0 + max_last of each tile (zeros where
 // nothing contributed); live[k] = 1 for those, 0 for the rest (never written, never read).
@@ -1258,6 +1375,13 @@ template <typename T>
 void forward_for(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, const int64_t* off,
                  const int32_t* gs, const T* m, const T* co, const T* op, const T* fe, const double* fp,
                  T* acc, T* Tf, int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
+#if defined(__AVX512F__)
+  if (std::is_same<T, float>::value && F == 4 && !cnt) {
+    forward_f4_avx512(tx, ty, W, H, off, gs, (const float*)m, (const float*)co, (const float*)op, (const float*)fe,
+                      fp, (float*)acc, (float*)Tf, last, ord, nth);
+    return;
+  }
+#endif
   if (F == 4 && !cnt) {
     forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
   } else if (F == 4) {
