@@ -14,7 +14,8 @@
 //   whose pixels have all stopped is skipped; the tile ends when every row has. Rows go four
 //   or two per step with their exp chains interleaved and no per-row branch on the masks
 //   (the loop is latency-bound: a row is one long dependency chain); the backward likewise
-//   two per step.
+//   two per step. The rasterizer's own case (float32, RGB + depth, no per-pixel counts) runs
+//   forward_f4_avx512 on AVX-512 CPUs: the same loop with its masks in mask registers.
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
 //   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
