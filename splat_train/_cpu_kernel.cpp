@@ -776,6 +776,32 @@ inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T*
   __builtin_prefetch(fps + FP * g);
 }
 
+// One tile-Gaussian pair as the blend loops read it: Gaussian g's mean, conic, opacity,
+// features and footprint record, and the tile rows [i0, i1) (of the tile's rows from y0) that
+// row_range() lets it reach. False when its opacity is below 1/255 (it blends nothing).
+template <typename T>
+struct Pair {
+  T mx, my, a, b, c, op;
+  const T* fg;
+  const double* fp;
+  int i0, i1;
+};
+template <typename T>
+inline bool load_pair(int64_t g, const T* means2d, const T* conics, const T* opac, const T* feat, int64_t F,
+                      const double* fps, int64_t y0, int rows, Pair<T>& p) {
+  p.mx = means2d[2 * g];
+  p.my = means2d[2 * g + 1];
+  p.a = conics[3 * g];
+  p.b = conics[3 * g + 1];
+  p.c = conics[3 * g + 2];
+  p.op = opac[g];
+  p.fp = fps + FP * g;
+  if (p.fp[0] < 0) return false;
+  row_range(p.fp, (double)p.my, (double)y0, rows, p.i0, p.i1);
+  p.fg = feat + g * F;
+  return true;
+}
+
 // FC > 0: F == FC as a compile-time constant (4: RGB + depth, the rasterizer's case).
 // CNT: out_count is wanted (the per-pixel blend counts; benchmarks and tests): the
 // rasterizer passes none, which saves two of the ~40 vector operations per row.
@@ -816,15 +842,11 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
-      const int64_t g = gauss[k];
-      const T mx = means2d[2 * g], my = means2d[2 * g + 1];
-      const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-      const T op = opac[g];
-      const double* fp = fps + FP * g;
-      if (fp[0] < 0) continue;
-      int i0, i1;
-      row_range(fp, (double)my, (double)y0, rows, i0, i1);
-      const T* fg = feat + g * F;
+      Pair<T> p;
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) continue;
+      const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
+      const T* fg = p.fg;
+      const int i0 = p.i0, i1 = p.i1;
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const typename Vec<T>::mi lk = (typename Vec<T>::mi)(k - k0 + 1);
@@ -981,15 +1003,11 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
-      const int64_t g = gauss[k];
-      const float mx = means2d[2 * g], my = means2d[2 * g + 1];
-      const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-      const float op = opac[g];
-      const double* fp = fps + FP * g;
-      if (fp[0] < 0) continue;
-      int i0, i1;
-      row_range(fp, (double)my, (double)y0, rows, i0, i1);
-      const float* fg = feat + g * F;
+      Pair<float> p;
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) continue;
+      const float mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
+      const float* fg = p.fg;
+      const int i0 = p.i0, i1 = p.i1;
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const __m512i lk = _mm512_set1_epi32((int32_t)(k - k0 + 1));
@@ -1150,15 +1168,12 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       // were ~430k scattered 40-byte writes, ~6 ms of a ~75 ms backward on the fern cell)
       T* gp = v_pair + k * S;
       const int32_t local = (int32_t)(k - k0);
-      const int64_t g = gauss[k];
-      const T mx = means2d[2 * g], my = means2d[2 * g + 1];
-      const T a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-      const T op = opac[g];
-      const double* fp = fps + FP * g;
-      if (fp[0] < 0) { clear(gp, 0); continue; }
-      int i0, i1;
-      row_range(fp, (double)my, (double)y0, rows, i0, i1);
-      const T* fg = feat + g * F;
+      Pair<T> p;
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { clear(gp, 0); continue; }
+      const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
+      const double* fp = p.fp;
+      const T* fg = p.fg;
+      const int i0 = p.i0, i1 = p.i1;
       // per lane: G0 = sum over rows of dL/dG (masked), G1 = sum dy dL/dG, G2 = sum dy^2 dL/dG;
       // dx is constant along a lane, so the five conic/mean gradients follow from these three
       // once per pair (v_power = op dL/dG, power = -(a dx^2 + c dy^2) / 2 - b dx dy)
