@@ -802,6 +802,56 @@ inline bool load_pair(int64_t g, const T* means2d, const T* conics, const T* opa
   return true;
 }
 
+// Work item c of the blend loops: tile t (tile_order[c], the busiest first, see Bins), its
+// first pixel (x0, y0) and its rows and columns inside the image (fewer than TILE at the right
+// and bottom edges).
+struct Tile {
+  int64_t t, x0, y0;
+  int rows, cols;
+};
+inline Tile tile_at(int64_t c, const int32_t* tile_order, int64_t tiles_x, int64_t W, int64_t H) {
+  Tile tl;
+  tl.t = tile_order ? tile_order[c] : c;
+  tl.x0 = (tl.t % tiles_x) * TILE;
+  tl.y0 = (tl.t / tiles_x) * TILE;
+  tl.rows = (int)std::min<int64_t>(TILE, H - tl.y0);
+  tl.cols = (int)std::min<int64_t>(TILE, W - tl.x0);
+  return tl;
+}
+
+// Row i of a finished forward tile into the outputs: T, the last contributor, the blend count
+// (when count is given) and the F channels of the accumulators (FS vectors per row).
+template <typename T, int64_t FS>
+inline void store_tile_row(const Tile& tl, int i, int64_t W, int64_t F, const typename Vec<T>::v* Tr,
+                           const typename Vec<T>::m* last, const typename Vec<T>::m* count,
+                           const typename Vec<T>::v* acc, T* out_accum, T* out_T, int32_t* out_last,
+                           int32_t* out_count) {
+  typedef typename Vec<T>::v V;
+  typedef typename Vec<T>::m M;
+  const int64_t row = (tl.y0 + i) * W + tl.x0;
+  const int cols = tl.cols;
+  if (sizeof(T) == 4 && cols == TILE) {  // a full row: three plain 64-byte copies
+    std::memcpy(out_T + row, &Tr[i], sizeof(V));
+    std::memcpy(out_last + row, &last[i], sizeof(M));
+    if (count) std::memcpy(out_count + row, &count[i], sizeof(M));
+#ifdef SPLAT_SHUFFLE
+    if (F == 4) {
+      interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * FS]), reinterpret_cast<float*>(out_accum + row * 4));
+      return;
+    }
+#endif
+    for (int j = 0; j < cols; ++j)
+      for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
+    return;
+  }
+  for (int j = 0; j < cols; ++j) {
+    out_T[row + j] = Tr[i][j];
+    out_last[row + j] = (int32_t)last[i][j];
+    if (count) out_count[row + j] = (int32_t)count[i][j];
+    for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
+  }
+}
+
 // FC > 0: F == FC as a compile-time constant (4: RGB + depth, the rasterizer's case).
 // CNT: out_count is wanted (the per-pixel blend counts; benchmarks and tests): the
 // rasterizer passes none, which saves two of the ~40 vector operations per row.
@@ -821,11 +871,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
   for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
-    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
-    const int64_t tx = t % tiles_x, ty = t / tiles_x;
-    const int64_t x0 = tx * TILE, y0 = ty * TILE;
-    const int rows = (int)std::min<int64_t>(TILE, H - y0);
-    const int cols = (int)std::min<int64_t>(TILE, W - x0);
+    const Tile tl = tile_at(c, tile_order, tiles_x, W, H);
+    const int64_t t = tl.t, x0 = tl.x0, y0 = tl.y0;
+    const int rows = tl.rows, cols = tl.cols;
     V Tr[TILE], acc[TILE * FS];
     M last[TILE], count[TILE], done[TILE];
     bool alive[TILE];
@@ -934,29 +982,8 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         }
       }
     }
-    for (int i = 0; i < rows; ++i) {
-      const int64_t row = (y0 + i) * W + x0;
-      if (sizeof(T) == 4 && cols == TILE) {  // a full row: three plain 64-byte copies
-        std::memcpy(out_T + row, &Tr[i], sizeof(V));
-        std::memcpy(out_last + row, &last[i], sizeof(M));
-        if (CNT) std::memcpy(out_count + row, &count[i], sizeof(M));
-#ifdef SPLAT_SHUFFLE
-        if (F == 4) {
-          interleave4(reinterpret_cast<const Vec<float>::v*>(&acc[i * FS]), reinterpret_cast<float*>(out_accum + row * 4));
-          continue;
-        }
-#endif
-        for (int j = 0; j < cols; ++j)
-          for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
-        continue;
-      }
-      for (int j = 0; j < cols; ++j) {
-        out_T[row + j] = Tr[i][j];
-        out_last[row + j] = (int32_t)last[i][j];
-        if (CNT) out_count[row + j] = (int32_t)count[i][j];
-        for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * FS + f][j];
-      }
-    }
+    for (int i = 0; i < rows; ++i)
+      store_tile_row<T, FS>(tl, i, W, F, Tr, last, CNT ? count : nullptr, acc, out_accum, out_T, out_last, out_count);
   }
 }
 
@@ -981,13 +1008,11 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
   const __m512 zero = _mm512_setzero_ps(), amin = _mm512_set1_ps(Consts<float>::alpha_min),
                amax = _mm512_set1_ps(Consts<float>::alpha_max), tmin = _mm512_set1_ps(Consts<float>::t_min);
   for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
-    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
-    const int64_t tx = t % tiles_x, ty = t / tiles_x;
-    const int64_t x0 = tx * TILE, y0 = ty * TILE;
-    const int rows = (int)std::min<int64_t>(TILE, H - y0);
-    const int cols = (int)std::min<int64_t>(TILE, W - x0);
+    const Tile tl = tile_at(c, tile_order, tiles_x, W, H);
+    const int64_t t = tl.t, x0 = tl.x0, y0 = tl.y0;
+    const int rows = tl.rows, cols = tl.cols;
     V Tr[TILE], acc[TILE * F];
-    __m512i last[TILE];
+    Vec<float>::m last[TILE];
     __mmask16 done[TILE];
     bool alive[TILE];
     const V pxc = lane + splat<V>(float(x0)) + splat<V>(0.5f);
@@ -995,7 +1020,7 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
     int n_alive = rows;
     for (int i = 0; i < TILE; ++i) {
       Tr[i] = splat<V>(1.0f);
-      last[i] = _mm512_setzero_si512();
+      last[i] = Vec<float>::m{};
       done[i] = outside;
       alive[i] = i < rows;
       for (int64_t f = 0; f < F; ++f) acc[i * F + f] = V{};
@@ -1051,24 +1076,8 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
       for (; i + 1 < i1; i += 2) rows_step(std::integral_constant<int, 2>{}, i);
       for (; i < i1; ++i) rows_step(std::integral_constant<int, 1>{}, i);
     }
-    for (int i = 0; i < rows; ++i) {
-      const int64_t row = (y0 + i) * W + x0;
-      if (cols == TILE) {  // a full row: plain 64-byte copies
-        std::memcpy(out_T + row, &Tr[i], sizeof(V));
-        std::memcpy(out_last + row, &last[i], sizeof(V));
-#ifdef SPLAT_SHUFFLE
-        interleave4(&acc[i * F], out_accum + row * 4);
-        continue;
-#endif
-      }
-      int32_t lst[TILE];
-      std::memcpy(lst, &last[i], sizeof(lst));
-      for (int j = 0; j < cols; ++j) {
-        out_T[row + j] = Tr[i][j];
-        out_last[row + j] = lst[j];
-        for (int64_t f = 0; f < F; ++f) out_accum[(row + j) * F + f] = acc[i * F + f][j];
-      }
-    }
+    for (int i = 0; i < rows; ++i)
+      store_tile_row<float, F>(tl, i, W, F, Tr, last, nullptr, acc, out_accum, out_T, out_last, nullptr);
   }
 }
 #endif
@@ -1096,11 +1105,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
   V lane;
   for (int l = 0; l < TILE; ++l) lane[l] = T(l);
   for (int64_t c; (c = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
-    const int64_t t = tile_order ? tile_order[c] : c;  // the busiest tiles first (see Bins)
-    const int64_t tx = t % tiles_x, ty = t / tiles_x;
-    const int64_t x0 = tx * TILE, y0 = ty * TILE;
-    const int rows = (int)std::min<int64_t>(TILE, H - y0);
-    const int cols = (int)std::min<int64_t>(TILE, W - x0);
+    const Tile tl = tile_at(c, tile_order, tiles_x, W, H);
+    const int64_t t = tl.t, x0 = tl.x0, y0 = tl.y0;
+    const int rows = tl.rows, cols = tl.cols;
     const int64_t k0 = offsets[t], k1 = offsets[t + 1];
     if (k1 <= k0) continue;
     V Tr[TILE], vTT[TILE], rec[TILE * FS], vacc[TILE * FS];
