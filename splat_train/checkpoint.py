@@ -21,7 +21,7 @@ import torch
 from camio.atomic import atomic_path
 
 __all__ = ["checkpoint_path", "list_checkpoints", "latest_checkpoint", "save_checkpoint",
-           "load_checkpoint", "CKPT_DIR"]
+           "load_checkpoint", "CKPT_DIR", "CPU_KEYS"]
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +63,33 @@ def save_checkpoint(out_dir: str | Path, iteration: int, payload: dict[str, Any]
     return path
 
 
+# Entries that stay on the CPU whatever the training device: the random generator state (the
+# trainer's torch.Generator is a CPU one; set_state refuses a CUDA tensor).
+CPU_KEYS = ("rng",)
+
+
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True``; tensors mapped to ``device``."""
+    """Read a checkpoint with ``weights_only=True``; tensors mapped to ``device``, except the
+    top-level :data:`CPU_KEYS` (read onto the CPU)."""
+    data = _read(path)
+    return {k: (v if k in CPU_KEYS else _to(v, torch.device(device))) for k, v in data.items()}
+
+
+def _to(obj: Any, device: torch.device) -> Any:
+    """``obj`` with every tensor in it (through dicts, lists and tuples) moved to ``device``."""
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if isinstance(obj, dict):
+        return {k: _to(v, device) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to(v, device) for v in obj)
+    return obj
+
+
+def _read(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's dict, every tensor on the CPU."""
     try:
-        return torch.load(Path(path), map_location=device, weights_only=True)
+        return torch.load(Path(path), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         # torch's message suggests weights_only=False: never do that for a file that holds
         # pickled code; only our own plain-tensor checkpoints are accepted.

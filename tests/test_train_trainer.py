@@ -64,6 +64,18 @@ def test_loss_decreases_and_outputs(scene, tmp_path):
     assert TrainConfig().pose_refine is False
 
 
+def test_checkpoint_loads_onto_device_with_rng_on_cpu(scene, tmp_path):
+    """A CUDA resume maps every tensor to the GPU but the generator state: the trainer's
+    torch.Generator is a CPU one and refuses a CUDA state (the "meta" device stands in here)."""
+    out = tmp_path / "run"
+    _train(scene, out, iterations=8, densify_until=0)
+    ck = load_checkpoint(list_checkpoints(out)[-1][1], "meta")
+    assert all(v.device.type == "meta" for v in ck["params"].values())
+    assert all(v.device.type == "meta" for v in ck["strategy_state"].values())
+    assert ck["rng"].device.type == "cpu" and ck["rng"].dtype == torch.uint8
+    torch.Generator().set_state(ck["rng"])  # what Trainer.restore does with it
+
+
 def test_resume_gives_identical_model(scene, tmp_path, monkeypatch):
     full = tmp_path / "full"
     _train(scene, full)
