@@ -57,7 +57,8 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="learn small corrections of the training camera poses (first camera and scale "
                         "fixed); writes OUT/cameras_refined")
     p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
-                   help="with --pose-refine, also learn a focal-length correction per camera")
+                   help="with --pose-refine, also learn a focal-length correction per camera "
+                        "(not with the gsplat rasterizer, which gives the intrinsics no gradient)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")

@@ -46,16 +46,20 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
 
     ``"auto"`` resolves to "cpu" on CPU when the C++ kernel builds (else "torch"), "gsplat" on
     CUDA when gsplat imports (else "torch", with a one-time warning: the pure-PyTorch tile
-    code is many times slower there), "torch" elsewhere. Any other name is returned as is.
+    code is many times slower there), "torch" elsewhere. Any other name is returned as is, but
+    "cpu" and "cpu_v1" (C++ kernels that read CPU memory) on another device raise ValueError.
     Callers that record which backend ran (the trainer's ``train.json``) resolve once with
     this function and pass the result to :func:`rasterize`.
     """
     global _warned_cuda_fallback
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    device = torch.device(device)
+    if backend in ("cpu", "cpu_v1") and device.type != "cpu":
+        raise ValueError(f"backend {backend!r} runs on CPU tensors only, but the device is {device}; "
+                         "use 'auto' (gsplat on CUDA), 'gsplat' or 'torch'")
     if backend != "auto":
         return backend
-    device = torch.device(device)
     if device.type == "cpu":
         from splat_train import _cpu_kernel
 
@@ -77,7 +81,8 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
 def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bool:
     """Whether the "cpu" backend can use the fused C++ projection + SH: float32/float64 CPU
     tensors and a camera that needs no gradient (pose refinement keeps the torch path)."""
-    if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
+    if means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64) \
+            or cam_from_world.requires_grad or K.requires_grad:
         return False
     from splat_train import _cpu_project
 

@@ -121,6 +121,12 @@ class Trainer:
         self.dev = _device(cfg.device)
         self.backend = resolve_backend(cfg.rasterizer, self.dev)
         log.info("rasterizer backend: %s (config %r, device %s)", self.backend, cfg.rasterizer, self.dev)
+        if cfg.pose_refine and cfg.pose_refine_focal and self.backend == "gsplat":
+            # gsplat 1.5.3's projection backward returns no gradient for Ks: the focal
+            # corrections would silently stay at zero
+            raise ValueError("focal refinement (pose_refine_focal) needs the gradient of the intrinsics, which "
+                             "gsplat does not compute; train with rasterizer 'torch' (slower on a GPU) or "
+                             "without focal refinement")
         self.train_views, self.test_views = train_views, test_views or []
         self.strategy = DensifyStrategy(
             densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,

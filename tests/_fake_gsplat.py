@@ -11,7 +11,9 @@ What is gsplat's code and what is ours:
   the inverse viewmat, SH masked to visible Gaussians, "RGB+ED" depth channel with a zero
   background, expected depth = accumulated / alpha.clamp(1e-10)), and the pixel compositing,
   which is :func:`splat_train._reference.blend_dense` (3DGS rules: alpha <= 0.99) over each
-  Gaussian's gsplat tile rectangle. gsplat's compositing (``_rasterize_to_pixels``) needs its
+  Gaussian's gsplat tile rectangle. ``Ks`` enters the projection detached: gsplat 1.5.3's
+  projection backward returns no gradient for it (``_FullyFusedProjection.backward``), while
+  the PyTorch twin would differentiate it. gsplat's compositing (``_rasterize_to_pixels``) needs its
   CUDA kernels and nerfacc, so it is not exercised here; its alpha clamp is 0.999.
 
 Signature: the subset of ``gsplat.rasterization`` arguments our adapter passes, for one camera
@@ -98,7 +100,7 @@ def rasterization(
     n = means.shape[0]
     covars, _ = _quat_scale_to_covar_preci(quats, scales, True, False, triu=False)
     radii, means2d, depths, conics, _ = _fully_fused_projection(
-        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
+        means, covars, viewmats, Ks.detach(), width, height, eps2d=eps2d, near_plane=near_plane,
         far_plane=far_plane)  # [C, N, 2] int32, [C, N, 2], [C, N], [C, N, 3]
     visible = (radii > 0).all(dim=-1)  # [C, N]
     if sh_degree is None:

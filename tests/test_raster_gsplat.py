@@ -253,3 +253,16 @@ def test_gsplat_trainer_densifies_through_adapter(fake_gsplat, train_scene, tmp_
     assert got["num_gaussians"] > n0  # densification ran on the adapter's statistics
     assert got["num_gaussians"] == ref["num_gaussians"]
     assert abs(got["train_psnr"] - ref["train_psnr"]) < 0.5 and got["train_psnr"] > 15
+
+
+def test_gsplat_trainer_refuses_focal_refinement(fake_gsplat, train_scene, tmp_path):
+    """gsplat 1.5.3's projection backward returns None for Ks (the fake mirrors that), so focal
+    corrections would never move: the trainer refuses the combination up front, and the same
+    settings train with the "torch" backend."""
+    with pytest.raises(ValueError, match="focal refinement.*gsplat"):
+        _trainer(train_scene, tmp_path / "g", rasterizer="gsplat", pose_refine=True, pose_refine_focal=True)
+    tr = _trainer(train_scene, tmp_path / "t", rasterizer="torch", pose_refine=True, pose_refine_focal=True,
+                  pose_refine_from=1, pose_warmup=0, iterations=2)
+    tr.step()
+    tr.step()
+    assert float(tr.pose.log_focal.detach().abs().max()) > 0
