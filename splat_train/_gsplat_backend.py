@@ -13,13 +13,21 @@ CUDA kernels):
 * returned ``means2d`` is [N, 2] in pixels and its ``.grad`` after ``backward()`` is
   dL/d(means2d) in pixels, the units :meth:`splat_train.densify.DensifyStrategy.update_state`
   expects (gsplat's own meta["means2d"] is [1, N, 2]; a hook copies its gradient);
-* ``radii`` [N] int32 = max over gsplat 1.5's per-axis radii [1, N, 2];
-  ``visible`` = both axes > 0 (gsplat's own mask).
+* ``visible`` = gsplat's own mask (both per-axis radii > 0); ``radii`` [N] int32 = 3DGS's
+  ceil(3 sqrt(lambda_max)) (:func:`splat_train.projection.screen_radius`) of the 2D
+  covariance recovered from gsplat's conics, 0 where not visible. gsplat's own radii are
+  per axis and opacity-aware (``rasterization`` passes the opacities to its projection:
+  ceil(min(3.33, sqrt(2 ln(255 opacity))) sqrt(Sigma_axis)), ProjectionEWA3DGSFused.cu), so
+  after an opacity reset to 0.01 they are ~2.4x smaller and the densification's screen-size
+  prune (radius > 20 px) would almost never fire; the 3DGS radius keeps that prune as the
+  paper and the CPU backends have it. In float32 the round trip through the conic can move
+  a radius that lies within rounding of an integer by one pixel.
 
-Known differences from our backends (gsplat's semantics, not mapping errors): gsplat's radius is
-ceil(3.33 sqrt(Sigma_xx)) per axis (ours ceil(3 sqrt(lambda_max))), so the tile footprint
-and the screen-size prune differ slightly; its kernels clamp alpha at 0.999 (3DGS: 0.99).
-The H100 run (benchmarks/README.md) measured the resulting image and gradient differences.
+Known differences from our backends (gsplat's semantics, not mapping errors): gsplat culls a
+Gaussian of opacity < 1/255 in its projection (not visible, so not counted in the
+densification's visibility count; it blends nothing in either backend); its tile footprint
+is the opacity-aware one above; its kernels clamp alpha at 0.999 (3DGS: 0.99). The H100 run
+(benchmarks/README.md) measured the resulting image and gradient differences.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ import importlib.metadata
 import torch
 from torch import Tensor
 
-from splat_train.projection import EPS2D
+from splat_train.projection import EPS2D, screen_radius
 
 __all__ = ["GSPLAT_VERSION", "available", "installed_version", "rasterize_gsplat"]
 
@@ -116,8 +124,9 @@ def rasterize_gsplat(
     radii_axes = meta["radii"][0]  # [N, 2] per axis in gsplat 1.5 ([N] in older versions)
     if radii_axes.dim() == 1:
         radii_axes = radii_axes[:, None]
-    radii = radii_axes.amax(dim=-1).to(torch.int32)
     visible = (radii_axes > 0).all(dim=-1)
+    radii = _radii_3dgs(meta["conics"][0], visible)
+    visible = visible & (radii > 0)  # (the same mask unless a conic is degenerate)
     alpha = ra[0, ..., 0]
     depth = rc[0, ..., 3]
     return {
@@ -126,9 +135,30 @@ def rasterize_gsplat(
         "depth": depth,
         "depth_accum": depth * alpha,
         "means2d": means2d,
-        "radii": torch.where(visible, radii, torch.zeros_like(radii)),
+        "radii": radii,
         "visible": visible,
         "depths": meta["depths"][0],
         "conics": meta["conics"][0],
         "colors": None,
     }
+
+
+@torch.no_grad()
+def _radii_3dgs(conics: Tensor, visible: Tensor) -> Tensor:
+    """3DGS radii from gsplat's conics.
+
+    Args:
+        conics: [N, 3] (A, B, C) of the inverse dilated 2D covariance [[A, B], [B, C]], pixels^-2.
+        visible: [N] bool; other rows may hold anything (gsplat leaves them unwritten).
+
+    Returns:
+        [N] int32 :func:`splat_train.projection.screen_radius` of the covariance
+        [[C, -B], [-B, A]] / (A C - B^2) (computed in float64), 0 where not visible.
+    """
+    q = conics.double()
+    A, B, C = q.unbind(-1)
+    det = torch.where(visible, A * C - B * B, torch.ones_like(A))
+    ok = visible & torch.isfinite(det) & (det > 0)
+    det = torch.where(ok, det, torch.ones_like(det))
+    r = screen_radius(torch.where(ok, C / det, 1.0), torch.where(ok, -B / det, 0.0), torch.where(ok, A / det, 1.0))
+    return torch.where(ok, r, torch.zeros_like(r)).clamp(max=2**30).to(torch.int32)

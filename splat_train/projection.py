@@ -11,7 +11,8 @@ Per Gaussian (3DGS / gsplat semantics):
   dilation, no opacity compensation), where J is the perspective Jacobian evaluated at x/z, y/z
   clamped to 1.3 x the half field of view (gsplat's ``lim_x_pos/lim_x_neg`` rule, identical to
   3DGS for a centred principal point).
-* radius = ceil(3 sqrt(lambda_max)) with lambda_max = mid + sqrt(max(0.1, mid^2 - det)).
+* radius = ceil(3 sqrt(lambda_max)) with lambda_max = mid + sqrt(max(0.1, mid^2 - det))
+  (:func:`screen_radius`).
 * 16x16 tile rectangle as in 3DGS ``getRect`` (computed on the 3DGS pixel grid, whose centres
   are at integers, i.e. our coordinates minus 0.5); a Gaussian touching no tile is culled
   (radius 0).
@@ -28,6 +29,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "screen_radius",
     "TILE_SIZE",
     "NEAR_PLANE",
     "EPS2D",
@@ -92,6 +94,22 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     """
     m = quat_to_rotmat(quats) * scales[:, None, :]
     return m @ m.transpose(-1, -2)
+
+
+def screen_radius(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+    """3DGS's screen-space radius: ceil(3 sqrt(lambda_max)) pixels, with lambda_max = mid +
+    sqrt(max(0.1, mid^2 - det)) the larger eigenvalue of the (dilated) 2D covariance
+    [[a, b], [b, c]] (pixels^2), mid = (a + c) / 2, det = a c - b^2.
+
+    Args:
+        a, b, c: [N] entries of the 2D covariance, any float dtype.
+
+    Returns:
+        [N] radius in pixels (float, integral values).
+    """
+    mid = 0.5 * (a + c)
+    lam = mid + torch.sqrt(torch.clamp_min(mid * mid - (a * c - b * b), 0.1))
+    return torch.ceil(3.0 * torch.sqrt(lam))
 
 
 def project_gaussians(
@@ -168,9 +186,7 @@ def project_gaussians(
     conics = torch.stack([c_s / det_s, -b_s / det_s, a_s / det_s], dim=-1)
 
     with torch.no_grad():
-        mid = 0.5 * (a_s + c_s)
-        lam = mid + torch.sqrt(torch.clamp_min(mid * mid - det_s, 0.1))
-        radius = torch.ceil(3.0 * torch.sqrt(lam))
+        radius = screen_radius(a_s, b_s, c_s)
         # 3DGS getRect on its integer-centred pixel grid (ours minus 0.5).
         px = torch.where(ok, u, torch.zeros_like(u)) - 0.5
         py = torch.where(ok, v, torch.zeros_like(v)) - 0.5

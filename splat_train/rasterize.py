@@ -174,8 +174,9 @@ def rasterize(
         ``backward()`` its ``.grad`` holds dL/d(means2d) in pixel units, [N, 2] for every
         backend (to compare with 3DGS's NDC-based densification threshold, multiply x by W/2
         and y by H/2, as :mod:`splat_train.densify` does),
-        ``radii`` [N] int32 3-sigma screen radius in pixels, 0 = culled (gsplat: the larger of
-        its per-axis 3.33-sigma radii),
+        ``radii`` [N] int32 3DGS's 3-sigma screen radius in pixels
+        (:func:`splat_train.projection.screen_radius`), 0 = culled, for every backend (gsplat's
+        own opacity-aware per-axis radii are converted),
         ``visible`` [N] bool (= radii > 0),
         ``depths`` [N] camera z of the means, ``conics`` [N, 3], ``colors`` [N, 3] the
         evaluated per-Gaussian colours (None with gsplat).

@@ -9,7 +9,9 @@ What is gsplat's code and what is ours:
   ``_spherical_harmonics`` (SH -> RGB, then gsplat's ``clamp_min(+0.5, 0)``).
 * Ours: the glue below, written after ``gsplat.rendering._rasterization`` (camera centre from
   the inverse viewmat, SH masked to visible Gaussians, "RGB+ED" depth channel with a zero
-  background, expected depth = accumulated / alpha.clamp(1e-10)), and the pixel compositing,
+  background, expected depth = accumulated / alpha.clamp(1e-10)), the opacity-aware radii of
+  gsplat's CUDA projection (:func:`opacity_aware_radii`, written after its .cu source, as the
+  twin lacks them), and the pixel compositing,
   which is :func:`splat_train._reference.blend_dense` (3DGS rules: alpha <= 0.99) over each
   Gaussian's gsplat tile rectangle. ``Ks`` enters the projection detached: gsplat 1.5.3's
   projection backward returns no gradient for it (``_FullyFusedProjection.backward``), while
@@ -54,6 +56,35 @@ def _tile_rects(isect_ids: Tensor, flatten_ids: Tensor, n: int, tile_width: int,
     hit = hi_x >= 0
     rect = torch.stack([lo_x, hi_x + 1, lo_y, hi_y + 1], dim=-1)
     return torch.where(hit[:, None], rect, torch.zeros_like(rect)), hit
+
+
+@torch.no_grad()
+def opacity_aware_radii(radii: Tensor, means2d: Tensor, conics: Tensor, opacities: Tensor, width: int,
+                        height: int) -> Tensor:
+    """The per-axis radii of gsplat 1.5.3's CUDA projection, which ``rasterization`` calls with
+    the opacities (``ProjectionEWA3DGSFused.cu``), from the PyTorch twin's (which has no
+    opacity argument and uses 3.33 sigma): a Gaussian of opacity < 1/255 is culled, the others
+    get ceil(min(3.33, sqrt(2 ln(255 opacity))) sqrt(Sigma_axis)), and one whose box then lies
+    off the image is culled.
+
+    Args:
+        radii: [C, N, 2] int32 from ``_fully_fused_projection`` (0 = culled);
+        means2d: [C, N, 2] pixels; conics: [C, N, 3] inverse dilated 2D covariance (A, B, C);
+        opacities: [N].
+
+    Returns:
+        [C, N, 2] int32.
+    """
+    A, B, C = conics.unbind(-1)
+    det = A * C - B * B  # 1 / det(Sigma)
+    sig = torch.stack([C / det, A / det], dim=-1).clamp_min(0.0)  # Sigma_xx, Sigma_yy
+    op = opacities[None, :, None].to(sig.dtype)
+    extend = torch.sqrt(2.0 * torch.log((op * 255.0).clamp_min(1.0))).clamp(max=3.33)
+    r = torch.ceil(extend * torch.sqrt(sig))
+    inside = ((means2d[..., 0] + r[..., 0] > 0) & (means2d[..., 0] - r[..., 0] < width)
+              & (means2d[..., 1] + r[..., 1] > 0) & (means2d[..., 1] - r[..., 1] < height))
+    keep = (radii > 0).all(dim=-1) & (op[..., 0] >= 1.0 / 255.0) & inside
+    return torch.where(keep[..., None], r, torch.zeros_like(r)).to(radii.dtype)
 
 
 def rasterization(
@@ -102,6 +133,7 @@ def rasterization(
     radii, means2d, depths, conics, _ = _fully_fused_projection(
         means, covars, viewmats, Ks.detach(), width, height, eps2d=eps2d, near_plane=near_plane,
         far_plane=far_plane)  # [C, N, 2] int32, [C, N, 2], [C, N], [C, N, 3]
+    radii = opacity_aware_radii(radii, means2d, conics, opacities, width, height)
     visible = (radii > 0).all(dim=-1)  # [C, N]
     if sh_degree is None:
         rgb = colors[None]  # [C, N, 3]
