@@ -55,6 +55,25 @@ def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
     assert table in capsys.readouterr().out
 
 
+def test_gpu_report_saved_after_each_part(tmp_path, monkeypatch):
+    """A run killed in a later part (the device's time limit) leaves the parts done on disk."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "Fake GPU")
+    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}})
+    monkeypatch.setattr(gpu_check, "rasterizer_parity", lambda dev: {"rgb_max_abs_diff": 1e-3})
+
+    def killed(dev):
+        raise KeyboardInterrupt  # not an Exception: like SIGTERM's kill, the run stops here
+
+    monkeypatch.setattr(gpu_check, "rasterizer_timing", killed)
+    with pytest.raises(KeyboardInterrupt):
+        gpu_check.run_cli(tmp_path, 7)
+    (js,), (md,) = tmp_path.glob("benchmarks_gpu_*.json"), tmp_path.glob("benchmarks_gpu_*.md")
+    rep = json.loads(js.read_text())
+    assert rep["vggt_fixtures"]["float64"]["max"] == 1e-12 and rep["rasterizer_parity"]["rgb_max_abs_diff"] == 1e-3
+    assert "rasterizer_timing" not in rep and "VGGT fixtures on CUDA, float64" in md.read_text()
+
+
 def test_cell_passes_device_and_rasterizer_to_training(tmp_path):
     res = bench_cell.run_cell(tmp_path, "synthetic", 3, bench_cell.QUICK_ITERATIONS, quick=True, vggt=False,
                               inprocess=True, device="cpu", rasterizer="torch")

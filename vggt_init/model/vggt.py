@@ -24,6 +24,14 @@ __all__ = ["VGGT", "TRACK_HEAD_PREFIX"]
 TRACK_HEAD_PREFIX = "track_head."
 
 
+def _now(device: torch.device) -> float:
+    """``time.perf_counter()`` once the device's queued work is done: CUDA runs asynchronously,
+    so without the sync the per-part timings measure kernel launches."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
 class VGGT(nn.Module):
     """Weight-compatible VGGT (inference path).
 
@@ -108,21 +116,21 @@ class VGGT(nn.Module):
             trunk_dtype = cast
         device_type = images.device.type
 
-        t0 = time.perf_counter()
+        t0 = _now(images.device)
         if trunk_dtype is not None and trunk_dtype != param_dtype:
             ctx = torch.autocast(device_type=device_type, dtype=trunk_dtype)
         else:
             ctx = contextlib.nullcontext()
         with ctx:
             tokens = self.aggregator(images.to(param_dtype), keep=self.layers_needed, debug=debug)
-        timings["aggregator"] = time.perf_counter() - t0
+        timings["aggregator"] = _now(images.device) - t0
 
         out: dict = {}
         psi = self.aggregator.patch_start_idx
         with torch.autocast(device_type=device_type, enabled=False):
             tokens = {k: v.to(param_dtype) for k, v in tokens.items()}
             if self.camera_head is not None:
-                t0 = time.perf_counter()
+                t0 = _now(images.device)
                 ch_debug = {} if debug is not None else None
                 pose_list = self.camera_head(tokens[self.config.camera_head.token_layer % self.config.aggregator.depth],
                                              debug=ch_debug)
@@ -130,13 +138,13 @@ class VGGT(nn.Module):
                 out["pose_enc_list"] = pose_list
                 if debug is not None:
                     debug.update(ch_debug)
-                timings["camera_head"] = time.perf_counter() - t0
+                timings["camera_head"] = _now(images.device) - t0
             for name, head, keys in (("depth", self.depth_head, ("depth", "depth_conf")),
                                      ("point", self.point_head, ("world_points", "world_points_conf"))):
                 if head is None:
                     continue
-                t0 = time.perf_counter()
+                t0 = _now(images.device)
                 value, conf = head(tokens, (H, W), psi, frames_chunk_size, debug, f"{name}_head")
                 out[keys[0]], out[keys[1]] = value, conf
-                timings[f"{name}_head"] = time.perf_counter() - t0
+                timings[f"{name}_head"] = _now(images.device) - t0
         return out
