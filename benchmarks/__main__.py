@@ -377,6 +377,9 @@ def main(argv: list[str] | None = None) -> int:
                         "cell trained with gsplat with its peak GPU memory; writes JSON and a Markdown table")
     p.add_argument("--gpu-iterations", type=int, default=None,
                    help="training iterations of the --gpu cell (default 10000, gpu_check.CELL_ITERATIONS)")
+    p.add_argument("--cell-prepared", type=Path, metavar="DIR", default=None,
+                   help="the --gpu cell from a folder of `python benchmarks/bench_cell.py --prepare-only DIR` "
+                        "(made on another machine: the GPU runs training, render and metrics only)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
@@ -385,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.gpu:
         from benchmarks import gpu_check
 
-        return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info)
+        return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info, cell_prepared=args.cell_prepared)
     if args.compare and len(args.compare) > 2:
         p.error("--compare takes OLD.json or OLD.json NEW.json")
     if args.compare and len(args.compare) == 2:

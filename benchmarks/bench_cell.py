@@ -21,6 +21,8 @@ docstring of splat_train/rasterize.py.
     python benchmarks/bench_cell.py                      # the real cell (several minutes)
     python benchmarks/bench_cell.py --no-vggt            # skip the random-weight VGGT forward
     python benchmarks/bench_cell.py --quick --scene synthetic --inprocess   # seconds
+    python benchmarks/bench_cell.py --prepare-only .gpu_cell   # CPU stages here, for a GPU elsewhere:
+    python benchmarks/bench_cell.py --prepared .gpu_cell --device cuda --rasterizer gsplat
 
 Saves JSON to benchmarks/out/bench_cell_<time>.json (git-ignored) and prints a table.
 """
@@ -205,40 +207,51 @@ class LoadSampler:
 
 def run_cell(work: Path, scene_kind: str = "auto", n: int = 3, iterations: int = 2000, quick: bool = False,
              threads: int | None = None, vggt: bool = True, vggt_dtype: str = "fp32", vggt_size: int = 518,
-             inprocess: bool = False, device: str | None = None, rasterizer: str | None = None) -> dict:
+             inprocess: bool = False, device: str | None = None, rasterizer: str | None = None,
+             prepared: Path | None = None) -> dict:
     """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc).
 
     ``device`` and ``rasterizer`` are passed to the training and render stages when given
-    (``python -m benchmarks --gpu`` runs the cell with ``cuda`` and ``gsplat``).
+    (``python -m benchmarks --gpu`` runs the cell with ``cuda`` and ``gsplat``). ``prepared``: a
+    folder written by :func:`prepare_bundle`; its stages up to ``align`` are not run again
+    (their times, measured where it was made, are reported under ``prepared``), and
+    ``scene_kind`` and ``n`` come from it.
     """
     with LoadSampler() as load:
         result = _run_cell(work, scene_kind, n, iterations, quick, threads, vggt, vggt_dtype, vggt_size, inprocess,
-                           device, rasterizer)
+                           device, rasterizer, prepared)
     result["loadavg_during"] = load.summary()
     return result
 
 
-def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
-              vggt_dtype: str, vggt_size: int, inprocess: bool, device: str | None = None,
-              rasterizer: str | None = None) -> dict:
-    work.mkdir(parents=True, exist_ok=True)
-    logs = work / "logs"
-    times: dict[str, float] = {}
-    cpu: dict[str, float] = {}
+class _Stages:
+    """Runs stages through :func:`run_stage` and keeps their wall and CPU seconds."""
 
-    def stage(name: str, module: str, args: list[str]) -> float:
-        dt, c = run_stage(name, module, args, logs, inprocess)
-        times[name] = times.get(name, 0.0) + dt
-        cpu[name] = cpu.get(name, 0.0) + c
+    def __init__(self, logs: Path, inprocess: bool) -> None:
+        self.logs, self.inprocess = logs, inprocess
+        self.times: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    def __call__(self, name: str, module: str, args: list[str]) -> float:
+        dt, c = run_stage(name, module, args, self.logs, self.inprocess)
+        self.times[name] = self.times.get(name, 0.0) + dt
+        self.cpu[name] = self.cpu.get(name, 0.0) + c
         return dt
 
-    t_start = time.perf_counter()
-    load0 = os.getloadavg()
+
+# What prepare_bundle keeps of a prepared cell (besides the training and held-out images).
+PREPARED_FILE = "prepared.json"
+_BUNDLE_PARTS = ("bridge", "align", "colmap/status.json", "scene/split.json", "scene/scene.json")
+
+
+def _prepare(work: Path, scene_kind: str, n: int, quick: bool, threads: int | None, stage: _Stages) -> dict:
+    """The cell's stages up to ``align`` (scene, lists, initialisers, Bridge, alignment) in
+    ``work``; returns what the rest of the cell needs (JSON-ready, paths relative to ``work``)."""
     scene, desc = prepare_scene(scene_kind, work, n, quick, stage)
     synthetic = (scene / "gt" / "depth").is_dir()
     t0 = time.perf_counter()
     train_txt, test_dir = _write_lists(scene, n, work)
-    times["lists"] = time.perf_counter() - t0
+    stage.times["lists"] = time.perf_counter() - t0
 
     # Initialisers: COLMAP always (a failure is a result); the oracle where ground truth exists.
     inits: dict[str, dict] = {}
@@ -267,6 +280,68 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
     stage("align", "evaluation", ["align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(scene / "sparse" / "0"),
                                   "--train-names", str(scene / "split.json"), "--n", str(n), "--images", str(test_dir),
                                   "--out", str(work / "align")])
+    return {"desc": desc, "n": n, "used": used, "inits": inits, "synthetic": synthetic,
+            "scene": str(scene.relative_to(work)), "train_txt": str(train_txt.relative_to(work)),
+            "test_dir": str(test_dir.relative_to(work))}
+
+
+def prepare_bundle(dest: Path, scene_kind: str = "auto", n: int = 3, quick: bool = False,
+                   threads: int | None = None, inprocess: bool = False) -> Path:
+    """Run the cell's stages up to ``align`` and keep, in ``dest``, only what training,
+    rendering and metrics read: the Bridge's seed and cameras, the aligned held-out cameras,
+    the training and held-out images (copies, no links), the lists and :data:`PREPARED_FILE`
+    (the stages' times and the state). For a machine that lacks the CPU stages' packages or
+    the scene (``python -m benchmarks --gpu --cell-prepared DEST`` on a lent GPU: ~2 MB for
+    fern n = 3 instead of the 7 MB scene and open3d)."""
+    if dest.exists():
+        raise FileExistsError(f"{dest} exists; remove it or choose another folder")
+    with tempfile.TemporaryDirectory(prefix="bench_cell_prep_") as tmp:
+        work = Path(tmp)
+        stage = _Stages(work / "logs", inprocess)
+        t0 = time.perf_counter()
+        state = _prepare(work, scene_kind, n, quick, threads, stage)
+        state.update(stages_s=stage.times, stages_cpu_s=stage.cpu, wall_s=time.perf_counter() - t0,
+                     image_size=_image_size(work / state["scene"]), made_on=os.uname().nodename,
+                     made_at=time.strftime("%Y-%m-%dT%H:%M:%S"))
+        staging = dest.with_name(dest.name + ".partial")
+        shutil.rmtree(staging, ignore_errors=True)
+        for part in _BUNDLE_PARTS:
+            src = work / part
+            if src.is_dir():
+                shutil.copytree(src, staging / part)
+            elif src.exists():
+                (staging / part).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(src, staging / part)
+        shutil.copy2(work / state["train_txt"], staging / state["train_txt"])
+        images = staging / state["scene"] / "images"
+        images.mkdir(parents=True)
+        for name in (work / state["train_txt"]).read_text().split():
+            shutil.copy2(work / state["scene"] / "images" / name, images / name)
+        (staging / state["test_dir"]).mkdir()
+        for link in sorted((work / state["test_dir"]).iterdir()):
+            shutil.copy2(link.resolve(), staging / state["test_dir"] / link.name)  # the file, not the link
+        (staging / PREPARED_FILE).write_text(json.dumps(state, indent=2) + "\n")
+        staging.rename(dest)
+    log.info("prepared cell (%s, n = %d, init %s) in %s", state["desc"]["scene"], n, state["used"], dest)
+    return dest
+
+
+def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
+              vggt_dtype: str, vggt_size: int, inprocess: bool, device: str | None = None,
+              rasterizer: str | None = None, prepared: Path | None = None) -> dict:
+    work.mkdir(parents=True, exist_ok=True)
+    stage = _Stages(work / "logs", inprocess)
+    times, cpu = stage.times, stage.cpu
+    t_start = time.perf_counter()
+    load0 = os.getloadavg()
+    if prepared is None:
+        state = _prepare(work, scene_kind, n, quick, threads, stage)
+    else:
+        state = json.loads((prepared / PREPARED_FILE).read_text())
+        shutil.copytree(prepared, work, dirs_exist_ok=True)
+    n, used, inits, desc = state["n"], state["used"], state["inits"], state["desc"]
+    scene, train_txt, test_dir = work / state["scene"], work / state["train_txt"], work / state["test_dir"]
+    bridge = work / "bridge"
     train_args = ["--seed", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
                   "--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "train"),
                   "--iterations", str(iterations), "--seed-rng", "0",
@@ -288,14 +363,18 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
     stage("metrics", "evaluation", metric_args)
     metrics = json.loads((work / "metrics.json").read_text())
 
-    # The cell on its used path: every stage except the initialisers it did not use.
-    path_stages = [k for k in times if not k.startswith("init_") or k == f"init_{used}"]
-    cell_s = sum(times[k] for k in path_stages)
-    cell_cpu = sum(cpu.get(k, 0.0) for k in path_stages)
+    # The cell on its used path: every stage except the initialisers it did not use (with a
+    # prepared folder, the stages it ran where it was made: times from that machine).
+    all_times = {**state.get("stages_s", {}), **times}
+    all_cpu = {**state.get("stages_cpu_s", {}), **cpu}
+    path_stages = [k for k in all_times if not k.startswith("init_") or k == f"init_{used}"]
+    cell_s = sum(all_times[k] for k in path_stages)
+    cell_cpu = sum(all_cpu.get(k, 0.0) for k in path_stages)
     result = {
-        **desc, "n": n, "iterations": iterations, "quick": quick, "image_size": _image_size(scene),
+        **desc, "n": n, "iterations": iterations, "quick": quick,
+        "image_size": state["image_size"] if prepared is not None else _image_size(scene),
         "launcher": "in-process main(argv)" if inprocess else "subprocess CLI (python -m ...)",
-        "init_used": used, "inits": inits, "stages_s": times, "stages_cpu_s": cpu,
+        "init_used": used, "inits": inits, "stages_s": all_times, "stages_cpu_s": all_cpu,
         "train": {
             "wall_s": summary["wall_time_s"], "session_s": summary.get("session_time_s"),
             "eval_s": summary.get("eval_time_s"), "it_per_s": iterations / max(summary["wall_time_s"], 1e-9),
@@ -310,6 +389,9 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
         "cell_total_s": cell_s, "cell_total_cpu_s": cell_cpu, "target_s": TARGET_S, "meets_target": cell_s < TARGET_S,
         "loadavg_start": list(load0),
     }
+    if prepared is not None:
+        result["prepared"] = {"folder": str(prepared), "stages": sorted(state.get("stages_s", {})),
+                              "made_on": state.get("made_on"), "made_at": state.get("made_at")}
     if vggt:
         row = vggt_random_forward(n, vggt_dtype, vggt_size, threads or 2)
         result["vggt_forward_random"] = row
@@ -339,6 +421,8 @@ def format_cell(r: dict) -> str:
                       f"{tr['torch_threads']}",
              "metrics": f"PSNR {r['metrics']['psnr']:.2f} dB, SSIM {r['metrics']['ssim']:.3f}, LPIPS alex/vgg "
                         f"{_num(r['metrics']['lpips_alex'])}/{_num(r['metrics']['lpips_vgg'])}"}
+    for name in r.get("prepared", {}).get("stages", []):
+        notes[name] = f"prepared on {r['prepared'].get('made_on')} at {r['prepared'].get('made_at')}"
     for name, info in r["inits"].items():
         ok = "success" if info.get("success_paper", info.get("success", True)) else f"failed ({info.get('reason')})"
         notes[f"init_{name}"] = ("used" if name == r["init_used"] else "timed, not used") + (
@@ -386,11 +470,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--inprocess", action="store_true", help="call the CLI main()s in this process")
     p.add_argument("--work", type=Path, default=None, help="keep the cell's files here (default: a temp dir)")
     p.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/bench_cell_<time>.json)")
+    p.add_argument("--prepare-only", type=Path, metavar="DEST", default=None,
+                   help="run the stages up to align and keep what the rest reads in DEST (a few MB), for "
+                        "--prepared on another machine (a lent GPU without pycolmap's mapper or the scene)")
+    p.add_argument("--prepared", type=Path, metavar="DIR", default=None,
+                   help="a --prepare-only folder: train, render and score from it (--scene and --n from it)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None, help="training and render device")
+    p.add_argument("--rasterizer", default=None, help="training rasterizer backend (splat_train --rasterizer)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
 
     setup_logging()
+    if args.prepare_only is not None:
+        prepare_bundle(args.prepare_only, args.scene, args.n, args.quick, args.threads, args.inprocess)
+        return 0
     iterations = args.iterations or (QUICK_ITERATIONS if args.quick else 2000)
     tmp = None
     if args.work is None:
@@ -398,7 +492,8 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work or Path(tmp.name)
     try:
         result = run_cell(work, args.scene, args.n, iterations, args.quick, args.threads, not args.no_vggt,
-                          args.vggt_dtype, inprocess=args.inprocess)
+                          args.vggt_dtype, inprocess=args.inprocess, device=args.device, rasterizer=args.rasterizer,
+                          prepared=args.prepared)
     finally:
         if tmp is not None:
             tmp.cleanup()

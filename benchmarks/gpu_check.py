@@ -141,18 +141,21 @@ def rasterizer_timing(device: str, n: int = 100000, size: int = 512, reps: int =
     return out
 
 
-def gpu_cell(iterations: int = CELL_ITERATIONS, scene: str = "auto") -> dict:
+def gpu_cell(iterations: int = CELL_ITERATIONS, scene: str = "auto", prepared: Path | None = None) -> dict:
     """The pipeline cell on CUDA with the gsplat rasterizer (benchmarks/bench_cell.py, no VGGT
-    forward: the fixtures part checks VGGT on the GPU)."""
+    forward: the fixtures part checks VGGT on the GPU). ``prepared``: a folder of
+    ``bench_cell.py --prepare-only`` (its CPU stages made elsewhere; train, render, metrics here)."""
     sys.path.insert(0, str(ROOT))
     from benchmarks import bench_cell
 
     with tempfile.TemporaryDirectory(prefix="gpu_cell_") as tmp:
-        return bench_cell.run_cell(Path(tmp), scene, 3, iterations, vggt=False, device="cuda", rasterizer="gsplat")
+        return bench_cell.run_cell(Path(tmp), scene, 3, iterations, vggt=False, device="cuda", rasterizer="gsplat",
+                                   prepared=prepared)
 
 
 def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = ("vggt_fixtures", "rasterizer_parity",
-            "rasterizer_timing", "cell"), on_part: Callable[[dict], None] | None = None) -> dict:
+            "rasterizer_timing", "cell"), on_part: Callable[[dict], None] | None = None,
+            cell_prepared: Path | None = None) -> dict:
     """Run the parts on CUDA (each independent: a failure is recorded as ``{"error": ...}``);
     ``on_part(report)`` after each one (the caller saves it: a run cut off by a time limit
     keeps the parts done)."""
@@ -165,7 +168,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = ("v
     report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "cuda": torch.version.cuda,
               "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
     fns = {"vggt_fixtures": vggt_fixtures, "rasterizer_parity": rasterizer_parity,
-           "rasterizer_timing": rasterizer_timing, "cell": lambda _dev: gpu_cell(cell_iterations)}
+           "rasterizer_timing": rasterizer_timing, "cell": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared)}
     for name in parts:
         t0 = time.perf_counter()
         try:
@@ -221,7 +224,7 @@ def format_gpu_table(r: dict) -> str:
     return "\n".join(lines)
 
 
-def run_cli(out: Path, iterations: int | None = None, machine_info=None) -> int:
+def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_prepared: Path | None = None) -> int:
     """``python -m benchmarks --gpu``: every part, JSON + Markdown into ``out``, the table printed.
     Exits 2 with a message when torch sees no CUDA device."""
     if not torch.cuda.is_available():
@@ -242,7 +245,7 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None) -> int:
         stem.with_suffix(".md").write_text(table + "\n")
         return table
 
-    report = run_gpu(iterations or CELL_ITERATIONS, on_part=save)
+    report = run_gpu(iterations or CELL_ITERATIONS, on_part=save, cell_prepared=cell_prepared)
     table = save(report)
     print(table)
     log.info("saved %s.json and %s.md", stem, stem)

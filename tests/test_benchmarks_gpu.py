@@ -41,7 +41,7 @@ def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(gpu_check, "rasterizer_timing", lambda dev: {
         "torch": {"fwd_bwd_ms": 50.0, "peak_gpu_mb": 900.0}, "gsplat": {"fwd_bwd_ms": 5.0, "peak_gpu_mb": 300.0},
         "speedup_gsplat": 10.0, "case": "c"})
-    monkeypatch.setattr(gpu_check, "gpu_cell", lambda iterations: {
+    monkeypatch.setattr(gpu_check, "gpu_cell", lambda iterations, prepared=None: {
         "scene": "fern", "n": 3, "iterations": iterations, "cell_total_s": 100.0,
         "train": {"rasterizer": "gsplat", "device": "cuda", "wall_s": 60.0, "it_per_s": 166.0,
                   "peak_cuda_mb": 1234.0, "final_gaussians": 10, "test_psnr": 20.0}})
@@ -79,3 +79,23 @@ def test_cell_passes_device_and_rasterizer_to_training(tmp_path):
                               inprocess=True, device="cpu", rasterizer="torch")
     assert res["train"]["rasterizer"] == "torch" and res["train"]["device"] == "cpu"
     assert res["train"]["peak_cuda_mb"] is None
+
+
+def test_cell_from_prepared_bundle(tmp_path):
+    """--prepare-only keeps what training, render and metrics read (images copied, no links);
+    --prepared runs those three from it and reports the prepared stages' times and origin."""
+    bundle = tmp_path / "bundle"
+    assert bench_cell.main(["--prepare-only", str(bundle), "--scene", "synthetic", "--quick", "--inprocess"]) == 0
+    state = json.loads((bundle / bench_cell.PREPARED_FILE).read_text())
+    assert state["used"] == "oracle" and {"prep", "bridge", "align"} <= set(state["stages_s"])
+    files = [p for p in bundle.rglob("*") if not p.is_dir()]
+    assert not any(p.is_symlink() for p in files)
+    assert len(list((bundle / "scene" / "images").iterdir())) == 3  # the n = 3 training images only
+    with pytest.raises(FileExistsError):
+        bench_cell.prepare_bundle(bundle, "synthetic", 3, quick=True, inprocess=True)
+    res = bench_cell.run_cell(tmp_path / "work", "synthetic", 3, bench_cell.QUICK_ITERATIONS, quick=True, vggt=False,
+                              inprocess=True, device="cpu", rasterizer="torch", prepared=bundle)
+    assert res["prepared"]["stages"] == sorted(state["stages_s"]) and res["train"]["device"] == "cpu"
+    assert set(res["stages_s"]) >= {"prep", "align", "train", "render", "metrics"}
+    assert res["metrics"]["n_images"] == len(list((bundle / "test_images").iterdir())) > 0
+    assert res["image_size"] == state["image_size"]

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Make `python -m benchmarks --gpu` runnable on a GPU machine that has torch but not this
+# project's other packages and cannot fetch any (the lent device of this workplace: Python
+# 3.12, torch with CUDA, no pycolmap / OpenImageIO / gsplat, no network, 64 MiB carried).
+#
+#   bash scripts/gpu_bundle.sh            # here, once: writes .whl/ and .gpu_cell/ (git-ignored)
+#
+# .whl/       cp312 manylinux wheels of gsplat (the pinned version), pycolmap and OpenImageIO
+#             (the versions installed here), ~53 MB; their other needs (numpy, jaxtyping,
+#             rich, ninja, typing_extensions) are in a torch image already;
+# .gpu_cell/  the fern n = 3 cell's CPU stages (scene, COLMAP seed, Bridge, alignment) run
+#             here, ~2 MB (benchmarks/bench_cell.py --prepare-only), so the GPU machine needs
+#             neither ../shared nor open3d.
+# Then, on the GPU machine, in the repository root (one command; it prints what it measured
+# after each part and saves the JSON + table after each part, see benchmarks/README.md):
+#
+#   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl &&
+#   PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 \
+#     python3 -m benchmarks --gpu --cell-prepared .gpu_cell --out "$OUT"
+#
+# (TORCH_CUDA_ARCH_LIST=9.0 builds gsplat's JIT kernels for Hopper only; use the GPU's own
+# compute capability elsewhere.)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-.venv/bin/python}
+[ -x "$PY" ] || { echo "gpu_bundle: $PY not found; run 'make install' first or set PYTHON" >&2; exit 1; }
+export PATH="$(cd "$(dirname "$PY")" && pwd):$PATH"  # the stages' subprocesses use this interpreter
+version() { "$PY" -c "import importlib.metadata as m; print(m.version('$1'))"; }
+GSPLAT=$("$PY" -c "from splat_train._gsplat_backend import GSPLAT_VERSION; print(GSPLAT_VERSION)")
+PLATFORMS=()
+for p in manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux_2_27_x86_64 manylinux_2_28_x86_64 \
+         manylinux_2_31_x86_64 manylinux_2_34_x86_64 manylinux_2_35_x86_64; do
+    PLATFORMS+=(--platform "$p")
+done
+
+rm -rf .whl.partial .gpu_cell
+mkdir -p .whl.partial
+echo "gpu_bundle: downloading gsplat==$GSPLAT pycolmap==$(version pycolmap) OpenImageIO==$(version OpenImageIO) (cp312)"
+"$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    "${PLATFORMS[@]}" -d .whl.partial \
+    "gsplat==$GSPLAT" "pycolmap==$(version pycolmap)" "OpenImageIO==$(version OpenImageIO)"
+rm -rf .whl && mv .whl.partial .whl
+
+echo "gpu_bundle: preparing the fern n = 3 cell's CPU stages into .gpu_cell"
+"$PY" benchmarks/bench_cell.py --prepare-only .gpu_cell --scene fern
+
+TREE=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
+EXTRA=$(du -cb .whl .gpu_cell | tail -1 | cut -f1)
+TOTAL=$((TREE + EXTRA))
+echo "gpu_bundle: tracked files $((TREE / 1048576)) MiB + .whl and .gpu_cell $((EXTRA / 1048576)) MiB = $((TOTAL / 1048576)) MiB"
+if [ "$TOTAL" -gt $((64 * 1048576)) ]; then
+    echo "gpu_bundle: WARNING: over the lent device's 64 MiB working-tree limit" >&2
+fi
+echo "gpu_bundle: done; carry .whl and .gpu_cell (see the header of this script for the command)"
