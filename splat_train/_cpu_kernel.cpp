@@ -17,7 +17,9 @@
 //   two per step. The rasterizer's own case (float32, RGB + depth, no per-pixel counts) runs
 //   forward_f4_avx512 on AVX-512 CPUs: the same loop with its masks in mask registers.
 // * Backward: per tile, Gaussians back to front from the last contributing one, recomputing
-//   T in front by division (3DGS). Per-lane gradient sums stay in vector registers over the
+//   T in front by division (3DGS), each in only the rows where the forward blended one of its
+//   pixels (rows_hit: a 16-bit row mask per pair that the forward writes; a pair without one
+//   is skipped whole), two rows per step. Per-lane gradient sums stay in vector registers over the
 //   rows of one Gaussian and are reduced across lanes once per (tile, Gaussian) pair, into
 //   that pair's own gradient row (row k for pair k: tiles write disjoint rows, in sequence,
 //   so threads never share an accumulator). splat2_reduce sums the rows of each Gaussian in a
@@ -417,12 +419,13 @@ inline Vec<double>::v recip(Vec<double>::v x) { return splat<Vec<double>::v>(1.0
 // Gaussian (splat2_footprint: a log, a sqrt and divisions that would otherwise run per tile
 // pair) as one 64-byte record fp[FP * g ..] = (half, b / a, r2 / a, det / a^2, mx, my, dy*, 0),
 // used by
-// row_range(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3);
-// row_hits(): whether the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
-// sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres;
+// row_range(): tile-local rows [i0, i1) with |dy| <= half = sqrt(r2 a / det) (+1e-3), the rows
+// the forward visits;
 // binning (for_tiles, from a separate int16 record): the tile rectangle of the ellipse's
-// bounding box (within the 3-sigma rectangle), and per tile row the span where row_hits() can
-// hold (tile_spans; dy* is the row offset of the ellipse's rightmost point).
+// bounding box (within the 3-sigma rectangle), and per tile row the span of tiles where the
+// slice test can hold (tile_spans; dy* is the row offset of the ellipse's rightmost point).
+// The slice test: the ellipse's slice at a row centre (centre x = mx + b dy / a, half-width
+// sqrt(r2 / a - dy^2 det / a^2)) comes within one pixel of the tile's pixel centres.
 // All only skip work whose pixels the blending rules skip anyway. half < 0: opacity below
 // 1/255, nothing to blend. Not positive definite (never after the 0.3 dilation): every row
 // and column (half = r2 / a = 1e300).
@@ -510,19 +513,9 @@ inline void row_range(const double* fp, double my, double py0, int rows, int& i0
   i1 = (int)hi + 1;
 }
 
-inline bool row_hits(const double* fp, double mx, double dy, double px0, int cols) {
-  const double hw2 = fp[2] - dy * dy * fp[3];
-  // hit when sqrt(max(hw2, 0)) (1 + 1e-6) + 1 reaches the nearer end of [px0 + 0.5,
-  // px0 + cols - 0.5] from xc; squared (no sqrt per row), with a slightly wider factor.
-  // Without branches (the tests combined by & and |): the outcome varies from row to row,
-  // and its mispredictions cost the backward's row loop more than evaluating every term.
-  const double xc = mx + fp[1] * dy;
-  const double e = std::max(px0 + 0.5 - xc, xc - (px0 + cols - 0.5)) - 1.0;
-  return (!(hw2 < -1e-6 * fp[2])) & ((e <= 0) | (std::max(hw2, 0.0) * (1 + 4e-6) >= e * e));
-}
-
 // fn(ty, c0, c1) for each tile row ty of the rectangle r = (x0, x1, y0, y1): the tile columns
-// [c0, c1) within r where row_hits() can hold for a row that row_range() visits. A superset,
+// [c0, c1) within r where the slice test (see FP) can hold for a row that row_range() visits.
+// A superset,
 // so binning only these pairs changes no pixel and no gradient (the dropped pairs would blend
 // nothing). The row offsets dy = my - y of tile row ty's pixel centres lie in the band
 // [my - 16 (ty + 1), my - 16 ty] (half a pixel of slack each side, more than the float32
@@ -531,8 +524,7 @@ inline bool row_hits(const double* fp, double mx, double dy, double px0, int col
 // linear (fp1 dy, hw clamped to 0) outside: its maximum is at the tangent point dy* if the band
 // holds it, else at an end of the band; the left end likewise (at -dy*). Adjacent bands share
 // their ends, so each end's root is taken once. Then one pixel (the blend's margin) plus a
-// relative 1e-6 of slack; a tile is kept when the x range reaches its pixel centres, as in
-// row_hits().
+// relative 1e-6 of slack; a tile is kept when the x range reaches its pixel centres.
 template <typename Fn>
 inline void tile_spans(const double* fp, const int64_t* r, Fn&& fn) {
   const double mx = fp[4], my = fp[5], b1 = fp[1], f2 = fp[2], f3 = fp[3], dstar = fp[6];
@@ -859,8 +851,8 @@ template <typename T, int FC, bool CNT>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F_rt,
                   const int64_t* offsets, const int32_t* gauss, const T* means2d,
                   const T* conics, const T* opac, const T* feat, const double* fps, T* out_accum,
-                  T* out_T, int32_t* out_last, int32_t* out_count, const int32_t* tile_order,
-                  int64_t* next_tile) {
+                  T* out_T, int32_t* out_last, int32_t* out_count, uint16_t* rows_hit,
+                  const int32_t* tile_order, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
   const int64_t F = FC > 0 ? FC : F_rt;
@@ -891,13 +883,14 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       Pair<T> p;
-      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) continue;
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { rows_hit[k] = 0; continue; }
       const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
       const T* fg = p.fg;
       const int i0 = p.i0, i1 = p.i1;
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const typename Vec<T>::mi lk = (typename Vec<T>::mi)(k - k0 + 1);
+      uint32_t hit = 0;  // bit i: the pair blended a pixel of row i
       int i = i0;
       // four (then two) rows per step, each statement for all of them (q = 0 .. NQ - 1): a
       // row's exp is a long dependency chain, and one row at a time left the out-of-order
@@ -936,6 +929,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         for (int q = 0; q < NQ; ++q) stop[q] = valid[q] & stop[q];
 #endif
         for (int q = 0; q < NQ; ++q) contrib[q] = valid[q] & ~stop[q];
+        for (int q = 0; q < NQ; ++q) hit |= (uint32_t)any_lane(contrib[q]) << (i + q);
         for (int q = 0; q < NQ; ++q) vsel2_to(w[q], contrib[q], alpha[q] * Tr[i + q], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f)
           for (int q = 0; q < NQ; ++q) vfma_to(acc[(i + q) * FS + f], w[q], splat<V>(fg[f]));
@@ -971,6 +965,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
         const V test_T = Tr[i] * (splat<V>(T(1)) - alpha);
         const M stop = valid & vlt(test_T, splat<V>(Consts<T>::t_min));
         const M contrib = valid & ~stop;
+        hit |= (uint32_t)any_lane(contrib) << i;
         const V w = vsel(contrib, alpha * Tr[i], splat<V>(T(0)));
         for (int64_t f = 0; f < F; ++f) vfma_to(acc[i * FS + f], w, splat<V>(fg[f]));
         vsel_to(Tr[i], contrib, test_T);
@@ -981,6 +976,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
           if (all_lanes(done[i])) { alive[i] = false; --n_alive; }
         }
       }
+      rows_hit[k] = (uint16_t)hit;
     }
     for (int i = 0; i < rows; ++i)
       store_tile_row<T, FS>(tl, i, W, F, Tr, last, CNT ? count : nullptr, acc, out_accum, out_T, out_last, out_count);
@@ -999,7 +995,8 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
 inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, const int64_t* offsets,
                               const int32_t* gauss, const float* means2d, const float* conics, const float* opac,
                               const float* feat, const double* fps, float* out_accum, float* out_T,
-                              int32_t* out_last, const int32_t* tile_order, int64_t* next_tile) {
+                              int32_t* out_last, uint16_t* rows_hit, const int32_t* tile_order,
+                              int64_t* next_tile) {
   typedef Vec<float>::v V;
   constexpr int64_t F = 4;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -1029,13 +1026,14 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       Pair<float> p;
-      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) continue;
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { rows_hit[k] = 0; continue; }
       const float mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
       const float* fg = p.fg;
       const int i0 = p.i0, i1 = p.i1;
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const __m512i lk = _mm512_set1_epi32((int32_t)(k - k0 + 1));
+      uint32_t hit = 0;  // bit i: the pair blended a pixel of row i
       auto rows_step = [&](auto nq, int i) {
         constexpr int NQ = decltype(nq)::value;
         bool none = true;
@@ -1057,6 +1055,7 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
           const V test_T = Tr[i + q] * (splat<V>(1.0f) - alpha[q]);
           const __mmask16 stop = _mm512_mask_cmp_ps_mask(valid, test_T, tmin, _CMP_LT_OQ);
           const __mmask16 contrib = valid & (__mmask16)~stop;
+          hit |= (uint32_t)(contrib != 0) << (i + q);
           const V w = _mm512_maskz_mul_ps(contrib, alpha[q], Tr[i + q]);
           for (int64_t f = 0; f < F; ++f) acc[(i + q) * F + f] += w * splat<V>(fg[f]);
           Tr[i + q] = _mm512_mask_mov_ps(Tr[i + q], contrib, test_T);
@@ -1075,6 +1074,7 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
       for (; i + 3 < i1; i += 4) rows_step(std::integral_constant<int, 4>{}, i);
       for (; i + 1 < i1; i += 2) rows_step(std::integral_constant<int, 2>{}, i);
       for (; i < i1; ++i) rows_step(std::integral_constant<int, 1>{}, i);
+      rows_hit[k] = (uint16_t)hit;
     }
     for (int i = 0; i < rows; ++i)
       store_tile_row<float, F>(tl, i, W, F, Tr, last, nullptr, acc, out_accum, out_T, out_last, nullptr);
@@ -1094,7 +1094,7 @@ template <typename T, int FC>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_t F, int64_t Fa_rt,
                    const int64_t* offsets, const int32_t* gauss, const T* means2d,
                    const T* conics, const T* opac, const T* feat, const double* fps, const T* out_T,
-                   const int32_t* out_last, const T* v_accum, const T* v_T,
+                   const int32_t* out_last, const uint16_t* rows_hit, const T* v_accum, const T* v_T,
                    T* v_pair, uint8_t* live, const int32_t* tile_order, int64_t* next_tile) {
   typedef typename Vec<T>::v V;
   typedef typename Vec<T>::m M;
@@ -1175,12 +1175,14 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       // were ~430k scattered 40-byte writes, ~6 ms of a ~75 ms backward on the fern cell)
       T* gp = v_pair + k * S;
       const int32_t local = (int32_t)(k - k0);
+      // the rows where the forward blended a pixel of this pair (rows_hit): in every other row
+      // no lane passes the mask m below, so skipping them changes no bit (a fully masked row
+      // adds +0 to sums that are never -0 and changes no state)
+      uint32_t hit = rows_hit[k];
       Pair<T> p;
-      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { clear(gp, 0); continue; }
+      if (!hit || !load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { clear(gp, 0); continue; }
       const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
-      const double* fp = p.fp;
       const T* fg = p.fg;
-      const int i0 = p.i0, i1 = p.i1;
       // per lane: G0 = sum over rows of dL/dG (masked), G1 = sum dy dL/dG, G2 = sum dy^2 dL/dG;
       // dx is constant along a lane, so the five conic/mean gradients follow from these three
       // once per pair (v_power = op dL/dG, power = -(a dx^2 + c dy^2) / 2 - b dx dy)
@@ -1190,20 +1192,13 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       const V adx2 = splat<V>(a) * dx * dx;
       const M lk = splat<M>((typename Vec<T>::mi)local);
       bool any = false;
-      int i = i0;
-      // two rows per step, each statement for both (as in forward_impl: two interleaved exp
-      // chains). A row that the one-row loop would skip (no contributor left in it, or
-      // row_hits() false) is fully masked here (m false: it adds +0 to sums that are never
-      // -0 and changes no state), and the sums take row i before row i + 1 as in that loop:
-      // bit-identical.
-      for (; i + 1 < i1; i += 2) {
+      // the hit rows two per step (as in forward_impl: two interleaved exp chains), in
+      // ascending order, so the sums take the rows in the order of a one-row loop
+      while (hit & (hit - 1)) {
+        int ri[2];
+        for (int q = 0; q < 2; ++q) { ri[q] = __builtin_ctz(hit); hit &= hit - 1; }
         T dy[2];
-        bool act[2];
-        for (int q = 0; q < 2; ++q) {
-          dy[q] = my - (T(y0 + i + q) + T(0.5));
-          act[q] = (local < row_last[i + q]) & row_hits(fp, (double)mx, (double)dy[q], (double)x0, cols);
-        }
-        if (!act[0] && !act[1]) continue;
+        for (int q = 0; q < 2; ++q) dy[q] = my - (T(y0 + ri[q]) + T(0.5));
         V power[2], G[2], raw[2], alpha[2], inv_one_m[2], Tfront[2], am[2], wm[2], v_alpha[2], vG[2];
         M pos[2], m[2], m2[2];
         for (int q = 0; q < 2; ++q)
@@ -1216,15 +1211,15 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         for (int q = 0; q < 2; ++q)
           alpha[q] = raw[q] < splat<V>(Consts<T>::alpha_max) ? raw[q] : splat<V>(Consts<T>::alpha_max);
         for (int q = 0; q < 2; ++q)
-          m[q] = act[q] ? pos[q] & (lk < last[i + q]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min)) : M{};
+          m[q] = pos[q] & (lk < last[ri[q]]) & (alpha[q] >= splat<V>(Consts<T>::alpha_min));
 #else  // the same, each compare and select written into its destination part by part (forward_impl)
         M tmp[2];
         for (int q = 0; q < 2; ++q) vlt_to(tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
         for (int q = 0; q < 2; ++q) vsel2_to(alpha[q], tmp[q], raw[q], splat<V>(Consts<T>::alpha_max));
         for (int q = 0; q < 2; ++q) {
-          vlt_to(m[q], lk, last[i + q]);
+          vlt_to(m[q], lk, last[ri[q]]);
           vge_to(tmp[q], alpha[q], splat<V>(Consts<T>::alpha_min));
-          m[q] = pos[q] & m[q] & tmp[q] & splat<M>(act[q] ? -1 : 0);  // (not ?: on the vector: a copy)
+          m[q] = pos[q] & m[q] & tmp[q];
         }
 #endif
 #if SPLAT_NATIVE_BYTES == 64
@@ -1233,22 +1228,22 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         any |= any_lane_of(m, 2);
 #endif
         for (int q = 0; q < 2; ++q) inv_one_m[q] = recip(splat<V>(T(1)) - alpha[q]);
-        for (int q = 0; q < 2; ++q) Tfront[q] = Tr[i + q] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) Tfront[q] = Tr[ri[q]] * inv_one_m[q];
         for (int q = 0; q < 2; ++q) vsel2_to(am[q], m[q], alpha[q], V{});
         for (int q = 0; q < 2; ++q) wm[q] = am[q] * Tfront[q];
         for (int q = 0; q < 2; ++q) v_alpha[q] = V{};
         for (int64_t f = 0; f < Fa; ++f) {
           for (int q = 0; q < 2; ++q) {
-            V& rp = rec[(i + q) * FS + f];
-            const V vp = vacc[(i + q) * FS + f];
+            V& rp = rec[ri[q] * FS + f];
+            const V vp = vacc[ri[q] * FS + f];
             const V d = splat<V>(fg[f]) - rp;
             vfma_to(g_f[f], wm[q], vp);
             vfma_to(v_alpha[q], d, vp);
             vfma_to(rp, am[q], d);
           }
         }
-        for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[i + q] * inv_one_m[q];
-        for (int q = 0; q < 2; ++q) vsel_to(Tr[i + q], m[q], Tfront[q]);
+        for (int q = 0; q < 2; ++q) v_alpha[q] = v_alpha[q] * Tfront[q] - vTT[ri[q]] * inv_one_m[q];
+        for (int q = 0; q < 2; ++q) vsel_to(Tr[ri[q]], m[q], Tfront[q]);
 #if SPLAT_NATIVE_BYTES == 64
         for (int q = 0; q < 2; ++q) m2[q] = m[q] & (raw[q] <= splat<V>(Consts<T>::alpha_max));
 #else
@@ -1262,10 +1257,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
           vfma_to(G2, vG[q], splat<V>(dy[q] * dy[q]));
         }
       }
-      for (; i < i1; ++i) {
-        if (local >= row_last[i]) continue;
+      if (hit) {  // the last one of an odd count
+        const int i = __builtin_ctz(hit);
         const T dy = my - (T(y0 + i) + T(0.5));
-        if (!row_hits(fp, (double)mx, (double)dy, (double)x0, cols)) continue;
         const V power = splat<V>(T(-0.5)) * (adx2 + splat<V>(c * dy * dy)) - splat<V>(b) * dx * splat<V>(dy);
         const M pos = vle(power, splat<V>(T(0)));
         const V G = vexp(vsel(pos, power, splat<V>(T(0))));
@@ -1397,22 +1391,22 @@ void reduce_impl(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, 
 template <typename T>
 void forward_for(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, const int64_t* off,
                  const int32_t* gs, const T* m, const T* co, const T* op, const T* fe, const double* fp,
-                 T* acc, T* Tf, int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
+                 T* acc, T* Tf, int32_t* last, int32_t* cnt, uint16_t* hit, const int32_t* ord, int64_t* nth) {
 #if defined(__AVX512F__)
   if (std::is_same<T, float>::value && F == 4 && !cnt) {
     forward_f4_avx512(tx, ty, W, H, off, gs, (const float*)m, (const float*)co, (const float*)op, (const float*)fe,
-                      fp, (float*)acc, (float*)Tf, last, ord, nth);
+                      fp, (float*)acc, (float*)Tf, last, hit, ord, nth);
     return;
   }
 #endif
   if (F == 4 && !cnt) {
-    forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+    forward_impl<T, 4, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
   } else if (F == 4) {
-    forward_impl<T, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+    forward_impl<T, 4, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
   } else if (!cnt) {
-    forward_impl<T, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+    forward_impl<T, 0, false>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
   } else {
-    forward_impl<T, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+    forward_impl<T, 0, true>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
   }
 }
 
@@ -1420,14 +1414,14 @@ void forward_for(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, const 
 template <typename T>
 void backward_for_active(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const T* m, const T* co, const T* op,
-                         const T* fe, const double* fp, const T* Tf, const int32_t* last, const T* vacc,
-                         const T* vT, T* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
+                         const T* fe, const double* fp, const T* Tf, const int32_t* last, const uint16_t* hit,
+                         const T* vacc, const T* vT, T* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
   if (Fa == 3) {
-    backward_impl<T, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
+    backward_impl<T, 3>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, hit, vacc, vT, vpair, live, ord, nth);
   } else if (Fa == 4) {
-    backward_impl<T, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
+    backward_impl<T, 4>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, hit, vacc, vT, vpair, live, ord, nth);
   } else {
-    backward_impl<T, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
+    backward_impl<T, 0>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, hit, vacc, vT, vpair, live, ord, nth);
   }
 }
 
@@ -1445,7 +1439,7 @@ int64_t active_channels(int64_t n, int64_t F, const T* v) {
 
 extern "C" {
 
-int splat2_abi_version() { return 17; }
+int splat2_abi_version() { return 18; }
 
 // 1 + the last feature channel f < F with a nonzero value (x != 0: NaN counts, -0.0 does not)
 // among the n pixels of v [n, F] (contiguous), 0 if none: the backward skips the trailing
@@ -1595,28 +1589,28 @@ void splat2_footprint_scalar_f64(int64_t n, const double* co, const double* op, 
 void splat2_forward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const float* m, const float* co,
                         const float* op, const float* fe, const double* fp, float* acc, float* Tf,
-                        int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
-  forward_for<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+                        int32_t* last, int32_t* cnt, uint16_t* hit, const int32_t* ord, int64_t* nth) {
+  forward_for<float>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
 }
 void splat2_forward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F,
                         const int64_t* off, const int32_t* gs, const double* m, const double* co,
                         const double* op, const double* fe, const double* fp, double* acc, double* Tf,
-                        int32_t* last, int32_t* cnt, const int32_t* ord, int64_t* nth) {
-  forward_for<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, ord, nth);
+                        int32_t* last, int32_t* cnt, uint16_t* hit, const int32_t* ord, int64_t* nth) {
+  forward_for<double>(tx, ty, W, H, F, off, gs, m, co, op, fe, fp, acc, Tf, last, cnt, hit, ord, nth);
 }
 void splat2_backward_f32(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const float* m, const float* co,
                          const float* op, const float* fe, const double* fp, const float* Tf,
-                         const int32_t* last, const float* vacc, const float* vT,
+                         const int32_t* last, const uint16_t* hit, const float* vacc, const float* vT,
                          float* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
-  backward_for_active<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
+  backward_for_active<float>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, hit, vacc, vT, vpair, live, ord, nth);
 }
 void splat2_backward_f64(int64_t tx, int64_t ty, int64_t W, int64_t H, int64_t F, int64_t Fa,
                          const int64_t* off, const int32_t* gs, const double* m,
                          const double* co, const double* op, const double* fe, const double* fp,
-                         const double* Tf, const int32_t* last, const double* vacc, const double* vT,
-                         double* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
-  backward_for_active<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, vacc, vT, vpair, live, ord, nth);
+                         const double* Tf, const int32_t* last, const uint16_t* hit, const double* vacc,
+                         const double* vT, double* vpair, uint8_t* live, const int32_t* ord, int64_t* nth) {
+  backward_for_active<double>(tx, ty, W, H, F, Fa, off, gs, m, co, op, fe, fp, Tf, last, hit, vacc, vT, vpair, live, ord, nth);
 }
 void splat2_reduce_f32(int64_t m, const int64_t* order, const int64_t* ps, int64_t S, const float* v_pair,
                        const int32_t* sp, const uint8_t* live, int64_t n, const uint8_t* visible, float* v_out,

@@ -48,9 +48,9 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
     i64, vp = ctypes.c_int64, ctypes.c_void_p
     pre = "splat2_" if v2 else "splat_"
     for dt in ("f32", "f64"):
-        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (13 if v2 else 11)
+        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (14 if v2 else 11)
         getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 15 if v2 else [i64] * 5 + [vp] * 12
+        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 16 if v2 else [i64] * 5 + [vp] * 12
         getattr(lib, f"{pre}backward_{dt}").restype = None
         if v2:
             getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
@@ -78,7 +78,7 @@ def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 17, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
+    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 18, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
     "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
 })
 
@@ -138,6 +138,10 @@ class Bins:
             whichever thread takes it when: the order changes no result.
         visible: [N] bool ("cpu" only): the Gaussians in ``order`` (the backward's reduction
             zeroes the gradient rows of the others itself).
+        rows_hit: [P] int16 ("cpu" only; written by :func:`forward_raw`, read by
+            :func:`backward_raw`): bit i of pair k set when the forward blended at least one
+            pixel of tile row i with it. The backward visits only those rows (in the others no
+            pixel passes its mask: skipping them changes no bit) and skips pairs with none.
     """
 
     offsets: Tensor
@@ -150,6 +154,7 @@ class Bins:
     slot_pair: Tensor | None = None
     tile_order: Tensor | None = None
     visible: Tensor | None = None
+    rows_hit: Tensor | None = None
 
 
 _scratch_bufs: dict[str, Tensor] = {}
@@ -293,11 +298,12 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     count = torch.empty(height, width, dtype=torch.int32) if with_count or kernel != "cpu" else None
     if kernel == "cpu":
         fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
+        bins.rows_hit = torch.empty(bins.gauss.numel(), dtype=torch.int16)  # fresh: a saved one stays valid
         _run_threaded(
             getattr(lib, f"splat2_forward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
             _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last),
-            None if count is None else _ptr(count), _tile_order(bins),
+            None if count is None else _ptr(count), _ptr(bins.rows_hit), _tile_order(bins),
         )
     else:
         _run_threaded(
@@ -330,12 +336,15 @@ _workspace_lock = threading.Lock()
 
 
 def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, height: int,
-                 t_final: Tensor, last: Tensor, v_accum: Tensor, v_t: Tensor, kernel: str = "cpu") -> Tensor:
+                 t_final: Tensor, last: Tensor, v_accum: Tensor, v_t: Tensor, kernel: str = "cpu",
+                 rows_hit: Tensor | None = None) -> Tensor:
     """Run the backward kernel and reduce per Gaussian (no autograd).
 
     Args:
         means2d .. bins, width, height as in :func:`forward_raw`; t_final [H, W] and last
-        [H, W] int32 from it; v_accum [H, W, F] and v_t [H, W] the cotangents.
+        [H, W] int32 from it; v_accum [H, W, F] and v_t [H, W] the cotangents; rows_hit
+        [P] int16 from it ("cpu"; default ``bins.rows_hit``, which the last forward_raw with
+        these bins wrote).
 
     Returns:
         [N, 6 + F] per-Gaussian gradients (v_mx, v_my, v_a, v_b, v_c, v_opacity, v_features),
@@ -357,6 +366,10 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
             _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
         )
         return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
+    rows_hit = bins.rows_hit if rows_hit is None else rows_hit
+    if rows_hit is None or rows_hit.numel() != bins.gauss.numel():
+        raise ValueError("backward_raw needs the rows the forward blended (bins.rows_hit): run forward_raw "
+                         "with these bins first")
     fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
     vis = bins.visible.view(torch.uint8) if bins.visible is not None and bins.visible.numel() == n else None
     # the reduction writes every row: the Gaussians in order, and with vis the others' zeros
@@ -375,8 +388,8 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
         _run_threaded(
             getattr(lib, f"splat2_backward_{suffix}"),
             bins.tiles_x, bins.tiles_y, width, height, nf, n_active, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t),
-            _ptr(v_pair), _ptr(live), _tile_order(bins),
+            _ptr(op), _ptr(fe), _ptr(fp), _ptr(t_final), _ptr(last), _ptr(rows_hit), _ptr(v_accum),
+            _ptr(v_t), _ptr(v_pair), _ptr(live), _tile_order(bins),
         )
         _run_threaded(getattr(lib, f"splat2_reduce_{suffix}"), bins.order.numel(), _ptr(bins.order), _ptr(bins.ps),
                       6 + nf, _ptr(v_pair), _ptr(bins.slot_pair), _ptr(live), n,
@@ -410,18 +423,18 @@ class _BlendCPU(torch.autograd.Function):
                                               with_count=False)
         m, co, fe, op = (t.detach().contiguous() for t in (means2d, conics, features, opacities))
         ctx.save_for_backward(m, co, fe, op, t_final, last)
-        ctx.extra = (bins, width, height, kernel)
+        ctx.extra = (bins, width, height, kernel, bins.rows_hit)
         ctx.set_materialize_grads(False)  # an unused output's cotangent stays None (zeros made below)
         return accum, t_final
 
     @staticmethod
     def backward(ctx, v_accum, v_t):
         m, co, fe, op, t_final, last = ctx.saved_tensors
-        bins, width, height, kernel = ctx.extra
+        bins, width, height, kernel, rows_hit = ctx.extra
         dt, nf = m.dtype, fe.shape[1]
         v_accum = torch.zeros(height, width, nf, dtype=dt) if v_accum is None else v_accum
         v_t = torch.zeros(height, width, dtype=dt) if v_t is None else v_t
-        v = backward_raw(m, co, fe, op, bins, width, height, t_final, last, v_accum, v_t, kernel)
+        v = backward_raw(m, co, fe, op, bins, width, height, t_final, last, v_accum, v_t, kernel, rows_hit)
         return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None
 
 

@@ -226,10 +226,57 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
                                    conics=proj.conics, opacities=op)
         args = (proj.means2d, proj.conics, feat, op, bins, W, H)
         fast = _cpu_kernel.forward_raw(*args, with_count=False)
+        fast_rows = bins.rows_hit
         generic = _cpu_kernel.forward_raw(*args, with_count=True)
     assert fast[3] is None and generic[3].sum() > 0
     assert (fast[2] > 0).any()
     for a, b in zip(fast[:3], generic[:3]):
         assert torch.equal(a, b)
+    # the rows each pair blended (read by the backward) agree too, over the pairs the
+    # forward reached (those behind a tile's last contributor are never read)
+    reached = _reached_pairs(bins, fast[2])
+    assert torch.equal(fast_rows[reached], bins.rows_hit[reached])
     if kind == "stop":
         assert fast[1].min() < 1e-2  # the stop rule ran
+
+
+def _reached_pairs(bins, last):
+    """[P] bool: the pairs of each tile up to its last contributor (the ones the backward reads)."""
+    W, H = last.shape[1], last.shape[0]
+    tl = torch.nn.functional.pad(last, (0, bins.tiles_x * 16 - W, 0, bins.tiles_y * 16 - H))
+    tile_last = tl.reshape(bins.tiles_y, 16, bins.tiles_x, 16).amax(dim=(1, 3)).reshape(-1)
+    local = torch.arange(bins.gauss.numel()) - torch.repeat_interleave(bins.offsets[:-1], bins.offsets.diff())
+    tile = torch.repeat_interleave(torch.arange(tile_last.numel()), bins.offsets.diff())
+    return local < tile_last[tile].long()
+
+
+@pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
+@pytest.mark.parametrize("kind", ["overlap", "borders", "stop", "sparse"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cpu_backward_visits_only_rows_the_forward_blended(kind, dtype):
+    """The backward visits, per tile pair, only the rows where the forward blended a pixel
+    (bins.rows_hit) and skips pairs with none: the gradients are bit for bit those of a
+    backward that visits every row of every reached pair (a mask of all ones), while the
+    masks do skip work here (pairs with no row, and rows left out)."""
+    from splat_train import _cpu_kernel
+
+    params, cw, K, W, H = make_scene(kind, seed=22, dtype=dtype)
+    with torch.no_grad():
+        proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
+        feat = torch.cat([params["colors"], proj.depths[:, None]], dim=1).contiguous()
+        op = params["opacities"].detach()
+        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
+                                   conics=proj.conics, opacities=op)
+        args = (proj.means2d, proj.conics, feat, op, bins, W, H)
+        _, t_final, last, _ = _cpu_kernel.forward_raw(*args, with_count=False)
+        g = torch.Generator().manual_seed(5)
+        v_acc = torch.randn(H, W, 4, generator=g, dtype=dtype)
+        v_t = torch.randn(H, W, generator=g, dtype=dtype)
+        got = _cpu_kernel.backward_raw(*args, t_final, last, v_acc, v_t)
+        every = torch.full_like(bins.rows_hit, -1)  # all 16 bits
+        ref = _cpu_kernel.backward_raw(*args, t_final, last, v_acc, v_t, rows_hit=every)
+    assert torch.equal(got, ref)
+    assert got.abs().sum() > 0
+    rows = bins.rows_hit[_reached_pairs(bins, last)].to(torch.int32) & 0xFFFF
+    assert (rows == 0).any() or kind == "sparse"
+    assert (rows != 0xFFFF).any()
