@@ -119,6 +119,8 @@ class Trainer:
         self.digest = digest or inputs_digest(seed_ply, train_views, cfg)
         self.sched = cfg.schedule()
         self.dev = _device(cfg.device)
+        if self.dev.type == "cuda":  # train.json's peak_cuda_mb is this run's, not the process's
+            torch.cuda.reset_peak_memory_stats(self.dev)
         self.backend = resolve_backend(cfg.rasterizer, self.dev)
         log.info("rasterizer backend: %s (config %r, device %s)", self.backend, cfg.rasterizer, self.dev)
         if cfg.pose_refine and cfg.pose_refine_focal and self.backend == "gsplat":
