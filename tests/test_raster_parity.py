@@ -217,14 +217,9 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
     (Without AVX-512 both calls take the generic kernel and the test still holds.)"""
     from splat_train import _cpu_kernel
 
-    params, cw, K, W, H = make_scene(kind, seed=21, dtype=torch.float32)
+    args = _kernel_args(kind, 21, torch.float32)
+    bins = args[4]
     with torch.no_grad():
-        proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
-        feat = torch.cat([params["colors"], proj.depths[:, None]], dim=1).contiguous()
-        op = params["opacities"].detach()
-        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
-                                   conics=proj.conics, opacities=op)
-        args = (proj.means2d, proj.conics, feat, op, bins, W, H)
         fast = _cpu_kernel.forward_raw(*args, with_count=False)
         fast_rows = bins.rows_hit
         generic = _cpu_kernel.forward_raw(*args, with_count=True)
@@ -238,6 +233,21 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
     assert torch.equal(fast_rows[reached], bins.rows_hit[reached])
     if kind == "stop":
         assert fast[1].min() < 1e-2  # the stop rule ran
+
+
+def _kernel_args(kind: str, seed: int, dtype):
+    """(means2d, conics, RGB + depth features, opacities, bins, W, H) of a make_scene scene,
+    binned for the "cpu" kernel: the arguments of its forward_raw / backward_raw."""
+    from splat_train import _cpu_kernel
+
+    params, cw, K, W, H = make_scene(kind, seed=seed, dtype=dtype)
+    with torch.no_grad():
+        proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
+        feat = torch.cat([params["colors"], proj.depths[:, None]], dim=1).contiguous()
+        op = params["opacities"].detach()
+        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
+                                   conics=proj.conics, opacities=op)
+    return proj.means2d, proj.conics, feat, op, bins, W, H
 
 
 def _reached_pairs(bins, last):
@@ -260,14 +270,9 @@ def test_cpu_backward_visits_only_rows_the_forward_blended(kind, dtype):
     masks do skip work here (pairs with no row, and rows left out)."""
     from splat_train import _cpu_kernel
 
-    params, cw, K, W, H = make_scene(kind, seed=22, dtype=dtype)
+    args = _kernel_args(kind, 22, dtype)
+    bins, W, H = args[4:]
     with torch.no_grad():
-        proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
-        feat = torch.cat([params["colors"], proj.depths[:, None]], dim=1).contiguous()
-        op = params["opacities"].detach()
-        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
-                                   conics=proj.conics, opacities=op)
-        args = (proj.means2d, proj.conics, feat, op, bins, W, H)
         _, t_final, last, _ = _cpu_kernel.forward_raw(*args, with_count=False)
         g = torch.Generator().manual_seed(5)
         v_acc = torch.randn(H, W, 4, generator=g, dtype=dtype)
