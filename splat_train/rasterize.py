@@ -80,9 +80,9 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
 
 def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bool:
     """Whether the "cpu" backend can use the fused C++ projection + SH: float32/float64 CPU
-    tensors and a camera that needs no gradient (pose refinement keeps the torch path)."""
-    if means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64) \
-            or cam_from_world.requires_grad or K.requires_grad:
+    tensors (resolve_backend has refused "cpu" on other devices) and a camera that needs no
+    gradient (pose refinement keeps the torch path)."""
+    if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
         return False
     from splat_train import _cpu_project
 

