@@ -769,18 +769,17 @@ inline void prefetch_pair(int64_t g, const T* means2d, const T* conics, const T*
 }
 
 // One tile-Gaussian pair as the blend loops read it: Gaussian g's mean, conic, opacity,
-// features and footprint record, and the tile rows [i0, i1) (of the tile's rows from y0) that
-// row_range() lets it reach. False when its opacity is below 1/255 (it blends nothing).
+// features and footprint record. False when its opacity is below 1/255 (it blends nothing).
+// The forwards take the pair's rows from row_range(p.fp, ...); the backward from rows_hit.
 template <typename T>
 struct Pair {
   T mx, my, a, b, c, op;
   const T* fg;
   const double* fp;
-  int i0, i1;
 };
 template <typename T>
 inline bool load_pair(int64_t g, const T* means2d, const T* conics, const T* opac, const T* feat, int64_t F,
-                      const double* fps, int64_t y0, int rows, Pair<T>& p) {
+                      const double* fps, Pair<T>& p) {
   p.mx = means2d[2 * g];
   p.my = means2d[2 * g + 1];
   p.a = conics[3 * g];
@@ -789,7 +788,6 @@ inline bool load_pair(int64_t g, const T* means2d, const T* conics, const T* opa
   p.op = opac[g];
   p.fp = fps + FP * g;
   if (p.fp[0] < 0) return false;
-  row_range(p.fp, (double)p.my, (double)y0, rows, p.i0, p.i1);
   p.fg = feat + g * F;
   return true;
 }
@@ -883,10 +881,11 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64_
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       Pair<T> p;
-      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { rows_hit[k] = 0; continue; }
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, p)) { rows_hit[k] = 0; continue; }
       const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
       const T* fg = p.fg;
-      const int i0 = p.i0, i1 = p.i1;
+      int i0, i1;
+      row_range(p.fp, (double)my, (double)y0, rows, i0, i1);
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const typename Vec<T>::mi lk = (typename Vec<T>::mi)(k - k0 + 1);
@@ -1026,10 +1025,11 @@ inline void forward_f4_avx512(int64_t tiles_x, int64_t tiles_y, int64_t W, int64
     for (int64_t k = k0; k < k1 && n_alive > 0; ++k) {
       if (k + PAIR_PREFETCH < k1) prefetch_pair(gauss[k + PAIR_PREFETCH], means2d, conics, opac, feat, F, fps);
       Pair<float> p;
-      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { rows_hit[k] = 0; continue; }
+      if (!load_pair(gauss[k], means2d, conics, opac, feat, F, fps, p)) { rows_hit[k] = 0; continue; }
       const float mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
       const float* fg = p.fg;
-      const int i0 = p.i0, i1 = p.i1;
+      int i0, i1;
+      row_range(p.fp, (double)my, (double)y0, rows, i0, i1);
       const V dx = splat<V>(mx) - pxc;
       const V adx2 = splat<V>(a) * dx * dx;
       const __m512i lk = _mm512_set1_epi32((int32_t)(k - k0 + 1));
@@ -1112,14 +1112,12 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
     if (k1 <= k0) continue;
     V Tr[TILE], vTT[TILE], rec[TILE * FS], vacc[TILE * FS];
     M last[TILE];
-    int64_t max_last = 0;
-    int row_last[TILE];
+    int64_t max_last = 0;  // 1 + the tile's last contributing pair (over its pixels)
     const V pxc = lane + splat<V>(T(x0)) + splat<V>(T(0.5));
     for (int i = 0; i < TILE; ++i) {
       Tr[i] = splat<V>(T(1));
       vTT[i] = V{};
       last[i] = M{};
-      row_last[i] = 0;
       for (int64_t f = 0; f < Fa; ++f) rec[i * FS + f] = vacc[i * FS + f] = V{};
       if (i >= rows) continue;
       const int64_t row = (y0 + i) * W + x0;
@@ -1129,19 +1127,17 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         std::memcpy(&vt, v_T + row, sizeof(V));
         vTT[i] = vt * Tr[i];  // dL/dT_final * T_final
         std::memcpy(&last[i], out_last + row, sizeof(M));
-        for (int j = 0; j < TILE; ++j) row_last[i] = std::max(row_last[i], (int)last[i][j]);
+        for (int j = 0; j < TILE; ++j) max_last = std::max<int64_t>(max_last, last[i][j]);
 #ifdef SPLAT_SHUFFLE
         if (F == 4) {
           Vec<float>::v ch[4];
           deinterleave4(reinterpret_cast<const float*>(v_accum + row * 4), ch);
           for (int64_t f = 0; f < Fa; ++f) std::memcpy(&vacc[i * FS + f], &ch[f], sizeof(V));
-          max_last = std::max<int64_t>(max_last, row_last[i]);
           continue;
         }
 #endif
         for (int j = 0; j < cols; ++j)
           for (int64_t f = 0; f < Fa; ++f) vacc[i * FS + f][j] = v_accum[(row + j) * F + f];
-        max_last = std::max<int64_t>(max_last, row_last[i]);
         continue;
       }
       for (int j = 0; j < cols; ++j) {
@@ -1149,10 +1145,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
         Tr[i][j] = tf;
         vTT[i][j] = v_T[row + j] * tf;  // dL/dT_final * T_final
         last[i][j] = out_last[row + j];
-        row_last[i] = std::max(row_last[i], (int)out_last[row + j]);
+        max_last = std::max<int64_t>(max_last, out_last[row + j]);
         for (int64_t f = 0; f < Fa; ++f) vacc[i * FS + f][j] = v_accum[(row + j) * F + f];
       }
-      max_last = std::max<int64_t>(max_last, row_last[i]);
     }
     // Rows are written once each (zeros where the pair blends nothing): a zeroing loop over the
     // runtime S compiled to a memset call per pair, ~4% of a 512x512 forward+backward; with
@@ -1180,7 +1175,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, int64
       // adds +0 to sums that are never -0 and changes no state)
       uint32_t hit = rows_hit[k];
       Pair<T> p;
-      if (!hit || !load_pair(gauss[k], means2d, conics, opac, feat, F, fps, y0, rows, p)) { clear(gp, 0); continue; }
+      if (!hit || !load_pair(gauss[k], means2d, conics, opac, feat, F, fps, p)) { clear(gp, 0); continue; }
       const T mx = p.mx, my = p.my, a = p.a, b = p.b, c = p.c, op = p.op;
       const T* fg = p.fg;
       // per lane: G0 = sum over rows of dL/dG (masked), G1 = sum dy dL/dG, G2 = sum dy^2 dL/dG;
