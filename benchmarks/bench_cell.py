@@ -280,7 +280,7 @@ def _prepare(work: Path, scene_kind: str, n: int, quick: bool, threads: int | No
     stage("align", "evaluation", ["align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(scene / "sparse" / "0"),
                                   "--train-names", str(scene / "split.json"), "--n", str(n), "--images", str(test_dir),
                                   "--out", str(work / "align")])
-    return {"desc": desc, "n": n, "used": used, "inits": inits, "synthetic": synthetic,
+    return {"desc": desc, "n": n, "used": used, "inits": inits,
             "scene": str(scene.relative_to(work)), "train_txt": str(train_txt.relative_to(work)),
             "test_dir": str(test_dir.relative_to(work))}
 
