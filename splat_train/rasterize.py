@@ -25,11 +25,12 @@ from splat_train import _reference
 from splat_train.projection import EPS2D, NEAR_PLANE, project_gaussians
 from splat_train.sh import num_sh_bases, sh_concat, sh_to_color
 
-__all__ = ["rasterize", "resolve_backend", "BACKENDS"]
+__all__ = ["rasterize", "resolve_backend", "BACKENDS", "SKEW_ERROR"]
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "cpu", "cpu_v1", "torch", "reference", "gsplat")
+SKEW_ERROR = "K must have zero skew (K[0, 1] == 0); undistort / re-fit the camera first"
 _warned_cuda_fallback = False  # resolve_backend warns once per process
 
 
@@ -122,6 +123,13 @@ def blend(
     return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
 
 
+def _check_zero_skew(K: Tensor) -> None:
+    """Refuse K [3, 3] with K[0, 1] != 0, where reading it is free: for a CPU tensor. On a GPU
+    the read would be a device sync per call; the trainer checks its cameras once, on the host."""
+    if K.device.type == "cpu" and float(K[0, 1].detach()) != 0.0:
+        raise ValueError(SKEW_ERROR)
+
+
 def rasterize(
     means: Tensor,
     quats: Tensor,
@@ -152,7 +160,8 @@ def rasterize(
             (no [N, K, 3] concatenation, no copy of a slice's gradient); other paths
             concatenate them.
         cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera.
-        K: [3, 3] intrinsics in pixels of this image size (zero skew).
+        K: [3, 3] intrinsics in pixels of this image size (zero skew: checked when K is on the
+            CPU; reading a GPU tensor would cost a device sync per call).
         width, height: image size in pixels.
         background: [3] RGB behind everything (default black).
         sh_degree: None for plain colours, else 0..3.
@@ -189,8 +198,7 @@ def rasterize(
     if not (isinstance(cam_from_world, Tensor) and cam_from_world.shape in ((4, 4), (3, 4))):
         raise ValueError(f"cam_from_world must be a [4, 4] or [3, 4] tensor, got {getattr(cam_from_world, 'shape', type(cam_from_world))}")
     _check("K", K, (3, 3))
-    if float(K[0, 1].detach()) != 0.0:
-        raise ValueError("K must have zero skew (K[0, 1] == 0); undistort / re-fit the camera first")
+    _check_zero_skew(K)
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"width and height must be positive, got {width}x{height}")
     width, height = int(width), int(height)

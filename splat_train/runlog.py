@@ -1,7 +1,9 @@
 """The per-iteration training record, written as ``DIR/log.parquet`` (docs/contracts.md).
 
 Columns: ``iteration`` (int64, 1-based), ``wall_time_s`` (training time so far, excluding
-held-out evaluation and checkpoint writing; continued across resumes), ``loss``, ``l1``,
+held-out evaluation and checkpoint writing; continued across resumes; on a GPU exact at the
+rows where the trainer synchronises: every ``trainer.SYNC_EVERY``-th, evaluation, log and
+checkpoint rows, and between them the host's time so far), ``loss``, ``l1``,
 ``ssim`` (of the training view of that iteration), ``train_psnr`` (PSNR of that view),
 ``num_gaussians`` (int64, after that iteration's densification), and the held-out means over
 the test views at evaluation iterations (null elsewhere): ``test_psnr`` (dB), ``test_ssim``

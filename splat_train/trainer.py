@@ -56,12 +56,25 @@ from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_c
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
 from splat_train.losses import photometric_loss
 from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
-from splat_train.rasterize import resolve_backend
+from splat_train.rasterize import SKEW_ERROR, resolve_backend
 from splat_train.runlog import RunLog
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest"]
 
 log = logging.getLogger(__name__)
+
+# Iterations between host reads of the training scalars (loss, L1, SSIM, MSE) on an
+# accelerator. Each read waits for the device's queue to drain, so reading them every
+# iteration (six reads per iteration before) kept the GPU idle while Python queued the next
+# one. On the CPU a read costs nothing and the run reads every iteration (exact stop at a
+# non-finite loss, before its backward pass). Evaluation, checkpoint and log iterations read
+# too, so their rows are exact.
+SYNC_EVERY = 10
+
+
+def host_sync_every(device: torch.device) -> int:
+    """Iterations between host reads of the training scalars on ``device`` (see SYNC_EVERY)."""
+    return 1 if device.type == "cpu" else SYNC_EVERY
 
 
 class NonFiniteLossError(RuntimeError):
@@ -130,6 +143,9 @@ class Trainer:
                              "gsplat does not compute; train with rasterizer 'torch' (slower on a GPU) or "
                              "without focal refinement")
         self.train_views, self.test_views = train_views, test_views or []
+        for v in [*self.train_views, *self.test_views]:  # once here: rasterize checks CPU tensors only
+            if float(v.camera.K[0, 1]) != 0.0:
+                raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
         self.strategy = DensifyStrategy(
             densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,
             densify_every=self.sched.densify_every, opacity_reset_every=self.sched.opacity_reset_every,
@@ -162,6 +178,11 @@ class Trainer:
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
+        # log rows whose scalars are still on the device (see flush); on a GPU every read of
+        # one waits for the queued work, so they are read SYNC_EVERY iterations at a time
+        self.pending: list[dict[str, Any]] = []
+        self.sync_every = host_sync_every(self.dev)
+        self.last_view = 0
 
     # ---------------------------------------------------------------- checkpoints
     def payload(self) -> dict[str, Any]:
@@ -253,26 +274,29 @@ class Trainer:
         with torch.no_grad():
             return [self.intrinsics(i).detach() for i in range(len(self.train_views))]
 
-    def step(self) -> dict[str, float]:
-        """One optimisation iteration (``self.iteration`` is advanced first)."""
+    def step(self) -> torch.Tensor:
+        """One optimisation iteration (``self.iteration`` is advanced first).
+
+        Returns:
+            [4] (loss, L1, SSIM, MSE of the render) on the training device, detached: reading
+            them is a device sync, which :meth:`run` does once every ``sync_every`` iterations
+            (:meth:`flush`). With ``sync_every == 1`` a non-finite loss raises here, before
+            the backward pass; otherwise at the next flush.
+        """
         self.iteration += 1
         it, cfg = self.iteration, self.cfg
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = position_lr(cfg, it, self.extent)
         deg = self.sched.sh_degree_at(it, cfg.sh_degree)
-        idx = self.next_view()
+        idx = self.last_view = self.next_view()
         bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
         out = render_params(self.params, deg, self.camera(idx), self.intrinsics(idx), cam.width, cam.height, bg,
                             self.backend)
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
-        if not torch.isfinite(loss.detach()):
-            last = ckpt.latest_checkpoint(self.ckpt_dir)
-            raise NonFiniteLossError(
-                f"loss is {loss.item()} at iteration {it} (view {cam.name!r}); the run stops. "
-                f"Last good checkpoint: {last or 'none (no checkpoint written yet)'}. Lower the "
-                "learning rates or check the seed PLY / cameras for extreme values.")
+        if self.sync_every == 1 and not torch.isfinite(loss.detach()):
+            self._non_finite(float(loss.detach()), it, cam.name)  # before the step moves anything
         loss.backward()
         if out["means2d"].grad is not None:
             # [N, 2] in pixels for every backend (the rasterize contract; the gsplat adapter too)
@@ -288,9 +312,33 @@ class Trainer:
             self.pose_opt.zero_grad(set_to_none=True)
             self.pose.fix_scale_([c[0] for c in self.cams])
         with torch.no_grad():
-            mse = float(((out["rgb"].detach() - self.targets[idx]) ** 2).mean())
-        return {"loss": loss.item(), "l1": l1.item(), "ssim": s.item(),
-                "train_psnr": -10 * math.log10(max(mse, 1e-20))}
+            mse = ((out["rgb"].detach() - self.targets[idx]) ** 2).mean()
+            return torch.stack([loss.detach(), l1.detach(), s.detach(), mse])
+
+    def _non_finite(self, loss: float, it: int, view: str) -> None:
+        last = ckpt.latest_checkpoint(self.ckpt_dir)
+        raise NonFiniteLossError(
+            f"loss is {loss} at iteration {it} (view {view!r}); the run stops. "
+            f"Last good checkpoint: {last or 'none (no checkpoint written yet)'}. Lower the "
+            "learning rates or check the seed PLY / cameras for extreme values.")
+
+    def flush(self) -> None:
+        """Move the pending iterations' scalars to the host (one device sync) and append their
+        rows to the run log, in order; a non-finite loss raises :class:`NonFiniteLossError`
+        naming the first such iteration (its row and the later ones are not logged)."""
+        if not self.pending:
+            return
+        vals = torch.stack([p.pop("scalars") for p in self.pending]).cpu().double().tolist()
+        rows, self.pending = self.pending, []
+        for row, (loss, l1, s, mse) in zip(rows, vals):
+            view = row.pop("view")
+            if not math.isfinite(loss):
+                self._non_finite(loss, int(row["iteration"]), view)
+            self.log.append(loss=loss, l1=l1, ssim=s, train_psnr=-10 * math.log10(max(mse, 1e-20)), **row)
+
+    def _sync(self) -> None:
+        if self.dev.type == "cuda":
+            torch.cuda.synchronize(self.dev)
 
     def evaluate(self, views: list[View], out_dir: Path | None = None, refined: bool = False,
                  scorer: HeldoutScorer | None = None) -> float:
@@ -326,11 +374,15 @@ class Trainer:
                        desc="train")
         for _ in bar:
             t0 = time.perf_counter()
-            rec = self.step()
-            self.wall += time.perf_counter() - t0
+            scalars = self.step()
             it = self.iteration
+            evaluate = bool(self.test_views) and cfg.eval_every > 0 and (
+                it % cfg.eval_every == 0 or it == cfg.iterations)
+            if evaluate:
+                self._sync()  # this iteration's queued GPU work is training time, not evaluation
+            self.wall += time.perf_counter() - t0
             held = {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
-            if self.test_views and cfg.eval_every > 0 and (it % cfg.eval_every == 0 or it == cfg.iterations):
+            if evaluate:
                 te = time.perf_counter()
                 held = self.evaluate_heldout()
                 eval_time += time.perf_counter() - te
@@ -340,17 +392,24 @@ class Trainer:
             t0 = time.perf_counter()
             self.strategy.step(self.params, self.optimizer, self.state, it, self.extent, self.gen)
             self.wall += time.perf_counter() - t0
-            self.log.append(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
-                            test_psnr=test_psnr, test_ssim=held["ssim"], test_lpips=held["lpips"], **rec)
-            if it % 10 == 0 or it == cfg.iterations:
-                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['train_psnr']:.2f}", n=self.num_gaussians)
+            self.pending.append(dict(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
+                                     test_psnr=test_psnr, test_ssim=held["ssim"], test_lpips=held["lpips"],
+                                     view=self.train_views[self.last_view].name, scalars=scalars))
+            saving = it % cfg.checkpoint_every == 0 or it == cfg.iterations
+            if it % self.sync_every == 0 or it % every_log == 0 or saving or evaluate:
+                t0 = time.perf_counter()
+                self.flush()  # before any checkpoint: a non-finite loss stops the run first
+                self.wall += time.perf_counter() - t0
+            row = {c: self.log.rows[c][-1] for c in ("loss", "train_psnr")} if len(self.log) else None
+            if row is not None and (it % 10 == 0 or it == cfg.iterations) and not self.pending:
+                bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['train_psnr']:.2f}", n=self.num_gaussians)
             if it % every_log == 0:
-                log.info("it %d/%d loss %.4f psnr %.2f n %d%s%s (%.2f it/s)", it, cfg.iterations, rec["loss"],
-                         rec["train_psnr"], self.num_gaussians,
+                log.info("it %d/%d loss %.4f psnr %.2f n %d%s%s (%.2f it/s)", it, cfg.iterations, row["loss"],
+                         row["train_psnr"], self.num_gaussians,
                          "" if math.isnan(test_psnr) else f" test psnr {test_psnr:.2f} ssim {held['ssim']:.4f}",
                          "" if math.isnan(held["lpips"]) else f" lpips {held['lpips']:.4f}",
                          it / max(self.wall, 1e-9))
-            if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+            if saving:
                 self.save()
                 self.log.write_parquet(self.out / "log.parquet")
         return self.finish(time.perf_counter() - t_start, eval_time)

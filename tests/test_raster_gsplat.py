@@ -267,3 +267,55 @@ def test_gsplat_trainer_refuses_focal_refinement(fake_gsplat, train_scene, tmp_p
     tr.step()
     tr.step()
     assert float(tr.pose.log_focal.detach().abs().max()) > 0
+
+
+# host reads of a tensor: on a GPU each waits until the device has run everything queued
+_HOST_READS = ("item", "tolist", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy", "nonzero")
+
+
+def test_gsplat_trainer_reads_the_device_only_every_sync_every_iterations(fake_gsplat, train_scene, tmp_path,
+                                                                          monkeypatch):
+    """The GPU path's iteration queues its work without waiting for it: the trainer's code
+    reads tensors to the host (a device sync on a GPU) only at the iterations where it must:
+    every SYNC_EVERY iterations (the loss, L1, SSIM and MSE of ten iterations in one read),
+    at log, evaluation and checkpoint rows, and where densification selects Gaussians (every
+    100 by default). Before, six reads per iteration (the K skew check, the loss finiteness
+    check, the four scalars) kept the GPU idle while Python queued the next iteration.
+
+    Counted on CPU through the gsplat stand-in, with the GPU's code paths forced (torch SSIM,
+    torch's Adam, the trainer's GPU read schedule): every host read made from splat_train's
+    own code outside the CPU-only ``_cpu_*`` modules and the two reads of host tensors named
+    in HOST_ONLY, with the iteration it happened in.
+    """
+    from splat_train import losses
+    from splat_train import trainer as trainer_mod
+
+    monkeypatch.setattr(trainer_mod, "host_sync_every", lambda dev: trainer_mod.SYNC_EVERY)
+    monkeypatch.setattr(losses, "_cpu_kernel_for", lambda render, target: None)
+    monkeypatch.setattr(trainer_mod, "adam_step", lambda opt: opt.step())
+    tr = _trainer(train_scene, tmp_path / "g", rasterizer="gsplat", iterations=100, densify_until=20,
+                  checkpoint_every=50)
+    pkg = str(Path(trainer_mod.__file__).parent)
+    # reads of host tensors on every device: the view order (a permutation on the CPU
+    # generator), and the K skew check, which rasterize makes for CPU tensors only
+    HOST_ONLY = {"next_view", "_check_zero_skew"}
+    reads: list[tuple[int, str, int]] = []
+    for name in _HOST_READS:
+        orig = getattr(torch.Tensor, name)
+
+        def counted(self, *a, _orig=orig, _name=name, **k):
+            code = sys._getframe(1).f_code
+            caller = code.co_filename
+            if (caller.startswith(pkg) and not Path(caller).name.startswith("_cpu_")
+                    and code.co_name not in HOST_ONLY):
+                reads.append((tr.iteration, Path(caller).name, sys._getframe(1).f_lineno))
+            return _orig(self, *a, **k)
+
+        monkeypatch.setattr(torch.Tensor, name, counted)
+    tr.run()
+    during = sorted({it for it, _, _ in reads if 0 < it < 100})
+    assert during, "the counter saw no read at all"
+    assert trainer_mod.SYNC_EVERY >= 10
+    assert all(it % trainer_mod.SYNC_EVERY == 0 for it in during), [r for r in reads if r[0] in during]
+    # the scalars of ten iterations in one read: the log has all 100 rows
+    assert len(tr.log) == 100

@@ -113,7 +113,13 @@ def test_resume_refuses_other_config(scene, tmp_path):
         _train(scene, tmp_path / "r", iterations=8, lr_opacity=0.01)
 
 
-def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch):
+@pytest.mark.parametrize("sync_every", [1, 10], ids=["cpu_schedule", "gpu_schedule"])
+def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch, sync_every):
+    """A NaN loss at iteration 11 stops the run naming iteration 11 and the last good
+    checkpoint (8), whether the loss is read every iteration (CPU) or only at the next read
+    (every SYNC_EVERY iterations on a GPU, here at 12, the next log row: the NaN iteration's
+    update has run by then, and no checkpoint after it is written)."""
+    monkeypatch.setattr(trainer_mod, "host_sync_every", lambda dev: sync_every)
     real = trainer_mod.photometric_loss
     calls = {"n": 0}
 
@@ -135,6 +141,36 @@ def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch)
     monkeypatch.setattr(trainer_mod, "photometric_loss", real)
     res = _train(scene, out)
     assert res.summary["resumed_from"].endswith("ckpt_0000008.pt")
+
+
+def test_reading_the_scalars_every_10_iterations_logs_the_same_rows(scene, tmp_path, monkeypatch):
+    """The GPU schedule (loss, L1, SSIM and MSE read once every SYNC_EVERY iterations, and at
+    log, evaluation and checkpoint rows) writes the very log.parquet rows of the CPU schedule
+    (read every iteration), except the wall times, and the same model."""
+    runs = {}
+    for every in (1, 10):
+        monkeypatch.setattr(trainer_mod, "host_sync_every", lambda dev, every=every: every)
+        out = tmp_path / f"every{every}"
+        _train(scene, out, iterations=40, checkpoint_every=40)
+        runs[every] = (pq.read_table(out / "log.parquet").to_pandas(), read_gaussian_ply(out / "model.ply"))
+    (la, ma), (lb, mb) = runs[1], runs[10]
+    assert len(la) == len(lb) == 40
+    for c in LOG_COLUMNS:
+        if c != "wall_time_s":
+            np.testing.assert_array_equal(la[c], lb[c], err_msg=c)
+    np.testing.assert_array_equal(ma.means, mb.means)
+
+
+def test_trainer_refuses_a_skewed_camera(scene, tmp_path, monkeypatch):
+    """K[0, 1] != 0 is refused once, when the trainer starts (rasterize checks it per call only
+    for CPU tensors: on a GPU that read would be a device sync every iteration)."""
+    from splat_train.data import load_views
+    from splat_train.trainer import Trainer
+
+    views = load_views(scene["cameras"], scene["images"])
+    views[1].camera.K[0, 1] = 0.5
+    with pytest.raises(ValueError, match=f"{views[1].name}.*zero skew"):
+        Trainer(TrainConfig(**SMALL), scene["seed"], views, tmp_path / "skew")
 
 
 def test_pose_refinement_changes_cameras(scene, tmp_path):
