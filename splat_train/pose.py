@@ -63,9 +63,9 @@ def scale_gauge_factor(centers: torch.Tensor, ref_centers: torch.Tensor) -> torc
     """
     num = ((ref_centers - ref_centers[:1]) ** 2).sum()
     den = ((centers - centers[:1]) ** 2).sum()
-    if float(den) < 1e-24 or float(num) < 1e-24:
-        return torch.ones((), dtype=centers.dtype, device=centers.device)
-    return torch.sqrt(num / den)
+    # a select, not a Python branch: reading num / den would be a device sync every pose step
+    ok = (den >= 1e-24) & (num >= 1e-24)
+    return torch.where(ok, torch.sqrt(num / den.clamp_min(1e-24)), torch.ones_like(den))
 
 
 def camera_spread(cam_from_world: list[torch.Tensor]) -> float:
@@ -130,7 +130,7 @@ class PoseCorrections(torch.nn.Module):
         return K * scale[None, :]  # K diag(f, f, 1): fx, fy scaled, principal point kept
 
     @torch.no_grad()
-    def fix_scale_(self, cam_from_world: list[torch.Tensor]) -> float:
+    def fix_scale_(self, cam_from_world: list[torch.Tensor]) -> torch.Tensor:
         """Rescale the refined centres about camera 0 to the given cameras' spread (module
         docstring) by rewriting the translations v; the rotations are unchanged.
 
@@ -138,7 +138,7 @@ class PoseCorrections(torch.nn.Module):
             cam_from_world: the C given [4, 4] cam_from_world (world frame of the seed).
 
         Returns:
-            The scale applied (1 = no drift).
+            [] the scale applied (1 = no drift), on the cameras' device.
         """
         given = torch.stack(cam_from_world)  # [C, 4, 4]
         corr = torch.stack([self.correction(i, given.dtype) for i in range(len(given))])
@@ -152,7 +152,7 @@ class PoseCorrections(torch.nn.Module):
         # refined t = exp(omega) t_given + v, so v = t' - exp(omega) t_given
         v = new_t - (corr[:, :3, :3] @ given[:, :3, 3:])[..., 0]
         self.delta[:, 3:] = (v * self.free / self.trans_scale).to(self.delta.dtype)
-        return float(s)
+        return s
 
 
 def pose_lr_factor(iteration: int, start: int, warmup: int) -> float:

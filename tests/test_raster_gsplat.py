@@ -273,14 +273,16 @@ def test_gsplat_trainer_refuses_focal_refinement(fake_gsplat, train_scene, tmp_p
 _HOST_READS = ("item", "tolist", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy", "nonzero")
 
 
+@pytest.mark.parametrize("pose_refine", [False, True], ids=["gaussians", "with_pose_refinement"])
 def test_gsplat_trainer_reads_the_device_only_every_sync_every_iterations(fake_gsplat, train_scene, tmp_path,
-                                                                          monkeypatch):
+                                                                          monkeypatch, pose_refine):
     """The GPU path's iteration queues its work without waiting for it: the trainer's code
     reads tensors to the host (a device sync on a GPU) only at the iterations where it must:
     every SYNC_EVERY iterations (the loss, L1, SSIM and MSE of ten iterations in one read),
     at log, evaluation and checkpoint rows, and where densification selects Gaussians (every
     100 by default). Before, six reads per iteration (the K skew check, the loss finiteness
-    check, the four scalars) kept the GPU idle while Python queued the next iteration.
+    check, the four scalars; three more per pose step with pose refinement) kept the GPU idle
+    while Python queued the next iteration.
 
     Counted on CPU through the gsplat stand-in, with the GPU's code paths forced (torch SSIM,
     torch's Adam, the trainer's GPU read schedule): every host read made from splat_train's
@@ -294,7 +296,7 @@ def test_gsplat_trainer_reads_the_device_only_every_sync_every_iterations(fake_g
     monkeypatch.setattr(losses, "_cpu_kernel_for", lambda render, target: None)
     monkeypatch.setattr(trainer_mod, "adam_step", lambda opt: opt.step())
     tr = _trainer(train_scene, tmp_path / "g", rasterizer="gsplat", iterations=100, densify_until=20,
-                  checkpoint_every=50)
+                  checkpoint_every=50, pose_refine=pose_refine, pose_refine_from=1, pose_warmup=0)
     pkg = str(Path(trainer_mod.__file__).parent)
     # reads of host tensors on every device: the view order (a permutation on the CPU
     # generator), and the K skew check, which rasterize makes for CPU tensors only

@@ -53,7 +53,7 @@ class TestGauge:
         with torch.no_grad():
             pc.delta.copy_(torch.randn(4, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 0.2)
         before = [pc(i, c).detach() for i, c in enumerate(cams)]
-        s = pc.fix_scale_(cams)
+        s = float(pc.fix_scale_(cams))
         after = [pc(i, c).detach() for i, c in enumerate(cams)]
         assert s != pytest.approx(1.0)
         c_ref, c_new, c_old = _centers(cams), _centers(after), _centers(before)
