@@ -35,7 +35,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, help="optimisation steps (default 1000, see splat_train.config)")
+    p.add_argument("--iterations", type=int, help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
+                   "see splat_train.config)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
