@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations",
+__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
            "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
 # Chosen from measured CPU runs on the 256x192 synthetic scene (`python -m camio synth`, 12
@@ -41,15 +41,20 @@ DEFAULT_ITERATIONS = 1000
 PAPER_ITERATIONS = 10000
 
 
+def resolve_device(device: str) -> str:
+    """The config's ``device`` with 'auto' resolved: 'cuda' when torch sees a CUDA GPU, else 'cpu'."""
+    if device == "auto":
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
 def default_iterations(device: str) -> int:
     """Iterations of a run that names none: :data:`PAPER_ITERATIONS` where training runs on a
     GPU (``device`` 'cuda', or 'auto' with a CUDA device visible), :data:`DEFAULT_ITERATIONS`
     on a CPU."""
-    if device == "auto":
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    return PAPER_ITERATIONS if device == "cuda" else DEFAULT_ITERATIONS
+    return PAPER_ITERATIONS if resolve_device(device) == "cuda" else DEFAULT_ITERATIONS
 
 # Config fields that do not change the optimisation result: they may differ on resume.
 # The rasterizer backend is among them: the backends are parity-tested against one reference

@@ -35,7 +35,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -46,7 +46,7 @@ from camio.colmap import write_text_model
 from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
-from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig
+from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
 from splat_train import _cpu_kernel
 from splat_train._cpu_optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
@@ -111,8 +111,7 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
 
 
 def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    name = resolve_device(name)
     if name == "cuda" and not torch.cuda.is_available():
         raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; use --config "
                            "'{\"device\": \"cpu\"}' or install a CUDA build of torch")
@@ -315,7 +314,7 @@ class Trainer:
             mse = ((out["rgb"].detach() - self.targets[idx]) ** 2).mean()
             return torch.stack([loss.detach(), l1.detach(), s.detach(), mse])
 
-    def _non_finite(self, loss: float, it: int, view: str) -> None:
+    def _non_finite(self, loss: float, it: int, view: str) -> NoReturn:
         last = ckpt.latest_checkpoint(self.ckpt_dir)
         raise NonFiniteLossError(
             f"loss is {loss} at iteration {it} (view {view!r}); the run stops. "
@@ -400,12 +399,13 @@ class Trainer:
                 t0 = time.perf_counter()
                 self.flush()  # before any checkpoint: a non-finite loss stops the run first
                 self.wall += time.perf_counter() - t0
-            row = {c: self.log.rows[c][-1] for c in ("loss", "train_psnr")} if len(self.log) else None
-            if row is not None and (it % 10 == 0 or it == cfg.iterations) and not self.pending:
-                bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['train_psnr']:.2f}", n=self.num_gaussians)
-            if it % every_log == 0:
-                log.info("it %d/%d loss %.4f psnr %.2f n %d%s%s (%.2f it/s)", it, cfg.iterations, row["loss"],
-                         row["train_psnr"], self.num_gaussians,
+            rows = self.log.rows  # this iteration's row is in it once flushed
+            if (it % 10 == 0 or it == cfg.iterations) and not self.pending:
+                bar.set_postfix(loss=f"{rows['loss'][-1]:.4f}", psnr=f"{rows['train_psnr'][-1]:.2f}",
+                                n=self.num_gaussians)
+            if it % every_log == 0:  # flushed above
+                log.info("it %d/%d loss %.4f psnr %.2f n %d%s%s (%.2f it/s)", it, cfg.iterations, rows["loss"][-1],
+                         rows["train_psnr"][-1], self.num_gaussians,
                          "" if math.isnan(test_psnr) else f" test psnr {test_psnr:.2f} ssim {held['ssim']:.4f}",
                          "" if math.isnan(held["lpips"]) else f" lpips {held['lpips']:.4f}",
                          it / max(self.wall, 1e-9))
