@@ -1,21 +1,20 @@
 """Training hyperparameters (the evaluation protocol's defaults) and the schedule they imply.
 
-The seed code trained for 10k iterations: densify from iteration 500 to 10000 every 100,
-reset opacity every 3000, raise the SH degree every 1000 up to 3. A run with fewer iterations
-(the CPU default is :data:`DEFAULT_ITERATIONS` = 1000) scales the *windows* by
-``f = iterations / schedule_reference_iterations`` (never by more than 1, so longer runs keep
-the seed schedule), rounded and kept >= 1: densify_from, densify_until, opacity_reset_every
-and sh_increase_every. The densification *period* (100) is not scaled: densifying 5x as often
-in a 5x shorter run gives the same number of clone/split rounds as the 10k run with 5x fewer
-steps between them to settle; measured on the 256 px synthetic scene (12 views, 2000
-iterations) that grew 4000 seeds to 120k Gaussians by iteration 400 and made the run many
-times slower. So 1000 iterations densify at 100, 200, ..., 900 (after 50, before 1000, every
-100), reset opacity at 300, 600, 900 and reach SH degree 3 at iteration 301. The scaled opacity-reset
-period is kept >= 3 densification periods (as in the seed schedule, a reset needs time to
-recover: a 30-iteration run would otherwise reset every 9 steps and end nearly transparent).
-The learning rates are
-not scaled; the position rate decays exponentially over the whole run whatever its length.
-``scale_schedule=False`` keeps the seed code's absolute iteration counts.
+Every key is a field of :class:`TrainConfig`. The keys a training *recipe* decides
+(:mod:`splat_train.recipes`: ``paper`` or ``sparse``, chosen by ``recipe``) default to None
+and take the recipe's value when the config is made; a value the user sets is kept as it is.
+Schedule keys (densify_from, densify_until, densify_every, opacity_reset_every,
+sh_increase_every) are iterations of this run: the recipes give them as fractions of the run
+(``densify_until_fraction`` ...), resolved once by :meth:`TrainConfig.schedule` and printed by
+the trainer; a number the user writes is never rescaled.
+
+At the paper's 10,000 iterations the ``paper`` recipe gives the seed code's counts: densify
+from 500 to 10000 every 100, reset opacity every 3000, raise the SH degree every 1000 up to 3.
+A shorter run compresses them in proportion (the densification *period* stays 100 in
+``paper``: densifying 5x as often in a 5x shorter run grew 4000 seeds to 120k Gaussians by
+iteration 400 on the 256 px synthetic scene); the scaled opacity-reset period is kept >= 3
+densification periods (a reset needs time to recover). The learning rates are not scaled; the
+position rate decays exponentially over the whole run whatever its length.
 """
 
 from __future__ import annotations
@@ -28,6 +27,9 @@ from typing import Any
 
 __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
            "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
+
+from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
+                                 recipe_defaults)
 
 # Chosen from measured CPU runs on the 256x192 synthetic scene (`python -m camio synth`, 12
 # training views, ground-truth seed through the Bridge, 1 thread on a shared 2-core machine):
@@ -74,7 +76,10 @@ class TrainConfig:
     Attributes (learning rates are Adam step sizes for the stored parameterisation):
         iterations: optimisation steps; None (the default): :func:`default_iterations` of
             ``device`` (10,000 on a GPU, 1,000 on a CPU), resolved when the config is made.
-        seed: seed of the run's random generator (view order, random backgrounds, splits).
+        recipe: "sparse" (the default) or "paper" (:mod:`splat_train.recipes`); fills every
+            key below whose value is None.
+        seed: seed of the run's random generator (view order, random backgrounds, splits,
+            dropout masks).
         sh_degree: maximum SH degree (3 as in 3DGS).
         sh_increase_every: raise the active SH degree by one every so many iterations.
         lr_position_init, lr_position_final: position rate at the start / end, multiplied by
@@ -84,7 +89,8 @@ class TrainConfig:
         lambda_dssim: weight of (1 - SSIM) in the loss (1 - w) L1 + w (1 - SSIM).
         background: RGB in [0, 1] behind the Gaussians.
         random_background: draw a uniform random background every iteration instead.
-        densify_from, densify_until, densify_every: densification window and period.
+        densify_from, densify_until, densify_every: densification window and period
+            (iterations of this run; None: the recipe's fraction of the run).
         densify_grad_threshold: mean view-space (NDC) positional gradient norm above which a
             Gaussian is cloned (small) or split (large).
         percent_dense: a Gaussian is "large" when its largest scale exceeds this fraction of
@@ -94,8 +100,20 @@ class TrainConfig:
         prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
             radius exceeded this many pixels ...
         prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
-        max_gaussians: densification stops adding Gaussians above this count (None: no cap).
-        schedule_reference_iterations, scale_schedule: see the module docstring.
+        max_gaussians: cap on the Gaussian count (None: none). When the clone and split
+            candidates exceed the room left, the ones with the largest view-space gradient
+            are kept (:mod:`splat_train.densify`).
+        gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
+            over the training views at the training resolution); the smaller cap applies.
+            None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
+        dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's):
+            :mod:`splat_train.dropout`.
+        depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
+            ramped in linearly over ``depth_ramp_fraction`` of the run; acts only when the
+            seed comes with a depth prior (:mod:`splat_train.depth_prior`).
+        depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
+        depth_use_confidence: weight the prior's samples by the initialiser's confidence
+            (False: every sample weighs 1; for measuring what the confidence adds).
         pose_refine: learn small se(3) corrections of the training cameras (off by default;
             the first camera and the scale stay fixed, :mod:`splat_train.pose`).
         lr_pose: Adam rate of the pose corrections (rotation in radians, translation in units
@@ -135,9 +153,10 @@ class TrainConfig:
     """
 
     iterations: int | None = None
+    recipe: str = DEFAULT_RECIPE
     seed: int = 0
     sh_degree: int = 3
-    sh_increase_every: int = 1000
+    sh_increase_every: int | None = None
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
     lr_sh_dc: float = 2.5e-3
@@ -149,19 +168,22 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     random_background: bool = False
-    densify_from: int = 500
-    densify_until: int = 10000
-    densify_every: int = 100
+    densify_from: int | None = None
+    densify_until: int | None = None
+    densify_every: int | None = None
     densify_grad_threshold: float = 2e-4
     percent_dense: float = 0.01
-    opacity_reset_every: int = 3000
+    opacity_reset_every: int | None = None
     opacity_reset_value: float = 0.01
     prune_opacity: float = 0.005
     prune_screen_size: float = 20.0
     prune_world_size: float = 0.1
     max_gaussians: int | None = None
-    schedule_reference_iterations: int = PAPER_ITERATIONS
-    scale_schedule: bool = True
+    gaussians_per_pixel: float | None = None
+    dropout_rate: float | None = None
+    depth_weight: float | None = None
+    depth_ramp_fraction: float | None = None
+    depth_use_confidence: bool = True
     pose_refine: bool = False
     # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
     # 1e-3 from iteration 1 walked the cameras away on fern (ATE 1.5 -> 30 % of the radius) while
@@ -191,6 +213,24 @@ class TrainConfig:
             self.iterations = default_iterations(self.device)
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        preset = recipe_defaults(self.recipe)
+        for key in (*PART_KEYS, "depth_ramp_fraction"):
+            if getattr(self, key) is None:
+                setattr(self, key, preset[key])
+        for key in SCHEDULE_KEYS:
+            v = getattr(self, key)
+            least = 0 if key in ("densify_from", "densify_until") else 1  # densify_until 0: no densification
+            if v is not None and (int(v) != v or v < least):
+                raise ValueError(f"{key} must be an iteration count >= {least}, got {v}")
+        if not 0.0 <= self.dropout_rate < 1.0:
+            raise ValueError(f"dropout_rate must be in [0, 1), got {self.dropout_rate}")
+        if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
+            raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
+                             f"{self.depth_weight} and {self.depth_ramp_fraction}")
+        if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel > 0:
+            raise ValueError(f"gaussians_per_pixel must be > 0 (or null: no cap), got {self.gaussians_per_pixel}")
+        if self.max_gaussians is not None and self.max_gaussians < 1:
+            raise ValueError(f"max_gaussians must be >= 1 (or null: no cap), got {self.max_gaussians}")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if len(self.background) != 3:
@@ -219,36 +259,49 @@ class TrainConfig:
         return dataclasses.replace(self, **overrides)
 
     def schedule(self) -> "Schedule":
-        """The iteration counts this run uses (scaled as described in the module docstring)."""
-        f = 1.0
-        if self.scale_schedule:
-            f = min(1.0, self.iterations / float(self.schedule_reference_iterations))
+        """The iteration counts of this run: the values set, else the recipe's fractions of
+        ``iterations`` (see the module docstring); ``source`` says which for each key."""
+        preset = recipe_defaults(self.recipe)
+        n = int(self.iterations)
+        values: dict[str, int] = {}
+        source: dict[str, str] = {}
+        for key in SCHEDULE_KEYS:
+            set_value = getattr(self, key)
+            if set_value is not None:
+                values[key], source[key] = int(set_value), "set"
+            elif key in preset:  # an absolute count of the recipe (paper's period)
+                values[key], source[key] = int(preset[key]), f"recipe {self.recipe}"
+            else:
+                frac = preset[f"{key}_fraction"]
+                values[key] = max(1, int(round(frac * n)))
+                source[key] = f"recipe {self.recipe}: {frac:g} x {n}"
+        if source["densify_every"] != "set" and "densify_every" not in preset:
+            values["densify_every"] = max(values["densify_every"], MIN_DENSIFY_EVERY)
+        if source["opacity_reset_every"] != "set":
+            # a reset needs time to recover: never more often than every 3 densifications
+            values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
+        return Schedule(**values, source=source)
 
-        def sc(n: int) -> int:
-            return max(1, int(round(n * f))) if f < 1.0 else int(n)
-
-        return Schedule(
-            densify_from=sc(self.densify_from),
-            densify_until=sc(self.densify_until),
-            densify_every=int(self.densify_every),
-            opacity_reset_every=(max(sc(self.opacity_reset_every), 3 * int(self.densify_every))
-                                 if f < 1.0 else int(self.opacity_reset_every)),
-            sh_increase_every=sc(self.sh_increase_every),
-            factor=f,
-        )
-
+    def max_gaussians_for(self, train_pixels: int) -> int | None:
+        """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views):
+        the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels; None: no cap."""
+        caps = [c for c in (self.max_gaussians,
+                            None if self.gaussians_per_pixel is None
+                            else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
+        return min(caps) if caps else None
 
 
 @dataclass(frozen=True)
 class Schedule:
-    """Iteration counts in effect for one run (after scaling); ``factor`` is the scale used."""
+    """Iteration counts in effect for one run; ``source`` says where each came from ("set" or
+    the recipe's fraction of the run)."""
 
     densify_from: int
     densify_until: int
     densify_every: int
     opacity_reset_every: int
     sh_increase_every: int
-    factor: float
+    source: dict[str, str] = field(default_factory=dict, compare=False)
 
     def sh_degree_at(self, iteration: int, max_degree: int) -> int:
         """Active SH degree at 1-based ``iteration``: +1 every ``sh_increase_every``."""

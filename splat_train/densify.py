@@ -26,7 +26,7 @@ import torch
 
 from splat_train import _cpu_optim
 
-__all__ = ["DensifyStrategy", "duplicate", "split", "split_children", "remove", "reset_opacity",
+__all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]
 
 log = logging.getLogger(__name__)
@@ -148,9 +148,40 @@ def reset_opacity(params: Params, optimizer: torch.optim.Optimizer, value: float
                   lambda name, v: torch.zeros_like(v), names=("opacity",))
 
 
+def cap_candidates(clone_mask: torch.Tensor, split_mask: torch.Tensor, grads: torch.Tensor,
+                   room: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keep the best densification candidates that fit in ``room`` new Gaussians.
+
+    Each clone and each split adds one Gaussian. When there are more candidates than room,
+    the ones with the largest mean view-space gradient are kept (ties: the lower row), the
+    others wait for a later densification; with no room, none is kept.
+
+    Args:
+        clone_mask, split_mask: [N] bool, disjoint.
+        grads: [N] mean view-space gradient norm (the densification statistic).
+        room: new Gaussians allowed (cap - current count; <= 0 means none).
+
+    Returns:
+        (clone_mask, split_mask) restricted to the kept candidates.
+    """
+    cand = clone_mask | split_mask
+    n_cand = int(cand.sum())
+    if n_cand <= room:
+        return clone_mask, split_mask
+    keep = torch.zeros_like(cand)
+    if room > 0:
+        score = torch.where(cand, grads, torch.full_like(grads, -float("inf")))
+        # a stable sort, so that equal gradients keep the lower row whatever the device
+        order = torch.sort(score, descending=True, stable=True).indices[:room]
+        keep[order] = True
+    log.debug("growth cap: %d of %d clone/split candidates kept", int(keep.sum()), n_cand)
+    return clone_mask & keep, split_mask & keep
+
+
 @dataclass
 class DensifyStrategy:
-    """The 3DGS densification schedule and thresholds (iteration counts already scaled).
+    """The 3DGS densification schedule and thresholds (iteration counts of this run), made from
+    a training config by :meth:`from_config`.
 
     Attributes:
         densify_from, densify_until, densify_every: densify at iterations it with
@@ -165,20 +196,36 @@ class DensifyStrategy:
             radius exceeded prune_screen_size pixels or whose max scale exceeds
             prune_world_size * extent.
         reset_value: opacity after a reset.
-        max_gaussians: no clone/split beyond this count (None: unlimited).
+        max_gaussians: no more Gaussians than this after clone/split (None: unlimited); when
+            the candidates exceed the room, the best are kept (:func:`cap_candidates`).
     """
 
-    densify_from: int = 500
-    densify_until: int = 10000
-    densify_every: int = 100
-    opacity_reset_every: int = 3000
-    grad_threshold: float = 2e-4
-    percent_dense: float = 0.01
-    prune_opacity: float = 0.005
-    prune_screen_size: float = 20.0
-    prune_world_size: float = 0.1
-    reset_value: float = 0.01
-    max_gaussians: int | None = None
+    densify_from: int
+    densify_until: int
+    densify_every: int
+    opacity_reset_every: int
+    grad_threshold: float
+    percent_dense: float
+    prune_opacity: float
+    prune_screen_size: float
+    prune_world_size: float
+    reset_value: float
+    max_gaussians: int | None
+
+    @classmethod
+    def from_config(cls, cfg, max_gaussians: int | None = None, **overrides) -> "DensifyStrategy":
+        """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its resolved
+        schedule and thresholds: the one place of their defaults), with the growth cap
+        ``max_gaussians`` and any field replaced by ``overrides``."""
+        sched = cfg.schedule()
+        fields = dict(
+            densify_from=sched.densify_from, densify_until=sched.densify_until, densify_every=sched.densify_every,
+            opacity_reset_every=sched.opacity_reset_every, grad_threshold=cfg.densify_grad_threshold,
+            percent_dense=cfg.percent_dense, prune_opacity=cfg.prune_opacity,
+            prune_screen_size=cfg.prune_screen_size, prune_world_size=cfg.prune_world_size,
+            reset_value=cfg.opacity_reset_value, max_gaussians=max_gaussians)
+        fields.update(overrides)
+        return cls(**fields)
 
     @staticmethod
     def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
@@ -241,10 +288,7 @@ class DensifyStrategy:
         big = torch.exp(params["scales"].detach()).amax(1) > self.percent_dense * extent
         clone_mask, split_mask = high & ~big, high & big
         if self.max_gaussians is not None:
-            room = max(0, self.max_gaussians - n)
-            if int(clone_mask.sum() + split_mask.sum()) > room:
-                log.debug("max_gaussians %d reached: no clone/split at %d", self.max_gaussians, iteration)
-                clone_mask = split_mask = torch.zeros_like(high)
+            clone_mask, split_mask = cap_candidates(clone_mask, split_mask, grads, self.max_gaussians - n)
         sel_c = clone_mask.nonzero().squeeze(1)
         sel_s = split_mask.nonzero().squeeze(1)
         keep_o = (~split_mask).nonzero().squeeze(1)

@@ -77,7 +77,7 @@ def _trainer(inp: Path, out: Path) -> None:
     try:
         train(scene["seed"], scene["cameras"], scene["images"], out,
               TrainConfig(iterations=4, checkpoint_every=2, eval_every=2, densify_until=0, device="cpu",
-                          num_threads=1, scale_schedule=False),
+                          num_threads=1),
               test_cameras=scene["test_cameras"], test_images=scene["test_images"])
     finally:
         torch.set_num_threads(n)

@@ -139,8 +139,7 @@ def test_trainer_truncated_checkpoint_is_a_clear_error(scene, tmp_path):
     from splat_train.trainer import train
 
     out = tmp_path / "run"
-    cfg = TrainConfig(iterations=4, checkpoint_every=2, densify_until=0, device="cpu", num_threads=1,
-                      scale_schedule=False)
+    cfg = TrainConfig(iterations=4, checkpoint_every=2, densify_until=0, device="cpu", num_threads=1)
     n = torch.get_num_threads()
     try:
         train(scene["seed"], scene["cameras"], scene["images"], out, cfg)

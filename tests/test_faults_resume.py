@@ -39,7 +39,7 @@ ITERATIONS = 120
 CKPT_EVERY = 20
 # densification, an opacity reset and SH increases all happen before and after the kill
 CONFIG = {"densify_from": 5, "densify_until": 80, "densify_every": 20, "opacity_reset_every": 50,
-          "sh_increase_every": 30, "scale_schedule": False, "keep_checkpoints": 2}
+          "sh_increase_every": 30, "keep_checkpoints": 2}
 
 
 def _command(scene: dict, out: Path) -> list[str]:

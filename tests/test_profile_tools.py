@@ -22,7 +22,7 @@ def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("profile")
     scene = write_scene(root / "scene", n_views=3)
     cfg = TrainConfig(iterations=12, densify_from=2, densify_until=30, densify_every=5, opacity_reset_every=100,
-                      scale_schedule=False, checkpoint_every=6, keep_checkpoints=3, eval_every=0, device="cpu")
+checkpoint_every=6, keep_checkpoints=3, eval_every=0, device="cpu")
     train(scene["seed"], scene["cameras"], scene["images"], root / "run", cfg)
     ckpt = root / "run" / "ckpt" / "ckpt_0000012.pt"
     assert ckpt.is_file()

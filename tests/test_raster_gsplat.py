@@ -30,6 +30,7 @@ gsplat = pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip i
 
 import _fake_gsplat  # noqa: E402  (tests/ is on sys.path via rootdir conftest)
 from splat_train import _gsplat_backend  # noqa: E402
+from splat_train.config import TrainConfig  # noqa: E402
 from splat_train.densify import DensifyStrategy  # noqa: E402
 from splat_train.pose import so3_exp  # noqa: E402
 from splat_train.projection import project_gaussians  # noqa: E402
@@ -188,7 +189,7 @@ def test_densify_statistic_same_units_for_gsplat_and_reference(fake_gsplat):
         leaves, cw, K = make_scene(4, 3)
         out = render(backend, leaves, cw, K, 3, 0.01)
         out["rgb"].square().sum().backward()
-        strategy = DensifyStrategy()
+        strategy = DensifyStrategy.from_config(TrainConfig(recipe="paper", iterations=10000))
         state = DensifyStrategy.init_state(24)
         strategy.update_state(state, out["means2d"].grad, out["radii"], out["visible"], W, H, 1)
         stats[backend] = state
@@ -199,7 +200,7 @@ def test_densify_statistic_same_units_for_gsplat_and_reference(fake_gsplat):
 
 # ------------------------------------------------------------------ trainer through the adapter
 SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, opacity_reset_every=100,
-             sh_increase_every=10, scale_schedule=False, checkpoint_every=24, eval_every=0,
+             sh_increase_every=10, checkpoint_every=24, eval_every=0,
              device="cpu", densify_grad_threshold=1e-5)
 
 

@@ -313,7 +313,7 @@ def test_trainer_cli_truncated_newest_checkpoint(tmp_path):
     """Row 36 at the command line: "cannot read checkpoint ...; delete it ..." as one line."""
     sc = write_scene(tmp_path / "scene", n_views=3)
     out = tmp_path / "out"
-    cfg = '{"densify_until": 0, "scale_schedule": false}'
+    cfg = '{"densify_until": 0}'
     first = _run(_train_cmd(sc, out, "--checkpoint-every", "2", "--config", cfg), tmp_path)
     assert first.returncode == 0, first.stderr[-3000:]
     newest = sorted((out / "ckpt").iterdir())[-1]

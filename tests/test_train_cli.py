@@ -25,7 +25,7 @@ def test_cli_train_then_render(tmp_path, capsys):
     sc = write_scene(tmp_path / "scene", n_views=5, width=32, height=24, n_test=2)
     (tmp_path / "list.txt").write_text("# training subset\nview_00.png\nview_02.png\n\nview_04.png\n")
     out = tmp_path / "out"
-    cfg = json.dumps({"densify_from": 4, "densify_until": 12, "densify_every": 4, "scale_schedule": False,
+    cfg = json.dumps({"densify_from": 4, "densify_until": 12, "densify_every": 4,
                       "random_background": True})
     argv = ["--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
             "--out", str(out), "--iterations", "16", "--test-cameras", str(sc["test_cameras"]),

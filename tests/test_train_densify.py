@@ -12,6 +12,11 @@ from splat_train.densify import DensifyStrategy, duplicate, quat_to_rotmat, remo
 from splat_train.gaussians import PARAM_NAMES, make_optimizer, params_from_cloud
 
 
+def _strategy(**overrides) -> DensifyStrategy:
+    """The paper recipe's thresholds at 10,000 iterations (the config's defaults), with ``overrides``."""
+    return DensifyStrategy.from_config(TrainConfig(recipe="paper", iterations=10000), **overrides)
+
+
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -104,7 +109,7 @@ def test_strategy_clones_small_splits_large_prunes_transparent():
         params["scales"][3:5] = math.log(0.5)          # large
         params["opacity"][:] = 2.0
         params["opacity"][5] = -8.0                    # alpha 3e-4 < 0.005: pruned
-    strat = DensifyStrategy(densify_from=0, densify_until=100, densify_every=10, opacity_reset_every=1000)
+    strat = _strategy(densify_from=0, densify_until=100, densify_every=10, opacity_reset_every=1000)
     state = strat.init_state(6)
     g = torch.zeros(6, 2)
     g[[0, 3], 0] = 1e-3  # pixel gradient; NDC = 1e-3 * W / 2 = 0.016 >> 2e-4
@@ -123,7 +128,7 @@ def test_strategy_clones_small_splits_large_prunes_transparent():
 def test_update_state_skips_non_finite_gradients():
     """A Gaussian whose view-space gradient has an inf or NaN component (or a norm that
     overflows) adds nothing to the statistics; the others add their NDC norm."""
-    strat = DensifyStrategy(densify_from=0, densify_until=100)
+    strat = _strategy(densify_from=0, densify_until=100)
     state = strat.init_state(5)
     g = torch.tensor([[3e-3, 4e-3], [float("nan"), 0.0], [0.0, float("inf")], [3e38, 3e38], [0.0, 0.0]])
     strat.update_state(state, g, torch.full((5,), 2), torch.ones(5, dtype=torch.bool), 2, 2, iteration=1)
@@ -140,7 +145,7 @@ def test_update_state_c_path_equals_torch_path():
 
     if not _cpu_optim.available():
         pytest.skip("no C++ compiler for the CPU kernels")
-    strat = DensifyStrategy(densify_from=0, densify_until=100)
+    strat = _strategy(densify_from=0, densify_until=100)
     n = 50_000
     gen = torch.Generator().manual_seed(3)
     states = [strat.init_state(n), strat.init_state(n), strat.init_state(n)]
@@ -197,8 +202,8 @@ def test_fused_densify_equals_clone_split_prune_in_three_steps(iteration):
         with torch.no_grad():
             params["scales"][:] = torch.log(0.001 + 0.012 * torch.rand(n, 3, generator=g))  # small and big
             params["opacity"][:] = 4 * torch.randn(n, generator=g)  # some below the prune threshold
-        strat = DensifyStrategy(densify_from=0, densify_until=10000, densify_every=100, opacity_reset_every=3000,
-                                prune_world_size=0.0115)
+        strat = _strategy(densify_from=0, densify_until=10000, densify_every=100, opacity_reset_every=3000,
+                          prune_world_size=0.0115)
         state = strat.init_state(n)
         state["grad2d"][:] = 4e-4 * torch.rand(n, generator=g)
         state["count"][:] = 1 + torch.randint(0, 3, (n,), generator=g)

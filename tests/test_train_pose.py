@@ -85,7 +85,7 @@ def pose_scene(tmp_path_factory, one_thread):
 
 
 def _train(scene, out, **over):
-    cfg = TrainConfig(**{**dict(iterations=400, densify_until=0, scale_schedule=False, sh_degree=0,
+    cfg = TrainConfig(**{**dict(iterations=400, densify_until=0, sh_degree=0, recipe="paper",
                                 eval_every=0, checkpoint_every=10**6, device="cpu", lr_pose=3e-3,
                                 pose_refine_from=0, pose_warmup=0), **over})  # exact Gaussians: no settling
     return train(scene["seed"], scene["cameras"], scene["images"], out, cfg)

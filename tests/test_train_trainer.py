@@ -19,7 +19,7 @@ from splat_train.trainer import NonFiniteLossError, train
 
 # A short explicit schedule: densify at 10 and 20, one opacity reset at 15, SH +1 every 10.
 SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, opacity_reset_every=15,
-             sh_increase_every=10, scale_schedule=False, checkpoint_every=8, eval_every=12,
+             sh_increase_every=10, checkpoint_every=8, eval_every=12, recipe="paper",
              device="cpu", keep_checkpoints=5)
 
 

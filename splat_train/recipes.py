@@ -1,0 +1,90 @@
+"""The two training recipes, ``paper`` and ``sparse``: the one place for their defaults.
+
+A recipe fills every config key that is left at ``None`` (:class:`splat_train.config.TrainConfig`);
+a key the user sets keeps its value, and means what it says: schedule keys are iterations of
+this run, never rescaled. The recipe's own schedule values are fractions of the run, named so
+here (``*_fraction``), and resolved to iterations once per run (:meth:`TrainConfig.schedule`,
+printed by the trainer).
+
+``paper``
+    The training of the paper's tables (PROTOCOL.md section 3, 3DGS as the seed code ran it for
+    10,000 iterations): densify from 5 % of the run to its end every 100 iterations, reset
+    opacity every 30 %, raise the SH degree every 10 %; no cap on growth, no dropout, no depth
+    term. At the paper's 10,000 iterations these are the seed code's absolute counts (500,
+    10000, 3000, 1000); a shorter run compresses them in proportion, as the project always did.
+    In the sparse regime this recipe overfits: held-out PSNR peaks early and falls while the
+    model grows (docs/sparse-recipe.md).
+
+``sparse``
+    The sparse-view regularisation the field converged on, each part with its own switch:
+
+    * Gaussian dropout (DropGaussian, CVPR 2025): during training only, each Gaussian's
+      opacity is zeroed with probability p, ramping linearly from 0 to ``dropout_rate`` over
+      the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.dropout`);
+    * a depth prior from the initialiser's own dense output, weighted by its confidence: a
+      scale-invariant (Pearson) loss between rendered and prior depth, weight ramped in over
+      ``depth_ramp_fraction`` of the run (:mod:`splat_train.depth_prior`); off when the seed has
+      no prior file;
+    * a model sized to its views: growth keeps the best candidates under a cap of
+      ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.densify`), and
+      densification stops at half the run (as 3DGS stops at 15k of 30k).
+
+    The densification period follows the run (1 % of it, at least :data:`MIN_DENSIFY_EVERY`), so
+    a 300-iteration run densifies as often relative to its length as a 10,000-iteration one.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "MIN_DENSIFY_EVERY",
+           "recipe_defaults"]
+
+DEFAULT_RECIPE = "sparse"
+
+# A densification period below this would average the view-space gradient over too few views.
+MIN_DENSIFY_EVERY = 20
+
+# Schedule keys: an int in the config is iterations of this run; None takes the recipe's
+# ``<key>_fraction`` of the run (densify_every: ``densify_every`` itself when the recipe gives
+# an int, as ``paper`` does).
+SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
+# The regularisation parts and their "off" values.
+PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": None}
+
+RECIPES: dict[str, dict[str, Any]] = {
+    "paper": {
+        "densify_from_fraction": 0.05,
+        "densify_until_fraction": 1.0,
+        "densify_every": 100,
+        "opacity_reset_every_fraction": 0.3,
+        "sh_increase_every_fraction": 0.1,
+        "dropout_rate": 0.0,
+        "depth_weight": 0.0,
+        "depth_ramp_fraction": 0.0,
+        "gaussians_per_pixel": None,
+    },
+    "sparse": {
+        "densify_from_fraction": 0.05,
+        "densify_until_fraction": 0.5,
+        "densify_every_fraction": 0.01,
+        "opacity_reset_every_fraction": 0.3,
+        "sh_increase_every_fraction": 0.1,
+        # DropGaussian's final rate (FIELD_FACTS.md)
+        "dropout_rate": 0.2,
+        # FSGS's Pearson depth weight (FIELD_FACTS.md), reached after 10 % of the run
+        "depth_weight": 0.05,
+        "depth_ramp_fraction": 0.1,
+        # LLFF 3-view models of the field's best methods hold 80k-120k Gaussians for ~570k
+        # training pixels at 1/8 resolution; 0.1 per pixel keeps fern n = 3 under 60k
+        "gaussians_per_pixel": 0.1,
+    },
+}
+RECIPE_NAMES = tuple(RECIPES)
+
+
+def recipe_defaults(name: str) -> dict[str, Any]:
+    """The recipe ``name``'s values (a copy); ValueError naming the valid recipes otherwise."""
+    if name not in RECIPES:
+        raise ValueError(f"recipe must be one of {list(RECIPE_NAMES)}, got {name!r}")
+    return dict(RECIPES[name])
