@@ -48,7 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outlier-std", type=float, default=2.0)
     p.add_argument("--points3d", action="store_true",
                    help="also write the seed points into sparse/0/points3D.txt (for the original 3DGS loader)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud without confidence)")
+    p.add_argument("--no-depth-prior", dest="depth_prior", action="store_false",
+                   help="do not write depth_prior.npz (the initialiser's per-camera depth for training's depth term)")
+    p.add_argument("--depth-prior-samples", type=int, default=50000,
+                   help="at most this many depth-prior samples per camera (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud, the depth prior's subset)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
@@ -70,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             percentile=args.percentile, voxel_size=args.voxel_size, outlier_removal=args.outlier_removal,
             outlier_neighbors=args.outlier_neighbors, outlier_std_ratio=args.outlier_std,
             max_points=args.max_points, seed=args.seed, write_points3d=args.points3d,
+            depth_prior=args.depth_prior, depth_prior_samples=args.depth_prior_samples,
         )
         timings: dict[str, float] = {}
         with timed("load input", log, timings):

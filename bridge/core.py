@@ -22,11 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bridge.depth_prior import dense_depth_samples, observed_depth_samples
 from bridge.equations import ALPHA_MAX, ALPHA_MIN, global_coordinate_normalisation, uncertainty_gated_opacity
 from bridge.inputs import BridgeInput
 from bridge.selection import (MIN_DIST2, cap_points, knn_scales, percentile_mask, statistical_outlier_mask,
                               stride_mask, voxel_downsample)
 from camio.cameras import Camera
+from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
 from camio.logs import timed
 from camio.ply import GaussianCloud
 
@@ -63,6 +65,9 @@ class BridgeConfig:
             the contract's sparse/0 holds the cameras; seed.ply holds the points. Turn on for
             tools that initialise from points3D, e.g. the original 3DGS loader. Costs ~1.5 s
             per 100k points, and readers of the model pay again).
+        depth_prior: also write ``depth_prior.npz``, the initialiser's depth of each camera
+            (:mod:`bridge.depth_prior`) for the trainer's depth term; off writes none.
+        depth_prior_samples: at most this many depth samples per camera.
     """
 
     mode: str = "gated"
@@ -79,6 +84,8 @@ class BridgeConfig:
     seed: int = 0
     sh_degree: int = 3
     write_points3d: bool = False
+    depth_prior: bool = True
+    depth_prior_samples: int = 50000
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -93,6 +100,8 @@ class BridgeConfig:
             raise ValueError(f"percentile must be in [0, 100), got {self.percentile}")
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0, got {self.voxel_size}")
+        if self.depth_prior_samples < 1:
+            raise ValueError(f"depth_prior_samples must be >= 1, got {self.depth_prior_samples}")
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f"max_points must be >= 1, got {self.max_points}")
         if self.outlier_neighbors < 1 or not self.outlier_std_ratio > 0:
@@ -114,6 +123,7 @@ class SeedResult:
         cameras: the cameras in the normalised frame (translations scaled by s).
         points: [K, 3] float64 seed centres (normalised frame), rows of ``cloud``.
         colors: [K, 3] uint8.
+        depth_prior: the depth samples to write as ``depth_prior.npz`` (None: no prior).
         report: the bridge.json record.
     """
 
@@ -122,6 +132,7 @@ class SeedResult:
     points: np.ndarray
     colors: np.ndarray
     report: dict = field(default_factory=dict)
+    depth_prior: DepthSamples | None = None
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -221,6 +232,15 @@ def build_seed(inp: BridgeInput, cfg: BridgeConfig) -> SeedResult:
         cloud = GaussianCloud.from_points(p_sel, colors.astype(np.float64) / 255.0, alpha, scales,
                                           sh_degree=cfg.sh_degree)
     cameras = [Camera(c.name, c.width, c.height, c.K, ext_n[i]) for i, c in enumerate(inp.cameras)]
+    prior = None
+    if cfg.depth_prior:
+        with timed("depth prior", log, timings):
+            if inp.grid_shape is not None and has_conf:
+                prior = dense_depth_samples(pts, rows, conf, inp.grid_shape, cameras, c_min, c_max,
+                                            cfg.depth_prior_samples, cfg.seed)
+            elif inp.observations:
+                prior = observed_depth_samples(s * inp.points, inp.observations, cameras, cfg.depth_prior_samples,
+                                               cfg.seed)
     kept = len(sel)
     assert kept + sum(dropped.values()) == n_in, (kept, dropped, n_in)
 
@@ -256,23 +276,29 @@ def build_seed(inp: BridgeInput, cfg: BridgeConfig) -> SeedResult:
         "sh_degree": cfg.sh_degree,
         "n_cameras": len(cameras),
         "grid_shape": list(inp.grid_shape) if inp.grid_shape else None,
+        "depth_prior": None if prior is None else {"file": DEPTH_PRIOR_FILE, "source": prior.source,
+                                                   "samples": int(len(prior.z)),
+                                                   "weight": "Eq. 2 confidence ratio" if prior.source == "dense"
+                                                   else "1 (observed points)"},
         "config": asdict(cfg),
         "timings_s": timings,
     }
     log.info("bridge: %d of %d points kept (s = %.6g, mode %s, alpha %.3g..%.3g), dropped %s",
              kept, n_in, s, mode, float(alpha.min()), float(alpha.max()),
              {k: v for k, v in dropped.items() if v})
-    return SeedResult(cloud, cameras, p_sel, colors, report)
+    return SeedResult(cloud, cameras, p_sel, colors, report, prior)
 
 
 def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool = False) -> dict[str, Path]:
     """Write seed.ply, sparse/0 (COLMAP text) and bridge.json (last) into ``out_dir``.
 
     Each file is written atomically; bridge.json comes last, so its presence means the
-    other two are complete.
+    others are complete. ``depth_prior.npz`` is written when the result has a prior (a stale
+    one from an earlier run is removed otherwise).
     """
     from camio.atomic import write_json
     from camio.colmap import write_text_model
+    from camio.depth_prior import write_depth_prior
     from camio.ply import write_gaussian_ply
 
     out = Path(out_dir)
@@ -284,8 +310,15 @@ def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool 
         sparse = write_text_model(out / "sparse" / "0", result.cameras,
                                   result.points if write_points3d else None,
                                   result.colors if write_points3d else None)
+    prior_path = out / DEPTH_PRIOR_FILE
+    if result.depth_prior is not None:
+        with timed("write depth prior", log, timings):
+            write_depth_prior(prior_path, result.depth_prior)
+    elif prior_path.is_file():  # the Bridge's own file from an earlier run: it would describe another seed
+        prior_path.unlink()
     result.report["outputs"] = {"seed_ply": "seed.ply", "sparse": "sparse/0",
-                                "points3d_written": bool(write_points3d)}
+                                "points3d_written": bool(write_points3d),
+                                "depth_prior": DEPTH_PRIOR_FILE if result.depth_prior is not None else None}
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     # what evaluation.results reads: the stage's work (load .. write), not interpreter start-up
     result.report["wall_time_s"] = timings["total"]

@@ -13,7 +13,7 @@ import numpy as np
 
 from camio.cameras import to_homogeneous
 
-__all__ = ["global_coordinate_normalisation", "uncertainty_gated_opacity", "ALPHA_MIN", "ALPHA_MAX"]
+__all__ = ["global_coordinate_normalisation", "uncertainty_gated_opacity", "confidence_ratio", "ALPHA_MIN", "ALPHA_MAX"]
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +137,23 @@ def uncertainty_gated_opacity(
         raise ValueError(
             f"need 0 < alpha_min <= alpha_max < 1, got alpha_min={alpha_min}, alpha_max={alpha_max}"
         )
+    ratio = confidence_ratio(c, c_min, c_max)
+    # the final clip removes the 1-ulp overshoot of a_min + (a_max - a_min) * 1 over a_max
+    return np.clip(alpha_min + (alpha_max - alpha_min) * ratio, alpha_min, alpha_max)
+
+
+def confidence_ratio(conf: np.ndarray, c_min: float | None = None, c_max: float | None = None) -> np.ndarray:
+    """Eq. 2's normalised confidence, (c_i - c_min) / (c_max - c_min) clipped to [0, 1], with
+    the limits documented in :func:`uncertainty_gated_opacity` (1 when c_max = c_min; no
+    overflow). Also the depth prior's sample weight (:mod:`bridge.depth_prior`).
+
+    Args:
+        conf: [N] finite confidences; c_min, c_max: the scene's range (default: of ``conf``).
+
+    Returns:
+        [N] float64 in [0, 1].
+    """
+    c = np.asarray(conf, dtype=np.float64).reshape(-1)
     if not np.all(np.isfinite(c)):
         raise ValueError("Eq. 2 needs finite confidences; drop NaN/Inf rows first")
     if len(c) == 0:
@@ -147,8 +164,5 @@ def uncertainty_gated_opacity(
         raise ValueError(f"need finite c_min <= c_max, got c_min={lo}, c_max={hi}")
     den = hi / 2.0 - lo / 2.0
     if den > 0.0:
-        ratio = np.clip((c / 2.0 - lo / 2.0) / den, 0.0, 1.0)
-    else:  # c_max == c_min: the documented limit, ratio -> 1
-        ratio = np.ones_like(c)
-    # the final clip removes the 1-ulp overshoot of a_min + (a_max - a_min) * 1 over a_max
-    return np.clip(alpha_min + (alpha_max - alpha_min) * ratio, alpha_min, alpha_max)
+        return np.clip((c / 2.0 - lo / 2.0) / den, 0.0, 1.0)
+    return np.ones_like(c)  # c_max == c_min: the documented limit, ratio -> 1

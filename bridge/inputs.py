@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import zipfile
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +41,8 @@ class BridgeInput:
         cameras: posed pinhole cameras (cam_from_world, OpenCV axes) with K at their
             width x height, the resolution the output model refers to.
         grid_shape: (S, H, W) of the point map for an npz, None for COLMAP.
+        observations: image name -> (xy [K, 2] pixels, rows of ``points`` [K]) for a COLMAP
+            model (its tracks; the depth prior's samples), empty otherwise.
     """
 
     source: str
@@ -50,6 +52,7 @@ class BridgeInput:
     colors: np.ndarray
     cameras: list[Camera]
     grid_shape: tuple[int, int, int] | None = None
+    observations: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, np.float64).reshape(-1, 3)
@@ -156,4 +159,4 @@ def load_colmap(model_dir: str | Path, images_dir: str | Path | None = None) -> 
                 log.warning("%s is %dx%d but the model says %dx%d; the model's intrinsics are kept",
                             c.name, w, h, c.width, c.height)
     return BridgeInput(source="colmap", path=Path(model_dir), points=model.points, conf=None,
-                       colors=model.colors, cameras=model.cameras)
+                       colors=model.colors, cameras=model.cameras, observations=model.observations)

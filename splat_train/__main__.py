@@ -21,7 +21,9 @@ import argparse
 import logging
 import sys
 
+from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.logs import setup_logging
+from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES
 
 log = logging.getLogger("splat_train")
 
@@ -37,6 +39,12 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--iterations", type=int, help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
+    p.add_argument("--recipe", choices=list(RECIPE_NAMES),
+                   help=f"training recipe (default {DEFAULT_RECIPE}): 'sparse' adds Gaussian dropout, the "
+                        "depth prior and a growth cap sized to the training pixels; 'paper' is the paper's "
+                        "3DGS schedule (splat_train.recipes)")
+    p.add_argument("--depth-prior", dest="depth_prior",
+                   help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
@@ -121,13 +129,14 @@ def main(argv: list[str] | None = None) -> int:
                       pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
                       num_threads=args.threads, rasterizer=args.rasterizer,
                       kernel_threads=args.kernel_threads, eval_lpips=args.eval_lpips,
-                      lpips_weights=args.lpips_weights)
+                      lpips_weights=args.lpips_weights, recipe=args.recipe)
     from camio.images import ImageReadError
 
     try:
         result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                        test_images=args.test_images, image_list=args.image_list,
-                       test_image_list=args.test_image_list, resume_dir=args.resume_dir)
+                       test_image_list=args.test_image_list, resume_dir=args.resume_dir,
+                       depth_prior=args.depth_prior)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
         log.error("%s: %s", type(exc).__name__, exc)
         return 2

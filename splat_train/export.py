@@ -44,18 +44,23 @@ def camera_tensors(cam: Camera, device: torch.device | str = "cpu") -> tuple[tor
 
 def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                   K: torch.Tensor, width: int, height: int, background: torch.Tensor,
-                  backend: str = "auto") -> dict:
+                  backend: str = "auto",
+                  opacity_fn: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict:
     """Rasterize the trainable Gaussians (:mod:`splat_train.gaussians`) into one camera.
 
     Args:
         cam_from_world: [4, 4] world -> OpenCV camera; K: [3, 3] pixels.
         background: [3] RGB.
         backend: :func:`splat_train.rasterize` backend.
+        opacity_fn: maps the [N] opacities (after the sigmoid) before rasterizing; training's
+            Gaussian dropout (:mod:`splat_train.dropout`). None for every scored render.
 
     Returns:
         The :func:`splat_train.rasterize` dict (``rgb`` [H, W, 3], ``means2d`` [N, 2], ...).
     """
     scales, opac, quats = activated(params)
+    if opacity_fn is not None:
+        opac = opacity_fn(opac)
     # SH as the (sh_dc, sh_rest) pair: the fused CPU projection reads both parameters in place
     # and writes their gradients directly (no [N, 16, 3] concatenation and slice-gradient copy:
     # ~7 ms per iteration at 206k Gaussians in the torch profile); other backends concatenate

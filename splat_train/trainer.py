@@ -51,6 +51,9 @@ from splat_train import _cpu_kernel
 from splat_train._cpu_optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
+from camio.depth_prior import DEPTH_PRIOR_FILE
+from splat_train.depth_prior import DepthPrior, depth_weight_at, load_depth_prior
+from splat_train.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
@@ -93,12 +96,17 @@ class TrainResult:
         return self.out_dir / "model.ply"
 
 
-def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfig) -> str:
-    """SHA-256 (hex) of what decides a run's result: the seed PLY's bytes, each training
-    view's name, camera (size, K, cam_from_world) and decoded pixels, and the config without
-    the keys that may change on resume (:data:`RESUME_FREE_KEYS`)."""
+def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfig,
+                  depth_prior: str | Path | None = None) -> str:
+    """SHA-256 (hex) of what decides a run's result: the seed PLY's bytes (and the depth
+    prior's, when one is used), each training view's name, camera (size, K, cam_from_world)
+    and decoded pixels, and the config without the keys that may change on resume
+    (:data:`RESUME_FREE_KEYS`)."""
     h = hashlib.sha256()
     h.update(Path(seed_ply).read_bytes())
+    if depth_prior is not None:
+        h.update(b"depth_prior")
+        h.update(Path(depth_prior).read_bytes())
     for v in train_views:
         cam = v.camera
         h.update(f"{v.name}|{cam.width}|{cam.height}".encode())
@@ -123,13 +131,20 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
                  test_views: list[View] | None = None, ckpt_dir: str | Path | None = None,
-                 digest: str | None = None) -> None:
+                 digest: str | None = None, depth_prior: str | Path | None = None) -> None:
         if not train_views:
             raise ValueError("no training views")
         self.cfg, self.out = cfg, Path(out_dir)
         self.ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else self.out  # holds ckpt/
-        self.digest = digest or inputs_digest(seed_ply, train_views, cfg)
+        self.depth_prior_path = Path(depth_prior) if depth_prior is not None and cfg.depth_weight > 0 else None
+        self.digest = digest or inputs_digest(seed_ply, train_views, cfg, self.depth_prior_path)
         self.sched = cfg.schedule()
+        train_pixels = sum(v.camera.width * v.camera.height for v in train_views)
+        self.max_gaussians = cfg.max_gaussians_for(train_pixels)
+        log.info("recipe %s: schedule %s; growth cap %s (%d training pixels); dropout %g; depth weight %g",
+                 cfg.recipe, {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items()
+                              if k != "source"},
+                 self.max_gaussians or "none", train_pixels, cfg.dropout_rate, cfg.depth_weight)
         self.dev = _device(cfg.device)
         if self.dev.type == "cuda":  # train.json's peak_cuda_mb is this run's, not the process's
             torch.cuda.reset_peak_memory_stats(self.dev)
@@ -145,13 +160,7 @@ class Trainer:
         for v in [*self.train_views, *self.test_views]:  # once here: rasterize checks CPU tensors only
             if float(v.camera.K[0, 1]) != 0.0:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
-        self.strategy = DensifyStrategy(
-            densify_from=self.sched.densify_from, densify_until=self.sched.densify_until,
-            densify_every=self.sched.densify_every, opacity_reset_every=self.sched.opacity_reset_every,
-            grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
-            prune_opacity=cfg.prune_opacity, prune_screen_size=cfg.prune_screen_size,
-            prune_world_size=cfg.prune_world_size, reset_value=cfg.opacity_reset_value,
-            max_gaussians=cfg.max_gaussians)
+        self.strategy = DensifyStrategy.from_config(cfg, self.max_gaussians)
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
@@ -174,6 +183,15 @@ class Trainer:
                 groups.append({"params": [self.pose.log_focal], "lr": cfg.lr_focal, "name": "focal"})
             self.pose_opt = torch.optim.Adam(groups)
         self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
+        self.prior: DepthPrior | None = None
+        if self.depth_prior_path is not None:
+            self.prior = load_depth_prior(self.depth_prior_path, {v.name: (v.camera.width, v.camera.height)
+                                                                  for v in train_views}, self.dev,
+                                          use_confidence=cfg.depth_use_confidence)
+            log.info("depth prior %s: %d samples in %d of %d training views", self.depth_prior_path,
+                     self.prior.num_samples, len(self.prior.views), len(train_views))
+        elif cfg.depth_weight > 0:
+            log.info("depth term off: the seed has no depth prior (%s beside it)", DEPTH_PRIOR_FILE)
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -291,9 +309,15 @@ class Trainer:
         idx = self.last_view = self.next_view()
         bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
+        rate = dropout_rate_at(it, cfg.iterations, cfg.dropout_rate)
+        drop = (lambda o: gaussian_dropout(o, rate, self.gen)) if rate > 0 else None
         out = render_params(self.params, deg, self.camera(idx), self.intrinsics(idx), cam.width, cam.height, bg,
-                            self.backend)
+                            self.backend, opacity_fn=drop)
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
+        samples = self.prior.views.get(cam.name) if self.prior is not None else None
+        w_depth = depth_weight_at(it, cfg.iterations, cfg.depth_weight, cfg.depth_ramp_fraction)
+        if samples is not None and w_depth > 0:
+            loss = loss + w_depth * samples.loss(out["depth"])
         if self.sync_every == 1 and not torch.isfinite(loss.detach()):
             self._non_finite(float(loss.detach()), it, cam.name)  # before the step moves anything
         loss.backward()
@@ -439,6 +463,10 @@ class Trainer:
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
             "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
+            "recipe": cfg.recipe, "max_gaussians": self.max_gaussians,
+            "depth_prior": None if self.prior is None else {"path": str(self.prior.path),
+                                                            "samples": self.prior.num_samples,
+                                                            "views": sorted(self.prior.views)},
             "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),
             "heldout_lpips": {"enabled": bool(cfg.eval_lpips), "net": LPIPS_NET,
@@ -464,7 +492,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
           cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
           test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None,
           test_image_list: str | Path | list[str] | None = None,
-          resume_dir: str | Path | None = None) -> TrainResult:
+          resume_dir: str | Path | None = None, depth_prior: str | Path | None = None) -> TrainResult:
     """Train 3DGS from a seed PLY and posed images; resume from ``out_dir/ckpt`` if present.
 
     Args:
@@ -477,6 +505,8 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         image_list: restrict training to these names (a file or a list).
         test_image_list: restrict the held-out views to these names (e.g. when the test
             cameras folder is the Bridge's folder of every camera).
+        depth_prior: the Bridge's ``depth_prior.npz`` (None: the one beside ``seed``, if any);
+            used when the config's ``depth_weight`` > 0.
         resume_dir: keep checkpoints in ``resume_dir/<inputs digest>/ckpt`` (not ``out_dir/ckpt``);
             folders of other digests there are stale and removed at the start, this run's is
             removed after its outputs are written.
@@ -501,15 +531,20 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
              len(train_views), len(test_views))
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    digest = inputs_digest(seed, train_views, cfg)
+    if depth_prior is None and (Path(seed).parent / DEPTH_PRIOR_FILE).is_file():
+        depth_prior = Path(seed).parent / DEPTH_PRIOR_FILE
+    if cfg.depth_weight <= 0:
+        depth_prior = None
+    digest = inputs_digest(seed, train_views, cfg, depth_prior)
     if resume_dir is None:
-        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest).run()
+        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior).run()
     resume_dir = Path(resume_dir)
     own = resume_dir / digest[:16]
     for stale in (p for p in resume_dir.iterdir() if p != own) if resume_dir.is_dir() else ():
         log.info("removing %s: checkpoints of other inputs or config", stale)
         shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
-    result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest).run()
+    result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest,
+                     depth_prior=depth_prior).run()
     shutil.rmtree(own, ignore_errors=True)
     try:
         resume_dir.rmdir()

@@ -1,0 +1,46 @@
+"""Gaussian dropout (DropGaussian, CVPR 2025): a training-only regulariser for sparse views.
+
+At each training iteration every Gaussian's opacity is zeroed with probability p and the
+survivors' opacity is divided by 1 - p, so that the expected opacity of each Gaussian is
+unchanged; p ramps linearly from 0 to the final rate over the run (:func:`dropout_rate_at`).
+The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
+anything: only :meth:`splat_train.trainer.Trainer.step` calls :func:`gaussian_dropout`. Working
+on the opacities before the rasterizer, it acts the same through every backend.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["dropout_rate_at", "gaussian_dropout"]
+
+
+def dropout_rate_at(iteration: int, iterations: int, final_rate: float) -> float:
+    """DropGaussian's rate at 1-based ``iteration`` of ``iterations``: final_rate x it / iterations."""
+    if final_rate <= 0.0:
+        return 0.0
+    return float(final_rate) * min(1.0, iteration / float(iterations))
+
+
+def gaussian_dropout(opacities: Tensor, rate: float, generator: torch.Generator | None = None) -> Tensor:
+    """Drop each Gaussian with probability ``rate``, compensating the survivors.
+
+    Args:
+        opacities: [N] opacities in [0, 1] (after the sigmoid), any device; differentiable.
+        rate: drop probability p in [0, 1).
+        generator: CPU generator of the draw (the trainer's, so that a resumed run draws the
+            same masks); the [N] uniform draw is made on the CPU and moved to the device.
+
+    Returns:
+        [N] opacities * keep / (1 - p), keep ~ Bernoulli(1 - p); ``opacities`` itself when
+        p == 0. E[result] = opacities; the compensated value may exceed 1 (the rasterizer
+        clamps each pixel's alpha at 0.99, as 3DGS and DropGaussian do).
+    """
+    if not 0.0 <= rate < 1.0:
+        raise ValueError(f"dropout rate must be in [0, 1), got {rate}")
+    if rate == 0.0:
+        return opacities
+    u = torch.rand(opacities.shape[0], generator=generator, dtype=torch.float32)
+    keep = (u >= rate).to(device=opacities.device, dtype=opacities.dtype)
+    return opacities * (keep / (1.0 - rate))
