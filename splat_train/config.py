@@ -105,7 +105,7 @@ class TrainConfig:
             are kept (:mod:`splat_train.densify`).
         gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
             over the training views at the training resolution); the smaller cap applies.
-            None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
+            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
         dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's):
             :mod:`splat_train.dropout`.
         depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
@@ -227,8 +227,8 @@ class TrainConfig:
         if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
             raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")
-        if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel > 0:
-            raise ValueError(f"gaussians_per_pixel must be > 0 (or null: no cap), got {self.gaussians_per_pixel}")
+        if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel >= 0:
+            raise ValueError(f"gaussians_per_pixel must be >= 0 (0: no cap), got {self.gaussians_per_pixel}")
         if self.max_gaussians is not None and self.max_gaussians < 1:
             raise ValueError(f"max_gaussians must be >= 1 (or null: no cap), got {self.max_gaussians}")
         if not 0 <= self.sh_degree <= 3:
@@ -286,7 +286,7 @@ class TrainConfig:
         """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views):
         the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels; None: no cap."""
         caps = [c for c in (self.max_gaussians,
-                            None if self.gaussians_per_pixel is None
+                            None if not self.gaussians_per_pixel
                             else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
         return min(caps) if caps else None
 

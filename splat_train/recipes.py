@@ -50,7 +50,7 @@ MIN_DENSIFY_EVERY = 20
 # an int, as ``paper`` does).
 SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
 # The regularisation parts and their "off" values.
-PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": None}
+PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0}
 
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {
@@ -62,7 +62,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "dropout_rate": 0.0,
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
-        "gaussians_per_pixel": None,
+        "gaussians_per_pixel": 0.0,
     },
     "sparse": {
         "densify_from_fraction": 0.05,
