@@ -45,6 +45,8 @@ VARIANTS: dict[str, dict] = {
     "uniform-depth": {"recipe": "sparse", "depth_use_confidence": False},
     "no-cap": {"recipe": "sparse", "gaussians_per_pixel": 0.0},
     "no-early-stop": {"recipe": "sparse", "densify_until": "ITERATIONS"},
+    "cap-0.03": {"recipe": "sparse", "gaussians_per_pixel": 0.03},
+    "cap-0.3": {"recipe": "sparse", "gaussians_per_pixel": 0.3},
     "sparse-pose": {"recipe": "sparse", "pose_refine": True},
     "paper-pose": {"recipe": "paper", "pose_refine": True},
 }
@@ -101,7 +103,7 @@ def prepare(work: Path, scene: str, n: int, init: str) -> dict[str, Path]:
 
 
 def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterations: int, eval_every: int,
-              synthetic: bool) -> dict:
+              synthetic: bool, kernel_threads: int = 0) -> dict:
     """Train one (variant, seed) and read its train.json (and floaters.json on synthetic scenes)."""
     if not (out / "train.json").is_file():
         cfg = {k: (iterations if v == "ITERATIONS" else v) for k, v in VARIANTS[variant].items()}
@@ -110,7 +112,8 @@ def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterati
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
             "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
             "--seed-rng", str(seed), "--eval-every", str(eval_every), "--eval-lpips", "--checkpoint-every",
-            str(iterations), "--config", json.dumps(cfg)], out.parent / f"{out.name}.log")
+            str(iterations), "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg)],
+           out.parent / f"{out.name}.log")
     if synthetic and not (out / "floaters.json").is_file():
         sh(["-m", "evaluation", "floaters", "--model", f"final={out / 'model.ply'}", "--align",
             str(cell["align"] / "align.json"), "--scene", str(cell["scene"]), "--out", str(out / "floaters.json")],
@@ -183,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--work", type=Path, required=True, help="the cell's folder (prepared once, runs inside)")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--kernel-threads", type=int, default=0,
+                   help="C++ kernel threads per run (0: every core; 1 to run two studies side by side)")
     args = p.parse_args(argv)
     if args.scene in REAL and not (SCENES / REAL[args.scene][0]).is_dir():
         print(f"SKIP: {SCENES / REAL[args.scene][0]} is not here")
@@ -195,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         for v in args.variants:
             t1 = time.perf_counter()
             runs.append(train_one(cell, args.work / "runs" / f"{v}_i{args.iterations}_s{seed}", v, seed, args.iterations, eval_every,
-                                  args.scene == "synthetic"))
+                                  args.scene == "synthetic", args.kernel_threads))
             r = runs[-1]
             print(f"[{time.perf_counter() - t0:7.0f} s] {v} seed {seed}: final {r['final_psnr']:.2f} dB "
                   f"(best {r['best_psnr']:.2f} at {r['best_iteration']}), {r['num_gaussians']} Gaussians, "

@@ -68,7 +68,7 @@ RUN_COLUMNS = [
     "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
     "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
-    "iterations", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
+    "iterations", "recipe", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
     "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "heldout_cameras",
     "run_dir",
 ]
@@ -269,6 +269,8 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         "final_test_psnr": math.nan, "best_test_psnr": math.nan, "best_test_iter": math.nan,
         "num_gaussians": _first(train, "num_gaussians", "final_num_gaussians"),
         "iterations": _first(train, "iterations", "iteration"),
+        # the training recipe (splat_train/recipes.py); a train.json from before recipes: paper
+        "recipe": (train.get("recipe") or "paper") if train else None,
         "run_dir": str(run_dir / mode if mode else run_dir),
     }
     if math.isnan(rec["fy_fx_max_dev"]) and status.get("fy_over_fx") is not None:

@@ -112,6 +112,12 @@ def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", 
     return pd.DataFrame(rows)
 
 
+def _recipes(g: pd.DataFrame) -> str:
+    """The training recipes of a group's runs ("-" where none trained)."""
+    names = sorted({str(r) for r in g.get("recipe", pd.Series(dtype=object)).dropna()})
+    return ", ".join(names) or "-"
+
+
 def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
     """Table II style summary per dataset, initialiser, bridge mode and n."""
     lp = _lpips_col(runs, lpips)
@@ -120,6 +126,7 @@ def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
         ok = g[g["success_paper"].astype(bool)]
         rows.append({
             "dataset": dataset, "init": init, "mode": mode, "n": int(n), "runs": len(g),
+            "recipe": _recipes(g),
             "success (paper)": _k_of_n(g["success_paper"]),
             "success (gated)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
@@ -152,7 +159,7 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
     for (dataset, init, mode, n), g in runs.groupby(["dataset", "init", "bridge_mode", "n"], sort=True,
                                                      dropna=False):
         rows.append({"dataset": dataset, "init": init, "mode": mode, "n": int(n), "runs": len(g),
-                     "init s": _mean(g["init_s"]), "bridge s": _mean(g["bridge_s"]),
+                     "recipe": _recipes(g), "init s": _mean(g["init_s"]), "bridge s": _mean(g["bridge_s"]),
                      "train s": _mean(g["train_s"]), "eval s": _mean(g["eval_s"]),
                      "total s": _mean(g["total_s"]), "peak MB": float(g["peak_mem_mb"].max()),
                      "peak GPU MB": float(g["peak_gpu_mb"].max())})

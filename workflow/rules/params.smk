@@ -170,6 +170,25 @@ def pose_refine_args(wildcards):
     return "--pose-refine" + (" --pose-refine-focal" if t["pose_refine_focal"] else "")
 
 
+def train_recipe_args(wildcards):
+    """--recipe, and --iterations and the recipe parts set in the config (null keys are left
+    to splat_train, whose config is the one place of their defaults)."""
+    import json
+
+    t = config["train"]
+    args = f"--recipe {t['recipe']}"
+    if t["iterations"] is not None:
+        args += f" --iterations {t['iterations']}"
+    parts = {
+        k: t[k]
+        for k in ("dropout_rate", "depth_weight", "gaussians_per_pixel", "depth_use_confidence")
+        if t[k] is not None
+    }
+    if parts:
+        args += " --config '" + json.dumps(parts, sort_keys=True) + "'"
+    return args
+
+
 def train_lpips_args(wildcards):
     """--eval-lpips / --no-eval-lpips from train.eval_lpips; nothing when null (the trainer's
     default, splat_train.config, decides)."""

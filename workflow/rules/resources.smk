@@ -46,9 +46,17 @@ def train_mem_mb(wildcards, attempt):
     )
 
 
+def train_iterations():
+    """train.iterations, or the trainer's default for the configured device when null."""
+    from splat_train.config import default_iterations
+
+    t = config["train"]
+    return t["iterations"] or default_iterations(t["device"])
+
+
 def train_runtime(wildcards, attempt):
     t = config["train"]
-    scale = max(1.0, int(wildcards.n) / 12) * t["iterations"] / 10000
+    scale = max(1.0, int(wildcards.n) / 12) * train_iterations() / 10000
     return (
         max(config["resources"]["runtime"], math.ceil(t["runtime"] * scale)) * attempt
     )

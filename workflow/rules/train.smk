@@ -52,7 +52,7 @@ rule train_splats:
         cpus_per_task=cpus_per_task,
     params:
         out=out_dir,
-        iterations=config["train"]["iterations"],
+        recipe=train_recipe_args,
         seed=config["train"]["seed"],
         eval_every=config["train"]["eval_every"],
         checkpoint_every=config["train"]["checkpoint_every"],
@@ -64,7 +64,7 @@ rule train_splats:
     shell:
         "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
         "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
-        "--iterations {params.iterations} --seed-rng {params.seed} "
+        "{params.recipe} --seed-rng {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
         "--resume-dir {params.resume} --device {params.device} --threads {threads} "
         "{params.test} {params.pose} {params.lpips} > {log} 2>&1"
