@@ -5,8 +5,8 @@
 // (-mavx512f ... on CPUs that have AVX-512, -mavx2 -mfma on AVX2 ones, none elsewhere): the code
 // uses GCC/Clang vector extensions, one 16-lane vector per 16-pixel tile row, which the compiler
 // maps to one zmm register (AVX-512), two ymm (AVX2) or four xmm (SSE2). Semantics are those of
-// splat_train/_reference.py (3DGS forward rules) and of the scalar kernel _cpu_kernel_v1.cpp
-// (backend "cpu_v1"), which this replaces:
+// splat_train/_reference.py (3DGS forward rules) and of the scalar kernel it replaced (backend
+// "cpu_v1", since deleted; benchmarks/README.md records their comparison):
 //
 // * Forward: per tile, Gaussians front to back; each Gaussian visits only the tile rows its
 //   alpha >= 1/255 ellipse can reach, and there all 16 pixels of a row at once, with per-lane

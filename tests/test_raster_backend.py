@@ -30,7 +30,7 @@ def test_auto_on_cpu_is_the_kernel_or_torch():
 @pytest.mark.parametrize("name", [b for b in BACKENDS if b != "auto"])
 def test_explicit_backend_is_kept(name):
     assert resolve_backend(name, "cpu") == name
-    if name in ("cpu", "cpu_v1"):  # C++ kernels on CPU memory: refused before any pointer reaches them
+    if name == "cpu":  # C++ kernels on CPU memory: refused before any pointer reaches them
         with pytest.raises(ValueError, match="CPU tensors only"):
             resolve_backend(name, "cuda")
     else:

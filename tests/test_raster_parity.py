@@ -16,7 +16,7 @@ from splat_train._cpu_kernel import available as kernel_available
 from splat_train._tiles import tile_pairs
 from splat_train.projection import project_gaussians
 
-FAST = ["torch"] + (["cpu", "cpu_v1"] if kernel_available() else [])
+FAST = ["torch"] + (["cpu"] if kernel_available() else [])
 
 
 def make_scene(kind: str, seed: int, dtype=torch.float64, sh_degree=None):
@@ -139,9 +139,8 @@ def test_early_stop_happens_and_matches():
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
-@pytest.mark.parametrize("kernel", ["cpu", "cpu_v1"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_cpu_kernel_deterministic_across_threads(kernel, dtype):
+def test_cpu_kernel_deterministic_across_threads(dtype):
     """Bit-identical image and gradients for 1, 2 and 3 kernel threads and on a repeat: tiles
     write disjoint pair rows and each Gaussian's pairs are summed in a fixed order."""
     from splat_train import _cpu_kernel
@@ -151,7 +150,7 @@ def test_cpu_kernel_deterministic_across_threads(kernel, dtype):
     try:
         for nt in (1, 2, 3, 2):
             _cpu_kernel.set_kernel_threads(nt)
-            out = render(params, cw, K, W, H, kernel, 2)
+            out = render(params, cw, K, W, H, "cpu", 2)
             results.append([out["rgb"].detach(), *grads_with_cotangents(out, params, 2)])
     finally:
         _cpu_kernel.set_kernel_threads(None)
@@ -184,9 +183,8 @@ def test_cpu_binning_matches_torch_binning():
     params, cw, K, W, H = make_scene("overlap", seed=9)
     proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
     a = tile_pairs(proj.depths, proj.rect, proj.visible, W, H)
-    for kernel in ("cpu", "cpu_v1"):
-        b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H, kernel=kernel)
-        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+    b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
