@@ -86,11 +86,11 @@ def use_threads(backend: str, threads: int) -> None:
     """The trainer's thread layout for ``backend`` on ``threads`` cores: the C++ kernel
     ("cpu") on ``threads`` kernel threads with torch on one (TrainConfig defaults),
     the pure-torch backends on ``threads`` torch threads."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     kernel = backend == "cpu"
     torch.set_num_threads(1 if kernel else threads)
-    _cpu_kernel.set_kernel_threads(threads)
+    cpu_raster.set_kernel_threads(threads)
 
 
 def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> dict:
@@ -118,17 +118,17 @@ def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> 
 
 def count_pairs(n: int, width: int, height: int) -> dict:
     """Tile-Gaussian pairs and blended Gaussian-pixel pairs (CPU kernel forward counts)."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
     from splat_train.projection import project_gaussians
 
     params, K = make_scene(n, width, height)
     with torch.no_grad():
         proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
-        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
-        tight = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height, "cpu", proj.means2d,
-                                    proj.conics, params[3])
+        bins = cpu_raster.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        tight = cpu_raster.bin_cpu(proj.depths, proj.rect, proj.visible, width, height, "cpu", proj.means2d,
+                                   proj.conics, params[3])
         feats = torch.zeros(n, 4)
-        _, t_final, _, count = _cpu_kernel.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
+        _, t_final, _, count = cpu_raster.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
     return {
         "visible": int(proj.visible.sum()),
         "tile_pairs": int(bins.gauss.numel()),  # 3-sigma rectangles (as the torch backend bins)
@@ -169,17 +169,17 @@ def matmul_gflops(threads: int, size: int = 2048, min_seconds: float = 1.0, min_
 
 def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True) -> dict:
     """Run every configuration; returns a JSON-ready dict (also see module docstring)."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
-    if not _cpu_kernel.available():
-        raise RuntimeError(f"CPU kernel unavailable ({_cpu_kernel.build_error()}); nothing fast to benchmark")
+    if not cpu_raster.available():
+        raise RuntimeError(f"CPU kernel unavailable ({cpu_raster.build_error()}); nothing fast to benchmark")
     sizes = [(10_000, 256, 256)] if quick else [(10_000, 256, 256), (10_000, 512, 512), (100_000, 256, 256), (100_000, 512, 512)]
     ref_case = (2_000, 96, 96) if quick else (5_000, 128, 128)
     results: dict = {
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "torch": torch.__version__,
                     "python": sys.version.split()[0]},
         "flops_per_pair": FLOPS_PER_PAIR,
-        "simd_bits": _cpu_kernel.simd_bits(),
+        "simd_bits": cpu_raster.simd_bits(),
         "loadavg_start": list(os.getloadavg()),
         "runs": [],
     }
@@ -198,7 +198,7 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
             log.info("threads=%d %s N=%d %dx%d ...", nt, backend, n, w, h)
             use_threads(backend, nt)
             t = time_iteration(backend, n, w, h, reps)
-            t.update(torch_threads=torch.get_num_threads(), kernel_threads=_cpu_kernel.kernel_threads())
+            t.update(torch_threads=torch.get_num_threads(), kernel_threads=cpu_raster.kernel_threads())
             if (n, w, h) not in pair_cache:
                 pair_cache[(n, w, h)] = count_pairs(n, w, h)
             pc = pair_cache[(n, w, h)]

@@ -40,7 +40,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
     inputs digest taken from the checkpoint; outputs go to a temporary folder never written)."""
     import tempfile
 
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
     from splat_train.checkpoint import load_checkpoint
     from splat_train.config import TrainConfig
     from splat_train.data import load_views
@@ -50,7 +50,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
     cfg = TrainConfig(**data["config"])
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
-    _cpu_kernel.set_kernel_threads(kernel_threads or cfg.kernel_threads or len(os.sched_getaffinity(0)))
+    cpu_raster.set_kernel_threads(kernel_threads or cfg.kernel_threads or len(os.sched_getaffinity(0)))
     views = load_views(cameras, images, list(data["train_names"]), cfg.downsample, tuple(cfg.background))
     out = tempfile.mkdtemp(prefix="profile_iteration_")
     tr = Trainer(cfg, seed, views, out, [], ckpt_dir=out, digest=data["inputs_sha256"])
@@ -60,7 +60,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
 
 def profile_steps(tr, steps: int) -> dict[str, float]:
     """Seconds per phase summed over ``steps`` iterations of ``tr`` (advances its state)."""
-    from splat_train._cpu_optim import adam_step
+    from splat_train.cpu.optim import adam_step
     from splat_train.export import render_params
     from splat_train.losses import photometric_loss
 

@@ -120,19 +120,19 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
 
 
 def _cpu_kernel_for(render: torch.Tensor, target: torch.Tensor):
-    """:mod:`splat_train._cpu_ssim` when it applies to these images (CPU float32/float64, one
+    """:mod:`splat_train.cpu.ssim` when it applies to these images (CPU float32/float64, one
     shape, a target that needs no gradient, the kernel built), else None."""
     if (render.device.type == "cpu" and target.device.type == "cpu" and not target.requires_grad
             and render.dtype in (torch.float32, torch.float64) and render.shape == target.shape):
-        from splat_train import _cpu_ssim
+        from splat_train.cpu import ssim as cpu_ssim
 
-        if _cpu_ssim.available():
-            return _cpu_ssim
+        if cpu_ssim.available():
+            return cpu_ssim
     return None
 
 
 def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train._cpu_ssim`) for CPU
+    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train.cpu.ssim`) for CPU
     float32/float64 images with a target that needs no gradient; the reference otherwise."""
     kernel = _cpu_kernel_for(render, target)
     if kernel is not None:

@@ -2,7 +2,7 @@
 
 Layers (gsplat style): this module checks inputs and runs the steps; projection
 (:mod:`splat_train.projection`), SH colour (:mod:`splat_train.sh`) and the blending backends
-(:mod:`splat_train._cpu_kernel`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
+(:mod:`splat_train.cpu.raster`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
 :mod:`splat_train._gsplat_backend`) are private building blocks.
 
 Convention: ``cam_from_world`` maps world -> OpenCV camera (x right, y down, z forward); ``K``
@@ -62,9 +62,9 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     if backend != "auto":
         return backend
     if device.type == "cpu":
-        from splat_train import _cpu_kernel
+        from splat_train.cpu import raster as cpu_raster
 
-        return "cpu" if _cpu_kernel.available() else "torch"
+        return "cpu" if cpu_raster.available() else "torch"
     if device.type == "cuda":
         from splat_train import _gsplat_backend
 
@@ -85,9 +85,9 @@ def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bo
     gradient (pose refinement keeps the torch path)."""
     if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
         return False
-    from splat_train import _cpu_project
+    from splat_train.cpu import project as cpu_project
 
-    return _cpu_project.available()
+    return cpu_project.available()
 
 
 def blend(
@@ -114,10 +114,10 @@ def blend(
 
         fn = _tiles.blend_tiles
     elif backend == "cpu":
-        from splat_train import _cpu_kernel
+        from splat_train.cpu import raster as cpu_raster
 
-        return _cpu_kernel.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
-                                     kernel=backend)
+        return cpu_raster.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
+                                    kernel=backend)
     else:
         raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
     return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
@@ -237,9 +237,9 @@ def rasterize(
         )
 
     if fused:
-        from splat_train import _cpu_project
+        from splat_train.cpu import project as cpu_project
 
-        proj, rgb_g, feat = _cpu_project.project_sh_cpu(
+        proj, rgb_g, feat = cpu_project.project_sh_cpu(
             means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D)
         # with SH the kernel's (colour, depth) rows are the blend's features as they are
         features = feat if sh_degree is not None else None

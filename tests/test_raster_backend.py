@@ -10,7 +10,8 @@ import logging
 import pytest
 import torch
 
-from splat_train import _cpu_kernel, _gsplat_backend
+from splat_train import _gsplat_backend
+from splat_train.cpu import raster as cpu_raster
 from splat_train.config import TrainConfig
 from splat_train.rasterize import BACKENDS, resolve_backend
 
@@ -23,7 +24,7 @@ def fresh_warning(monkeypatch):
 
 
 def test_auto_on_cpu_is_the_kernel_or_torch():
-    assert resolve_backend("auto", torch.device("cpu")) == ("cpu" if _cpu_kernel.available() else "torch")
+    assert resolve_backend("auto", torch.device("cpu")) == ("cpu" if cpu_raster.available() else "torch")
     assert resolve_backend("auto", "cpu") == resolve_backend("auto", torch.device("cpu"))
 
 

@@ -1,6 +1,6 @@
 // Tile-based Gaussian alpha blending on the CPU, SIMD across the pixels of a tile (issue 15).
 //
-// Built by splat_train/_cpu_kernel.py with the system C++ compiler (plain C ABI through ctypes,
+// Built by splat_train/cpu/raster.py with the system C++ compiler (plain C ABI through ctypes,
 // no torch headers, no OpenMP). The SIMD width is chosen at load time by the build flags
 // (-mavx512f ... on CPUs that have AVX-512, -mavx2 -mfma on AVX2 ones, none elsewhere): the code
 // uses GCC/Clang vector extensions, one 16-lane vector per 16-pixel tile row, which the compiler
@@ -66,7 +66,7 @@
 #include <emmintrin.h>
 #endif
 
-#include "_cpu_vec8d.h"
+#include "vec8d.h"
 
 namespace {
 

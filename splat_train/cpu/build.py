@@ -12,9 +12,9 @@ disables every kernel (callers then use the torch code).
 
 Threads: :func:`kernel_threads` Python threads run the same C entry and share an atomic work
 counter (ctypes drops the GIL; no OpenMP runtime, so no spinning worker threads competing with
-torch's on a loaded machine). Registered kernels: ``cpu`` (:mod:`splat_train._cpu_kernel`),
-``project`` (:mod:`splat_train._cpu_project`), ``ssim``
-(:mod:`splat_train._cpu_ssim`).
+torch's on a loaded machine). Registered kernels: ``cpu`` (:mod:`splat_train.cpu.raster`),
+``project`` (:mod:`splat_train.cpu.project`), ``ssim`` (:mod:`splat_train.cpu.ssim`), ``optim``
+(:mod:`splat_train.cpu.optim`).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ _SIMD_FLAGS = {
     "none": [],
 }
 # Local headers the kernel sources include (part of every kernel's cache key).
-_HEADERS = tuple(sorted(_HERE.glob("_cpu_*.h")))
+_HEADERS = tuple(sorted(_HERE.glob("*.h")))
 
 
 def _cpu_flags() -> set[str]:

@@ -1,11 +1,11 @@
 """CPU fast path: the C++ tile blender built on first use, behind backend "cpu".
 
-``_cpu_kernel.cpp`` (issue 15) blends 16 pixels of a tile row per vector instruction
+``raster.cpp`` (issue 15) blends 16 pixels of a tile row per vector instruction
 (GCC/Clang vector extensions), bins with a radix depth sort and a counting sort, and reduces the
 per-pair gradients once per Gaussian in C. (The scalar kernel it replaced, backend "cpu_v1", is
 deleted; their side-by-side timings are recorded in ``benchmarks/README.md``.)
 
-Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train._cpu_build`.
+Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train.cpu.build`.
 If no compiler is present or every build fails, the failure is logged once and
 :func:`available` returns False; the public rasterizer then uses the vectorised torch tile code.
 
@@ -26,11 +26,11 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from splat_train._cpu_build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
-from splat_train._cpu_build import Kernel as _Kernel
-from splat_train._cpu_build import ptr as _ptr
-from splat_train._cpu_build import run_threaded as _run_threaded
-from splat_train._cpu_build import suffix as _suffix
+from splat_train.cpu.build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
+from splat_train.cpu.build import Kernel as _Kernel
+from splat_train.cpu.build import ptr as _ptr
+from splat_train.cpu.build import run_threaded as _run_threaded
+from splat_train.cpu.build import suffix as _suffix
 from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
@@ -72,7 +72,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 18, True, "splat2_abi_version", _declare),
+    "cpu": _Kernel("cpu", "raster.cpp", 18, True, "splat2_abi_version", _declare),
 })
 
 
@@ -193,7 +193,7 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
         means2d [N, 2], conics [N, 3], opacities [N]: optional (all three, one
             dtype): keep, within each rectangle, only the tiles where the Gaussian's alpha can
             reach 1/255 (the blend's own footprint test, see ``tile_span`` in
-            ``_cpu_kernel.cpp``); the dropped pairs would blend no pixel, so images and
+            ``raster.cpp``); the dropped pairs would blend no pixel, so images and
             gradients are unchanged while binning, blending and reduction visit fewer pairs.
 
     Returns:
@@ -297,7 +297,7 @@ def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix:
     """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
     contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
     also its binning record (tiles and per-row spans; spans is written). With ``first`` (see
-    :func:`splat_train._cpu_build.run_threaded`): (footprints, ``first()``'s result)."""
+    :func:`splat_train.cpu.build.run_threaded`): (footprints, ``first()``'s result)."""
     fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
     res = _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
                         _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
