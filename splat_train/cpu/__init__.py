@@ -15,7 +15,9 @@ Dependencies run one way: these loaders import only the torch building blocks th
 (:mod:`splat_train.projection`, :mod:`splat_train._reference`, :mod:`splat_train.sh`,
 :mod:`splat_train.ssim_window`), never the modules that call them (``rasterize``, ``losses``,
 ``densify``, ``trainer``; tests/test_import_layers.py checks). This package imports none of its
-modules itself, and importing one builds nothing until its kernel is first used. Before issue 34 these files were ``splat_train/_cpu_build.py``,
-``_cpu_kernel.py`` / ``.cpp`` (now ``raster``), ``_cpu_project``, ``_cpu_ssim``, ``_cpu_optim``
-and ``_cpu_vec8d.h``: benchmarks/README.md records measurements under those names.
+modules itself, and importing one builds nothing until its kernel is first used.
+
+Before issue 34 these files were ``splat_train/_cpu_build.py``, ``_cpu_kernel.py`` / ``.cpp``
+(now ``raster``), ``_cpu_project``, ``_cpu_ssim``, ``_cpu_optim`` and ``_cpu_vec8d.h``:
+benchmarks/README.md records measurements under those names.
 """
