@@ -83,11 +83,11 @@ def raster_section(quick: bool, threads: int) -> dict:
     import torch
 
     from benchmarks import bench_rasterizer as br
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     torch.set_num_threads(threads)
     ref_case, fast_case = (300, 32, 32), (2000, 64, 64)
-    backends = ["cpu", "reference"] if _cpu_kernel.available() else ["torch", "reference"]
+    backends = ["cpu", "reference"] if cpu_raster.available() else ["torch", "reference"]
     gflops = br.matmul_gflops(threads, size=256, min_seconds=0.0, min_reps=3)  # smoke: a quick probe
     runs = []
     for backend, (n, w, h) in [(b, ref_case) for b in backends] + [("cpu", fast_case)] * ("cpu" in backends):
@@ -102,8 +102,8 @@ def raster_section(quick: bool, threads: int) -> dict:
     by = {r["backend"]: r["fwd_bwd_s"] for r in runs if (r["n"], r["width"], r["height"]) == ref_case}
     out = {"quick": True, "flops_per_pair": br.FLOPS_PER_PAIR, "runs": runs, "speedup_vs_reference": {
         str(threads): {"case": list(ref_case), **{b: by["reference"] / by[b] for b in by if b != "reference"}}}}
-    if not _cpu_kernel.available():
-        out["note"] = f"CPU kernel unavailable: {_cpu_kernel.build_error()}"
+    if not cpu_raster.available():
+        out["note"] = f"CPU kernel unavailable: {cpu_raster.build_error()}"
     return out
 
 

@@ -1,8 +1,8 @@
 """Rasterizer benchmark: fast CPU path vs the dense reference, and scaling of the fast path.
 
-Every size runs the SIMD kernel with the fused projection (backend "cpu") and, side by side in
-the same process, the scalar kernel with the torch projection it replaced (backend "cpu_v1",
-issue 15): the printed speed-ups are ratios measured minutes apart under the same load.
+Every size runs the SIMD kernel with the fused projection (backend "cpu"). (Until the scalar
+kernel it replaced, backend "cpu_v1", was deleted, each size also ran that one side by side in
+the same process; those speed-ups are recorded in benchmarks/README.md.)
 
 Measures forward+backward time per iteration (SH degree 3, loss = sum(rgb) + sum(alpha)) on
 a synthetic scene: N Gaussians uniformly in the view frustum at depth 2..6, scales about half
@@ -16,7 +16,7 @@ measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
     python benchmarks/bench_rasterizer.py                # full set (a few minutes)
     python benchmarks/bench_rasterizer.py --quick        # small sizes only
     python benchmarks/bench_rasterizer.py --threads 1 2  # compare thread counts
-    python benchmarks/bench_rasterizer.py --no-reference --no-v1   # only the current kernel
+    python benchmarks/bench_rasterizer.py --no-reference  # skip the dense reference
 
 Threads and memory as the trainer runs them (``splat_train.config.TrainConfig``: torch ops on
 ``num_threads = 1``, the C++ kernel on ``kernel_threads`` = every core; the CLI's malloc
@@ -83,14 +83,14 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float
 
 
 def use_threads(backend: str, threads: int) -> None:
-    """The trainer's thread layout for ``backend`` on ``threads`` cores: the C++ kernels
-    ("cpu", "cpu_v1") on ``threads`` kernel threads with torch on one (TrainConfig defaults),
+    """The trainer's thread layout for ``backend`` on ``threads`` cores: the C++ kernel
+    ("cpu") on ``threads`` kernel threads with torch on one (TrainConfig defaults),
     the pure-torch backends on ``threads`` torch threads."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
-    kernel = backend in ("cpu", "cpu_v1")
+    kernel = backend == "cpu"
     torch.set_num_threads(1 if kernel else threads)
-    _cpu_kernel.set_kernel_threads(threads)
+    cpu_raster.set_kernel_threads(threads)
 
 
 def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> dict:
@@ -118,20 +118,20 @@ def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> 
 
 def count_pairs(n: int, width: int, height: int) -> dict:
     """Tile-Gaussian pairs and blended Gaussian-pixel pairs (CPU kernel forward counts)."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
     from splat_train.projection import project_gaussians
 
     params, K = make_scene(n, width, height)
     with torch.no_grad():
         proj = project_gaussians(params[0], params[1], params[2], torch.eye(4), K, width, height)
-        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
-        tight = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, width, height, "cpu", proj.means2d,
-                                    proj.conics, params[3])
+        bins = cpu_raster.bin_cpu(proj.depths, proj.rect, proj.visible, width, height)
+        tight = cpu_raster.bin_cpu(proj.depths, proj.rect, proj.visible, width, height, "cpu", proj.means2d,
+                                   proj.conics, params[3])
         feats = torch.zeros(n, 4)
-        _, t_final, _, count = _cpu_kernel.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
+        _, t_final, _, count = cpu_raster.forward_raw(proj.means2d, proj.conics, feats, params[3], bins, width, height)
     return {
         "visible": int(proj.visible.sum()),
-        "tile_pairs": int(bins.gauss.numel()),  # 3-sigma rectangles (cpu_v1, torch)
+        "tile_pairs": int(bins.gauss.numel()),  # 3-sigma rectangles (as the torch backend bins)
         "tile_pairs_tight": int(tight.gauss.numel()),  # the "cpu" kernel's lists (alpha >= 1/255 tiles)
         "blended_pairs": int(count.sum()),
         "mean_alpha": float((1 - t_final).mean()),
@@ -167,19 +167,19 @@ def matmul_gflops(threads: int, size: int = 2048, min_seconds: float = 1.0, min_
     return 2 * size**3 / best / 1e9
 
 
-def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True, v1: bool = True) -> dict:
+def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True) -> dict:
     """Run every configuration; returns a JSON-ready dict (also see module docstring)."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
-    if not _cpu_kernel.available():
-        raise RuntimeError(f"CPU kernel unavailable ({_cpu_kernel.build_error()}); nothing fast to benchmark")
+    if not cpu_raster.available():
+        raise RuntimeError(f"CPU kernel unavailable ({cpu_raster.build_error()}); nothing fast to benchmark")
     sizes = [(10_000, 256, 256)] if quick else [(10_000, 256, 256), (10_000, 512, 512), (100_000, 256, 256), (100_000, 512, 512)]
     ref_case = (2_000, 96, 96) if quick else (5_000, 128, 128)
     results: dict = {
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "torch": torch.__version__,
                     "python": sys.version.split()[0]},
         "flops_per_pair": FLOPS_PER_PAIR,
-        "simd_bits": _cpu_kernel.simd_bits(),
+        "simd_bits": cpu_raster.simd_bits(),
         "loadavg_start": list(os.getloadavg()),
         "runs": [],
     }
@@ -191,14 +191,14 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
         if reference:
             cases.append(("reference", *ref_case))
         for size in sizes:
-            cases += ([("cpu_v1", *size)] if v1 else []) + [("cpu", *size)]
+            cases.append(("cpu", *size))
         pair_cache: dict = {}
         for backend, n, w, h in cases:
             reps = 1 if backend == "reference" else (2 if backend == "torch" else 5)
             log.info("threads=%d %s N=%d %dx%d ...", nt, backend, n, w, h)
             use_threads(backend, nt)
             t = time_iteration(backend, n, w, h, reps)
-            t.update(torch_threads=torch.get_num_threads(), kernel_threads=_cpu_kernel.kernel_threads())
+            t.update(torch_threads=torch.get_num_threads(), kernel_threads=cpu_raster.kernel_threads())
             if (n, w, h) not in pair_cache:
                 pair_cache[(n, w, h)] = count_pairs(n, w, h)
             pc = pair_cache[(n, w, h)]
@@ -214,13 +214,6 @@ def run_benchmark(threads: list[int], quick: bool = False, reference: bool = Tru
         if "reference" in by:
             results.setdefault("speedup_vs_reference", {})[str(nt)] = {
                 "case": list(ref_case), "cpu": by["reference"] / by["cpu"], "torch": by["reference"] / by["torch"]}
-        for size in sizes:
-            pair = {r["backend"]: r for r in results["runs"] if r["threads"] == nt and (r["n"], r["width"], r["height"]) == size}
-            if "cpu_v1" in pair:
-                results.setdefault("speedup_vs_v1", []).append({
-                    "threads": nt, "n": size[0], "width": size[1], "height": size[2],
-                    "v1_fwd_bwd_s": pair["cpu_v1"]["fwd_bwd_s"], "cpu_fwd_bwd_s": pair["cpu"]["fwd_bwd_s"],
-                    "speedup": pair["cpu_v1"]["fwd_bwd_s"] / pair["cpu"]["fwd_bwd_s"]})
     results["loadavg_end"] = list(os.getloadavg())
     return results
 
@@ -234,13 +227,10 @@ def print_table(results: dict) -> None:
               f"{r['forward_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} {r['it_per_s']:>7.2f} {r['blended_pairs']:>11,} "
               f"{r['blended_pairs_per_s']:>10.3g} {r['fraction_of_bound']:>8.1%}")
     for r in results["runs"]:
-        if r["backend"] in ("cpu", "cpu_v1") and r["n"] >= 100_000:
+        if r["backend"] == "cpu" and r["n"] >= 100_000:
             print(f"threads={r['threads']} {r['backend']:>6} N={r['n']} {r['width']}x{r['height']}: "
                   f"{1e6 * r['fwd_bwd_s'] / r['n']:.3f} us per Gaussian per iteration, "
                   f"{r['fraction_of_bound']:.1%} of the operation-count bound")
-    for s in results.get("speedup_vs_v1", []):
-        print(f"threads={s['threads']} N={s['n']} {s['width']}x{s['height']}: cpu {s['cpu_fwd_bwd_s']:.4f} s vs "
-              f"cpu_v1 {s['v1_fwd_bwd_s']:.4f} s per forward+backward: {s['speedup']:.2f}x")
     print(f"SIMD {results.get('simd_bits')} bits; load average {results.get('loadavg_start')} -> {results.get('loadavg_end')}")
     for nt, s in results.get("speedup_vs_reference", {}).items():
         print(f"threads={nt}: speed-up vs dense reference at N={s['case'][0]} {s['case'][1]}x{s['case'][2]}: "
@@ -253,7 +243,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="core counts to measure: kernel threads (torch at 1, as the trainer runs)")
     ap.add_argument("--quick", action="store_true", help="small sizes only (about a minute)")
     ap.add_argument("--no-reference", action="store_true", help="skip the slow dense reference")
-    ap.add_argument("--no-v1", action="store_true", help="skip the scalar kernel (backend cpu_v1)")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/...)")
     args = ap.parse_args(argv)
     from camio.atomic import write_json
@@ -263,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging()
     retain_freed_memory()  # the splat_train CLI's malloc settings
     t0 = time.perf_counter()
-    results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference, v1=not args.no_v1)
+    results = run_benchmark(args.threads, quick=args.quick, reference=not args.no_reference)
     results["wall_s"] = time.perf_counter() - t0
     out = args.out or OUT / f"bench_rasterizer_{time.strftime('%Y%m%d_%H%M%S')}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

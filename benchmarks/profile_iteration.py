@@ -1,13 +1,17 @@
 """Where one whole training iteration spends its time, phase by phase (issue 15, part 2).
 
-Continues a trainer checkpoint for ``--steps`` iterations, exactly as ``Trainer.step`` and the
-densification bookkeeping of ``Trainer.run`` do, and times each phase:
+Continues a trainer checkpoint for ``--steps`` iterations by calling the trainer itself: its
+:meth:`splat_train.trainer.Trainer.step`, then the densification step that ``Trainer.run``
+takes after it. The calls the step makes are timed through thin wrappers around them (nothing of
+the iteration is copied here, so a change to the step is profiled as it is):
 
 * ``render``: :func:`splat_train.export.render_params` (projection + SH, binning, blending);
-* ``loss``: L1 + D-SSIM forward;
+* ``loss``: :func:`splat_train.losses.photometric_loss` (L1 + D-SSIM forward);
 * ``backward``: ``loss.backward()`` (SSIM, blending and projection backward, autograd glue);
 * ``densify_state``: :meth:`DensifyStrategy.update_state` (view-space gradient statistics);
-* ``adam``: optimizer step and ``zero_grad``;
+* ``adam``: :func:`splat_train.cpu.optim.adam_step` and the optimizer's ``zero_grad``;
+* ``other``: the rest of ``Trainer.step`` (learning-rate schedule, view choice, the finiteness
+  check, the pose step with ``--pose-refine``, any further loss term, the logged scalars);
 * ``strategy``: densify / prune / opacity reset (zero unless the steps cross a densify
   iteration: every 100 by default).
 
@@ -23,16 +27,19 @@ are those of a CLI run.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import os
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-PHASES = ("render", "loss", "backward", "densify_state", "adam", "strategy")
+PHASES = ("render", "loss", "backward", "densify_state", "adam", "other", "strategy")
 
 
 def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_threads: int):
@@ -40,7 +47,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
     inputs digest taken from the checkpoint; outputs go to a temporary folder never written)."""
     import tempfile
 
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
     from splat_train.checkpoint import load_checkpoint
     from splat_train.config import TrainConfig
     from splat_train.data import load_views
@@ -50,7 +57,7 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
     cfg = TrainConfig(**data["config"])
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
-    _cpu_kernel.set_kernel_threads(kernel_threads or cfg.kernel_threads or len(os.sched_getaffinity(0)))
+    cpu_raster.set_kernel_threads(kernel_threads or cfg.kernel_threads or len(os.sched_getaffinity(0)))
     views = load_views(cameras, images, list(data["train_names"]), cfg.downsample, tuple(cfg.background))
     out = tempfile.mkdtemp(prefix="profile_iteration_")
     tr = Trainer(cfg, seed, views, out, [], ckpt_dir=out, digest=data["inputs_sha256"])
@@ -58,42 +65,45 @@ def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_t
     return tr
 
 
+@contextlib.contextmanager
+def timed_calls(tr, ph: dict[str, float]):
+    """While inside: the calls that ``tr.step()`` makes add their seconds to ``ph`` (see the
+    module doc), by wrappers put where the step looks them up (the trainer module's names, the
+    strategy's and the optimizer's methods, ``torch.Tensor.backward``); left as they were after."""
+    from splat_train import trainer as trainer_mod
+
+    def timed(key: str, fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                ph[key] += time.perf_counter() - t0
+        return wrapper
+
+    with contextlib.ExitStack() as stack:
+        for obj, name, key in ((trainer_mod, "render_params", "render"), (trainer_mod, "photometric_loss", "loss"),
+                               (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),
+                               (tr.strategy, "update_state", "densify_state"), (tr.optimizer, "zero_grad", "adam")):
+            stack.enter_context(mock.patch.object(obj, name, timed(key, getattr(obj, name))))
+        yield
+
+
 def profile_steps(tr, steps: int) -> dict[str, float]:
-    """Seconds per phase summed over ``steps`` iterations of ``tr`` (advances its state)."""
-    from splat_train._cpu_optim import adam_step
-    from splat_train.export import render_params
-    from splat_train.losses import photometric_loss
-
-    cfg, ph = tr.cfg, dict.fromkeys(PHASES, 0.0)
-
-    def tick(key: str, t0: float) -> float:
-        t = time.perf_counter()
-        ph[key] += t - t0
-        return t
-
+    """Seconds per phase summed over ``steps`` iterations of ``tr`` (advances its state): each
+    iteration is ``tr.step()`` and then the strategy step that ``Trainer.run`` takes after it."""
+    ph = dict.fromkeys(PHASES, 0.0)
     for _ in range(steps):
-        tr.iteration += 1
-        it = tr.iteration
-        deg = tr.sched.sh_degree_at(it, cfg.sh_degree)
-        idx = tr.next_view()
-        cam = tr.train_views[idx].camera
+        inner = sum(ph[k] for k in PHASES if k not in ("other", "strategy"))
+        with timed_calls(tr, ph):
+            t0 = time.perf_counter()
+            tr.step()
+            ph["other"] += time.perf_counter() - t0
+        ph["other"] -= sum(ph[k] for k in PHASES if k not in ("other", "strategy")) - inner
         t0 = time.perf_counter()
-        out = render_params(tr.params, deg, tr.camera(idx), tr.intrinsics(idx), cam.width, cam.height, tr.bg,
-                            tr.backend)
-        t0 = tick("render", t0)
-        loss, _, _ = photometric_loss(out["rgb"], tr.targets[idx], cfg.lambda_dssim)
-        t0 = tick("loss", t0)
-        loss.backward()
-        t0 = tick("backward", t0)
-        if out["means2d"].grad is not None:
-            tr.strategy.update_state(tr.state, out["means2d"].grad, out["radii"], out["visible"],
-                                     cam.width, cam.height, it)
-        t0 = tick("densify_state", t0)
-        adam_step(tr.optimizer)
-        tr.optimizer.zero_grad(set_to_none=True)
-        t0 = tick("adam", t0)
-        tr.strategy.step(tr.params, tr.optimizer, tr.state, it, tr.extent, tr.gen)
-        tick("strategy", t0)
+        tr.strategy.step(tr.params, tr.optimizer, tr.state, tr.iteration, tr.extent, tr.gen)
+        ph["strategy"] += time.perf_counter() - t0
     return ph
 
 

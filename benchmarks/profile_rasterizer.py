@@ -3,11 +3,11 @@
 Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (best of
 ``--reps``) on the synthetic scene of ``bench_rasterizer.py`` (SH degree 3):
 
-* ``project``: EWA projection with autograd graph (float64 maths), forward only; for the
-  "cpu" backend the fused C++ projection + SH (``_cpu_project``), forward only;
-* ``sh``: SH degree-3 colour, forward only (torch; 0 for "cpu", fused into ``project``);
-* ``bin``: depth sort + tile lists (``bin_cpu``; for "cpu" with the footprints, i.e. the tight
-  lists and the footprint pass that the blend then reuses);
+* ``project``: the fused C++ projection + SH (``cpu_project``), forward only;
+* ``sh``: 0 (SH colour is fused into ``project``; the column stays for the tables recorded with
+  the scalar kernel "cpu_v1", since deleted, whose torch SH it timed);
+* ``bin``: depth sort + tile lists (``bin_cpu`` with the footprints, i.e. the tight lists and
+  the footprint pass that the blend then reuses);
 * ``blend_fwd`` / ``blend_bwd``: the C++ blending kernel forward / backward (raw entries,
   including the per-pair gradient reduction);
 * ``total_fwd`` / ``total_fwd_bwd``: the whole ``rasterize`` call and its backward
@@ -32,7 +32,6 @@ threshold (sh_rest's 37 MB gradient at 206k Gaussians) is faulted in on every ca
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 import sys
 import time
@@ -81,7 +80,8 @@ def checkpoint_scene(ckpt: str, cameras: str, view: int) -> tuple[list[torch.Ten
 def profile(n: int, size: int, backend: str, reps: int, scene=None) -> dict[str, float]:
     """Seconds per stage (best of ``reps``) for N Gaussians at size x size, or for ``scene``
     (:func:`checkpoint_scene`'s tuple; n and size are then ignored)."""
-    from splat_train import _cpu_kernel, rasterize
+    from splat_train import rasterize
+    from splat_train.cpu import raster as cpu_raster
     from splat_train.projection import project_gaussians
     from splat_train.sh import sh_to_color
 
@@ -93,22 +93,16 @@ def profile(n: int, size: int, backend: str, reps: int, scene=None) -> dict[str,
     means, quats, scales, opac, sh = params
     centre = -eye[:3, :3].T @ eye[:3, 3]  # camera centre in the world
     res: dict[str, float] = {}
-    if backend == "cpu":
-        from splat_train._cpu_project import project_sh_cpu
+    from splat_train.cpu.project import project_sh_cpu
 
-        res["project"] = _best(lambda: project_sh_cpu(means, quats, scales, sh, 3, eye, K, width, height, 0.01, 0.3), reps)
-        res["sh"] = 0.0
-    else:
-        res["project"] = _best(lambda: project_gaussians(means, quats, scales, eye, K, width, height), reps)
-        res["sh"] = _best(lambda: sh_to_color(3, sh, means, centre), reps)
+    res["project"] = _best(lambda: project_sh_cpu(means, quats, scales, sh, 3, eye, K, width, height, 0.01, 0.3), reps)
+    res["sh"] = 0.0
     with torch.no_grad():
         proj = project_gaussians(means, quats, scales, eye, K, width, height)
         feats = torch.cat([sh_to_color(3, sh, means, centre), proj.depths[:, None]], 1).contiguous()
-    fns = _cpu_kernel.backend_functions(backend)
-    # "cpu" bins with the footprints (tight tile lists, as rasterize does); "cpu_v1" by rectangle
-    kw = {"means2d": proj.means2d, "conics": proj.conics, "opacities": opac.detach()} if backend == "cpu" else {}
-    if kw and "means2d" not in inspect.signature(_cpu_kernel.bin_cpu).parameters:
-        kw = {}  # an older tree (before the tight tile lists): rectangle bins
+    fns = cpu_raster.backend_functions(backend)
+    # "cpu" bins with the footprints (tight tile lists, as rasterize does)
+    kw = {"means2d": proj.means2d, "conics": proj.conics, "opacities": opac.detach()}
     res["bin"] = _best(lambda: fns.tile_pairs(proj.depths, proj.rect, proj.visible, width, height, **kw), reps)
     bins = fns.tile_pairs(proj.depths, proj.rect, proj.visible, width, height, **kw)
     fwd = lambda: fns.forward_raw(proj.means2d, proj.conics, feats, opac.detach(), bins, width, height)  # noqa: E731
@@ -134,7 +128,7 @@ def profile(n: int, size: int, backend: str, reps: int, scene=None) -> dict[str,
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", nargs="+", default=["100000x256", "100000x512"], help="NxSIZE")
-    ap.add_argument("--backend", nargs="+", default=["cpu"])
+    ap.add_argument("--backend", nargs="+", default=["cpu"], choices=["cpu"])
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the kernel uses --kernel-threads)")
     ap.add_argument("--kernel-threads", type=int, default=2)
@@ -152,9 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         _CLOCK = time.thread_time
         args.threads = args.kernel_threads = 1
     torch.set_num_threads(args.threads)
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
-    _cpu_kernel.set_kernel_threads(args.kernel_threads)
+    cpu_raster.set_kernel_threads(args.kernel_threads)
     print(f"load average {os.getloadavg()}, torch threads {args.threads}, kernel threads {args.kernel_threads}"
           + (", CPU time of the calling thread" if args.cpu_time else ", wall clock"))
     keys = ["project", "sh", "bin", "blend_fwd", "blend_bwd", "autograd_rest", "total_fwd", "total_fwd_bwd"]

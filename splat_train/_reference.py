@@ -1,7 +1,7 @@
 """Dense pure-PyTorch alpha blending: every Gaussian against every pixel, no tiles, no kernels.
 
 This is the test oracle for the fast paths (:mod:`splat_train._tiles`,
-:mod:`splat_train._cpu_kernel`). It follows the 3DGS forward rules literally, vectorised:
+:mod:`splat_train.cpu.raster`). It follows the 3DGS forward rules literally, vectorised:
 
 * Gaussians are blended front to back in ascending camera z (stable: ties keep index order).
 * A Gaussian influences a pixel only when the pixel's 16x16 tile lies in its tile rectangle

@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from splat_train import _cpu_optim
+from splat_train.cpu import optim as _cpu_optim
 
 __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]

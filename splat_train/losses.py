@@ -15,6 +15,9 @@ import math
 import torch
 import torch.nn.functional as F
 
+from splat_train.cpu import ssim as cpu_ssim
+from splat_train.ssim_window import gaussian_window, gaussian_window_1d
+
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_window", "gaussian_window_1d"]
 
 
@@ -24,21 +27,6 @@ def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
     if img.dim() == 3 and img.shape[-1] == 3:
         return img.permute(2, 0, 1).unsqueeze(0)
     raise ValueError(f"{name} must be [B, C, H, W] or [H, W, 3], got shape {tuple(img.shape)}")
-
-
-def gaussian_window_1d(size: int = 11, sigma: float = 1.5, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Normalised 1D Gaussian window [size]: g[i] = exp(-(i - size // 2)^2 / (2 sigma^2)) / sum,
-    computed in float64 and then cast."""
-    x = torch.arange(size, dtype=torch.float64) - size // 2
-    g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))
-    return (g / g.sum()).to(dtype=dtype, device=device)
-
-
-def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
-    """Normalised 2D Gaussian window [size, size]: the outer product of :func:`gaussian_window_1d`
-    with itself (the 3DGS ``create_window``)."""
-    g = gaussian_window_1d(size, sigma)
-    return torch.outer(g, g).to(dtype=dtype, device=device)
 
 
 def ssim_map(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
@@ -120,19 +108,17 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
 
 
 def _cpu_kernel_for(render: torch.Tensor, target: torch.Tensor):
-    """:mod:`splat_train._cpu_ssim` when it applies to these images (CPU float32/float64, one
+    """:mod:`splat_train.cpu.ssim` when it applies to these images (CPU float32/float64, one
     shape, a target that needs no gradient, the kernel built), else None."""
     if (render.device.type == "cpu" and target.device.type == "cpu" and not target.requires_grad
             and render.dtype in (torch.float32, torch.float64) and render.shape == target.shape):
-        from splat_train import _cpu_ssim
-
-        if _cpu_ssim.available():
-            return _cpu_ssim
+        if cpu_ssim.available():
+            return cpu_ssim
     return None
 
 
 def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train._cpu_ssim`) for CPU
+    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train.cpu.ssim`) for CPU
     float32/float64 images with a target that needs no gradient; the reference otherwise."""
     kernel = _cpu_kernel_for(render, target)
     if kernel is not None:

@@ -2,7 +2,7 @@
 
 Layers (gsplat style): this module checks inputs and runs the steps; projection
 (:mod:`splat_train.projection`), SH colour (:mod:`splat_train.sh`) and the blending backends
-(:mod:`splat_train._cpu_kernel`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
+(:mod:`splat_train.cpu.raster`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
 :mod:`splat_train._gsplat_backend`) are private building blocks.
 
 Convention: ``cam_from_world`` maps world -> OpenCV camera (x right, y down, z forward); ``K``
@@ -29,7 +29,7 @@ __all__ = ["rasterize", "resolve_backend", "BACKENDS", "SKEW_ERROR"]
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "cpu", "cpu_v1", "torch", "reference", "gsplat")
+BACKENDS = ("auto", "cpu", "torch", "reference", "gsplat")
 SKEW_ERROR = "K must have zero skew (K[0, 1] == 0); undistort / re-fit the camera first"
 _warned_cuda_fallback = False  # resolve_backend warns once per process
 
@@ -48,7 +48,7 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     ``"auto"`` resolves to "cpu" on CPU when the C++ kernel builds (else "torch"), "gsplat" on
     CUDA when gsplat imports (else "torch", with a one-time warning: the pure-PyTorch tile
     code is many times slower there), "torch" elsewhere. Any other name is returned as is, but
-    "cpu" and "cpu_v1" (C++ kernels that read CPU memory) on another device raise ValueError.
+    "cpu" (C++ kernels that read CPU memory) on another device raises ValueError.
     Callers that record which backend ran (the trainer's ``train.json``) resolve once with
     this function and pass the result to :func:`rasterize`.
     """
@@ -56,15 +56,15 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     device = torch.device(device)
-    if backend in ("cpu", "cpu_v1") and device.type != "cpu":
+    if backend == "cpu" and device.type != "cpu":
         raise ValueError(f"backend {backend!r} runs on CPU tensors only, but the device is {device}; "
                          "use 'auto' (gsplat on CUDA), 'gsplat' or 'torch'")
     if backend != "auto":
         return backend
     if device.type == "cpu":
-        from splat_train import _cpu_kernel
+        from splat_train.cpu import raster as cpu_raster
 
-        return "cpu" if _cpu_kernel.available() else "torch"
+        return "cpu" if cpu_raster.available() else "torch"
     if device.type == "cuda":
         from splat_train import _gsplat_backend
 
@@ -85,9 +85,9 @@ def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bo
     gradient (pose refinement keeps the torch path)."""
     if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
         return False
-    from splat_train import _cpu_project
+    from splat_train.cpu import project as cpu_project
 
-    return _cpu_project.available()
+    return cpu_project.available()
 
 
 def blend(
@@ -102,7 +102,7 @@ def blend(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """Front-to-back blend projected Gaussians with one backend ("cpu", "cpu_v1", "torch", "reference").
+    """Front-to-back blend projected Gaussians with one backend ("cpu", "torch", "reference").
 
     Args/returns as :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no
     background) and final transmittance [H, W].
@@ -113,13 +113,13 @@ def blend(
         from splat_train import _tiles
 
         fn = _tiles.blend_tiles
-    elif backend in ("cpu", "cpu_v1"):
-        from splat_train import _cpu_kernel
+    elif backend == "cpu":
+        from splat_train.cpu import raster as cpu_raster
 
-        return _cpu_kernel.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
-                                     kernel=backend)
+        return cpu_raster.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
+                                    kernel=backend)
     else:
-        raise ValueError(f"blend backend must be 'cpu', 'cpu_v1', 'torch' or 'reference', got {backend!r}")
+        raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
     return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
 
 
@@ -167,9 +167,8 @@ def rasterize(
         sh_degree: None for plain colours, else 0..3.
         backend: "auto" (CPU kernel on CPU when it builds, gsplat on CUDA when installed, else
             the vectorised tile code), "cpu" (fused C++ projection + SH when the camera
-            needs no gradient, SIMD C++ blending), "cpu_v1" (torch projection and the scalar
-            C++ blending kernel they replaced, kept for comparisons), "torch", "reference" (dense, small
-            scenes only) or "gsplat".
+            needs no gradient, SIMD C++ blending), "torch", "reference" (dense, small scenes
+            only) or "gsplat".
         near_plane: Gaussians with camera z below this are culled.
 
     Returns:
@@ -238,9 +237,9 @@ def rasterize(
         )
 
     if fused:
-        from splat_train import _cpu_project
+        from splat_train.cpu import project as cpu_project
 
-        proj, rgb_g, feat = _cpu_project.project_sh_cpu(
+        proj, rgb_g, feat = cpu_project.project_sh_cpu(
             means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D)
         # with SH the kernel's (colour, depth) rows are the blend's features as they are
         features = feat if sh_degree is not None else None

@@ -47,8 +47,8 @@ from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
 from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
-from splat_train import _cpu_kernel
-from splat_train._cpu_optim import adam_step
+from splat_train.cpu import raster as _cpu_kernel
+from splat_train.cpu.optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from camio.depth_prior import DEPTH_PRIOR_FILE

@@ -27,6 +27,21 @@ def test_editing_an_included_header_rebuilds(tmp_path):
 
 
 def test_kernels_name_the_shared_vector_header():
-    from splat_train import _cpu_build
+    from splat_train.cpu import build as cpu_build
 
-    assert [h.name for h in _cpu_build._HEADERS] == ["_cpu_vec8d.h"]
+    assert [h.name for h in cpu_build._HEADERS] == ["vec8d.h"]
+
+
+def test_wheel_carries_the_kernel_sources():
+    """The kernels compile from their sources at first use, so pyproject.toml's package-data
+    must ship every .cpp / .h beside the loaders (setuptools adds no such file by itself)."""
+    import fnmatch
+    from pathlib import Path
+
+    tomllib = pytest.importorskip("tomllib")
+    root = Path(__file__).resolve().parents[1]
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    for src in [*root.glob("splat_train/**/*.cpp"), *root.glob("splat_train/**/*.h"),
+                *root.glob("vggt_init/**/*.cpp")]:
+        package = ".".join(src.parent.relative_to(root).parts)
+        assert any(fnmatch.fnmatch(src.name, pat) for pat in data.get(package, [])), (package, src.name)

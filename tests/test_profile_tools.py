@@ -44,12 +44,42 @@ def test_profile_iteration_continues_the_checkpoint_and_writes_nothing(run):
                   scene["cameras"], "--images", scene["images"], "--steps", 6, "--warmup", 1)
     # warm-up iteration 13, timed 14-19: the densify step at 15 runs inside the timed window
     assert "iterations 14-19" in out, out
-    for phase in ("render", "loss", "backward", "densify_state", "adam", "strategy"):
+    for phase in ("render", "loss", "backward", "densify_state", "adam", "other", "strategy"):
         line = next(x for x in out.splitlines() if x.strip().startswith(phase))
         assert float(line.split()[1]) >= 0.0
     strategy_ms = float(next(x for x in out.splitlines() if x.strip().startswith("strategy")).split()[1])
     assert strategy_ms > 0.0  # the densification at iteration 15 was timed
     assert sorted(p.name for p in ckpt.parent.parent.rglob("*")) == before
+
+
+def test_profile_iteration_times_the_trainers_own_step(run):
+    """profile_steps runs Trainer.step (and the strategy step after it, as Trainer.run does):
+    the same parameters as plain calls from the same checkpoint; its timing wrappers are gone
+    afterwards."""
+    import torch
+
+    from benchmarks.profile_iteration import PHASES, make_trainer, profile_steps
+    from splat_train.cpu import raster as cpu_raster
+
+    scene, ckpt = run
+    backward, threads = torch.Tensor.backward, torch.get_num_threads()
+    try:
+        a, b = (make_trainer(ckpt, scene["seed"], scene["cameras"], scene["images"], 1) for _ in range(2))
+        ph = profile_steps(a, 4)
+        for _ in range(4):
+            b.step()
+            b.strategy.step(b.params, b.optimizer, b.state, b.iteration, b.extent, b.gen)
+    finally:
+        cpu_raster.set_kernel_threads(None)
+        torch.set_num_threads(threads)
+    assert a.iteration == b.iteration == 16
+    assert a.params.keys() == b.params.keys()
+    for k in a.params:
+        assert torch.equal(a.params[k], b.params[k]), k
+    assert set(ph) == set(PHASES)
+    assert all(ph[k] > 0 for k in ("render", "loss", "backward", "densify_state", "adam")), ph
+    assert torch.Tensor.backward is backward and "zero_grad" not in vars(a.optimizer)
+    assert "update_state" not in vars(a.strategy)
 
 
 def test_profile_rasterizer_reads_a_checkpoint(run):

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from splat_train import rasterize
-from splat_train._cpu_kernel import available as kernel_available
+from splat_train.cpu.raster import available as kernel_available
 from splat_train.projection import covariance_3d, project_gaussians
 from splat_train.sh import SH_C0, eval_sh, rgb_to_sh
 

@@ -10,7 +10,8 @@ import logging
 import pytest
 import torch
 
-from splat_train import _cpu_kernel, _gsplat_backend
+from splat_train import _gsplat_backend
+from splat_train.cpu import raster as cpu_raster
 from splat_train.config import TrainConfig
 from splat_train.rasterize import BACKENDS, resolve_backend
 
@@ -23,14 +24,14 @@ def fresh_warning(monkeypatch):
 
 
 def test_auto_on_cpu_is_the_kernel_or_torch():
-    assert resolve_backend("auto", torch.device("cpu")) == ("cpu" if _cpu_kernel.available() else "torch")
+    assert resolve_backend("auto", torch.device("cpu")) == ("cpu" if cpu_raster.available() else "torch")
     assert resolve_backend("auto", "cpu") == resolve_backend("auto", torch.device("cpu"))
 
 
 @pytest.mark.parametrize("name", [b for b in BACKENDS if b != "auto"])
 def test_explicit_backend_is_kept(name):
     assert resolve_backend(name, "cpu") == name
-    if name in ("cpu", "cpu_v1"):  # C++ kernels on CPU memory: refused before any pointer reaches them
+    if name == "cpu":  # C++ kernels on CPU memory: refused before any pointer reaches them
         with pytest.raises(ValueError, match="CPU tensors only"):
             resolve_backend(name, "cuda")
     else:

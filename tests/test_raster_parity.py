@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from splat_train import rasterize
-from splat_train._cpu_kernel import available as kernel_available
+from splat_train.cpu.raster import available as kernel_available
 from splat_train._tiles import tile_pairs
 from splat_train.projection import project_gaussians
 
-FAST = ["torch"] + (["cpu", "cpu_v1"] if kernel_available() else [])
+FAST = ["torch"] + (["cpu"] if kernel_available() else [])
 
 
 def make_scene(kind: str, seed: int, dtype=torch.float64, sh_degree=None):
@@ -139,22 +139,21 @@ def test_early_stop_happens_and_matches():
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
-@pytest.mark.parametrize("kernel", ["cpu", "cpu_v1"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_cpu_kernel_deterministic_across_threads(kernel, dtype):
+def test_cpu_kernel_deterministic_across_threads(dtype):
     """Bit-identical image and gradients for 1, 2 and 3 kernel threads and on a repeat: tiles
     write disjoint pair rows and each Gaussian's pairs are summed in a fixed order."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     params, cw, K, W, H = make_scene("overlap", seed=5, dtype=dtype, sh_degree=2)
     results = []
     try:
         for nt in (1, 2, 3, 2):
-            _cpu_kernel.set_kernel_threads(nt)
-            out = render(params, cw, K, W, H, kernel, 2)
+            cpu_raster.set_kernel_threads(nt)
+            out = render(params, cw, K, W, H, "cpu", 2)
             results.append([out["rgb"].detach(), *grads_with_cotangents(out, params, 2)])
     finally:
-        _cpu_kernel.set_kernel_threads(None)
+        cpu_raster.set_kernel_threads(None)
     assert results[0][0].abs().sum() > 0
     for other in results[1:]:
         for a, b in zip(results[0], other):
@@ -179,21 +178,20 @@ def test_tile_pairs_front_to_back_and_complete():
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
 def test_cpu_binning_matches_torch_binning():
-    from splat_train._cpu_kernel import tile_pairs_cpu
+    from splat_train.cpu.raster import tile_pairs_cpu
 
     params, cw, K, W, H = make_scene("overlap", seed=9)
     proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
     a = tile_pairs(proj.depths, proj.rect, proj.visible, W, H)
-    for kernel in ("cpu", "cpu_v1"):
-        b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H, kernel=kernel)
-        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
+    b = tile_pairs_cpu(proj.depths, proj.rect, proj.visible, W, H)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2:] == b[2:]
 
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
 def test_cpu_radix_depth_order_matches_stable_sort():
     """float32 depths (the radix path) with ties, negative and invisible entries: the same
     indices as torch's stable sort (ties by index)."""
-    from splat_train._cpu_kernel import _depth_order, load_library
+    from splat_train.cpu.raster import _depth_order, load_library
     from splat_train._reference import depth_order
 
     g = torch.Generator().manual_seed(3)
@@ -215,14 +213,14 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
     it runs the generic forward_impl. Both must give the same bits: images, transmittance and
     each pixel's last contributor, on partial edge tiles, early stops and crowded tiles.
     (Without AVX-512 both calls take the generic kernel and the test still holds.)"""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     args = _kernel_args(kind, 21, torch.float32)
     bins = args[4]
     with torch.no_grad():
-        fast = _cpu_kernel.forward_raw(*args, with_count=False)
+        fast = cpu_raster.forward_raw(*args, with_count=False)
         fast_rows = bins.rows_hit
-        generic = _cpu_kernel.forward_raw(*args, with_count=True)
+        generic = cpu_raster.forward_raw(*args, with_count=True)
     assert fast[3] is None and generic[3].sum() > 0
     assert (fast[2] > 0).any()
     for a, b in zip(fast[:3], generic[:3]):
@@ -238,15 +236,15 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
 def _kernel_args(kind: str, seed: int, dtype):
     """(means2d, conics, RGB + depth features, opacities, bins, W, H) of a make_scene scene,
     binned for the "cpu" kernel: the arguments of its forward_raw / backward_raw."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     params, cw, K, W, H = make_scene(kind, seed=seed, dtype=dtype)
     with torch.no_grad():
         proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
         feat = torch.cat([params["colors"], proj.depths[:, None]], dim=1).contiguous()
         op = params["opacities"].detach()
-        bins = _cpu_kernel.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
-                                   conics=proj.conics, opacities=op)
+        bins = cpu_raster.bin_cpu(proj.depths, proj.rect, proj.visible, W, H, means2d=proj.means2d,
+                                  conics=proj.conics, opacities=op)
     return proj.means2d, proj.conics, feat, op, bins, W, H
 
 
@@ -268,18 +266,18 @@ def test_cpu_backward_visits_only_rows_the_forward_blended(kind, dtype):
     (bins.rows_hit) and skips pairs with none: the gradients are bit for bit those of a
     backward that visits every row of every reached pair (a mask of all ones), while the
     masks do skip work here (pairs with no row, and rows left out)."""
-    from splat_train import _cpu_kernel
+    from splat_train.cpu import raster as cpu_raster
 
     args = _kernel_args(kind, 22, dtype)
     bins, W, H = args[4:]
     with torch.no_grad():
-        _, t_final, last, _ = _cpu_kernel.forward_raw(*args, with_count=False)
+        _, t_final, last, _ = cpu_raster.forward_raw(*args, with_count=False)
         g = torch.Generator().manual_seed(5)
         v_acc = torch.randn(H, W, 4, generator=g, dtype=dtype)
         v_t = torch.randn(H, W, generator=g, dtype=dtype)
-        got = _cpu_kernel.backward_raw(*args, t_final, last, v_acc, v_t)
+        got = cpu_raster.backward_raw(*args, t_final, last, v_acc, v_t)
         every = torch.full_like(bins.rows_hit, -1)  # all 16 bits
-        ref = _cpu_kernel.backward_raw(*args, t_final, last, v_acc, v_t, rows_hit=every)
+        ref = cpu_raster.backward_raw(*args, t_final, last, v_acc, v_t, rows_hit=every)
     assert torch.equal(got, ref)
     assert got.abs().sum() > 0
     rows = bins.rows_hit[_reached_pairs(bins, last)].to(torch.int32) & 0xFFFF

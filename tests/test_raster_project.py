@@ -1,4 +1,4 @@
-"""The fused C++ projection + SH (:mod:`splat_train._cpu_project`) against the torch code it
+"""The fused C++ projection + SH (:mod:`splat_train.cpu.project`) against the torch code it
 replaces on the CPU (:func:`project_gaussians` + :func:`sh_to_color`, autograd).
 
 Float64: values to 1e-12 relative (same double maths, different summation order), gradients
@@ -13,11 +13,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from splat_train import _cpu_project
+from splat_train.cpu import project as cpu_project
 from splat_train.projection import project_gaussians
 from splat_train.sh import sh_to_color
 
-pytestmark = pytest.mark.skipif(not _cpu_project.available(), reason="projection kernel did not build")
+pytestmark = pytest.mark.skipif(not cpu_project.available(), reason="projection kernel did not build")
 
 
 def make_scene(seed: int, n: int = 300, dtype=torch.float64):
@@ -47,7 +47,7 @@ def run(fast: bool, params, cw, K, W, H, deg):
     means, quats, scales, sh = params
     colors = sh if deg is not None else sh[:, 0].detach().clone().requires_grad_(True)
     if fast:
-        proj, rgb, _ = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
+        proj, rgb, _ = cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
     else:
         proj = project_gaussians(means, quats, scales, cw, K, W, H)
         if deg is None:
@@ -89,7 +89,7 @@ def test_project_sh_matches_torch(deg, dtype):
 def test_project_sh_refuses_a_camera_that_needs_gradients():
     params, cw, K, W, H = make_scene(1, n=10)
     with pytest.raises(ValueError, match="pose refinement"):
-        _cpu_project.project_sh_cpu(*params[:3], params[3], 3, cw.clone().requires_grad_(True), K, W, H, 0.01, 0.3)
+        cpu_project.project_sh_cpu(*params[:3], params[3], 3, cw.clone().requires_grad_(True), K, W, H, 0.01, 0.3)
 
 
 @pytest.mark.parametrize("deg", [0, 1, 3])
@@ -106,7 +106,7 @@ def test_sh_pair_matches_one_tensor_and_gradients_accumulate(deg):
     cot = [torch.randn(6000, k, generator=g) for k in (2, 3, 3)]
 
     def once(colors):
-        proj, rgb, _ = _cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
+        proj, rgb, _ = cpu_project.project_sh_cpu(means, quats, scales, colors, deg, cw, K, W, H, 0.01, 0.3)
         torch.autograd.backward([proj.means2d, proj.conics, rgb], cot)
         return rgb.detach()
 

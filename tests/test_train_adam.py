@@ -1,12 +1,12 @@
-"""splat_train._cpu_optim: the trainer's Adam step on the kernel's threads, against torch.optim.Adam."""
+"""splat_train.cpu.optim: the trainer's Adam step on the kernel's threads, against torch.optim.Adam."""
 
 import pytest
 import torch
 
-from splat_train import _cpu_optim
-from splat_train._cpu_build import kernel_threads, set_kernel_threads
+from splat_train.cpu import optim as cpu_optim
+from splat_train.cpu.build import kernel_threads, set_kernel_threads
 
-pytestmark = pytest.mark.skipif(not _cpu_optim.available(), reason="no C++ compiler for the CPU kernels")
+pytestmark = pytest.mark.skipif(not cpu_optim.available(), reason="no C++ compiler for the CPU kernels")
 
 # the trainer's parameter groups: one tensor each, own rates, sizes across chunk boundaries
 SHAPES = {"means": (5003, 3), "sh_dc": (5003, 3), "sh_rest": (5003, 15, 3), "opacity": (5003, 1),
@@ -47,7 +47,7 @@ def test_adam_step_matches_torch_adam(threads):
             if step == 5:  # the trainer's position rate changes every step
                 opt.param_groups[0]["lr"] *= 0.5
                 ref_opt.param_groups[0]["lr"] *= 0.5
-            ran = _cpu_optim.adam_step(opt)
+            ran = cpu_optim.adam_step(opt)
             assert ran == (step > 0)  # the first step creates torch's state through opt.step()
             ref_opt.step()
         for k in SHAPES:
@@ -72,7 +72,7 @@ def test_adam_step_is_deterministic_across_threads():
             for step in range(3):
                 for k, v in _grads(step, torch.float32).items():
                     params[k].grad = v
-                _cpu_optim.adam_step(opt)
+                cpu_optim.adam_step(opt)
             results.append(torch.cat([p.detach().reshape(-1) for p in params.values()]))
     finally:
         set_kernel_threads(old)
@@ -96,7 +96,7 @@ def test_adam_step_falls_back_to_torch():
             for params in (a, b):
                 for k, v in _grads(step, dtype).items():
                     params[k].grad = None if (case == "no_grad" and k == "quats") else v.clone()
-            assert _cpu_optim.adam_step(opt_a) is False
+            assert cpu_optim.adam_step(opt_a) is False
             opt_b.step()
         for k in SHAPES:
             assert torch.equal(a[k].detach(), b[k].detach()), (case, k)

@@ -137,13 +137,13 @@ def test_update_state_skips_non_finite_gradients():
 
 
 def test_update_state_c_path_equals_torch_path():
-    """The CPU float32 accumulation in C (splat_train._cpu_optim, taken for the rasterizer's
+    """The CPU float32 accumulation in C (splat_train.cpu.optim, taken for the rasterizer's
     int32 radii and a [N, 2] view of its gradient buffer) gives the statistics of the torch
     code (taken for int64 radii): hidden, NaN, inf and overflowing rows skipped, counts and
     radii exact, norms to float32 rounding; three views accumulated."""
-    from splat_train import _cpu_optim
+    from splat_train.cpu import optim as cpu_optim
 
-    if not _cpu_optim.available():
+    if not cpu_optim.available():
         pytest.skip("no C++ compiler for the CPU kernels")
     strat = _strategy(densify_from=0, densify_until=100)
     n = 50_000
@@ -157,7 +157,7 @@ def test_update_state_c_path_equals_torch_path():
         radii = torch.randint(0, 40, (n,), generator=gen, dtype=torch.int32)
         visible = torch.rand(n, generator=gen) < 0.8
         g = buf[:, 0:2]
-        assert _cpu_optim.densify_stats(states[0], g, radii, visible, 497, 372)  # the C path
+        assert cpu_optim.densify_stats(states[0], g, radii, visible, 497, 372)  # the C path
         strat.update_state(states[1], g, radii.long(), visible, 497, 372, iteration=view)  # torch
         strat.update_state(states[2], g, radii, visible, 497, 372, iteration=view)  # dispatches to C
     c_state, t_state = states[0], states[1]

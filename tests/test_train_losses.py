@@ -99,16 +99,16 @@ def test_cpu_ssim_matches_reference(dtype, tol, shape):
     """The C++ SSIM of the training loss: value and gradient as the conv2d reference (float64
     to 1e-12, float32 to 2e-5 relative to the largest gradient entry), including images
     smaller than the 11 x 11 window in one direction (every column / row is a border)."""
-    from splat_train import _cpu_ssim
+    from splat_train.cpu import ssim as cpu_ssim
 
-    if not _cpu_ssim.available():
+    if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")
     g = torch.Generator().manual_seed(sum(shape))
     a = torch.rand(*shape, generator=g, dtype=dtype, requires_grad=True)
     b = (a.detach() + 0.2 * torch.randn(*shape, generator=g, dtype=dtype)).clamp(0, 1)
     ref = ssim(a, b)
     (g_ref,) = torch.autograd.grad(ref, a)
-    got = _cpu_ssim.ssim_cpu(a, b)
+    got = cpu_ssim.ssim_cpu(a, b)
     (g_got,) = torch.autograd.grad(3.0 * got, a)
     torch.testing.assert_close(got, ref, rtol=tol, atol=tol)
     torch.testing.assert_close(g_got, 3.0 * g_ref, rtol=tol, atol=tol * g_ref.abs().max().item())
@@ -132,9 +132,9 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
     colour channels of a 4-channel buffer) included. 150 x 141: several bands of rows per
     channel (BAND_ROWS = 64) and every block size of the filters (4 vectors, 1 vector and
     scalar columns in both dtypes)."""
-    from splat_train import _cpu_ssim
+    from splat_train.cpu import ssim as cpu_ssim
 
-    if not _cpu_ssim.available():
+    if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")
     g = torch.Generator().manual_seed(sum(shape))
     buf = torch.rand(*shape[:2], shape[2] + 1, generator=g, dtype=dtype)
@@ -144,7 +144,7 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
     a = buf[..., :shape[2]]
     assert not a.is_contiguous()
     ref_l1, ref_s = l1_loss(a, b), ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None])
-    l1, s = _cpu_ssim.l1_ssim_cpu(a, b)
+    l1, s = cpu_ssim.l1_ssim_cpu(a, b)
     torch.testing.assert_close(l1, ref_l1, rtol=tol, atol=tol)
     torch.testing.assert_close(s, ref_s, rtol=tol, atol=tol)
     # the loss's weights, then each term alone (the other output's cotangent is None)
@@ -157,10 +157,10 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
 def test_cpu_l1_ssim_independent_of_thread_count(monkeypatch):
     """Values and gradient bit-identical on 1 and 2 kernel threads (work items write their own
     rows and partial sums, which are added in a fixed order)."""
-    from splat_train import _cpu_ssim
-    from splat_train._cpu_build import set_kernel_threads
+    from splat_train.cpu import ssim as cpu_ssim
+    from splat_train.cpu.build import set_kernel_threads
 
-    if not _cpu_ssim.available():
+    if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")
     monkeypatch.delenv("SPLAT_TRAIN_KERNEL_THREADS", raising=False)
     g = torch.Generator().manual_seed(5)
@@ -170,7 +170,7 @@ def test_cpu_l1_ssim_independent_of_thread_count(monkeypatch):
     try:
         for n in (1, 2):
             set_kernel_threads(n)
-            l1, s = _cpu_ssim.l1_ssim_cpu(a, b)
+            l1, s = cpu_ssim.l1_ssim_cpu(a, b)
             (ga,) = torch.autograd.grad(0.8 * l1 - 0.2 * s, a)
             out.append((l1.detach(), s.detach(), ga))
     finally:

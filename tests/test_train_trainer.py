@@ -14,6 +14,7 @@ from camio.ply import read_gaussian_ply
 from splat_train import trainer as trainer_mod
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
+from splat_train.cpu import raster as cpu_raster
 from splat_train.runlog import LOG_COLUMNS
 from splat_train.trainer import NonFiniteLossError, train
 
@@ -53,7 +54,7 @@ def test_loss_decreases_and_outputs(scene, tmp_path):
     for key in ("iterations", "wall_time_s", "num_gaussians", "train_psnr", "test_psnr", "peak_rss_mb"):
         assert key in s
     assert s["test_psnr"] > 15 and s["train_psnr"] > 15
-    assert s["rasterizer"] == ("cpu" if trainer_mod._cpu_kernel.available() else "torch")  # the backend that ran
+    assert s["rasterizer"] == ("cpu" if cpu_raster.available() else "torch")  # the backend that ran
     assert sorted(p.name for p in (out / "renders").iterdir()) == ["view_01.png", "view_03.png"]
     cloud = read_gaussian_ply(out / "model.ply")
     assert len(cloud) == s["num_gaussians"] == res.summary["num_gaussians"]
@@ -219,19 +220,17 @@ def test_kernel_threads_default_to_every_cpu_and_results_do_not_depend_on_them(s
     The kernel sums gradients in a fixed order, so the trained model is the same."""
     import os
 
-    from splat_train import _cpu_kernel
-
     monkeypatch.delenv("SPLAT_TRAIN_KERNEL_THREADS", raising=False)
     _train(scene, tmp_path / "a", iterations=12)
-    assert _cpu_kernel.kernel_threads() == len(os.sched_getaffinity(0))
+    assert cpu_raster.kernel_threads() == len(os.sched_getaffinity(0))
     _train(scene, tmp_path / "b", iterations=12, kernel_threads=1)
-    assert _cpu_kernel.kernel_threads() == 1
+    assert cpu_raster.kernel_threads() == 1
     a, b = read_gaussian_ply(tmp_path / "a" / "model.ply"), read_gaussian_ply(tmp_path / "b" / "model.ply")
     np.testing.assert_array_equal(a.means, b.means)
     np.testing.assert_array_equal(a.opacity_logit, b.opacity_logit)
     monkeypatch.setenv("SPLAT_TRAIN_KERNEL_THREADS", "3")
-    assert _cpu_kernel.kernel_threads() == 3
-    _cpu_kernel.set_kernel_threads(None)
+    assert cpu_raster.kernel_threads() == 3
+    cpu_raster.set_kernel_threads(None)
 
 
 def test_runlog_test_curve_keeps_best_and_last():

@@ -1,4 +1,4 @@
-"""Fused EWA projection + SH colour in C++ (``_cpu_project.cpp``), forward and backward.
+"""Fused EWA projection + SH colour in C++ (``project.cpp``), forward and backward.
 
 The CPU twin of :func:`splat_train.projection.project_gaussians` followed by
 :func:`splat_train.sh.sh_to_color`, which stay the reference (tests/test_raster_project.py
@@ -21,11 +21,11 @@ import ctypes
 import torch
 from torch import Tensor
 
-from splat_train._cpu_build import KERNEL_REGISTRY as _KERNELS
-from splat_train._cpu_build import Kernel as _Kernel
-from splat_train._cpu_build import ptr as _ptr
-from splat_train._cpu_build import run_threaded as _run_threaded
-from splat_train._cpu_build import suffix as _suffix
+from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.cpu.build import Kernel as _Kernel
+from splat_train.cpu.build import ptr as _ptr
+from splat_train.cpu.build import run_threaded as _run_threaded
+from splat_train.cpu.build import suffix as _suffix
 from splat_train.projection import TILE_SIZE, Projected
 from splat_train.sh import num_sh_bases
 
@@ -45,7 +45,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-_KERNELS.setdefault("project", _Kernel("project", "_cpu_project.cpp", 3, True, "splat_project_abi_version", _declare))
+_KERNELS.setdefault("project", _Kernel("project", "project.cpp", 3, True, "splat_project_abi_version", _declare))
 
 
 def available() -> bool:

@@ -12,9 +12,9 @@ disables every kernel (callers then use the torch code).
 
 Threads: :func:`kernel_threads` Python threads run the same C entry and share an atomic work
 counter (ctypes drops the GIL; no OpenMP runtime, so no spinning worker threads competing with
-torch's on a loaded machine). Registered kernels: ``cpu`` and ``cpu_v1``
-(:mod:`splat_train._cpu_kernel`), ``project`` (:mod:`splat_train._cpu_project`), ``ssim``
-(:mod:`splat_train._cpu_ssim`).
+torch's on a loaded machine). Registered kernels: ``cpu`` (:mod:`splat_train.cpu.raster`),
+``project`` (:mod:`splat_train.cpu.project`), ``ssim`` (:mod:`splat_train.cpu.ssim`), ``optim``
+(:mod:`splat_train.cpu.optim`).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ _SIMD_FLAGS = {
     "none": [],
 }
 # Local headers the kernel sources include (part of every kernel's cache key).
-_HEADERS = tuple(sorted(_HERE.glob("_cpu_*.h")))
+_HEADERS = tuple(sorted(_HERE.glob("*.h")))
 
 
 def _cpu_flags() -> set[str]:
@@ -150,7 +150,7 @@ def kernel_threads() -> int:
     to :func:`set_kernel_threads`, else ``torch.get_num_threads()``. The kernel's threads block
     in C (no spinning OpenMP workers), so it can use more threads than torch's intra-op pool:
     with torch at 1 thread, 2 kernel threads made forward+backward of 50k Gaussians at 497x372
-    1.85x faster (0.672 -> 0.364 s) here (scalar kernel, now "cpu_v1")."""
+    1.85x faster (0.672 -> 0.364 s) here (with the scalar kernel "cpu_v1", since deleted)."""
     env = os.environ.get("SPLAT_TRAIN_KERNEL_THREADS")
     if env:
         try:

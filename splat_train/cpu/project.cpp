@@ -1,6 +1,6 @@
 // Fused EWA projection + SH colour on the CPU, forward and hand-written backward (issue 15).
 //
-// Built and loaded like _cpu_kernel.cpp (plain C ABI, ctypes, no torch headers). Semantics are
+// Built and loaded like raster.cpp (plain C ABI, ctypes, no torch headers). Semantics are
 // those of splat_train/projection.py (project_gaussians) and splat_train/sh.py (sh_to_color),
 // which stay the reference: the per-Gaussian maths runs in double whatever the tensor dtype,
 // as the torch code does, and the gradients are those autograd gives for that code (the 1.3 x
@@ -45,7 +45,7 @@
 #include <immintrin.h>
 #endif
 
-#include "_cpu_vec8d.h"
+#include "vec8d.h"
 
 namespace {
 

@@ -1,4 +1,4 @@
-"""The optimizer side of a training iteration on the CPU kernel's threads (``_cpu_optim.cpp``):
+"""The optimizer side of a training iteration on the CPU kernel's threads (``optim.cpp``):
 :func:`adam_step` and :func:`densify_stats`.
 
 torch's fused Adam runs on torch's intra-op threads, which the trainer keeps at one (their
@@ -18,9 +18,9 @@ import math
 
 import torch
 
-from splat_train._cpu_build import KERNEL_REGISTRY as _KERNELS
-from splat_train._cpu_build import Kernel as _Kernel
-from splat_train._cpu_build import run_threaded as _run_threaded
+from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.cpu.build import Kernel as _Kernel
+from splat_train.cpu.build import run_threaded as _run_threaded
 
 __all__ = ["available", "adam_step", "densify_stats"]
 
@@ -36,7 +36,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-_KERNELS.setdefault("optim", _Kernel("optim", "_cpu_optim.cpp", 1, True, "splat_optim_abi_version", _declare))
+_KERNELS.setdefault("optim", _Kernel("optim", "optim.cpp", 1, True, "splat_optim_abi_version", _declare))
 
 
 def available() -> bool:

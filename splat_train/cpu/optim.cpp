@@ -2,11 +2,11 @@
 // over several float32 parameter tensors (splat_adam_f32) and the densification statistics
 // (splat_densify_stats_f32).
 //
-// Built and loaded like _cpu_kernel.cpp (plain C ABI, ctypes, no torch headers or OpenMP).
+// Built and loaded like raster.cpp (plain C ABI, ctypes, no torch headers or OpenMP).
 // torch.optim.Adam (fused) runs on torch's intra-op threads, which the trainer keeps at one:
 // torch's OpenMP workers spin after each parallel region on the cores the rasterizer's own
 // threads need next (Adam on two torch threads took 7 -> 6 ms but the render after it 36 -> 40
-// ms). This kernel runs on the rasterizer's threads (splat_train._cpu_build.run_threaded),
+// ms). This kernel runs on the rasterizer's threads (splat_train.cpu.build.run_threaded),
 // which leave no spinning worker behind. Adam is memory-bound (59 floats per Gaussian read
 // four times and written three times: ~330 MB per step at 200k Gaussians), and one core does
 // not reach the machine's bandwidth.

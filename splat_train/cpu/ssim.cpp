@@ -1,6 +1,6 @@
 // SSIM of the 3DGS loss on the CPU: separable Gaussian filtering, forward and backward (issue 15).
 //
-// Built and loaded like _cpu_kernel.cpp (plain C ABI, ctypes). Semantics of
+// Built and loaded like raster.cpp (plain C ABI, ctypes). Semantics of
 // splat_train/losses.py ssim_map (the reference): per channel, local statistics with an
 // 11 x 11 Gaussian window that is the outer product of a 1D window g (so filtering is a row pass
 // then a column pass), zero padding, C1 = 0.01^2, C2 = 0.03^2. Returns the sum of the SSIM

@@ -1,11 +1,11 @@
 // Eight doubles per vector (GCC/Clang vector extension) and the elementwise helpers that the
-// per-Gaussian SIMD passes share: the fused projection + SH (_cpu_project.cpp) and the footprint
-// pass of the blend kernel (_cpu_kernel.cpp). Each lane computes what the scalar double code
+// per-Gaussian SIMD passes share: the fused projection + SH (project.cpp) and the footprint
+// pass of the blend kernel (raster.cpp). Each lane computes what the scalar double code
 // computes; sqrt, floor and ceil map to the widest instructions the build flags allow (IEEE exact
 // at every level, so the result does not depend on the SIMD level).
 //
 // Included by the kernel sources; the build cache key covers this header too
-// (splat_train/_cpu_build.py), so editing it rebuilds both kernels.
+// (splat_train/cpu/build.py), so editing it rebuilds both kernels.
 #pragma once
 
 #include <cmath>

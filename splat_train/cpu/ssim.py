@@ -1,4 +1,4 @@
-"""The SSIM term of the training loss in C++ (``_cpu_ssim.cpp``): separable filtering, forward
+"""The SSIM term of the training loss in C++ (``ssim.cpp``): separable filtering, forward
 and hand-written backward.
 
 CPU twin of :func:`splat_train.losses.ssim` (mean reduction, gradient for the first image only),
@@ -23,12 +23,12 @@ import ctypes
 import torch
 from torch import Tensor
 
-from splat_train._cpu_build import KERNEL_REGISTRY as _KERNELS
-from splat_train._cpu_build import Kernel as _Kernel
-from splat_train._cpu_build import ptr as _ptr
-from splat_train._cpu_build import run_threaded as _run_threaded
-from splat_train._cpu_build import suffix as _suffix
-from splat_train.losses import gaussian_window_1d
+from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.cpu.build import Kernel as _Kernel
+from splat_train.cpu.build import ptr as _ptr
+from splat_train.cpu.build import run_threaded as _run_threaded
+from splat_train.cpu.build import suffix as _suffix
+from splat_train.ssim_window import gaussian_window_1d
 
 __all__ = ["available", "ssim_cpu", "l1_ssim_cpu"]
 
@@ -43,7 +43,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-_KERNELS.setdefault("ssim", _Kernel("ssim", "_cpu_ssim.cpp", 3, True, "splat_ssim_abi_version", _declare))
+_KERNELS.setdefault("ssim", _Kernel("ssim", "ssim.cpp", 3, True, "splat_ssim_abi_version", _declare))
 
 
 # Rows per work item (items are channel x band): 64 keeps the row pass's halo (the 2 x 5 rows

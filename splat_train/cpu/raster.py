@@ -1,18 +1,18 @@
-"""CPU fast paths: C++ tile blenders built on first use, behind backends "cpu" and "cpu_v1".
+"""CPU fast path: the C++ tile blender built on first use, behind backend "cpu".
 
-``"cpu"`` (``_cpu_kernel.cpp``, issue 15) blends 16 pixels of a tile row per vector instruction
+``raster.cpp`` (issue 15) blends 16 pixels of a tile row per vector instruction
 (GCC/Clang vector extensions), bins with a radix depth sort and a counting sort, and reduces the
-per-pair gradients once per Gaussian in C. ``"cpu_v1"`` (``_cpu_kernel_v1.cpp``) is the scalar
-kernel it replaced, kept callable for side-by-side benchmarks (``benchmarks/bench_rasterizer.py``).
+per-pair gradients once per Gaussian in C. (The scalar kernel it replaced, backend "cpu_v1", is
+deleted; their side-by-side timings are recorded in ``benchmarks/README.md``.)
 
-Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train._cpu_build`.
+Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train.cpu.build`.
 If no compiler is present or every build fails, the failure is logged once and
 :func:`available` returns False; the public rasterizer then uses the vectorised torch tile code.
 
 Autograd: :class:`_BlendCPU` wraps forward and the hand-written backward (back-to-front
 recomputation per pixel, as in 3DGS). Per-pair gradients are written by the tile that owns the
-pair and summed per Gaussian in a fixed order (``"cpu"``: in C; ``"cpu_v1"``: ``index_add_``):
-the result does not depend on the thread count.
+pair and summed per Gaussian in a fixed order, in C: the result does not depend on the thread
+count.
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from splat_train._cpu_build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
-from splat_train._cpu_build import Kernel as _Kernel
-from splat_train._cpu_build import ptr as _ptr
-from splat_train._cpu_build import run_threaded as _run_threaded
-from splat_train._cpu_build import suffix as _suffix
+from splat_train.cpu.build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
+from splat_train.cpu.build import Kernel as _Kernel
+from splat_train.cpu.build import ptr as _ptr
+from splat_train.cpu.build import run_threaded as _run_threaded
+from splat_train.cpu.build import suffix as _suffix
 from splat_train._reference import depth_order
 from splat_train.projection import TILE_SIZE
 
@@ -39,47 +39,40 @@ __all__ = [
     "tile_pairs_cpu", "backend_functions", "simd_bits", "set_kernel_threads", "kernel_threads",
 ]
 
-KERNELS = ("cpu", "cpu_v1")
+KERNELS = ("cpu",)
 _BIN_CHUNKS = 8  # fixed chunks of the depth order for the parallel counting sort
 _SPAN_RECORD = 32  # int16 binning record per Gaussian: tiles + 14 row spans (SPREC in the C++)
 
 
-def _declare(lib: ctypes.CDLL, v2: bool) -> ctypes.CDLL:
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     i64, vp = ctypes.c_int64, ctypes.c_void_p
-    pre = "splat2_" if v2 else "splat_"
     for dt in ("f32", "f64"):
-        getattr(lib, f"{pre}forward_{dt}").argtypes = [i64] * 5 + [vp] * (14 if v2 else 11)
-        getattr(lib, f"{pre}forward_{dt}").restype = None
-        getattr(lib, f"{pre}backward_{dt}").argtypes = [i64] * 6 + [vp] * 16 if v2 else [i64] * 5 + [vp] * 12
-        getattr(lib, f"{pre}backward_{dt}").restype = None
-        if v2:
-            getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
-            getattr(lib, f"splat2_footprint_{dt}").restype = None
-            getattr(lib, f"splat2_footprint_scalar_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp]
-            getattr(lib, f"splat2_footprint_scalar_{dt}").restype = None
-    if v2:
-        lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
-        lib.splat2_bin_count.restype = None
-        lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
-        lib.splat2_bin_scatter.restype = None
-        lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
-        lib.splat2_depth_order_f32.restype = i64
-        for dt in ("f32", "f64"):
-            getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp, i64, vp, vp, vp]
-            getattr(lib, f"splat2_reduce_{dt}").restype = None
-            getattr(lib, f"splat2_active_{dt}").argtypes = [i64, i64, vp]
-            getattr(lib, f"splat2_active_{dt}").restype = i64
-        lib.splat2_simd_bits.restype = ctypes.c_int
-    else:
-        lib.splat_bin.argtypes = [i64, vp, vp, i64, i64, vp, vp]
-        lib.splat_bin.restype = None
+        getattr(lib, f"splat2_forward_{dt}").argtypes = [i64] * 5 + [vp] * 14
+        getattr(lib, f"splat2_forward_{dt}").restype = None
+        getattr(lib, f"splat2_backward_{dt}").argtypes = [i64] * 6 + [vp] * 16
+        getattr(lib, f"splat2_backward_{dt}").restype = None
+        getattr(lib, f"splat2_footprint_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp, vp]
+        getattr(lib, f"splat2_footprint_{dt}").restype = None
+        getattr(lib, f"splat2_footprint_scalar_{dt}").argtypes = [i64, vp, vp, vp, vp, vp, vp]
+        getattr(lib, f"splat2_footprint_scalar_{dt}").restype = None
+    lib.splat2_bin_count.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp]
+    lib.splat2_bin_count.restype = None
+    lib.splat2_bin_scatter.argtypes = [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp]
+    lib.splat2_bin_scatter.restype = None
+    lib.splat2_depth_order_f32.argtypes = [i64, vp, vp, vp, vp, vp]
+    lib.splat2_depth_order_f32.restype = i64
+    for dt in ("f32", "f64"):
+        getattr(lib, f"splat2_reduce_{dt}").argtypes = [i64, vp, vp, i64, vp, vp, vp, i64, vp, vp, vp]
+        getattr(lib, f"splat2_reduce_{dt}").restype = None
+        getattr(lib, f"splat2_active_{dt}").argtypes = [i64, i64, vp]
+        getattr(lib, f"splat2_active_{dt}").restype = i64
+    lib.splat2_simd_bits.restype = ctypes.c_int
     return lib
 
 
 _KERNELS = KERNEL_REGISTRY
 _KERNELS.update({
-    "cpu": _Kernel("cpu", "_cpu_kernel.cpp", 18, True, "splat2_abi_version", lambda lib: _declare(lib, True)),
-    "cpu_v1": _Kernel("cpu_v1", "_cpu_kernel_v1.cpp", 4, False, "splat_abi_version", lambda lib: _declare(lib, False)),
+    "cpu": _Kernel("cpu", "raster.cpp", 18, True, "splat2_abi_version", _declare),
 })
 
 
@@ -95,7 +88,7 @@ def load_library(name: str = "cpu") -> ctypes.CDLL | None:
 
 
 def available(name: str = "cpu") -> bool:
-    """True when kernel ``name`` ("cpu" or "cpu_v1") is built and loaded."""
+    """True when kernel ``name`` ("cpu") is built and loaded."""
     return load_library(name) is not None
 
 
@@ -117,28 +110,27 @@ class Bins:
     Attributes:
         offsets: [T + 1] tile t owns pairs offsets[t]:offsets[t + 1] (T = tiles_x * tiles_y,
             t = ty * tiles_x + tx).
-        gauss: [P] Gaussian index per pair, front to back within a tile (int32 for "cpu",
-            int64 for "cpu_v1").
+        gauss: [P] int32 Gaussian index per pair, front to back within a tile.
         tiles_x, tiles_y: tile grid.
-        order: [M] visible Gaussians front to back ("cpu" kernel; None for "cpu_v1").
-        ps: [M + 1] prefix sums of the pair counts in ``order`` ("cpu" only).
-        slot_pair: [P] int32 per slot its pair ("cpu" only): Gaussian ``order[r]`` owns slots
+        order: [M] visible Gaussians front to back.
+        ps: [M + 1] prefix sums of the pair counts in ``order``.
+        slot_pair: [P] int32 per slot its pair: Gaussian ``order[r]`` owns slots
             ps[r]:ps[r + 1] (its tiles row-major), and the backward writes pair k's gradients
             to row k, so the reduction sums rows slot_pair[ps[r]:ps[r + 1]]; it skips the
             pairs the backward did not reach (behind every pixel's last contributor; it marks
             them in a [P] byte map), whose rows it never writes.
-        fp: [N, 8] float64 footprints ("cpu" with means2d, conics and opacities given to
+        fp: [N, 8] float64 footprints (with means2d, conics and opacities given to
             :func:`bin_cpu`): then the lists hold only the tiles each Gaussian's alpha >= 1/255
             ellipse can reach, and the kernels reuse the footprints (so they must be called
             with the same means2d, conics and opacities).
-        tile_order: [T] int32 ("cpu" only): the order in which the blend's threads take the
+        tile_order: [T] int32: the order in which the blend's threads take the
             tiles, longest list first (a tile's cost grows with its list; taking the long
             ones last left a thread idle while the other finished one: 2-thread blend at 93-95 %
             of the one-thread time / 2 on the fern checkpoint). Every tile is blended the same
             whichever thread takes it when: the order changes no result.
-        visible: [N] bool ("cpu" only): the Gaussians in ``order`` (the backward's reduction
+        visible: [N] bool: the Gaussians in ``order`` (the backward's reduction
             zeroes the gradient rows of the others itself).
-        rows_hit: [P] int16 ("cpu" only; written by :func:`forward_raw`, read by
+        rows_hit: [P] int16 (written by :func:`forward_raw`, read by
             :func:`backward_raw`): bit i of pair k set when the forward blended at least one
             pixel of tile row i with it. The backward visits only those rows (in the others no
             pixel passes its mask: skipping them changes no bit) and skips pairs with none.
@@ -197,11 +189,11 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
     Args:
         depths: [N] camera z. rect: [N, 4] tile rectangle (x_min, x_max, y_min, y_max), max
             exclusive. visible: [N] bool. width, height: image size in pixels.
-        kernel: "cpu" (radix depth sort, also the per-Gaussian pair lists) or "cpu_v1".
-        means2d [N, 2], conics [N, 3], opacities [N]: optional ("cpu" only, all three, one
+        kernel: "cpu" (radix depth sort, also the per-Gaussian pair lists).
+        means2d [N, 2], conics [N, 3], opacities [N]: optional (all three, one
             dtype): keep, within each rectangle, only the tiles where the Gaussian's alpha can
             reach 1/255 (the blend's own footprint test, see ``tile_span`` in
-            ``_cpu_kernel.cpp``); the dropped pairs would blend no pixel, so images and
+            ``raster.cpp``); the dropped pairs would blend no pixel, so images and
             gradients are unchanged while binning, blending and reduction visit fewer pairs.
 
     Returns:
@@ -214,16 +206,9 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
     n_tiles = tiles_x * tiles_y
     with torch.no_grad(), _scratch_lock:
         r = rect.to(torch.int64).contiguous()
-        if kernel == "cpu_v1":
-            order = depth_order(depths, visible).contiguous()
-            total = int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))[order].sum()) if order.numel() else 0
-            offsets = torch.empty(n_tiles + 1, dtype=torch.int64)
-            gauss = torch.empty(total, dtype=torch.int64)
-            lib.splat_bin(order.numel(), _ptr(order), _ptr(r), tiles_x, n_tiles, _ptr(offsets), _ptr(gauss))
-            return Bins(offsets, gauss, tiles_x, tiles_y)
         fp = spans = None
         sort = lambda: _depth_order(lib, depths, visible)  # noqa: E731
-        if means2d is not None and kernel == "cpu" and max(tiles_x, tiles_y) < 2**15:  # int16 tile rectangles
+        if means2d is not None and max(tiles_x, tiles_y) < 2**15:  # int16 tile rectangles
             dt = means2d.dtype
             mu, co, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, opacities))
             spans = _scratch("spans", (r.shape[0], _SPAN_RECORD), torch.int16)
@@ -277,7 +262,7 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     Args:
         means2d [N, 2], conics [N, 3], features [N, F], opacities [N] as in :func:`blend_cpu`
         (one dtype, float32 or float64); bins from :func:`bin_cpu` with the same ``kernel``.
-        with_count: also count the Gaussians blended into each pixel ("cpu": without, the
+        with_count: also count the Gaussians blended into each pixel (without, the
             kernel skips that bookkeeping and count is None).
 
     Returns:
@@ -290,27 +275,20 @@ def forward_raw(means2d, conics, features, opacities, bins: Bins, width: int, he
     suffix = _suffix(dt)
     m, co, fe, op = (t.detach().to(dt).contiguous() for t in (means2d, conics, features, opacities))
     nf = fe.shape[1]
-    if kernel == "cpu" and nf > 16:
+    if nf > 16:
         raise ValueError(f"the 'cpu' kernel blends at most 16 feature channels, got {nf}")
     accum = torch.empty(height, width, nf, dtype=dt)
     t_final = torch.empty(height, width, dtype=dt)
     last = torch.empty(height, width, dtype=torch.int32)
-    count = torch.empty(height, width, dtype=torch.int32) if with_count or kernel != "cpu" else None
-    if kernel == "cpu":
-        fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
-        bins.rows_hit = torch.empty(bins.gauss.numel(), dtype=torch.int16)  # fresh: a saved one stays valid
-        _run_threaded(
-            getattr(lib, f"splat2_forward_{suffix}"),
-            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last),
-            None if count is None else _ptr(count), _ptr(bins.rows_hit), _tile_order(bins),
-        )
-    else:
-        _run_threaded(
-            getattr(lib, f"splat_forward_{suffix}"),
-            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(accum), _ptr(t_final), _ptr(last), _ptr(count),
-        )
+    count = torch.empty(height, width, dtype=torch.int32) if with_count else None
+    fp = bins.fp if bins.fp is not None else _footprints(lib, m, co, op, suffix)
+    bins.rows_hit = torch.empty(bins.gauss.numel(), dtype=torch.int16)  # fresh: a saved one stays valid
+    _run_threaded(
+        getattr(lib, f"splat2_forward_{suffix}"),
+        bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
+        _ptr(op), _ptr(fe), _ptr(fp), _ptr(accum), _ptr(t_final), _ptr(last),
+        None if count is None else _ptr(count), _ptr(bins.rows_hit), _tile_order(bins),
+    )
     return accum, t_final, last, count
 
 
@@ -319,7 +297,7 @@ def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix:
     """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
     contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
     also its binning record (tiles and per-row spans; spans is written). With ``first`` (see
-    :func:`splat_train._cpu_build.run_threaded`): (footprints, ``first()``'s result)."""
+    :func:`splat_train.cpu.build.run_threaded`): (footprints, ``first()``'s result)."""
     fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
     res = _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
                         _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
@@ -343,7 +321,7 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     Args:
         means2d .. bins, width, height as in :func:`forward_raw`; t_final [H, W] and last
         [H, W] int32 from it; v_accum [H, W, F] and v_t [H, W] the cotangents; rows_hit
-        [P] int16 from it ("cpu"; default ``bins.rows_hit``, which the last forward_raw with
+        [P] int16 from it (default ``bins.rows_hit``, which the last forward_raw with
         these bins wrote).
 
     Returns:
@@ -358,14 +336,6 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     v_accum = v_accum.to(dt).contiguous()
     v_t = v_t.to(dt).contiguous()
     t_final, last = t_final.contiguous(), last.contiguous()
-    if kernel == "cpu_v1":
-        v_pair = torch.zeros(bins.gauss.numel(), 6 + nf, dtype=dt)
-        _run_threaded(
-            getattr(lib, f"splat_backward_{suffix}"),
-            bins.tiles_x, bins.tiles_y, width, height, nf, _ptr(bins.offsets), _ptr(bins.gauss), _ptr(m), _ptr(co),
-            _ptr(op), _ptr(fe), _ptr(t_final), _ptr(last), _ptr(v_accum), _ptr(v_t), _ptr(v_pair),
-        )
-        return torch.zeros(n, 6 + nf, dtype=dt).index_add_(0, bins.gauss, v_pair)
     rows_hit = bins.rows_hit if rows_hit is None else rows_hit
     if rows_hit is None or rows_hit.numel() != bins.gauss.numel():
         raise ValueError("backward_raw needs the rows the forward blended (bins.rows_hit): run forward_raw "
@@ -407,7 +377,7 @@ class KernelFunctions:
 
 
 def backend_functions(kernel: str) -> KernelFunctions:
-    """Raw (no-autograd) entries of kernel ``kernel`` ("cpu" or "cpu_v1")."""
+    """Raw (no-autograd) entries of kernel ``kernel`` ("cpu")."""
     _kernel(kernel)
     return KernelFunctions(
         tile_pairs=lambda *a, **kw: bin_cpu(*a, kernel=kernel, **kw),
@@ -453,8 +423,7 @@ def blend_cpu(
     """C++ tile blending with a hand-written backward (CPU tensors, float32 or float64).
 
     Arguments and results as :func:`splat_train._reference.blend_dense`: accum [H, W, F]
-    (no background) and final transmittance [H, W]. ``kernel``: "cpu" (SIMD) or "cpu_v1"
-    (the scalar kernel it replaced).
+    (no background) and final transmittance [H, W]. ``kernel``: "cpu" (the SIMD kernel).
     """
     if means2d.device.type != "cpu":
         raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
@@ -462,8 +431,6 @@ def blend_cpu(
         raise RuntimeError(f"CPU rasterizer kernel {kernel!r} unavailable: {build_error(kernel)}; use backend='torch'")
     dt = means2d.dtype
     conics, features, opacities = conics.to(dt), features.to(dt), opacities.to(dt)
-    if kernel == "cpu":  # tight tile lists (only tiles the alpha >= 1/255 ellipse reaches)
-        bins = bin_cpu(depths, rect, visible, width, height, kernel, means2d, conics, opacities)
-    else:
-        bins = bin_cpu(depths, rect, visible, width, height, kernel)
+    # tight tile lists (only tiles the alpha >= 1/255 ellipse reaches)
+    bins = bin_cpu(depths, rect, visible, width, height, kernel, means2d, conics, opacities)
     return _BlendCPU.apply(means2d, conics, features, opacities, bins, width, height, kernel)
