@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from splat_train.cpu import optim as _cpu_optim
+from splat_train.cpu import optim as cpu_optim
 
 __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]
@@ -244,7 +244,7 @@ class DensifyStrategy:
         """
         if iteration >= self.densify_until:
             return
-        if _cpu_optim.densify_stats(state, means2d_grad.detach(), radii, visible, width, height):
+        if cpu_optim.densify_stats(state, means2d_grad.detach(), radii, visible, width, height):
             return  # the same accumulation in C on the kernel's threads (CPU float32)
         # dense masked updates (no boolean indexing: each mask index is a nonzero + gather +
         # scatter over N, ~13 ms per iteration at 200k Gaussians; this is ~2 ms, same values)

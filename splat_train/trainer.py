@@ -47,7 +47,7 @@ from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
 from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
-from splat_train.cpu import raster as _cpu_kernel
+from splat_train.cpu import raster as cpu_raster
 from splat_train.cpu.optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
@@ -519,7 +519,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         raise ValueError("give both --test-cameras and --test-images, or neither")
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
-    _cpu_kernel.set_kernel_threads(cfg.kernel_threads or len(os.sched_getaffinity(0)))
+    cpu_raster.set_kernel_threads(cfg.kernel_threads or len(os.sched_getaffinity(0)))
     names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)

@@ -17,7 +17,7 @@ import torch
 from _train_scene import write_scene
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, read_depth_prior, write_depth_prior
 from splat_train import rasterize
-from splat_train._cpu_kernel import available as kernel_available
+from splat_train.cpu.raster import available as kernel_available
 from splat_train.config import TrainConfig
 from splat_train.densify import cap_candidates
 from splat_train.depth_prior import load_depth_prior, pearson_depth_loss

@@ -17,7 +17,7 @@ Dependencies run one way: these loaders import only the torch building blocks th
 ``densify``, ``trainer``; tests/test_import_layers.py checks). This package imports none of its
 modules itself, and importing one builds nothing until its kernel is first used.
 
-Before issue 34 these files were ``splat_train/_cpu_build.py``, ``_cpu_kernel.py`` / ``.cpp``
+Before this package existed these files were ``splat_train/_cpu_build.py``, ``_cpu_kernel.py`` / ``.cpp``
 (now ``raster``), ``_cpu_project``, ``_cpu_ssim``, ``_cpu_optim`` and ``_cpu_vec8d.h``:
 benchmarks/README.md records measurements under those names.
 """

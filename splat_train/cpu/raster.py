@@ -1,6 +1,6 @@
 """CPU fast path: the C++ tile blender built on first use, behind backend "cpu".
 
-``raster.cpp`` (issue 15) blends 16 pixels of a tile row per vector instruction
+``raster.cpp`` blends 16 pixels of a tile row per vector instruction
 (GCC/Clang vector extensions), bins with a radix depth sort and a counting sort, and reduces the
 per-pair gradients once per Gaussian in C. (The scalar kernel it replaced, backend "cpu_v1", is
 deleted; their side-by-side timings are recorded in ``benchmarks/README.md``.)
