@@ -208,18 +208,19 @@ class LoadSampler:
 def run_cell(work: Path, scene_kind: str = "auto", n: int = 3, iterations: int = 2000, quick: bool = False,
              threads: int | None = None, vggt: bool = True, vggt_dtype: str = "fp32", vggt_size: int = 518,
              inprocess: bool = False, device: str | None = None, rasterizer: str | None = None,
-             prepared: Path | None = None) -> dict:
+             prepared: Path | None = None, recipe: str | None = None) -> dict:
     """Run the cell in ``work``; returns the JSON-ready breakdown (seconds per stage, see module doc).
 
     ``device`` and ``rasterizer`` are passed to the training and render stages when given
     (``python -m benchmarks --gpu`` runs the cell with ``cuda`` and ``gsplat``). ``prepared``: a
     folder written by :func:`prepare_bundle`; its stages up to ``align`` are not run again
     (their times, measured where it was made, are reported under ``prepared``), and
-    ``scene_kind`` and ``n`` come from it.
+    ``scene_kind`` and ``n`` come from it. ``recipe``: splat_train's ``--recipe`` (None: its
+    default).
     """
     with LoadSampler() as load:
         result = _run_cell(work, scene_kind, n, iterations, quick, threads, vggt, vggt_dtype, vggt_size, inprocess,
-                           device, rasterizer, prepared)
+                           device, rasterizer, prepared, recipe)
     result["loadavg_during"] = load.summary()
     return result
 
@@ -328,7 +329,7 @@ def prepare_bundle(dest: Path, scene_kind: str = "auto", n: int = 3, quick: bool
 
 def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
               vggt_dtype: str, vggt_size: int, inprocess: bool, device: str | None = None,
-              rasterizer: str | None = None, prepared: Path | None = None) -> dict:
+              rasterizer: str | None = None, prepared: Path | None = None, recipe: str | None = None) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     stage = _Stages(work / "logs", inprocess)
     times, cpu = stage.times, stage.cpu
@@ -352,6 +353,8 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
         train_args += ["--device", device]
     if rasterizer:
         train_args += ["--rasterizer", rasterizer]
+    if recipe:
+        train_args += ["--recipe", recipe]
     stage("train", "splat_train", train_args)
     summary = json.loads((work / "train" / "train.json").read_text())
     stage("render", "splat_train", ["render", "--model", str(work / "train" / "model.ply"),
@@ -382,7 +385,7 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
             "test_psnr": summary.get("test_psnr"), "train_psnr": summary.get("train_psnr"),
             "peak_rss_mb": summary.get("peak_rss_mb"), "threads_arg": threads,
             "device": summary.get("device"), "rasterizer": summary.get("rasterizer"),
-            "peak_cuda_mb": summary.get("peak_cuda_mb"),
+            "recipe": summary.get("recipe"), "peak_cuda_mb": summary.get("peak_cuda_mb"),
             "test_curve": summary.get("test_curve"),
         },
         "metrics": {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg", "n_images")},
@@ -477,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="a --prepare-only folder: train, render and score from it (--scene and --n from it)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None, help="training and render device")
     p.add_argument("--rasterizer", default=None, help="training rasterizer backend (splat_train --rasterizer)")
+    p.add_argument("--recipe", choices=["paper", "sparse"], default=None,
+                   help="training recipe (splat_train --recipe; default: the trainer's)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
@@ -493,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = run_cell(work, args.scene, args.n, iterations, args.quick, args.threads, not args.no_vggt,
                           args.vggt_dtype, inprocess=args.inprocess, device=args.device, rasterizer=args.rasterizer,
-                          prepared=args.prepared)
+                          prepared=args.prepared, recipe=args.recipe)
     finally:
         if tmp is not None:
             tmp.cleanup()
