@@ -105,7 +105,7 @@ class TrainConfig:
             are kept (:mod:`splat_train.densify`).
         gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
             over the training views at the training resolution); the smaller cap applies.
-            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
+            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.03).
         dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's):
             :mod:`splat_train.dropout`.
         depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
