@@ -43,6 +43,7 @@ import torch
 from camio import Camera
 from camio.atomic import write_json
 from camio.colmap import write_text_model
+from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from splat_train import checkpoint as ckpt
@@ -51,7 +52,6 @@ from splat_train.cpu import raster as cpu_raster
 from splat_train.cpu.optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
-from camio.depth_prior import DEPTH_PRIOR_FILE
 from splat_train.depth_prior import DepthPrior, depth_weight_at, load_depth_prior
 from splat_train.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import camera_tensors, render_params, render_views
