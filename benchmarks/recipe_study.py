@@ -45,6 +45,8 @@ VARIANTS: dict[str, dict] = {
     "uniform-depth": {"recipe": "sparse", "depth_use_confidence": False},
     "no-cap": {"recipe": "sparse", "gaussians_per_pixel": 0.0},
     "no-early-stop": {"recipe": "sparse", "densify_until": "ITERATIONS"},
+    "no-reset": {"recipe": "sparse", "opacity_reset_every": 10**9},
+    "sparse-reset": {"recipe": "sparse", "opacity_reset_every": "RESET_30"},
     "cap-0.03": {"recipe": "sparse", "gaussians_per_pixel": 0.03},
     "cap-0.3": {"recipe": "sparse", "gaussians_per_pixel": 0.3},
     "sparse-pose": {"recipe": "sparse", "pose_refine": True},
@@ -106,7 +108,8 @@ def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterati
               synthetic: bool, kernel_threads: int = 0) -> dict:
     """Train one (variant, seed) and read its train.json (and floaters.json on synthetic scenes)."""
     if not (out / "train.json").is_file():
-        cfg = {k: (iterations if v == "ITERATIONS" else v) for k, v in VARIANTS[variant].items()}
+        special = {"ITERATIONS": iterations, "RESET_30": max(1, round(0.3 * iterations))}
+        cfg = {k: special.get(v, v) if isinstance(v, str) else v for k, v in VARIANTS[variant].items()}
         sh(["-m", "splat_train", "--seed", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
             "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
