@@ -65,7 +65,13 @@ def main(argv: list[str] | None = None) -> int:
         log.error("--images goes with --colmap only")
         return 2
     from bridge.inputs import load_colmap, load_predictions
+    from camio.outdir import OutputFolderError, prepare_out
 
+    try:
+        prepare_out(args.out, {"--pred": args.pred, "--colmap": args.colmap, "--images": args.images}, "bridge")
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return 2
     try:
         cfg = BridgeConfig(
             mode=args.mode, alpha_min=args.alpha_min, alpha_max=args.alpha_max,

@@ -364,6 +364,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
     try:
+        from camio.outdir import prepare_out
+
+        prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
+                               "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
     except (ImageReadError, FileNotFoundError, ValueError) as exc:
         log.error("%s: %s", type(exc).__name__, exc)

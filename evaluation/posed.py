@@ -147,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("give the training images: --image-list or --names")
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     try:
+        from camio.outdir import prepare_out
+
+        prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
     except (ValueError, OSError) as exc:
         log.error("%s", exc)
