@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
             log.info("split (%s): %d test, train n = %s -> %s", split.rule, len(split.test),
                      ", ".join(split.train), args.out)
     except (ValueError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()
         log.error("%s", exc)
         return 2
     return 0

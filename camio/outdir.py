@@ -20,18 +20,41 @@ paths; the stage CLIs print it and exit with code 2.
 
 from __future__ import annotations
 
+import atexit
 import errno
 import os
 from pathlib import Path
 from typing import Iterable, Mapping
 
-__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out"]
+__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs"]
 
 MARKER = ".stage"
 """Marker file in every folder a stage creates: line 1 the stage name, then (for stages that
 replace their folder whole) one top-level entry name per line that the stage wrote."""
 
 PathLike = str | os.PathLike
+
+
+_PREPARED: dict[Path, bool] = {}
+"""Folders :func:`prepare_out` marked in this process -> whether it created the folder."""
+
+
+def tidy_outs() -> None:
+    """Undo :func:`prepare_out` where the stage then wrote nothing (it failed early): remove
+    the marker, and the folder if :func:`prepare_out` created it. A failed stage leaves
+    nothing behind. Runs at interpreter exit; the CLIs also call it on their error paths."""
+    for folder, created in list(_PREPARED.items()):
+        _PREPARED.pop(folder, None)
+        try:
+            if folder.is_dir() and [e.name for e in folder.iterdir()] == [MARKER]:
+                (folder / MARKER).unlink()
+                if created:
+                    folder.rmdir()
+        except OSError:
+            pass
+
+
+atexit.register(tidy_outs)
 
 
 class OutputFolderError(ValueError):
@@ -130,12 +153,14 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
     out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
+        created = not target.exists()
         target.mkdir(parents=True, exist_ok=True)
         if folder:
             marker = target / MARKER
             owner, written = _read_marker(target)
             if owner != stage:
                 marker.write_text(stage + "\n")
+                _PREPARED[_resolved(target)] = created
         elif not os.access(target, os.W_OK | os.X_OK):
             raise PermissionError(errno.EACCES, "Permission denied", str(target))
     except OSError as exc:

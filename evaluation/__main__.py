@@ -278,6 +278,9 @@ def main(argv: list[str] | None = None) -> int:
         log.error("%s", exc)
         return 2
     except (ValueError, KeyError, OSError) as exc:  # bad inputs: a clear message, no traceback
+        from camio.outdir import tidy_outs
+
+        tidy_outs()
         log.debug("traceback", exc_info=True)
         log.error("%s failed: %s", args.command, exc)
         return 1
