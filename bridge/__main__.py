@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
             inp = load_predictions(args.pred) if args.pred else load_colmap(args.colmap, args.images)
         report = run_bridge(inp, args.out, cfg, timings={"load": timings["load input"]})
     except (ValueError, KeyError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
         return 1
     log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],

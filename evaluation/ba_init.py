@@ -219,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
         run_ba_init(args.init, args.images, names, args.out, args.refine_focal, args.seed_points,
                     args.min_points, args.seed, args.threads)
     except (ValueError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
         return 2
     return 0

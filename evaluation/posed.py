@@ -152,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
     except (ValueError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
         return 2
     return 0

@@ -141,8 +141,12 @@ def main(argv: list[str] | None = None) -> int:
                               "--image-list": args.image_list, "--test-image-list": args.test_image_list,
                               "--resume-dir": args.resume_dir}, "splat_train"):
         return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
     from splat_train.config import load_config
     from splat_train.trainer import train
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed), args.seed):
+        log.warning("degenerate seed: %s", warning)
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
@@ -180,6 +184,9 @@ def _cli() -> int:
         log.error("interrupted (Ctrl-C): the last checkpoint is intact; run the same command again to resume")
         return 130
     except (ValueError, KeyError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.debug("traceback", exc_info=True)
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         log.error("%s: %s", type(exc).__name__, msg)

@@ -73,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         run(opts)
     except (CheckpointNotFoundError, CheckpointFormatError, StateDictMismatchError, ImageInputError,
             MemoryBudgetError, FileNotFoundError, ValueError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
     return 0
