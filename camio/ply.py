@@ -197,12 +197,13 @@ SEED_LOG_SCALE_RANGE = (-30.0, 30.0)
 inf in float32, the Gaussian is invisible or covers everything, and its gradient vanishes."""
 
 
-def check_seed_cloud(cloud: "GaussianCloud", path: str | Path) -> list[str]:
-    """Check a seed cloud before training.
+def check_seed_cloud(cloud: "GaussianCloud", path: str | Path, role: str = "seed") -> list[str]:
+    """Check a seed cloud before training (or a trained model before rendering).
 
     Args:
         cloud: the seed (N Gaussians).
         path: its file, named in every message.
+        role: "seed" (a training input) or "model" (a trained model.ply to render).
 
     Returns:
         Warnings, one sentence each, naming what is degenerate: positions beyond
@@ -214,14 +215,15 @@ def check_seed_cloud(cloud: "GaussianCloud", path: str | Path) -> list[str]:
     """
     n = len(cloud.means)
     if n == 0:
-        raise PlyFormatError(f"{path}: the seed holds no Gaussians")
+        raise PlyFormatError(f"{path}: the {role} holds no Gaussians")
     fields = {"positions": cloud.means, "colours (sh_dc)": cloud.sh_dc, "SH coefficients": cloud.sh_rest,
               "opacities": cloud.opacity_logit, "log scales": cloud.log_scales, "rotations": cloud.quats}
     bad = [f"{name}: {int((~np.isfinite(a.reshape(n, -1))).any(axis=1).sum())} of {n}"
            for name, a in fields.items() if a.size and not np.all(np.isfinite(a))]
     if bad:
-        raise PlyFormatError(f"{path}: non-finite values in the seed ({'; '.join(bad)}): fix or regenerate the "
-                             "seed PLY (e.g. re-run `python -m bridge`)")
+        fix = ("fix or regenerate the seed PLY (e.g. re-run `python -m bridge`)" if role == "seed" else
+               "the trained model is damaged; train again (or render an earlier checkpoint's model)")
+        raise PlyFormatError(f"{path}: non-finite values in the {role} ({'; '.join(bad)}): {fix}")
     out = []
     far = np.abs(cloud.means).max(axis=1) > SEED_MAX_ABS_POSITION
     if far.any():

@@ -130,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train render"):
             return 2
+        from camio.ply import check_seed_cloud, read_gaussian_ply
+
+        for warning in check_seed_cloud(read_gaussian_ply(args.model), args.model, role="model"):
+            log.warning("degenerate model: %s", warning)
         render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
                      height=args.height, names=args.image_list, background=bg, device=args.device)
         return 0

@@ -190,3 +190,25 @@ def test_read_only_out_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     line, = _error_lines(err)
     assert rc == 2 and "cannot write --out" in line and "Traceback" not in err
+
+
+def test_unwritable_out_is_one_line_whoever_runs_it(tmp_path, capsys, monkeypatch):
+    """The same refusal when the folder cannot be made (as root, chmod does not stop writes:
+    the failure is injected where the rule creates the folder)."""
+    import pathlib
+
+    from camio.__main__ import main
+
+    out = tmp_path / "ro" / "synth"
+    real = pathlib.Path.mkdir
+
+    def deny(self, *a, **k):
+        if self == out:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(pathlib.Path, "mkdir", deny)
+    rc = main(["synth", "--out", str(out), "--views", "3", "--width", "16"])
+    err = capsys.readouterr().err
+    line, = _error_lines(err)
+    assert rc == 2 and f"cannot write --out {out}: Permission denied" in line and "Traceback" not in err

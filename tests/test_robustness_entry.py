@@ -173,3 +173,20 @@ def test_trainer_refuses_a_non_finite_seed_naming_the_file(tmp_path, monkeypatch
     err = capsys.readouterr().err
     line, = _errors(err)
     assert str(seed) in line and "positions: 1 of 60" in line and "Traceback" not in err
+
+
+def test_render_refuses_a_model_with_nan_naming_the_file(tmp_path, monkeypatch, capsys):
+    """A trained model.ply holding NaN: one line naming the model (it said "fix the seed PLY")."""
+    import splat_train.__main__ as cli
+    from _train_scene import write_scene
+
+    sc = write_scene(tmp_path / "scene")
+    model = _seed(tmp_path, opacity_logit=lambda a: np.where(np.arange(len(a)) < 2, np.nan, a).astype(np.float32))
+    out = tmp_path / "renders"
+    monkeypatch.setattr(sys, "argv", ["splat_train", "render", "--model", str(model), "--cameras", str(sc["cameras"]),
+                                      "--out", str(out), "--width", "32", "--height", "24"])
+    assert cli._cli() == 2
+    err = capsys.readouterr().err
+    line, = _errors(err)
+    assert str(model) in line and "opacities: 2 of 60" in line and "in the model" in line and "seed PLY" not in line, line
+    assert not out.exists()
