@@ -29,6 +29,10 @@ from typing import Iterable, Mapping
 __all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs"]
 
 MARKER = ".stage"
+
+TOOL_FILES = frozenset({".snakemake_timestamp"})
+"""Entries a workflow tool adds to a stage's folder (Snakemake touches this one in every
+``directory()`` output it has completed); they are not the user's files."""
 """Marker file in every folder a stage creates: line 1 the stage name, then (for stages that
 replace their folder whole) one top-level entry name per line that the stage wrote."""
 
@@ -134,7 +138,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             raise OutputFolderError(f"--out {out} is not empty ({len(entries)} entries, e.g. {entries[0]}) and "
                                     f"{who}: choose an empty or new folder (nothing was changed)")
         if written is not None:
-            foreign = [e for e in entries if e not in written]
+            foreign = [e for e in entries if e not in written and e not in TOOL_FILES]
             if foreign:
                 raise OutputFolderError(f"--out {out} holds {o / foreign[0]}, which `{stage}` did not write "
                                         f"and would replace: move it away or choose a new folder")

@@ -73,6 +73,8 @@ def _stages():
          lambda i, o: ["plots", "--results", str(i["root"]), "--out", str(o)], "root"),
         ("evaluation report", "evaluation.__main__",
          lambda i, o: ["report", "--results", str(i["root"]), "--out", str(o)], "root"),
+        ("evaluation.oracle", "evaluation.oracle",
+         lambda i, o: ["--scene", str(i["root"]), "--names", "a.png", "--out", str(o)], "root"),
         ("splat_train", "splat_train.__main__",
          lambda i, o: ["--seed", str(i["list"]), "--cameras", str(i["model"]), "--images", str(i["images"]),
                        "--out", str(o)], "images"),
@@ -158,6 +160,8 @@ def test_synth_rerun_into_its_own_folder_and_an_empty_folder(tmp_path, capsys):
     assert main(argv) == 0
     assert (out / MARKER).read_text().splitlines()[0] == "camio synth"
     assert main(argv) == 0, capsys.readouterr().err  # a rerun into its own folder
+    (out / ".snakemake_timestamp").write_text("")  # Snakemake's, after a directory() output
+    assert main(argv) == 0, capsys.readouterr().err
     (out / "notes.txt").write_text("mine")
     assert main(argv) == 2  # the rerun would replace the folder: it refuses instead
     line, = _error_lines(capsys.readouterr().err)
