@@ -216,3 +216,16 @@ def test_unwritable_out_is_one_line_whoever_runs_it(tmp_path, capsys, monkeypatc
     err = capsys.readouterr().err
     line, = _error_lines(err)
     assert rc == 2 and f"cannot write --out {out}: Permission denied" in line and "Traceback" not in err
+
+
+def test_out_reaching_an_input_through_a_symlink_is_refused(tmp_path, capsys):
+    """Paths are compared after resolving links: a link to the images is the images."""
+    inp = _inputs(tmp_path)
+    link = tmp_path / "renders"
+    link.symlink_to(inp["images"], target_is_directory=True)
+    before = _tree(inp["root"])
+    rc = _main("splat_train.__main__")(["render", "--model", str(inp["list"]), "--cameras", str(inp["model"]),
+                                        "--images", str(inp["images"]), "--out", str(link / ".")])
+    line, = _error_lines(capsys.readouterr().err)
+    assert rc == 2 and "is the input --images" in line
+    assert _tree(inp["root"]) == before
