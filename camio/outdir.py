@@ -3,9 +3,10 @@
 Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
 
 * ``--out`` must not be, contain, or lie inside any input path of the command (compared
-  after resolving symlinks). A results-tree reader whose report folder normally sits inside
-  the tree names that input in ``may_hold_out``: its ``--out`` may lie inside it, never be it
-  or contain it.
+  after resolving symlinks). Where the output's place is inside an input by design (the
+  results-tree readers' report folders, ``camio split``'s ``scene/split.json``) the command
+  names that input in ``may_hold_out``: its ``--out`` may lie inside it, never be it or
+  contain it.
 * A folder ``--out`` that exists must be empty (Snakemake creates output folders before a
   job), or hold the marker file :data:`MARKER` naming this same stage: a rerun of the stage
   into its own folder works, any other non-empty folder is refused.
@@ -115,12 +116,12 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
     given = _inputs(inputs)
     for name, p in given:
         if o == p:
-            raise OutputFolderError(f"--out {out} is the input {name} {p}: choose another output folder "
+            raise OutputFolderError(f"--out {out} is the input {name} {p}: choose another output "
                                     "(a stage never writes over its inputs)")
     for name, p in given:
         if p in o.parents and name not in hold_ok:
             raise OutputFolderError(f"--out {out} lies inside the input {name} {p}: choose an output "
-                                    "folder outside the inputs")
+                                    "outside the inputs")
         if o in p.parents:
             raise OutputFolderError(f"--out {out} contains the input {name} {p}: choose an output "
                                     "folder that holds none of the inputs")

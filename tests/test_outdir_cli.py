@@ -229,3 +229,19 @@ def test_out_reaching_an_input_through_a_symlink_is_refused(tmp_path, capsys):
     line, = _error_lines(capsys.readouterr().err)
     assert rc == 2 and "is the input --images" in line
     assert _tree(inp["root"]) == before
+
+
+def test_split_json_may_go_into_the_scene_folder_but_never_over_an_input(tmp_path, capsys):
+    """``camio split --scene S --out S/split.json`` is the scene layout; over the manifest it is refused."""
+    from camio.__main__ import main
+
+    scene = tmp_path / "scene"
+    for i in range(9):
+        (scene / "images").mkdir(parents=True, exist_ok=True)
+        (scene / "images" / f"{i:02d}.png").write_bytes(b"")
+    assert main(["split", "--scene", str(scene), "--n", "3", "--out", str(scene / "split.json")]) == 0
+    assert (scene / "split.json").is_file()
+    manifest = scene / "split.json"
+    before = manifest.read_bytes()
+    assert main(["split", "--scene", str(scene), "--manifest", str(manifest), "--out", str(manifest)]) == 2
+    assert "is the input --manifest" in capsys.readouterr().err and manifest.read_bytes() == before
