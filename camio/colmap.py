@@ -313,7 +313,14 @@ def _check_read(model_dir: Path, rec) -> None:
 
 
 def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
-    """Read a COLMAP model (text or binary) with pycolmap.
+    """Read a COLMAP model (text or binary) with pycolmap, checked.
+
+    A text model is checked line by line first (:func:`_check_text_model`: finite values,
+    positive sizes and focal lengths, non-zero quaternions, defined camera ids, names without
+    spaces), then what pycolmap read (:func:`_check_read`; the only check a binary model
+    gets). Errors name the file (and line); pycolmap's own messages show only with -v.
+    Observations of point ids that points3D.txt lacks are dropped with a warning giving
+    their count; a text model without points3D.txt is read as cameras only.
 
     Args:
         path: the model folder (or a scene folder holding sparse/0).
