@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "synth":
             from camio.synthetic import write_synthetic_scene
 
-            prepare_out(args.out, {}, "camio synth")
+            prepare_out(args.out, {}, "camio synth", replaces=True)
             with timed("synth", log):
                 write_synthetic_scene(args.out, views=args.views, width=args.width, seed=args.seed,
                                       arc_deg=args.arc_deg, layout=args.layout, supersample=args.supersample)
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "convert":
             from camio.prepare import prepare_scene
 
-            prepare_out(args.out, {"--src": args.src}, "camio convert")
+            prepare_out(args.out, {"--src": args.src}, "camio convert", replaces=True)
             with timed("convert", log):
                 prepare_scene(args.src, args.out, args.format, args.images_subdir, args.downsample,
                               args.undistort, tuple(args.n), allow_mixed=args.allow_mixed,

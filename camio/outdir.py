@@ -10,8 +10,10 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
 * A folder ``--out`` that exists must be empty (Snakemake creates output folders before a
   job), or hold the marker file :data:`MARKER` naming this same stage: a rerun of the stage
   into its own folder works, any other non-empty folder is refused.
+* A folder holding only the workflow's ``logs/`` and ``benchmarks/`` (:data:`WORKFLOW_DIRS`)
+  counts as empty, except for a stage that replaces its folder whole.
 * A stage that replaces its whole folder (``replaces=True``: ``camio convert``, ``camio
-  synth``, ``evaluation report``) records in the marker what it wrote
+  synth``, ``evaluation report``, ``evaluation study``) records in the marker what it wrote
   (:func:`seal_out`); a rerun refuses a folder that holds anything else, so a file the
   stage did not write is never deleted.
 
@@ -30,12 +32,18 @@ from typing import Iterable, Mapping
 __all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs"]
 
 MARKER = ".stage"
+"""Marker file in every folder a stage creates: line 1 the stage name, then (for stages that
+replace their folder whole) one top-level entry name per line that the stage wrote."""
 
 TOOL_FILES = frozenset({".snakemake_timestamp"})
 """Entries a workflow tool adds to a stage's folder (Snakemake touches this one in every
 ``directory()`` output it has completed); they are not the user's files."""
-"""Marker file in every folder a stage creates: line 1 the stage name, then (for stages that
-replace their folder whole) one top-level entry name per line that the stage wrote."""
+
+WORKFLOW_DIRS = frozenset({"logs", "benchmarks"})
+"""Folders the workflow's ``log:`` and ``benchmark:`` paths put inside a job's output folder
+before the job starts (workflow/rules/*.smk, e.g. ``n3/oracle/logs/``). A folder holding only
+these counts as empty for a stage that writes beside them; a stage that replaces its folder
+whole (which would delete them) still refuses it."""
 
 PathLike = str | os.PathLike
 
@@ -51,7 +59,8 @@ def tidy_outs() -> None:
     for folder, created in list(_PREPARED.items()):
         _PREPARED.pop(folder, None)
         try:
-            if folder.is_dir() and [e.name for e in folder.iterdir()] == [MARKER]:
+            if folder.is_dir() and MARKER in {e.name for e in folder.iterdir()} and not [
+                    e for e in folder.iterdir() if e.name != MARKER and not (e.name in WORKFLOW_DIRS and e.is_dir())]:
                 (folder / MARKER).unlink()
                 if created:
                     folder.rmdir()
@@ -94,7 +103,7 @@ def _read_marker(folder: Path) -> tuple[str | None, set[str] | None]:
 
 
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
-              folder: bool = True, may_hold_out: Iterable[str] = ()) -> Path:
+              folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False) -> Path:
     """Refuse an ``--out`` that breaks the output rule (module docstring); write nothing.
 
     Args:
@@ -103,6 +112,8 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         stage: the stage's name as written in the marker (e.g. ``"camio convert"``).
         folder: ``out`` is a folder (the non-empty rule applies) or a file.
         may_hold_out: input names whose folder may hold ``out`` (results-tree readers).
+        replaces: the stage replaces its folder whole (its writer is ``camio.atomic.atomic_dir``
+            on ``out``): only its own entries may be there.
 
     Returns:
         ``out`` as a Path.
@@ -132,14 +143,15 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
     if o.exists() and not o.is_dir():
         raise OutputFolderError(f"--out {out} is a file, not a folder: choose a folder for {stage}")
     if o.is_dir():
-        entries = sorted(e.name for e in o.iterdir() if e.name != MARKER)
+        entries = sorted(e.name for e in o.iterdir() if e.name != MARKER and e.name not in TOOL_FILES
+                         and not (not replaces and e.name in WORKFLOW_DIRS and e.is_dir()))
         owner, written = _read_marker(o)
         if entries and owner != stage:
             who = f"was written by `{owner}`" if owner else f"has no {MARKER} marker of `{stage}`"
             raise OutputFolderError(f"--out {out} is not empty ({len(entries)} entries, e.g. {entries[0]}) and "
                                     f"{who}: choose an empty or new folder (nothing was changed)")
         if written is not None:
-            foreign = [e for e in entries if e not in written and e not in TOOL_FILES]
+            foreign = [e for e in entries if e not in written]
             if foreign:
                 raise OutputFolderError(f"--out {out} holds {o / foreign[0]}, which `{stage}` did not write "
                                         f"and would replace: move it away or choose a new folder")
@@ -147,7 +159,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
 
 
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
-                folder: bool = True, may_hold_out: Iterable[str] = ()) -> Path:
+                folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False) -> Path:
     """:func:`check_out`, then create a folder ``out`` and mark it as ``stage``'s (a file
     ``out`` gets its parent folder created). A folder that cannot be written (read-only,
     no permission) is refused as one line too.
@@ -155,7 +167,7 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
     Returns:
         ``out`` as a Path.
     """
-    out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out)
+    out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
         created = not target.exists()

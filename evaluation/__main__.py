@@ -126,7 +126,7 @@ def _prepare_out(args) -> None:
     spec = _OUTPUTS.get(args.command)
     if spec is None or getattr(args, "out", None) is None:
         return
-    names, folder, hold, _ = spec
+    names, folder, hold, replaces = spec
     inputs = {}
     for name in names:
         val = getattr(args, name, None)
@@ -135,7 +135,8 @@ def _prepare_out(args) -> None:
         if name == "cells" and val and str(val).lstrip().startswith("{"):
             val = None  # JSON text, not a file
         inputs["--" + name.replace("_", "-")] = val
-    prepare_out(args.out, inputs, f"evaluation {args.command}", folder=folder, may_hold_out=hold)
+    prepare_out(args.out, inputs, f"evaluation {args.command}", folder=folder, may_hold_out=hold,
+                replaces=replaces)
 
 
 def _seal_out(args) -> None:

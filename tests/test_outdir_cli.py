@@ -245,3 +245,21 @@ def test_split_json_may_go_into_the_scene_folder_but_never_over_an_input(tmp_pat
     before = manifest.read_bytes()
     assert main(["split", "--scene", str(scene), "--manifest", str(manifest), "--out", str(manifest)]) == 2
     assert "is the input --manifest" in capsys.readouterr().err and manifest.read_bytes() == before
+
+
+def test_workflow_logs_inside_out_count_as_empty_except_for_a_replacing_stage(tmp_path, capsys):
+    """Snakemake makes ``n3/oracle/logs/`` (the rule's log:) before the job: the stage writes
+    beside it; ``camio synth``, which replaces its folder whole, refuses rather than delete it."""
+    from camio.__main__ import main
+
+    inp = _inputs(tmp_path)
+    out = tmp_path / "run"
+    (out / "logs").mkdir(parents=True)
+    (out / "logs" / "oracle_init.log").write_text("")
+    rc = _main("evaluation.__main__")(["plots", "--results", str(inp["root"]), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    assert (out / "logs" / "oracle_init.log").exists()
+    synth = tmp_path / "synth"
+    (synth / "logs").mkdir(parents=True)
+    assert main(["synth", "--out", str(synth), "--views", "3", "--width", "16"]) == 2
+    assert "not empty" in capsys.readouterr().err and (synth / "logs").is_dir()
