@@ -76,7 +76,7 @@ class OutputFolderError(ValueError):
 
 
 def _resolved(p: PathLike) -> Path:
-    return Path(os.path.abspath(os.path.expanduser(os.fspath(p)))).resolve()
+    return Path(os.path.abspath(os.fspath(p))).resolve()  # as the stage will open it (no ~ expansion)
 
 
 def _inputs(inputs: Mapping[str, PathLike | Iterable[PathLike] | None]) -> list[tuple[str, Path]]:
