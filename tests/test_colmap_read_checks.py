@@ -125,3 +125,24 @@ def test_cameras_only_model_reads_without_points3d(tmp_path, caplog):
     with caplog.at_level("WARNING"):
         m = read_model(model)
     assert len(m.cameras) == 3 and len(m.points) == 0 and "reading the cameras only" in caplog.text
+
+
+def test_binary_model_with_a_negative_focal_is_refused_naming_the_folder(tmp_path, capsys):
+    """A binary model has no lines to name: the check on what pycolmap read names the folder."""
+    import pycolmap
+
+    from evaluation.__main__ import main
+
+    ref = _model(tmp_path / "ref")
+    rec = pycolmap.Reconstruction()
+    rec.read(str(_model(tmp_path / "txt")))
+    cam = rec.cameras[1]
+    cam.params = [-30.0, 30.0, 16.0, 12.0]
+    rec.cameras[1] = cam
+    binary = tmp_path / "bin"
+    binary.mkdir()
+    rec.write_binary(str(binary))
+    rc = main(["pose", "--pred", str(binary), "--ref", str(ref), "--out", str(tmp_path / "pose.json")])
+    err = capsys.readouterr().err
+    line, = [ln for ln in err.splitlines() if " ERROR " in ln]
+    assert rc != 0 and str(binary) in line and "camera 1" in line and "focal" in line, line
