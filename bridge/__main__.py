@@ -65,7 +65,13 @@ def main(argv: list[str] | None = None) -> int:
         log.error("--images goes with --colmap only")
         return 2
     from bridge.inputs import load_colmap, load_predictions
+    from camio.outdir import OutputFolderError, prepare_out
 
+    try:
+        prepare_out(args.out, {"--pred": args.pred, "--colmap": args.colmap, "--images": args.images}, "bridge")
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return 2
     try:
         cfg = BridgeConfig(
             mode=args.mode, alpha_min=args.alpha_min, alpha_max=args.alpha_max,
@@ -81,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
             inp = load_predictions(args.pred) if args.pred else load_colmap(args.colmap, args.images)
         report = run_bridge(inp, args.out, cfg, timings={"load": timings["load input"]})
     except (ValueError, KeyError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
         return 1
     log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],

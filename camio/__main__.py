@@ -58,30 +58,42 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     setup_logging(args.verbose, args.quiet)
+    from camio.outdir import prepare_out, seal_out
+
     try:
         if args.cmd == "synth":
             from camio.synthetic import write_synthetic_scene
 
+            prepare_out(args.out, {}, "camio synth", replaces=True)
             with timed("synth", log):
                 write_synthetic_scene(args.out, views=args.views, width=args.width, seed=args.seed,
                                       arc_deg=args.arc_deg, layout=args.layout, supersample=args.supersample)
+            seal_out(args.out, "camio synth")
         elif args.cmd == "convert":
             from camio.prepare import prepare_scene
 
+            prepare_out(args.out, {"--src": args.src}, "camio convert", replaces=True)
             with timed("convert", log):
                 prepare_scene(args.src, args.out, args.format, args.images_subdir, args.downsample,
                               args.undistort, tuple(args.n), allow_mixed=args.allow_mixed,
                               skip_missing=args.skip_missing, announce=lambda s: print(s, flush=True))
+            seal_out(args.out, "camio convert")
         elif args.cmd == "split":
             from camio.images import list_images
             from camio.split import make_split, write_split
 
+            # split.json belongs in the scene folder (docs/contracts.md), never over an input
+            prepare_out(args.out, {"--scene": args.scene, "--manifest": args.manifest}, "camio split", folder=False,
+                        may_hold_out=("--scene",))
             folder = args.scene / "images" if (args.scene / "images").is_dir() else args.scene
             split = make_split(list_images(folder), tuple(args.n), args.manifest)
             write_split(args.out, split)
             log.info("split (%s): %d test, train n = %s -> %s", split.rule, len(split.test),
                      ", ".join(split.train), args.out)
     except (ValueError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()
         log.error("%s", exc)
         return 2
     return 0

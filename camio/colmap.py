@@ -188,8 +188,139 @@ def _check_text_counts(model_dir: Path, rec) -> None:
                                  f"the '# Number of {m.group(1)}' line)")
 
 
+# Number of leading focal-length parameters of each COLMAP camera model (f, or fx fy).
+_FOCALS = {"SIMPLE_PINHOLE": 1, "SIMPLE_RADIAL": 1, "RADIAL": 1, "SIMPLE_RADIAL_FISHEYE": 1, "RADIAL_FISHEYE": 1,
+           "PINHOLE": 2, "OPENCV": 2, "FULL_OPENCV": 2, "OPENCV_FISHEYE": 2, "FOV": 2, "THIN_PRISM_FISHEYE": 2}
+
+
+def _data_lines(f: Path) -> list[tuple[int, list[str]]]:
+    """(1-based line number, whitespace-split tokens) of every data line of a text model file,
+    as COLMAP's reader takes them: comments and blank lines are skipped, except that in
+    images.txt the line after each image line is its POINTS2D line, whatever it holds."""
+    out = []
+    points_line_next = False
+    for n, line in enumerate(f.read_text(errors="replace").splitlines(), 1):
+        if points_line_next:
+            out.append((n, line.split()))
+            points_line_next = False
+            continue
+        if line.strip().startswith("#") or not line.strip():
+            continue
+        out.append((n, line.split()))
+        points_line_next = f.name == "images.txt"
+    return out
+
+
+def _numbers(f: Path, n: int, toks: list[str], what: str, cast=float) -> list:
+    """``toks`` as numbers; a ValueError naming ``f:n`` if one is not a finite number."""
+    try:
+        vals = [cast(t) for t in toks]
+    except ValueError:
+        raise ValueError(f"{f}:{n}: {what} is not a number: {' '.join(toks)!r}") from None
+    if cast is float and not all(np.isfinite(vals)):
+        raise ValueError(f"{f}:{n}: {what} is not finite: {' '.join(toks)}; fix or re-export the model")
+    return vals
+
+
+def _check_text_model(model_dir: Path) -> int:
+    """Check a text model line by line before pycolmap reads it (pycolmap's own checks abort
+    with messages that name neither the file nor the line, or pass bad values silently).
+
+    Checked: every number finite; image sizes and focal lengths positive; quaternions
+    non-zero; every image's camera id defined in cameras.txt; image names without spaces
+    (COLMAP's reader keeps a name only up to its first space). Point ids that points3D.txt
+    does not define are counted (the reader drops those observations with a warning).
+
+    Returns:
+        The number of observations naming a point id that points3D.txt lacks.
+
+    Raises:
+        ValueError: ``file:line: what is wrong``, with what to do.
+    """
+    cams_f, imgs_f, pts_f = (model_dir / n for n in ("cameras.txt", "images.txt", "points3D.txt"))
+    camera_ids = set()
+    if cams_f.is_file():
+        for n, t in _data_lines(cams_f):
+            if len(t) < 5:
+                raise ValueError(f"{cams_f}:{n}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {' '.join(t)!r}")
+            cid, = _numbers(cams_f, n, t[:1], "the camera id", int)
+            w, h = _numbers(cams_f, n, t[2:4], "the image size", int)
+            params = _numbers(cams_f, n, t[4:], f"camera {cid}'s parameters")
+            if w <= 0 or h <= 0:
+                raise ValueError(f"{cams_f}:{n}: camera {cid} has the image size {w}x{h}; sizes must be positive")
+            k = _FOCALS.get(t[1], 0)
+            bad = [v for v in params[:k] if v <= 0]
+            if bad:
+                raise ValueError(f"{cams_f}:{n}: camera {cid} ({t[1]}) has the focal length {bad[0]:g}; focal "
+                                 "lengths must be positive (a negative one flips the image, zero collapses it)")
+            camera_ids.add(cid)
+    point_ids = set()
+    if pts_f.is_file():
+        for n, t in _data_lines(pts_f):
+            if len(t) < 8:
+                raise ValueError(f"{pts_f}:{n}: expected POINT3D_ID X Y Z R G B ERROR TRACK[], got {' '.join(t)!r}")
+            pid, = _numbers(pts_f, n, t[:1], "the point id", int)
+            _numbers(pts_f, n, t[1:4], f"point {pid}'s position")
+            point_ids.add(pid)
+    missing = 0
+    if imgs_f.is_file():
+        lines = _data_lines(imgs_f)
+        for k in range(0, len(lines), 2):
+            n, t = lines[k]
+            if len(t) < 10:
+                raise ValueError(f"{imgs_f}:{n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got {' '.join(t)!r}")
+            if len(t) > 10:
+                whole = " ".join(t[9:])
+                raise ValueError(f"{imgs_f}:{n}: the image name {whole!r} contains spaces, which the COLMAP text "
+                                 f"format cannot hold (COLMAP reads it as {t[9]!r}); rename the image file and "
+                                 f"its entry, e.g. to {'_'.join(t[9:])!r}")
+            iid, = _numbers(imgs_f, n, t[:1], "the image id", int)
+            q = _numbers(imgs_f, n, t[1:5], f"image {t[9]!r}'s quaternion")
+            _numbers(imgs_f, n, t[5:8], f"image {t[9]!r}'s translation")
+            cid, = _numbers(imgs_f, n, t[8:9], f"image {t[9]!r}'s camera id", int)
+            if not np.linalg.norm(q) > 1e-12:
+                raise ValueError(f"{imgs_f}:{n}: image {t[9]!r} has the zero quaternion {' '.join(t[1:5])}: "
+                                 "no rotation; fix or re-export the model")
+            if cams_f.is_file() and cid not in camera_ids:
+                raise ValueError(f"{imgs_f}:{n}: image {t[9]!r} uses camera {cid}, which {cams_f.name} does "
+                                 f"not define (defined: {sorted(camera_ids)})")
+            if k + 1 < len(lines):
+                n2, obs = lines[k + 1]
+                if len(obs) % 3:
+                    raise ValueError(f"{imgs_f}:{n2}: POINTS2D of image {t[9]!r} must be (X, Y, POINT3D_ID) triples")
+                _numbers(imgs_f, n2, obs[0::3] + obs[1::3], f"image {t[9]!r}'s 2D points")
+                ids = _numbers(imgs_f, n2, obs[2::3], f"image {t[9]!r}'s point ids", int)
+                missing += sum(1 for p in ids if p != -1 and p not in point_ids)
+    return missing
+
+
+def _check_read(model_dir: Path, rec) -> None:
+    """The same checks on what pycolmap read (binary models have no lines to name)."""
+    for cid, cam in rec.cameras.items():
+        params = np.asarray(cam.params, dtype=np.float64)
+        k = _FOCALS.get(cam.model.name, 0)
+        if not np.all(np.isfinite(params)) or np.any(params[:k] <= 0) or cam.width <= 0 or cam.height <= 0:
+            raise ValueError(f"{model_dir}: camera {cid} ({cam.model.name} {cam.width}x{cam.height} "
+                             f"{params.tolist()}) is not finite or has a non-positive size or focal length")
+    for iid, img in rec.images.items():
+        if img.camera_id not in rec.cameras:
+            raise ValueError(f"{model_dir}: image {img.name!r} uses camera {img.camera_id}, which the model "
+                             "does not define")
+        if img.has_pose:
+            m = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
+            if not np.all(np.isfinite(m)):
+                raise ValueError(f"{model_dir}: image {img.name!r} has a non-finite pose (or a zero quaternion)")
+
+
 def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
-    """Read a COLMAP model (text or binary) with pycolmap.
+    """Read a COLMAP model (text or binary) with pycolmap, checked.
+
+    A text model is checked line by line first (:func:`_check_text_model`: finite values,
+    positive sizes and focal lengths, non-zero quaternions, defined camera ids, names without
+    spaces), then what pycolmap read (:func:`_check_read`; the only check a binary model
+    gets). Errors name the file (and line); pycolmap's own messages show only with -v.
+    Observations of point ids that points3D.txt lacks are dropped with a warning giving
+    their count; a text model without points3D.txt is read as cameras only.
 
     Args:
         path: the model folder (or a scene folder holding sparse/0).
@@ -205,13 +336,31 @@ def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
 
     model_dir = find_model_dir(path)
     _check_text_ends(model_dir)
+    text = not (model_dir / "cameras.bin").is_file()
+    missing = _check_text_model(model_dir) if text else 0
     rec = pycolmap.Reconstruction()
-    try:
-        rec.read(str(model_dir))
-    except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError / IndexError
-        raise ValueError(f"cannot read the COLMAP model in {model_dir} (damaged or inconsistent files?): "
-                         f"{exc}") from exc
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="camio_model_") as tmp:
+        read_dir = model_dir
+        if text and (model_dir / "images.txt").is_file() and not (model_dir / "points3D.txt").is_file():
+            # cameras only: pycolmap wants all three files; the observations have no points
+            log.warning("%s has no points3D.txt: reading the cameras only", model_dir)
+            read_dir = Path(tmp)
+            for name in ("cameras.txt", "images.txt"):
+                (read_dir / name).write_bytes((model_dir / name).read_bytes())
+            (read_dir / "points3D.txt").write_text("")
+        try:
+            rec.read(str(read_dir))
+        except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError / IndexError
+            log.debug("pycolmap: %s", exc)
+            raise ValueError(f"cannot read the COLMAP model in {model_dir}: damaged or inconsistent files "
+                             "(-v shows pycolmap's message); copy or export the model again") from exc
     _check_text_counts(model_dir, rec)
+    _check_read(model_dir, rec)
+    if missing:
+        log.warning("%s: %d observations name point ids that points3D.txt does not define; they are "
+                    "dropped", model_dir / "images.txt", missing)
 
     cameras: list[Camera] = []
     camera_models: dict[str, tuple[str, np.ndarray]] = {}
@@ -243,7 +392,7 @@ def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
         cameras.append(Camera(img.name, cam.width, cam.height, K, cam_from_world))
         xy, idx = [], []
         for p2d in img.points2D:
-            if p2d.has_point3D():
+            if p2d.has_point3D() and p2d.point3D_id in row_of:
                 xy.append(np.asarray(p2d.xy, dtype=np.float64))
                 idx.append(row_of[p2d.point3D_id])
         observations[img.name] = (np.asarray(xy).reshape(-1, 2), np.asarray(idx, dtype=np.int64))

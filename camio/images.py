@@ -29,6 +29,8 @@ from camio.atomic import atomic_path
 __all__ = [
     "IMAGE_EXTENSIONS",
     "ImageReadError",
+    "ImageNameError",
+    "check_image_name",
     "read_image",
     "read_image_uint8",
     "read_pixels",
@@ -51,16 +53,44 @@ class ImageReadError(OSError):
     """An image file that is missing, unreadable, truncated or has an unusable layout."""
 
 
+class ImageNameError(ValueError):
+    """An image name that the COLMAP text format cannot hold."""
+
+
+def check_image_name(name: str, folder: str | Path | None = None) -> str:
+    """Refuse an image name with whitespace where it enters the pipeline.
+
+    COLMAP's text reader (``ReadImagesText``) takes the NAME field with
+    ``std::getline(line_stream, item, ' ')``: everything after the first space is lost, so
+    ``my vue 1.png`` comes back as ``my`` and different images collapse into one name. The
+    pipeline writes and reads text models, so such a name is refused when it enters.
+
+    Returns:
+        ``name`` unchanged.
+
+    Raises:
+        ImageNameError: one line naming the file and a suggested rename.
+    """
+    if any(ch.isspace() for ch in name):
+        path = Path(folder) / name if folder is not None else Path(name)
+        suggest = "_".join(name.split())
+        raise ImageNameError(f"image {path}: the name contains whitespace, which a COLMAP text model cannot "
+                             f"hold (COLMAP reads a name only up to the first space); rename the file, e.g. "
+                             f"to {suggest!r}")
+    return name
+
+
 def list_images(folder: str | Path) -> list[str]:
     """Sorted file names (not paths) of the images directly in ``folder``.
 
-    Hidden files (leading '.') are skipped; the extension test is case-insensitive.
+    Hidden files (leading '.') are skipped; the extension test is case-insensitive. A name
+    with whitespace is refused (:func:`check_image_name`).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"image folder {folder} does not exist")
     return sorted(
-        p.name for p in folder.iterdir()
+        check_image_name(p.name, folder) for p in folder.iterdir()
         if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
     )
 

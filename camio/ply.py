@@ -23,7 +23,8 @@ import numpy as np
 from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
-           "read_gaussian_ply", "PlyFormatError", "write_points_ply", "read_points_ply"]
+           "read_gaussian_ply", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
+           "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE"]
 
 SH_C0 = 0.28209479177387814
 
@@ -185,6 +186,60 @@ def _read_vertices(path: Path) -> np.ndarray:
         )
     v = np.frombuffer(body, dtype=dtype, count=n)
     return v
+
+
+SEED_MAX_ABS_POSITION = 1e8
+"""A seed coordinate beyond this is degenerate: float32 keeps ~7 digits, so a scene of unit
+size placed there renders as noise (and x1e30 overflows projections)."""
+
+SEED_LOG_SCALE_RANGE = (-30.0, 30.0)
+"""Log scales outside this (scales below 1e-13 or above 1e13) are degenerate: exp() gives 0 or
+inf in float32, the Gaussian is invisible or covers everything, and its gradient vanishes."""
+
+
+def check_seed_cloud(cloud: "GaussianCloud", path: str | Path, role: str = "seed") -> list[str]:
+    """Check a seed cloud before training (or a trained model before rendering).
+
+    Args:
+        cloud: the seed (N Gaussians).
+        path: its file, named in every message.
+        role: "seed" (a training input) or "model" (a trained model.ply to render).
+
+    Returns:
+        Warnings, one sentence each, naming what is degenerate: positions beyond
+        :data:`SEED_MAX_ABS_POSITION`, log scales outside :data:`SEED_LOG_SCALE_RANGE`, zero
+        quaternions. [] when nothing is.
+
+    Raises:
+        PlyFormatError: non-finite values (named by field and count), or no Gaussians.
+    """
+    n = len(cloud.means)
+    if n == 0:
+        raise PlyFormatError(f"{path}: the {role} holds no Gaussians")
+    fields = {"positions": cloud.means, "colours (sh_dc)": cloud.sh_dc, "SH coefficients": cloud.sh_rest,
+              "opacities": cloud.opacity_logit, "log scales": cloud.log_scales, "rotations": cloud.quats}
+    bad = [f"{name}: {int((~np.isfinite(a.reshape(n, -1))).any(axis=1).sum())} of {n}"
+           for name, a in fields.items() if a.size and not np.all(np.isfinite(a))]
+    if bad:
+        fix = ("fix or regenerate the seed PLY (e.g. re-run `python -m bridge`)" if role == "seed" else
+               "the trained model is damaged; train again (or render an earlier checkpoint's model)")
+        raise PlyFormatError(f"{path}: non-finite values in the {role} ({'; '.join(bad)}): {fix}")
+    out = []
+    far = np.abs(cloud.means).max(axis=1) > SEED_MAX_ABS_POSITION
+    if far.any():
+        out.append(f"{path}: {int(far.sum())} of {n} positions lie beyond {SEED_MAX_ABS_POSITION:g} "
+                   f"(largest {float(np.abs(cloud.means).max()):.3g}): float32 cannot render them; normalise "
+                   "the seed (the Bridge does)")
+    lo, hi = SEED_LOG_SCALE_RANGE
+    odd = ((cloud.log_scales < lo) | (cloud.log_scales > hi)).any(axis=1)
+    if odd.any():
+        out.append(f"{path}: {int(odd.sum())} of {n} Gaussians have log scales outside [{lo:g}, {hi:g}] "
+                   f"(from {float(cloud.log_scales.min()):.3g} to {float(cloud.log_scales.max()):.3g}): "
+                   "scales of 0 or inf in float32, so they cannot be trained")
+    zq = np.linalg.norm(cloud.quats, axis=1) < 1e-12
+    if zq.any():
+        out.append(f"{path}: {int(zq.sum())} of {n} Gaussians have a zero rotation quaternion")
+    return out
 
 
 def read_gaussian_ply(path: str | Path) -> GaussianCloud:

@@ -104,6 +104,50 @@ def _cmd_study(args) -> int:
     return 0
 
 
+# The output rule (camio.outdir) of each command: its input options, whether --out is a folder,
+# the inputs whose tree may hold --out (results-tree readers), and whether the command
+# replaces its --out folder whole.
+_OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
+    "pose": (("pred", "ref", "names"), False, (), False),
+    "images": (("pred", "gt", "lpips_weights"), False, (), False),
+    "align": (("pred", "ref", "train_names", "test_names", "images"), True, (), False),
+    "tables": (("results",), True, ("--results",), False),
+    "plots": (("results",), True, ("--results",), False),
+    "report": (("results", "scenes"), True, ("--results", "--scenes"), True),
+    "floaters": (("model", "align", "scene"), False, (), False),
+    "study": (("results", "cells"), True, ("--results",), True),
+}
+
+
+def _prepare_out(args) -> None:
+    """Apply camio's output rule to ``args.out`` of the command (:data:`_OUTPUTS`)."""
+    from camio.outdir import prepare_out
+
+    spec = _OUTPUTS.get(args.command)
+    if spec is None or getattr(args, "out", None) is None:
+        return
+    names, folder, hold, replaces = spec
+    inputs = {}
+    for name in names:
+        val = getattr(args, name, None)
+        if name == "model" and val:
+            val = [item.partition("=")[2] for item in val]
+        if name == "cells" and val and str(val).lstrip().startswith("{"):
+            val = None  # JSON text, not a file
+        inputs["--" + name.replace("_", "-")] = val
+    prepare_out(args.out, inputs, f"evaluation {args.command}", folder=folder, may_hold_out=hold,
+                replaces=replaces)
+
+
+def _seal_out(args) -> None:
+    """Record what a command that replaces its folder whole wrote (camio.outdir.seal_out)."""
+    from camio.outdir import seal_out
+
+    spec = _OUTPUTS.get(args.command)
+    if spec is not None and spec[3]:
+        seal_out(args.out, f"evaluation {args.command}")
+
+
 def _missing_images(exc: Exception):
     def run(args) -> int:
         log.error("the 'images' command is not available: importing evaluation.images_cli failed "
@@ -223,9 +267,21 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         log.error("evaluation.images_cli.add_parser did not set a handler (set_defaults(func=...))")
         return 2
+    from camio.outdir import OutputFolderError
+
     try:
-        return int(func(args) or 0)
+        _prepare_out(args)
+        rc = int(func(args) or 0)
+        if rc == 0:
+            _seal_out(args)
+        return rc
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return 2
     except (ValueError, KeyError, OSError) as exc:  # bad inputs: a clear message, no traceback
+        from camio.outdir import tidy_outs
+
+        tidy_outs()
         log.debug("traceback", exc_info=True)
         log.error("%s failed: %s", args.command, exc)
         return 1

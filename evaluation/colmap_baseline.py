@@ -115,12 +115,62 @@ def _check_inputs(images_dir: Path, names: list[str]) -> None:
         FileNotFoundError: names missing from ``images_dir`` (named).
         ImageReadError: the first truncated, corrupt or unreadable image (named).
     """
+    from camio.images import check_image_name
+
+    for n in names:
+        check_image_name(n, images_dir)
     missing = [n for n in names if not (images_dir / n).is_file()]
     if missing:
         raise FileNotFoundError(
             f"training images not found in {images_dir}: {missing[:5]}; check the split and "
             "the scene's images/ folder")
     check_images(images_dir / n for n in names)
+
+
+MIN_IMAGE_SIDE = 16
+"""Smaller images give SIFT nothing to find (COLMAP then reports only "no initial pair")."""
+
+
+def input_problems(images_dir: Path, names: list[str]) -> list[str]:
+    """What in the training images keeps COLMAP's single shared camera from using them all.
+
+    COLMAP's extractor (``CameraMode.SINGLE``) gives every image the first image's camera and
+    skips any image whose stored size differs (a message shown only with -v); an EXIF
+    rotation changes the stored-vs-displayed size, and a tiny image has no features. The
+    mapper then reports only "no initial image pair".
+
+    Returns:
+        One sentence per problem ([] when none): mixed stored sizes, EXIF-rotated images,
+        images smaller than :data:`MIN_IMAGE_SIDE` px.
+    """
+    import OpenImageIO as oiio
+
+    sizes: dict[tuple[int, int], list[str]] = {}
+    rotated, small = [], []
+    for n in names:
+        inp = oiio.ImageInput.open(str(images_dir / n))
+        if inp is None:
+            continue  # _check_inputs has already named unreadable files
+        try:
+            spec = inp.spec()
+            w, h, o = int(spec.width), int(spec.height), int(spec.get_int_attribute("Orientation", 1))
+        finally:
+            inp.close()
+        sizes.setdefault((w, h), []).append(n)
+        if o not in (0, 1):
+            rotated.append(f"{n} (orientation {o})")
+        if min(w, h) < MIN_IMAGE_SIDE:
+            small.append(f"{n} ({w}x{h})")
+    out = []
+    if len(sizes) > 1:
+        parts = ", ".join(f"{w}x{h}: {len(v)} image{'s' * (len(v) > 1)} (e.g. {v[0]})"
+                          for (w, h), v in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
+        out.append(f"images of different sizes ({parts}): COLMAP's single shared camera skips the odd ones")
+    if rotated:
+        out.append(f"EXIF-rotated images: {', '.join(rotated[:3])}: COLMAP reads them unrotated")
+    if small:
+        out.append(f"images too small for features (< {MIN_IMAGE_SIDE} px): {', '.join(small[:3])}")
+    return out
 
 
 def _options(settings: ColmapSettings, seed: int):
@@ -209,6 +259,9 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
         "mean_reproj_error_px": None, "settings": settings.to_json(),
         "num_threads": settings.num_threads, "matching_threads": settings.matching_threads,
     }
+    problems = input_problems(images_dir, names)
+    for p in problems:
+        log.warning("COLMAP baseline input: %s", p)
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
     try:
@@ -269,6 +322,9 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
             os.replace(work, dst)
         else:
             shutil.rmtree(work, ignore_errors=True)
+    if problems and not status["success_paper"]:
+        status["reason"] = "; ".join(problems) + (f" (COLMAP: {status['reason']})" if status["reason"] else "")
+    status["input_problems"] = problems
     status["wall_time_s"] = time.perf_counter() - t0
     status["peak_rss_mb"] = peak_rss_mb()
     write_json(out_dir / "status.json", status)
@@ -364,8 +420,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
     try:
+        from camio.outdir import prepare_out
+
+        prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
+                               "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
     except (ImageReadError, FileNotFoundError, ValueError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
     return 0

@@ -343,10 +343,18 @@ def main(argv: list[str] | None = None) -> int:
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError
+    from camio.outdir import OutputFolderError, prepare_out, tidy_outs
 
+    try:
+        prepare_out(args.out, {"--scene": args.scene, "--split": args.split, "--image-list": args.image_list},
+                    "evaluation.oracle")
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return 2
     try:
         run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
     return 0

@@ -147,8 +147,14 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("give the training images: --image-list or --names")
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     try:
+        from camio.outdir import prepare_out
+
+        prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
     except (ValueError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
         return 2
     return 0

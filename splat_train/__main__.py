@@ -98,6 +98,18 @@ def _render_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _out_ok(out: str, inputs: dict, stage: str) -> bool:
+    """camio's output rule for ``--out`` (camio.outdir); False after logging the one-line refusal."""
+    from camio.outdir import OutputFolderError, prepare_out
+
+    try:
+        prepare_out(out, inputs, stage)
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "render":
@@ -115,14 +127,30 @@ def main(argv: list[str] | None = None) -> int:
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")
             return 2
+        if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
+                                  "--image-list": args.image_list}, "splat_train render"):
+            return 2
+        from camio.ply import check_seed_cloud, read_gaussian_ply
+
+        for warning in check_seed_cloud(read_gaussian_ply(args.model), args.model, role="model"):
+            log.warning("degenerate model: %s", warning)
         render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
                      height=args.height, names=args.image_list, background=bg, device=args.device)
         return 0
 
     args = _train_parser().parse_args(argv)
     setup_logging(args.verbose, args.quiet)
+    if not _out_ok(args.out, {"--seed": args.seed, "--cameras": args.cameras, "--images": args.images,
+                              "--test-cameras": args.test_cameras, "--test-images": args.test_images,
+                              "--image-list": args.image_list, "--test-image-list": args.test_image_list,
+                              "--resume-dir": args.resume_dir}, "splat_train"):
+        return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
     from splat_train.config import load_config
     from splat_train.trainer import train
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed), args.seed):
+        log.warning("degenerate seed: %s", warning)
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
@@ -154,7 +182,15 @@ def _cli() -> int:
     traceback). :func:`main` itself still raises, for callers and tests."""
     try:
         return main()
+    except KeyboardInterrupt:
+        # Checkpoints are written atomically (camio.atomic): the last one is whole, and a
+        # rerun with the same arguments resumes from it.
+        log.error("interrupted (Ctrl-C): the last checkpoint is intact; run the same command again to resume")
+        return 130
     except (ValueError, KeyError, OSError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.debug("traceback", exc_info=True)
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         log.error("%s: %s", type(exc).__name__, msg)

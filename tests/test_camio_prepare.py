@@ -24,7 +24,7 @@ def synth(tmp_path_factory):
 
 
 def test_cli_synth_layout(synth):
-    assert sorted(p.name for p in synth.iterdir()) == ["gt", "images", "sparse", "split.json", "synthetic.json"]
+    assert sorted(p.name for p in synth.iterdir()) == [".stage", "gt", "images", "sparse", "split.json", "synthetic.json"]
     meta = json.loads((synth / "synthetic.json").read_text())
     assert meta["seed"] == 2 and meta["views"] == 9 and meta["width"] == 64
 

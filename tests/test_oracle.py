@@ -162,10 +162,10 @@ def test_errors_are_clear(scene, tmp_path):
         OracleNoise(rot_deg=-1)
 
 
-def test_cli_reads_the_split(scene, tmp_path):
+def test_cli_reads_the_split(scene, tmp_path, tmp_path_factory):
     split = {"rule": "every8", "test": ["a.png"], "train_pool": NAMES[1:], "train": {"3": NAMES[1:]}}
     (tmp_path / "split.json").write_text(json.dumps(split))
-    out = tmp_path / "cli"
+    out = tmp_path_factory.mktemp("oracle_cli") / "cli"  # outside the scene: the output rule
     assert main(["--scene", str(scene), "--split", str(tmp_path / "split.json"), "--n", "3",
                  "--out", str(out), "--rot-deg", "1", "--seed", "7"]) == 0
     d = np.load(out / "predictions.npz")

@@ -51,6 +51,14 @@ def main(argv: list[str] | None = None) -> int:
     from vggt_init.memory import retain_freed_memory
     from vggt_init.run import MemoryBudgetError, RunOptions, run
 
+    from camio.outdir import OutputFolderError, prepare_out
+
+    try:
+        prepare_out(args.out, {"--images": args.images, "--image-list": args.image_list,
+                               "--checkpoint": args.checkpoint, "--model-config": args.model_config}, "vggt_init")
+    except OutputFolderError as exc:
+        log.error("%s", exc)
+        return 2
     if not args.no_retain_memory:
         retain_freed_memory()  # process-wide, so only the CLI does it
 
@@ -65,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         run(opts)
     except (CheckpointNotFoundError, CheckpointFormatError, StateDictMismatchError, ImageInputError,
             MemoryBudgetError, FileNotFoundError, ValueError) as exc:
+        from camio.outdir import tidy_outs
+
+        tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
     return 0
