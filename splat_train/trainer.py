@@ -488,6 +488,14 @@ class Trainer:
         return TrainResult(out, summary)
 
 
+def _is_digest_folder(path: Path) -> bool:
+    """A checkpoint folder this trainer wrote under a resume dir: 16 hex digits holding only
+    ``ckpt/`` (anything else there is not the trainer's and is never deleted)."""
+    return (path.is_dir() and not path.is_symlink() and len(path.name) == 16
+            and all(c in "0123456789abcdef" for c in path.name)
+            and all(child.name == "ckpt" for child in path.iterdir()))
+
+
 def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
           cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
           test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None,
@@ -508,7 +516,8 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         depth_prior: the Bridge's ``depth_prior.npz`` (None: the one beside ``seed``, if any);
             used when the config's ``depth_weight`` > 0.
         resume_dir: keep checkpoints in ``resume_dir/<inputs digest>/ckpt`` (not ``out_dir/ckpt``);
-            folders of other digests there are stale and removed at the start, this run's is
+            checkpoint folders of other digests there are stale and removed at the start (any
+            other file or folder there is left alone), this run's is
             removed after its outputs are written.
 
     Raises:
@@ -540,9 +549,9 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
         return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior).run()
     resume_dir = Path(resume_dir)
     own = resume_dir / digest[:16]
-    for stale in (p for p in resume_dir.iterdir() if p != own) if resume_dir.is_dir() else ():
+    for stale in (p for p in resume_dir.iterdir() if p != own and _is_digest_folder(p)) if resume_dir.is_dir() else ():
         log.info("removing %s: checkpoints of other inputs or config", stale)
-        shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
+        shutil.rmtree(stale)
     result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest,
                      depth_prior=depth_prior).run()
     shutil.rmtree(own, ignore_errors=True)

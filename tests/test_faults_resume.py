@@ -197,8 +197,8 @@ def test_killed_train_splats_rule_resumes_from_its_checkpoint(tmp_path):
 
 
 def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
-    """--resume-dir: checkpoints under RES/<hash>/ckpt, another hash's folder is stale and
-    removed, RES goes once the outputs are written; a checkpoint of other inputs in OUT/ckpt
+    """--resume-dir: checkpoints under RES/<hash>/ckpt, another hash's checkpoint folder is
+    stale and removed (a user's files there are left alone), RES goes once empty; a checkpoint of other inputs in OUT/ckpt
     is refused, naming the hash."""
     from splat_train.config import load_config
     from splat_train.data import load_views
@@ -214,10 +214,14 @@ def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
 
     res = tmp_path / "res"
     (res / "0123456789abcdef" / "ckpt").mkdir(parents=True)  # another run's, stale
+    (res / "notes.txt").write_text("a user's file")  # not the trainer's: never deleted
+    (res / "fedcba9876543210").mkdir()
+    (res / "fedcba9876543210" / "data.bin").write_bytes(b"x")  # a digest-like name, not a checkpoint folder
     n = torch.get_num_threads()
     try:
         out = train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out", cfg, resume_dir=res)
-        assert out.summary["inputs_sha256"] == digest and not res.exists()
+        assert out.summary["inputs_sha256"] == digest
+        assert sorted(p.name for p in res.iterdir()) == ["fedcba9876543210", "notes.txt"]
 
         # a checkpoint of these inputs, then the seed changes: refused
         train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "out2", cfg)
