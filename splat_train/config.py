@@ -95,7 +95,9 @@ class TrainConfig:
             Gaussian is cloned (small) or split (large).
         percent_dense: a Gaussian is "large" when its largest scale exceeds this fraction of
             the scene extent.
-        opacity_reset_every: set every opacity to min(opacity, opacity_reset_value) this often.
+        opacity_reset_every: set every opacity to min(opacity, opacity_reset_value) this often
+            (0: never, and no size prune; None: the recipe's: ``paper`` every 30 % of the run,
+            ``sparse`` never).
         prune_opacity: remove Gaussians whose opacity falls below this at densification.
         prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
             radius exceeded this many pixels ...
@@ -219,7 +221,8 @@ class TrainConfig:
                 setattr(self, key, preset[key])
         for key in SCHEDULE_KEYS:
             v = getattr(self, key)
-            least = 0 if key in ("densify_from", "densify_until") else 1  # densify_until 0: no densification
+            # densify_until 0: no densification; opacity_reset_every 0: no reset
+            least = 0 if key in ("densify_from", "densify_until", "opacity_reset_every") else 1
             if v is not None and (int(v) != v or v < least):
                 raise ValueError(f"{key} must be an iteration count >= {least}, got {v}")
         if not 0.0 <= self.dropout_rate < 1.0:
@@ -271,13 +274,15 @@ class TrainConfig:
                 values[key], source[key] = int(set_value), "set"
             elif key in preset:  # an absolute count of the recipe (paper's period)
                 values[key], source[key] = int(preset[key]), f"recipe {self.recipe}"
+            elif preset[f"{key}_fraction"] is None:  # the recipe never does it (sparse: no reset)
+                values[key], source[key] = 0, f"recipe {self.recipe}: never"
             else:
                 frac = preset[f"{key}_fraction"]
                 values[key] = max(1, int(round(frac * n)))
                 source[key] = f"recipe {self.recipe}: {frac:g} x {n}"
         if source["densify_every"] != "set" and "densify_every" not in preset:
             values["densify_every"] = max(values["densify_every"], MIN_DENSIFY_EVERY)
-        if source["opacity_reset_every"] != "set":
+        if source["opacity_reset_every"] != "set" and values["opacity_reset_every"] > 0:
             # a reset needs time to recover: never more often than every 3 densifications
             values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
         return Schedule(**values, source=source)

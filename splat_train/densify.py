@@ -188,7 +188,8 @@ class DensifyStrategy:
             densify_from < it < densify_until and it % densify_every == 0 (1-based; the 3DGS
             test, so a run whose densify_until equals its length never densifies at its
             last step).
-        opacity_reset_every: reset at it % opacity_reset_every == 0, it < densify_until.
+        opacity_reset_every: reset at it % opacity_reset_every == 0, it < densify_until; 0:
+            never (and then no size prune either: 3DGS prunes by size only after a reset).
         grad_threshold: mean NDC view-space gradient norm that triggers clone / split.
         percent_dense: clone if max scale <= percent_dense * extent, else split.
         prune_opacity: prune alpha below this.
@@ -270,7 +271,7 @@ class DensifyStrategy:
             return out
         if iteration > self.densify_from and iteration % self.densify_every == 0:
             out.update(self._densify_and_prune(params, optimizer, state, iteration, extent, generator))
-        if iteration % self.opacity_reset_every == 0:
+        if self.opacity_reset_every > 0 and iteration % self.opacity_reset_every == 0:
             reset_opacity(params, optimizer, self.reset_value)
             out["reset"] = 1
         return out
@@ -304,7 +305,7 @@ class DensifyStrategy:
         with torch.no_grad():
             alpha = torch.sigmoid(params["opacity"].detach()[src])
             prune = alpha < self.prune_opacity
-            if iteration > self.opacity_reset_every:
+            if 0 < self.opacity_reset_every < iteration:
                 prune |= radii > self.prune_screen_size
                 max_scale = torch.cat([torch.exp(params["scales"].detach()[src[:n_plain]]),
                                        torch.exp(children_scales)]).amax(1)
