@@ -297,3 +297,24 @@ def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
     assert tj["recipe"] == "sparse" and tj["depth_prior"]["samples"] > 0
     assert json.loads((tmp_path / "t_b_off" / "train.json").read_text())["depth_prior"] is None
     assert "depth term off" in rc.stderr
+
+
+def test_no_opacity_reset_means_no_reset_and_no_size_prune():
+    """opacity_reset_every 0 (the sparse recipe): the schedule never resets opacity, and the
+    size prunes that 3DGS runs only after a reset stay off."""
+    from splat_train.densify import DensifyStrategy
+    from splat_train.gaussians import make_optimizer, params_from_cloud
+    from _train_scene import make_cloud
+
+    cfg = TrainConfig(recipe="sparse", iterations=1000, device="cpu")
+    strat = DensifyStrategy.from_config(cfg, densify_from=0, densify_until=1000, densify_every=10,
+                                        prune_world_size=1e-6, prune_screen_size=0.0)
+    assert strat.opacity_reset_every == 0
+    params = params_from_cloud(make_cloud(), 0, "cpu")
+    opt = make_optimizer(params, cfg, 1.0)
+    state = strat.init_state(len(params["means"]))
+    n0 = len(params["means"])
+    for it in (10, 20, 300, 600, 900):
+        out = strat.step(params, opt, state, it, 1.0)
+        assert out["reset"] == 0 and out["pruned"] == 0
+    assert len(params["means"]) == n0
