@@ -176,17 +176,19 @@ def train_recipe_args(wildcards):
     import json
 
     t = config["train"]
-    args = f"--recipe {t['recipe']}"
+    args = [f"--recipe {t['recipe']}"]
     if t["iterations"] is not None:
-        args += f" --iterations {t['iterations']}"
-    parts = {
-        k: t[k]
-        for k in ("dropout_rate", "depth_weight", "gaussians_per_pixel", "depth_use_confidence")
-        if t[k] is not None
-    }
+        args.append(f"--iterations {t['iterations']}")
+    keys = (
+        "dropout_rate",
+        "depth_weight",
+        "gaussians_per_pixel",
+        "depth_use_confidence",
+    )
+    parts = {k: t[k] for k in keys if t[k] is not None}
     if parts:
-        args += " --config '" + json.dumps(parts, sort_keys=True) + "'"
-    return args
+        args.append(f"--config '{json.dumps(parts, sort_keys=True)}'")
+    return " ".join(args)
 
 
 def train_lpips_args(wildcards):
