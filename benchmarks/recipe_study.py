@@ -65,7 +65,7 @@ def sh(args: list[str], log: Path) -> None:
         raise RuntimeError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")
 
 
-def prepare(work: Path, scene: str, n: int, init: str) -> dict[str, Path]:
+def prepare(work: Path, scene: str, n: int, init: str, oracle_noise: str = "none") -> dict[str, Path]:
     """Prepare the cell in ``work`` (once): scene, split, views, initialiser, Bridge, alignment."""
     s, logf = work / "scene", work / "prepare.log"
     if not (s / "split.json").is_file():
@@ -91,7 +91,7 @@ def prepare(work: Path, scene: str, n: int, init: str) -> dict[str, Path]:
                 "--out", str(init_dir)], logf)
         elif init == "oracle":
             sh(["-m", "evaluation.oracle", "--scene", str(s), "--image-list", str(train_txt), "--out",
-                str(init_dir), *VGGT_LIKE, "--downsample", "2"], logf)
+                str(init_dir), *(VGGT_LIKE if oracle_noise == "vggt_like" else []), "--downsample", "2"], logf)
         if (init_dir / "predictions.npz").is_file():
             sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], logf)
         else:
@@ -189,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--work", type=Path, required=True, help="the cell's folder (prepared once, runs inside)")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--oracle-noise", choices=["none", "vggt_like"], default="none",
+                   help="the oracle's error: none (exact ground truth) or the study's simulated VGGT-like point")
     p.add_argument("--kernel-threads", type=int, default=0,
                    help="C++ kernel threads per run (0: every core; 1 to run two studies side by side)")
     args = p.parse_args(argv)
@@ -196,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"SKIP: {SCENES / REAL[args.scene][0]} is not here")
         return 0
     t0 = time.perf_counter()
-    cell = prepare(args.work, args.scene, args.n, args.init)
+    cell = prepare(args.work, args.scene, args.n, args.init, args.oracle_noise)
     eval_every = args.eval_every or max(1, args.iterations // 20)
     runs = []
     for seed in args.seeds:  # seed-major: an interrupted study has whole seeds of every variant
