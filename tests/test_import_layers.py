@@ -1,4 +1,4 @@
-"""splat_train's modules import each other one way: no import circle (issue 34).
+"""splat_train's modules import each other one way: no import circle.
 
 Every import counts, at the top of a module or inside a function; ``from splat_train import x``
 counts as an import of module ``x`` (a package ``__init__`` only hands names on and is left out).

@@ -1,5 +1,5 @@
 """Hostile inputs that used to give a cut name, a misleading reason or a traceback, each run
-through the command a user runs (issue 35):
+through the command a user runs:
 
 * image names with spaces are refused where they enter (``camio convert`` of a folder,
   ``evaluation.colmap_baseline``, ``vggt_init``), one line naming the file with a rename;
