@@ -380,6 +380,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cell-prepared", type=Path, metavar="DIR", default=None,
                    help="the --gpu cell from a folder of `python benchmarks/bench_cell.py --prepare-only DIR` "
                         "(made on another machine: the GPU runs training, render and metrics only)")
+    p.add_argument("--stages", type=Path, metavar="DIR", default=None,
+                   help="the --gpu parts workflow_cell and vggt_cli from a folder of "
+                        "`python benchmarks/gpu_stages.py prepare DIR` (skipped without it)")
+    p.add_argument("--gpu-parts", default=None,
+                   help="comma list of --gpu parts, run in this order (default: all, see benchmarks/gpu_check.py)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
     from camio.logs import setup_logging
@@ -388,7 +393,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.gpu:
         from benchmarks import gpu_check
 
-        return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info, cell_prepared=args.cell_prepared)
+        parts = tuple(x.strip() for x in args.gpu_parts.split(",") if x.strip()) if args.gpu_parts else gpu_check.PARTS
+        unknown = set(parts) - set(gpu_check.PARTS)
+        if unknown:
+            p.error(f"--gpu-parts: unknown {sorted(unknown)}; choose from {', '.join(gpu_check.PARTS)}")
+        return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info, cell_prepared=args.cell_prepared,
+                                 stages=args.stages, parts=parts)
     if args.compare and len(args.compare) > 2:
         p.error("--compare takes OLD.json or OLD.json NEW.json")
     if args.compare and len(args.compare) == 2:

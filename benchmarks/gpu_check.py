@@ -38,15 +38,19 @@ CELL_ITERATIONS = 10_000  # the paper's training length
 
 
 def vggt_fixtures(device: str) -> dict:
-    """VGGT on the reference fixtures at float64 and float32, max |ours - expected| per output.
-    TF32 is switched off for the check (cuDNN convolutions use it by default on CUDA, which
-    puts the float32 DPT heads ~1e-3 off: the first H100 run) and restored after."""
+    """VGGT on the reference fixtures at float64 and float32, max |ours - expected| per output,
+    with TF32 off (the check: cuDNN convolutions use TF32 by default on CUDA, which put the
+    float32 DPT heads ~2e-3 off on the first H100 run) and with TF32 on (what a user gets with
+    ``torch.backends.cuda.matmul.allow_tf32``); the flags are restored after."""
     flags = (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    out = {}
     try:
-        return {**_vggt_fixtures(device), "tf32": False}
+        for tf32 in (False, True):
+            torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
+            out[f"tf32_{'on' if tf32 else 'off'}"] = _vggt_fixtures(device)
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
+    return out
 
 
 def _vggt_fixtures(device: str) -> dict:
@@ -141,24 +145,55 @@ def rasterizer_timing(device: str, n: int = 100000, size: int = 512, reps: int =
     return out
 
 
-def gpu_cell(iterations: int = CELL_ITERATIONS, scene: str = "auto", prepared: Path | None = None) -> dict:
+def gpu_cell(iterations: int = CELL_ITERATIONS, scene: str = "auto", prepared: Path | None = None,
+             recipe: str = "paper") -> dict:
     """The pipeline cell on CUDA with the gsplat rasterizer (benchmarks/bench_cell.py, no VGGT
     forward: the fixtures part checks VGGT on the GPU). ``prepared``: a folder of
-    ``bench_cell.py --prepare-only`` (its CPU stages made elsewhere; train, render, metrics here)."""
+    ``bench_cell.py --prepare-only`` (its CPU stages made elsewhere; train, render, metrics here).
+    ``recipe``: the training recipe (``paper``: the paper's cell; ``cell_sparse`` runs ``sparse``)."""
     sys.path.insert(0, str(ROOT))
     from benchmarks import bench_cell
 
     with tempfile.TemporaryDirectory(prefix="gpu_cell_") as tmp:
         return bench_cell.run_cell(Path(tmp), scene, 3, iterations, vggt=False, device="cuda", rasterizer="gsplat",
-                                   prepared=prepared)
+                                   prepared=prepared, recipe=recipe)
 
 
-def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = ("vggt_fixtures", "rasterizer_parity",
-            "rasterizer_timing", "cell"), on_part: Callable[[dict], None] | None = None,
-            cell_prepared: Path | None = None) -> dict:
-    """Run the parts on CUDA (each independent: a failure is recorded as ``{"error": ...}``);
-    ``on_part(report)`` after each one (the caller saves it: a run cut off by a time limit
-    keeps the parts done)."""
+def native_cell(iterations: int, prepared: Path | None) -> dict:
+    """The same prepared cell trained by gsplat's own loop (benchmarks/gsplat_native.py)."""
+    if prepared is None:
+        raise ValueError("the gsplat-native loop needs a prepared cell (--cell-prepared)")
+    from benchmarks.gsplat_native import train_native
+
+    return train_native(prepared, iterations)
+
+
+def gsplat_build(device: str) -> dict:
+    """Load gsplat's CUDA extension, JIT-building it on a fresh machine (its time is the
+    first-use cost a user pays once per machine); gsplat removes a build folder that another
+    process is still building, so nothing else may import it meanwhile."""
+    t0 = time.perf_counter()
+    from gsplat.cuda._backend import _C
+
+    if _C is None:
+        raise RuntimeError("gsplat's CUDA extension did not load (no CUDA toolkit found?)")
+    import os
+
+    return {"load_or_build_s": time.perf_counter() - t0, "arch_list": os.environ.get("TORCH_CUDA_ARCH_LIST"),
+            "max_jobs": os.environ.get("MAX_JOBS")}
+
+
+PARTS = ("vggt_fixtures", "vggt_cli", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
+         "cell", "native", "cell_sparse")
+
+
+def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PARTS,
+            on_part: Callable[[dict], None] | None = None, cell_prepared: Path | None = None,
+            stages: Path | None = None) -> dict:
+    """Run the parts on CUDA in the order given (each independent: a failure is recorded as
+    ``{"error": ...}``); ``on_part(report)`` after each one (the caller saves it: a run cut off
+    by a time limit keeps the parts done). ``workflow_cell`` and ``vggt_cli`` need ``stages``
+    (a folder of ``benchmarks/gpu_stages.py prepare``) and are skipped without it."""
     import torch
 
     if not torch.cuda.is_available():
@@ -167,15 +202,27 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = ("v
 
     report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "cuda": torch.version.cuda,
               "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    fns = {"vggt_fixtures": vggt_fixtures, "rasterizer_parity": rasterizer_parity,
-           "rasterizer_timing": rasterizer_timing, "cell": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared)}
+    from benchmarks import gpu_stages
+
+    fns = {"vggt_fixtures": vggt_fixtures, "gsplat_build": gsplat_build, "rasterizer_parity": rasterizer_parity,
+           "rasterizer_timing": rasterizer_timing,
+           "workflow_cell": lambda dev: gpu_stages.workflow_cell(stages, dev),
+           "vggt_cli": lambda dev: gpu_stages.vggt_cli(stages, dev),
+           "cell": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared),
+           "native": lambda _dev: native_cell(cell_iterations, cell_prepared),
+           "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse")}
+    unknown = set(parts) - set(fns)
+    if unknown:
+        raise ValueError(f"unknown parts {sorted(unknown)}; choose from {', '.join(PARTS)}")
+    if stages is None:
+        parts = tuple(p for p in parts if p not in ("workflow_cell", "vggt_cli"))
     for name in parts:
         t0 = time.perf_counter()
         try:
             report[name] = fns[name]("cuda")
         except Exception:  # noqa: BLE001  (record and go on: each part is independent)
             report[name] = {"error": traceback.format_exc()[-3000:]}
-        report[name]["wall_s"] = time.perf_counter() - t0
+        report[name]["part_s"] = time.perf_counter() - t0  # the whole part, setup and scoring included
         print(name, json.dumps(report[name], indent=1, default=str), flush=True)
         if on_part is not None:
             on_part(report)
@@ -186,13 +233,32 @@ def _f(x, spec: str = ".3g") -> str:
     return "n/a" if x is None else format(x, spec)
 
 
+def _cell_rows(c: dict, label: str) -> list[tuple[str, str]]:
+    tr = c["train"]
+    return [(f"{label}: {c.get('scene')} n={c.get('n')}, {c.get('iterations')} it, recipe {tr.get('recipe')}",
+             f"{tr.get('rasterizer')} on {tr.get('device')}"),
+            (f"{label}: train s (it/s)", f"{_f(tr.get('wall_s'), '.1f')} ({_f(tr.get('it_per_s'), '.1f')})"),
+            (f"{label}: peak GPU MB (training)", _f(tr.get("peak_cuda_mb"), ".0f")),
+            (f"{label}: Gaussians, held-out PSNR / SSIM / LPIPS-vgg",
+             f"{tr.get('final_gaussians')}, {_f(c['metrics'].get('psnr'), '.2f')} / "
+             f"{_f(c['metrics'].get('ssim'), '.3f')} / {_f(c['metrics'].get('lpips_vgg'), '.3f')}"),
+            (f"{label}: total s (train + render + metrics; CPU stages elsewhere)",
+             _f(sum(c["stages_s"].get(k, 0.0) for k in ("train", "render", "metrics")), ".1f"))]
+
+
 def format_gpu_table(r: dict) -> str:
     """The report as a Markdown table (one row per measured number)."""
     rows = [("device", r.get("device")), ("torch / CUDA / gsplat", f"{r.get('torch')} / {r.get('cuda')} / {r.get('gsplat')}")]
+    b = r.get("gsplat_build", {})
+    if "load_or_build_s" in b:
+        rows.append((f"gsplat CUDA extension JIT build (arch {b.get('arch_list')}, MAX_JOBS {b.get('max_jobs')}), s",
+                     _f(b["load_or_build_s"], ".0f")))
     v = r.get("vggt_fixtures", {})
-    for dt in ("float64", "float32"):
-        if dt in v:
-            rows.append((f"VGGT fixtures on CUDA, {dt}: max abs err vs {dt} expectation", _f(v[dt]["max"])))
+    for tf in ("tf32_off", "tf32_on"):
+        for dt in ("float64", "float32"):
+            if dt in v.get(tf, {}):
+                rows.append((f"VGGT fixtures on CUDA, {dt}, {tf.replace('_', ' ')}: max abs err vs {dt} expectation",
+                             _f(v[tf][dt]["max"])))
     p = r.get("rasterizer_parity", {})
     if "rgb_max_abs_diff" in p:
         rows.append(("torch vs gsplat: rgb max / mean abs diff",
@@ -208,23 +274,45 @@ def format_gpu_table(r: dict) -> str:
                      f"(x{_f(t.get('speedup_gsplat'))})"))
         rows.append(("peak GPU MB torch / gsplat", f"{_f(t['torch']['peak_gpu_mb'], '.0f')} / "
                                                    f"{_f(t['gsplat']['peak_gpu_mb'], '.0f')}"))
+    w = r.get("workflow_cell", {})
+    if "device_run" in w:
+        d, c = w["device_run"], w["cpu_run"]
+        rows.append((f"workflow cell {w['cell']} ({c['train'].get('config', {}).get('iterations')} it), held-out "
+                     "PSNR / SSIM: CUDA vs CPU",
+                     f"{_f(d['metrics']['psnr'], '.2f')} / {_f(d['metrics']['ssim'], '.3f')} vs "
+                     f"{_f(c['metrics']['psnr'], '.2f')} / {_f(c['metrics']['ssim'], '.3f')} "
+                     f"(diff {_f(w.get('psnr_device_minus_cpu'), '+.2f')} dB)"))
+        rows.append(("workflow cell: Gaussians, train s: CUDA vs CPU",
+                     f"{d['train']['num_gaussians']}, {_f(d['train']['wall_time_s'], '.1f')} vs "
+                     f"{c['train']['num_gaussians']}, {_f(c['train']['wall_time_s'], '.1f')}"))
+    g = r.get("vggt_cli", {})
+    if "max_abs_diff_vs_cpu" in g:
+        rows.append(("vggt_init CLI, fixture model, CUDA vs CPU: max abs diff (world_points, cam_from_world)",
+                     f"{_f(g['max_abs_diff_vs_cpu'].get('world_points'))}, "
+                     f"{_f(g['max_abs_diff_vs_cpu'].get('cam_from_world'))}"))
     c = r.get("cell", {})
     if "train" in c:
-        tr = c["train"]
-        rows.append((f"cell {c.get('scene')} n={c.get('n')}, {c.get('iterations')} it, rasterizer",
-                     f"{tr.get('rasterizer')} on {tr.get('device')}"))
-        rows.append(("cell: train s (it/s)", f"{_f(tr.get('wall_s'), '.1f')} ({_f(tr.get('it_per_s'), '.1f')})"))
-        rows.append(("cell: peak GPU MB (training)", _f(tr.get("peak_cuda_mb"), ".0f")))
-        rows.append(("cell: Gaussians, test PSNR dB", f"{tr.get('final_gaussians')}, {_f(tr.get('test_psnr'), '.2f')}"))
-        rows.append(("cell: total s", _f(c.get("cell_total_s"), ".1f")))
-    for name in ("vggt_fixtures", "rasterizer_parity", "rasterizer_timing", "cell"):
+        rows += _cell_rows(c, "cell")
+    nat = r.get("native", {})
+    if "wall_s" in nat and "error" not in nat:
+        rows.append((f"gsplat-native loop, same cell, {nat['iterations']} it: train s, s / 1000 it",
+                     f"{_f(nat['wall_s'], '.1f')}, {_f(nat['s_per_1000_it'], '.2f')}"))
+        rows.append(("gsplat-native: Gaussians, held-out PSNR (trainer's), peak GPU MB",
+                     f"{nat['final_gaussians']}, {_f(nat['test_psnr'], '.2f')}, {_f(nat['peak_cuda_mb'], '.0f')}"))
+        if "train" in c and c["train"].get("wall_s"):
+            rows.append(("ours / gsplat-native training time", _f(c["train"]["wall_s"] / nat["wall_s"], ".2f")))
+    cs = r.get("cell_sparse", {})
+    if "train" in cs:
+        rows += _cell_rows(cs, "cell, sparse")
+    for name in PARTS:
         if "error" in r.get(name, {}):
             rows.append((f"{name}: FAILED", r[name]["error"].strip().splitlines()[-1][:120]))
     lines = ["| check | result |", "|---|---|"] + [f"| {a} | {b} |" for a, b in rows]
     return "\n".join(lines)
 
 
-def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_prepared: Path | None = None) -> int:
+def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_prepared: Path | None = None,
+            stages: Path | None = None, parts: tuple[str, ...] = PARTS) -> int:
     """``python -m benchmarks --gpu``: every part, JSON + Markdown into ``out``, the table printed.
     Exits 2 with a message when torch sees no CUDA device."""
     if not torch.cuda.is_available():
@@ -245,7 +333,7 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_pr
         stem.with_suffix(".md").write_text(table + "\n")
         return table
 
-    report = run_gpu(iterations or CELL_ITERATIONS, on_part=save, cell_prepared=cell_prepared)
+    report = run_gpu(iterations or CELL_ITERATIONS, parts, on_part=save, cell_prepared=cell_prepared, stages=stages)
     table = save(report)
     print(table)
     log.info("saved %s.json and %s.md", stem, stem)

@@ -161,5 +161,6 @@ def rasterization(
     meta = {"radii": radii, "means2d": means2d, "depths": depths, "conics": conics,
             "opacities": opacities[None], "tile_width": tile_width, "tile_height": tile_height,
             "tiles_per_gauss": tiles_per_gauss, "isect_ids": isect_ids, "flatten_ids": flatten_ids,
-            "width": width, "height": height, "tile_size": tile_size, "n_cameras": 1}
+            "width": width, "height": height, "tile_size": tile_size, "n_cameras": 1,
+            "camera_ids": None, "gaussian_ids": None}  # None when packed=False, as in gsplat
     return render[None], alpha[None], meta

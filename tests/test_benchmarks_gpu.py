@@ -36,15 +36,23 @@ def test_gpu_without_cuda_exits_with_message(tmp_path):
 def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "Fake GPU")
-    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}})
+    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {
+        "tf32_off": {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}},
+        "tf32_on": {"float64": {"max": 1e-12}, "float32": {"max": 2e-3}}})
+    monkeypatch.setattr(gpu_check, "gsplat_build", lambda dev: {"load_or_build_s": 89.0, "arch_list": "9.0"})
     monkeypatch.setattr(gpu_check, "rasterizer_parity", lambda dev: 1 / 0)
     monkeypatch.setattr(gpu_check, "rasterizer_timing", lambda dev: {
         "torch": {"fwd_bwd_ms": 50.0, "peak_gpu_mb": 900.0}, "gsplat": {"fwd_bwd_ms": 5.0, "peak_gpu_mb": 300.0},
         "speedup_gsplat": 10.0, "case": "c"})
-    monkeypatch.setattr(gpu_check, "gpu_cell", lambda iterations, prepared=None: {
+    monkeypatch.setattr(gpu_check, "gpu_cell", lambda iterations, prepared=None, recipe="paper": {
         "scene": "fern", "n": 3, "iterations": iterations, "cell_total_s": 100.0,
-        "train": {"rasterizer": "gsplat", "device": "cuda", "wall_s": 60.0, "it_per_s": 166.0,
-                  "peak_cuda_mb": 1234.0, "final_gaussians": 10, "test_psnr": 20.0}})
+        "stages_s": {"train": 60.0, "render": 1.0, "metrics": 2.0}, "metrics": {"psnr": 20.1, "ssim": 0.6},
+        "train": {"rasterizer": "gsplat", "device": "cuda", "wall_s": 60.0 if recipe == "paper" else 30.0,
+                  "it_per_s": 166.0, "peak_cuda_mb": 1234.0, "final_gaussians": 10, "test_psnr": 20.0,
+                  "recipe": recipe}})
+    monkeypatch.setattr(gpu_check, "native_cell", lambda iterations, prepared: {
+        "iterations": iterations, "wall_s": 50.0, "s_per_1000_it": 5.0, "final_gaussians": 12, "test_psnr": 19.9,
+        "peak_cuda_mb": 900.0})
     assert gpu_check.run_cli(tmp_path, 7) == 0
     (js,), (md,) = tmp_path.glob("benchmarks_gpu_*.json"), tmp_path.glob("benchmarks_gpu_*.md")
     rep = json.loads(js.read_text())
@@ -52,6 +60,9 @@ def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
     table = md.read_text()
     assert "| cell: peak GPU MB (training) | 1234 |" in table
     assert "rasterizer_parity: FAILED" in table and "gsplat on cuda" in table
+    assert "| ours / gsplat-native training time | 1.20 |" in table  # 60 s / 50 s
+    assert "| cell, sparse: train s (it/s) | 30.0 (166.0) |" in table
+    assert "workflow_cell" not in rep and "vggt_cli" not in rep  # no --stages folder: skipped
     assert table in capsys.readouterr().out
 
 
@@ -59,7 +70,10 @@ def test_gpu_report_saved_after_each_part(tmp_path, monkeypatch):
     """A run killed in a later part (the device's time limit) leaves the parts done on disk."""
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "Fake GPU")
-    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}})
+    monkeypatch.setattr(gpu_check, "vggt_fixtures", lambda dev: {
+        "tf32_off": {"float64": {"max": 1e-12}, "float32": {"max": 2e-5}},
+        "tf32_on": {"float64": {"max": 1e-12}, "float32": {"max": 2e-3}}})
+    monkeypatch.setattr(gpu_check, "gsplat_build", lambda dev: {"load_or_build_s": 89.0, "arch_list": "9.0"})
     monkeypatch.setattr(gpu_check, "rasterizer_parity", lambda dev: {"rgb_max_abs_diff": 1e-3})
 
     def killed(dev):
@@ -70,8 +84,8 @@ def test_gpu_report_saved_after_each_part(tmp_path, monkeypatch):
         gpu_check.run_cli(tmp_path, 7)
     (js,), (md,) = tmp_path.glob("benchmarks_gpu_*.json"), tmp_path.glob("benchmarks_gpu_*.md")
     rep = json.loads(js.read_text())
-    assert rep["vggt_fixtures"]["float64"]["max"] == 1e-12 and rep["rasterizer_parity"]["rgb_max_abs_diff"] == 1e-3
-    assert "rasterizer_timing" not in rep and "VGGT fixtures on CUDA, float64" in md.read_text()
+    assert rep["vggt_fixtures"]["tf32_off"]["float64"]["max"] == 1e-12 and rep["rasterizer_parity"]["rgb_max_abs_diff"] == 1e-3
+    assert "rasterizer_timing" not in rep and "VGGT fixtures on CUDA, float32, tf32 on" in md.read_text()
 
 
 def test_cell_passes_device_and_rasterizer_to_training(tmp_path):

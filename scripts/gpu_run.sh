@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The GPU check in one command, on a GPU machine that has torch with CUDA but none of this
+# project's other packages and no network (the lent device: Python 3.12, torch 2.11 + cu130).
+# Prepare on any x86-64 machine first (bash scripts/gpu_bundle.sh: .whl, .gpu_cell, .gpu_wf),
+# carry those three folders, then in the repository root:
+#
+#   bash scripts/gpu_run.sh OUT_DIR [PARTS]      # PARTS: comma list (default: all, in order)
+#
+# The parts run in the order of benchmarks/gpu_check.py PARTS (gsplat's CUDA kernels are
+# JIT-built by the part gsplat_build, ~1.5 min once per machine); the JSON + Markdown table
+# are saved after each part, so a run cut short keeps what it measured.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUTDIR=${1:?usage: gpu_run.sh OUT_DIR [PARTS]}
+PARTS=${2:-vggt_fixtures,vggt_cli,gsplat_build,rasterizer_parity,rasterizer_timing,workflow_cell,cell,native,cell_sparse}
+mkdir -p "$OUTDIR"
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    || { echo "gpu_run: installing .whl failed" >&2; exit 1; }
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16}
+CC=$(python3 -c "import torch; p = torch.cuda.get_device_capability(); print(f'{p[0]}.{p[1]}')") || exit 1
+export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$CC}
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+exec python3 -m benchmarks --gpu --gpu-parts "$PARTS" --cell-prepared .gpu_cell --stages .gpu_wf --out "$OUTDIR"
