@@ -1,20 +1,21 @@
-"""The GPU check (CUDA): VGGT fixtures on the GPU, our torch rasterizer against gsplat, the cell.
+"""The GPU check (CUDA): VGGT, our rasterizer against gsplat, the workflow's stage commands,
+the paper's cell with both recipes and gsplat's own training loop.
 
-    python -m benchmarks --gpu [--out DIR] [--gpu-iterations 10000]     # the entry point
-    python benchmarks/gpu_check.py [--out DIR]                            # parts 1-3 only
+    python -m benchmarks --gpu [--out DIR] [--gpu-iterations 10000] [--gpu-parts a,b]
+        [--cell-prepared DIR] [--stages DIR]                            # the entry point
+    bash scripts/gpu_run.sh OUT                                         # on a machine without network
+    python benchmarks/gpu_check.py [--out DIR]                          # VGGT fixtures and rasterizer only
 
-What it does, each part independent (a failing part is recorded, the others still run):
-1. VGGT: the official reference fixtures (tests/data/vggt/shared) run on CUDA in float64 and
-   float32; max |ours - expected| per output against the float64 / float32 expectations.
-2. Rasterizer: one random scene (N Gaussians, SH degree 3) rendered on CUDA by our vectorised
-   torch backend and by gsplat (through splat_train's adapter): image difference, relative
-   difference of the gradients of every input, and the means2d gradient's shape.
-3. Timing of forward+backward for both, with peak GPU memory.
-4. (``run_gpu`` only) the pipeline cell of benchmarks/bench_cell.py (fern n = 3 when
-   ../shared has it, else the synthetic scene) trained for 10,000 iterations on CUDA with the
-   rasterizer forced to gsplat: stage times, PSNR, and the training process's peak GPU memory
-   (``torch.cuda.max_memory_allocated``, from its train.json).
-Not part of the test suite (CI has no GPU); tests/test_benchmarks_gpu.py checks the CLI only.
+The parts (:data:`PARTS`, in this order; each independent: a failing part is recorded as
+``{"error": ...}`` and the others still run; benchmarks/README.md, "GPU", lists what each
+measures): ``vggt_fixtures`` (the official fixtures, float64 / float32, TF32 off and on),
+``vggt_cli`` and ``workflow_cell`` (stage commands on CUDA against a CPU run, from a
+``benchmarks/gpu_stages.py prepare`` folder; skipped without ``--stages``), ``vggt_speed``
+(VGGT-1B, random weights), ``gsplat_build``, ``rasterizer_parity`` and ``rasterizer_timing``,
+``cell`` and ``cell_sparse`` (benchmarks/bench_cell.py's fern n = 3 cell, 10,000 iterations on
+gsplat, ``paper`` and ``sparse`` recipes), ``native`` (the same cell, benchmarks/gsplat_native.py).
+Not part of the test suite (CI has no GPU); tests/test_benchmarks_gpu.py checks the CLI, the
+report and, on CPU stand-ins, the native loop and the stage commands.
 """
 
 from __future__ import annotations
@@ -73,6 +74,39 @@ def _vggt_fixtures(device: str) -> dict:
         errs = {k: float((res[k].double().cpu() - exp[k].double()).abs().max())
                 for k in ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf") if k in exp}
         out[str(dtype).replace("torch.", "")] = {"max_abs_err": errs, "max": max(errs.values())}
+    return out
+
+
+def vggt_speed(device: str, frames: int = 12, width: int = 518, height: int = 392, reps: int = 5) -> dict:
+    """VGGT-1B forward on ``frames`` images of ``width`` x ``height`` with RANDOM weights (speed
+    and memory only), camera and point heads (what vggt_init runs), fp32 and bf16 (the trunk
+    cast to bf16, as vggt_init's ``--dtype bf16``); median of ``reps`` after two warm-ups,
+    the model already on the GPU (the time after loading)."""
+    from vggt_init.model import VGGT
+
+    out = {"frames": frames, "size": f"{width}x{height}", "weights": "RANDOM (speed only)"}
+    for dtype in ("fp32", "bf16"):
+        torch.manual_seed(0)
+        with torch.device(device):
+            model = VGGT(heads=("camera", "point")).eval().requires_grad_(False)
+        trunk = torch.bfloat16 if dtype == "bf16" else None
+        if trunk is not None:
+            model.cast_trunk_weights(trunk)
+        x = torch.rand(1, frames, 3, height, width, device=device)
+        torch.cuda.reset_peak_memory_stats()
+        times = []
+        with torch.inference_mode():
+            for i in range(reps + 2):
+                torch.cuda.synchronize()
+                t0 = time.perf_counter()
+                model(x, trunk_dtype=trunk)
+                torch.cuda.synchronize()
+                if i >= 2:
+                    times.append(time.perf_counter() - t0)
+        out[dtype] = {"forward_s_median": sorted(times)[len(times) // 2], "forward_s_min": min(times),
+                      "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20}
+        del model, x
+        torch.cuda.empty_cache()
     return out
 
 
@@ -183,7 +217,7 @@ def gsplat_build(device: str) -> dict:
             "max_jobs": os.environ.get("MAX_JOBS")}
 
 
-PARTS = ("vggt_fixtures", "vggt_cli", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
+PARTS = ("vggt_fixtures", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
          "cell", "native", "cell_sparse")
 
 
@@ -204,7 +238,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
               "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
     from benchmarks import gpu_stages
 
-    fns = {"vggt_fixtures": vggt_fixtures, "gsplat_build": gsplat_build, "rasterizer_parity": rasterizer_parity,
+    fns = {"vggt_fixtures": vggt_fixtures, "vggt_speed": vggt_speed, "gsplat_build": gsplat_build, "rasterizer_parity": rasterizer_parity,
            "rasterizer_timing": rasterizer_timing,
            "workflow_cell": lambda dev: gpu_stages.workflow_cell(stages, dev),
            "vggt_cli": lambda dev: gpu_stages.vggt_cli(stages, dev),
@@ -259,6 +293,12 @@ def format_gpu_table(r: dict) -> str:
             if dt in v.get(tf, {}):
                 rows.append((f"VGGT fixtures on CUDA, {dt}, {tf.replace('_', ' ')}: max abs err vs {dt} expectation",
                              _f(v[tf][dt]["max"])))
+    vs = r.get("vggt_speed", {})
+    if "bf16" in vs:
+        rows.append((f"VGGT-1B forward, {vs['frames']} views {vs['size']}, camera + point heads, random weights: "
+                     "fp32 / bf16 s (peak GPU MB)",
+                     f"{_f(vs['fp32']['forward_s_median'])} / {_f(vs['bf16']['forward_s_median'])} "
+                     f"({_f(vs['fp32']['peak_gpu_mb'], '.0f')} / {_f(vs['bf16']['peak_gpu_mb'], '.0f')})"))
     p = r.get("rasterizer_parity", {})
     if "rgb_max_abs_diff" in p:
         rows.append(("torch vs gsplat: rgb max / mean abs diff",

@@ -49,9 +49,10 @@ def _rasterization():
     return rasterization
 
 
-def train_native(cell: Path, iterations: int, seed: int = 0, device: str = "cuda") -> dict:
+def train_native(cell: Path, iterations: int, seed: int = 0, device: str = "cuda", **overrides) -> dict:
     """Train the prepared ``cell`` with gsplat's loop on ``device`` (CUDA; a CPU run needs a
-    stand-in for :func:`_rasterization`) and score the held-out views once at the end."""
+    stand-in for :func:`_rasterization`) and score the held-out views once at the end.
+    ``overrides``: TrainConfig keys on top of the ``paper`` recipe (the schedule ones too)."""
     from gsplat import DefaultStrategy
 
     from splat_train.config import TrainConfig
@@ -63,7 +64,7 @@ def train_native(cell: Path, iterations: int, seed: int = 0, device: str = "cuda
     dev = torch.device(device)
     cuda = dev.type == "cuda"
     rasterization = _rasterization()
-    cfg = TrainConfig(recipe="paper", iterations=iterations, device=device, seed=seed)
+    cfg = TrainConfig(recipe="paper", iterations=iterations, device=device, seed=seed, **overrides)
     sched = cfg.schedule()
     train, test, cloud = load_cell(cell)
     extent = scene_extent([v.camera for v in train], cloud.means if cfg.extent_from_points else None)

@@ -10,16 +10,13 @@
 #             rich, ninja, typing_extensions) are in a torch image already;
 # .gpu_cell/  the fern n = 3 cell's CPU stages (scene, COLMAP seed, Bridge, alignment) run
 #             here, ~2 MB (benchmarks/bench_cell.py --prepare-only), so the GPU machine needs
-#             neither ../shared nor open3d.
+#             neither ../shared nor open3d;
+# .gpu_wf/    config.yaml's synthetic oracle n = 3 cell run by Snakemake here, its inputs and
+#             results (~1 MB, benchmarks/gpu_stages.py prepare), for the stage commands on CUDA.
 # Then, on the GPU machine, in the repository root (one command; it prints what it measured
 # after each part and saves the JSON + table after each part, see benchmarks/README.md):
 #
-#   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl &&
-#   PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 \
-#     python3 -m benchmarks --gpu --cell-prepared .gpu_cell --out "$OUT"
-#
-# (TORCH_CUDA_ARCH_LIST=9.0 builds gsplat's JIT kernels for Hopper only; use the GPU's own
-# compute capability elsewhere.)
+#   bash scripts/gpu_run.sh OUT_DIR
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
@@ -33,7 +30,7 @@ for p in manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux_2_27_x86_64 manyli
     PLATFORMS+=(--platform "$p")
 done
 
-rm -rf .whl.partial .gpu_cell
+rm -rf .whl.partial .gpu_cell .gpu_wf
 mkdir -p .whl.partial
 echo "gpu_bundle: downloading gsplat==$GSPLAT pycolmap==$(version pycolmap) OpenImageIO==$(version OpenImageIO) (cp312)"
 "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -44,11 +41,14 @@ rm -rf .whl && mv .whl.partial .whl
 echo "gpu_bundle: preparing the fern n = 3 cell's CPU stages into .gpu_cell"
 "$PY" benchmarks/bench_cell.py --prepare-only .gpu_cell --scene fern
 
+echo "gpu_bundle: running config.yaml's synthetic oracle n = 3 cell with snakemake into .gpu_wf"
+"$PY" benchmarks/gpu_stages.py prepare .gpu_wf
+
 TREE=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
-EXTRA=$(du -cb .whl .gpu_cell | tail -1 | cut -f1)
+EXTRA=$(du -cb .whl .gpu_cell .gpu_wf | tail -1 | cut -f1)
 TOTAL=$((TREE + EXTRA))
-echo "gpu_bundle: tracked files $((TREE / 1048576)) MiB + .whl and .gpu_cell $((EXTRA / 1048576)) MiB = $((TOTAL / 1048576)) MiB"
+echo "gpu_bundle: tracked files $((TREE / 1048576)) MiB + .whl, .gpu_cell, .gpu_wf $((EXTRA / 1048576)) MiB = $((TOTAL / 1048576)) MiB"
 if [ "$TOTAL" -gt $((64 * 1048576)) ]; then
     echo "gpu_bundle: WARNING: over the lent device's 64 MiB working-tree limit" >&2
 fi
-echo "gpu_bundle: done; carry .whl and .gpu_cell (see the header of this script for the command)"
+echo "gpu_bundle: done; carry .whl, .gpu_cell and .gpu_wf, then: bash scripts/gpu_run.sh OUT_DIR"

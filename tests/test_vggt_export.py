@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from _oiio_write import write_raw as _write
 
@@ -181,3 +182,25 @@ def test_bad_inputs_fail_clearly(tmp_path, capfd, monkeypatch):
     assert rc == 2
     err = capfd.readouterr().err
     assert "CheckpointNotFoundError" in err and "VGGT_CHECKPOINT" in err
+
+
+@pytest.mark.parametrize("dtype", ["fp32", "bf16"])
+def test_fp32_forward_runs_without_tf32(scene, tmp_path, monkeypatch, dtype):
+    """--dtype fp32 is float32 throughout: the forward runs with torch's TF32 switches off
+    (cuDNN convolutions default to TF32 on CUDA: 1.3e-3 on the fixture point map, H100) and
+    the caller's switches come back after; bf16 leaves them as the caller set them."""
+    from vggt_init.model import VGGT
+
+    seen = []
+    forward = VGGT.forward
+
+    def spy(self, *a, **k):
+        seen.append((torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32))
+        return forward(self, *a, **k)
+
+    monkeypatch.setattr(VGGT, "forward", spy)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", True)
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    assert _cli(scene, tmp_path / "out", "--dtype", dtype) == 0
+    assert seen == [(False, False) if dtype == "fp32" else (True, True)]
+    assert torch.backends.cuda.matmul.allow_tf32 and torch.backends.cudnn.allow_tf32

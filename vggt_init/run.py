@@ -8,6 +8,7 @@ read are kept; the DPT heads run over chunks of frames; everything in inference 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -39,6 +40,21 @@ class MemoryBudgetError(MemoryError):
 
 
 DTYPES = ("auto", "fp32", "bf16")
+
+
+@contextlib.contextmanager
+def tf32_off():
+    """Torch's TF32 switches (CUDA matmuls and cuDNN convolutions) off for the block, then
+    restored. ``--dtype fp32`` runs inside it: cuDNN's default (on) rounds the DPT
+    heads' convolutions to 10-bit mantissas, which put the point map 1.3e-3 from the CPU's on
+    the fixture model (H100, benchmarks/records/gpu-2026-11-26.json) and the fixtures' float32
+    outputs 2.5e-3 from their expectation (2.2e-6 with TF32 off). No effect on a CPU."""
+    saved = (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = saved
 
 
 def resolve_device(name: str) -> torch.device:
@@ -208,7 +224,8 @@ def run(opts: RunOptions) -> dict:
     comp: dict[str, float] = {}
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    with timed("forward", log, times), torch.inference_mode():
+    with timed("forward", log, times), torch.inference_mode(), \
+            (tf32_off() if dtype == "fp32" else contextlib.nullcontext()):
         pred = model(x, trunk_dtype=trunk_dtype, frames_chunk_size=opts.frames_chunk_size, timings=comp)
     del x
     times.update({f"forward.{k}": v for k, v in comp.items()})
