@@ -40,7 +40,7 @@ import torch
 from camio.atomic import write_json
 from camio.images import list_images, read_image
 from camio.logs import progress, setup_logging, timed
-from evaluation.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
+from camio.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
 from evaluation.metrics import PSNR_CAP_DB, capped_psnr, psnr, ssim
 
 __all__ = ["match_images", "evaluate_images", "add_parser", "main"]
@@ -102,7 +102,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         out_json: output path (atomic write), or None to only return the record.
         lpips_nets: LPIPS backbones among ``("alex", "vgg")``; others are reported null.
         lpips_weights: folder with ``{net}.safetensors`` (default: LPIPS_WEIGHTS_DIR, then
-            the user cache; see :mod:`evaluation.lpips`).
+            the user cache; see :mod:`camio.lpips`).
         device: torch device for LPIPS.
 
     Returns:

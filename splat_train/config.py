@@ -136,7 +136,7 @@ class TrainConfig:
             thread, load 2.6 on 2 cores: PSNR + SSIM 4.5 ms a view, LPIPS-alex 24 ms more);
             the study configs turn it on. Without weights the column stays null and a warning says how to get them.
         lpips_weights: folder or file of the LPIPS-alex safetensors weights (None: the
-            :func:`evaluation.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
+            :func:`camio.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
             user cache).
         device: "auto" (CUDA when available), "cpu" or "cuda".
         rasterizer: the :func:`splat_train.rasterize` backend; "auto" = the C++ kernel on CPU,

@@ -8,7 +8,7 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
 * SSIM: :func:`splat_train.losses.ssim` (the 3DGS definition, the one
   :func:`evaluation.metrics.ssim` also calls), computed in float32;
 * LPIPS: LPIPS v0.1 with the AlexNet backbone and the weights ``python -m evaluation images``
-  uses (:func:`evaluation.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
+  uses (:func:`camio.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
   NaN (null in log.parquet) when it is off or the weights are absent, never 0.
 
 The means over the test views are the ``test_*`` columns of ``log.parquet``
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from camio.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
 __all__ = ["HeldoutScorer", "LPIPS_NET"]
@@ -51,8 +52,6 @@ class HeldoutScorer:
         self.weights: str | None = None
         self.per_view: dict[str, dict[str, float]] = {}
         if lpips:
-            from evaluation.lpips import find_weights, load_lpips
-
             t0 = time.perf_counter()
             self.model = load_lpips(LPIPS_NET, lpips_weights, device)  # None (and a warning) if absent
             if self.model is not None:
@@ -68,8 +67,6 @@ class HeldoutScorer:
         """Score one view: ``rgb`` and ``target`` are [H, W, 3] in [0, 1] on one device."""
         rec = {"psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target)), "lpips": math.nan}
         if self.model is not None:
-            from evaluation.lpips import lpips_distance
-
             try:
                 rec["lpips"] = float(lpips_distance(self.model, rgb.permute(2, 0, 1), target.permute(2, 0, 1))[0])
             except RuntimeError as exc:  # AlexNet's pooling needs images of >= 31 px a side

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from splat_train.cpu import ssim as cpu_ssim
-from splat_train.ssim_window import gaussian_window, gaussian_window_1d
+from camio.image_metrics import gaussian_window, gaussian_window_1d, ssim_map
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_window", "gaussian_window_1d"]
 
@@ -27,35 +27,6 @@ def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
     if img.dim() == 3 and img.shape[-1] == 3:
         return img.permute(2, 0, 1).unsqueeze(0)
     raise ValueError(f"{name} must be [B, C, H, W] or [H, W, 3], got shape {tuple(img.shape)}")
-
-
-def ssim_map(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
-             max_val: float = 1.0) -> torch.Tensor:
-    """Per-pixel SSIM map of the 3DGS definition (see :func:`ssim`): [B, C, H, W] x2 -> [B, C, H, W].
-
-    The one implementation in the project: the training loss and the evaluation metric
-    (:func:`evaluation.metrics.ssim_map`) both call it. C1 = (0.01 max_val)^2, C2 = (0.03 max_val)^2.
-    The 2D window is an outer product, so each local mean is a row pass then a column pass with
-    the 1D window (zero 'same' padding in both): 22 instead of 121 multiply-adds per pixel, the
-    same values as the 2D convolution up to rounding (1.8e-14 at most on a random 497x372
-    float64 image, whose SSIM took 1.13 s with the 2D convolution and takes 0.14 s).
-    """
-    c = a.shape[1]
-    g = gaussian_window_1d(window_size, sigma, dtype=a.dtype, device=a.device)
-    w_row = g.view(1, 1, 1, window_size).expand(c, 1, 1, window_size).contiguous()
-    w_col = g.view(1, 1, window_size, 1).expand(c, 1, window_size, 1).contiguous()
-    pad = window_size // 2
-
-    def filt(x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.conv2d(x, w_row, padding=(0, pad), groups=c), w_col, padding=(pad, 0), groups=c)
-
-    mu1, mu2 = filt(a), filt(b)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    sigma1_sq = filt(a * a) - mu1_sq
-    sigma2_sq = filt(b * b) - mu2_sq
-    sigma12 = filt(a * b) - mu12
-    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
-    return ((2 * mu12 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
 
 
 def ssim(

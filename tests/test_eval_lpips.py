@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from safetensors.torch import save_file
 
 from evaluation import lpips_convert
-from evaluation.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
+from camio.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("two_threads")
 

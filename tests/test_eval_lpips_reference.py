@@ -18,7 +18,7 @@ import torch
 
 from camio.images import read_image
 from evaluation.images_cli import evaluate_images
-from evaluation.lpips import find_weights, load_lpips, lpips_distance
+from camio.lpips import find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("two_threads")
 

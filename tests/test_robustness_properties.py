@@ -211,7 +211,7 @@ _LPIPS = {}
 
 def _lpips():
     if "alex" not in _LPIPS:
-        from evaluation.lpips import LPIPS
+        from camio.lpips import LPIPS
 
         g = torch.Generator().manual_seed(5)
         m = LPIPS("alex").double()

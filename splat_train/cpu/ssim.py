@@ -28,7 +28,7 @@ from splat_train.cpu.build import Kernel as _Kernel
 from splat_train.cpu.build import ptr as _ptr
 from splat_train.cpu.build import run_threaded as _run_threaded
 from splat_train.cpu.build import suffix as _suffix
-from splat_train.ssim_window import gaussian_window_1d
+from camio.image_metrics import gaussian_window_1d
 
 __all__ = ["available", "ssim_cpu", "l1_ssim_cpu"]
 

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from evaluation.metrics import to_bchw
+from camio.image_metrics import to_bchw
 
 __all__ = [
     "NETS",
