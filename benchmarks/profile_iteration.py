@@ -16,7 +16,7 @@ the iteration is copied here, so a change to the step is profiled as it is):
   iteration: every 100 by default).
 
 Nothing is written: the checkpoint's folder is left as it is. The malloc settings of the
-``splat_train`` CLI (:func:`vggt_init.memory.retain_freed_memory`) are applied, so the times
+``splat_train`` CLI (:func:`camio.memory.retain_freed_memory`) are applied, so the times
 are those of a CLI run.
 
     python benchmarks/profile_iteration.py --checkpoint RUN/ckpt/ckpt_0009500.pt \\
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kernel-threads", type=int, default=0, help="0: the checkpoint's setting / all cores")
     ap.add_argument("--torch-profile", action="store_true", help="also print torch.profiler's operator table")
     args = ap.parse_args(argv)
-    from vggt_init.memory import retain_freed_memory
+    from camio.memory import retain_freed_memory
 
     retain_freed_memory()
     tr = make_trainer(args.checkpoint, args.seed, args.cameras, args.images, args.kernel_threads)

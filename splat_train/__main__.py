@@ -59,7 +59,7 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
                    help="LPIPS weights folder or alex.safetensors (default: $LPIPS_WEIGHTS_DIR, then the "
-                        "user cache; see evaluation.lpips)")
+                        "user cache; see camio.lpips)")
     p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
                                         "of OUT/ckpt (resume only from identical inputs; removed on success)")
     p.add_argument("--pose-refine", action="store_true", default=None,
@@ -203,7 +203,7 @@ if __name__ == "__main__":
     # the SSIM statistics), which glibc's defaults map and fault in anew each time: ~2,100 minor
     # faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256, none with the
     # freed memory kept (issue 15, part 2). VGGT_INIT_RETAIN_MEMORY=0 turns it off.
-    from vggt_init.memory import retain_freed_memory
+    from camio.memory import retain_freed_memory
 
     retain_freed_memory()
     sys.exit(_cli())

@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-retain-memory", action="store_true",
                    help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "
-                        "see vggt_init/memory.py)")
+                        "see camio/memory.py)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
@@ -48,9 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     from vggt_init.checkpoint import CheckpointFormatError, CheckpointNotFoundError, StateDictMismatchError
     from vggt_init.preprocess import ImageInputError
-    from vggt_init.memory import retain_freed_memory
     from vggt_init.run import MemoryBudgetError, RunOptions, run
 
+    from camio.memory import retain_freed_memory
     from camio.outdir import OutputFolderError, prepare_out
 
     try:

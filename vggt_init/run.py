@@ -24,7 +24,7 @@ from camio.logs import peak_rss_mb, timed
 from vggt_init.checkpoint import load_model, resolve_checkpoint
 from vggt_init.export import select_points, write_colmap, write_predictions
 from vggt_init.geometry import pose_encoding_to_extri_intri, unproject_depth
-from vggt_init.memory import memory_retained, release_free_memory
+from camio.memory import memory_retained, release_free_memory
 from vggt_init.model.config import VGGTConfig
 from vggt_init.model.fastpath import fast_paths_enabled
 from vggt_init.preprocess import ImageInputError, load_and_preprocess, to_model_input
@@ -278,7 +278,7 @@ def run(opts: RunOptions) -> dict:
         "torch_threads": torch.get_num_threads(),
         "cpu_fast_paths": fast_paths_enabled(),  # oneDNN Linear/attention (vggt_init.model.fastpath)
         "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", ""),
-        "retain_freed_memory": memory_retained(),  # vggt_init.memory (the CLI turns it on)
+        "retain_freed_memory": memory_retained(),  # camio.memory (the CLI turns it on)
         "num_sparse_points": int(len(pts)),
         "estimated_memory_gb": need / 1e9,
         "wall_time_s": {**times, "total": time.perf_counter() - t_start},
