@@ -62,9 +62,12 @@ _CAMERA_PATTERNS = ("*.camera", "*_cam.txt", "cam*.txt", "cameras*.npz", "camera
                     "calib*.txt", "*.xmp")
 
 
-def _scene_error(msg: str) -> Exception:
-    from camio.scene import SceneError
+class SceneError(ValueError):
+    """A scene that cannot be loaded as given (the message says what to fix); raised by the
+    readers here and by :mod:`camio.scene`, which imports them."""
 
+
+def _scene_error(msg: str) -> Exception:
     return SceneError(msg)
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from camio.cameras import Camera, invert_cam_from_world, opengl_to_opencv_c2w, scale_intrinsics
 from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelError, \
     find_model_dir, read_model
+from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_mvsnet, read_strecha, split_photos
 from camio.images import image_size, list_images, read_image
 
 __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_size", "read_llff_poses",
@@ -44,10 +45,6 @@ log = logging.getLogger(__name__)
 
 FORMATS = ("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder")
 UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
-
-
-class SceneError(ValueError):
-    """A scene that cannot be loaded as given (the message says what to fix)."""
 
 
 @dataclass
@@ -119,8 +116,6 @@ def detect_format(path: str | Path) -> str:
         raise SceneError(f"{p} is a file but neither a transforms .json nor poses_bounds.npy")
     if not p.is_dir():
         raise SceneError(f"scene path {p} does not exist")
-    from camio.datasets import detect_layout
-
     return detect_layout(p)
 
 
@@ -223,12 +218,8 @@ def load_scene(
         scene = _load_transforms(path, images_subdir, skip_missing)
         scene = _maybe_undistort(scene, undistort, work_dir)
     elif fmt == "dtu":
-        from camio.datasets import read_dtu
-
         if images_subdir is not None:
             image_dir = _resolve_images(root, images_subdir)
-            from camio.datasets import dtu_images
-
             image_dir, names = dtu_images(image_dir) if not (image_dir / "cameras.npz").exists() else (
                 image_dir, _image_names(image_dir))
             image_dir, names, model = read_dtu(root, image_dir, names)
@@ -239,8 +230,6 @@ def load_scene(
         image_dir = _resolve_images(root, images_subdir)
         names = _image_names(image_dir)
         if fmt == "folder":
-            from camio.datasets import split_photos
-
             scene = Scene(image_dir, split_photos(image_dir, names, allow_mixed), None, "folder", path)
         elif fmt == "llff":
             npy = path if path.is_file() else root / "poses_bounds.npy"
@@ -249,13 +238,9 @@ def load_scene(
         elif fmt == "colmap":
             scene = _load_colmap(path, image_dir, names, undistort, work_dir)
         elif fmt == "mvsnet":
-            from camio.datasets import read_mvsnet
-
             scene = Scene(image_dir, names, read_mvsnet(root, image_dir, names), "mvsnet", path,
                           source_models=("PINHOLE",))
         elif fmt == "strecha":
-            from camio.datasets import read_strecha
-
             model = read_strecha(root, image_dir, names)
             model = _fit_distorted(model, image_dir, names)
             scene = Scene(image_dir, names, model, "strecha", path)

@@ -1,360 +1,32 @@
-"""The train-only COLMAP baseline, seeded and repeatable.
+"""CLI of the train-only COLMAP baseline: ``python -m evaluation.colmap_baseline``.
 
-Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
-features), exhaustive matching with guided matching, incremental mapping, all through
-pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
-are not possible) into a private work folder before feature extraction, so a test image can
-never leak into the model.
-
-``success_paper`` (docs/contracts.md, :func:`evaluation.pose.paper_success`): the largest model
-loads with >= 1 registered image and >= 1 point. ``aligned_ok``: >= 3 registered images, which
-the Sim(3) alignment to the reference frame needs (part of ``success_gated``, decided in
-pose.json). A failed reconstruction is a *result* (``success_paper = false`` with a reason in
-``status.json``), never an exception.
-
-Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
-``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. By default every
-stage uses every core this process may run on (:func:`available_cores`); the thread count is
-recorded in ``status.json`` (``num_threads``). With ``--threads 1`` two runs with the same seed
-on the same input give identical models (tested); with more threads the feature extraction and
-matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.colmap_repeats`).
-
-Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
-exists, ``DIR/status.json``; with repeats also ``DIR/repeats/seed<s>/{sparse/0,status.json}``
-and the spread in ``DIR/status.json["repeats"]``.
+The reconstruction itself is :func:`evaluation.colmap_run.run_colmap` (settings, success,
+reproducibility and outputs are described there), repeated seeded runs are
+:mod:`evaluation.colmap_repeats`; this module only parses the command line and calls one or
+the other, so the two import this one never and each other one way.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import logging
-import os
-import shutil
-import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from camio.images import ImageReadError
+from camio.logs import setup_logging
+from camio.outdir import prepare_out, tidy_outs
+from evaluation import colmap_repeats
+from evaluation.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
+from evaluation.pose import GateConfig
 
-from camio.atomic import atomic_dir, write_json
-from camio.colmap import MATCHING_THREADS, cpu_matching_options
-from camio.images import ImageReadError, check_images
-from camio.logs import peak_rss_mb
-from evaluation.pose import paper_success
-
-__all__ = [
-    "ColmapSettings",
-    "run_colmap",
-    "model_fingerprint",
-]
+__all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 
 log = logging.getLogger(__name__)
-
-MIN_ALIGN_IMAGES = 3
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity; os.cpu_count() where unknown)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
-class ColmapSettings:
-    """The evaluation protocol's COLMAP settings (defaults) plus the reproducibility knobs.
-
-    Attributes:
-        max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
-        max_num_features: SIFT features per image.
-        guided_matching: guided matching after geometric verification.
-        camera_model: the single shared camera model ("PINHOLE").
-        num_threads: threads for extraction and mapping; None or 0 = every available core
-            (:func:`available_cores`); 1 = bitwise reproducible. Matching always runs on
-            :data:`camio.colmap.MATCHING_THREADS` (1): pycolmap's bundled OpenBLAS is not safe
-            for concurrent matcher threads.
-        matching_threads: the matcher's thread count (recorded in ``status.json``).
-    """
-
-    def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
-                 guided_matching: bool = True, camera_model: str = "PINHOLE",
-                 num_threads: int | None = None) -> None:
-        self.max_image_size = int(max_image_size)
-        self.max_num_features = int(max_num_features)
-        self.guided_matching = bool(guided_matching)
-        self.camera_model = str(camera_model)
-        self.num_threads = available_cores() if not num_threads else int(num_threads)
-        self.matching_threads = MATCHING_THREADS
-
-    def to_json(self) -> dict:
-        return dict(vars(self))
-
-
-def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
-    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``."""
-    missing = [n for n in names if not (images_dir / n).is_file()]
-    if missing:
-        raise FileNotFoundError(
-            f"training images not found in {images_dir}: {missing[:5]}; check the split and "
-            "the scene's images/ folder")
-    work_images.mkdir(parents=True, exist_ok=True)
-    for name in names:
-        dst = work_images / name
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.symlink((images_dir / name).resolve(), dst)
-        except OSError:
-            shutil.copy2(images_dir / name, dst)
-
-
-def _check_inputs(images_dir: Path, names: list[str]) -> None:
-    """Every training image exists and decodes fully with :func:`camio.images.read_image`'s
-    checked decoder, so pycolmap is only ever given images the other stages accept too (it
-    would extract features from the grey half of a truncated JPEG without a word).
-
-    Raises:
-        FileNotFoundError: names missing from ``images_dir`` (named).
-        ImageReadError: the first truncated, corrupt or unreadable image (named).
-    """
-    from camio.images import check_image_name
-
-    for n in names:
-        check_image_name(n, images_dir)
-    missing = [n for n in names if not (images_dir / n).is_file()]
-    if missing:
-        raise FileNotFoundError(
-            f"training images not found in {images_dir}: {missing[:5]}; check the split and "
-            "the scene's images/ folder")
-    check_images(images_dir / n for n in names)
-
-
-MIN_IMAGE_SIDE = 16
-"""Smaller images give SIFT nothing to find (COLMAP then reports only "no initial pair")."""
-
-
-def input_problems(images_dir: Path, names: list[str]) -> list[str]:
-    """What in the training images keeps COLMAP's single shared camera from using them all.
-
-    COLMAP's extractor (``CameraMode.SINGLE``) gives every image the first image's camera and
-    skips any image whose stored size differs (a message shown only with -v); an EXIF
-    rotation changes the stored-vs-displayed size, and a tiny image has no features. The
-    mapper then reports only "no initial image pair".
-
-    Returns:
-        One sentence per problem ([] when none): mixed stored sizes, EXIF-rotated images,
-        images smaller than :data:`MIN_IMAGE_SIDE` px.
-    """
-    import OpenImageIO as oiio
-
-    sizes: dict[tuple[int, int], list[str]] = {}
-    rotated, small = [], []
-    for n in names:
-        inp = oiio.ImageInput.open(str(images_dir / n))
-        if inp is None:
-            continue  # _check_inputs has already named unreadable files
-        try:
-            spec = inp.spec()
-            w, h, o = int(spec.width), int(spec.height), int(spec.get_int_attribute("Orientation", 1))
-        finally:
-            inp.close()
-        sizes.setdefault((w, h), []).append(n)
-        if o not in (0, 1):
-            rotated.append(f"{n} (orientation {o})")
-        if min(w, h) < MIN_IMAGE_SIDE:
-            small.append(f"{n} ({w}x{h})")
-    out = []
-    if len(sizes) > 1:
-        parts = ", ".join(f"{w}x{h}: {len(v)} image{'s' * (len(v) > 1)} (e.g. {v[0]})"
-                          for (w, h), v in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
-        out.append(f"images of different sizes ({parts}): COLMAP's single shared camera skips the odd ones")
-    if rotated:
-        out.append(f"EXIF-rotated images: {', '.join(rotated[:3])}: COLMAP reads them unrotated")
-    if small:
-        out.append(f"images too small for features (< {MIN_IMAGE_SIDE} px): {', '.join(small[:3])}")
-    return out
-
-
-def _options(settings: ColmapSettings, seed: int):
-    """pycolmap option objects for one seeded run."""
-    import pycolmap
-
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = settings.camera_model
-
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = settings.max_image_size
-    extraction.num_threads = settings.num_threads
-    extraction.use_gpu = False
-    extraction.sift.max_num_features = settings.max_num_features
-
-    matching = cpu_matching_options()  # one matcher thread: camio.colmap.MATCHING_THREADS
-    matching.guided_matching = settings.guided_matching
-
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = seed
-    verification.ransac.num_threads = 1
-
-    mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.num_threads = settings.num_threads
-    mapping.random_seed = seed
-    mapping.mapper.num_threads = settings.num_threads
-    mapping.mapper.random_seed = seed
-    mapping.triangulation.random_seed = seed
-    # min_model_size stays COLMAP's default (10); COLMAP itself lowers it to 80% of the
-    # image count for small sets, which is the behaviour the paper's baseline had.
-    return reader, extraction, matching, verification, mapping
-
-
-def _largest(recs: dict) -> tuple[int | None, object | None]:
-    """The model with the most registered images (ties: most points), or (None, None)."""
-    best_key, best = None, None
-    for key, rec in sorted(recs.items()):
-        score = (rec.num_reg_images(), rec.num_points3D())
-        if best is None or score > (best.num_reg_images(), best.num_points3D()):
-            best_key, best = key, rec
-    return best_key, best
-
-
-def _fy_over_fx(rec) -> float | None:
-    """fy / fx of the first camera of a PINHOLE model (a drifting ratio flags a bad model)."""
-    for cam in rec.cameras.values():
-        if cam.model.name == "PINHOLE":
-            fx, fy = float(cam.params[0]), float(cam.params[1])
-            return fy / fx if fx else None
-    return None
-
-
-def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, seed: int = 0,
-               settings: ColmapSettings | None = None, keep_work: bool = False) -> dict:
-    """Run the train-only COLMAP baseline once and write its result.
-
-    Args:
-        images_dir: folder holding the scene's images (test images may be there too; only
-            ``names`` are linked into the work folder).
-        names: the training image names (relative to ``images_dir``).
-        out_dir: output folder; receives ``sparse/0`` (if a model exists) and
-            ``status.json``.
-        seed: seed for pycolmap's PRNG and every ``random_seed`` option.
-        settings: COLMAP settings (the protocol defaults if None).
-        keep_work: keep the work folder (database, linked images) as ``out_dir/work``.
-
-    Returns:
-        The status record written to ``status.json``: ``success_paper`` (docs/contracts.md),
-        ``aligned_ok`` (>= 3 registered), ``registered``, ``n_images``, ``points``,
-        ``reason`` (None on success), ``wall_time_s``, ``seed``, ``registered_names``,
-        ``num_models``, ``fy_over_fx``, ``mean_reproj_error_px``, ``settings``.
-    """
-    import pycolmap
-
-    settings = settings or ColmapSettings()
-    images_dir, out_dir = Path(images_dir), Path(out_dir)
-    names = sorted(dict.fromkeys(names))
-    if not names:
-        raise ValueError("run_colmap: no training image names given")
-    _check_inputs(images_dir, names)  # before anything is written: a bad input leaves nothing
-    out_dir.mkdir(parents=True, exist_ok=True)
-    status: dict = {
-        "success_paper": False, "aligned_ok": False, "registered": 0, "n_images": len(names),
-        "points": 0, "reason": None, "wall_time_s": None, "seed": int(seed),
-        "registered_names": [], "num_models": 0, "fy_over_fx": None,
-        "mean_reproj_error_px": None, "settings": settings.to_json(),
-        "num_threads": settings.num_threads, "matching_threads": settings.matching_threads,
-    }
-    problems = input_problems(images_dir, names)
-    for p in problems:
-        log.warning("COLMAP baseline input: %s", p)
-    t0 = time.perf_counter()
-    work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
-    try:
-        _link_images(images_dir, names, work / "images")
-        reader, extraction, matching, verification, mapping = _options(settings, seed)
-        db = work / "database.db"
-        # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
-        # (25-60 lines a call) only with -v, its errors always.
-        pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
-        pycolmap.set_random_seed(int(seed))
-        log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
-        t = time.perf_counter()
-        pycolmap.extract_features(db, work / "images", image_names=names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
-        log.info("feature extraction done in %.2f s", time.perf_counter() - t)
-        t = time.perf_counter()
-        pycolmap.match_exhaustive(db, matching_options=matching,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
-        log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
-        t = time.perf_counter()
-        (work / "sparse").mkdir()
-        recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
-        log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
-                 len(recs))
-        status["num_models"] = len(recs)
-        _, rec = _largest(recs)
-        sparse = out_dir / "sparse" / "0"
-        if rec is None:
-            status["reason"] = "no model: the incremental mapper found no initial image pair"
-        else:
-            reg = rec.num_reg_images()
-            pts = rec.num_points3D()
-            status["registered"] = int(reg)
-            status["points"] = int(pts)
-            status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
-            status["fy_over_fx"] = _fy_over_fx(rec)
-            if pts:
-                status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
-            with atomic_dir(sparse) as tmp:
-                rec.write_text(str(tmp))
-            status["success_paper"] = paper_success(reg, pts)
-            status["aligned_ok"] = bool(status["success_paper"] and reg >= MIN_ALIGN_IMAGES)
-            if not status["success_paper"]:
-                status["reason"] = f"model has {reg} registered images and {pts} points"
-        if rec is None and sparse.exists():
-            shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
-    except Exception as exc:  # noqa: BLE001 - a failed reconstruction is a recorded result
-        if isinstance(exc, (FileNotFoundError, ImageReadError)):
-            raise
-        log.warning("COLMAP baseline failed: %s", exc)
-        status["reason"] = f"{type(exc).__name__}: {exc}"
-    finally:
-        if keep_work:
-            dst = out_dir / "work"
-            if dst.exists():
-                shutil.rmtree(dst)
-            os.replace(work, dst)
-        else:
-            shutil.rmtree(work, ignore_errors=True)
-    if problems and not status["success_paper"]:
-        status["reason"] = "; ".join(problems) + (f" (COLMAP: {status['reason']})" if status["reason"] else "")
-    status["input_problems"] = problems
-    status["wall_time_s"] = time.perf_counter() - t0
-    status["peak_rss_mb"] = peak_rss_mb()
-    write_json(out_dir / "status.json", status)
-    log.info("COLMAP baseline: success=%s, %d/%d registered, %d points, %.1f s%s",
-             status["success_paper"], status["registered"], len(names), status["points"],
-             status["wall_time_s"], "" if status["success_paper"] else f" ({status['reason']})")
-    return status
-
-
-def model_fingerprint(model_dir: str | Path) -> dict:
-    """A comparable summary of a text model: names, poses, intrinsics, points (float64).
-
-    Used to check that two seeded runs are identical. Returns a dict of sorted names ->
-    (qvec, tvec) tuples, the camera parameters and the sorted point coordinates.
-    """
-    from camio.colmap import read_model
-
-    model = read_model(model_dir)
-    return {
-        "poses": {c.name: np.round(c.cam_from_world, 12).tolist() for c in model.cameras},
-        "K": {c.name: c.K.tolist() for c in model.cameras},
-        "points": np.round(model.points[np.lexsort(model.points.T[::-1])], 12).tolist()
-        if len(model.points) else [],
-    }
 
 
 def _read_names(args) -> list[str]:
     """Training names from --split/--n, --image-list or --names."""
-    import json
-
     if args.split:
         if args.n is None:
             raise SystemExit("--split needs --n (the number of training views)")
@@ -381,12 +53,8 @@ def _read_names(args) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     """CLI: ``python -m evaluation.colmap_baseline --images DIR (--split JSON --n N |
     --image-list FILE | --names ...) --out DIR [--seed S | --repeats K --seeds ...]``."""
-    import argparse
-
-    from camio.logs import setup_logging
-
     p = argparse.ArgumentParser(prog="python -m evaluation.colmap_baseline",
-                                description=__doc__.split("\n\n")[0])
+                                description="The train-only COLMAP baseline, seeded and repeatable.")
     p.add_argument("--images", required=True, help="scene image folder")
     p.add_argument("--split", help="split.json (docs/contracts.md); use with --n")
     p.add_argument("--n", type=int, help="number of training views (key in split.json)")
@@ -420,14 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
     try:
-        from camio.outdir import prepare_out
-
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
                                "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
     except (ImageReadError, FileNotFoundError, ValueError) as exc:
-        from camio.outdir import tidy_outs
-
         tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
@@ -439,15 +103,11 @@ def _run_cli(args, names: list[str], seeds: list[int], settings: ColmapSettings)
         run_colmap(args.images, names, args.out, seed=seeds[0], settings=settings,
                    keep_work=args.keep_work)
     else:
-        from evaluation.colmap_repeats import run_colmap_repeats
-
         gate = None
         if args.ref:
-            from evaluation.pose import GateConfig
-
             gate = GateConfig(max_ate_rel_radius=args.max_ate_rel_radius,
                               max_rel_rot_deg=args.max_rel_rot_deg)
-        run_colmap_repeats(args.images, names, args.out, seeds, settings=settings,
+        colmap_repeats.run_colmap_repeats(args.images, names, args.out, seeds, settings=settings,
                            ref=args.ref, gate=gate)
 
 

@@ -1,6 +1,6 @@
 """Repeated, seeded runs of the COLMAP baseline and the spread of their results (issue 10).
 
-``run_colmap_repeats`` runs :func:`evaluation.colmap_baseline.run_colmap` once per seed,
+``run_colmap_repeats`` runs :func:`evaluation.colmap_run.run_colmap` once per seed,
 optionally evaluates each run against reference cameras (ATE, relative rotation error, the
 paper's and the accuracy-gated success through :func:`evaluation.pose.evaluate_pose`) and
 reports the spread. CLI: ``python -m evaluation.colmap_baseline --repeats K [--ref MODEL]``.
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.atomic import atomic_dir, write_json
-from evaluation.colmap_baseline import ColmapSettings, run_colmap
+from evaluation.colmap_run import ColmapSettings, run_colmap
 from evaluation.pose import status_success
 
 __all__ = ["summarise_repeats", "run_colmap_repeats"]
