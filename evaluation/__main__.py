@@ -24,16 +24,15 @@ log = logging.getLogger("evaluation")
 
 
 def _gate(args):
-    from evaluation.pose import GateConfig
+    from evaluation.pose import gate_from_args
 
-    return GateConfig(max_ate_rel_radius=args.max_ate_rel_radius, max_rel_rot_deg=args.max_rel_rot_deg)
+    return gate_from_args(args)
 
 
 def _add_gate_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--max-ate-rel-radius", type=float, default=0.05,
-                   help="accuracy gate: ATE / RMS trajectory radius must be below this (default 0.05)")
-    p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
-                   help="accuracy gate: mean relative rotation error must be below this (default 5)")
+    from evaluation.pose import add_gate_args
+
+    add_gate_args(p)
 
 
 def _cmd_pose(args) -> int:

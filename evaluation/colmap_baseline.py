@@ -18,7 +18,7 @@ from camio.logs import setup_logging
 from camio.outdir import prepare_out, tidy_outs
 from evaluation import colmap_repeats
 from evaluation.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
-from evaluation.pose import GateConfig
+from evaluation.pose import add_gate_args, gate_from_args
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 
@@ -68,10 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ref", help="reference COLMAP model: evaluate every run's poses "
                    "(ATE, rotation error, both success criteria) and report their spread; "
                    "written as a repeats summary, also for a single run")
-    p.add_argument("--max-ate-rel-radius", type=float, default=0.05,
-                   help="accuracy gate for --ref: ATE / trajectory radius (default 0.05)")
-    p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
-                   help="accuracy gate for --ref: mean relative rotation error (default 5)")
+    add_gate_args(p, "accuracy gate for --ref")
     p.add_argument("--max-image-size", type=int, default=3200)
     p.add_argument("--max-num-features", type=int, default=16384)
     p.add_argument("--no-guided-matching", action="store_true")
@@ -105,8 +102,7 @@ def _run_cli(args, names: list[str], seeds: list[int], settings: ColmapSettings)
     else:
         gate = None
         if args.ref:
-            gate = GateConfig(max_ate_rel_radius=args.max_ate_rel_radius,
-                              max_rel_rot_deg=args.max_rel_rot_deg)
+            gate = gate_from_args(args)
         colmap_repeats.run_colmap_repeats(args.images, names, args.out, seeds, settings=settings,
                            ref=args.ref, gate=gate)
 

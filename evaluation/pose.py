@@ -19,7 +19,8 @@ Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of cam
   names in status.json, pose.json, the tables and the report: ``success_paper`` (>= 1
   registered image and >= 1 point, :func:`paper_success`) and ``success_gated`` (paper
   success, >= 3 registered training views for the Sim(3) step, ate_rel_radius <
-  ``max_ate_rel_radius`` (0.05) and rel_rot_err_mean_deg < ``max_rel_rot_deg`` (5);
+  ``max_ate_rel_radius`` (:data:`MAX_ATE_REL_RADIUS`, 0.05) and rel_rot_err_mean_deg <
+  ``max_rel_rot_deg`` (:data:`MAX_REL_ROT_DEG`, 5);
   :func:`accuracy_gate`; None where there are no reference cameras).
 """
 
@@ -36,20 +37,42 @@ import numpy as np
 from camio.colmap import SparseModel
 from evaluation.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
 
-__all__ = ["GateConfig", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
+__all__ = ["MAX_ATE_REL_RADIUS", "MAX_REL_ROT_DEG", "GateConfig", "add_gate_args", "gate_from_args", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
            "success_criteria_text", "evaluate_pose",
            "run_pose", "focal_ratio_stats"]
 
 log = logging.getLogger(__name__)
 
 
+#: The accuracy gate's defaults, defined here only: every CLI flag default and help text reads
+#: them; config.yaml and the workflow schema repeat the values, and a test checks they agree.
+MAX_ATE_REL_RADIUS = 0.05  # ATE / RMS trajectory radius (a fraction)
+MAX_REL_ROT_DEG = 5.0  # mean relative rotation error, degrees
+
+
 @dataclass(frozen=True)
 class GateConfig:
-    """Thresholds of the accuracy gate (issue 10)."""
+    """Thresholds of the accuracy gate."""
 
-    max_ate_rel_radius: float = 0.05
-    max_rel_rot_deg: float = 5.0
+    max_ate_rel_radius: float = MAX_ATE_REL_RADIUS
+    max_rel_rot_deg: float = MAX_REL_ROT_DEG
     min_aligned_views: int = 3
+
+
+def add_gate_args(parser, what: str = "accuracy gate") -> None:
+    """Add ``--max-ate-rel-radius`` and ``--max-rel-rot-deg`` (defaults: the constants above)
+    to an argparse parser; :func:`gate_from_args` reads them back."""
+    parser.add_argument("--max-ate-rel-radius", type=float, default=MAX_ATE_REL_RADIUS,
+                        help=f"{what}: ATE / RMS trajectory radius must be below this "
+                             f"(default {MAX_ATE_REL_RADIUS:g})")
+    parser.add_argument("--max-rel-rot-deg", type=float, default=MAX_REL_ROT_DEG,
+                        help=f"{what}: mean relative rotation error must be below this "
+                             f"(default {MAX_REL_ROT_DEG:g})")
+
+
+def gate_from_args(args) -> GateConfig:
+    """The :class:`GateConfig` of parsed :func:`add_gate_args` flags."""
+    return GateConfig(max_ate_rel_radius=args.max_ate_rel_radius, max_rel_rot_deg=args.max_rel_rot_deg)
 
 
 def relative_pose_errors(pred_cfw: np.ndarray, ref_cfw: np.ndarray) -> dict:

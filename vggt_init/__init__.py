@@ -8,7 +8,7 @@ Modules:
     geometry        pose encoding -> extrinsics/intrinsics, depth unprojection
     export          predictions.npz (schema in its docstring) and the COLMAP sparse/0 model
     run             the stage: images -> predictions.npz, sparse/0, timing.json
-    memory          glibc settings that keep freed memory in the process (the CLI turns them on)
+    defaults        the run's defaults (points source, kept points, image size, ...), defined once
 
 CLI: ``python -m vggt_init --images DIR --out DIR [--checkpoint PATH] [--model-config JSON]
 [--dtype fp32|bf16] [--device cpu|cuda] [--points-from point_head|depth] [--mode crop|pad]

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from camio.logs import setup_logging
+from vggt_init import defaults
 
 log = logging.getLogger("vggt_init")
 
@@ -27,12 +28,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bf16 runs the aggregator under autocast; heads stay fp32. Default auto: bf16 on a "
                         "CUDA GPU that supports it, else fp32")
     p.add_argument("--device", help="auto (default: CUDA when available, else CPU), cpu or cuda[:N]")
-    p.add_argument("--points-from", choices=("point_head", "depth"), default="point_head",
+    p.add_argument("--points-from", choices=defaults.POINT_SOURCES, default=defaults.POINTS_FROM,
                    help="world points from the point head (paper) or depth head + cameras")
-    p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 (most confident)")
-    p.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
-    p.add_argument("--image-size", type=int, default=518, help="network width/longer side (multiple of 14)")
-    p.add_argument("--frames-chunk", type=int, default=4, help="frames per DPT-head chunk (memory vs speed)")
+    p.add_argument("--max-points", type=int, default=defaults.MAX_POINTS,
+                   help="points kept in sparse/0 (most confident)")
+    p.add_argument("--mode", choices=defaults.MODES, default=defaults.MODE, help="VGGT preprocessing mode")
+    p.add_argument("--image-size", type=int, default=defaults.IMAGE_SIZE,
+                   help="network width/longer side (multiple of 14)")
+    p.add_argument("--frames-chunk", type=int, default=defaults.FRAMES_CHUNK,
+                   help="frames per DPT-head chunk (memory vs speed)")
     p.add_argument("--max-memory-gb", type=float, help="memory budget (default: what the OS reports free)")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-retain-memory", action="store_true",

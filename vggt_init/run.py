@@ -21,10 +21,11 @@ import torch
 from camio.atomic import write_json
 from camio.images import list_images
 from camio.logs import peak_rss_mb, timed
+from camio.memory import memory_retained, release_free_memory
 from vggt_init.checkpoint import load_model, resolve_checkpoint
+from vggt_init.defaults import FRAMES_CHUNK, IMAGE_SIZE, MAX_POINTS, MODE, POINT_SOURCES, POINTS_FROM
 from vggt_init.export import select_points, write_colmap, write_predictions
 from vggt_init.geometry import pose_encoding_to_extri_intri, unproject_depth
-from camio.memory import memory_retained, release_free_memory
 from vggt_init.model.config import VGGTConfig
 from vggt_init.model.fastpath import fast_paths_enabled
 from vggt_init.preprocess import ImageInputError, load_and_preprocess, to_model_input
@@ -93,11 +94,11 @@ class RunOptions:
     model_config: Path | None = None
     dtype: str = "auto"  # one of DTYPES; see resolve_dtype
     device: str = "auto"  # "auto", "cpu" or "cuda[:N]"; see resolve_device
-    points_from: str = "point_head"  # or "depth"
-    max_points: int = 100_000
-    mode: str = "crop"
-    image_size: int = 518
-    frames_chunk_size: int = 4
+    points_from: str = POINTS_FROM  # one of POINT_SOURCES
+    max_points: int = MAX_POINTS
+    mode: str = MODE  # one of MODES
+    image_size: int = IMAGE_SIZE
+    frames_chunk_size: int = FRAMES_CHUNK
     max_memory_gb: float | None = None  # default: what the OS reports as available
     threads: int | None = None
     extra: dict = field(default_factory=dict)
@@ -176,8 +177,8 @@ def _nonfinite(arrays: dict[str, np.ndarray]) -> dict[str, int]:
 def run(opts: RunOptions) -> dict:
     """Run the stage; returns the timing/summary dict also written to ``timing.json``."""
     t_start = time.perf_counter()
-    if opts.points_from not in ("point_head", "depth"):
-        raise ValueError(f"points_from must be 'point_head' or 'depth', got {opts.points_from!r}")
+    if opts.points_from not in POINT_SOURCES:
+        raise ValueError(f"points_from must be one of {POINT_SOURCES}, got {opts.points_from!r}")
     device = resolve_device(opts.device)
     dtype = resolve_dtype(opts.dtype, device)
     log.info("device %s (asked: %s), dtype %s (asked: %s)", device, opts.device, dtype, opts.dtype)

@@ -1,0 +1,58 @@
+"""Defaults defined once in code: the CLI flags read the constants, and the copies that a YAML
+file must spell out (config.yaml, the workflow schema) agree with them."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import yaml
+
+from evaluation.pose import MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG, GateConfig, add_gate_args, gate_from_args
+from vggt_init import defaults as vggt_defaults
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _schema() -> dict:
+    return yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
+
+
+def test_gate_defaults_in_yaml_equal_the_code_constants():
+    props = _schema()["properties"]["evaluation"]["properties"]
+    assert props["max_ate_rel_radius"]["default"] == MAX_ATE_REL_RADIUS
+    assert props["max_rel_rot_deg"]["default"] == MAX_REL_ROT_DEG
+    cfg = yaml.safe_load((REPO / "config.yaml").read_text())["evaluation"]
+    assert cfg["max_ate_rel_radius"] == MAX_ATE_REL_RADIUS and cfg["max_rel_rot_deg"] == MAX_REL_ROT_DEG
+    assert GateConfig() == GateConfig(MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG)
+
+
+def test_gate_flags_of_both_clis_default_to_the_constants():
+    from evaluation import colmap_baseline
+    from evaluation.__main__ import build_parser
+
+    p = argparse.ArgumentParser()
+    add_gate_args(p)
+    assert gate_from_args(p.parse_args([])) == GateConfig()
+    assert gate_from_args(p.parse_args(["--max-rel-rot-deg", "2"])).max_rel_rot_deg == 2.0
+    for argv in (["pose", "--pred", "a", "--ref", "b", "--out", "c"], ["tables", "--results", "r", "--out", "o"]):
+        args = build_parser(argv).parse_args(argv)
+        assert (args.max_ate_rel_radius, args.max_rel_rot_deg) == (MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG)
+    src = (REPO / "evaluation" / "colmap_baseline.py").read_text()
+    assert "add_gate_args(p" in src and "0.05" not in src
+    assert colmap_baseline.gate_from_args is gate_from_args
+
+
+def test_vggt_cli_and_run_options_share_the_defaults():
+    from vggt_init.__main__ import build_parser
+    from vggt_init.run import RunOptions
+
+    args = build_parser().parse_args(["--images", "i", "--out", "o"])
+    opts = RunOptions(images=Path("i"), out=Path("o"))
+    assert args.points_from == opts.points_from == vggt_defaults.POINTS_FROM
+    assert args.max_points == opts.max_points == vggt_defaults.MAX_POINTS
+    assert args.image_size == opts.image_size == vggt_defaults.IMAGE_SIZE
+    assert args.mode == opts.mode and args.frames_chunk == opts.frames_chunk_size
+    points_from = _schema()["properties"]["vggt"]["properties"]["points_from"]
+    assert points_from["default"] == vggt_defaults.POINTS_FROM
+    assert tuple(points_from["enum"]) == vggt_defaults.POINT_SOURCES
