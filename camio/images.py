@@ -37,7 +37,6 @@ __all__ = [
     "check_images",
     "write_image",
     "image_size",
-    "image_orientation",
     "apply_orientation",
     "downsample_area",
     "downsample_folder",
@@ -149,16 +148,6 @@ def check_images(paths) -> None:
     """
     for path in paths:
         read_pixels(path, "uint8")
-
-
-def image_orientation(path: str | Path) -> int:
-    """The EXIF/TIFF Orientation tag of ``path`` (1 when absent), read from the header only."""
-    inp = _open(Path(path))
-    try:
-        o = int(inp.spec().get_int_attribute("Orientation", 1))
-    finally:
-        inp.close()
-    return o if 1 <= o <= 8 else 1
 
 
 def image_size(path: str | Path) -> tuple[int, int]:

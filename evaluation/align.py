@@ -77,10 +77,6 @@ class Sim3:
         """The similarity target -> source."""
         return Sim3(1.0 / self.s, self.R.T, -self.R.T @ self.t / self.s)
 
-    def compose(self, other: "Sim3") -> "Sim3":
-        """``self o other``: first ``other``, then ``self``."""
-        return Sim3(self.s * other.s, self.R @ other.R, self.s * self.R @ other.t + self.t)
-
     def matrix(self) -> np.ndarray:
         """[4, 4] homogeneous matrix [[s R, t], [0, 1]]."""
         m = np.eye(4)

@@ -52,9 +52,6 @@ class RunLog:
         for c in LOG_COLUMNS:
             self.rows[c].append(float(values[c]))
 
-    def set_last(self, column: str, value: float) -> None:
-        self.rows[column][-1] = float(value)
-
     def test_curve(self) -> dict[str, Any]:
         """The held-out curves over the evaluation rows (those with a finite ``test_psnr``):
         ``iterations``, ``wall_time_s``, ``test_psnr``, ``test_ssim``, ``test_lpips`` (lists of

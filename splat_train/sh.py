@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["SH_C0", "num_sh_bases", "eval_sh", "sh_to_color", "rgb_to_sh", "sh_to_rgb"]
+__all__ = ["SH_C0", "num_sh_bases", "eval_sh", "sh_to_color", "rgb_to_sh"]
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -117,7 +117,3 @@ def rgb_to_sh(rgb: Tensor) -> Tensor:
     """DC coefficient that renders ``rgb`` at degree 0: ``(rgb - 0.5) / C0`` (shape kept)."""
     return (rgb - 0.5) / SH_C0
 
-
-def sh_to_rgb(sh_dc: Tensor) -> Tensor:
-    """Inverse of :func:`rgb_to_sh` (shape kept)."""
-    return sh_dc * SH_C0 + 0.5
