@@ -103,14 +103,21 @@ def test_repeats_report_the_spread_and_keep_the_first_seed(scene, tmp_path):
     status = run_colmap_repeats(scene / "images", TRAIN, tmp_path / "rep", seeds=[5, 6],
                                 ref=scene / "sparse" / "0")
     rep = status["repeats"]
-    # evaluated against the exact reference cameras: ATE and both criteria per repeat
-    assert len(rep["ate_rel_radius"]["values"]) == 2 and 0.0 <= rep["success_gated_rate"] <= 1.0
+    # evaluated against the exact reference cameras: ATE and both criteria per repeat, and the
+    # spread is that of the per-seed records
+    per_seed = [json.loads((tmp_path / "rep" / "repeats" / f"seed{s}" / "status.json").read_text())["pose"]
+                for s in (5, 6)]
+    seed5 = per_seed[0]
+    assert "ate_rel_radius" in seed5 and "success_gated" in seed5
+    ates = [p["ate_rel_radius"] for p in per_seed]
+    assert rep["ate_rel_radius"]["values"] == ates
+    assert rep["success_gated_rate"] == pytest.approx(np.mean([bool(p["success_gated"]) for p in per_seed]))
     if status["aligned_ok"]:
-        assert rep["ate_rel_radius"]["values"][0] is not None
-        assert rep["ate_rel_radius"]["values"][0] == pytest.approx(rep["ate_rel_radius"]["min"]) or \
-            rep["ate_rel_radius"]["values"][0] >= rep["ate_rel_radius"]["min"]
-    seed5 = json.loads((tmp_path / "rep" / "repeats" / "seed5" / "status.json").read_text())
-    assert "ate_rel_radius" in seed5["pose"] and "success_gated" in seed5["pose"]
+        assert ates[0] is not None
+    finite = [a for a in ates if a is not None]
+    if finite:
+        assert rep["ate_rel_radius"]["min"] == pytest.approx(min(finite))
+        assert rep["ate_rel_radius"]["max"] == pytest.approx(max(finite))
     assert rep["n_runs"] == 2 and rep["seeds"] == [5, 6]
     assert len(rep["registered"]["values"]) == 2
     assert rep["registered"]["min"] <= rep["registered"]["mean"] <= rep["registered"]["max"]
