@@ -3,7 +3,10 @@
 The reconstruction itself is :func:`evaluation.colmap_run.run_colmap` (settings, success,
 reproducibility and outputs are described there), repeated seeded runs are
 :mod:`evaluation.colmap_repeats`; this module only parses the command line and calls one or
-the other, so the two import this one never and each other one way.
+the other, so the two import this one never and each other one way. A run that leaves fewer
+than ``--fallback-min-points`` points but registered cameras gets random points for those
+cameras, recorded in status.json (:func:`evaluation.random_init.apply_fallback`); its success
+stays the reconstruction's.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from camio.outdir import prepare_out, tidy_outs
 from evaluation import colmap_repeats
 from evaluation.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.pose import add_gate_args, gate_from_args
+from evaluation.random_init import add_fallback_args, apply_fallback
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 
@@ -75,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=0,
                    help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
+    add_fallback_args(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)
     setup_logging(args.verbose)
@@ -88,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
                                "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
+        apply_fallback(args.out, args.fallback_min_points, args.fallback_points, seeds[0])
     except (ImageReadError, FileNotFoundError, ValueError) as exc:
         tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s: %s", type(exc).__name__, exc)

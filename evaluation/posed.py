@@ -21,8 +21,10 @@ ground-truth depth instead of triangulated points).
 
 Output (docs/contracts.md): ``DIR/sparse/0`` (COLMAP text: the cameras, the points with their
 observations) and ``DIR/status.json`` (``success_paper``, ``aligned_ok``, ``registered``,
-``points``, ``reason``, ``noise``, ``triangulation`` statistics, ``reference_source``). The
-Bridge reads it like the COLMAP baseline's model (uniform opacity: no confidence).
+``points``, ``reason``, ``noise``, ``triangulation`` statistics, ``reference_source``, and
+``fallback``: the CLI's random-point fallback when triangulation leaves fewer than
+``--fallback-min-points``, :func:`evaluation.random_init.apply_fallback`). The Bridge reads it
+like the COLMAP baseline's model (uniform opacity: no confidence).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from camio.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.oracle import OracleNoise, perturb_cameras
 from evaluation.pose import paper_success
+from evaluation.random_init import add_fallback_args, apply_fallback
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
 
@@ -136,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--outlier-frac", type=float, default=0.0, help="fraction of outlier points")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
+    add_fallback_args(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)
     setup_logging(args.verbose)
@@ -151,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
 
         prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
+        apply_fallback(args.out, args.fallback_min_points, args.fallback_points, args.seed)
     except (ValueError, OSError) as exc:
         from camio.outdir import tidy_outs
 

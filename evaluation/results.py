@@ -13,7 +13,8 @@ file               what is read
 =================  ==========================================================================
 ``status.json``    initialiser status (COLMAP baseline): ``success``, ``aligned_ok``,
                    ``registered``, ``n_images``, ``points``, ``reason``, ``wall_time_s``,
-                   ``peak_rss_mb``, ``fy_over_fx``, ``repeats`` (spread over seeds)
+                   ``peak_rss_mb``, ``fy_over_fx``, ``repeats`` (spread over seeds), ``fallback``
+                   (column ``seed_fallback``: its ``reason`` when ``applied``)
 ``pose.json``      :mod:`evaluation.pose`: ATE, RPE, relative rotation error, fy/fx, success
 ``metrics.json``   ``python -m evaluation images``: means ``psnr``, ``ssim``, ``lpips_alex``,
                    ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``
@@ -70,7 +71,7 @@ RUN_COLUMNS = [
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "recipe", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
     "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "heldout_cameras",
-    "run_dir",
+    "seed_fallback", "run_dir",
 ]
 
 
@@ -261,6 +262,9 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         "has_reference": has_ref, "registered": _num(registered), "n_train": n,
         "points": _first(status, "points") if status else _first(pose, "n_points"),
         "reason": status.get("reason"),
+        # the random-point fallback's reason when the run trained from it (evaluation/random_init.py)
+        "seed_fallback": (status.get("fallback") or {}).get("reason")
+        if (status.get("fallback") or {}).get("applied") else None,
         **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
         "n_test": _first(metrics, "n_images"),
         **{k: _first(pose, k) for k in ("ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg",

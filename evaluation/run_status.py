@@ -4,6 +4,8 @@ Three sources, so that an initialiser that left no result is still named:
 
 * the runs the tables read (:func:`evaluation.results.collect_runs`): "ran" (success under the
   paper criterion) or "ran, no model" with the initialiser's own reason (COLMAP's status.json);
+  "ran, random-point fallback" when the run trained from random points for its cameras because
+  the initialiser left too few (status.json ``fallback``), with that reason;
 * run folders with logs but no result file (the job stopped): "failed" with the last ERROR
   line of its log;
 * ``{results}/skipped.json``, written by whoever decided not to run an initialiser (the demo,
@@ -85,14 +87,17 @@ def failed_runs(results: str | Path) -> list[dict]:
 
 
 def run_status_table(runs: pd.DataFrame, results: str | Path | None) -> pd.DataFrame:
-    """Columns dataset, scene, n, init, status (ran / ran, no model / failed / skipped), why."""
+    """Columns dataset, scene, n, init, status (ran / ran, random-point fallback / ran, no model /
+    failed / skipped), why."""
     rows: dict[tuple, dict] = {}
     for key, g in runs.groupby(["dataset", "scene", "n", "init"], sort=True):
         ok = bool(g["success_paper"].astype(bool).any())
         reasons = [r for r in g.get("reason", pd.Series(dtype=object)) if isinstance(r, str) and r]
+        fallback = [r for r in g.get("seed_fallback", pd.Series(dtype=object)) if isinstance(r, str) and r]
+        why = "" if ok else (reasons[0] if reasons else "no successful model")
         rows[key] = {"dataset": key[0], "scene": key[1], "n": int(key[2]), "init": key[3],
-                     "status": "ran" if ok else "ran, no model",
-                     "why": "" if ok else (reasons[0] if reasons else "no successful model")}
+                     "status": "ran, random-point fallback" if fallback else "ran" if ok else "ran, no model",
+                     "why": "; ".join(w for w in (why, fallback[0] if fallback else "") if w)}
     if results is not None and Path(results).is_dir():
         for r in failed_runs(results):
             rows.setdefault((r["dataset"], r["scene"], r["n"], r["init"]), r)

@@ -56,3 +56,14 @@ def test_vggt_cli_and_run_options_share_the_defaults():
     points_from = _schema()["properties"]["vggt"]["properties"]["points_from"]
     assert points_from["default"] == vggt_defaults.POINTS_FROM
     assert tuple(points_from["enum"]) == vggt_defaults.POINT_SOURCES
+
+
+def test_random_initialiser_defaults_live_in_code():
+    """config random: null means evaluation.random_init's constants, which the schema names."""
+    from evaluation import random_init
+
+    props = _schema()["properties"]["random"]["properties"]
+    assert props["points"]["default"] is None and props["fallback_min_points"]["default"] is None
+    assert f"{random_init.N_POINTS:,}" in props["points"]["description"]
+    assert f"FALLBACK_MIN_POINTS, {random_init.FALLBACK_MIN_POINTS}" in " ".join(
+        props["fallback_min_points"]["description"].split())

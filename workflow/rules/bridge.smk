@@ -42,7 +42,7 @@ rule bridge_colmap:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="colmap|posed|posed_ba",
+        init="colmap|posed|posed_ba|random",
         mode="uniform",
     conda:
         "../envs/project.yaml"
@@ -52,8 +52,11 @@ rule bridge_colmap:
         runtime=short_runtime,
         cpus_per_task=cpus_per_task,
     params:
-        model=init_model_dir,
+        init=init_dir,
         out=out_dir,
     shell:
-        "python -m bridge --colmap {params.model} --images {input.scene}/images --mode uniform "
-        "--out {params.out} > {log} 2>&1"
+        # the model the initialiser seeds from: its sparse/0, or its random-point fallback's
+        # when status.json records one (evaluation/random_init.py)
+        "model=$(python -m evaluation.random_init seed-model {params.init} 2> {log}) && "
+        "python -m bridge --colmap $model --images {input.scene}/images --mode uniform "
+        "--out {params.out} >> {log} 2>&1"

@@ -36,5 +36,5 @@ wildcard_constraints:
     dataset=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     scene=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     n=r"\d+",
-    init=r"vggt|colmap|oracle|posed|vggt_ba|oracle_ba|posed_ba",
+    init=r"vggt|colmap|oracle|posed|vggt_ba|oracle_ba|posed_ba|random",
     mode=r"gated|uniform|filtered",

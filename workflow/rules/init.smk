@@ -1,5 +1,6 @@
 # Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle, the ground-truth-pose
-# initialiser on posed scenes), their bundle-adjusted variants (*_ba) and pose accuracy.
+# initialiser on posed scenes, random points for the reference cameras), their bundle-adjusted
+# variants (*_ba) and pose accuracy.
 
 
 rule vggt_init:
@@ -129,6 +130,32 @@ rule posed_init:
     shell:
         "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+
+
+rule random_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        model=directory(f"{SCENE}/n{{n}}/random/sparse"),
+        status=f"{SCENE}/n{{n}}/random/status.json",
+    log:
+        f"{SCENE}/n{{n}}/random/logs/random_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/random/benchmarks/random_init.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    params:
+        out=out_dir,
+        args=random_args,
+    shell:
+        "python -m evaluation.random_init --cameras {input.scene}/sparse/0 "
+        "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
 
 
 rule ba_predictions:

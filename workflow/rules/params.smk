@@ -27,6 +27,7 @@ def colmap_args(wildcards):
         f"--max-image-size {c['max_image_size']}",
         f"--max-num-features {c['max_num_features']}",
     ]
+    args += fallback_args()
     if c["repeats"] > 1:
         args.append(f"--repeats {c['repeats']}")
         if has_reference(wildcards.dataset, wildcards.scene):
@@ -54,10 +55,32 @@ def oracle_args(wildcards):
 
 def posed_args(wildcards):
     o = config["posed"]
-    return " ".join(
+    args = [
         f"--{k.replace('_', '-')} {o[k]}"
         for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")
-    )
+    ]
+    return " ".join(args + fallback_args())
+
+
+def fallback_args():
+    """The random-point fallback of posed and COLMAP (config random; null keys are left to
+    evaluation.random_init, the one place of their defaults)."""
+    r = config["random"]
+    args = []
+    if r["fallback_min_points"] is not None:
+        args.append(f"--fallback-min-points {r['fallback_min_points']}")
+    if r["points"] is not None:
+        args.append(f"--fallback-points {r['points']}")
+    return args
+
+
+def random_args(wildcards):
+    """evaluation.random_init's arguments (config random)."""
+    r = config["random"]
+    args = [f"--seed {r['seed']}"]
+    if r["points"] is not None:
+        args.append(f"--points {r['points']}")
+    return " ".join(args)
 
 
 def ba_args(wildcards):
@@ -218,6 +241,11 @@ def refined_cameras_dir(wildcards, input):
 def out_dir(wildcards, output):
     """The folder of a job's first output file (the stage CLI's --out)."""
     return str(Path(output[0]).parent)
+
+
+def init_dir(wildcards, input):
+    """The initialiser's output folder, holding its finished-run marker (input.init)."""
+    return str(Path(input.init).parent)
 
 
 def init_model_dir(wildcards, input):

@@ -26,7 +26,8 @@ def colmap_status(dataset, scene, n):
 
 def run_targets(dataset, scene, n, init, stage):
     """The files of one (scene, n, initialiser) run up to ``stage``, leaving out what does
-    not apply. COLMAP results that failed stop at their status.json (a recorded result);
+    not apply. COLMAP results that failed stop at their status.json (a recorded result),
+    unless they fell back to random points for their cameras (status.json ``fallback``);
     held-out stages need >= 3 registered views for the Sim(3) alignment."""
     w = dict(dataset=dataset, scene=scene, n=n, init=init)
     run = RUN.format(**w)
@@ -38,7 +39,8 @@ def run_targets(dataset, scene, n, init, stage):
     aligned = True
     if init == "colmap":
         status = colmap_status(dataset, scene, n)
-        if not status.get("success_paper", status.get("success")):
+        fallback = (status.get("fallback") or {}).get("applied", False)
+        if not (status.get("success_paper", status.get("success")) or fallback):
             return out
         aligned = status["aligned_ok"]
     if ref and stage in ("pose", "all"):

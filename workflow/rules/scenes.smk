@@ -164,6 +164,7 @@ _NOT_APPLICABLE = {
         "it needs ground-truth depth (synthetic scenes only)",
     ),
     "posed_ba": (has_reference, "it needs reference cameras and the scene has none"),
+    "random": (has_reference, "it needs reference cameras and the scene has none"),
 }
 _told = set()
 
@@ -205,10 +206,10 @@ def skipped_initialisers_json(wildcards=None):
 
 
 def init_modes(init):
-    """Bridge modes of an initialiser: COLMAP and posed (with or without bundle adjustment)
-    have no confidence, so uniform only."""
+    """Bridge modes of an initialiser: COLMAP, posed (with or without bundle adjustment) and
+    random points have no confidence, so uniform only."""
     return (
         ["uniform"]
-        if init in ("colmap", "posed", "posed_ba")
+        if init in ("colmap", "posed", "posed_ba", "random")
         else config["bridge"]["modes"]
     )
