@@ -239,7 +239,9 @@ def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, 
     """Random points for an initialiser that left too few (module docstring), recorded in its
     status.json under ``fallback``: ``applied``, ``min_points``, and when applied ``reason``,
     ``points_found`` (the reconstruction's), ``model`` (relative to ``init_dir``), ``n_points``,
-    ``near``, ``far``, ``depth_source``. ``min_points`` = 0 turns the fallback off.
+    ``near``, ``far``, ``depth_source``; ``error`` when it was needed but no volume could be
+    filled (one registered camera), the run's own result then standing alone. ``min_points`` = 0
+    turns the fallback off.
 
     Returns:
         The updated status record.
@@ -251,7 +253,14 @@ def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, 
     fb: dict = {"applied": False, "min_points": int(min_points)}
     if min_points > 0 and found < min_points and reg >= 1 and model_dir.is_dir():
         cams = read_model(model_dir).cameras
-        placed = _place(cams, n_points, seed, None, None)
+        try:
+            placed = _place(cams, n_points, seed, None, None)
+        except ValueError as exc:  # e.g. one registered camera: no volume to fill; the run's result stands
+            fb["error"] = str(exc)
+            log.warning("random-point fallback not possible: %s", exc)
+            status["fallback"] = fb
+            write_json(init_dir / "status.json", status)
+            return status
         write_text_model(init_dir / FALLBACK_DIR / "sparse" / "0", cams, placed["points"], placed["colors"])
         fb.update({"applied": True, "points_found": found, "model": f"{FALLBACK_DIR}/sparse/0",
                    "reason": f"{found} points < min_points {min_points} with {reg} registered cameras: "

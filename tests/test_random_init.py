@@ -156,6 +156,11 @@ def test_fallback_off_or_not_needed_leaves_the_model(tmp_path):
     assert ri.seed_model_dir(run) == run / "sparse" / "0"
     (run / "status.json").write_text(json.dumps({"points": 5, "registered": 3}))
     assert ri.apply_fallback(run, min_points=0)["fallback"]["applied"] is False  # 0 = off
+    # one registered camera: no volume follows from it; recorded, the run's result stands
+    write_text_model(run / "sparse" / "0", ring(1))
+    (run / "status.json").write_text(json.dumps({"points": 0, "registered": 1}))
+    fb = ri.apply_fallback(run)["fallback"]
+    assert fb["applied"] is False and "one centre" in fb["error"]
     # no registered camera (a COLMAP run without a model): nothing to place points for
     shutil.rmtree(run / "sparse")
     (run / "status.json").write_text(json.dumps({"points": 0, "registered": 0}))

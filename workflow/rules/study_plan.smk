@@ -126,10 +126,11 @@ def study_oracle_args(wildcards):
 
 
 def study_posed_args(wildcards):
-    """Posed-initialiser CLI arguments of one cell and seed (its noise keys, POSED_NOISE)."""
+    """Posed-initialiser CLI arguments of one cell and seed (its noise keys, POSED_NOISE), and
+    the random-point fallback of config random."""
     noise = STUDY_CELLS[wildcards.cell]["noise"]
     args = [f"--{k.replace('_', '-')} {noise[k]}" for k in POSED_NOISE if k in noise]
-    return " ".join(args + [f"--seed {wildcards.seed}"])
+    return " ".join(args + [f"--seed {wildcards.seed}"] + fallback_args())
 
 
 def study_scene_inputs(wildcards):
