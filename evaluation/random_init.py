@@ -244,9 +244,12 @@ def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, 
     turns the fallback off.
 
     Returns:
-        The updated status record.
+        The updated status record ({} when ``init_dir`` has no status.json).
     """
     init_dir = Path(init_dir)
+    if not (init_dir / "status.json").is_file():  # the initialiser recorded nothing to fall back from
+        log.warning("random-point fallback: %s has no status.json; nothing to decide", init_dir)
+        return {}
     status = json.loads((init_dir / "status.json").read_text())
     found, reg = int(status.get("points") or 0), int(status.get("registered") or 0)
     model_dir = init_dir / "sparse" / "0"
