@@ -11,7 +11,7 @@ sqrt(k) over seeds); differences against the first variant are paired by seed.
     python benchmarks/recipe_study.py --scene fern --n 3 --init posed --iterations 10000 \\
         --variants paper sparse --seeds 0 1 2 --work /tmp/rs_fern3
     python benchmarks/recipe_study.py --scene synthetic --n 3 --init oracle --iterations 3000 \\
-        --variants sparse no-dropout depth uniform-depth no-cap no-early-stop --seeds 0 1 2
+        --variants sparse no-dropout no-depth no-cap no-early-stop uniform-depth --seeds 0 1 2
 
 A run whose train.json exists is not trained again (the study resumes). The summary goes to
 ``--out`` (default benchmarks/out/recipe_study_<cell>.json) and is printed as a table; real
@@ -41,10 +41,8 @@ VARIANTS: dict[str, dict] = {
     "paper": {"recipe": "paper"},
     "sparse": {"recipe": "sparse"},
     "no-dropout": {"recipe": "sparse", "dropout_rate": 0.0},
-    # the depth term is off in `sparse` (its ablation, run while it was on at 0.05 as the
-    # variants "sparse" vs "no-depth", found no effect): these switch it on
-    "depth": {"recipe": "sparse", "depth_weight": 0.05},
-    "uniform-depth": {"recipe": "sparse", "depth_weight": 0.05, "depth_use_confidence": False},
+    "no-depth": {"recipe": "sparse", "depth_weight": 0.0},
+    "uniform-depth": {"recipe": "sparse", "depth_use_confidence": False},
     "no-cap": {"recipe": "sparse", "gaussians_per_pixel": 0.0},
     "no-early-stop": {"recipe": "sparse", "densify_until": "ITERATIONS"},
     "no-reset": {"recipe": "sparse", "opacity_reset_every": 10**9},

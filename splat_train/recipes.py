@@ -21,13 +21,10 @@ printed by the trainer).
     * Gaussian dropout (DropGaussian, CVPR 2025): during training only, each Gaussian's
       opacity is zeroed with probability p, ramping linearly from 0 to ``dropout_rate`` over
       the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.dropout`);
-    * a depth prior from the initialiser's own output, weighted by its confidence: a
+    * a depth prior from the initialiser's own dense output, weighted by its confidence: a
       scale-invariant (Pearson) loss between rendered and prior depth, weight ramped in over
       ``depth_ramp_fraction`` of the run (:mod:`splat_train.depth_prior`); off when the seed has
-      no prior file. **Off by default** (``depth_weight`` 0): at FSGS's weight 0.05 it changed
-      held-out PSNR by less than the seed-to-seed spread on every measured cell (synthetic exact
-      and VGGT-like, fern ``posed``), and its confidence weighting changed nothing
-      (docs/sparse-recipe.md); set ``depth_weight`` to use it;
+      no prior file;
     * a model sized to its views: growth keeps the best candidates under a cap of
       ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.densify`), and
       densification stops at half the run (as 3DGS stops at 15k of 30k);
@@ -81,9 +78,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         "sh_increase_every_fraction": 0.1,
         # DropGaussian's final rate (FIELD_FACTS.md)
         "dropout_rate": 0.2,
-        # off: the ablation found no measurable effect at FSGS's 0.05 (docs/sparse-recipe.md);
-        # a weight the user sets is reached after 10 % of the run
-        "depth_weight": 0.0,
+        # FSGS's Pearson depth weight (FIELD_FACTS.md), reached after 10 % of the run
+        "depth_weight": 0.05,
         "depth_ramp_fraction": 0.1,
         # fern posed n = 3 at 10,000 iterations (seed 0; docs/sparse-recipe.md): 0.03 per
         # training pixel (17k Gaussians) held out 20.6 dB against 20.3 for 0.1 (55k), at half

@@ -261,9 +261,8 @@ def test_a_binding_cap_does_not_collapse_the_model(tmp_path):
 # ---------------------------------------------------------------- the chain: Bridge -> trainer
 def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
     """Through the CLIs: the Bridge writes depth_prior.npz for a COLMAP-style model with tracks;
-    with a depth weight the trainer finds it beside the seed, trains with it and records it in
-    train.json; --no-depth-prior writes none and the run says the depth term is off; the sparse
-    recipe's default weight (0) leaves it unused."""
+    the sparse recipe finds it beside the seed, trains with it and records it in train.json;
+    --no-depth-prior writes none and the run says the depth term is off."""
     from camio.colmap import read_model, write_text_model
 
     scene = write_scene(tmp_path / "s", n_views=3)
@@ -287,21 +286,17 @@ def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
     assert not (tmp_path / "b_off" / DEPTH_PRIOR_FILE).exists()
     bj = json.loads((tmp_path / "b" / "bridge.json").read_text())
     assert bj["depth_prior"]["samples"] == len(prior.z)
-    for name, weight in (("b", 0.05), ("b_off", 0.05), ("b", None)):
-        config = {"device": "cpu", **({"depth_weight": weight} if weight is not None else {})}
+    for name in ("b", "b_off"):
         rc = subprocess.run([sys.executable, "-m", "splat_train", "--seed", str(tmp_path / name / "seed.ply"),
                              "--cameras", str(tmp_path / name), "--images", str(scene["images"]), "--out",
-                             str(tmp_path / f"t_{name}_{weight}"), "--iterations", "12", "--recipe", "sparse",
-                             "--eval-every", "0", "--config", json.dumps(config)],
+                             str(tmp_path / f"t_{name}"), "--iterations", "12", "--recipe", "sparse",
+                             "--eval-every", "0", "--config", '{"device": "cpu"}'],
                             cwd=REPO, capture_output=True, text=True)
         assert rc.returncode == 0, rc.stderr[-2000:]
-        if name == "b_off":
-            assert "depth term off" in rc.stderr
-    tj = json.loads((tmp_path / "t_b_0.05" / "train.json").read_text())
+    tj = json.loads((tmp_path / "t_b" / "train.json").read_text())
     assert tj["recipe"] == "sparse" and tj["depth_prior"]["samples"] > 0
-    assert json.loads((tmp_path / "t_b_off_0.05" / "train.json").read_text())["depth_prior"] is None
-    # the recipe's default leaves the term off (docs/sparse-recipe.md: no measurable effect)
-    assert json.loads((tmp_path / "t_b_None" / "train.json").read_text())["depth_prior"] is None
+    assert json.loads((tmp_path / "t_b_off" / "train.json").read_text())["depth_prior"] is None
+    assert "depth term off" in rc.stderr
 
 
 def test_no_opacity_reset_means_no_reset_and_no_size_prune():
