@@ -36,8 +36,15 @@ const spark = new SparkRenderer({ renderer, ...SPARK_3DGS, onDirty: () => { last
 // Blend the PLY's values as they are (3DGS does not linearise): never convert sRGB to linear.
 Object.defineProperty(spark.uniforms.encodeLinear, "value", { get: () => false, set: () => {} });
 scene.add(spark);
-const controls = new OrbitControls(camera, canvas);
-controls.addEventListener("change", () => { if (!applying) { activeCam = null; cameraSelect.value = ""; } });
+let controls = null;
+function makeControls(target) {
+  // OrbitControls keeps camera.up fixed: set it to the camera's own up so a jump keeps its roll
+  if (controls) controls.dispose();
+  controls = new OrbitControls(camera, canvas);
+  controls.target.copy(target);
+  controls.update();
+  controls.addEventListener("start", () => { activeCam = null; cameraSelect.value = ""; layout(); });
+}
 
 // Float target: splats accumulate in half floats, then one copy to the 8-bit canvas.
 let target = new THREE.WebGLRenderTarget(1, 1, { type: THREE.HalfFloatType, depthBuffer: true });
@@ -53,7 +60,6 @@ blitScene.add(new THREE.Mesh(new THREE.PlaneGeometry(2, 2), blitMat));
 
 let cameras = [];
 let activeCam = null;   // the record whose intrinsics drive the projection, or null
-let applying = false;
 let model = null, seed = null;
 const frusta = new THREE.Group();
 scene.add(frusta);
@@ -100,18 +106,15 @@ function layout() {
 }
 
 function jumpTo(rec) {
-  applying = true;
   activeCam = rec;
   const m = worldFromCamGl(rec), pos = new THREE.Vector3(), q = new THREE.Quaternion(), s = new THREE.Vector3();
   m.decompose(pos, q, s);
   camera.position.copy(pos); camera.quaternion.copy(q); camera.updateMatrixWorld(true);
   // orbit about a point ahead of the camera, at the distance of the scene's middle
-  const ahead = new THREE.Vector3(0, 0, -sceneScale).applyQuaternion(q).add(pos);
-  controls.target.copy(ahead);
-  camera.lookAt(ahead);  // same direction; keeps the controls consistent
+  camera.up.set(0, 1, 0).applyQuaternion(q);
+  makeControls(new THREE.Vector3(0, 0, -sceneScale).applyQuaternion(q).add(pos));
   camera.quaternion.copy(q); camera.updateMatrixWorld(true);
   layout();
-  applying = false;
 }
 
 let sceneScale = 1.0;
@@ -161,7 +164,7 @@ async function showSeed(on) {
 
 let frames = 0, loadedAt = null;
 function frame() {
-  controls.update();
+  if (controls && !activeCam) controls.update();
   renderer.setRenderTarget(target);
   renderer.clear();
   renderer.render(scene, camera);
@@ -193,7 +196,7 @@ async function main() {
   if (want && !start) throw new Error(`no camera named ${want}`);
   if (start) { cameraSelect.value = start.name; jumpTo(start); }
   else if (cameras.length) { jumpTo(cameras[0]); activeCam = null; cameraSelect.value = ""; layout(); }
-  else { camera.position.set(0, 0, 3); layout(); }
+  else { camera.position.set(0, 0, 3); makeControls(new THREE.Vector3()); layout(); }
   renderer.setAnimationLoop(frame);
   model = await loadSplats("/model.ply");
   scene.add(model);
