@@ -175,7 +175,6 @@ function frame() {
   const now = performance.now();
   if (loadedAt !== null && !window.viewerReady && now - lastDirty > 300 && now - loadedAt > 500 && frames > 10) {
     window.viewerReady = true;
-    window.viewerOpenMs = lastDirty - window.performance.timeOrigin + window.performance.timeOrigin;
     status(`ready: ${model.numSplats ?? ""} Gaussians`);
   }
 }
