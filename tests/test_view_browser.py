@@ -1,6 +1,7 @@
 """The viewer in a real browser: headless Chromium with software WebGL (SwiftShader) opens a
 small model at a training camera (off-centre principal point, SH degree 1 colour, base colours
-above 1) and its screenshot matches ``python -m splat_train render`` of that camera."""
+above 1) and its screenshot matches ``python -m splat_train render`` of that camera; with the
+seed toggled on, the same camera shows the seed instead."""
 
 from __future__ import annotations
 
@@ -53,6 +54,10 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
             assert browser.evaluate("[document.getElementById('view').width, "
                                     "document.getElementById('view').height]") == [W, H]
             shot = read_image(browser.screenshot(tmp_path / "shot.png", W, H))[..., :3].astype(np.float64)
+            # the seed toggle shows another cloud from the same camera
+            browser.open(f"http://127.0.0.1:{srv.server_port}/?camera={name}&ui=0&seed=1")
+            browser.wait_for("window.viewerReady", timeout=240, error_expression="window.viewerError")
+            seed_shot = read_image(browser.screenshot(tmp_path / "seed.png", W, H))[..., :3].astype(np.float64)
     finally:
         srv.shutdown()
         srv.server_close()
@@ -61,3 +66,5 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
     psnr = 10 * np.log10(1.0 / np.mean((shot - ref) ** 2))
     print(f"browser vs render at {name}: PSNR {psnr:.2f} dB")
     assert psnr >= MIN_PSNR, psnr
+    seed_psnr = 10 * np.log10(1.0 / np.mean((seed_shot - ref) ** 2))
+    assert seed_shot.mean() > 0.01 and seed_psnr < 25.0, seed_psnr
