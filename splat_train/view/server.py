@@ -30,7 +30,7 @@ VENDOR_FILES = {
     "/vendor/three-addons/controls/OrbitControls.js": "three/examples/jsm/controls/OrbitControls.js",
     "/vendor/spark.module.js": "@sparkjsdev/spark/dist/spark.module.js",
 }
-STATIC_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js"}
+STATIC_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js", "/shfix.js": "shfix.js"}
 CONTENT_TYPES = {".js": "text/javascript; charset=utf-8", ".html": "text/html; charset=utf-8",
                  ".json": "application/json", ".ply": "application/octet-stream"}
 INSTALL_HINT = ("the viewer's browser libraries are not installed: run `make install` "

@@ -6,6 +6,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
+import { fixShPrecision } from "/shfix.js";
 
 // Original 3DGS conventions (our rasterizer): a 0.3 px^2 screen-space dilation without opacity
 // compensation, depth (not radial) order, a 3.33-sigma footprint, float colour per splat and
@@ -148,10 +149,17 @@ document.getElementById("frusta").addEventListener("change", (e) => { frusta.vis
 document.getElementById("seed").addEventListener("change", (e) => showSeed(e.target.checked));
 window.addEventListener("resize", layout);
 
-function loadSplats(url) {
+async function loadSplats(url) {
   // extSplats: float colour per splat, so base colours above 1 are not clamped before SH is added
-  const mesh = new SplatMesh({ url, extSplats: true });
-  return mesh.initialized.then(() => mesh);
+  const bytes = new Uint8Array(await (await fetch(url)).arrayBuffer());
+  const mesh = new SplatMesh({ fileBytes: bytes.slice(), fileType: "ply", extSplats: true });
+  await mesh.initialized;
+  const splats = mesh.extSplats ?? mesh.splats;
+  let fix;
+  try { fix = fixShPrecision(splats, bytes); } catch (e) { fix = `failed: ${e}`; }
+  window.viewerShFix = Object.assign(window.viewerShFix || {}, { [url]: fix });
+  if (fix !== "applied") console.warn(`SH bands of ${url} at Spark's precision: ${fix}`);
+  return mesh;
 }
 
 async function showSeed(on) {
