@@ -14,7 +14,7 @@ from camio.ply import GaussianCloud, write_gaussian_ply
 SH_C0 = 0.28209479177387814
 
 
-def make_model(n: int = 400, seed: int = 0, sh_degree: int = 1) -> GaussianCloud:
+def make_model(n: int = 400, seed: int = 0, sh_degree: int = 3) -> GaussianCloud:
     """``n`` Gaussians in a ball of radius 1: SH degree ``sh_degree`` view-dependent colour, a
     third of them with base colours above 1 (DC term alone > 1, pulled back by their SH bands)."""
     rng = np.random.default_rng(seed)

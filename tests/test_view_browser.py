@@ -1,6 +1,6 @@
 """The viewer in a real browser: headless Chromium with software WebGL (SwiftShader) opens a
-small model at a training camera (off-centre principal point, SH degree 1 colour, base colours
-above 1) and its screenshot matches ``python -m splat_train render`` of that camera; with the
+small model at a training camera (off-centre principal point, SH degree 3 colour in every band,
+base colours above 1) and its screenshot matches ``python -m splat_train render`` of that camera; with the
 seed toggled on, the same camera shows the seed instead."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from splat_train.view import server
 from splat_train.view.headless import Chromium, find_chromium
 
 ROOT = Path(__file__).resolve().parents[1]
-MIN_PSNR = 35.0
+MIN_PSNR = 45.0  # measured 58 dB (SwiftShader); 37 dB without the SH re-encoding of shfix.js
 W, H = 160, 120
 
 
@@ -51,6 +51,7 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
         with Chromium(W, H) as browser:
             browser.open(f"http://127.0.0.1:{srv.server_port}/?camera={name}&ui=0")
             browser.wait_for("window.viewerReady", timeout=240, error_expression="window.viewerError")
+            assert browser.evaluate("window.viewerShFix['/model.ply']") == "applied"
             assert browser.evaluate("[document.getElementById('view').width, "
                                     "document.getElementById('view').height]") == [W, H]
             shot = read_image(browser.screenshot(tmp_path / "shot.png", W, H))[..., :3].astype(np.float64)

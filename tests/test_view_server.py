@@ -66,9 +66,10 @@ def test_serves_the_view(view):
     assert json.loads(_get(view["port"], "/view.json")[1]) == {"seed": True}
 
 
-def test_viewer_js_has_no_remote_url():
-    js = (server.STATIC_DIR / "viewer.js").read_text()
-    assert "https://" not in js and "http://" not in js
+@pytest.mark.parametrize("name", ["viewer.js", "shfix.js", "index.html"])
+def test_page_has_no_remote_url(name):
+    text = (server.STATIC_DIR / name).read_text()
+    assert "https://" not in text and "http://" not in text
 
 
 TRAVERSALS = [
