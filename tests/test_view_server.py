@@ -119,3 +119,26 @@ def test_view_says_how_to_install(tmp_path, monkeypatch, capsys):
     rc = cli.main(["--model", str(tmp_path / "m.ply"), "--no-browser"])
     assert rc == 2
     assert "make install" in capsys.readouterr().err
+
+
+def test_cli_serves_until_stopped(tmp_path):
+    """`python -m splat_train view ... --port 0 --no-browser` prints its address and serves the view."""
+    try:
+        server.check_installed()
+    except server.ViewerNotInstalled as e:
+        pytest.skip(str(e))
+    files = write_view_scene(tmp_path / "scene", n=10, width=32, height=24)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "splat_train", "view", "--model", str(files["model"]),
+                             "--cameras", str(files["cameras"]), "--port", "0", "--no-browser"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        line = proc.stdout.readline()
+        assert "http://127.0.0.1:" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
+        port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+        assert _get(port, "/model.ply")[1] == files["model"].read_bytes()
+        assert json.loads(_get(port, "/view.json")[1]) == {"seed": False}
+        assert _get(port, "/seed.ply")[0] == 404
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
