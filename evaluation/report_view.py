@@ -11,7 +11,7 @@ import html
 import shlex
 from pathlib import Path
 
-from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT
+from camio.view_defaults import VIEW_HOST as DEFAULT_HOST, VIEW_PORT as DEFAULT_PORT
 
 # R/{dataset}/{scene}/n{n}/{init}/{mode}/train/model.ply (workflow/rules/common.smk)
 MODEL_GLOB = "*/*/n*/*/*/train/model.ply"

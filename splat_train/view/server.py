@@ -15,10 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.view_defaults import VIEW_HOST, VIEW_PORT
+
 log = logging.getLogger("splat_train.view")
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8765
+DEFAULT_HOST = VIEW_HOST
+DEFAULT_PORT = VIEW_PORT
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 NPM_DIR = Path(__file__).resolve().parent / "npm"
 NODE_MODULES = NPM_DIR / "node_modules"
