@@ -27,6 +27,7 @@ from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
 from evaluation.plots import run_plots
 from evaluation.pose import GateConfig, success_criteria_text
+from evaluation.report_view import view_section
 from evaluation.results import collect_runs, find_file, run_label
 from evaluation.tables import build_tables, table_notes
 
@@ -220,6 +221,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
             parts.append("<p>No plots: no run has a training log or both a run time and a held-out "
                          "PSNR (training off?).</p>")
         parts += _study_section(Path(results), images)
+        parts += view_section(results)
         parts.append("<h2>Renders (one column per initialiser that produced them, as headed; "
                      "then the ground truth)</h2>")
         n_grids = 0

@@ -31,6 +31,33 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$BASE_PY" -m venv --system-site-packages "$VENV"
   fi
 fi
+# The browser viewer's libraries (`python -m splat_train view`): Spark and three.js from npm at
+# the versions pinned by splat_train/view/npm/package-lock.json, into its git-ignored
+# node_modules. Optional: without node/npm everything else works and `view` says what is missing.
+install_viewer() {
+  local dir=splat_train/view/npm
+  if [ -f "$dir/node_modules/.package-lock.json" ] && cmp -s "$dir/package-lock.json" "$dir/.installed-lock" 2>/dev/null; then
+    return 0
+  fi
+  if ! command -v npm >/dev/null 2>&1; then
+    echo "[install] apt: npm (for the browser viewer's libraries)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq || true
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq npm || true
+  fi
+  if command -v npm >/dev/null 2>&1; then
+    echo "[install] npm ci: the browser viewer's libraries ($dir)"
+    if (cd "$dir" && npm ci --no-audit --no-fund --loglevel=error); then
+      cp "$dir/package-lock.json" "$dir/.installed-lock"
+    else
+      echo "[install] warning: npm ci failed; \`python -m splat_train view\` will say what is missing"
+    fi
+  else
+    echo "[install] warning: no npm; \`python -m splat_train view\` needs it (apt-get install npm, then make install)"
+  fi
+}
+install_viewer
+
 PY="$VENV/bin/python"
 STAMP="$VENV/.installed"
 want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"

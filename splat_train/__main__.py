@@ -9,6 +9,11 @@ Train::
         [--eval-every M] [--eval-lpips | --no-eval-lpips] [--lpips-weights PATH] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
         [--resume-dir DIR] [--rasterizer BACKEND]
 
+Look at a trained model in the browser (splat_train/view)::
+
+    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed seed.ply]
+        [--port P] [--host 127.0.0.1] [--no-browser]
+
 Render a trained model into any camera set::
 
     python -m splat_train render --model model.ply --cameras DIR --out DIR
@@ -32,7 +37,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m splat_train",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
-                                            "`python -m splat_train render -h` renders a trained model.")
+                                            "`python -m splat_train render -h` renders a trained model, "
+                                            "`python -m splat_train view -h` shows one in the browser.")
     p.add_argument("--seed", required=True, help="seed PLY (3DGS layout, e.g. the Bridge's seed.ply)")
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
@@ -112,6 +118,9 @@ def _out_ok(out: str, inputs: dict, stage: str) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "view":
+        from splat_train.view.cli import main as view_main
+        return view_main(argv[1:])
     if argv and argv[0] == "render":
         args = _render_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)

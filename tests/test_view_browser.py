@@ -1,0 +1,71 @@
+"""The viewer in a real browser: headless Chromium with software WebGL (SwiftShader) opens a
+small model at a training camera (off-centre principal point, SH degree 3 colour in every band,
+base colours above 1) and its screenshot matches ``python -m splat_train render`` of that camera; with the
+seed toggled on, the same camera shows the seed instead."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from _view_scene import write_view_scene
+from camio.images import read_image
+from splat_train.view import server
+from splat_train.view.headless import Chromium, find_chromium
+
+ROOT = Path(__file__).resolve().parents[1]
+MIN_PSNR = 45.0  # measured 58 dB (SwiftShader); 37 dB without the SH re-encoding of shfix.js
+W, H = 160, 120
+
+
+def _skip_reason() -> str | None:
+    if find_chromium() is None:
+        return "no Chromium on this machine (Debian: apt-get install chromium; .ci/run installs it)"
+    try:
+        server.check_installed()
+    except server.ViewerNotInstalled as e:
+        return str(e)
+    return None
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(_skip_reason() is not None, reason=_skip_reason() or "")
+def test_browser_matches_render_at_a_training_camera(tmp_path):
+    files = write_view_scene(tmp_path / "scene", n=400, width=W, height=H)
+    name = "view01.png"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    subprocess.run([sys.executable, "-m", "splat_train", "render", "--model", str(files["model"]),
+                    "--cameras", str(files["cameras"]), "--out", str(tmp_path / "renders")],
+                   check=True, env=env, cwd=ROOT, timeout=300, capture_output=True)
+    ref = read_image(tmp_path / "renders" / name)[..., :3].astype(np.float64)
+
+    cams = server.cameras_json(files["cameras"], files["test_cameras"])
+    srv = server.make_server(server.build_routes(files["model"], files["seed"], cams), port=0)
+    server.serve_in_thread(srv)
+    try:
+        with Chromium(W, H) as browser:
+            browser.open(f"http://127.0.0.1:{srv.server_port}/?camera={name}&ui=0")
+            browser.wait_for("window.viewerReady", timeout=240, error_expression="window.viewerError")
+            assert browser.evaluate("window.viewerShFix['/model.ply']") == "applied"
+            assert browser.evaluate("[document.getElementById('view').width, "
+                                    "document.getElementById('view').height]") == [W, H]
+            shot = read_image(browser.screenshot(tmp_path / "shot.png", W, H))[..., :3].astype(np.float64)
+            # the seed toggle shows another cloud from the same camera
+            browser.open(f"http://127.0.0.1:{srv.server_port}/?camera={name}&ui=0&seed=1")
+            browser.wait_for("window.viewerReady", timeout=240, error_expression="window.viewerError")
+            seed_shot = read_image(browser.screenshot(tmp_path / "seed.png", W, H))[..., :3].astype(np.float64)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert shot.shape == ref.shape
+    assert ref.mean() > 0.05  # the model is in view
+    psnr = 10 * np.log10(1.0 / np.mean((shot - ref) ** 2))
+    print(f"browser vs render at {name}: PSNR {psnr:.2f} dB")
+    assert psnr >= MIN_PSNR, psnr
+    seed_psnr = 10 * np.log10(1.0 / np.mean((seed_shot - ref) ** 2))
+    assert seed_shot.mean() > 0.01 and seed_psnr < 25.0, seed_psnr
