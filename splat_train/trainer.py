@@ -67,11 +67,9 @@ __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_dige
 log = logging.getLogger(__name__)
 
 # Iterations between host reads of the training scalars (loss, L1, SSIM, MSE) on an
-# accelerator. Each read waits for the device's queue to drain, so reading them every
-# iteration (six reads per iteration before) kept the GPU idle while Python queued the next
-# one. On the CPU a read costs nothing and the run reads every iteration (exact stop at a
-# non-finite loss, before its backward pass). Evaluation, checkpoint and log iterations read
-# too, so their rows are exact.
+# accelerator: each read waits for the device's queue to drain. On the CPU a read costs
+# nothing and the run reads every iteration (exact stop at a non-finite loss, before its
+# backward pass). Evaluation, checkpoint and log iterations read too, so their rows are exact.
 SYNC_EVERY = 10
 
 
