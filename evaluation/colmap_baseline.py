@@ -404,13 +404,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="accuracy gate for --ref: ATE / trajectory radius (default 0.05)")
     p.add_argument("--max-rel-rot-deg", type=float, default=5.0,
                    help="accuracy gate for --ref: mean relative rotation error (default 5)")
-    p.add_argument("--max-image-size", type=int, default=3200)
-    p.add_argument("--max-num-features", type=int, default=16384)
-    p.add_argument("--no-guided-matching", action="store_true")
+    p.add_argument("--max-image-size", type=int, default=3200, help="SIFT extraction: longest image side in pixels")
+    p.add_argument("--max-num-features", type=int, default=16384, help="SIFT features per image at most")
+    p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
     p.add_argument("--threads", type=int, default=0,
                    help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     names = _read_names(args)
