@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
 
         tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
-        return 1
+        return 2
     log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],
              report["mode"], report["timings_s"]["total"], args.out)
     return 0

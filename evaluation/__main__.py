@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
         tidy_outs()
         log.debug("traceback", exc_info=True)
         log.error("%s failed: %s", args.command, exc)
-        return 1
+        return 2
 
 
 if __name__ == "__main__":

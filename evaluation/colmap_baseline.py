@@ -413,12 +413,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
-    names = _read_names(args)
+    try:
+        names = _read_names(args)
+    except SystemExit as exc:  # bad arguments: argparse's usage line and exit code 2
+        p.error(str(exc.code).removeprefix("error: "))
     settings = ColmapSettings(args.max_image_size, args.max_num_features,
                               not args.no_guided_matching, "PINHOLE", args.threads)
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
     if args.seeds and args.repeats not in (1, len(args.seeds)):
-        raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
+        p.error(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
     try:
         from camio.outdir import prepare_out
 

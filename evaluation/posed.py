@@ -86,6 +86,8 @@ def run_posed(scene: str | Path, names: list[str], out_dir: str | Path, noise: O
     names = list(dict.fromkeys(names))
     if len(names) < 2:
         raise ValueError(f"posed: needs >= 2 training views, got {len(names)}")
+    if not scene.is_dir():
+        raise ValueError(f"posed: scene {scene} does not exist")
     ref_dir = scene / "sparse" / "0"
     if not ref_dir.is_dir():
         raise ValueError(f"posed: {scene} has no reference cameras (sparse/0); the posed initialiser "
@@ -139,12 +141,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
+    if not (args.image_list or args.names):
+        p.error("give the training images: --image-list FILE or --names NAME ...")
+    if args.image_list and not Path(args.image_list).is_file():
+        p.error(f"image list {args.image_list} does not exist")
     if args.image_list:
         names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    elif args.names:
-        names = args.names
     else:
-        raise SystemExit("give the training images: --image-list or --names")
+        names = args.names
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     try:
         from camio.outdir import prepare_out
