@@ -12,7 +12,17 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 # this clone's own environment (make install), when there is one
 if [ -x .venv/bin/python ]; then export PATH="$(pwd)/.venv/bin:$PATH"; fi
-RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml'))['results'])")
+# the configuration first, before anything is written: one line per problem, naming the key
+conf=(config.yaml)
+args=("$@")
+for ((i = 0; i < ${#args[@]}; i++)); do
+  case "${args[i]}" in
+    --configfile|--configfiles) while [[ $((i + 1)) -lt ${#args[@]} && "${args[i+1]}" != -* ]]; do conf+=("${args[i+1]}"); i=$((i + 1)); done ;;
+    --configfile=*) conf+=("${args[i]#--configfile=}") ;;
+  esac
+done
+python3 workflow/scripts/check_config.py "${conf[@]}" || exit 2
+RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml')).get('results', 'results'))")
 INITS=$(python3 -c "import yaml; print(' '.join(yaml.safe_load(open('config.yaml'))['initialisers']))")
 
 extra=()
