@@ -8,13 +8,16 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
+
 def _config_errors():
     """One line per configuration problem, naming the key and the nearest valid one, before
     snakemake's own validation (whose message is a schema dump)."""
     import importlib.util
     import sys
 
-    path = (Path(str(workflow.current_basedir)) / "../scripts/check_config.py").resolve()
+    path = (
+        Path(str(workflow.current_basedir)) / "../scripts/check_config.py"
+    ).resolve()
     spec = importlib.util.spec_from_file_location("check_config", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
