@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: the whole DAG on the bundled synthetic scene (config.yaml) on 2 cores, then the
 # tables and the HTML report. Extra arguments go to snakemake (e.g. --configfile other.yaml).
-# About 3 minutes on a 2-core CPU without the VGGT checkpoint (README, "Quick start").
+# Its run time on a 2-core CPU: README.md, "Quick start".
 #
 # The VGGT branch needs the VGGT-1B checkpoint (vggt_init/checkpoint.py says where it is looked
 # for). Before anything runs, this script asks whether VGGT can run here (a checkpoint in place,
