@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.slow  # about a minute on 2 cores: COLMAP, triangulation, 300 iterations
+pytestmark = pytest.mark.slow  # about 2 minutes on 2 cores: COLMAP, triangulation, bundle adjustment, 300 iterations
 
 
 def stage_commands(readme: str) -> tuple[list[str], list[str]]:
