@@ -44,8 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop the lowest P %% by confidence (default: off; 40 in filtered mode)")
     p.add_argument("--voxel-size", type=float, default=None, help="voxel downsampling, normalised units")
     p.add_argument("--outlier-removal", action="store_true", help="open3d statistical outlier removal")
-    p.add_argument("--outlier-neighbors", type=int, default=20)
-    p.add_argument("--outlier-std", type=float, default=2.0)
+    p.add_argument("--outlier-neighbors", type=int, default=20, help="outlier removal: neighbours per point")
+    p.add_argument("--outlier-std", type=float, default=2.0,
+                   help="outlier removal: standard deviations of the mean neighbour distance kept")
     p.add_argument("--points3d", action="store_true",
                    help="also write the seed points into sparse/0/points3D.txt (for the original 3DGS loader)")
     p.add_argument("--no-depth-prior", dest="depth_prior", action="store_false",
@@ -53,8 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-prior-samples", type=int, default=50000,
                    help="at most this many depth-prior samples per camera (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud, the depth prior's subset)")
-    p.add_argument("-v", "--verbose", action="count", default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
 
         tidy_outs()  # a failed stage leaves nothing behind
         log.error("%s", exc)
-        return 1
+        return 2
     log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],
              report["mode"], report["timings_s"]["total"], args.out)
     return 0

@@ -20,23 +20,25 @@ log = logging.getLogger("camio")
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="camio", description=__doc__.split("\n")[0])
-    p.add_argument("-v", "--verbose", action="count", default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
-    s.add_argument("--out", required=True, type=Path)
-    s.add_argument("--views", type=int, default=24)
-    s.add_argument("--width", type=int, default=256)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--arc-deg", type=float, default=70.0)
-    s.add_argument("--layout", choices=("arc", "sphere"), default="arc")
+    s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
+    s.add_argument("--views", type=int, default=24, help="number of rendered views")
+    s.add_argument("--width", type=int, default=256, help="image width in pixels (height 3/4 of it)")
+    s.add_argument("--seed", type=int, default=0, help="random seed of the scene")
+    s.add_argument("--arc-deg", type=float, default=70.0, help="angle the cameras span (degrees)")
+    s.add_argument("--layout", choices=("arc", "sphere"), default="arc",
+                   help="cameras on an arc facing the scene, or spread over a sphere")
     s.add_argument("--supersample", type=int, default=1, help="anti-aliasing rays per pixel side")
 
     c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
-    c.add_argument("--src", required=True, type=Path)
-    c.add_argument("--out", required=True, type=Path)
-    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder"))
+    c.add_argument("--src", required=True, type=Path, help="the downloaded scene folder (its format is detected)")
+    c.add_argument("--out", required=True, type=Path, help="prepared scene folder to write (docs/contracts.md)")
+    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder"),
+                   help="input layout (auto: detected from its camera files)")
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
     c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")
     c.add_argument("--undistort", action="store_true",
@@ -49,9 +51,9 @@ def _parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")
     t.add_argument("--scene", required=True, type=Path, help="scene folder (its images/) or an image folder")
-    t.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12])
+    t.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts")
     t.add_argument("--manifest", type=Path, default=None, help="JSON split manifest overriding the rule")
-    t.add_argument("--out", required=True, type=Path)
+    t.add_argument("--out", required=True, type=Path, help="split.json to write")
     return p
 
 

@@ -48,13 +48,14 @@ whole (which would delete them) still refuses it."""
 PathLike = str | os.PathLike
 
 
-_PREPARED: dict[Path, bool] = {}
-"""Folders :func:`prepare_out` marked in this process -> whether it created the folder."""
+_PREPARED: dict[Path, tuple[Path, ...]] = {}
+"""Folders :func:`prepare_out` marked in this process -> the folders it created for them
+(the folder and its new parents, deepest first; empty when the folder was there)."""
 
 
 def tidy_outs() -> None:
     """Undo :func:`prepare_out` where the stage then wrote nothing (it failed early): remove
-    the marker, and the folder if :func:`prepare_out` created it. A failed stage leaves
+    the marker, and the folder and its parents where :func:`prepare_out` created them. A failed stage leaves
     nothing behind. Runs at interpreter exit; the CLIs also call it on their error paths."""
     for folder, created in list(_PREPARED.items()):
         _PREPARED.pop(folder, None)
@@ -62,8 +63,8 @@ def tidy_outs() -> None:
             if folder.is_dir() and MARKER in {e.name for e in folder.iterdir()} and not [
                     e for e in folder.iterdir() if e.name != MARKER and not (e.name in WORKFLOW_DIRS and e.is_dir())]:
                 (folder / MARKER).unlink()
-                if created:
-                    folder.rmdir()
+                for made in created:  # the folder and the parents prepare_out made, while empty
+                    made.rmdir()
         except OSError:
             pass
 
@@ -170,14 +171,18 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
     out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
-        created = not target.exists()
+        created = []  # the folders this call creates, deepest first (the parents too)
+        probe = _resolved(target)
+        while not probe.exists():
+            created.append(probe)
+            probe = probe.parent
         target.mkdir(parents=True, exist_ok=True)
         if folder:
             marker = target / MARKER
             owner, written = _read_marker(target)
             if owner != stage:
                 marker.write_text(stage + "\n")
-                _PREPARED[_resolved(target)] = created
+                _PREPARED[_resolved(target)] = tuple(created)
         elif not os.access(target, os.W_OK | os.X_OK):
             raise PermissionError(errno.EACCES, "Permission denied", str(target))
     except OSError as exc:

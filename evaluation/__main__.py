@@ -177,8 +177,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(prog="python -m evaluation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="count", default=0)
-    parser.add_argument("-q", "--quiet", action="store_true")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("pose", help="pose accuracy against reference cameras -> pose.json")
@@ -203,7 +203,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--n", type=int, help="training-view count, to pick from a split.json")
     p.add_argument("--images", help="folder of the test images (their size sets the cameras' size)")
     p.add_argument("--image-scale", type=float, help="scale of the test images relative to the reference")
-    p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto")
+    p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
+                   help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
     p.add_argument("--collinear-tol", type=float, default=0.1,
                    help="sigma2/sigma1 of the centres below which they count as collinear")
     p.add_argument("--train-cameras", choices=["initialiser", "refined"], default="initialiser",
@@ -213,19 +214,19 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_align)
 
     p = sub.add_parser("tables", help="results tree -> runs.parquet + tables.md")
-    p.add_argument("--results", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--results", required=True, help="the results tree (results/)")
+    p.add_argument("--out", required=True, help="folder to write (runs.parquet, tables.md)")
     _add_gate_args(p)
     p.set_defaults(func=_cmd_tables)
 
     p = sub.add_parser("plots", help="training curves and the Pareto plot (PNG)")
-    p.add_argument("--results", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--results", required=True, help="the results tree (results/)")
+    p.add_argument("--out", required=True, help="folder to write (PNG plots)")
     p.set_defaults(func=_cmd_plots)
 
     p = sub.add_parser("report", help="static HTML report")
-    p.add_argument("--results", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--results", required=True, help="the results tree (results/)")
+    p.add_argument("--out", required=True, help="folder to write (index.html and its images)")
     p.add_argument("--scenes", help="prepared scenes root, for ground-truth images "
                    "({scenes}/{dataset}/{scene}/images or {scenes}/{scene}/images)")
     p.add_argument("--max-views", type=int, default=4, help="test views per render grid")
@@ -283,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         tidy_outs()
         log.debug("traceback", exc_info=True)
         log.error("%s failed: %s", args.command, exc)
-        return 1
+        return 2
 
 
 if __name__ == "__main__":

@@ -199,15 +199,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init", required=True, help="initialiser output folder (sparse/0, predictions.npz)")
     p.add_argument("--images", required=True, help="the scene's images folder")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder (sparse/0, predictions.npz, status.json)")
     p.add_argument("--refine-focal", action="store_true", help="also refine focal lengths")
     p.add_argument("--seed-points", choices=SEED_POINTS, default="dense",
                    help="dense predicted points moved with the refined cameras, or the triangulated points")
     p.add_argument("--min-points", type=int, default=DEFAULT_MIN_POINTS,
                    help=f"fewer triangulated points fall back (default {DEFAULT_MIN_POINTS})")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("--seed", type=int, default=0, help="pycolmap's random seed")
+    p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]

@@ -73,22 +73,25 @@ def main(argv: list[str] | None = None) -> int:
                    "(ATE, rotation error, both success criteria) and report their spread; "
                    "written as a repeats summary, also for a single run")
     add_gate_args(p, "accuracy gate for --ref")
-    p.add_argument("--max-image-size", type=int, default=3200)
-    p.add_argument("--max-num-features", type=int, default=16384)
-    p.add_argument("--no-guided-matching", action="store_true")
+    p.add_argument("--max-image-size", type=int, default=3200, help="SIFT extraction: longest image side in pixels")
+    p.add_argument("--max-num-features", type=int, default=16384, help="SIFT features per image at most")
+    p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
     p.add_argument("--threads", type=int, default=0,
                    help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     add_fallback_args(p)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
-    names = _read_names(args)
+    try:
+        names = _read_names(args)
+    except SystemExit as exc:  # bad arguments: argparse's usage line and exit code 2
+        p.error(str(exc.code).removeprefix("error: "))
     settings = ColmapSettings(args.max_image_size, args.max_num_features,
                               not args.no_guided_matching, "PINHOLE", args.threads)
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
     if args.seeds and args.repeats not in (1, len(args.seeds)):
-        raise SystemExit(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
+        p.error(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
     try:
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
                                "--ref": args.ref}, "evaluation.colmap_baseline")

@@ -311,35 +311,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", help="split.json; use with --n")
     p.add_argument("--n", type=int, help="number of training views")
     p.add_argument("--image-list", help="file with one training image name per line")
-    p.add_argument("--names", nargs="+")
-    p.add_argument("--out", required=True)
+    p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
+    p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
     p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
     p.add_argument("--trans-frac", type=float, default=0.0,
                    help="RMS centre noise, fraction of the trajectory radius")
     p.add_argument("--depth-rel", type=float, default=0.0, help="relative depth noise (std)")
     p.add_argument("--outlier-frac", type=float, default=0.0, help="fraction of outlier pixels")
-    p.add_argument("--conf-scale", type=float, default=10.0)
+    p.add_argument("--conf-scale", type=float, default=10.0, help="confidence range above 1")
     p.add_argument("--conf-noise", type=float, default=0.0,
                    help="log-normal noise on the confidence (0 = perfect ranking)")
     p.add_argument("--conf-mode", choices=CONF_MODES, default="ranked",
                    help="confidence informativeness: ranked (ranks the depth error), noise "
                    "(random order), anti (reversed ranks); see the module docstring")
     p.add_argument("--downsample", type=int, default=1, help="prediction grid stride")
-    p.add_argument("--max-points", type=int, default=100_000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 at most")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     if args.split:
         if args.n is None:
-            raise SystemExit("--split needs --n")
+            p.error("--split needs --n")
         names = json.loads(Path(args.split).read_text())["train"][str(args.n)]
     elif args.image_list:
         names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
     elif args.names:
         names = args.names
     else:
-        raise SystemExit("give the training images: --split JSON --n N, --image-list or --names")
+        p.error("give the training images: --split JSON --n N, --image-list FILE or --names NAME ...")
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError

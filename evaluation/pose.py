@@ -136,7 +136,7 @@ def success_criteria_text(gate: "GateConfig" = None, html: bool = False) -> list
     gate = gate or GateConfig()
     lt = "&lt;" if html else "<"
     return ["Success (paper), success_paper: a model with >= 1 registered image and >= 1 point.",
-            f"Success (gated), success_gated: paper success, >= {gate.min_aligned_views} registered "
+            f"Success (accurate), success_gated (the accuracy gate): paper success, >= {gate.min_aligned_views} registered "
             f"training views (for the Sim(3) alignment), ATE {lt} {100 * gate.max_ate_rel_radius:g}% of the "
             f"RMS trajectory radius and mean relative rotation error {lt} {gate.max_rel_rot_deg:g} deg "
             "(scenes with reference cameras only)."]

@@ -89,6 +89,8 @@ def run_posed(scene: str | Path, names: list[str], out_dir: str | Path, noise: O
     names = list(dict.fromkeys(names))
     if len(names) < 2:
         raise ValueError(f"posed: needs >= 2 training views, got {len(names)}")
+    if not scene.is_dir():
+        raise ValueError(f"posed: scene {scene} does not exist")
     ref_dir = scene / "sparse" / "0"
     if not ref_dir.is_dir():
         raise ValueError(f"posed: {scene} has no reference cameras (sparse/0); the posed initialiser "
@@ -131,24 +133,26 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m evaluation.posed", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     p.add_argument("--image-list", help="file with one training image name per line")
-    p.add_argument("--names", nargs="+")
-    p.add_argument("--out", required=True)
+    p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
+    p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
     p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
     p.add_argument("--trans-frac", type=float, default=0.0, help="RMS centre noise, fraction of the radius")
     p.add_argument("--depth-rel", type=float, default=0.0, help="relative depth noise of the points (std)")
     p.add_argument("--outlier-frac", type=float, default=0.0, help="fraction of outlier points")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise and of pycolmap")
     p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
     add_fallback_args(p)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
+    if not (args.image_list or args.names):
+        p.error("give the training images: --image-list FILE or --names NAME ...")
+    if args.image_list and not Path(args.image_list).is_file():
+        p.error(f"image list {args.image_list} does not exist")
     if args.image_list:
         names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    elif args.names:
-        names = args.names
     else:
-        raise SystemExit("give the training images: --image-list or --names")
+        names = args.names
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     try:
         from camio.outdir import prepare_out

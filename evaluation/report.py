@@ -119,16 +119,42 @@ def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | N
             f"<tr><th>view</th>{head}</tr>\n" + "\n".join(rows) + "</table>")
 
 
+# What the report's names mean, shown once at its top.
+GUIDE_HTML = (
+    "<h2>What you are looking at</h2><ul>"
+    "<li><b>Initialisers</b> give the training cameras and the seed points: <code>vggt</code> "
+    "(VGGT-1B from the unposed photos), <code>colmap</code> (COLMAP structure-from-motion on the same "
+    "training views), <code>posed</code> (the scene's reference cameras with points triangulated from the "
+    "training views) and <code>oracle</code> (synthetic scenes only: the exact ground-truth cameras and "
+    "depth, written as VGGT's output, optionally with seeded noise; an upper bound, not a method). "
+    "A <code>_ba</code> suffix: the same cameras refined by bundle adjustment.</li>"
+    "<li><b>Bridge modes</b> (the <i>mode</i> column) say how Gaussians are seeded from the points: "
+    "<code>gated</code> gives each Gaussian an initial opacity that grows with the initialiser's "
+    "per-point confidence (Eq. 2); <code>uniform</code> gives every Gaussian the same opacity (what a "
+    "COLMAP model, which has no confidence, always gets); <code>filtered</code> is <code>gated</code> "
+    "after dropping the least confident points.</li>"
+    "<li><b>Success</b>: <i>success (paper)</i> is the paper's criterion; <i>success (accurate)</i> adds the "
+    "accuracy gate on pose error (both defined above). Neither is a Bridge mode.</li>"
+    "<li><b>Image metrics</b>: PSNR / SSIM / LPIPS are scored on the 8-bit renders of the held-out views "
+    "after the last iteration; <i>log PSNR final</i> and <i>log PSNR best</i> are the training log's "
+    "held-out PSNR at the last and at the best evaluated iteration (<i>best it.</i>).</li>"
+    "<li><b>Run times</b> are wall seconds per stage; one-time builds (the C++ kernel) are not "
+    "included.</li></ul>")
+
+
 def _table_html(df: pd.DataFrame) -> str:
     if df.empty:
         return "<p>(no runs)</p>"
+    from evaluation.tables import _DIGITS
 
     def fmt(x):
         return "-" if pd.isna(x) else (f"{x:.3f}" if abs(x) < 10 else f"{x:.2f}")
 
     shown = df.copy()
     for c in shown.columns:
-        if shown[c].dtype == bool:  # the Markdown tables' words, not True/False
+        if _DIGITS.get(c) == 0 and shown[c].dtype.kind == "f":  # counts (iterations, runs) as integers
+            shown[c] = shown[c].map(lambda v: "-" if pd.isna(v) else f"{v:.0f}")
+        elif shown[c].dtype == bool:  # the Markdown tables' words, not True/False
             shown[c] = shown[c].map(lambda v: "yes" if v else "no")
         elif shown[c].dtype == object:
             shown[c] = shown[c].map(lambda v: "-" if v is None or (isinstance(v, float) and pd.isna(v))
@@ -199,7 +225,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
                  f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
                  f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
-                 + " ".join(success_criteria_text(gate, html=True)) + "</p>"]
+                 + " ".join(success_criteria_text(gate, html=True)) + "</p>", GUIDE_HTML]
         parts += _initialiser_notes(Path(results), runs)
         parts += _heldout_cameras_note(runs)
         empty = []

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: the whole DAG on the bundled synthetic scene (config.yaml) on 2 cores, then the
 # tables and the HTML report. Extra arguments go to snakemake (e.g. --configfile other.yaml).
-# About 3 minutes on a 2-core CPU without the VGGT checkpoint (README, "Quick start").
+# Its run time on a 2-core CPU: README.md, "Quick start".
 #
 # The VGGT branch needs the VGGT-1B checkpoint (vggt_init/checkpoint.py says where it is looked
 # for). Before anything runs, this script asks whether VGGT can run here (a checkpoint in place,
@@ -12,7 +12,17 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 # this clone's own environment (make install), when there is one
 if [ -x .venv/bin/python ]; then export PATH="$(pwd)/.venv/bin:$PATH"; fi
-RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml'))['results'])")
+# the configuration first, before anything is written: one line per problem, naming the key
+conf=(config.yaml)
+args=("$@")
+for ((i = 0; i < ${#args[@]}; i++)); do
+  case "${args[i]}" in
+    --configfile|--configfiles) while [[ $((i + 1)) -lt ${#args[@]} && "${args[i+1]}" != -* ]]; do conf+=("${args[i+1]}"); i=$((i + 1)); done ;;
+    --configfile=*) conf+=("${args[i]#--configfile=}") ;;
+  esac
+done
+python3 workflow/scripts/check_config.py "${conf[@]}" || exit 2
+RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml')).get('results', 'results'))")
 INITS=$(python3 -c "import yaml; print(' '.join(yaml.safe_load(open('config.yaml'))['initialisers']))")
 
 extra=()

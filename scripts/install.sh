@@ -61,8 +61,12 @@ install_viewer
 PY="$VENV/bin/python"
 STAMP="$VENV/.installed"
 want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
+# The trainer's C++ kernels, built once here (cached by source hash in ~/.cache/splat_train,
+# quick when current) so that no training run's time includes their build.
+build_kernels() { "$PY" -m splat_train.cpu.build || echo "[install] warning: kernels not built; training builds them on first use"; }
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import camio, vggt_init, splat_train" 2>/dev/null; then
   echo "[install] $VENV is up to date (rm $STAMP to force a reinstall)"
+  build_kernels
   exit 0
 fi
 
@@ -90,5 +94,6 @@ if [ ! -x "$VENV/bin/snakemake" ]; then
   printf '#!%s\nimport sys\nfrom snakemake.cli import main\nsys.exit(main())\n' "$(cd "$VENV" && pwd)/bin/python" > "$VENV/bin/snakemake"
   chmod +x "$VENV/bin/snakemake"
 fi
+build_kernels
 echo "$want" > "$STAMP"
 echo "[install] done: $VENV ($("$PY" -c 'import sys; print(sys.prefix)'))"

@@ -74,14 +74,14 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
                    help="with --pose-refine, also learn a focal-length correction per camera "
                         "(not with the gsplat rasterizer, which gives the intrinsics no gradient)")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
-    p.add_argument("-v", "--verbose", action="count", default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 
@@ -95,12 +95,12 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", help="take each image size from the same-named file here "
                                     "(also reports PSNR against it)")
     p.add_argument("--width", type=int, help="render every camera at this width (with --height)")
-    p.add_argument("--height", type=int)
+    p.add_argument("--height", type=int, help="render every camera at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--background", default="0,0,0", help="background RGB in [0,1], e.g. 1,1,1")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("-v", "--verbose", action="count", default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to render")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 

@@ -31,12 +31,8 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  recipe_defaults)
 
-# Chosen from measured CPU runs on the 256x192 synthetic scene (`python -m camio synth`, 12
-# training views, ground-truth seed through the Bridge, 1 thread on a shared 2-core machine):
-# 1000 iterations 478 s, 51k Gaussians, held-out PSNR 26.85 dB; 2000 iterations 1277 s, 95k
-# Gaussians, 27.92 dB (benchmarks/train_synthetic.json). 1000 is the CPU default that
-# finishes in minutes; the paper's 10,000 take ~13 min on the 2-core CPU for the fern n = 3
-# cell (212k Gaussians; benchmarks/README.md, "The paper's 10,000-iteration cell").
+# Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
+# on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
 DEFAULT_ITERATIONS = 1000
 # The paper's budget ("10K iterations", PROTOCOL.md section 3): the default on a GPU, and the
 # run length the seed code's schedule was written for.
@@ -131,10 +127,8 @@ class TrainConfig:
         eval_every: held-out evaluation period (only with test cameras): PSNR and SSIM, and
             LPIPS with ``eval_lpips``; 0 disables (final only).
         eval_lpips: also compute LPIPS (v0.1, AlexNet) at every held-out evaluation
-            (``log.parquet`` ``test_lpips``). Off by default: the AlexNet pass and the weight
-            file are a cost a plain training run need not pay (measured at 128 x 96 px, 1
-            thread, load 2.6 on 2 cores: PSNR + SSIM 4.5 ms a view, LPIPS-alex 24 ms more);
-            the study configs turn it on. Without weights the column stays null and a warning says how to get them.
+            (``log.parquet`` ``test_lpips``). Off by default: the AlexNet pass costs several
+            times PSNR + SSIM per view and needs a weight file; the study configs turn it on. Without weights the column stays null and a warning says how to get them.
         lpips_weights: folder or file of the LPIPS-alex safetensors weights (None: the
             :func:`camio.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
             user cache).

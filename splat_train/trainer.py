@@ -12,7 +12,8 @@ held-out evaluation when due, then densify / prune / reset opacity when the sche
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
 uninterrupted run. The held-out evaluation scores PSNR, SSIM and, with ``eval_lpips``, LPIPS-alex
-(:mod:`splat_train.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``.
+(:mod:`splat_train.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is a C++ kernel's one-time build
+(``kernel_build_s``; ``python -m splat_train.cpu.build`` builds them ahead).
 Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text).
 
@@ -60,6 +61,7 @@ from splat_train.heldout import LPIPS_NET, HeldoutScorer
 from splat_train.losses import photometric_loss
 from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
+from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest"]
@@ -67,11 +69,9 @@ __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_dige
 log = logging.getLogger(__name__)
 
 # Iterations between host reads of the training scalars (loss, L1, SSIM, MSE) on an
-# accelerator. Each read waits for the device's queue to drain, so reading them every
-# iteration (six reads per iteration before) kept the GPU idle while Python queued the next
-# one. On the CPU a read costs nothing and the run reads every iteration (exact stop at a
-# non-finite loss, before its backward pass). Evaluation, checkpoint and log iterations read
-# too, so their rows are exact.
+# accelerator: each read waits for the device's queue to drain. On the CPU a read costs
+# nothing and the run reads every iteration (exact stop at a non-finite loss, before its
+# backward pass). Evaluation, checkpoint and log iterations read too, so their rows are exact.
 SYNC_EVERY = 10
 
 
@@ -396,14 +396,15 @@ class Trainer:
         bar = progress(range(self.iteration + 1, cfg.iterations + 1), total=cfg.iterations - self.iteration,
                        desc="train")
         for _ in bar:
-            t0 = time.perf_counter()
+            t0, b0 = time.perf_counter(), build_seconds()
             scalars = self.step()
             it = self.iteration
             evaluate = bool(self.test_views) and cfg.eval_every > 0 and (
                 it % cfg.eval_every == 0 or it == cfg.iterations)
             if evaluate:
                 self._sync()  # this iteration's queued GPU work is training time, not evaluation
-            self.wall += time.perf_counter() - t0
+            # a kernel's one-time build (first use in this process) is not training time
+            self.wall += time.perf_counter() - t0 - (build_seconds() - b0)
             held = {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
             if evaluate:
                 te = time.perf_counter()
@@ -455,7 +456,7 @@ class Trainer:
             write_text_model(out / "cameras_refined", cams)
         summary = {
             "iterations": cfg.iterations, "wall_time_s": self.wall, "session_time_s": session_s,
-            "eval_time_s": eval_time, "num_gaussians": self.num_gaussians,
+            "eval_time_s": eval_time, "kernel_build_s": build_seconds(), "num_gaussians": self.num_gaussians,
             "train_psnr": train_psnr, "test_psnr": test_psnr,
             "num_train_views": len(self.train_views), "num_test_views": len(self.test_views),
             "rendered": [v.name for v in render_set], "scene_extent": self.extent,

@@ -140,15 +140,15 @@ def test_cli_colmap_end_to_end(tmp_path):
 
 def test_cli_errors(tmp_path, capsys):
     model, imgs, *_ = _colmap_scene(tmp_path)
-    assert main(["--pred", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o"), "-q"]) == 1
+    assert main(["--pred", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o"), "-q"]) == 2
     bad = tmp_path / "bad.npz"
     np.savez(bad, world_points=np.zeros((1, 2, 2, 3)))
-    assert main(["--pred", str(bad), "--out", str(tmp_path / "o")]) == 1
+    assert main(["--pred", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "lacks keys" in capsys.readouterr().err
-    assert main(["--colmap", str(model), "--out", str(tmp_path / "o"), "--mode", "filtered", "-q"]) == 1
+    assert main(["--colmap", str(model), "--out", str(tmp_path / "o"), "--mode", "filtered", "-q"]) == 2
     assert main(["--pred", str(bad), "--images", str(imgs), "--out", str(tmp_path / "o"), "-q"]) == 2
     (imgs / "img1.png").unlink()
-    assert main(["--colmap", str(model), "--images", str(imgs), "--out", str(tmp_path / "o"), "-q"]) == 1
+    assert main(["--colmap", str(model), "--images", str(imgs), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert not (tmp_path / "o" / "bridge.json").exists()
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "o")])  # neither --pred nor --colmap

@@ -173,5 +173,5 @@ def test_dispatcher_images_missing_and_clear_errors(tmp_path, monkeypatch, capsy
     assert main(["images", "--pred", "a", "--gt", "b", "--out", "c"]) == 2
     assert "importing evaluation.images_cli failed" in capsys.readouterr().err
     # a bad input is an error message and exit status 1, not a traceback
-    assert main(["pose", "--pred", str(tmp_path / "none"), "--ref", str(tmp_path / "ref"), "--out", str(tmp_path / "p.json")]) == 1
+    assert main(["pose", "--pred", str(tmp_path / "none"), "--ref", str(tmp_path / "ref"), "--out", str(tmp_path / "p.json")]) == 2
     assert "pose failed: no COLMAP model" in capsys.readouterr().err

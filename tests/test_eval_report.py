@@ -97,3 +97,22 @@ def test_report_says_what_was_skipped_and_drops_empty_sections(tmp_path):
     table_one = page[page.index("Table I"):]
     assert "vggt did not run" in table_one[:600]
     assert "error against run time" not in page and "No plots" in page
+
+
+def test_report_says_what_the_names_mean_and_prints_counts_as_integers(tmp_path):
+    from evaluation.report import run_report
+
+    results, _ = build(tmp_path / "fake")
+    page = run_report(results, tmp_path / "r", plots=False).read_text()
+    guide = page[page.index("What you are looking at"):]
+    guide = guide[: guide.index("</ul>")]
+    for word in ("oracle", "<code>gated</code>", "<code>uniform</code>", "success (accurate)"):
+        assert word in guide
+    # the accuracy gate is never named like the Bridge mode "gated"
+    assert "success (gated)" not in page.lower()
+    assert "success (accurate)" in page
+    # Table II's best iteration is a whole number, not 1000.00
+    table = page[page.index("Table II"):]
+    table = table[: table.index("</table>")]
+    assert "<td>1000</td>" in table and "1000.00" not in table
+    assert table.count("held-out PSNR") == 0 and "log PSNR final" in table

@@ -45,7 +45,7 @@ def test_bridge_cli_reports_truncated_npz_without_traceback(predictions, tmp_pat
     from bridge.__main__ import main
 
     bad = _truncate(Path(shutil.copy(predictions, tmp_path / "predictions.npz")), 0.5)
-    assert main(["--pred", str(bad), "--out", str(tmp_path / "out")]) == 1
+    assert main(["--pred", str(bad), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "damaged or truncated" in err and "Traceback" not in err
     assert not (tmp_path / "out" / "seed.ply").exists()

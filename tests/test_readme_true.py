@@ -45,8 +45,8 @@ def test_readme_paths_exist():
 def test_readme_stage_block_makes_the_image_lists_it_uses():
     block = README[README.index("## Stages, one command each"):]
     block = block[: block.index("```", block.index("```bash") + 7)]
-    writes = block.index("views.py names --split scene/split.json")
-    reads = block.index("--image-list train.txt")
+    writes = block.index("views.py names --split work/scene/split.json")
+    reads = block.index("--image-list work/train.txt")
     assert writes < reads
     assert "../data/fern" not in README
     assert re.search(r"demo.*takes about \d", README.replace("\n", " "))

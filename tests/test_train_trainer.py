@@ -344,3 +344,29 @@ def test_runlog_resumes_a_checkpoint_from_before_the_heldout_ssim_lpips_columns(
     c = log.test_curve()
     assert c["iterations"] == [2, 3] and c["test_ssim"] == [None, 0.5] and c["test_lpips"] == [None, 0.4]
     assert (c["best_ssim_iteration"], c["best_lpips_iteration"], c["best_iteration"]) == (3, 3, 3)
+
+
+def test_run_time_leaves_out_a_one_time_kernel_build(scene, tmp_path, monkeypatch):
+    """A kernel built during the first step (here: 30 s of pretend build) is recorded apart as
+    ``kernel_build_s`` and is not in ``wall_time_s``, the run time the tables and plots use."""
+    clock = {"built": 0.0, "calls": 0}
+    real_perf = trainer_mod.time.perf_counter
+
+    def fake_build_seconds():
+        return clock["built"]
+
+    real_step = trainer_mod.Trainer.step
+
+    def step(self):
+        if self.iteration == 0:
+            clock["built"] += 30.0
+            clock["offset"] = clock.get("offset", 0.0) + 30.0  # the build's 30 s pass on the clock
+        return real_step(self)
+
+    monkeypatch.setattr(trainer_mod, "build_seconds", fake_build_seconds)
+    monkeypatch.setattr(trainer_mod.Trainer, "step", step)
+    monkeypatch.setattr(trainer_mod.time, "perf_counter", lambda: real_perf() + clock.get("offset", 0.0))
+    _train(scene, tmp_path / "run", iterations=4, densify_until=0, checkpoint_every=4)
+    summary = json.loads((tmp_path / "run" / "train.json").read_text())
+    assert summary["kernel_build_s"] == 30.0
+    assert 0 < summary["wall_time_s"] < 30.0

@@ -171,3 +171,16 @@ def test_load_model_skips_track_head_and_checks_the_rest(tmp_path):
     save_file(with_track, str(tmp_path / "broken.safetensors"))
     with pytest.raises(ck.StateDictMismatchError, match="depth_head.norm.bias"):
         ck.load_model(cfg, tmp_path / "broken.safetensors", heads=("camera", "point"))
+
+
+def test_unreachable_hub_says_it_will_not_download_and_never_that_it_is_downloading(monkeypatch, caplog):
+    import logging
+
+    from vggt_init import checkpoint
+
+    monkeypatch.setattr(checkpoint, "hub_unreachable_reason", lambda *a, **k: "huggingface.co:443 cannot be reached")
+    with caplog.at_level(logging.INFO, logger=checkpoint.__name__):
+        assert checkpoint._hf_download("facebook/VGGT-1B", ["model.pt"]) is None
+    text = caplog.text
+    assert "not downloading facebook/VGGT-1B" in text
+    assert "downloading facebook/VGGT-1B from" not in text

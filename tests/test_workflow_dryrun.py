@@ -185,7 +185,7 @@ def test_config_errors_name_the_key(tmp_path, mutate, message):
     cfg = synth_config()
     mutate(cfg)
     _, out = dry_run(tmp_path, cfg, expect_ok=False)
-    assert "Error validating config" in out and message in out
+    assert "config error: " in out and message in out and "Traceback" not in out
 
 
 def _resources(block: str) -> dict:

@@ -42,8 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-retain-memory", action="store_true",
                    help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "
                         "see camio/memory.py)")
-    p.add_argument("-v", "--verbose", action="count", default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 

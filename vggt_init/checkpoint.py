@@ -109,6 +109,7 @@ def _hf_download(repo_id: str, filenames: Iterable[str]) -> Path | None:
     if reason is not None:
         log.warning("not downloading %s: the Hugging Face Hub at %s (offline?)", repo_id, reason)
         return None
+    log.info("downloading %s from the Hugging Face Hub (about 5 GB) ...", repo_id)
     last: Exception | None = None
     for name in filenames:
         try:
@@ -180,7 +181,6 @@ def resolve_checkpoint(
         log.info("using the cached checkpoint %s", hit)
         return hit
     if allow_download and not _offline(env):
-        log.info("downloading %s from the Hugging Face Hub (about 5 GB) ...", repo_id)
         hit = download(repo_id, filenames)
         if hit is not None:
             return hit

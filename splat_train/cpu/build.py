@@ -24,6 +24,7 @@ import logging
 import os
 import subprocess
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
@@ -33,7 +34,8 @@ from torch import Tensor
 
 from camio.cbuild import build_shared, find_compiler
 
-__all__ = ["KERNEL_REGISTRY", "Kernel", "set_kernel_threads", "kernel_threads", "run_threaded", "ptr", "suffix"]
+__all__ = ["KERNEL_REGISTRY", "Kernel", "set_kernel_threads", "kernel_threads", "run_threaded", "ptr", "suffix",
+           "build_seconds", "build_all"]
 
 log = logging.getLogger(__name__)
 
@@ -108,8 +110,13 @@ class Kernel:
             for level in (_simd_choices() if self.simd else ["none"]):
                 flags = _BASE_FLAGS + _SIMD_FLAGS[level] + _extra_flags()
                 try:
-                    lib = ctypes.CDLL(str(build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx,
-                                                       headers=_HEADERS)))
+                    t0 = time.perf_counter()
+                    try:
+                        built = build_shared(self.source, flags, _cache_dir(), f"splat_{self.name}", cxx,
+                                             headers=_HEADERS)
+                    finally:
+                        _add_build_seconds(time.perf_counter() - t0)
+                    lib = ctypes.CDLL(str(built))
                     version = getattr(lib, self.abi_fn)()
                     if version != self.abi:
                         raise RuntimeError(f"kernel ABI version mismatch ({version} != {self.abi})")
@@ -124,6 +131,31 @@ class Kernel:
             log.warning("CPU rasterizer kernel %r unavailable (%s); using the slower torch tile path",
                         self.name, self.error)
             return None
+
+
+_BUILD_SECONDS = [0.0]
+_BUILD_LOCK = threading.Lock()
+
+
+def _add_build_seconds(seconds: float) -> None:
+    with _BUILD_LOCK:
+        _BUILD_SECONDS[0] += seconds
+
+
+def build_seconds() -> float:
+    """Seconds this process has spent building (or finding cached) kernels: a one-time cost
+    that the trainer keeps out of its run time (``train.json`` ``kernel_build_s``)."""
+    return _BUILD_SECONDS[0]
+
+
+def build_all() -> dict[str, str | None]:
+    """Build (or find cached) every registered kernel; returns name -> None or the error.
+    ``python -m splat_train.cpu.build`` runs it, so that no training run pays for the build."""
+    import importlib
+
+    for module in ("raster", "project", "ssim", "optim"):  # each registers its kernel on import
+        importlib.import_module(f"splat_train.cpu.{module}")
+    return {name: (None if k.load() is not None else k.error) for name, k in sorted(KERNEL_REGISTRY.items())}
 
 
 def _cache_dir() -> Path:
@@ -199,3 +231,22 @@ def suffix(dt: torch.dtype) -> str:
 
 
 KERNEL_REGISTRY: dict[str, Kernel] = {}
+
+
+def main() -> int:
+    """``python -m splat_train.cpu.build``: build every kernel once (scripts/install.sh runs it)."""
+    from splat_train.cpu import build  # the imported module, whose registry the kernels join (not __main__)
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    t0 = time.perf_counter()
+    done = build.build_all()
+    failed = {name: err for name, err in done.items() if err}
+    for name, err in failed.items():
+        print(f"splat_train kernel {name!r} not built: {err} (training uses the slower torch path)")
+    print(f"splat_train kernels: {len(done) - len(failed)}/{len(done)} ready in {_cache_dir()} "
+          f"({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -8,6 +8,27 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
+
+def _config_errors():
+    """One line per configuration problem, naming the key and the nearest valid one, before
+    snakemake's own validation (whose message is a schema dump)."""
+    import importlib.util
+    import sys
+
+    path = (
+        Path(str(workflow.current_basedir)) / "../scripts/check_config.py"
+    ).resolve()
+    spec = importlib.util.spec_from_file_location("check_config", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    problems = mod.config_problems(config)
+    if problems:
+        for line in problems:
+            print(f"config error: {line}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+_config_errors()
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 
 R = config["results"].rstrip("/")

@@ -1,0 +1,107 @@
+"""Check a workflow configuration against workflow/schemas/config.schema.yaml, one line per
+problem, naming the key and, for an unknown key, the nearest valid one.
+
+    python workflow/scripts/check_config.py config.yaml [more.yaml ...] [--set KEY=YAML ...]
+
+Later files and ``--set`` values update earlier ones key by key (as snakemake's
+``--configfile`` and ``--config`` do). Exit 0 when valid, 2 (bad input) otherwise, before
+anything is written. The workflow runs the same check (workflow/rules/config.smk).
+"""
+from __future__ import annotations
+
+import difflib
+import sys
+from pathlib import Path
+
+import yaml
+
+SCHEMA = Path(__file__).resolve().parents[1] / "schemas" / "config.schema.yaml"
+
+
+def _merge(base: dict, new: dict) -> dict:
+    out = dict(base)
+    for k, v in new.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _where(path) -> str:
+    return ".".join(str(p) for p in path) or "(top level)"
+
+
+def _known(schema: dict, node: dict) -> list[str]:
+    """The keys an object of the schema may have (following local $refs)."""
+    while "$ref" in node:
+        node = schema["$defs"][node["$ref"].rsplit("/", 1)[-1]]
+    return sorted(node.get("properties", {}))
+
+
+def config_problems(config: dict, schema: dict | None = None) -> list[str]:
+    """One line per problem of ``config``; [] when it is valid."""
+    import jsonschema
+
+    schema = schema or yaml.safe_load(SCHEMA.read_text())
+    if not isinstance(config, dict):
+        return [f"the configuration must be a mapping of keys, got {type(config).__name__}"]
+    lines, suggested = [], set()
+    validator = jsonschema.Draft202012Validator(schema)
+    for err in sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)),
+                                                                    e.validator != "additionalProperties")):
+        where = _where(err.absolute_path)
+        if err.validator == "additionalProperties":
+            known = _known(schema, err.schema)
+            for key in sorted(set(err.instance) - set(known)):
+                near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+                suggested.update((tuple(map(str, err.absolute_path)), n) for n in near)
+                hint = f"; did you mean '{near[0]}'?" if near else f"; valid keys: {', '.join(known)}"
+                prefix = f"{where}." if err.absolute_path else ""
+                lines.append(f"unknown key '{prefix}{key}'{hint}")
+        elif err.validator == "required":
+            missing = err.message.split("'")[1] if "'" in err.message else err.message
+            if (tuple(map(str, err.absolute_path)), missing) in suggested:
+                continue  # already said: the unknown key that is probably this one
+            lines.append(f"missing key '{(where + '.') if err.absolute_path else ''}{missing}'")
+        elif err.validator == "enum":
+            near = difflib.get_close_matches(str(err.instance), [str(v) for v in err.validator_value], n=1)
+            hint = f"; did you mean '{near[0]}'?" if near else \
+                f"; valid: {', '.join(map(str, err.validator_value))}"
+            lines.append(f"{where}: {err.instance!r} is not a valid value{hint}")
+        else:
+            lines.append(f"{where}: {err.message}")
+    return list(dict.fromkeys(lines))
+
+
+def load(paths: list[str], sets: list[str] = ()) -> dict:
+    config: dict = {}
+    for p in paths:
+        data = yaml.safe_load(Path(p).read_text()) or {}
+        if not isinstance(data, dict):
+            raise ValueError(f"{p}: the configuration must be a mapping of keys")
+        config = _merge(config, data)
+    for item in sets:
+        key, _, value = item.partition("=")
+        config = _merge(config, {key: yaml.safe_load(value)})
+    return config
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="check_config.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("files", nargs="+", help="configuration files, later ones updating earlier ones")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=YAML",
+                   help="a top-level value, as snakemake --config KEY=VALUE (repeatable)")
+    args = p.parse_args(argv)
+    try:
+        config = load(args.files, args.set)
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        print(f"config error: {exc}".splitlines()[0], file=sys.stderr)
+        return 2
+    problems = config_problems(config)
+    for line in problems:
+        print(f"config error ({', '.join(args.files)}): {line}", file=sys.stderr)
+    return 2 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
