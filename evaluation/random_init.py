@@ -318,12 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", required=True, help="COLMAP model with a camera per training view "
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder (sparse/0 and status.json)")
     p.add_argument("--points", type=int, default=N_POINTS, help=f"points to place (default {N_POINTS})")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the points")
     p.add_argument("--near", type=float, help="near camera depth, scene units (default: from the cameras)")
     p.add_argument("--far", type=float, help="far camera depth, scene units (default: from the cameras)")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     try:
