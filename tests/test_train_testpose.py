@@ -112,3 +112,28 @@ def test_zero_steps_keeps_the_start(scene, tmp_path):
     rec = json.loads((out / "testpose.json").read_text())
     assert all(v["rotation_deg"] < 1e-3 and v["translation"] < 1e-6 and v["best_step"] == 0
                for v in rec["views"].values())
+
+
+@pytest.mark.slow
+def test_gsplat_path_gets_pose_gradients(scene, monkeypatch):
+    """The gsplat backend (its CPU stand-in, tests/_fake_gsplat.py) optimises the pose through the
+    view matrix's gradient: the loss against the test image falls from the perturbed start."""
+    pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip install -e '.[dev]'")
+    import _fake_gsplat
+    import torch
+
+    from camio.ply import read_gaussian_ply
+    from splat_train import _gsplat_backend
+    from splat_train.data import load_views
+    from splat_train.export import camera_tensors
+    from splat_train.gaussians import params_from_cloud
+    from splat_train.testpose import refine_test_pose
+
+    monkeypatch.setattr(_gsplat_backend, "_rasterization", lambda: _fake_gsplat.rasterization)
+    view = load_views(scene["test_cameras"], scene["test_images"])[0]
+    start = _perturb(view.camera, 2.0, 0.02, seed=3)
+    cloud = read_gaussian_ply(scene["model"])
+    params = params_from_cloud(cloud, sh_degree=cloud.sh_degree)
+    cw, K = camera_tensors(start)
+    res = refine_test_pose(params, cloud.sh_degree, cw, K, torch.as_tensor(view.image), steps=40, backend="gsplat")
+    assert res["loss_end"] < 0.8 * res["loss_start"] and res["best_step"] > 0
