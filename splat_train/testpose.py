@@ -143,7 +143,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
         cw = se3_correction(delta, scale) @ cw0
         out = render_params(frozen, sh_degree, cw, K, width, height, bg, backend)
         loss, _, _ = photometric_loss(out["rgb"], target, lambda_dssim)
-        value = float(loss)
+        value = float(loss.detach())
         if loss_start is None:
             loss_start = value
         if not math.isfinite(value):
