@@ -30,6 +30,11 @@ file               what is read
 ``align.json``     ``train_cameras`` (column ``heldout_cameras``): which training cameras the
                    held-out Sim(3) used; ``align_refined/align.json`` (pose refinement on) wins
 ``renders/``       rendered test views (report only)
+``testpose/``      the test-pose protocol (docs/protocols.md), read only from the mode (or run)
+                   folder's ``testpose/``, never by the name look-up above:
+                   ``testpose/metrics.json`` (columns ``testpose_psnr``, ``testpose_ssim``,
+                   ``testpose_lpips_alex``, ``testpose_lpips_vgg``) and
+                   ``testpose/refine/testpose.json`` (``testpose_rot_deg_mean``)
 =================  ==========================================================================
 
 A scene without reference cameras has no ``pose.json``; a failed COLMAP run has only
@@ -59,7 +64,14 @@ __all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "r
 log = logging.getLogger(__name__)
 
 _N_DIR = re.compile(r"^n(\d+)$")
-_SKIP = {"repeats", "ckpt"}
+_SKIP = {"repeats", "ckpt", "testpose"}  # testpose/: the second protocol's files, read by name
+TESTPOSE_DIR = "testpose"
+"""A mode's folder of the test-pose protocol (``testpose/metrics.json``, ``testpose/refine/``)."""
+#: The held-out evaluation protocols (docs/protocols.md) -> the prefix of their metric columns;
+#: the strict one (the paper's) first, the default of every table.
+PROTOCOLS = {"strict": "", "test-pose": "testpose_"}
+#: The held-out metrics of each protocol: the strict column name -> the test-pose column name.
+TESTPOSE_COLUMNS = {k: PROTOCOLS["test-pose"] + k for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")}
 STAGES = ("init", "bridge", "train", "eval")
 _STAGE_WORDS = {"init": ("init", "vggt", "colmap", "oracle"), "bridge": ("bridge",),
                 "train": ("train", "splat"), "eval": ("eval", "metric", "pose", "render", "align")}
@@ -68,6 +80,7 @@ RUN_COLUMNS = [
     "dataset", "scene", "n", "init", "bridge_mode", "success_paper", "success_gated", "has_reference",
     "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
     "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
+    *TESTPOSE_COLUMNS.values(), "testpose_rot_deg_mean",
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "recipe", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
     "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "heldout_cameras",
@@ -239,6 +252,9 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
     status = _json(find("status.json"))
     pose = _json(find("pose.json"))
     metrics = _json(find("metrics.json"))
+    tp_dir = (run_dir / mode if mode else run_dir) / TESTPOSE_DIR
+    tp_metrics = _json(tp_dir / "metrics.json" if (tp_dir / "metrics.json").is_file() else None)
+    tp_record = _json(tp_dir / "refine" / "testpose.json" if (tp_dir / "refine" / "testpose.json").is_file() else None)
     timing = _json(find("timing.json"))
     bridge = _json(find("bridge.json"))
     train = _json(find("train.json"))
@@ -267,6 +283,8 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         if (status.get("fallback") or {}).get("applied") else None,
         **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
         "n_test": _first(metrics, "n_images"),
+        **{tp: _metric(tp_metrics, k) for k, tp in TESTPOSE_COLUMNS.items()},
+        "testpose_rot_deg_mean": _first(tp_record, "mean_rotation_deg"),
         **{k: _first(pose, k) for k in ("ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg",
                                          "rpe_trans_dir_deg", "rel_rot_err_mean_deg", "rel_rot_err_max_deg",
                                          "fy_fx_max_dev")},

@@ -96,6 +96,11 @@ def _mode_run(d: Path, scene: str, n: int, init: str, mode: str) -> None:
     p = psnr_of(scene, n, init, mode)
     _write(d / "metrics.json", {"psnr": p, "ssim": 0.5 + 0.01 * n, "lpips_alex": 0.3, "lpips_vgg": 0.4,
                                 "n_images": 2, "per_image": [], "wall_time_s": 1.5})
+    if init == "vggt":  # scored under the test-pose protocol too: 1 dB above the strict PSNR
+        _write(d / "testpose" / "metrics.json", {"psnr": p + 1.0, "ssim": 0.6, "lpips_alex": 0.25,
+                                                 "lpips_vgg": 0.35, "n_images": 2, "per_image": []})
+        _write(d / "testpose" / "refine" / "testpose.json", {"protocol": "test-pose", "steps": 500,
+                                                             "mean_rotation_deg": 0.5, "views": {}})
     _write(d / "train" / "train.json", {"wall_time_s": 100.0 + n, "num_gaussians": 1000 * n, "iterations": 1000})
     it = np.arange(0, 1001, 100)
     pd.DataFrame({"iteration": it, "wall_time_s": it * 0.1, "loss": 0.5 / (1 + it / 100.0), "l1": 0.1,

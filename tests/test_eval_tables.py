@@ -59,6 +59,28 @@ def test_records(runs):
     assert run(runs, "nus", 6, "vggt").success_gated is None  # no reference cameras
 
 
+def test_both_protocols_side_by_side(runs, tmp_path):
+    """The test-pose metrics fill their own columns; the strict ones never come from them."""
+    from evaluation.tables import table_one, table_two
+
+    r = run(runs, "room", 6, "vggt", "gated")
+    assert r["testpose_psnr"] == pytest.approx(r["psnr"] + 1.0) and r["testpose_rot_deg_mean"] == 0.5
+    assert math.isnan(run(runs, "room", 6, "colmap", "uniform")["testpose_psnr"])
+    r3 = table_one(runs).set_index("n").loc[3]
+    assert r3["PSNR [test-pose] vggt (all)"] == pytest.approx(r3["PSNR [strict] vggt (all)"] + 1.0)
+    assert math.isnan(r3["PSNR [test-pose] colmap (matched)"])
+    t2 = table_two(runs)
+    assert {"PSNR [strict]", "PSNR [test-pose]", "LPIPS-vgg [test-pose]"} <= set(t2.columns)
+    # a mode folder with only the test-pose metrics has no strict PSNR
+    from evaluation.results import read_run
+
+    d = tmp_path / "mip360" / "s" / "n3" / "vggt"
+    (d / "testpose").mkdir(parents=True)
+    (d / "testpose" / "metrics.json").write_text('{"psnr": 30.0}')
+    rec = read_run(d)
+    assert math.isnan(rec["psnr"]) and rec["testpose_psnr"] == 30.0
+
+
 def test_eval_time_falls_back_to_benchmark(tmp_path):
     from eval_fake_results import build as b
 
@@ -78,13 +100,13 @@ def test_table_one_by_hand(runs):
     assert r3["colmap success (accurate)"] == "0/2" and r3["colmap registered"] == "5/9"
     assert r3["vggt success (paper)"] == "3/3" and r3["vggt success (accurate)"] == "2/2"
     assert r3["matched"] == 1
-    assert r3["PSNR colmap (matched)"] == pytest.approx(25.5)
-    assert r3["PSNR vggt (matched)"] == pytest.approx(26.5) and r3["PSNR delta"] == pytest.approx(1.0)
-    assert r3["PSNR vggt (all)"] == pytest.approx(np.mean([22.5, 26.5, 18.5]))
+    assert r3["PSNR [strict] colmap (matched)"] == pytest.approx(25.5)
+    assert r3["PSNR [strict] vggt (matched)"] == pytest.approx(26.5) and r3["PSNR [strict] delta"] == pytest.approx(1.0)
+    assert r3["PSNR [strict] vggt (all)"] == pytest.approx(np.mean([22.5, 26.5, 18.5]))
     r6 = t.loc[6]
     assert r6["colmap success (paper)"] == "3/3" and r6["colmap success (accurate)"] == "2/2"
-    assert r6["PSNR colmap (matched)"] == pytest.approx(np.mean([23.0, 27.0, 19.0]))
-    assert r6["LPIPS-vgg delta"] == pytest.approx(0.0)
+    assert r6["PSNR [strict] colmap (matched)"] == pytest.approx(np.mean([23.0, 27.0, 19.0]))
+    assert r6["LPIPS-vgg [strict] delta"] == pytest.approx(0.0)
 
 
 def test_tables_cli(tree, tmp_path):

@@ -113,7 +113,7 @@ def test_synthetic_scene_plans_every_stage(mixed):
         assert jobs(counts, rule, "bundled") == 2, rule
     # VGGT and the oracle are planned to the end; COLMAP's later jobs wait for its checkpoint
     for rule in ("pose_eval", "bridge_predictions", "align_test_cameras", "train_splats",
-                 "render_test", "image_metrics"):
+                 "render_test", "image_metrics", "testpose_refine", "testpose_metrics"):
         assert jobs(counts, rule, "bundled") == 4, rule
     assert jobs(counts, "colmap_index") == 1 and jobs(counts, "test_images", "bundled") == 1
     assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
@@ -164,6 +164,14 @@ def test_no_colmap_no_training_and_the_depth_head(tmp_path):
                  "align_test_cameras"):
         assert jobs(counts, rule) == 0, rule
     assert jobs(counts, "pose_eval") == 4 and jobs(counts, "tables") == 1
+
+
+def test_testpose_protocol_switch(tmp_path):
+    """evaluation.testpose: false plans the strict protocol alone; its steps stay the CLI's."""
+    counts, out = dry_run(tmp_path, synth_config(initialisers=["oracle"], views=[3],
+                                                 evaluation={"testpose": False}))
+    assert jobs(counts, "image_metrics") == 1
+    assert jobs(counts, "testpose_refine") == jobs(counts, "testpose_metrics") == 0
 
 
 def test_stage_target_and_per_scene_view_counts(tmp_path):

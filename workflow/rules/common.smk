@@ -19,7 +19,8 @@ Layout of the outputs (R = config["results"]):
     R/{dataset}/{scene}/n{n}/{init}/{mode}/align/         test cameras in the model frame
     R/{dataset}/{scene}/n{n}/{init}/{mode}/train/         model.ply, log.parquet, train.json
     R/{dataset}/{scene}/n{n}/{init}/{mode}/renders/       held-out renders
-    R/{dataset}/{scene}/n{n}/{init}/{mode}/metrics.json   held-out image metrics
+    R/{dataset}/{scene}/n{n}/{init}/{mode}/metrics.json   held-out image metrics (strict protocol)
+    R/{dataset}/{scene}/n{n}/{init}/{mode}/testpose/      test-pose protocol: refine/, metrics.json
     R/tables/, R/plots/, R/report/
     R/.../logs/<rule>.log, R/.../benchmarks/<rule>.tsv    beside the outputs they describe
 """

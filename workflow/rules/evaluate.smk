@@ -25,6 +25,56 @@ rule image_metrics:
         "{params.lpips} --out {output} > {log} 2>&1"
 
 
+# The test-pose protocol (docs/protocols.md): each held-out pose optimised against its image
+# with the model frozen, starting from the strict protocol's aligned cameras; scored like
+# the strict renders. Off with evaluation.testpose: false.
+rule testpose_refine:
+    input:
+        model=f"{MODE}/train/model.ply",
+        cameras=heldout_cameras,
+        test_images=f"{SCENE}/test_images",
+    output:
+        directory(f"{MODE}/testpose/refine"),
+    log:
+        f"{MODE}/logs/testpose_refine.log",
+    benchmark:
+        f"{MODE}/benchmarks/testpose_refine.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    shell:
+        "python -m splat_train testpose --model {input.model} --cameras {input.cameras}/0 "
+        "--images {input.test_images} --out {output} > {log} 2>&1"
+
+
+rule testpose_metrics:
+    input:
+        refine=f"{MODE}/testpose/refine",
+        test_images=f"{SCENE}/test_images",
+    output:
+        f"{MODE}/testpose/metrics.json",
+    log:
+        f"{MODE}/logs/testpose_metrics.log",
+    benchmark:
+        f"{MODE}/benchmarks/testpose_metrics.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    params:
+        lpips=lpips_args,
+    shell:
+        "python -m evaluation images --pred {input.refine}/renders --gt {input.test_images} "
+        "{params.lpips} --out {output} > {log} 2>&1"
+
+
 rule tables:
     input:
         ALL_TARGETS[0],

@@ -65,6 +65,8 @@ def run_targets(dataset, scene, n, init, stage):
         if stage == "render":
             continue
         out.append(f"{m}/metrics.json")
+        if config["evaluation"]["testpose"]:
+            out.append(f"{m}/testpose/metrics.json")
     return out
 
 

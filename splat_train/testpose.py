@@ -1,0 +1,218 @@
+"""The test-pose protocol: each held-out camera's pose optimised against its image, Gaussians frozen.
+
+The strict protocol (PROTOCOL.md section 4) renders a held-out view at its reference pose mapped
+into the model frame by the Sim(3) fitted on the training cameras, so every error of the
+training poses is charged to the rendering. The test-pose protocol (InstantSplat's) starts from
+that same pose and optimises a rigid correction of it alone against the test image:
+
+    cam_from_world' = [exp(omega) | d * u] @ cam_from_world,
+
+with (omega, u) a 6-vector initialised to zero (omega a rotation vector in radians, u a
+translation in units of d, the median depth of the model's Gaussians in front of the starting
+camera: :func:`scene_depth`), so one rate moves rotation and translation by comparable image
+shifts on every scene. The loss is training's photometric loss
+(:func:`splat_train.losses.photometric_loss`), Adam for a fixed number of steps
+(:data:`DEFAULT_STEPS`) with its rate decayed exponentially from :data:`DEFAULT_LR` to
+:data:`FINAL_LR_FRACTION` of it over the steps (:func:`testpose_lr`), so the pose settles
+instead of oscillating at the rate's scale; the same for every method, recorded in the output. Intrinsics and Gaussians never change. The pose kept is the one with the lowest loss
+seen (the start included), so the correction never raises the loss against the test image.
+
+Gradients: the "cpu" backend runs its torch projection when the camera needs a gradient (the
+path training's pose refinement uses); gsplat gives the gradient of the view matrix.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from camio import Camera
+from camio.atomic import write_json
+from camio.colmap import write_text_model
+from camio.images import write_image
+from camio.ply import read_gaussian_ply
+from splat_train.data import View, load_views, read_name_list
+from splat_train.export import camera_tensors, render_name, render_params
+from splat_train.gaussians import params_from_cloud
+from splat_train.losses import photometric_loss, psnr
+from splat_train.pose import so3_exp
+from splat_train.rasterize import resolve_backend
+
+__all__ = ["DEFAULT_STEPS", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME", "se3_correction", "scene_depth", "pose_change",
+           "refine_test_pose", "run_testpose"]
+
+log = logging.getLogger(__name__)
+
+#: Adam steps per held-out view (InstantSplat's count), the same for every method.
+DEFAULT_STEPS = 500
+#: Adam rate of the rotation vector (radians) and the translation (units of the scene depth).
+DEFAULT_LR = 1e-3
+#: The rate at the last step as a fraction of the first (exponential decay between them).
+FINAL_LR_FRACTION = 0.01
+#: The protocol's name in every file, table and page.
+PROTOCOL_NAME = "test-pose"
+_BACKGROUND = (0.0, 0.0, 0.0)  # the render stage's default background
+
+
+def testpose_lr(step: int, steps: int, lr: float = DEFAULT_LR) -> float:
+    """Adam rate at 0-based ``step`` of ``steps``: lr * FINAL_LR_FRACTION ** (step / (steps - 1))."""
+    if steps <= 1:
+        return lr
+    return lr * FINAL_LR_FRACTION ** (step / (steps - 1))
+
+
+def se3_correction(delta: torch.Tensor, trans_scale: float) -> torch.Tensor:
+    """The left correction [exp(omega) | trans_scale * u] of a 6-vector (omega, u).
+
+    Args:
+        delta: [6] (rotation vector in radians, translation in units of ``trans_scale``).
+        trans_scale: world length of one translation unit.
+
+    Returns:
+        [4, 4] rigid transform acting on the camera frame (identity at delta = 0).
+    """
+    top = torch.cat([so3_exp(delta[:3]), trans_scale * delta[3:, None]], 1)
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=delta.dtype, device=delta.device)
+    return torch.cat([top, bottom], 0)
+
+
+def scene_depth(means: torch.Tensor, cam_from_world: torch.Tensor) -> float:
+    """Median camera z of the Gaussians in front of a camera (1 when none is in front).
+
+    Args:
+        means: [N, 3] Gaussian centres (model frame).
+        cam_from_world: [4, 4] world -> OpenCV camera.
+    """
+    z = (means @ cam_from_world[2, :3] + cam_from_world[2, 3]).detach()  # [N] camera z
+    z = z[z > 0]
+    return float(z.median()) if len(z) else 1.0
+
+
+def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """(rotation angle in degrees, camera-centre distance in world units) between two poses.
+
+    Args:
+        before, after: [3, 4] or [4, 4] cam_from_world (same world frame).
+    """
+    Ra, Rb = np.asarray(before)[:3, :3], np.asarray(after)[:3, :3]
+    cos = (np.trace(Rb @ Ra.T) - 1.0) / 2.0
+    ca = -Ra.T @ np.asarray(before)[:3, 3]
+    cb = -Rb.T @ np.asarray(after)[:3, 3]
+    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(cb - ca))
+
+
+def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
+                     K: torch.Tensor, target: torch.Tensor, steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR,
+                     backend: str = "auto", lambda_dssim: float | None = None) -> dict:
+    """Optimise one camera's pose against its image with the Gaussians frozen (module docstring).
+
+    Args:
+        params: trainable-layout Gaussians (:mod:`splat_train.gaussians`), model frame; not changed.
+        cam_from_world: [4, 4] starting pose (world -> OpenCV camera, model frame).
+        K: [3, 3] intrinsics in the pixels of ``target``.
+        target: [H, W, 3] test image in [0, 1] on the params' device.
+        steps: Adam steps (0 keeps the start).
+        lr: first Adam rate of (omega, u) (:func:`testpose_lr`).
+        lambda_dssim: SSIM weight of the loss (training's default when None).
+
+    Returns:
+        ``cam_from_world`` [4, 4] the pose kept (detached), ``loss_start``, ``loss_end`` (of the pose
+        kept), ``best_step`` (0 = the start), ``trans_scale``.
+    """
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    if lambda_dssim is None:
+        from splat_train.config import TrainConfig
+
+        lambda_dssim = TrainConfig().lambda_dssim
+    frozen = {k: v.detach() for k, v in params.items()}
+    cw0 = cam_from_world.detach()
+    height, width = int(target.shape[0]), int(target.shape[1])
+    scale = scene_depth(frozen["means"], cw0)
+    delta = torch.zeros(6, dtype=cw0.dtype, device=cw0.device, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=lr)
+    bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=cw0.device)
+    best = (math.inf, cw0, 0)
+    loss_start = None
+    for step in range(steps + 1):
+        cw = se3_correction(delta, scale) @ cw0
+        out = render_params(frozen, sh_degree, cw, K, width, height, bg, backend)
+        loss, _, _ = photometric_loss(out["rgb"], target, lambda_dssim)
+        value = float(loss.detach())
+        if loss_start is None:
+            loss_start = value
+        if not math.isfinite(value):
+            log.warning("non-finite test-pose loss at step %d: keeping the best pose so far", step)
+            break
+        if value < best[0]:
+            best = (value, cw.detach().clone(), step)
+        if step == steps:
+            break
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        for g in opt.param_groups:
+            g["lr"] = testpose_lr(step, steps, lr)
+        opt.step()
+    return {"cam_from_world": best[1], "loss_start": loss_start, "loss_end": best[0], "best_step": best[2],
+            "trans_scale": scale}
+
+
+def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
+                 steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
+                 backend: str = "auto", names: str | Path | None = None) -> dict:
+    """The test-pose protocol on a camera folder: refined cameras, renders and a record.
+
+    Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
+    image sizes), ``out_dir/renders/<stem>.png`` and ``out_dir/testpose.json`` (docs/contracts.md).
+
+    Returns:
+        The ``testpose.json`` record.
+    """
+    t0 = time.perf_counter()
+    name_list = read_name_list(names) if names is not None else None
+    views: list[View] = load_views(cameras, images, name_list)
+    cloud = read_gaussian_ply(model)
+    params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)
+    for p in params.values():
+        p.requires_grad_(False)
+    ran = resolve_backend(backend, device)
+    out = Path(out_dir)
+    refined: list[Camera] = []
+    per_view = {}
+    bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=device)
+    for v in views:
+        cw, K = camera_tensors(v.camera, device)
+        target = torch.as_tensor(v.image, device=device)
+        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran)
+        with torch.no_grad():
+            before = render_params(params, cloud.sh_degree, cw, K, v.camera.width, v.camera.height, bg, ran)
+            after = render_params(params, cloud.sh_degree, res["cam_from_world"], K, v.camera.width,
+                                  v.camera.height, bg, ran)
+        rgb = after["rgb"].clamp(0.0, 1.0)
+        write_image(out / "renders" / render_name(v.name), rgb.cpu().numpy())
+        new_cw = res["cam_from_world"].cpu().double().numpy()[:3]
+        refined.append(Camera(v.name, v.camera.width, v.camera.height, v.camera.K, new_cw))
+        rot_deg, trans = pose_change(v.camera.cam_from_world, new_cw)
+        per_view[v.name] = {"rotation_deg": rot_deg, "translation": trans,
+                            "translation_rel_depth": trans / res["trans_scale"], "scene_depth": res["trans_scale"],
+                            "loss_start": res["loss_start"], "loss_end": res["loss_end"],
+                            "best_step": res["best_step"],
+                            "psnr_start": psnr(before["rgb"].clamp(0.0, 1.0), target), "psnr_end": psnr(rgb, target)}
+    write_text_model(out / "sparse" / "0", refined)
+    record = {"protocol": PROTOCOL_NAME, "steps": int(steps), "optimizer": "Adam", "lr": float(lr),
+              "lr_final": testpose_lr(max(steps - 1, 0), steps, lr),
+              "loss": "photometric (splat_train.losses.photometric_loss)", "backend": ran, "device": str(device),
+              "start": str(cameras), "views": per_view,
+              "mean_rotation_deg": float(np.mean([r["rotation_deg"] for r in per_view.values()])) if per_view else None,
+              "max_rotation_deg": float(np.max([r["rotation_deg"] for r in per_view.values()])) if per_view else None,
+              "mean_translation_rel_depth": (float(np.mean([r["translation_rel_depth"] for r in per_view.values()]))
+                                             if per_view else None),
+              "wall_time_s": time.perf_counter() - t0}
+    write_json(out / "testpose.json", record)
+    log.info("test-pose: %d views, %d steps each, in %.1f s", len(views), steps, record["wall_time_s"])
+    return record
