@@ -1,34 +1,28 @@
 """Config validation and the constants every rule file uses: the results layout (R, SCENE,
 RUN, MODE), the wildcard constraints, thread counts and helper-script paths."""
 
+import importlib.util
 import json
+import sys
 
 from snakemake.logging import logger
 from pathlib import Path
 
 from snakemake.utils import validate
 
-
-def _config_errors():
-    """One line per configuration problem, naming the key and the nearest valid one, before
-    snakemake's own validation (whose message is a schema dump)."""
-    import importlib.util
-    import sys
-
-    path = (
-        Path(str(workflow.current_basedir)) / "../scripts/check_config.py"
-    ).resolve()
-    spec = importlib.util.spec_from_file_location("check_config", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    problems = mod.config_problems(config)
-    if problems:
-        for line in problems:
-            print(f"config error: {line}", file=sys.stderr)
-        raise SystemExit(2)
-
-
-_config_errors()
+# One line per configuration problem, naming the key and the nearest valid one, before
+# snakemake's own validation (whose message is a schema dump).
+_check_spec = importlib.util.spec_from_file_location(
+    "check_config",
+    (Path(str(workflow.current_basedir)) / "../scripts/check_config.py").resolve(),
+)
+_check_config = importlib.util.module_from_spec(_check_spec)
+_check_spec.loader.exec_module(_check_config)
+_problems = _check_config.config_problems(config)
+for _problem in _problems:
+    print(f"config error: {_problem}", file=sys.stderr)
+if _problems:
+    raise SystemExit(2)
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 
 R = config["results"].rstrip("/")
