@@ -113,8 +113,9 @@ def test_synthetic_scene_plans_every_stage(mixed):
         assert jobs(counts, rule, "bundled") == 2, rule
     # VGGT and the oracle are planned to the end; COLMAP's later jobs wait for its checkpoint
     for rule in ("pose_eval", "bridge_predictions", "align_test_cameras", "train_splats",
-                 "render_test", "image_metrics", "testpose_refine", "testpose_metrics"):
+                 "render_test", "image_metrics"):
         assert jobs(counts, rule, "bundled") == 4, rule
+    assert jobs(counts, "testpose_refine") == 0  # the test-pose protocol is off by default
     assert jobs(counts, "colmap_index") == 1 and jobs(counts, "test_images", "bundled") == 1
     assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
     # the point head is used: the depth head is not asked for
@@ -167,9 +168,15 @@ def test_no_colmap_no_training_and_the_depth_head(tmp_path):
 
 
 def test_testpose_protocol_switch(tmp_path):
-    """evaluation.testpose: false plans the strict protocol alone; its steps stay the CLI's."""
-    counts, out = dry_run(tmp_path, synth_config(initialisers=["oracle"], views=[3],
-                                                 evaluation={"testpose": False}))
+    """evaluation.testpose: true plans the test-pose protocol beside the strict one for every
+    run; false (the default) plans the strict protocol alone."""
+    (tmp_path / "on").mkdir()
+    (tmp_path / "off").mkdir()
+    counts, out = dry_run(tmp_path / "on", synth_config(initialisers=["oracle"], views=[3],
+                                                        evaluation={"testpose": True}))
+    assert jobs(counts, "image_metrics") == jobs(counts, "testpose_refine") == jobs(counts, "testpose_metrics") == 1
+    counts, out = dry_run(tmp_path / "off", synth_config(initialisers=["oracle"], views=[3],
+                                                         evaluation={"testpose": False}))
     assert jobs(counts, "image_metrics") == 1
     assert jobs(counts, "testpose_refine") == jobs(counts, "testpose_metrics") == 0
 
