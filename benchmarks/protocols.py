@@ -79,9 +79,12 @@ def prepare(dest: Path, results: Path | None = None) -> Path:
         staging = dest.with_name(dest.name + ".partial")
         shutil.rmtree(staging, ignore_errors=True)
         scene = res / SCENE
-        shutil.copytree(_scene_images(scene), staging / "images")
+        (staging / "images").mkdir(parents=True)
+        train_list = scene / f"n{N}" / "train.txt"
+        for name in train_list.read_text().split():  # only the training views: the carried folder stays small
+            shutil.copy2(_scene_images(scene) / name, staging / "images" / name)
         shutil.copytree(scene / "test_images", staging / "test_images")
-        shutil.copy2(scene / f"n{N}" / "train.txt", staging / "train.txt")
+        shutil.copy2(train_list, staging / "train.txt")
         for init, cell in zip(INITS, cells):
             for part in ("bridge", "align"):
                 shutil.copytree(cell / part, staging / init / part, ignore=shutil.ignore_patterns("*.log"))
