@@ -19,5 +19,5 @@ modules itself, and importing one builds nothing until its kernel is first used.
 
 Before this package existed these files were ``splat_train/_cpu_build.py``, ``_cpu_kernel.py`` / ``.cpp``
 (now ``raster``), ``_cpu_project``, ``_cpu_ssim``, ``_cpu_optim`` and ``_cpu_vec8d.h``:
-benchmarks/README.md records measurements under those names.
+older commit messages give measurements under those names (benchmarks/README.md maps them).
 """
