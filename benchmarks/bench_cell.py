@@ -1,7 +1,7 @@
 """Benchmark of one pipeline cell on CPU: scene prep -> init -> bridge -> align -> train -> render -> metrics.
 
-The cell is the n = 3 scene at 1/8 resolution trained for 2,000 iterations (issue 9, item 2:
-target under 10 minutes on 2 cores). Every stage runs through its documented CLI
+The cell is the n = 3 scene at 1/8 resolution trained for 2,000 iterations
+(target under 10 minutes on 2 cores). Every stage runs through its documented CLI
 (docs/contracts.md) in a subprocess, so the times include interpreter start-up and imports,
 which is what a user (or the Snakemake workflow) gets. ``--inprocess`` calls the same CLI
 ``main(argv)`` functions in this process instead (no start-up cost; used by the smoke test).
@@ -49,7 +49,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 OUT = HERE / "out"
 SHARED_FERN = REPO.parent / "shared" / "data" / "scenes" / "llff__fern"
-TARGET_S = 600.0  # issue 9, item 2: the full cell in under 10 minutes
+TARGET_S = 600.0  # the full cell in under 10 minutes
 QUICK_ITERATIONS = 10
 QUICK_SYNTH = (10, 48)  # views, width of the --quick synthetic scene
 

@@ -1,4 +1,4 @@
-"""Camera refinement benchmark (issue 19): bundle adjustment and training-time pose refinement,
+"""Camera refinement benchmark: bundle adjustment and training-time pose refinement,
 starting from ground-truth poses with the VGGT-calibrated pose noise.
 
     python benchmarks/bench_pose.py --quick          # synthetic 128 px + fern images_8 trained at 1/4, 3 seeds
@@ -51,7 +51,7 @@ HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
 SHARED_FERN = HERE.parent.parent / "shared" / "data" / "scenes" / "llff__fern"
 
-# The ground-truth-pose initialiser's noise for this benchmark (issue 19): VGGT-calibrated.
+# The ground-truth-pose initialiser's noise for this benchmark: VGGT-calibrated.
 NOISE = dict(rot_deg=1.1, trans_frac=0.06)
 RUNS = ("posed", "posed+refine", "posed_ba", "posed_ba+refine")
 # scene -> (quick, full) settings: synthetic (views, width); fern images_8 downsample at prep,

@@ -1,4 +1,4 @@
-"""Where one whole training iteration spends its time, phase by phase (issue 15, part 2).
+"""Where one whole training iteration spends its time, phase by phase.
 
 Continues a trainer checkpoint for ``--steps`` iterations by calling the trainer itself: its
 :meth:`splat_train.trainer.Trainer.step`, then the densification step that ``Trainer.run``

@@ -1,4 +1,4 @@
-"""Where one rasterizer forward+backward spends its time, stage by stage (issue 15, part 1).
+"""Where one rasterizer forward+backward spends its time, stage by stage.
 
 Stages of :func:`splat_train.rasterize` on the CPU backend, each timed alone (best of
 ``--reps``) on the synthetic scene of ``bench_rasterizer.py`` (SH degree 3):

@@ -257,7 +257,7 @@ if __name__ == "__main__":
     # training iteration allocates and frees MB-sized tensors (per-Gaussian gradients, images,
     # the SSIM statistics), which glibc's defaults map and fault in anew each time: ~2,100 minor
     # faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256, none with the
-    # freed memory kept (issue 15, part 2). VGGT_INIT_RETAIN_MEMORY=0 turns it off.
+    # freed memory kept. VGGT_INIT_RETAIN_MEMORY=0 turns it off.
     from camio.memory import retain_freed_memory
 
     retain_freed_memory()

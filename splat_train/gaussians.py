@@ -73,7 +73,7 @@ def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, exte
 
     The fused implementation (one pass per parameter tensor) on CPU and CUDA floating-point
     parameters: at 100k Gaussians on one CPU thread the default per-tensor loop took ~45 ms per
-    step, the fused one ~5 ms (issue 15, part 2). Same update rule, rounding differs.
+    step, the fused one ~5 ms. Same update rule, rounding differs.
     """
     lrs = {"means": cfg.lr_position_init * extent, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
            "opacity": cfg.lr_opacity, "scales": cfg.lr_scaling, "quats": cfg.lr_rotation}

@@ -3,7 +3,7 @@
 Hypothesis profiles (``HYPOTHESIS_PROFILE``):
 
 * ``ci`` (the default): derandomised. The examples are a fixed function of each test's code,
-  so a clean-clone run's outcome does not depend on chance (issue #21: a CI failure blocks
+  so a clean-clone run's outcome does not depend on chance (a CI failure blocks
   every landing). No example database is read or written.
 * ``explore``: random examples, five times as many, with the example database; for hunting
   new counter-examples locally (``HYPOTHESIS_PROFILE=explore pytest -k "given or property"``).

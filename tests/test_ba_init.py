@@ -17,7 +17,7 @@ from evaluation.oracle import OracleNoise, perturb_cameras, run_oracle
 from evaluation.pose import evaluate_pose
 from evaluation.posed import run_posed
 
-NOISE = OracleNoise(rot_deg=1.3, trans_frac=0.03)  # about VGGT's pose error (issue 19)
+NOISE = OracleNoise(rot_deg=1.3, trans_frac=0.03)  # about VGGT's pose error
 
 
 @pytest.fixture(scope="module")

@@ -188,7 +188,7 @@ def test_align_cli(tmp_path):
     assert rec["names"] == sorted(train) and rec["test_names"] == test
     assert rec["intrinsics"] == "reference" and rec["rmse"] < 1e-9
     assert rec["train_cameras"] == "initialiser"
-    # the same fit labelled as refined training cameras (issue 19); the label is recorded, the
+    # the same fit labelled as refined training cameras; the label is recorded, the
     # results reader prefers align_refined/ and the report names it
     rc = main(["align", "--pred", str(tmp_path / "pred"), "--ref", str(tmp_path / "ref"),
                "--train-names", str(tmp_path / "split.json"), "--n", "3", "--image-scale", "0.125",

@@ -1,4 +1,4 @@
-"""Degenerate inputs (issue 5 item 6): finite outputs and finite gradients on every backend.
+"""Degenerate inputs: finite outputs and finite gradients on every backend.
 
 Each case is a small float32 scene (what training uses) with one problematic Gaussian mixed
 into ordinary ones, plus a Hypothesis property test over random near-degenerate Gaussians.

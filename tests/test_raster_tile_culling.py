@@ -1,4 +1,4 @@
-"""The "cpu" kernel's tight tile lists (issue 15): a Gaussian is binned only into the tiles of
+"""The "cpu" kernel's tight tile lists: a Gaussian is binned only into the tiles of
 its 3-sigma rectangle that its alpha >= 1/255 ellipse can reach (opacity-aware extent, ellipse
 against each tile row). The rule must be exact: the dropped pairs would blend no pixel, so
 images and gradients equal those of the full-rectangle lists bit for bit, and the dense

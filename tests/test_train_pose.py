@@ -1,4 +1,4 @@
-"""Train-view pose refinement (splat_train.pose, issue 19): the gauge stays fixed, and on a
+"""Train-view pose refinement (splat_train.pose): the gauge stays fixed, and on a
 scene with a known perturbation the refined cameras move toward the truth by a stated factor."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Dry runs with the camera-refinement switches of issue 19: training-time pose refinement
+"""Dry runs with the camera-refinement switches: training-time pose refinement
 (train.pose_refine) plans the refined alignment and renders with it."""
 
 from __future__ import annotations

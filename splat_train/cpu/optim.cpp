@@ -1,4 +1,4 @@
-// The optimizer side of a training iteration on the kernel's threads (issue 15): one Adam step
+// The optimizer side of a training iteration on the kernel's threads: one Adam step
 // over several float32 parameter tensors (splat_adam_f32) and the densification statistics
 // (splat_densify_stats_f32).
 //

@@ -1,4 +1,4 @@
-// Fused EWA projection + SH colour on the CPU, forward and hand-written backward (issue 15).
+// Fused EWA projection + SH colour on the CPU, forward and hand-written backward.
 //
 // Built and loaded like raster.cpp (plain C ABI, ctypes, no torch headers). Semantics are
 // those of splat_train/projection.py (project_gaussians) and splat_train/sh.py (sh_to_color),

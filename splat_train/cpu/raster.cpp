@@ -1,4 +1,4 @@
-// Tile-based Gaussian alpha blending on the CPU, SIMD across the pixels of a tile (issue 15).
+// Tile-based Gaussian alpha blending on the CPU, SIMD across the pixels of a tile.
 //
 // Built by splat_train/cpu/raster.py with the system C++ compiler (plain C ABI through ctypes,
 // no torch headers, no OpenMP). The SIMD width is chosen at load time by the build flags

@@ -1,4 +1,4 @@
-// SSIM of the 3DGS loss on the CPU: separable Gaussian filtering, forward and backward (issue 15).
+// SSIM of the 3DGS loss on the CPU: separable Gaussian filtering, forward and backward.
 //
 // Built and loaded like raster.cpp (plain C ABI, ctypes). Semantics of
 // splat_train/losses.py ssim_map (the reference): per channel, local statistics with an
