@@ -43,6 +43,9 @@ import threading
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
+from benchmarks._proc import StageError, run_logged  # noqa: E402
+
 log = logging.getLogger("bench_cell")
 
 HERE = Path(__file__).resolve().parent
@@ -57,10 +60,6 @@ QUICK_SYNTH = (10, 48)  # views, width of the --quick synthetic scene
 _MAIN_MODULES = {"camio": "camio.__main__", "bridge": "bridge.__main__", "evaluation": "evaluation.__main__",
                  "splat_train": "splat_train.__main__", "evaluation.colmap_baseline": "evaluation.colmap_baseline",
                  "evaluation.oracle": "evaluation.oracle"}
-
-
-class StageError(RuntimeError):
-    """A stage CLI returned a non-zero status."""
 
 
 def _cpu_seconds(inprocess: bool) -> float:
@@ -94,14 +93,7 @@ def run_stage(name: str, module: str, args: list[str], logs: Path, inprocess: bo
         if rc:
             raise StageError(f"stage {name} (python -m {module}) failed with status {rc}; see the log above")
         return dt, _cpu_seconds(inprocess) - c0
-    with open(log_path, "w") as fh:
-        res = subprocess.run([sys.executable, "-m", module, *args], stdout=fh, stderr=subprocess.STDOUT,
-                             cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    dt = time.perf_counter() - t0
-    if res.returncode != 0:
-        tail = log_path.read_text(errors="replace")[-1500:]
-        raise StageError(f"stage {name} (python -m {module}) failed with status {res.returncode} "
-                         f"after {dt:.1f} s; end of {log_path}:\n{tail}")
+    dt = run_logged([sys.executable, "-m", module, *args], log_path, f"stage {name} (python -m {module})")
     cpu = _cpu_seconds(inprocess) - c0
     log.info("stage %s done in %.1f s (%.1f CPU s)", name, dt, cpu)
     return dt, cpu

@@ -22,13 +22,15 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
+from benchmarks._proc import run_logged  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FIX = ROOT / "tests" / "data" / "vggt" / "shared"
@@ -61,17 +63,6 @@ def vggt_argv(out: Path, device: str) -> list[str]:
             "--image-size", "56", "--max-points", "500", "--dtype", "fp32", "--device", device]
 
 
-def _run(argv: list[str], log: Path) -> float:
-    t0 = time.perf_counter()
-    with open(log, "w") as fh:
-        res = subprocess.run(argv, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT,
-                             env={**os.environ, "PYTHONPATH": os.pathsep.join(
-                                 [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])})
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv[1:4])} ... exit {res.returncode}: {log.read_text()[-1500:]}")
-    return time.perf_counter() - t0
-
-
 def prepare(dest: Path, results: Path | None = None) -> Path:
     """Run the cell with Snakemake on this CPU (into ``results``, default a temporary folder)
     and keep in ``dest`` what the stage commands read, the CPU run's summaries and the CPU
@@ -83,7 +74,7 @@ def prepare(dest: Path, results: Path | None = None) -> Path:
         target = res / CELL / "metrics.json"
         if not target.is_file():
             t0 = time.perf_counter()
-            _run([shutil.which("snakemake") or "snakemake", "--cores", "2", "--config", f"results={res}", "--",
+            run_logged([shutil.which("snakemake") or "snakemake", "--cores", "2", "--config", f"results={res}", "--",
                   str(target)], Path(tmp) / "snakemake.log")
             print(f"gpu_stages: snakemake made {target} in {time.perf_counter() - t0:.0f} s", flush=True)
         staging = dest.with_name(dest.name + ".partial")
@@ -95,7 +86,7 @@ def prepare(dest: Path, results: Path | None = None) -> Path:
         summary = json.loads((res / CELL / "train" / "train.json").read_text())
         metrics = json.loads((res / CELL / "metrics.json").read_text())
         vg = staging / VGGT_CPU
-        wall = _run(vggt_argv(Path(tmp) / "vggt", "cpu"), Path(tmp) / "vggt.log")
+        wall = run_logged(vggt_argv(Path(tmp) / "vggt", "cpu"), Path(tmp) / "vggt.log")
         vg.mkdir()
         shutil.copy2(Path(tmp) / "vggt" / "predictions.npz", vg / "predictions.npz")
         cpu = {"cell": CELL, "made_on": os.uname().nodename, "made_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
@@ -115,12 +106,12 @@ def workflow_cell(folder: Path, device: str = "cuda") -> dict:
     res = folder.resolve() / "results"
     with tempfile.TemporaryDirectory(prefix="gpu_stages_cell_") as tmp:
         work = Path(tmp)
-        times = {"train": _run(train_argv(res, work / "train", cpu["train"]["config"], device), work / "train.log")}
-        times["render"] = _run([sys.executable, "-m", "splat_train", "render", "--model", str(work / "train" / "model.ply"),
+        times = {"train": run_logged(train_argv(res, work / "train", cpu["train"]["config"], device), work / "train.log")}
+        times["render"] = run_logged([sys.executable, "-m", "splat_train", "render", "--model", str(work / "train" / "model.ply"),
                                 "--cameras", str(res / CELL / "align" / "sparse" / "0"), "--images",
                                 str(res / SCENE / "test_images"), "--out", str(work / "renders"), "--device", device],
                                work / "render.log")
-        times["metrics"] = _run([sys.executable, "-m", "evaluation", "images", "--pred", str(work / "renders"),
+        times["metrics"] = run_logged([sys.executable, "-m", "evaluation", "images", "--pred", str(work / "renders"),
                                  "--gt", str(res / SCENE / "test_images"), "--out", str(work / "metrics.json")],
                                 work / "metrics.log")
         summary = json.loads((work / "train" / "train.json").read_text())
@@ -140,7 +131,7 @@ def vggt_cli(folder: Path, device: str = "cuda") -> dict:
     """``python -m vggt_init`` on the fixture model on ``device``; max |device - CPU| per output."""
     cpu = np.load(folder / VGGT_CPU / "predictions.npz")
     with tempfile.TemporaryDirectory(prefix="gpu_stages_vggt_") as tmp:
-        wall = _run(vggt_argv(Path(tmp) / "out", device), Path(tmp) / "vggt.log")
+        wall = run_logged(vggt_argv(Path(tmp) / "out", device), Path(tmp) / "vggt.log")
         dev = np.load(Path(tmp) / "out" / "predictions.npz")
         errs = {k: float(np.abs(dev[k].astype(np.float64) - cpu[k].astype(np.float64)).max())
                 for k in dev.files if np.issubdtype(dev[k].dtype, np.number)}

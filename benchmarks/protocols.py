@@ -25,13 +25,15 @@ import json
 import math
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
+from benchmarks._proc import run_logged  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "protocols_fern.yaml"
@@ -43,17 +45,6 @@ INITS = ("posed", "colmap")
 #: about a random axis and a camera-centre shift of this fraction of the scene depth.
 PERTURB_DEG = 1.0
 PERTURB_FRAC = 0.02
-
-
-def _run(argv: list[str], log: Path) -> float:
-    """Run ``argv`` from the repository root with its output in ``log``; seconds taken."""
-    t0 = time.perf_counter()
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    with open(log, "w") as fh:
-        res = subprocess.run(argv, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv[1:5])} ... exit {res.returncode}: {log.read_text()[-1500:]}")
-    return time.perf_counter() - t0
 
 
 def _scene_images(scene: Path) -> Path:
@@ -74,7 +65,7 @@ def prepare(dest: Path, results: Path | None = None) -> Path:
         cells = [res / SCENE / f"n{N}" / init / MODE for init in INITS]
         targets = [str(c / "align" / "align.json") for c in cells]
         if not all(Path(t).is_file() for t in targets):
-            _run([shutil.which("snakemake") or "snakemake", "--cores", "2", "--configfile", str(CONFIG),
+            run_logged([shutil.which("snakemake") or "snakemake", "--cores", "2", "--configfile", str(CONFIG),
                   "--config", f"results={res}", "--", *targets], Path(tmp) / "snakemake.log")
         staging = dest.with_name(dest.name + ".partial")
         shutil.rmtree(staging, ignore_errors=True)
@@ -96,7 +87,7 @@ def prepare(dest: Path, results: Path | None = None) -> Path:
 
 
 def _metrics(pred: Path, gt: Path, out: Path, log: Path) -> dict:
-    _run([sys.executable, "-m", "evaluation", "images", "--pred", str(pred), "--gt", str(gt), "--out", str(out),
+    run_logged([sys.executable, "-m", "evaluation", "images", "--pred", str(pred), "--gt", str(gt), "--out", str(out),
           "--lpips-nets"], log)
     m = json.loads(out.read_text())
     return {k: m.get(k) for k in ("psnr", "ssim", "n_images", "per_image")}
@@ -194,20 +185,20 @@ def run(folder: Path, out: Path, device: str = "cuda", iterations: int | None = 
                      "--test-images", str(folder / "test_images"), "--no-eval-lpips"]
             if iterations is not None:
                 train += ["--iterations", str(iterations)]
-            row["train_s"] = _run(train, work / "train.log")
+            row["train_s"] = run_logged(train, work / "train.log")
             summary = json.loads((work / "train" / "train.json").read_text())
             row["train"] = {k: summary.get(k) for k in ("iterations", "recipe", "num_gaussians", "test_psnr",
                                                         "wall_time_s", "rasterizer", "peak_cuda_mb")}
             curve = summary.get("test_curve") or {}
             row["train"].update({k: curve.get(k) for k in ("best_iteration", "best_test_psnr")})
             model = work / "train" / "model.ply"
-            row["render_s"] = _run([sys.executable, "-m", "splat_train", "render", "--model", str(model), "--cameras",
+            row["render_s"] = run_logged([sys.executable, "-m", "splat_train", "render", "--model", str(model), "--cameras",
                                     str(cell / "align" / "sparse" / "0"), "--images", str(folder / "test_images"),
                                     "--out", str(work / "renders"), "--device", device], work / "render.log")
             row["strict"] = _metrics(work / "renders", folder / "test_images", work / "metrics.json",
                                      work / "metrics.log")
             save()
-            row["testpose_s"] = _run([sys.executable, "-m", "splat_train", "testpose", "--model", str(model),
+            row["testpose_s"] = run_logged([sys.executable, "-m", "splat_train", "testpose", "--model", str(model),
                                       "--cameras", str(cell / "align" / "sparse" / "0"), "--images",
                                       str(folder / "test_images"), "--out", str(work / "testpose"), "--steps",
                                       str(steps), "--device", device], work / "testpose.log")

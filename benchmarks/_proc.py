@@ -1,0 +1,31 @@
+"""One way for the benchmarks to run a command: from the repository root, its output in a log file."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class StageError(RuntimeError):
+    """A command returned a non-zero status."""
+
+
+def run_logged(argv: list[str], log: Path, what: str | None = None) -> float:
+    """Run ``argv`` from the repository root (on ``PYTHONPATH``, unbuffered) with stdout and
+    stderr in ``log``; wall seconds. A non-zero status raises :class:`StageError` with the end
+    of the log. ``what``: how the error names the command (default: its first words)."""
+    t0 = time.perf_counter()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    with open(log, "w") as fh:
+        res = subprocess.run(argv, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    dt = time.perf_counter() - t0
+    if res.returncode != 0:
+        tail = Path(log).read_text(errors="replace")[-1500:]
+        raise StageError(f"{what or ' '.join(argv[1:5])} failed with status {res.returncode} after {dt:.1f} s; "
+                         f"end of {log}:\n{tail}")
+    return dt
