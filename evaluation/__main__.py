@@ -267,24 +267,18 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         log.error("evaluation.images_cli.add_parser did not set a handler (set_defaults(func=...))")
         return 2
-    from camio.outdir import OutputFolderError
+    from camio.outdir import run_stage
 
-    try:
+    def work() -> int:
         _prepare_out(args)
         rc = int(func(args) or 0)
         if rc == 0:
             _seal_out(args)
         return rc
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    except (ValueError, KeyError, OSError) as exc:  # bad inputs: a clear message, no traceback
-        from camio.outdir import tidy_outs
 
-        tidy_outs()
-        log.debug("traceback", exc_info=True)
-        log.error("%s failed: %s", args.command, exc)
-        return 2
+    # bad inputs: a clear message, no traceback (-v shows it)
+    return run_stage(log, work, errors=(ValueError, KeyError, OSError),
+                     line=lambda exc: f"{args.command} failed: {exc}", traceback=True)
 
 
 if __name__ == "__main__":

@@ -211,20 +211,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    try:
-        from camio.outdir import prepare_out
+    from camio.outdir import prepare_out, run_stage
 
+    def work() -> None:
         prepare_out(args.out, {"--init": args.init, "--images": args.images, "--image-list": args.image_list},
                     "evaluation.ba_init")
         run_ba_init(args.init, args.images, names, args.out, args.refine_focal, args.seed_points,
                     args.min_points, args.seed, args.threads)
-    except (ValueError, OSError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

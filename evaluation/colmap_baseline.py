@@ -18,7 +18,7 @@ from pathlib import Path
 
 from camio.images import ImageReadError
 from camio.logs import setup_logging
-from camio.outdir import prepare_out, tidy_outs
+from camio.outdir import prepare_out, run_stage, typed_line
 from evaluation import colmap_repeats
 from evaluation.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.pose import add_gate_args, gate_from_args
@@ -92,16 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         p.error(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
-    try:
+
+    def work() -> None:
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
                                "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
         apply_fallback(args.out, args.fallback_min_points, args.fallback_points, seeds[0])
-    except (ImageReadError, FileNotFoundError, ValueError) as exc:
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s: %s", type(exc).__name__, exc)
-        return 2
-    return 0
+
+    return run_stage(log, work, errors=(ImageReadError, FileNotFoundError, ValueError), line=typed_line)
 
 
 def _run_cli(args, names: list[str], seeds: list[int], settings: ColmapSettings) -> None:

@@ -343,21 +343,15 @@ def main(argv: list[str] | None = None) -> int:
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError
-    from camio.outdir import OutputFolderError, prepare_out, tidy_outs
+    from camio.outdir import prepare_out, run_stage, typed_line
 
-    try:
+    def work() -> None:
         prepare_out(args.out, {"--scene": args.scene, "--split": args.split, "--image-list": args.image_list},
                     "evaluation.oracle")
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    try:
         run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)
-    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s: %s", type(exc).__name__, exc)
-        return 2
-    return 0
+
+    # bad input: one line naming the file
+    return run_stage(log, work, errors=(ImageReadError, FileNotFoundError), line=typed_line)
 
 
 if __name__ == "__main__":

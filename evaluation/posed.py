@@ -154,19 +154,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         names = args.names
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
-    try:
-        from camio.outdir import prepare_out
+    from camio.outdir import prepare_out, run_stage
 
+    def work() -> None:
         prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
         apply_fallback(args.out, args.fallback_min_points, args.fallback_points, args.seed)
-    except (ValueError, OSError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

@@ -302,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from camio.logs import setup_logging
-    from camio.outdir import prepare_out, tidy_outs
+    from camio.outdir import prepare_out, run_stage
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["seed-model"]:
@@ -326,14 +326,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
-    try:
+
+    def work() -> None:
         prepare_out(args.out, {"--cameras": args.cameras, "--image-list": args.image_list}, "evaluation.random_init")
         run_random(args.cameras, _read_names(args.image_list), args.out, args.points, args.seed, args.near, args.far)
-    except (ValueError, OSError) as exc:
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":
