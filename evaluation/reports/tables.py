@@ -28,8 +28,8 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_path
-from evaluation.pose import GateConfig, success_criteria_text
-from evaluation.results import PROTOCOLS, collect_runs
+from evaluation.metrics.pose import GateConfig, success_criteria_text
+from evaluation.reports.results import PROTOCOLS, collect_runs
 
 __all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
            "build_tables", "run_tables"]
@@ -198,8 +198,8 @@ RUN_STATUS = "Run status: what ran, per initialiser and scene"
 def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg",
                  results: str | Path | None = None) -> dict[str, pd.DataFrame]:
     """All tables by title (ordered); the run status reads ``results`` for skipped and failed
-    initialisers that left no result (see :mod:`evaluation.run_status`)."""
-    from evaluation.run_status import run_status_table
+    initialisers that left no result (see :mod:`evaluation.reports.run_status`)."""
+    from evaluation.reports.run_status import run_status_table
 
     return {
         RUN_STATUS: run_status_table(runs, results),

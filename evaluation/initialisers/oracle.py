@@ -298,14 +298,14 @@ def run_oracle(scene: str | Path, names: list[str], out_dir: str | Path, noise: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.oracle --scene DIR (--split JSON --n N | --image-list FILE |
+    """CLI: ``python -m evaluation.initialisers.oracle --scene DIR (--split JSON --n N | --image-list FILE |
     --names ...) --out DIR [noise options] [--seed S]``."""
     import argparse
     import json
 
     from camio.logs import setup_logging
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.oracle",
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
     p.add_argument("--split", help="split.json; use with --n")
@@ -346,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.outdir import prepare_out, run_stage, typed_line
 
     def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--scene": args.scene, "--split": args.split, "--image-list": args.image_list},
                     "evaluation.oracle")
         run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)

@@ -4,10 +4,10 @@ over seeds, paired mode differences, Markdown tables, plots and an HTML section.
 Input: the study tree (workflow/rules/study_plan.smk)
 ``{root}/{cell}/s{seed}/{dataset}/{scene}/n{n}/{init}/{mode}/`` (``init`` one of
 :data:`STUDY_INITS`: the oracle, or the posed initialiser on scenes with reference cameras)
-read with :func:`evaluation.results.read_run` (metrics.json, train.json, log.parquet, pose.json
-of the initialiser) plus ``floaters.json`` (:mod:`evaluation.floaters`; only where the scene
+read with :func:`evaluation.reports.results.read_run` (metrics.json, train.json, log.parquet, pose.json
+of the initialiser) plus ``floaters.json`` (:mod:`evaluation.metrics.floaters`; only where the scene
 has a ground-truth mesh); ``cells`` (the expanded grid,
-:func:`evaluation.study_grid.expand_cells`) names each cell's axis, level and base.
+:func:`evaluation.study.grid.expand_cells`) names each cell's axis, level and base.
 
 Along the run: the trainer's held-out evaluations (``train/log.parquet`` columns ``test_psnr``,
 ``test_ssim``, ``test_lpips``, docs/contracts.md) give, per run, the best value of each measure
@@ -43,7 +43,7 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_dir, write_json
-from evaluation.results import read_run
+from evaluation.reports.results import read_run
 
 __all__ = ["MEASURES", "CURVE_MEASURES", "t_interval", "find_study_runs", "collect_study", "collect_curves",
            "best_along_run", "summarise", "paired_differences", "along_run_tables", "study_markdown",
@@ -376,7 +376,7 @@ def difference_tables(runs: pd.DataFrame, order: list[str], cells: dict) -> dict
 
 
 def _pyplot():
-    from evaluation.plots import _pyplot as pp
+    from evaluation.reports.plots import _pyplot as pp
 
     return pp()
 
@@ -499,7 +499,7 @@ SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), n
                    "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "
                    "ATE and rotation errors the paper reports for VGGT), not VGGT output.")
 POSED_NOTE = ("Every cell is the posed initialiser (the scene's reference cameras, estimated from all of its "
-              "images, and points triangulated with them; evaluation/posed.py) with the oracle's seeded noise, "
+              "images, and points triangulated with them; evaluation/initialisers/posed.py) with the oracle's seeded noise, "
               "never VGGT. It has no confidence: Bridge mode uniform only; no floater measure without a "
               "ground-truth mesh.")
 
@@ -531,7 +531,7 @@ def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots
              f"{int(k.min())}-{int(k.max())}; training iterations: "
              f"{', '.join(str(int(i)) for i in sorted(runs['iterations'].dropna().unique()))}; "
              f"LPIPS network: {', '.join(lpips_nets)}. Every entry: mean ± 95 % t-interval half-width "
-             "over seeds (evaluation/study.py). \"Final\" is `python -m evaluation images` on the final "
+             "over seeds (evaluation/study/collect.py). \"Final\" is `python -m evaluation images` on the final "
              "model's PNG renders; \"best it.\" is the best of the trainer's held-out evaluations along the "
              "run (`train/log.parquet`; float renders): the highest PSNR, the highest SSIM, the lowest "
              "LPIPS, each at its own iteration.", "", "## Cells", ""]

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_path
-from evaluation.results import collect_runs, find_file, run_label
+from evaluation.reports.results import collect_runs, find_file, run_label
 
 __all__ = ["training_curves", "pareto_front", "pareto_plot", "run_plots"]
 

@@ -15,7 +15,7 @@ file               what is read
                    ``registered``, ``n_images``, ``points``, ``reason``, ``wall_time_s``,
                    ``peak_rss_mb``, ``fy_over_fx``, ``repeats`` (spread over seeds), ``fallback``
                    (column ``seed_fallback``: its ``reason`` when ``applied``)
-``pose.json``      :mod:`evaluation.pose`: ATE, RPE, relative rotation error, fy/fx, success
+``pose.json``      :mod:`evaluation.metrics.pose`: ATE, RPE, relative rotation error, fy/fx, success
 ``metrics.json``   ``python -m evaluation images``: means ``psnr``, ``ssim``, ``lpips_alex``,
                    ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``
 ``timing.json``    vggt_init / oracle: ``total_s`` (or ``wall_time_s``), peak memory keys
@@ -43,7 +43,7 @@ A scene without reference cameras has no ``pose.json``; a failed COLMAP run has 
 Success (docs/contracts.md, one definition): ``success_paper`` = status.json's (>= 1 registered
 image and >= 1 point) when a status exists, else pose.json's, else "the run produced a trained
 model or metrics". ``success_gated`` = paper success, >= 3 registered training views and the
-accuracy gate on pose.json (:func:`evaluation.pose.accuracy_gate`); None for scenes without reference cameras (no run of the scene has a pose.json);
+accuracy gate on pose.json (:func:`evaluation.metrics.pose.accuracy_gate`); None for scenes without reference cameras (no run of the scene has a pose.json);
 False for a run of a scene with reference cameras that has no pose.json itself.
 """
 
@@ -57,7 +57,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from evaluation.pose import GateConfig, accuracy_gate, status_success
+from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
 
 __all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
 
@@ -278,7 +278,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         "has_reference": has_ref, "registered": _num(registered), "n_train": n,
         "points": _first(status, "points") if status else _first(pose, "n_points"),
         "reason": status.get("reason"),
-        # the random-point fallback's reason when the run trained from it (evaluation/random_init.py)
+        # the random-point fallback's reason when the run trained from it (evaluation/initialisers/random_init.py)
         "seed_fallback": (status.get("fallback") or {}).get("reason")
         if (status.get("fallback") or {}).get("applied") else None,
         **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
