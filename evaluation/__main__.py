@@ -91,7 +91,7 @@ def _cmd_study(args) -> int:
     from pathlib import Path
 
     from camio.atomic import write_json
-    from evaluation.study.collect import run_study
+    from evaluation.study.report import run_study
 
     cells = {}
     if args.cells:

@@ -12,7 +12,7 @@ from scipy.stats import spearmanr
 
 from evaluation.metrics.floaters import floater_fraction, trajectory_radius
 from evaluation.initialisers.oracle import OracleNoise, make_oracle_predictions, reassign_confidence
-from evaluation.study.collect import paired_differences, summarise, t_interval
+from evaluation.study.stats import paired_differences, summarise, t_interval
 from evaluation.study.grid import ZERO, expand_cells
 
 from test_oracle import NAMES, scene  # noqa: F401  (the oracle's scene fixture)
@@ -196,7 +196,7 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
 
 def test_run_study_reports_every_mode_with_an_interval(tmp_path):
     from evaluation.reports.report import _study_section
-    from evaluation.study.collect import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study")
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
@@ -246,7 +246,7 @@ def test_study_cli_reports_only_the_planned_grid(tmp_path, capfd):
 
 
 def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_run(tmp_path):
-    from evaluation.study.collect import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", along_run=True)
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
@@ -294,7 +294,7 @@ def _fake_colmap_run(root, n, ok):
 
 def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(tmp_path):
     from evaluation.__main__ import main
-    from evaluation.study.collect import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", along_run=True)
     ok = _fake_colmap_run(tmp_path, 3, True)
@@ -319,7 +319,7 @@ def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(t
 
 def test_run_study_reads_posed_cells(tmp_path):
     """The real-scene arm's tree: posed cells, mode uniform only, no floaters.json."""
-    from evaluation.study.collect import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", modes=("uniform",), init="posed", scene="fern", along_run=True)
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
