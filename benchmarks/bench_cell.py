@@ -55,7 +55,8 @@ QUICK_SYNTH = (10, 48)  # views, width of the --quick synthetic scene
 
 # The CLI modules whose ``main(argv)`` the in-process launcher calls.
 _MAIN_MODULES = {"camio": "camio.__main__", "bridge": "bridge.__main__", "evaluation": "evaluation.__main__",
-                 "splat_train": "splat_train.__main__", "evaluation.initialisers.colmap_baseline": "evaluation.initialisers.colmap_baseline",
+                 "splat_train": "splat_train.__main__",
+                 "evaluation.initialisers.colmap_baseline": "evaluation.initialisers.colmap_baseline",
                  "evaluation.initialisers.oracle": "evaluation.initialisers.oracle"}
 
 

@@ -314,7 +314,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: cannot read {argv[1]}/status.json: {exc}", file=sys.stderr)
             return 2
         return 0
-    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.random_init", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.random_init",
+                                description=__doc__.split("\n\n")[0])
     p.add_argument("--cameras", required=True, help="COLMAP model with a camera per training view "
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
