@@ -25,6 +25,7 @@ import pandas as pd
 
 from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
+from evaluation.reports.markup import html_page
 from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
@@ -222,8 +223,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         plots = run_plots(results, images, runs) if plots else []
         tables = build_tables(runs, gate, results=results)
         notes = table_notes(tables)
-        parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
-                 f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
+        parts = ["<h1>Evaluation report</h1>",
                  f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
                  + " ".join(success_criteria_text(gate, html=True)) + "</p>", GUIDE_HTML]
         parts += _initialiser_notes(Path(results), runs)
@@ -258,8 +258,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
                 n_grids += 1
         if not n_grids:
             parts.append("<p>(no renders found)</p>")
-        parts.append("</body></html>")
-        (tmp / "index.html").write_text("\n".join(parts) + "\n")
+        (tmp / "index.html").write_text(html_page("Evaluation report", _CSS, "\n".join(parts)))
     log.info("report: %d runs, %d tables, %d plots, %d render grids -> %s (%.2f s)", len(runs), len(tables),
              len(plots), n_grids, out / "index.html", time.perf_counter() - t0)
     return out / "index.html"

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from evaluation.reports.results import read_run
+from evaluation.reports.results import best_along, read_log, read_run
 
 __all__ = ["MEASURES", "POSE_MEASURES", "DIFF_MEASURES", "CURVE_MEASURES", "MODES", "STUDY_INITS",
            "find_study_runs", "best_along_run", "collect_curves", "planned_runs", "collect_study",
@@ -96,15 +96,8 @@ def _floaters(path: Path) -> dict:
 def _read_log(run_dir: str | Path) -> pd.DataFrame | None:
     """The evaluation rows of ``run_dir/train/log.parquet`` (columns iteration, wall_time_s and
     the present CURVE_MEASURES), or None when there is no readable log."""
-    f = Path(run_dir) / "train" / "log.parquet"
-    if not f.is_file():
-        return None
-    try:
-        lg = pd.read_parquet(f)
-    except (OSError, ValueError) as exc:
-        log.warning("study: cannot read %s (%s)", f, exc)
-        return None
-    if "test_psnr" not in lg:
+    lg = read_log(Path(run_dir) / "train" / "log.parquet")
+    if lg is None or "test_psnr" not in lg:
         return None
     cols = ["iteration", "wall_time_s"] + [c for c in CURVE_MEASURES if c in lg]
     return lg.loc[lg["test_psnr"].notna(), cols].reset_index(drop=True)
@@ -116,13 +109,15 @@ def best_along_run(lg: pd.DataFrame | None) -> dict[str, float]:
     where the log lacks the column or every value is null. PSNR's are read_run's."""
     out = {}
     for col, key, higher in (("test_ssim", "ssim", True), ("test_lpips", "lpips", False)):
-        v = lg[col].dropna() if lg is not None and col in lg else pd.Series(dtype=float)
-        if v.empty:
-            out[f"best_test_{key}"], out[f"best_{key}_iter"] = math.nan, math.nan
-            continue
-        i = v.idxmax() if higher else v.idxmin()
-        out[f"best_test_{key}"], out[f"best_{key}_iter"] = float(v[i]), float(lg.loc[i, "iteration"])
+        out[f"best_test_{key}"], out[f"best_{key}_iter"] = best_along(lg, col, higher)
     return out
+
+
+def _with_lpips(rec: dict) -> dict:
+    """``rec`` with ``lpips`` (LPIPS-alex when measured, else vgg) and ``lpips_net`` (which)."""
+    net = "alex" if not math.isnan(rec["lpips_alex"]) else "vgg"
+    rec["lpips"], rec["lpips_net"] = rec[f"lpips_{net}"], net
+    return rec
 
 
 def collect_curves(runs: pd.DataFrame) -> pd.DataFrame:
@@ -179,8 +174,7 @@ def collect_study(root: str | Path, cells: dict | None = None, seeds=None, views
         rec = read_run(run, mode=mode)
         rec.update(cell=cell, seed=seed, **_floaters(run / mode / "floaters.json"))
         rec.update(best_along_run(_read_log(run / mode)))
-        net = "alex" if not math.isnan(rec["lpips_alex"]) else "vgg"
-        rec["lpips"], rec["lpips_net"] = rec[f"lpips_{net}"], net
+        _with_lpips(rec)
         info = cells.get(cell, {})
         rec.update(axis=info.get("axis"), level=info.get("level"), base=info.get("base"))
         status = run / "status.json"
@@ -203,10 +197,8 @@ def collect_references(run_dirs) -> pd.DataFrame:
             log.warning("study: reference run %s does not exist; skipped", run)
             continue
         modes = [m for m in MODES if (run / m).is_dir()]
-        rec = read_run(run, mode=modes[0] if modes else None)
+        rec = _with_lpips(read_run(run, mode=modes[0] if modes else None))
         rec["bridge_mode"] = modes[0] if modes else None
-        net = "alex" if not math.isnan(rec["lpips_alex"]) else "vgg"
-        rec["lpips"], rec["lpips_net"] = rec[f"lpips_{net}"], net
         rec.update(best_along_run(_read_log(run / modes[0]) if modes else None))
         rows.append(rec)
     return pd.DataFrame(rows)

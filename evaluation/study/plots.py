@@ -8,16 +8,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from evaluation.reports.plots import pyplot, save_png
 from evaluation.study.collect import CURVE_MEASURES, MEASURES, MODES, collect_curves, point_cells
 from evaluation.study.stats import mean_curves
 
 __all__ = ["study_plots"]
-
-
-def _pyplot():
-    from evaluation.reports.plots import _pyplot as pp
-
-    return pp()
 
 
 def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Path,
@@ -28,7 +23,7 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
     and each held-out measure along the run (PSNR, SSIM, LPIPS where logged) against training
     wall time for the zero cell and the named points."""
     curves = collect_curves(runs) if curves is None else curves
-    plt = _pyplot()
+    plt = pyplot()
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     axes = {}
@@ -60,10 +55,7 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
             axs[0].legend()
             fig.suptitle(f"{ds}/{sc}, n = {n}: {param} (mean, 95 % interval over seeds)")
             fig.tight_layout()
-            p = out / f"{ds}__{sc}__n{n}__axis_{param}__{base}.png"
-            fig.savefig(p, dpi=90)
-            plt.close(fig)
-            paths.append(p)
+            paths.append(save_png(fig, out / f"{ds}__{sc}__n{n}__axis_{param}__{base}.png", dpi=90))
         # error against time: zero cell and the named operating points, one plot per measure
         sub = curves[(curves["dataset"] == ds) & (curves["scene"] == sc) & (curves["n"] == n)
                      & curves["cell"].isin(point_cells(cells, g))]
@@ -79,8 +71,5 @@ def study_plots(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, out: Pat
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
             fig.tight_layout()
-            p = out / f"{ds}__{sc}__n{n}__{col.removeprefix('test_')}_vs_time.png"
-            fig.savefig(p, dpi=90)
-            plt.close(fig)
-            paths.append(p)
+            paths.append(save_png(fig, out / f"{ds}__{sc}__n{n}__{col.removeprefix('test_')}_vs_time.png", dpi=90))
     return paths

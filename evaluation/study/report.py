@@ -13,14 +13,18 @@ from pathlib import Path
 import pandas as pd
 
 from camio.atomic import atomic_dir, write_json
+from evaluation.reports.markup import html_page, html_table, markdown_table
 from evaluation.study.collect import STUDY_INITS, collect_curves, collect_references, collect_study
 from evaluation.study.plots import study_plots
 from evaluation.study.stats import summarise
-from evaluation.study.tables import _md_table, all_tables, cell_order
+from evaluation.study.tables import all_tables, cell_order
 
 __all__ = ["study_markdown", "study_section_html", "run_study"]
 
 log = logging.getLogger(__name__)
+
+_CSS = "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}" \
+       "td,th{border:1px solid #ccc;padding:3px 6px}"
 
 SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating "
                    "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "
@@ -62,22 +66,16 @@ def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots
         rows.append([c, str(info.get("axis") or "-"), str(info.get("base") or "-")]
                     + [str(noise.get(key, "-")) for key in ("rot_deg", "trans_frac", "depth_rel", "outlier_frac",
                                                             "conf_noise", "conf_mode")])
-    parts.append(_md_table(["cell", "axis", "base", "rot_deg", "trans_frac", "depth_rel", "outlier_frac",
+    parts.append(markdown_table(["cell", "axis", "base", "rot_deg", "trans_frac", "depth_rel", "outlier_frac",
                             "conf_noise", "conf_mode"], rows))
     if refs is not None and not refs.empty:
         parts += ["", REFERENCE_NOTE]
     for title, (header, rows) in all_tables(runs, summary, cells, curves, refs).items():
-        parts += ["", f"## {title}", "", _md_table(header, rows)]
+        parts += ["", f"## {title}", "", markdown_table(header, rows)]
     if plots:
         parts += ["", "## Plots", ""]
         parts += [f"![{p.stem}]({p.relative_to(out_dir).as_posix()})" for p in plots]
     return "\n".join(parts) + "\n"
-
-
-def _md_to_html_table(header, rows) -> str:
-    h = "".join(f"<th>{html.escape(x)}</th>" for x in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
 
 
 def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots: list[Path],
@@ -90,7 +88,7 @@ def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, p
     if refs is not None and not refs.empty:
         parts.append(f"<p>{html.escape(REFERENCE_NOTE)}</p>")
     for title, (header, rows) in all_tables(runs, summary, cells, curves, refs).items():
-        parts += [f"<h3>{html.escape(title)}</h3>", _md_to_html_table(header, rows)]
+        parts += [f"<h3>{html.escape(title)}</h3>", html_table(header, rows)]
     for p in plots:
         parts.append(f'<p><img src="{html.escape(img_prefix + p.name)}" alt="{html.escape(p.stem)}"></p>')
     return "\n".join(parts)
@@ -121,11 +119,7 @@ def run_study(root: str | Path, out: str | Path, cells: dict | None = None, refe
         (tmp / "study.md").write_text(study_markdown(runs, summary, cells, plots, tmp, curves, refs))
         section = study_section_html(runs, summary, cells, plots, "plots/", curves, refs)
         (tmp / "section.html").write_text(section)
-        (tmp / "index.html").write_text(
-            "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Initialisation study</title>"
-            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}"
-            "td,th{border:1px solid #ccc;padding:3px 6px}</style></head><body>"
-            + section + "</body></html>\n")
+        (tmp / "index.html").write_text(html_page("Initialisation study", _CSS, section))
         write_json(tmp / "cells.json", cells)
     log.info("study: %d runs, %d cells, %d reference runs (%d succeeded), %d plots -> %s (%.1f s)", len(runs),
              runs["cell"].nunique(), len(refs), int(refs["success_paper"].sum()) if len(refs) else 0, len(plots),

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from evaluation.reports.markup import format_value
 from evaluation.study.collect import CURVE_MEASURES, DIFF_MEASURES, MEASURES, MODES, POSE_MEASURES, collect_curves, \
     point_cells
 from evaluation.study.stats import mean_curves, paired_differences
@@ -22,11 +23,6 @@ _REF_COLUMNS = [("ate_pct_radius", "ATE [% radius]", 2), ("rel_rot_err_mean_deg"
                 ("ssim", "SSIM (final)", 3), ("best_test_ssim", "SSIM (best it.: highest)", 3),
                 ("lpips", "LPIPS (final)", 3), ("best_test_lpips", "LPIPS (best it.: lowest)", 3),
                 ("num_gaussians", "Gaussians (final)", 0)]
-
-
-def _one(v, digits: int) -> str:
-    v = float(v) if v is not None else math.nan
-    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
 
 
 def reference_tables(refs: pd.DataFrame) -> dict[str, tuple[list, list]]:
@@ -43,7 +39,7 @@ def reference_tables(refs: pd.DataFrame) -> dict[str, tuple[list, list]]:
             status = f"yes ({reg}/{int(n)} registered)" if ok else f"no: {r.get('reason') or 'failed'} ({reg}/{int(n)})"
             mode = r.get("bridge_mode")
             rows.append([str(r["init"]), mode if isinstance(mode, str) else "-", status]
-                        + [_one(r.get(c), d) for c, _, d in _REF_COLUMNS])
+                        + [format_value(r.get(c), d) for c, _, d in _REF_COLUMNS])
         out[f"{ds}/{sc}, n = {n}: reference initialisers (one regular run each, no seeds)"] = (
             ["init", "Bridge mode", "success"] + [label for _, label, _ in _REF_COLUMNS], rows)
     return out
@@ -70,12 +66,6 @@ def cell_label(cell: str, cells: dict) -> str:
     if info.get("axis") and base and base != "zero":
         return f"{cell} (on {base})"
     return cell
-
-
-def _md_table(header: list[str], rows: list[list[str]]) -> str:
-    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    out += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(out)
 
 
 def measure_tables(summary: pd.DataFrame, order: list[str], cells: dict) -> dict[str, tuple[list, list]]:
