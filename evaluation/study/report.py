@@ -23,8 +23,8 @@ __all__ = ["study_markdown", "study_section_html", "run_study"]
 
 log = logging.getLogger(__name__)
 
-_CSS = "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}" \
-       "td,th{border:1px solid #ccc;padding:3px 6px}"
+_CSS = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}"
+        "td,th{border:1px solid #ccc;padding:3px 6px}")
 
 SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating "
                    "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "

@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 
 from evaluation.reports.markup import format_value
-from evaluation.study.collect import CURVE_MEASURES, DIFF_MEASURES, MEASURES, MODES, POSE_MEASURES, collect_curves, \
-    point_cells
+from evaluation.study.collect import (CURVE_MEASURES, DIFF_MEASURES, MEASURES, MODES, POSE_MEASURES, collect_curves,
+                                      point_cells)
 from evaluation.study.stats import mean_curves, paired_differences
 
 __all__ = ["reference_tables", "cell_order", "cell_label", "measure_tables", "difference_tables", "along_run_tables",
@@ -46,6 +46,7 @@ def reference_tables(refs: pd.DataFrame) -> dict[str, tuple[list, list]]:
 
 
 def cell_order(df: pd.DataFrame, cells: dict | None) -> list[str]:
+    """The cells in ``df``: in the grid's order (``cells``), then any others sorted."""
     present = list(dict.fromkeys(df["cell"]))
     if not cells:
         return sorted(present)
@@ -61,6 +62,7 @@ def _fmt(mean: float, hw: float, digits: int) -> str:
 
 
 def cell_label(cell: str, cells: dict) -> str:
+    """A cell's row label: ``name (on base)`` for an axis cell on a base other than zero."""
     info = cells.get(cell) or {}
     base = info.get("base")
     if info.get("axis") and base and base != "zero":
@@ -151,6 +153,7 @@ def along_run_tables(curves: pd.DataFrame, order: list[str], cells: dict) -> dic
 
 
 def all_tables(runs, summary, cells, curves, refs=None) -> dict[str, tuple[list, list]]:
+    """Every table of the study's report by title, in the report's order."""
     order = cell_order(runs, cells)
     return {**reference_tables(refs), **measure_tables(summary, order, cells),
             **difference_tables(runs, order, cells),
