@@ -58,8 +58,9 @@ QUICK_SYNTH = (10, 48)  # views, width of the --quick synthetic scene
 
 # The CLI modules whose ``main(argv)`` the in-process launcher calls.
 _MAIN_MODULES = {"camio": "camio.__main__", "bridge": "bridge.__main__", "evaluation": "evaluation.__main__",
-                 "splat_train": "splat_train.__main__", "evaluation.colmap_baseline": "evaluation.colmap_baseline",
-                 "evaluation.oracle": "evaluation.oracle"}
+                 "splat_train": "splat_train.__main__",
+                 "evaluation.initialisers.colmap_baseline": "evaluation.initialisers.colmap_baseline",
+                 "evaluation.initialisers.oracle": "evaluation.initialisers.oracle"}
 
 
 def _cpu_seconds(inprocess: bool) -> float:
@@ -251,11 +252,11 @@ def _prepare(work: Path, scene_kind: str, n: int, quick: bool, threads: int | No
     colmap_args = ["--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "colmap")]
     if threads:
         colmap_args += ["--threads", str(threads)]
-    inits["colmap"] = {"wall_s": stage("init_colmap", "evaluation.colmap_baseline", colmap_args)}
+    inits["colmap"] = {"wall_s": stage("init_colmap", "evaluation.initialisers.colmap_baseline", colmap_args)}
     status = json.loads((work / "colmap" / "status.json").read_text())
     inits["colmap"].update({k: status.get(k) for k in ("success_paper", "aligned_ok", "registered", "points", "reason")})
     if synthetic:
-        inits["oracle"] = {"wall_s": stage("init_oracle", "evaluation.oracle", [
+        inits["oracle"] = {"wall_s": stage("init_oracle", "evaluation.initialisers.oracle", [
             "--scene", str(scene), "--image-list", str(train_txt), "--out", str(work / "oracle")])}
     colmap_ok = bool(status.get("success_paper", status.get("success")) and status.get("aligned_ok", True))
     used = "oracle" if synthetic else ("colmap" if colmap_ok else None)

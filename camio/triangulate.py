@@ -1,7 +1,7 @@
 """Points from known cameras: SIFT features, exhaustive matching and triangulation with the
 poses and intrinsics held fixed, through pycolmap (``colmap point_triangulator``).
 
-Used by the ``posed`` initialiser (:mod:`evaluation.posed`). Cameras follow :mod:`camio`
+Used by the ``posed`` initialiser (:mod:`evaluation.initialisers.posed`). Cameras follow :mod:`camio`
 (cam_from_world, OpenCV axes, COLMAP pixel centres, PINHOLE); the images must be the files the
 cameras were made for (same size).
 """

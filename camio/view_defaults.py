@@ -1,5 +1,5 @@
 """Where ``python -m splat_train view`` listens unless told otherwise: one place for the viewer
-(splat_train/view) and the report that prints its commands (evaluation/report_view.py), since
+(splat_train/view) and the report that prints its commands (evaluation/reports/report_view.py), since
 stages do not import each other."""
 
 VIEW_HOST = "127.0.0.1"  # this machine only

@@ -3,7 +3,7 @@
 Commands:
   pose     pose accuracy of a COLMAP model against reference cameras -> pose.json
   images   image metrics of renders against ground truth -> metrics.json
-           (from :mod:`evaluation.images_cli`, imported only when used)
+           (from :mod:`evaluation.metrics.images_cli`, imported only when used)
   align    Sim(3) on training cameras; reference test cameras in the model frame
   tables   results tree -> runs.parquet + tables.md
   plots    training curves and the error / run-time Pareto plot (PNG)
@@ -24,26 +24,26 @@ log = logging.getLogger("evaluation")
 
 
 def _gate(args):
-    from evaluation.pose import gate_from_args
+    from evaluation.metrics.pose import gate_from_args
 
     return gate_from_args(args)
 
 
 def _add_gate_args(p: argparse.ArgumentParser) -> None:
-    from evaluation.pose import add_gate_args
+    from evaluation.metrics.pose import add_gate_args
 
     add_gate_args(p)
 
 
 def _cmd_pose(args) -> int:
-    from evaluation.pose import run_pose
+    from evaluation.metrics.pose import run_pose
 
     run_pose(args.pred, args.ref, args.out, args.names, args.n, _gate(args), args.orientations)
     return 0
 
 
 def _cmd_align(args) -> int:
-    from evaluation.align_run import run_align
+    from evaluation.metrics.align_run import run_align
 
     run_align(args.pred, args.ref, args.train_names, args.test_names, args.out, n=args.n,
               images_dir=args.images, image_scale=args.image_scale,
@@ -53,28 +53,28 @@ def _cmd_align(args) -> int:
 
 
 def _cmd_tables(args) -> int:
-    from evaluation.tables import run_tables
+    from evaluation.reports.tables import run_tables
 
     run_tables(args.results, args.out, _gate(args))
     return 0
 
 
 def _cmd_plots(args) -> int:
-    from evaluation.plots import run_plots
+    from evaluation.reports.plots import run_plots
 
     run_plots(args.results, args.out)
     return 0
 
 
 def _cmd_report(args) -> int:
-    from evaluation.report import run_report
+    from evaluation.reports.report import run_report
 
     run_report(args.results, args.out, scenes_dir=args.scenes, gate=_gate(args), max_views=args.max_views)
     return 0
 
 
 def _cmd_floaters(args) -> int:
-    from evaluation.floaters import run_floaters
+    from evaluation.metrics.floaters import run_floaters
 
     models = {}
     for item in args.model:
@@ -91,7 +91,7 @@ def _cmd_study(args) -> int:
     from pathlib import Path
 
     from camio.atomic import write_json
-    from evaluation.study import run_study
+    from evaluation.study.report import run_study
 
     cells = {}
     if args.cells:
@@ -149,7 +149,7 @@ def _seal_out(args) -> None:
 
 def _missing_images(exc: Exception):
     def run(args) -> int:
-        log.error("the 'images' command is not available: importing evaluation.images_cli failed "
+        log.error("the 'images' command is not available: importing evaluation.metrics.images_cli failed "
                   "(%s). Check that the evaluation package is complete and installed (pip install -e .).",
                   exc)
         return 2
@@ -157,10 +157,10 @@ def _missing_images(exc: Exception):
 
 
 def _add_images(sub, wanted: bool) -> None:
-    """Register ``images`` from evaluation.images_cli (only imported when it is the command)."""
+    """Register ``images`` from evaluation.metrics.images_cli (only imported when it is the command)."""
     if wanted:
         try:
-            from evaluation import images_cli
+            from evaluation.metrics import images_cli
         except ImportError as exc:
             # prefix "+" so that the real command's --options land in ``rest`` unparsed
             p = sub.add_parser("images", help="image metrics (unavailable)", prefix_chars="+")
@@ -239,14 +239,14 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--scene", required=True, help="prepared synthetic scene (synthetic.json, sparse/0)")
     p.add_argument("--tau-rel", type=float, default=None,
                    help="threshold as a fraction of the reference trajectory radius "
-                   "(default: evaluation.floaters.TAU_REL)")
+                   "(default: evaluation.metrics.floaters.TAU_REL)")
     p.add_argument("--out", required=True, help="floaters.json to write")
     p.set_defaults(func=_cmd_floaters)
 
     p = sub.add_parser("study", help="the initialisation study's report (docs/init-study.md)")
     p.add_argument("--results", required=True, help="the study tree (R/study)")
     p.add_argument("--out", required=True, help="report folder (study.md, plots/, index.html)")
-    p.add_argument("--cells", help="the expanded grid: JSON text or a file (evaluation.study_grid)")
+    p.add_argument("--cells", help="the expanded grid: JSON text or a file (evaluation.study.grid)")
     p.add_argument("--reference", action="append", default=[],
                    help="a regular run folder R/{dataset}/{scene}/n{n}/{init} (e.g. COLMAP) to report as a "
                         "reference row beside the cells (repeatable; a failed run is a reported row)")
@@ -265,26 +265,20 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     func = getattr(args, "func", None)
     if func is None:
-        log.error("evaluation.images_cli.add_parser did not set a handler (set_defaults(func=...))")
+        log.error("evaluation.metrics.images_cli.add_parser did not set a handler (set_defaults(func=...))")
         return 2
-    from camio.outdir import OutputFolderError
+    from camio.outdir import run_stage
 
-    try:
+    def work() -> int:
         _prepare_out(args)
         rc = int(func(args) or 0)
         if rc == 0:
             _seal_out(args)
         return rc
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    except (ValueError, KeyError, OSError) as exc:  # bad inputs: a clear message, no traceback
-        from camio.outdir import tidy_outs
 
-        tidy_outs()
-        log.debug("traceback", exc_info=True)
-        log.error("%s failed: %s", args.command, exc)
-        return 2
+    # bad inputs: a clear message, no traceback (-v shows it)
+    return run_stage(log, work, errors=(ValueError, KeyError, OSError),
+                     line=lambda exc: f"{args.command} failed: {exc}", traceback=True)
 
 
 if __name__ == "__main__":

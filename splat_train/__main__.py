@@ -235,21 +235,19 @@ def _cli() -> int:
     """``python -m splat_train``: :func:`main`, with a bad input (unreadable seed, camera model,
     checkpoint or config) reported as one line naming it instead of a traceback (-v shows the
     traceback). :func:`main` itself still raises, for callers and tests."""
+    from camio.outdir import run_stage
+
+    def line(exc: BaseException) -> str:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        return f"{type(exc).__name__}: {msg}"
+
     try:
-        return main()
+        return run_stage(log, main, errors=(ValueError, KeyError, OSError), line=line, traceback=True)
     except KeyboardInterrupt:
         # Checkpoints are written atomically (camio.atomic): the last one is whole, and a
         # rerun with the same arguments resumes from it.
         log.error("interrupted (Ctrl-C): the last checkpoint is intact; run the same command again to resume")
         return 130
-    except (ValueError, KeyError, OSError) as exc:
-        from camio.outdir import tidy_outs
-
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.debug("traceback", exc_info=True)
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        log.error("%s: %s", type(exc).__name__, msg)
-        return 2
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
 
 * PSNR: :func:`splat_train.losses.psnr` (float64 MSE), dB;
 * SSIM: :func:`splat_train.losses.ssim` (the 3DGS definition, the one
-  :func:`evaluation.metrics.ssim` also calls), computed in float32;
+  :func:`evaluation.metrics.image.ssim` also calls), computed in float32;
 * LPIPS: LPIPS v0.1 with the AlexNet backbone and the weights ``python -m evaluation images``
   uses (:func:`camio.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
   NaN (null in log.parquet) when it is off or the weights are absent, never 0.

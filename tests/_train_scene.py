@@ -88,7 +88,7 @@ def write_pose_scene(root: Path, n_views: int = 5, width: int = 64, rot_deg: flo
         paths ``seed``, ``cameras`` (perturbed), ``images``, and ``truth`` / ``given``: the
         exact and perturbed camera lists.
     """
-    from evaluation.oracle import OracleNoise, perturb_cameras
+    from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 
     rng = np.random.default_rng(0)
     n = 150

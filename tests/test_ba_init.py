@@ -1,4 +1,4 @@
-"""The bundle-adjustment initialiser step (evaluation.ba_init): on the synthetic scene it
+"""The bundle-adjustment initialiser step (evaluation.initialisers.ba_init): on the synthetic scene it
 lowers the pose error of noisy ground-truth-pose and oracle initialisers, writes a model that
 COLMAP opens, moves the dense points with their cameras, and falls back (recorded) when the
 images cannot be matched."""
@@ -12,10 +12,10 @@ import pytest
 
 from camio.colmap import read_model
 from camio.images import read_image, write_image
-from evaluation.ba_init import move_points_with_cameras, run_ba_init
-from evaluation.oracle import OracleNoise, perturb_cameras, run_oracle
-from evaluation.pose import evaluate_pose
-from evaluation.posed import run_posed
+from evaluation.initialisers.ba_init import move_points_with_cameras, run_ba_init
+from evaluation.initialisers.oracle import OracleNoise, perturb_cameras, run_oracle
+from evaluation.metrics.pose import evaluate_pose
+from evaluation.initialisers.posed import run_posed
 
 NOISE = OracleNoise(rot_deg=1.3, trans_frac=0.03)  # about VGGT's pose error
 

@@ -47,7 +47,7 @@ def test_cli_predictions_end_to_end(tmp_path):
     assert report["mode"] == "gated" and report["points_in"] == 3 * 10 * 14
     assert report["points_kept"] == 100 and report["dropped"]["max_points"] == 140 - 100
     assert report["timings_s"]["total"] > 0 and "load" in report["timings_s"]
-    assert report["wall_time_s"] == report["timings_s"]["total"]  # read by evaluation.results
+    assert report["wall_time_s"] == report["timings_s"]["total"]  # read by evaluation.reports.results
 
     with np.load(npz) as z:
         raw = {k: z[k] for k in z.files}

@@ -7,8 +7,8 @@ import pytest
 from camio.bundle import bundle_adjust, reprojection_errors
 from camio.cameras import Camera, look_at, project_points
 from camio.colmap import SparseModel
-from evaluation.oracle import OracleNoise, perturb_cameras
-from evaluation.pose import evaluate_pose
+from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
+from evaluation.metrics.pose import evaluate_pose
 
 
 def _scene(n_cams=5, n_points=300, seed=0):

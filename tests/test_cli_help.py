@@ -7,8 +7,8 @@ import importlib
 import pytest
 
 # module whose main(argv) builds the parser, and the argv that selects every subcommand
-CLIS = ["camio", "evaluation", "bridge", "vggt_init", "splat_train", "evaluation.colmap_baseline",
-        "evaluation.posed", "evaluation.ba_init", "evaluation.oracle", "evaluation.random_init"]
+CLIS = ["camio", "evaluation", "bridge", "vggt_init", "splat_train"] + [
+    f"evaluation.initialisers.{name}" for name in ("colmap_baseline", "posed", "ba_init", "oracle", "random_init")]
 
 
 class _Captured(Exception):

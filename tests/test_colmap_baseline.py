@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from camio.images import write_image
-from evaluation.colmap_baseline import (
+from evaluation.initialisers.colmap_baseline import (
     ColmapSettings,
     available_cores,
     main,
     model_fingerprint,
     run_colmap,
 )
-from evaluation.colmap_repeats import run_colmap_repeats, summarise_repeats
+from evaluation.initialisers.colmap_repeats import run_colmap_repeats, summarise_repeats
 
 TRAIN = ["0001.png", "0003.png", "0005.png", "0007.png"]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from evaluation.pose import MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG, GateConfig, add_gate_args, gate_from_args
+from evaluation.metrics.pose import MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG, GateConfig, add_gate_args, gate_from_args
 from vggt_init import defaults as vggt_defaults
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,7 +28,7 @@ def test_gate_defaults_in_yaml_equal_the_code_constants():
 
 
 def test_gate_flags_of_both_clis_default_to_the_constants():
-    from evaluation import colmap_baseline
+    from evaluation.initialisers import colmap_baseline
     from evaluation.__main__ import build_parser
 
     p = argparse.ArgumentParser()
@@ -38,7 +38,7 @@ def test_gate_flags_of_both_clis_default_to_the_constants():
     for argv in (["pose", "--pred", "a", "--ref", "b", "--out", "c"], ["tables", "--results", "r", "--out", "o"]):
         args = build_parser(argv).parse_args(argv)
         assert (args.max_ate_rel_radius, args.max_rel_rot_deg) == (MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG)
-    src = (REPO / "evaluation" / "colmap_baseline.py").read_text()
+    src = (REPO / "evaluation" / "initialisers" / "colmap_baseline.py").read_text()
     assert "add_gate_args(p" in src and "0.05" not in src
     assert colmap_baseline.gate_from_args is gate_from_args
 
@@ -59,8 +59,8 @@ def test_vggt_cli_and_run_options_share_the_defaults():
 
 
 def test_random_initialiser_defaults_live_in_code():
-    """config random: null means evaluation.random_init's constants, which the schema names."""
-    from evaluation import random_init
+    """config random: null means evaluation.initialisers.random_init's constants, which the schema names."""
+    from evaluation.initialisers import random_init
 
     props = _schema()["properties"]["random"]["properties"]
     assert props["points"]["default"] is None and props["fallback_min_points"]["default"] is None

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from camio.cameras import Camera, camera_center, look_at, qvec_to_rotmat
 from camio.colmap import read_model, write_text_model
-from evaluation.align import (AlignmentError, Sim3, collinearity_ratio, fit_sim3_cameras,
+from evaluation.metrics.align import (AlignmentError, Sim3, collinearity_ratio, fit_sim3_cameras,
                               rotation_angle_deg, transform_cam_from_world, umeyama)
 
 
@@ -196,8 +196,8 @@ def test_align_cli(tmp_path):
     assert rc == 0
     (tmp_path / "run" / "align").mkdir()
     (tmp_path / "run" / "align" / "align.json").write_text((tmp_path / "out" / "align.json").read_text())
-    from evaluation.report import _heldout_cameras_note
-    from evaluation.results import read_run
+    from evaluation.reports.report import _heldout_cameras_note
+    from evaluation.reports.results import read_run
 
     runs_dir = tmp_path / "res" / "ds" / "sc" / "n3"
     runs_dir.mkdir(parents=True)

@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from safetensors.torch import save_file
 
-from evaluation import lpips_convert
+from evaluation.metrics import lpips_convert
 from camio.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("two_threads")
@@ -190,7 +190,7 @@ class TestWeightFiles:
         monkeypatch.delenv("LPIPS_WEIGHTS_DIR", raising=False)
         with caplog.at_level(logging.WARNING):
             assert load_lpips("vgg") is None
-        assert "evaluation.lpips_convert" in caplog.text and "missing" in caplog.text
+        assert "evaluation.metrics.lpips_convert" in caplog.text and "missing" in caplog.text
         with pytest.raises(FileNotFoundError, match="lpips_convert"):
             load_lpips("alex", tmp_path / "absent.safetensors")
 

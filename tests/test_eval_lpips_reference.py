@@ -1,6 +1,6 @@
 """Pretrained LPIPS v0.1 against the published distances on the PerceptualSimilarity images.
 
-Needs the converted weights (``python -m evaluation.lpips_convert``, or LPIPS_WEIGHTS_DIR);
+Needs the converted weights (``python -m evaluation.metrics.lpips_convert``, or LPIPS_WEIGHTS_DIR);
 skips with that instruction when they are absent. Images: tests/data/lpips (BSD-2, see README).
 
 Published (3 decimals): alex 0.722 / 0.138, vgg 0.569 / 0.422 for ex_ref vs ex_p0 / ex_p1.
@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from camio.images import read_image
-from evaluation.images_cli import evaluate_images
+from evaluation.metrics.images_cli import evaluate_images
 from camio.lpips import find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("two_threads")
@@ -36,7 +36,7 @@ def _weights_or_skip(net: str) -> Path:
     except FileNotFoundError as e:  # pragma: no cover - only with an explicit path
         pytest.skip(str(e))
     if path is None:
-        pytest.skip(f"LPIPS-{net} weights absent: run `python -m evaluation.lpips_convert` "
+        pytest.skip(f"LPIPS-{net} weights absent: run `python -m evaluation.metrics.lpips_convert` "
                     "(or set LPIPS_WEIGHTS_DIR) to enable this test")
     return path
 

@@ -12,9 +12,9 @@ import torch
 from safetensors.torch import save_file
 
 from camio.images import write_image
-from evaluation.images_cli import add_parser, evaluate_images, main, match_images
+from evaluation.metrics.images_cli import add_parser, evaluate_images, main, match_images
 from camio.lpips import LPIPS
-from evaluation.metrics import PSNR_CAP_DB
+from evaluation.metrics.image import PSNR_CAP_DB
 
 pytestmark = pytest.mark.usefixtures("two_threads")
 

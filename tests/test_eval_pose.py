@@ -16,8 +16,8 @@ import pytest
 
 from camio.cameras import Camera, camera_center, look_at, qvec_to_rotmat
 from camio.colmap import SparseModel, write_text_model
-from evaluation.align import Sim3, transform_cam_from_world
-from evaluation.pose import GateConfig, accuracy_gate, evaluate_pose, relative_pose_errors
+from evaluation.metrics.align import Sim3, transform_cam_from_world
+from evaluation.metrics.pose import GateConfig, accuracy_gate, evaluate_pose, relative_pose_errors
 
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
 
@@ -165,13 +165,13 @@ def test_dispatcher_images_missing_and_clear_errors(tmp_path, monkeypatch, capsy
 
     from evaluation.__main__ import main
 
-    import evaluation
+    import evaluation.metrics
 
-    monkeypatch.setitem(sys.modules, "evaluation.images_cli", None)  # import fails
+    monkeypatch.setitem(sys.modules, "evaluation.metrics.images_cli", None)  # import fails
     # an earlier test may have imported it: the package attribute would satisfy the import
-    monkeypatch.delattr(evaluation, "images_cli", raising=False)
+    monkeypatch.delattr(evaluation.metrics, "images_cli", raising=False)
     assert main(["images", "--pred", "a", "--gt", "b", "--out", "c"]) == 2
-    assert "importing evaluation.images_cli failed" in capsys.readouterr().err
+    assert "importing evaluation.metrics.images_cli failed" in capsys.readouterr().err
     # a bad input is an error message and exit status 1, not a traceback
     assert main(["pose", "--pred", str(tmp_path / "none"), "--ref", str(tmp_path / "ref"), "--out", str(tmp_path / "p.json")]) == 2
     assert "pose failed: no COLMAP model" in capsys.readouterr().err

@@ -43,7 +43,7 @@ def test_report(tmp_path):
 
 
 def test_report_without_ground_truth_or_renders(tmp_path):
-    from evaluation.report import run_report
+    from evaluation.reports.report import run_report
 
     results, _ = build(tmp_path / "fake")
     for p in results.rglob("renders"):
@@ -57,7 +57,7 @@ def test_report_finds_ground_truth_in_the_workflow_results_tree(tmp_path):
     """The workflow passes --scenes <results>; its held-out views are {dataset}/{scene}/test_images."""
     import shutil
 
-    from evaluation.report import run_report
+    from evaluation.reports.report import run_report
 
     results, scenes = build(tmp_path / "fake")
     for img_dir in scenes.glob("*/*/images"):
@@ -70,7 +70,7 @@ def test_report_finds_ground_truth_in_the_workflow_results_tree(tmp_path):
 
 def test_plots_folder_exists_with_nothing_to_plot(tmp_path):
     """A declared Snakemake output: the folder is created even for an empty results tree."""
-    from evaluation.plots import run_plots
+    from evaluation.reports.plots import run_plots
 
     (tmp_path / "results").mkdir()
     assert run_plots(tmp_path / "results", tmp_path / "plots") == []
@@ -83,8 +83,8 @@ def test_report_says_what_was_skipped_and_drops_empty_sections(tmp_path):
     means no empty plot heading."""
     import shutil
 
-    from evaluation.report import run_report
-    from evaluation.run_status import write_skipped
+    from evaluation.reports.report import run_report
+    from evaluation.reports.run_status import write_skipped
 
     results, _ = build(tmp_path / "fake")
     for d in list(results.glob("*/*/n*/vggt")):
@@ -100,7 +100,7 @@ def test_report_says_what_was_skipped_and_drops_empty_sections(tmp_path):
 
 
 def test_report_says_what_the_names_mean_and_prints_counts_as_integers(tmp_path):
-    from evaluation.report import run_report
+    from evaluation.reports.report import run_report
 
     results, _ = build(tmp_path / "fake")
     page = run_report(results, tmp_path / "r", plots=False).read_text()

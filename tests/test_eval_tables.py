@@ -10,9 +10,9 @@ import pandas as pd
 import pytest
 
 from eval_fake_results import build, psnr_of
-from evaluation.plots import pareto_front
-from evaluation.results import collect_runs, read_run
-from evaluation.tables import table_one, to_markdown
+from evaluation.reports.plots import pareto_front
+from evaluation.reports.results import collect_runs, read_run
+from evaluation.reports.tables import table_one, to_markdown
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def test_records(runs):
 
 def test_both_protocols_side_by_side(runs, tmp_path):
     """The test-pose metrics fill their own columns; the strict ones never come from them."""
-    from evaluation.tables import table_one, table_two
+    from evaluation.reports.tables import table_one, table_two
 
     r = run(runs, "room", 6, "vggt", "gated")
     assert r["testpose_psnr"] == pytest.approx(r["psnr"] + 1.0) and r["testpose_rot_deg_mean"] == 0.5
@@ -72,7 +72,7 @@ def test_both_protocols_side_by_side(runs, tmp_path):
     t2 = table_two(runs)
     assert {"PSNR [strict]", "PSNR [test-pose]", "LPIPS-vgg [test-pose]"} <= set(t2.columns)
     # a mode folder with only the test-pose metrics has no strict PSNR
-    from evaluation.results import read_run
+    from evaluation.reports.results import read_run
 
     d = tmp_path / "mip360" / "s" / "n3" / "vggt"
     (d / "testpose").mkdir(parents=True)
@@ -171,8 +171,8 @@ def test_held_out_psnr_at_final_and_best_iteration(tmp_path):
     import pandas as pd
 
     from eval_fake_results import build
-    from evaluation.results import collect_runs
-    from evaluation.tables import run_tables
+    from evaluation.reports.results import collect_runs
+    from evaluation.reports.tables import run_tables
 
     results, _ = build(tmp_path / "fake")
     log_path = sorted(results.rglob("log.parquet"))[0]

@@ -20,8 +20,8 @@ def _missing_path_cases(tmp: Path) -> list[tuple[str, list[str]]]:
         ("evaluation.__main__", ["align", "--pred", none, "--ref", none, "--train-names", none, "--out", out, "-q"]),
         ("evaluation.__main__", ["pose", "--pred", none, "--ref", none, "--out", out + ".json", "-q"]),
         ("evaluation.__main__", ["tables", "--results", none, "--out", out, "-q"]),
-        ("evaluation.posed", ["--scene", none, "--names", "a.png", "b.png", "--out", out]),
-        ("evaluation.colmap_baseline", ["--images", none, "--names", "a.png", "b.png", "--out", out]),
+        ("evaluation.initialisers.posed", ["--scene", none, "--names", "a.png", "b.png", "--out", out]),
+        ("evaluation.initialisers.colmap_baseline", ["--images", none, "--names", "a.png", "b.png", "--out", out]),
         ("camio.__main__", ["split", "--scene", none, "--out", out + ".json", "-q"]),
     ]
 
@@ -45,7 +45,7 @@ def test_missing_input_exits_2_and_leaves_nothing(case, tmp_path, monkeypatch):
 
 
 def test_posed_names_a_missing_scene(tmp_path, capsys):
-    from evaluation.posed import main
+    from evaluation.initialisers.posed import main
 
     assert main(["--scene", str(tmp_path / "nonexistent"), "--names", "a.png", "b.png",
                  "--out", str(tmp_path / "o")]) == 2
@@ -54,13 +54,13 @@ def test_posed_names_a_missing_scene(tmp_path, capsys):
 
 
 def test_colmap_baseline_without_training_names_prints_usage(tmp_path, capsys):
-    from evaluation.colmap_baseline import main
+    from evaluation.initialisers.colmap_baseline import main
 
     with pytest.raises(SystemExit) as exc:
         main(["--images", str(tmp_path), "--out", str(tmp_path / "o")])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert err.startswith("usage: python -m evaluation.colmap_baseline") and "--image-list" in err
+    assert err.startswith("usage: python -m evaluation.initialisers.colmap_baseline") and "--image-list" in err
     with pytest.raises(SystemExit) as exc:
         main(["--images", str(tmp_path), "--image-list", str(tmp_path / "none.txt"), "--out", str(tmp_path / "o")])
     assert exc.value.code == 2 and "does not exist" in capsys.readouterr().err

@@ -93,38 +93,38 @@ def _vggt_export(inp: Path, out: Path) -> None:
 
 
 def _oracle(scene: Path, out: Path) -> None:  # writes the vggt_init predictions schema
-    from evaluation.oracle import OracleNoise, run_oracle
+    from evaluation.initialisers.oracle import OracleNoise, run_oracle
 
     run_oracle(scene, ["0001.png", "0003.png", "0005.png"], out, OracleNoise(rot_deg=1.0), downsample=2)
 
 
 def _colmap(scene: Path, out: Path) -> None:
-    from evaluation.colmap_baseline import run_colmap
+    from evaluation.initialisers.colmap_baseline import run_colmap
 
     run_colmap(scene / "images", ["0001.png", "0003.png", "0005.png"], out)
 
 
 def _pose(scene: Path, out: Path) -> None:
-    from evaluation.pose import run_pose
+    from evaluation.metrics.pose import run_pose
 
     run_pose(scene / "sparse" / "0", scene / "sparse" / "0", out / "pose.json")
 
 
 def _align(scene: Path, out: Path) -> None:
-    from evaluation.align_run import run_align
+    from evaluation.metrics.align_run import run_align
 
     run_align(scene / "sparse" / "0", scene / "sparse" / "0", scene / "split.json", None, out, n=3)
 
 
 def _metrics(scene: Path, out: Path) -> None:
-    from evaluation.images_cli import evaluate_images
+    from evaluation.metrics.images_cli import evaluate_images
 
     evaluate_images(scene / "images", scene / "images", out / "metrics.json", lpips_nets=())
 
 
 def _tables(tmp: Path, out: Path) -> None:
     from eval_fake_results import build
-    from evaluation.tables import run_tables
+    from evaluation.reports.tables import run_tables
 
     results, _ = build(tmp)
     run_tables(results, out)

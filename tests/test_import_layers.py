@@ -5,12 +5,15 @@ only hides a circle from the interpreter is still a circle). ``from pkg import x
 import of module ``pkg.x`` when that is a module, else of ``pkg``; relative imports are resolved.
 A package ``__init__`` only hands names on and is left out of the module graph.
 
-Two levels are checked:
+Three levels are checked:
 
 * packages: the graph between the top-level packages (camio, vggt_init, bridge, splat_train,
   evaluation) has no cycle; camio, the shared package, imports no stage, and no stage imports
   another stage (what several stages use lives in camio; stages talk through files);
-* modules: inside each package, the modules import each other one way.
+* subpackages: inside a package, its subpackages (e.g. evaluation.metrics, splat_train.cpu) and
+  top-level modules import each other one way; evaluation's subpackages follow its layers
+  (:data:`EVALUATION_LAYERS`);
+* modules: inside each package, subpackages included, the modules import each other one way.
 
 The C++ kernels' loaders (``splat_train.cpu``) sit below everything that calls them.
 """
@@ -22,6 +25,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("camio", "vggt_init", "bridge", "splat_train", "evaluation")
+# evaluation's subpackages by job, lowest first: each imports only those before it
+# (evaluation/__init__.py); evaluation.__main__, the CLI, sits above them all.
+EVALUATION_LAYERS = ("evaluation.metrics", "evaluation.initialisers", "evaluation.reports", "evaluation.study")
 
 
 def _module_name(path: Path, root: Path) -> str:
@@ -81,6 +87,25 @@ def module_graph(graph: dict[str, set[str]], package: str, root: Path = ROOT) ->
             for m, deps in graph.items() if m.split(".")[0] == package and m not in faces}
 
 
+def _unit(module: str) -> str:
+    """The part of its package a module belongs to: its subpackage (``evaluation.metrics`` for
+    ``evaluation.metrics.pose``), else the module itself (``evaluation.__main__``)."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if len(parts) > 1 else module
+
+
+def subpackage_graph(graph: dict[str, set[str]], package: str) -> dict[str, set[str]]:
+    """{subpackage or top-level module of ``package``: the others of them it imports}."""
+    out: dict[str, set[str]] = {}
+    for mod, deps in graph.items():
+        if mod.split(".")[0] != package or mod == package:
+            continue
+        unit = _unit(mod)
+        out.setdefault(unit, set()).update(
+            _unit(d) for d in deps if d.split(".")[0] == package and d != package and _unit(d) != unit)
+    return out
+
+
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     """One cycle of ``graph`` as [a, b, ..., a], or None."""
     state: dict[str, int] = {}
@@ -123,6 +148,32 @@ def test_package_layers():
         assert pkgs[stage] <= {"camio"}, (stage, pkgs[stage])
 
 
+def test_graph_sees_subpackages():
+    graph = import_graph()
+    assert "evaluation.metrics.pose" in graph["evaluation.initialisers.posed"]
+    assert "evaluation.reports.results" in graph["evaluation.study.collect"]
+    subs = subpackage_graph(graph, "evaluation")
+    assert set(EVALUATION_LAYERS) <= set(subs), sorted(subs)
+    assert {p.name for p in (ROOT / "evaluation").iterdir() if (p / "__init__.py").is_file()} == {
+        s.split(".")[1] for s in EVALUATION_LAYERS}, "a new evaluation subpackage needs its place in EVALUATION_LAYERS"
+
+
+def test_no_circle_between_subpackages():
+    graph = import_graph()
+    cycles = {p: find_cycle(subpackage_graph(graph, p)) for p in PACKAGES}
+    found = [f"{p}: " + " -> ".join(c) for p, c in cycles.items() if c]
+    assert not found, "; ".join(found)
+
+
+def test_evaluation_layers():
+    """metrics < initialisers < reports < study: a subpackage imports only those below it, and
+    none imports the CLI (evaluation.__main__)."""
+    subs = subpackage_graph(import_graph(), "evaluation")
+    for i, layer in enumerate(EVALUATION_LAYERS):
+        above = set(subs[layer]) - set(EVALUATION_LAYERS[:i])
+        assert not above, f"{layer} imports {sorted(above)}, which are not below it"
+
+
 def test_no_import_circle_inside_a_package():
     graph = import_graph()
     cycles = {p: find_cycle(module_graph(graph, p)) for p in PACKAGES}
@@ -142,6 +193,21 @@ def test_checker_finds_function_level_circle(tmp_path):
     graph = import_graph(tmp_path, ("pa", "pb"))
     assert find_cycle(module_graph(graph, "pa", tmp_path)) in (["pa.x", "pa.y", "pa.x"], ["pa.y", "pa.x", "pa.y"])
     assert find_cycle(package_graph(graph)) is not None
+
+
+def test_checker_finds_circle_between_subpackages(tmp_path):
+    """Two subpackages that import each other through different modules: no module circle,
+    a subpackage circle (one of them inside a function)."""
+    for d in ("pa", "pa/s1", "pa/s2"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "__init__.py").write_text("")
+    (tmp_path / "pa" / "s1" / "a.py").write_text("from pa.s2 import b\n")
+    (tmp_path / "pa" / "s1" / "d.py").write_text("")
+    (tmp_path / "pa" / "s2" / "b.py").write_text("")
+    (tmp_path / "pa" / "s2" / "c.py").write_text("def f():\n    from pa.s1.d import g\n")
+    graph = import_graph(tmp_path, ("pa",))
+    assert find_cycle(module_graph(graph, "pa", tmp_path)) is None
+    assert find_cycle(subpackage_graph(graph, "pa")) in (["pa.s1", "pa.s2", "pa.s1"], ["pa.s2", "pa.s1", "pa.s2"])
 
 
 def test_cpu_kernels_import_no_caller():

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from camio.cameras import Camera, camera_center, look_at, project_points
 from camio.colmap import write_text_model
 from camio.images import write_image
-from evaluation.oracle import (
+from evaluation.initialisers.oracle import (
     OracleNoise,
     make_oracle_predictions,
     main,

@@ -13,8 +13,8 @@ import pytest
 
 from camio.cameras import project_points
 from camio.colmap import read_model
-from evaluation.oracle import OracleNoise
-from evaluation.posed import REFERENCE_SOURCE, run_posed
+from evaluation.initialisers.oracle import OracleNoise
+from evaluation.initialisers.posed import REFERENCE_SOURCE, run_posed
 
 TRAIN = ["0001.png", "0003.png", "0005.png", "0007.png"]
 
@@ -74,7 +74,7 @@ def test_noise_is_seeded_and_moves_cameras(scene, exact, tmp_path):
 
 def test_cli_refuses_a_scene_without_reference(scene, tmp_path):
     shutil.copytree(scene / "images", tmp_path / "s" / "images")
-    r = subprocess.run([sys.executable, "-m", "evaluation.posed", "--scene", str(tmp_path / "s"),
+    r = subprocess.run([sys.executable, "-m", "evaluation.initialisers.posed", "--scene", str(tmp_path / "s"),
                         "--names", *TRAIN, "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2 and "no reference cameras" in r.stderr and not (tmp_path / "o").exists()
 

@@ -13,7 +13,7 @@ import pytest
 from camio.cameras import Camera, look_at
 from camio.colmap import read_model, write_text_model
 from camio.images import read_image, write_image
-from evaluation import random_init as ri
+from evaluation.initialisers import random_init as ri
 
 K = np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]])
 
@@ -122,9 +122,9 @@ def test_cli_writes_the_initialiser_contract(tmp_path):
 
 
 def test_posed_falls_back_to_random_points_when_triangulation_finds_none(tmp_path):
-    from evaluation.posed import main as posed_main
-    from evaluation.results import collect_runs
-    from evaluation.run_status import run_status_table
+    from evaluation.initialisers.posed import main as posed_main
+    from evaluation.reports.results import collect_runs
+    from evaluation.reports.run_status import run_status_table
 
     scene, names = _scene(tmp_path, flat=True)
     run = tmp_path / "results" / "ds" / "flat" / "n3" / "posed"
@@ -171,7 +171,7 @@ def test_fallback_off_or_not_needed_leaves_the_model(tmp_path):
 def test_colmap_cli_records_the_fallback_and_keeps_its_success(tmp_path, monkeypatch):
     """A COLMAP run that registered cameras but kept too few points: the CLI adds the fallback;
     success_paper and points stay the reconstruction's."""
-    from evaluation import colmap_baseline
+    from evaluation.initialisers import colmap_baseline
 
     def fake_run(images, names, out, seed=0, settings=None, keep_work=False):
         write_text_model(tmp_path / "out" / "sparse" / "0", ring(3))

@@ -52,7 +52,7 @@ def test_readme_stage_block_makes_the_image_lists_it_uses():
     assert re.search(r"demo.*takes about \d", README.replace("\n", " "))
 
 
-@pytest.mark.parametrize("module", ["evaluation.colmap_baseline", "vggt_init", "splat_train", "bridge",
+@pytest.mark.parametrize("module", ["evaluation.initialisers.colmap_baseline", "vggt_init", "splat_train", "bridge",
                                     "camio", "evaluation"])
 def test_help_texts_cite_no_file_outside_the_repository(module):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))

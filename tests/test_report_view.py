@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import shlex
 
-from evaluation.report_view import view_command, view_section
+from evaluation.reports.report_view import view_command, view_section
 from splat_train.view import cli
 
 

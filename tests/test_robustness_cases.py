@@ -57,7 +57,7 @@ def test_colmap_baseline_identical_images_is_a_recorded_failure(tmp_path):
     """Three copies of one image: no baseline, no initial pair. COLMAP's failure is a result
     (status.json, success false, a reason), not an exception, and no model is written."""
     from camio.images import write_image
-    from evaluation.colmap_baseline import run_colmap
+    from evaluation.initialisers.colmap_baseline import run_colmap
 
     rng = np.random.default_rng(0)
     img = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)

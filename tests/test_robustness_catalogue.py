@@ -86,7 +86,7 @@ def test_catalogue_has_enough_cases_over_every_stage():
                    "alignment", "metrics", "colmap baseline"):
         assert needed in stages, f"no case for {needed}"
     # bad input as users meet it: each stage command that reads images has its own CLI-level row
-    for cmd in ("python -m vggt_init", "python -m evaluation.colmap_baseline", "python -m splat_train",
+    for cmd in ("python -m vggt_init", "python -m evaluation.initialisers.colmap_baseline", "python -m splat_train",
                 "python -m evaluation images"):
         cli_rows = [r for r in rows if cmd in r[1] and "tests/test_robustness_cli.py::" in r[4]]
         assert cli_rows, f"no command-line case for `{cmd}`"

@@ -1,7 +1,7 @@
 """Bad input images as a user meets them: each stage's command line, not the library function.
 
 For every stage that reads image files (``python -m vggt_init``, ``python -m
-evaluation.colmap_baseline``, ``python -m splat_train``, ``python -m evaluation images``) a
+evaluation.initialisers.colmap_baseline``, ``python -m splat_train``, ``python -m evaluation images``) a
 damaged image is put among good ones and the command is run in a subprocess. Each must:
 exit with a non-zero code, print one error line that names the damaged file, print no Python
 traceback, and leave nothing behind in its output folder. The damages: a JPEG cut in half (it
@@ -90,7 +90,7 @@ def test_unit_reader_rejects_damaged_image(tmp_path, kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("module", ("vggt_init", "evaluation.colmap_baseline"))
+@pytest.mark.parametrize("module", ("vggt_init", "evaluation.initialisers.colmap_baseline"))
 def test_image_reading_cli_rejects_damaged_image(tmp_path, module, kind):
     """The two stages that read the training images exit 2 naming the file and write nothing:
     VGGT never preprocesses it, pycolmap never sees it (no status.json at all)."""
@@ -146,7 +146,7 @@ def test_colmap_baseline_cli_empty_image_list_is_one_line(tmp_path):
     folder, _, _ = _image_folder(tmp_path, "truncated_jpeg")
     (tmp_path / "train.txt").write_text("# nothing\n\n")
     out = tmp_path / "out"
-    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--image-list",
+    proc = _run(["-m", "evaluation.initialisers.colmap_baseline", "--images", str(folder), "--image-list",
                  str(tmp_path / "train.txt"), "--out", str(out)], tmp_path)
     assert proc.returncode != 0
     assert "train.txt is empty" in proc.stderr
@@ -233,8 +233,8 @@ def test_skip_reason_offline_and_with_checkpoint(tmp_path):
 
 def test_colmap_baseline_ref_is_used_with_a_single_run(tmp_path, monkeypatch):
     """--ref used to be ignored silently unless --repeats >= 2; a single run now evaluates it."""
-    import evaluation.colmap_repeats as repeats
-    from evaluation.colmap_baseline import main
+    import evaluation.initialisers.colmap_repeats as repeats
+    from evaluation.initialisers.colmap_baseline import main
 
     calls = []
     monkeypatch.setattr(repeats, "run_colmap_repeats",
@@ -255,7 +255,7 @@ def test_colmap_baseline_cli_keeps_pycolmap_chatter_off_the_console(tmp_path):
     for i, name in enumerate(names):
         write_image(folder / name, _texture(i))
     out = tmp_path / "out"
-    proc = _run(["-m", "evaluation.colmap_baseline", "--images", str(folder), "--names", *names,
+    proc = _run(["-m", "evaluation.initialisers.colmap_baseline", "--images", str(folder), "--names", *names,
                  "--out", str(out)], tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout == ""
@@ -417,6 +417,6 @@ def test_oracle_cli_rejects_damaged_image(tmp_path):
     names = sorted(p.name for p in (scene / "images").iterdir())[:3]
     _damage(scene / "images" / names[1], "truncated_png")
     out = tmp_path / "out"
-    proc = _run(["-m", "evaluation.oracle", "--scene", str(scene), "--names", *names, "--out", str(out)],
+    proc = _run(["-m", "evaluation.initialisers.oracle", "--scene", str(scene), "--names", *names, "--out", str(out)],
                 tmp_path)
     _assert_clean_failure(proc, names[1], out)

@@ -2,7 +2,7 @@
 through the command a user runs:
 
 * image names with spaces are refused where they enter (``camio convert`` of a folder,
-  ``evaluation.colmap_baseline``, ``vggt_init``), one line naming the file with a rename;
+  ``evaluation.initialisers.colmap_baseline``, ``vggt_init``), one line naming the file with a rename;
 * the COLMAP baseline records the real reason in ``status.json`` (mixed sizes, an
   EXIF-rotated image, a tiny image) instead of only "no initial image pair";
 * Ctrl-C in ``python -m splat_train`` is one line and exit code 130;
@@ -49,7 +49,7 @@ def test_convert_refuses_names_with_spaces(tmp_path, capsys):
 
 
 def test_colmap_baseline_refuses_names_with_spaces(tmp_path, capsys):
-    from evaluation.colmap_baseline import main
+    from evaluation.initialisers.colmap_baseline import main
 
     images = _spaced_folder(tmp_path)
     rc = main(["--images", str(images), "--names", "vue 1.png", "vue 2.png", "--out", str(tmp_path / "o")])
@@ -83,7 +83,7 @@ def _write_oriented(path: Path, data: np.ndarray, orientation: int) -> None:
 
 @pytest.mark.parametrize("case", ["mixed_sizes", "exif_rotated", "tiny"])
 def test_colmap_baseline_records_the_real_reason(tmp_path, capsys, case):
-    from evaluation.colmap_baseline import main
+    from evaluation.initialisers.colmap_baseline import main
 
     images = tmp_path / "images"
     names = ["a.png", "b.png", "c.png"]

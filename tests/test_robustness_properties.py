@@ -42,7 +42,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 def test_fit_sim3_cameras_recovers_random_similarity(q, log10_s, t, seed, n):
     """Tolerance: float64 rounding grows with how far the (scaled) rig sits from the origin
     relative to its size, cond = 1 + |t| / s; the bound is 1e-9 + 1e-13 * cond."""
-    from evaluation.align import Sim3, collinearity_ratio, fit_sim3_cameras, transform_cam_from_world
+    from evaluation.metrics.align import Sim3, collinearity_ratio, fit_sim3_cameras, transform_cam_from_world
 
     rng = np.random.default_rng(seed)
     ref = {}
@@ -183,7 +183,7 @@ _kinds = st.sampled_from(["random", "black", "white", "constant", "binary"])
 @settings(max_examples=12, deadline=None)
 @given(kind=_kinds, seed=st.integers(0, 2**16))
 def test_psnr_ssim_limits_on_identical_images(kind, seed):
-    from evaluation.metrics import PSNR_CAP_DB, capped_psnr, psnr, ssim
+    from evaluation.metrics.image import PSNR_CAP_DB, capped_psnr, psnr, ssim
 
     x = _image(kind, seed)
     p = float(psnr(x, x.copy())[0])
@@ -196,7 +196,7 @@ def test_psnr_ssim_limits_on_identical_images(kind, seed):
 @settings(max_examples=15, deadline=None)
 @given(a=_kinds, b=_kinds, sa=st.integers(0, 2**16), sb=st.integers(0, 2**16))
 def test_psnr_ssim_symmetric_and_bounded_on_stiff_pairs(a, b, sa, sb):
-    from evaluation.metrics import psnr, ssim
+    from evaluation.metrics.image import psnr, ssim
 
     x, y = _image(a, sa), _image(b, sb)
     assume(not np.array_equal(x, y))

@@ -7,7 +7,7 @@ names each loader accepts (.pt, .pth, .bin, .ckpt, and .safetensors for good mea
 
 Loaders: the VGGT checkpoint (vggt_init.checkpoint), the trainer's resume
 (splat_train.checkpoint, through ``train``), LPIPS weights at run time (camio.lpips) and
-the one-time LPIPS converter's numpy-only unpickler (evaluation.lpips_convert).
+the one-time LPIPS converter's numpy-only unpickler (evaluation.metrics.lpips_convert).
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def test_lpips_weights_pickle_error_is_clear(tmp_path, marker):
 
 def test_lpips_converter_refuses_code(tmp_path, marker):
     """Even with --trust-unverified, the converter's unpickler resolves numpy globals only."""
-    from evaluation import lpips_convert
+    from evaluation.metrics import lpips_convert
 
     src = tmp_path / "src"
     src.mkdir()

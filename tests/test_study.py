@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 from scipy.stats import spearmanr
 
-from evaluation.floaters import floater_fraction, trajectory_radius
-from evaluation.oracle import OracleNoise, make_oracle_predictions, reassign_confidence
-from evaluation.study import paired_differences, summarise, t_interval
-from evaluation.study_grid import ZERO, expand_cells
+from evaluation.metrics.floaters import floater_fraction, trajectory_radius
+from evaluation.initialisers.oracle import OracleNoise, make_oracle_predictions, reassign_confidence
+from evaluation.study.stats import paired_differences, summarise, t_interval
+from evaluation.study.grid import ZERO, expand_cells
 
 from test_oracle import NAMES, scene  # noqa: F401  (the oracle's scene fixture)
 
@@ -112,7 +112,7 @@ def test_surface_distance_on_the_synthetic_mesh(tmp_path):
     h above it (and below everything else) is h away."""
     import json
 
-    from evaluation.floaters import surface_distance
+    from evaluation.metrics.floaters import surface_distance
 
     (tmp_path / "synthetic.json").write_text(json.dumps({"seed": 0}))
     d = surface_distance(tmp_path, np.array([[-6.0, -8.0, 0.0], [-6.0, -8.0, 0.25]]))
@@ -195,8 +195,8 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
 
 
 def test_run_study_reports_every_mode_with_an_interval(tmp_path):
-    from evaluation.report import _study_section
-    from evaluation.study import run_study
+    from evaluation.reports.report import _study_section
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study")
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
@@ -246,7 +246,7 @@ def test_study_cli_reports_only_the_planned_grid(tmp_path, capfd):
 
 
 def test_run_study_reports_ssim_and_lpips_at_the_best_iteration_and_along_the_run(tmp_path):
-    from evaluation.study import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", along_run=True)
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
@@ -294,7 +294,7 @@ def _fake_colmap_run(root, n, ok):
 
 def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(tmp_path):
     from evaluation.__main__ import main
-    from evaluation.study import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", along_run=True)
     ok = _fake_colmap_run(tmp_path, 3, True)
@@ -319,7 +319,7 @@ def test_run_study_reports_colmap_as_a_reference_row_and_a_failure_as_a_result(t
 
 def test_run_study_reads_posed_cells(tmp_path):
     """The real-scene arm's tree: posed cells, mode uniform only, no floaters.json."""
-    from evaluation.study import run_study
+    from evaluation.study.report import run_study
 
     _fake_study_tree(tmp_path / "study", modes=("uniform",), init="posed", scene="fern", along_run=True)
     cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from evaluation.study_grid import expand_cells
+from evaluation.study.grid import expand_cells
 from test_workflow_dryrun import REPO, SNAKEMAKE, dry_run, jobs, synth_config
 
 pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")

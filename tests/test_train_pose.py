@@ -7,7 +7,7 @@ import torch
 
 from _train_scene import write_pose_scene
 from camio.colmap import SparseModel, read_model
-from evaluation.pose import evaluate_pose
+from evaluation.metrics.pose import evaluate_pose
 from splat_train.config import TrainConfig
 from splat_train.pose import PoseCorrections, pose_lr_factor, scale_gauge_factor, so3_exp
 from splat_train.trainer import train

@@ -124,7 +124,7 @@ def test_synthetic_scene_plans_every_stage(mixed):
     vggt_cmds = [line for line in out.splitlines() if "python -m vggt_init" in line]
     assert vggt_cmds and all("--device auto --dtype auto" in c for c in vggt_cmds), vggt_cmds
     # the COLMAP baseline is given every core snakemake has (recorded in status.json)
-    assert re.search(r"evaluation\.colmap_baseline .*--threads [1-9]", out)
+    assert re.search(r"evaluation\.initialisers\.colmap_baseline .*--threads [1-9]", out)
 
 
 def test_scene_without_reference_cameras(mixed):

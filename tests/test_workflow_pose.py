@@ -35,6 +35,6 @@ def test_bundle_adjusted_initialisers(tmp_path):
     # every refined initialiser is evaluated and trained like the others
     assert jobs(counts, "pose_eval") == 4 and jobs(counts, "train_splats") == 4
     assert jobs(counts, "bridge_predictions") == 3 and jobs(counts, "bridge_colmap") == 1
-    assert re.search(r"evaluation\.ba_init --init \S+/n3/posed --images .*--seed-points triangulated", out)
-    assert re.search(r"evaluation\.ba_init --init \S+/n3/vggt --images .*--refine-focal", out)
+    assert re.search(r"evaluation\.initialisers\.ba_init --init \S+/n3/posed --images .*--seed-points triangulated", out)
+    assert re.search(r"evaluation\.initialisers\.ba_init --init \S+/n3/vggt --images .*--refine-focal", out)
     assert "--min-points" not in out  # null: the step's own default

@@ -55,34 +55,25 @@ def main(argv: list[str] | None = None) -> int:
     from vggt_init.run import MemoryBudgetError, RunOptions, run
 
     from camio.memory import retain_freed_memory
-    from camio.outdir import OutputFolderError, prepare_out
+    from camio.outdir import prepare_out, run_stage, typed_line
 
-    try:
+    def work() -> None:
         prepare_out(args.out, {"--images": args.images, "--image-list": args.image_list,
                                "--checkpoint": args.checkpoint, "--model-config": args.model_config}, "vggt_init")
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    if not args.no_retain_memory:
-        retain_freed_memory()  # process-wide, so only the CLI does it
-
-    opts = RunOptions(
-        images=args.images, out=args.out, image_list=args.image_list, checkpoint=args.checkpoint,
-        model_config=args.model_config, points_from=args.points_from, max_points=args.max_points,
-        mode=args.mode, image_size=args.image_size,
-        frames_chunk_size=args.frames_chunk, max_memory_gb=args.max_memory_gb, threads=args.threads,
-        **{k: v for k, v in (("dtype", args.dtype), ("device", args.device)) if v is not None},  # else RunOptions'
-    )
-    try:
+        if not args.no_retain_memory:
+            retain_freed_memory()  # process-wide, so only the CLI does it
+        opts = RunOptions(
+            images=args.images, out=args.out, image_list=args.image_list, checkpoint=args.checkpoint,
+            model_config=args.model_config, points_from=args.points_from, max_points=args.max_points,
+            mode=args.mode, image_size=args.image_size,
+            frames_chunk_size=args.frames_chunk, max_memory_gb=args.max_memory_gb, threads=args.threads,
+            **{k: v for k, v in (("dtype", args.dtype), ("device", args.device)) if v is not None},  # else RunOptions'
+        )
         run(opts)
-    except (CheckpointNotFoundError, CheckpointFormatError, StateDictMismatchError, ImageInputError,
-            MemoryBudgetError, FileNotFoundError, ValueError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s: %s", type(exc).__name__, exc)
-        return 2
-    return 0
+    return run_stage(log, work, errors=(CheckpointNotFoundError, CheckpointFormatError, StateDictMismatchError,
+                                        ImageInputError, MemoryBudgetError, FileNotFoundError, ValueError),
+                     line=typed_line)
 
 
 if __name__ == "__main__":

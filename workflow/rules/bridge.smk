@@ -56,7 +56,7 @@ rule bridge_colmap:
         out=out_dir,
     shell:
         # the model the initialiser seeds from: its sparse/0, or its random-point fallback's
-        # when status.json records one (evaluation/random_init.py)
-        "model=$(python -m evaluation.random_init seed-model {params.init} 2> {log}) && "
+        # when status.json records one (evaluation/initialisers/random_init.py)
+        "model=$(python -m evaluation.initialisers.random_init seed-model {params.init} 2> {log}) && "
         "python -m bridge --colmap $model --images {input.scene}/images --mode uniform "
         "--out {params.out} >> {log} 2>&1"

@@ -52,7 +52,7 @@ rule colmap_baseline:
         out=out_dir,
         args=colmap_args,
     shell:
-        "python -m evaluation.colmap_baseline --images {input.scene}/images "
+        "python -m evaluation.initialisers.colmap_baseline --images {input.scene}/images "
         "--image-list {input.image_list} --out {params.out} --threads {threads} "
         "{params.args} > {log} 2>&1"
 
@@ -102,7 +102,7 @@ rule oracle_init:
         out=out_dir,
         args=oracle_args,
     shell:
-        "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
+        "python -m evaluation.initialisers.oracle --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} {params.args} > {log} 2>&1"
 
 
@@ -128,7 +128,7 @@ rule posed_init:
         out=out_dir,
         args=posed_args,
     shell:
-        "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
+        "python -m evaluation.initialisers.posed --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
 
 
@@ -154,7 +154,7 @@ rule random_init:
         out=out_dir,
         args=random_args,
     shell:
-        "python -m evaluation.random_init --cameras {input.scene}/sparse/0 "
+        "python -m evaluation.initialisers.random_init --cameras {input.scene}/sparse/0 "
         "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
 
 
@@ -183,7 +183,7 @@ rule ba_predictions:
         out=out_dir,
         args=ba_args,
     shell:
-        "python -m evaluation.ba_init --init {params.init} --images {input.scene}/images "
+        "python -m evaluation.initialisers.ba_init --init {params.init} --images {input.scene}/images "
         "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
         "> {log} 2>&1"
 
@@ -212,7 +212,7 @@ rule ba_posed:
         out=out_dir,
         args=ba_args,
     shell:
-        "python -m evaluation.ba_init --init {params.init} --images {input.scene}/images "
+        "python -m evaluation.initialisers.ba_init --init {params.init} --images {input.scene}/images "
         "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
         "> {log} 2>&1"
 

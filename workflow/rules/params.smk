@@ -64,7 +64,7 @@ def posed_args(wildcards):
 
 def fallback_args():
     """The random-point fallback of posed and COLMAP (config random; null keys are left to
-    evaluation.random_init, the one place of their defaults)."""
+    evaluation.initialisers.random_init, the one place of their defaults)."""
     r = config["random"]
     args = []
     if r["fallback_min_points"] is not None:
@@ -75,7 +75,7 @@ def fallback_args():
 
 
 def random_args(wildcards):
-    """evaluation.random_init's arguments (config random)."""
+    """evaluation.initialisers.random_init's arguments (config random)."""
     r = config["random"]
     args = [f"--seed {r['seed']}"]
     if r["points"] is not None:
@@ -84,7 +84,7 @@ def random_args(wildcards):
 
 
 def ba_args(wildcards):
-    """evaluation.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
+    """evaluation.initialisers.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
     b = config["ba"]
     args = [f"--seed {b['seed']}"]
     if b["refine_focal"]:

@@ -29,7 +29,7 @@ if STUDY_INIT == "oracle":
             out=out_dir,
             args=study_oracle_args,
         shell:
-            "python -m evaluation.oracle --scene {input.scene} --image-list {input.image_list} "
+            "python -m evaluation.initialisers.oracle --scene {input.scene} --image-list {input.image_list} "
             "--out {params.out} {params.args} > {log} 2>&1"
 
     use rule bridge_predictions as study_bridge with:
@@ -66,7 +66,7 @@ else:
             out=out_dir,
             args=study_posed_args,
         shell:
-            "python -m evaluation.posed --scene {input.scene} --image-list {input.image_list} "
+            "python -m evaluation.initialisers.posed --scene {input.scene} --image-list {input.image_list} "
             "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
 
     use rule bridge_colmap as study_bridge with:

@@ -17,12 +17,12 @@ checkpoint: a failed COLMAP stops at its status.json and is reported as failed) 
 the study report, which shows them as one row each beside the cells.
 """
 
-from evaluation.study_grid import expand_cells
+from evaluation.study.grid import expand_cells
 
 STUDY = config.get("study")
 STUDY_CELLS = expand_cells(STUDY) if STUDY else {}
 STUDY_INIT = (STUDY or {}).get("initialiser", "oracle")
-# the noise keys the posed initialiser implements (evaluation/posed.py): it has no confidence
+# the noise keys the posed initialiser implements (evaluation/initialisers/posed.py): it has no confidence
 POSED_NOISE = ("rot_deg", "trans_frac", "depth_rel", "outlier_frac")
 if STUDY_INIT == "posed":
     _conf_cells = [

@@ -12,7 +12,7 @@ Outputs (``--out DIR``):
   test image size, as the seed code did).
 * ``DIR/sparse/0/*.txt``: the reference TEST cameras brought into the prediction frame
   (``cam_from_world' = cam_from_world_ref o sim``, translation divided by the scale; see
-  :func:`evaluation.align.transform_cam_from_world`), PINHOLE, at the test image size.
+  :func:`evaluation.metrics.align.transform_cam_from_world`), PINHOLE, at the test image size.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
-from evaluation.align import fit_sim3_cameras, transform_cam_from_world
+from evaluation.metrics.align import fit_sim3_cameras, transform_cam_from_world
 
 __all__ = ["load_names", "test_cameras_in_model_frame", "run_align", "TRAIN_CAMERAS"]
 

@@ -50,7 +50,7 @@ import numpy as np
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
-from evaluation.pose import paper_success
+from evaluation.metrics.pose import paper_success
 
 __all__ = ["N_POINTS", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
            "FALLBACK_DIR", "depth_range", "random_points", "run_random", "apply_fallback", "seed_model_dir",
@@ -295,26 +295,27 @@ def add_fallback_args(parser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.random_init --cameras MODEL --image-list FILE --out DIR
+    """CLI: ``python -m evaluation.initialisers.random_init --cameras MODEL --image-list FILE --out DIR
     [--points N] [--seed S] [--near Z --far Z]``; ``seed-model DIR`` prints the model the Bridge
     seeds from (:func:`seed_model_dir`)."""
     import argparse
     import sys
 
     from camio.logs import setup_logging
-    from camio.outdir import prepare_out, tidy_outs
+    from camio.outdir import prepare_out, run_stage
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["seed-model"]:
         if len(argv) != 2:
-            raise SystemExit("usage: python -m evaluation.random_init seed-model INIT_DIR")
+            raise SystemExit("usage: python -m evaluation.initialisers.random_init seed-model INIT_DIR")
         try:
             print(seed_model_dir(argv[1]))
         except (OSError, ValueError, KeyError) as exc:
             print(f"error: cannot read {argv[1]}/status.json: {exc}", file=sys.stderr)
             return 2
         return 0
-    p = argparse.ArgumentParser(prog="python -m evaluation.random_init", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.random_init",
+                                description=__doc__.split("\n\n")[0])
     p.add_argument("--cameras", required=True, help="COLMAP model with a camera per training view "
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
@@ -326,14 +327,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     args = p.parse_args(argv)
     setup_logging(args.verbose)
-    try:
+
+    def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--cameras": args.cameras, "--image-list": args.image_list}, "evaluation.random_init")
         run_random(args.cameras, _read_names(args.image_list), args.out, args.points, args.seed, args.near, args.far)
-    except (ValueError, OSError) as exc:
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

@@ -4,9 +4,9 @@ On any scene with reference cameras (``sparse/0`` of a prepared scene) it takes 
 cameras of the *training views only*, triangulates points from those views with pycolmap (SIFT,
 exhaustive matching, triangulation with the poses and intrinsics held fixed;
 :func:`camio.triangulate.triangulate_known_poses`) and, when asked, applies the oracle's seeded
-noise model (:class:`evaluation.oracle.OracleNoise`):
+noise model (:class:`evaluation.initialisers.oracle.OracleNoise`):
 
-* poses: :func:`evaluation.oracle.perturb_cameras` (RMS rotation ``rot_deg``, centre noise
+* poses: :func:`evaluation.initialisers.oracle.perturb_cameras` (RMS rotation ``rot_deg``, centre noise
   ``trans_frac`` of the trajectory radius);
 * points: each point's depth along the ray of the first training view that observes it becomes
   z (1 + e), e ~ N(0, depth_rel^2), a fraction ``outlier_frac`` with e ~ U(-0.5, 0.5); the point
@@ -16,14 +16,14 @@ noise model (:class:`evaluation.oracle.OracleNoise`):
 This is the paper's Table II "full-dataset poses" row: the reference cameras were estimated
 from *all* images of the scene (e.g. COLMAP on the full set, or the dataset's calibration),
 so the row is an upper bound no sparse-view method can reach from n views alone. The
-synthetic oracle (:mod:`evaluation.oracle`) is its special case with exact geometry (dense
+synthetic oracle (:mod:`evaluation.initialisers.oracle`) is its special case with exact geometry (dense
 ground-truth depth instead of triangulated points).
 
 Output (docs/contracts.md): ``DIR/sparse/0`` (COLMAP text: the cameras, the points with their
 observations) and ``DIR/status.json`` (``success_paper``, ``aligned_ok``, ``registered``,
 ``points``, ``reason``, ``noise``, ``triangulation`` statistics, ``reference_source``, and
 ``fallback``: the CLI's random-point fallback when triangulation leaves fewer than
-``--fallback-min-points``, :func:`evaluation.random_init.apply_fallback`). The Bridge reads it
+``--fallback-min-points``, :func:`evaluation.initialisers.random_init.apply_fallback`). The Bridge reads it
 like the COLMAP baseline's model (uniform opacity: no confidence).
 """
 
@@ -38,9 +38,9 @@ import numpy as np
 
 from camio.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
-from evaluation.oracle import OracleNoise, perturb_cameras
-from evaluation.pose import paper_success
-from evaluation.random_init import add_fallback_args, apply_fallback
+from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
+from evaluation.metrics.pose import paper_success
+from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
 
@@ -124,13 +124,13 @@ def run_posed(scene: str | Path, names: list[str], out_dir: str | Path, noise: O
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.posed --scene DIR (--image-list FILE | --names ...) --out DIR
+    """CLI: ``python -m evaluation.initialisers.posed --scene DIR (--image-list FILE | --names ...) --out DIR
     [--rot-deg --trans-frac --depth-rel --outlier-frac] [--seed S] [--threads T]``."""
     import argparse
 
     from camio.logs import setup_logging
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.posed", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.posed", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     p.add_argument("--image-list", help="file with one training image name per line")
     p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
@@ -154,19 +154,15 @@ def main(argv: list[str] | None = None) -> int:
     else:
         names = args.names
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
-    try:
-        from camio.outdir import prepare_out
+    from camio.outdir import prepare_out, run_stage
 
+    def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--scene": args.scene, "--image-list": args.image_list}, "evaluation.posed")
         run_posed(args.scene, names, args.out, noise, args.seed, args.threads)
         apply_fallback(args.out, args.fallback_min_points, args.fallback_points, args.seed)
-    except (ValueError, OSError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
-from evaluation.pose import paper_success
+from evaluation.metrics.pose import paper_success
 
 __all__ = ["SEED_POINTS", "DEFAULT_MIN_POINTS", "move_points_with_cameras", "refine_predictions", "run_ba_init"]
 
@@ -189,13 +189,13 @@ def run_ba_init(init_dir: str | Path, images: str | Path, names: list[str], out_
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.ba_init --init DIR --images DIR --image-list FILE --out DIR
+    """CLI: ``python -m evaluation.initialisers.ba_init --init DIR --images DIR --image-list FILE --out DIR
     [--refine-focal] [--seed-points dense|triangulated] [--min-points N] [--seed S] [--threads T]``."""
     import argparse
 
     from camio.logs import setup_logging
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.ba_init", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.ba_init", description=__doc__.split("\n\n")[0])
     p.add_argument("--init", required=True, help="initialiser output folder (sparse/0, predictions.npz)")
     p.add_argument("--images", required=True, help="the scene's images folder")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
@@ -211,20 +211,16 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    try:
-        from camio.outdir import prepare_out
+    from camio.outdir import prepare_out, run_stage
 
+    def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--init": args.init, "--images": args.images, "--image-list": args.image_list},
                     "evaluation.ba_init")
         run_ba_init(args.init, args.images, names, args.out, args.refine_focal, args.seed_points,
                     args.min_points, args.seed, args.threads)
-    except (ValueError, OSError) as exc:
-        from camio.outdir import tidy_outs
 
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s", exc)
-        return 2
-    return 0
+    return run_stage(log, work)
 
 
 if __name__ == "__main__":

@@ -298,14 +298,14 @@ def run_oracle(scene: str | Path, names: list[str], out_dir: str | Path, noise: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.oracle --scene DIR (--split JSON --n N | --image-list FILE |
+    """CLI: ``python -m evaluation.initialisers.oracle --scene DIR (--split JSON --n N | --image-list FILE |
     --names ...) --out DIR [noise options] [--seed S]``."""
     import argparse
     import json
 
     from camio.logs import setup_logging
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.oracle",
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
     p.add_argument("--split", help="split.json; use with --n")
@@ -343,21 +343,16 @@ def main(argv: list[str] | None = None) -> int:
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError
-    from camio.outdir import OutputFolderError, prepare_out, tidy_outs
+    from camio.outdir import prepare_out, run_stage, typed_line
 
-    try:
+    def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--scene": args.scene, "--split": args.split, "--image-list": args.image_list},
                     "evaluation.oracle")
-    except OutputFolderError as exc:
-        log.error("%s", exc)
-        return 2
-    try:
         run_oracle(args.scene, names, args.out, noise, args.seed, args.downsample, args.max_points)
-    except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s: %s", type(exc).__name__, exc)
-        return 2
-    return 0
+
+    # bad input: one line naming the file
+    return run_stage(log, work, errors=(ImageReadError, FileNotFoundError), line=typed_line)
 
 
 if __name__ == "__main__":

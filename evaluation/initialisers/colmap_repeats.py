@@ -1,9 +1,9 @@
 """Repeated, seeded runs of the COLMAP baseline and the spread of their results (issue 10).
 
-``run_colmap_repeats`` runs :func:`evaluation.colmap_run.run_colmap` once per seed,
+``run_colmap_repeats`` runs :func:`evaluation.initialisers.colmap_run.run_colmap` once per seed,
 optionally evaluates each run against reference cameras (ATE, relative rotation error, the
-paper's and the accuracy-gated success through :func:`evaluation.pose.evaluate_pose`) and
-reports the spread. CLI: ``python -m evaluation.colmap_baseline --repeats K [--ref MODEL]``.
+paper's and the accuracy-gated success through :func:`evaluation.metrics.pose.evaluate_pose`) and
+reports the spread. CLI: ``python -m evaluation.initialisers.colmap_baseline --repeats K [--ref MODEL]``.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from camio.atomic import atomic_dir, write_json
-from evaluation.colmap_run import ColmapSettings, run_colmap
-from evaluation.pose import status_success
+from evaluation.initialisers.colmap_run import ColmapSettings, run_colmap
+from evaluation.metrics.pose import status_success
 
 __all__ = ["summarise_repeats", "run_colmap_repeats"]
 
@@ -64,7 +64,7 @@ def summarise_repeats(records: list[dict]) -> dict:
 def _pose_of_run(run_dir: Path, ref_dir: Path, names: list[str], gate) -> dict | None:
     """Pose figures of one run against the reference cameras (None without a model)."""
     from camio.colmap import read_model
-    from evaluation.pose import evaluate_pose
+    from evaluation.metrics.pose import evaluate_pose
 
     if not (run_dir / "sparse" / "0").is_dir():
         return {"success_paper": False, "success_gated": False, "ate_rel_radius": None,
@@ -86,9 +86,9 @@ def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | 
 
     Args:
         ref: reference COLMAP model; if given every run is evaluated with
-            :func:`evaluation.pose.evaluate_pose` (ATE, relative rotation error, both success
+            :func:`evaluation.metrics.pose.evaluate_pose` (ATE, relative rotation error, both success
             criteria) and the spread of those figures is reported too.
-        gate: :class:`evaluation.pose.GateConfig` thresholds (its defaults if None).
+        gate: :class:`evaluation.metrics.pose.GateConfig` thresholds (its defaults if None).
 
     Returns:
         The primary status record with ``repeats`` added.
@@ -104,7 +104,7 @@ def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | 
         run_dir = out_dir / "repeats" / f"seed{seed}"
         rec = run_colmap(images_dir, names, run_dir, seed=seed, settings=settings)
         if ref is not None:
-            from evaluation.pose import GateConfig
+            from evaluation.metrics.pose import GateConfig
 
             rec["pose"] = _pose_of_run(run_dir, Path(ref), names, gate or GateConfig())
             write_json(run_dir / "status.json", rec)

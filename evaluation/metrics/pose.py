@@ -4,7 +4,7 @@ and the accuracy-gated success of issue 10.
 Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of camera i):
 
 * ATE: RMS of the camera-centre errors after the Sim(3) alignment prediction -> reference
-  (:func:`evaluation.align.fit_sim3_cameras`), in reference units; ``ate_rel_radius`` = ATE /
+  (:func:`evaluation.metrics.align.fit_sim3_cameras`), in reference units; ``ate_rel_radius`` = ATE /
   RMS trajectory radius (RMS distance of the reference centres from their mean), a fraction
   (``ate_pct_radius`` is the same in percent).
 * RPE over all camera pairs i < j (alignment-free; relative poses do not depend on the frame):
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.colmap import SparseModel
-from evaluation.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
+from evaluation.metrics.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
 
 __all__ = ["MAX_ATE_REL_RADIUS", "MAX_REL_ROT_DEG", "GateConfig", "add_gate_args", "gate_from_args", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
            "success_criteria_text", "evaluate_pose",
@@ -236,7 +236,7 @@ def run_pose(pred_dir: str | Path, ref_dir: str | Path, out: str | Path,
     """Read two COLMAP models, evaluate, write ``pose.json`` atomically; returns the record."""
     from camio.atomic import write_json
     from camio.colmap import read_model
-    from evaluation.align_run import load_names
+    from evaluation.metrics.align_run import load_names
 
     t0 = time.perf_counter()
     # poses only: a distorted camera model's distortion does not matter here

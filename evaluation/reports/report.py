@@ -5,7 +5,7 @@ Render grids follow the paper's Fig. 2: per scene and n, one row per test view (
 ground truth last. A cell whose initialiser failed (paper criterion) says "failed" with the
 reason; a run without that render says "missing".
 
-Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.results.find_file`);
+Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.reports.results.find_file`);
 ground truth from ``{scenes}/{dataset}/{scene}/test_images/`` (the workflow's results tree),
 ``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
 (matched by file stem). Thumbnails are downsampled by an integer factor to <= 256 px wide.
@@ -25,11 +25,12 @@ import pandas as pd
 
 from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
-from evaluation.plots import run_plots
-from evaluation.pose import GateConfig, success_criteria_text
-from evaluation.report_view import view_section
-from evaluation.results import collect_runs, find_file, run_label
-from evaluation.tables import build_tables, table_notes
+from evaluation.reports.markup import html_page
+from evaluation.reports.plots import run_plots
+from evaluation.metrics.pose import GateConfig, success_criteria_text
+from evaluation.reports.report_view import view_section
+from evaluation.reports.results import collect_runs, find_file, run_label
+from evaluation.reports.tables import build_tables, table_notes
 
 __all__ = ["render_grid_html", "run_report"]
 
@@ -145,7 +146,7 @@ GUIDE_HTML = (
 def _table_html(df: pd.DataFrame) -> str:
     if df.empty:
         return "<p>(no runs)</p>"
-    from evaluation.tables import _DIGITS
+    from evaluation.reports.tables import _DIGITS
 
     def fmt(x):
         return "-" if pd.isna(x) else (f"{x:.3f}" if abs(x) < 10 else f"{x:.2f}")
@@ -168,7 +169,7 @@ def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
     scene could not have (``results/initialisers.json``, written by the workflow)."""
     out = []
     if len(runs) and (runs["init"] == "posed").any():
-        from evaluation.posed import REFERENCE_SOURCE
+        from evaluation.initialisers.posed import REFERENCE_SOURCE
 
         out.append(f"<p>posed: {html.escape(REFERENCE_SOURCE)}.</p>")
     notes = results / "initialisers.json"
@@ -222,8 +223,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         plots = run_plots(results, images, runs) if plots else []
         tables = build_tables(runs, gate, results=results)
         notes = table_notes(tables)
-        parts = ["<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>Evaluation report</title>",
-                 f"<style>{_CSS}</style></head><body><h1>Evaluation report</h1>",
+        parts = ["<h1>Evaluation report</h1>",
                  f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
                  + " ".join(success_criteria_text(gate, html=True)) + "</p>", GUIDE_HTML]
         parts += _initialiser_notes(Path(results), runs)
@@ -258,8 +258,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
                 n_grids += 1
         if not n_grids:
             parts.append("<p>(no renders found)</p>")
-        parts.append("</body></html>")
-        (tmp / "index.html").write_text("\n".join(parts) + "\n")
+        (tmp / "index.html").write_text(html_page("Evaluation report", _CSS, "\n".join(parts)))
     log.info("report: %d runs, %d tables, %d plots, %d render grids -> %s (%.2f s)", len(runs), len(tables),
              len(plots), n_grids, out / "index.html", time.perf_counter() - t0)
     return out / "index.html"

@@ -1,6 +1,6 @@
 """The initialisation study's grid: the ``study:`` config section -> named oracle noise cells.
 
-A cell is one complete noise setting of the oracle (:class:`evaluation.oracle.OracleNoise`
+A cell is one complete noise setting of the oracle (:class:`evaluation.initialisers.oracle.OracleNoise`
 plus ``conf_mode``), named so that it can be a folder and a Snakemake wildcard:
 
 * ``zero``: every noise level 0 (exact ground truth, ``conf_mode`` ranked);
@@ -16,7 +16,7 @@ axis level that equals its base costs nothing. Seeds are a separate dimension (`
 
 from __future__ import annotations
 
-from evaluation.oracle import CONF_MODES
+from evaluation.initialisers.oracle import CONF_MODES
 
 __all__ = ["NOISE_KEYS", "ZERO", "expand_cells", "cell_name"]
 

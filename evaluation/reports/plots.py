@@ -19,14 +19,15 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_path
-from evaluation.results import collect_runs, find_file, run_label
+from evaluation.reports.results import collect_runs, find_file, read_log, run_label
 
-__all__ = ["training_curves", "pareto_front", "pareto_plot", "run_plots"]
+__all__ = ["pyplot", "save_png", "training_curves", "pareto_front", "pareto_plot", "run_plots"]
 
 log = logging.getLogger(__name__)
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only, no display)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -35,32 +36,22 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
+def save_png(fig, path: Path, dpi: int = 100) -> Path:
+    """Write ``fig`` to the PNG ``path`` (atomically) and close it."""
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)  # no bbox "tight": 3x slower with log axes
-    _pyplot().close(fig)
+        fig.savefig(tmp, format="png", dpi=dpi)  # no bbox "tight": 3x slower with log axes
+    pyplot().close(fig)
     return path
-
-
-def _read_log(run_dir: str | Path) -> pd.DataFrame | None:
-    p = find_file(Path(run_dir), "log.parquet")
-    if p is None:
-        return None
-    try:
-        return pd.read_parquet(p)
-    except (OSError, ValueError) as exc:
-        log.warning("plots: cannot read %s (%s)", p, exc)
-        return None
 
 
 def training_curves(runs: pd.DataFrame, out: str | Path) -> list[Path]:
     """One 2 x 2 figure per (dataset, scene, n) with a training log; returns the files."""
-    plt = _pyplot()
+    plt = pyplot()
     out = Path(out)
     written = []
     for (dataset, scene, n), g in runs.groupby(["dataset", "scene", "n"], sort=True):
         logs = {run_label(row.init, row.bridge_mode): lg for row in g.itertuples()
-                if (lg := _read_log(row.run_dir)) is not None}
+                if (lg := read_log(find_file(Path(row.run_dir), "log.parquet"))) is not None}
         if not logs:
             continue
         fig, axes = plt.subplots(2, 2, figsize=(10, 7))
@@ -84,7 +75,7 @@ def training_curves(runs: pd.DataFrame, out: str | Path) -> list[Path]:
         axes[0, 0].legend()
         fig.suptitle(f"{dataset} / {scene}, n = {n}")
         fig.subplots_adjust(left=0.1, right=0.98, bottom=0.08, top=0.92, wspace=0.3, hspace=0.3)
-        written.append(_save(fig, out / "curves" / f"{dataset}__{scene}__n{n}.png"))
+        written.append(save_png(fig, out / "curves" / f"{dataset}__{scene}__n{n}.png"))
     return written
 
 
@@ -115,7 +106,7 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
     if d.empty:
         log.warning("plots: no run has both a run time and a PSNR; no Pareto plot")
         return []
-    plt = _pyplot()
+    plt = pyplot()
     colors = {lab: f"C{i}" for i, lab in enumerate(sorted(d["label"].unique()))}
     files = []
     for (dataset, scene, n), g in d.groupby(["dataset", "scene", "n"], sort=True):
@@ -134,7 +125,7 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.subplots_adjust(left=0.13, right=0.97, bottom=0.13, top=0.92)
-        files.append(_save(fig, Path(out) / f"pareto__{dataset}__{scene}__n{int(n)}.png"))
+        files.append(save_png(fig, Path(out) / f"pareto__{dataset}__{scene}__n{int(n)}.png"))
     return files
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from camio.atomic import write_json
 from camio.colmap import read_model
 from camio.ply import read_gaussian_ply
-from evaluation.align import Sim3
+from evaluation.metrics.align import Sim3
 
 __all__ = ["TAU_REL", "floater_fraction", "surface_distance", "trajectory_radius", "run_floaters"]
 

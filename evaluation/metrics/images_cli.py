@@ -3,7 +3,7 @@
 Usage (through the evaluation dispatcher, or standalone)::
 
     python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json
-    python -m evaluation.images_cli --pred RENDERS --gt GT_IMAGES --out metrics.json [--lpips-nets alex]
+    python -m evaluation.metrics.images_cli --pred RENDERS --gt GT_IMAGES --out metrics.json [--lpips-nets alex]
 
 Matching: files are paired by *stem* (name without extension, case-sensitive), so a render
 ``DSC01.png`` pairs with ``DSC01.JPG``: renders are usually PNG while ground truth keeps its
@@ -21,7 +21,7 @@ Output (``metrics.json``, written atomically; docs/contracts.md)::
      "lpips_weights": {"alex": path | null, "vgg": path | null},
      "pred_dir": .., "gt_dir": .., "wall_time_s": ..}
 
-PSNR is computed in float64 and capped at :data:`evaluation.metrics.PSNR_CAP_DB` (identical
+PSNR is computed in float64 and capped at :data:`evaluation.metrics.image.PSNR_CAP_DB` (identical
 images have PSNR = inf; JSON has no inf, and a mean of inf says nothing), SSIM in float64,
 LPIPS in float32 (agrees with float64 to ~1e-7 on the reference images). An LPIPS backbone
 whose weights are absent, or that was not requested, is null (missing), never zero.
@@ -41,7 +41,7 @@ from camio.atomic import write_json
 from camio.images import list_images, read_image
 from camio.logs import progress, setup_logging, timed
 from camio.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
-from evaluation.metrics import PSNR_CAP_DB, capped_psnr, psnr, ssim
+from evaluation.metrics.image import PSNR_CAP_DB, capped_psnr, psnr, ssim
 
 __all__ = ["match_images", "evaluate_images", "add_parser", "main"]
 
@@ -203,8 +203,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Standalone entry point (``python -m evaluation.images_cli``)."""
-    p = argparse.ArgumentParser(prog="python -m evaluation.images_cli", description=__doc__.split("\n\n")[0])
+    """Standalone entry point (``python -m evaluation.metrics.images_cli``)."""
+    p = argparse.ArgumentParser(prog="python -m evaluation.metrics.images_cli", description=__doc__.split("\n\n")[0])
     _configure(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)

@@ -6,7 +6,7 @@ pycolmap 4.x. Only the training images are visible: they are symlinked (copied w
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
 
-``success_paper`` (docs/contracts.md, :func:`evaluation.pose.paper_success`): the largest model
+``success_paper`` (docs/contracts.md, :func:`evaluation.metrics.pose.paper_success`): the largest model
 loads with >= 1 registered image and >= 1 point. ``aligned_ok``: >= 3 registered images, which
 the Sim(3) alignment to the reference frame needs (part of ``success_gated``, decided in
 pose.json). A failed reconstruction is a *result* (``success_paper = false`` with a reason in
@@ -17,8 +17,8 @@ Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and e
 stage uses every core this process may run on (:func:`available_cores`); the thread count is
 recorded in ``status.json`` (``num_threads``). With ``--threads 1`` two runs with the same seed
 on the same input give identical models (tested); with more threads the feature extraction and
-matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.colmap_repeats`).
-CLI: ``python -m evaluation.colmap_baseline`` (:mod:`evaluation.colmap_baseline`).
+matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.initialisers.colmap_repeats`).
+CLI: ``python -m evaluation.initialisers.colmap_baseline`` (:mod:`evaluation.initialisers.colmap_baseline`).
 
 Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
 exists, ``DIR/status.json``; with repeats also ``DIR/repeats/seed<s>/{sparse/0,status.json}``
@@ -40,7 +40,7 @@ from camio.atomic import atomic_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import ImageReadError, check_images
 from camio.logs import peak_rss_mb
-from evaluation.pose import paper_success
+from evaluation.metrics.pose import paper_success
 
 __all__ = [
     "ColmapSettings",

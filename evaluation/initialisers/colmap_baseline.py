@@ -1,11 +1,11 @@
-"""CLI of the train-only COLMAP baseline: ``python -m evaluation.colmap_baseline``.
+"""CLI of the train-only COLMAP baseline: ``python -m evaluation.initialisers.colmap_baseline``.
 
-The reconstruction itself is :func:`evaluation.colmap_run.run_colmap` (settings, success,
+The reconstruction itself is :func:`evaluation.initialisers.colmap_run.run_colmap` (settings, success,
 reproducibility and outputs are described there), repeated seeded runs are
-:mod:`evaluation.colmap_repeats`; this module only parses the command line and calls one or
+:mod:`evaluation.initialisers.colmap_repeats`; this module only parses the command line and calls one or
 the other, so the two import this one never and each other one way. A run that leaves fewer
 than ``--fallback-min-points`` points but registered cameras gets random points for those
-cameras, recorded in status.json (:func:`evaluation.random_init.apply_fallback`); its success
+cameras, recorded in status.json (:func:`evaluation.initialisers.random_init.apply_fallback`); its success
 stays the reconstruction's.
 """
 
@@ -18,11 +18,11 @@ from pathlib import Path
 
 from camio.images import ImageReadError
 from camio.logs import setup_logging
-from camio.outdir import prepare_out, tidy_outs
-from evaluation import colmap_repeats
-from evaluation.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
-from evaluation.pose import add_gate_args, gate_from_args
-from evaluation.random_init import add_fallback_args, apply_fallback
+from camio.outdir import prepare_out, run_stage, typed_line
+from evaluation.initialisers import colmap_repeats
+from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
+from evaluation.metrics.pose import add_gate_args, gate_from_args
+from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 
@@ -55,9 +55,9 @@ def _read_names(args) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.colmap_baseline --images DIR (--split JSON --n N |
+    """CLI: ``python -m evaluation.initialisers.colmap_baseline --images DIR (--split JSON --n N |
     --image-list FILE | --names ...) --out DIR [--seed S | --repeats K --seeds ...]``."""
-    p = argparse.ArgumentParser(prog="python -m evaluation.colmap_baseline",
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.colmap_baseline",
                                 description="The train-only COLMAP baseline, seeded and repeatable.")
     p.add_argument("--images", required=True, help="scene image folder")
     p.add_argument("--split", help="split.json (docs/contracts.md); use with --n")
@@ -92,16 +92,15 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]
     if args.seeds and args.repeats not in (1, len(args.seeds)):
         p.error(f"--repeats {args.repeats} disagrees with {len(args.seeds)} --seeds")
-    try:
+
+    def work() -> None:
+        # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
                                "--ref": args.ref}, "evaluation.colmap_baseline")
         _run_cli(args, names, seeds, settings)
         apply_fallback(args.out, args.fallback_min_points, args.fallback_points, seeds[0])
-    except (ImageReadError, FileNotFoundError, ValueError) as exc:
-        tidy_outs()  # a failed stage leaves nothing behind
-        log.error("%s: %s", type(exc).__name__, exc)
-        return 2
-    return 0
+
+    return run_stage(log, work, errors=(ImageReadError, FileNotFoundError, ValueError), line=typed_line)
 
 
 def _run_cli(args, names: list[str], seeds: list[int], settings: ColmapSettings) -> None:

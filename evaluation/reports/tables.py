@@ -28,8 +28,9 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_path
-from evaluation.pose import GateConfig, success_criteria_text
-from evaluation.results import PROTOCOLS, collect_runs
+from evaluation.metrics.pose import GateConfig, success_criteria_text
+from evaluation.reports.markup import format_value, markdown_table
+from evaluation.reports.results import PROTOCOLS, collect_runs
 
 __all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
            "build_tables", "run_tables"]
@@ -37,26 +38,13 @@ __all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table",
 log = logging.getLogger(__name__)
 
 
-def _fmt(v, digits: int) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    if isinstance(v, (bool, np.bool_)):
-        return "yes" if v else "no"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.{digits}f}"
-    return str(v).replace("|", "\\|")
-
-
 def to_markdown(df: pd.DataFrame, digits: dict[str, int] | None = None, default_digits: int = 2) -> str:
     """A GitHub-flavoured Markdown table; ``digits`` sets decimals per column."""
     digits = digits or {}
     cols = list(df.columns)
-    lines = ["| " + " | ".join(_fmt(str(c), 0) for c in cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
-    for _, row in df.iterrows():
-        lines.append("| " + " | ".join(_fmt(row[c], digits.get(c, default_digits)) for c in cols) + " |")
-    return "\n".join(lines)
+    return markdown_table([str(c) for c in cols],
+                          [[format_value(row[c], digits.get(c, default_digits)) for c in cols]
+                           for _, row in df.iterrows()])
 
 
 def _k_of_n(flags: pd.Series) -> str:
@@ -198,8 +186,8 @@ RUN_STATUS = "Run status: what ran, per initialiser and scene"
 def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg",
                  results: str | Path | None = None) -> dict[str, pd.DataFrame]:
     """All tables by title (ordered); the run status reads ``results`` for skipped and failed
-    initialisers that left no result (see :mod:`evaluation.run_status`)."""
-    from evaluation.run_status import run_status_table
+    initialisers that left no result (see :mod:`evaluation.reports.run_status`)."""
+    from evaluation.reports.run_status import run_status_table
 
     return {
         RUN_STATUS: run_status_table(runs, results),

@@ -2,7 +2,7 @@
 
 Three sources, so that an initialiser that left no result is still named:
 
-* the runs the tables read (:func:`evaluation.results.collect_runs`): "ran" (success under the
+* the runs the tables read (:func:`evaluation.reports.results.collect_runs`): "ran" (success under the
   paper criterion) or "ran, no model" with the initialiser's own reason (COLMAP's status.json);
   "ran, random-point fallback" when the run trained from random points for its cameras because
   the initialiser left too few (status.json ``fallback``), with that reason;
@@ -72,7 +72,7 @@ def _last_error(log_dir: Path) -> str:
 
 def failed_runs(results: str | Path) -> list[dict]:
     """Run folders ``{dataset}/{scene}/n{n}/{init}`` with logs but no result files."""
-    from evaluation.results import _RUN_FILES, find_file
+    from evaluation.reports.results import _RUN_FILES, find_file
 
     out = []
     for p in sorted(Path(results).glob("*/*/n*/*")):

@@ -15,7 +15,7 @@ file               what is read
                    ``registered``, ``n_images``, ``points``, ``reason``, ``wall_time_s``,
                    ``peak_rss_mb``, ``fy_over_fx``, ``repeats`` (spread over seeds), ``fallback``
                    (column ``seed_fallback``: its ``reason`` when ``applied``)
-``pose.json``      :mod:`evaluation.pose`: ATE, RPE, relative rotation error, fy/fx, success
+``pose.json``      :mod:`evaluation.metrics.pose`: ATE, RPE, relative rotation error, fy/fx, success
 ``metrics.json``   ``python -m evaluation images``: means ``psnr``, ``ssim``, ``lpips_alex``,
                    ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``
 ``timing.json``    vggt_init / oracle: ``total_s`` (or ``wall_time_s``), peak memory keys
@@ -43,7 +43,7 @@ A scene without reference cameras has no ``pose.json``; a failed COLMAP run has 
 Success (docs/contracts.md, one definition): ``success_paper`` = status.json's (>= 1 registered
 image and >= 1 point) when a status exists, else pose.json's, else "the run produced a trained
 model or metrics". ``success_gated`` = paper success, >= 3 registered training views and the
-accuracy gate on pose.json (:func:`evaluation.pose.accuracy_gate`); None for scenes without reference cameras (no run of the scene has a pose.json);
+accuracy gate on pose.json (:func:`evaluation.metrics.pose.accuracy_gate`); None for scenes without reference cameras (no run of the scene has a pose.json);
 False for a run of a scene with reference cameras that has no pose.json itself.
 """
 
@@ -57,9 +57,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from evaluation.pose import GateConfig, accuracy_gate, status_success
+from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
 
-__all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_run", "collect_runs", "STAGES"]
+__all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_log", "best_along", "read_run",
+           "collect_runs", "STAGES"]
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +152,28 @@ def find_file(run_dir: Path, name: str, skip: set[str] = frozenset(), mode: str 
         if best is None or (len(rel), str(p)) < (len(best.relative_to(run_dir).parts), str(best)):
             best = p
     return best
+
+
+def read_log(path: Path | None) -> pd.DataFrame | None:
+    """The training log ``log.parquet`` at ``path``; None where there is none or it cannot be
+    read (logged)."""
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        return pd.read_parquet(path)
+    except (OSError, ValueError) as exc:
+        log.warning("results: cannot read %s (%s)", path, exc)
+        return None
+
+
+def best_along(lg: pd.DataFrame | None, col: str, higher: bool = True) -> tuple[float, float]:
+    """The best value of the log's column ``col`` along the run (the highest, or the lowest with
+    ``higher=False``) and its iteration; NaN where the log lacks the column or every value is null."""
+    v = lg[col].dropna() if lg is not None and col in lg else pd.Series(dtype=float)
+    if v.empty:
+        return math.nan, math.nan
+    i = v.idxmax() if higher else v.idxmin()
+    return float(v[i]), float(lg.loc[i, "iteration"]) if "iteration" in lg else math.nan
 
 
 def _json(path: Path | None) -> dict:
@@ -278,7 +301,7 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         "has_reference": has_ref, "registered": _num(registered), "n_train": n,
         "points": _first(status, "points") if status else _first(pose, "n_points"),
         "reason": status.get("reason"),
-        # the random-point fallback's reason when the run trained from it (evaluation/random_init.py)
+        # the random-point fallback's reason when the run trained from it (evaluation/initialisers/random_init.py)
         "seed_fallback": (status.get("fallback") or {}).get("reason")
         if (status.get("fallback") or {}).get("applied") else None,
         **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
@@ -297,25 +320,18 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
     }
     if math.isnan(rec["fy_fx_max_dev"]) and status.get("fy_over_fx") is not None:
         rec["fy_fx_max_dev"] = abs(_num(status["fy_over_fx"]) - 1.0)
-    if log_path is not None:
-        try:
-            lg = pd.read_parquet(log_path)
-            if "test_psnr" in lg and lg["test_psnr"].notna().any():
-                ev = lg[lg["test_psnr"].notna()]
-                rec["final_test_psnr"] = float(ev["test_psnr"].iloc[-1])
-                best = ev.loc[ev["test_psnr"].idxmax()]
-                rec["best_test_psnr"] = float(best["test_psnr"])
-                rec["best_test_iter"] = float(best["iteration"]) if "iteration" in ev else math.nan
-            if math.isnan(rec["num_gaussians"]) and "num_gaussians" in lg and len(lg):
-                rec["num_gaussians"] = float(lg["num_gaussians"].iloc[-1])
-            if math.isnan(rec["iterations"]) and "iteration" in lg and len(lg):
-                rec["iterations"] = float(lg["iteration"].max())
-            log_time = float(lg["wall_time_s"].max()) if "wall_time_s" in lg and len(lg) else math.nan
-        except (OSError, ValueError) as exc:
-            log.warning("results: cannot read %s (%s)", log_path, exc)
-            log_time = math.nan
-    else:
-        log_time = math.nan
+    lg = read_log(log_path)
+    log_time = math.nan
+    if lg is not None:
+        if "test_psnr" in lg and lg["test_psnr"].notna().any():
+            rec["final_test_psnr"] = float(lg["test_psnr"].dropna().iloc[-1])
+        rec["best_test_psnr"], rec["best_test_iter"] = best_along(lg, "test_psnr")
+        if math.isnan(rec["num_gaussians"]) and "num_gaussians" in lg and len(lg):
+            rec["num_gaussians"] = float(lg["num_gaussians"].iloc[-1])
+        if math.isnan(rec["iterations"]) and "iteration" in lg and len(lg):
+            rec["iterations"] = float(lg["iteration"].max())
+        if "wall_time_s" in lg and len(lg):
+            log_time = float(lg["wall_time_s"].max())
 
     json_times = {
         "init": _first(timing, "total_s", "wall_time_s", "total") if timing else _first(status, "wall_time_s"),

