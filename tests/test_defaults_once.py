@@ -64,6 +64,8 @@ def test_random_initialiser_defaults_live_in_code():
 
     props = _schema()["properties"]["random"]["properties"]
     assert props["points"]["default"] is None and props["fallback_min_points"]["default"] is None
-    assert f"{random_init.N_POINTS:,}" in props["points"]["description"]
+    points = " ".join(props["points"]["description"].split())
+    assert f"N_POINTS, {random_init.N_POINTS:,}" in points
+    assert f"POINTS_PER_PIXEL, {random_init.POINTS_PER_PIXEL}" in points
     assert f"FALLBACK_MIN_POINTS, {random_init.FALLBACK_MIN_POINTS}" in " ".join(
         props["fallback_min_points"]["description"].split())

@@ -121,6 +121,19 @@ def test_cli_writes_the_initialiser_contract(tmp_path):
     assert not (tmp_path / "bad" / "status.json").exists()
 
 
+def test_default_count_is_3dgs_100k_but_never_more_than_the_pixels_support(tmp_path):
+    # 3 views of 64x48: 9,216 pixels -> 0.25 per pixel = 2,304 points, not 100k
+    scene, names = _scene(tmp_path)
+    assert ri.main(["--cameras", str(scene / "sparse" / "0"), "--image-list", str(tmp_path / "train.txt"),
+                    "--out", str(tmp_path / "out")]) == 0
+    status = json.loads((tmp_path / "out" / "status.json").read_text())
+    assert status["points"] == status["random"]["n_points"] == int(ri.POINTS_PER_PIXEL * 3 * 64 * 48) == 2304
+    # LLFF at 1/8, three views: the pixels allow more than 100k, so 3DGS's count stands
+    llff = [Camera(f"l{i}.png", 504, 378, K, np.eye(4)[:3]) for i in range(3)]
+    assert ri.default_points(llff) == ri.N_POINTS == 100_000
+    assert ri.default_points([Camera("t.png", 1, 1, K, np.eye(4)[:3])]) == 1  # never 0
+
+
 def test_posed_falls_back_to_random_points_when_triangulation_finds_none(tmp_path):
     from evaluation.initialisers.posed import main as posed_main
     from evaluation.reports.results import collect_runs

@@ -22,6 +22,13 @@ Depth range, from the cameras alone (no point, depth or image content is used):
 * near = :data:`NEAR_FRAC` D, far = :data:`FAR_FRAC` D; ``--near``/``--far`` override both
   (scene units). One camera, or coincident centres, without ``--near``/``--far`` is an error.
 
+Count: :data:`N_POINTS` (3DGS's 100k), but never more than :data:`POINTS_PER_PIXEL` per training
+pixel (summed over the training views at their camera sizes; :func:`default_points`). On the
+field's benchmark scenes the 100k stands (LLFF at 1/8, three views: 571k pixels, a limit of
+143k); a small scene is not seeded with more points than it has pixels to constrain them (the
+bundled 128x96 scene at n = 3: 9,216 points instead of 100k, whose training ran at 2 it/s).
+``--points`` / ``--fallback-points`` give a count outright.
+
 Colours are 3DGS's: SH DC drawn from U(0, 1/255), i.e. RGB 0.5 + C0 U(0, 1/255), mid grey
 (uint8 128) after the 8-bit storage of a COLMAP model.
 
@@ -52,7 +59,7 @@ from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.metrics.pose import paper_success
 
-__all__ = ["N_POINTS", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
+__all__ = ["N_POINTS", "POINTS_PER_PIXEL", "default_points", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
            "FALLBACK_DIR", "depth_range", "random_points", "run_random", "apply_fallback", "seed_model_dir",
            "add_fallback_args"]
 
@@ -60,6 +67,8 @@ log = logging.getLogger(__name__)
 
 #: points the random initialiser places (3DGS's random initialisation of its synthetic scenes)
 N_POINTS = 100_000
+#: the most points per training pixel (:func:`default_points`)
+POINTS_PER_PIXEL = 0.25
 #: posed / COLMAP runs with fewer points than this (and >= 1 camera) train from random points
 FALLBACK_MIN_POINTS = 100
 #: near and far depth as fractions of the focus depth D (module docstring)
@@ -181,12 +190,20 @@ def random_points(cameras: list[Camera], n_points: int, rng: np.random.Generator
     return points, colors
 
 
-def _place(cameras: list[Camera], n_points: int, seed: int, near: float | None, far: float | None) -> dict:
+def default_points(cameras: list[Camera]) -> int:
+    """min(N_POINTS, POINTS_PER_PIXEL x the training pixels), at least 1 (module docstring)."""
+    pixels = sum(int(c.width) * int(c.height) for c in cameras)
+    return max(1, min(N_POINTS, int(POINTS_PER_PIXEL * pixels)))
+
+
+def _place(cameras: list[Camera], n_points: int | None, seed: int, near: float | None, far: float | None) -> dict:
     if (near is None) != (far is None):
         raise ValueError("random_init: give both --near and --far, or neither")
     source = "given (--near/--far)"
     if near is None:
         near, far, source = depth_range(cameras)
+    if n_points is None:
+        n_points = default_points(cameras)
     points, colors = random_points(cameras, n_points, np.random.default_rng(seed), near, far)
     return {"points": points, "colors": colors, "near": float(near), "far": float(far), "depth_source": source,
             "min_views": min(2, len(cameras)), "n_points": int(n_points)}
@@ -199,7 +216,7 @@ def _read_names(image_list: str | Path) -> list[str]:
     return names
 
 
-def run_random(cameras_dir: str | Path, names: list[str], out_dir: str | Path, n_points: int = N_POINTS,
+def run_random(cameras_dir: str | Path, names: list[str], out_dir: str | Path, n_points: int | None = None,
                seed: int = 0, near: float | None = None, far: float | None = None) -> dict:
     """Write ``out_dir/sparse/0`` and ``out_dir/status.json`` (module docstring).
 
@@ -207,6 +224,7 @@ def run_random(cameras_dir: str | Path, names: list[str], out_dir: str | Path, n
         cameras_dir: a COLMAP model holding a camera for every training view (e.g. a scene's
             reference cameras, ``<scene>/sparse/0``); only the training views' are used.
         names: the training image names.
+        n_points: points to place (None: :func:`default_points` of the training cameras).
 
     Raises:
         ValueError: a training view without a camera, or the errors of :func:`random_points`.
@@ -234,14 +252,14 @@ def run_random(cameras_dir: str | Path, names: list[str], out_dir: str | Path, n
     return status
 
 
-def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, n_points: int = N_POINTS,
+def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, n_points: int | None = None,
                    seed: int = 0) -> dict:
     """Random points for an initialiser that left too few (module docstring), recorded in its
     status.json under ``fallback``: ``applied``, ``min_points``, and when applied ``reason``,
     ``points_found`` (the reconstruction's), ``model`` (relative to ``init_dir``), ``n_points``,
     ``near``, ``far``, ``depth_source``; ``error`` when it was needed but no volume could be
     filled (one registered camera), the run's own result then standing alone. ``min_points`` = 0
-    turns the fallback off.
+    turns the fallback off; ``n_points`` None: :func:`default_points` of the registered cameras.
 
     Returns:
         The updated status record ({} when ``init_dir`` has no status.json).
@@ -267,7 +285,7 @@ def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, 
         write_text_model(init_dir / FALLBACK_DIR / "sparse" / "0", cams, placed["points"], placed["colors"])
         fb.update({"applied": True, "points_found": found, "model": f"{FALLBACK_DIR}/sparse/0",
                    "reason": f"{found} points < min_points {min_points} with {reg} registered cameras: "
-                             f"trained from {n_points} random points",
+                             f"trained from {placed['n_points']} random points",
                    **{k: placed[k] for k in ("n_points", "near", "far", "depth_source")}})
         log.warning("random-point fallback: %s", fb["reason"])
     status["fallback"] = fb
@@ -290,8 +308,9 @@ def add_fallback_args(parser) -> None:
                         help="with fewer points than this and >= 1 camera, write random points for the "
                              f"cameras to {FALLBACK_DIR}/sparse/0 and record it (default {FALLBACK_MIN_POINTS}; "
                              "0 = off)")
-    parser.add_argument("--fallback-points", type=int, default=N_POINTS,
-                        help=f"random points of the fallback (default {N_POINTS})")
+    parser.add_argument("--fallback-points", type=int, default=None,
+                        help=f"random points of the fallback (default: {N_POINTS}, at most {POINTS_PER_PIXEL} "
+                             "per training pixel)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -320,7 +339,8 @@ def main(argv: list[str] | None = None) -> int:
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
     p.add_argument("--out", required=True, help="output folder (sparse/0 and status.json)")
-    p.add_argument("--points", type=int, default=N_POINTS, help=f"points to place (default {N_POINTS})")
+    p.add_argument("--points", type=int, default=None,
+                   help=f"points to place (default: {N_POINTS}, at most {POINTS_PER_PIXEL} per training pixel)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the points")
     p.add_argument("--near", type=float, help="near camera depth, scene units (default: from the cameras)")
     p.add_argument("--far", type=float, help="far camera depth, scene units (default: from the cameras)")
