@@ -108,5 +108,7 @@ def _mode_run(d: Path, scene: str, n: int, init: str, mode: str) -> None:
                   "test_psnr": np.where(it % 500 == 0, p - 3 + it / 500.0, np.nan)}).to_parquet(d / "train" / "log.parquet")
     for v, name in enumerate(TEST_VIEWS):
         _image(d / "renders" / f"{name}.png", 0.25 + 0.1 * v)
+        if init == "vggt":  # the test-pose protocol's renders
+            _image(d / "testpose" / "refine" / "renders" / f"{name}.png", 0.3 + 0.1 * v)
     (d / "benchmarks").mkdir()
     (d / "benchmarks" / "metrics.tsv").write_text("s\th:m:s\tmax_rss\tmax_vms\n4.0\t0:00:04\t1200.5\t2000\n")

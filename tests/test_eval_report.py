@@ -33,7 +33,11 @@ def test_report(tmp_path):
     grid = page[page.index("mip360 / garden, n = 3"):]
     grid = grid[: grid.index("</table>")]
     assert grid.count('class="failed"') == 2 and "no initial pair" in grid
-    assert grid.count("<img") == 4  # vggt + ground truth for two views
+    # vggt under both protocols + ground truth for two views; with test-pose renders present,
+    # every run column names its protocol
+    assert grid.count("<img") == 6
+    assert "<th>vggt (gated) [strict]</th><th>vggt (gated) [test-pose]</th>" in grid
+    assert "colmap (uniform) [strict]" in grid and "renders/mip360__garden__n3__vggt_gated__testpose__img000.png" in grid
     assert "renders/mip360__garden__n3__gt__img000.png" in grid
     nus3 = page[page.index("mip360 / nus, n = 3"):]
     # COLMAP's 2 registered views pass the paper's criterion but cannot be aligned: no renders

@@ -29,7 +29,7 @@ from evaluation.reports.markup import html_page
 from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
-from evaluation.reports.results import collect_runs, find_file, run_label
+from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
 from evaluation.reports.tables import build_tables, table_notes
 
 __all__ = ["render_grid_html", "run_report"]
@@ -83,41 +83,54 @@ def _init_order(labels) -> list[str]:
 
 
 def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None, max_views: int = 4) -> str:
-    """The HTML table of one (dataset, scene, n) group of runs; thumbnails go to ``images_dir``."""
+    """The HTML table of one (dataset, scene, n) group of runs; thumbnails go to ``images_dir``.
+
+    A column per run's strict renders; where a run has the test-pose protocol's renders
+    (``testpose/refine/renders``), a second column beside it, and every run column then names its
+    protocol (``[strict]``, ``[test-pose]``)."""
     dataset, scene, n = group["dataset"].iloc[0], group["scene"].iloc[0], int(group["n"].iloc[0])
     runs = {run_label(row.init, row.bridge_mode): row for row in group.itertuples()}
-    renders = {}
-    for init, row in runs.items():
+    columns = []  # (label, row, {stem: image})
+    for init in _init_order(runs):
+        row = runs[init]
         folder = find_file(Path(row.run_dir), "renders")
-        renders[init] = _images_in(folder) if folder is not None and folder.is_dir() else {}
+        strict = _images_in(folder) if folder is not None and folder.is_dir() else {}
+        tp_folder = Path(row.run_dir) / TESTPOSE_DIR / "refine" / "renders"
+        columns.append([init, "strict", row, strict])
+        if tp_folder.is_dir():
+            columns.append([init, "test-pose", row, _images_in(tp_folder)])
+    both = any(c[1] == "test-pose" for c in columns)
     gt = _images_in(_gt_folder(scenes_dir, dataset, scene) or Path("/nonexistent"))
-    views = sorted(set().union(*[set(r) for r in renders.values()]))[:max_views]
+    views = sorted(set().union(*[set(c[3]) for c in columns]))[:max_views]
     if not views:
         return ""
-    inits = _init_order(runs)
-    head = "".join(f"<th>{html.escape(i)}</th>" for i in inits) + "<th>ground truth</th>"
+    labels = [f"{init} [{protocol}]" if both else init for init, protocol, _, _ in columns]
+    head = "".join(f"<th>{html.escape(lab)}</th>" for lab in labels) + "<th>ground truth</th>"
     rows = []
     for stem in views:
         cells = []
-        for init in inits + ["__gt__"]:
-            if init == "__gt__":
-                src, ok_run, reason = gt.get(stem), True, None
-            else:
-                row = runs[init]
-                src, ok_run, reason = renders[init].get(stem), bool(row.success_paper), row.reason
-            if not ok_run:
+        for label, (init, protocol, row, images) in zip(labels, columns):
+            if not bool(row.success_paper):
+                reason = row.reason
                 why = f"<br><small>{html.escape(str(reason))}</small>" if isinstance(reason, str) and reason else ""
                 cells.append(f'<td class="failed">failed{why}</td>')
                 continue
             tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", init.strip("_")).strip("_")
-            rel = f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png"
-            if src is None or not _thumb(src, images_dir / rel):
-                cells.append('<td class="missing">missing</td>')
-                continue
-            cells.append(f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(init)} {html.escape(stem)}"></td>')
+            tag += "__testpose" if protocol == "test-pose" else ""
+            cells.append(_thumb_cell(images.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png",
+                                     f"{label} {stem}"))
+        cells.append(_thumb_cell(gt.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__gt__{stem}.png",
+                                 f"ground truth {stem}"))
         rows.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")
     return (f"<h3>{html.escape(dataset)} / {html.escape(scene)}, n = {n}</h3>\n<table class=\"grid\">"
             f"<tr><th>view</th>{head}</tr>\n" + "\n".join(rows) + "</table>")
+
+
+def _thumb_cell(src: Path | None, images_dir: Path, rel: str, alt: str) -> str:
+    """A grid cell: the thumbnail of ``src`` written to ``images_dir/rel``, or "missing"."""
+    if src is None or not _thumb(src, images_dir / rel):
+        return '<td class="missing">missing</td>'
+    return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}"></td>'
 
 
 # What the report's names mean, shown once at its top.
@@ -248,8 +261,8 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
                          "PSNR (training off?).</p>")
         parts += _study_section(Path(results), images)
         parts += view_section(results)
-        parts.append("<h2>Renders (one column per initialiser that produced them, as headed; "
-                     "then the ground truth)</h2>")
+        parts.append("<h2>Renders (one column per initialiser that produced them, as headed, a second "
+                     "one where the test-pose protocol ran; then the ground truth)</h2>")
         n_grids = 0
         for _, g in runs.groupby(["dataset", "scene", "n"], sort=True):
             grid = render_grid_html(g, images, scenes_dir, max_views)
