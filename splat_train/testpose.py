@@ -38,10 +38,10 @@ from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
 from splat_train.export import camera_tensors, render_name, render_params
-from splat_train.gaussians import params_from_cloud
+from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
 from splat_train.pose import so3_exp
-from splat_train.rasterize import resolve_backend
+from splat_train.rasterize import rasterize, resolve_backend
 
 __all__ = ["DEFAULT_STEPS", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME", "se3_correction", "scene_depth", "pose_change",
            "refine_test_pose", "run_testpose"]
@@ -131,6 +131,9 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
 
         lambda_dssim = TrainConfig().lambda_dssim
     frozen = {k: v.detach() for k, v in params.items()}
+    # what does not depend on the pose, once: activations and the SH pair
+    scales, opacities, quats = activated(frozen)
+    colors = (frozen["sh_dc"], frozen["sh_rest"])
     cw0 = cam_from_world.detach()
     height, width = int(target.shape[0]), int(target.shape[1])
     scale = scene_depth(frozen["means"], cw0)
@@ -141,7 +144,8 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     loss_start = None
     for step in range(steps + 1):
         cw = se3_correction(delta, scale) @ cw0
-        out = render_params(frozen, sh_degree, cw, K, width, height, bg, backend)
+        out = rasterize(frozen["means"], quats, scales, opacities, colors, cw, K, width, height, background=bg,
+                        sh_degree=sh_degree, backend=backend, kernel_camera_grad=True)
         loss, _, _ = photometric_loss(out["rgb"], target, lambda_dssim)
         value = float(loss.detach())
         if loss_start is None:
