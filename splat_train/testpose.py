@@ -122,7 +122,8 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
 
     Returns:
         ``cam_from_world`` [4, 4] the pose kept (detached), ``loss_start``, ``loss_end`` (of the pose
-        kept), ``best_step`` (0 = the start), ``trans_scale``.
+        kept), ``best_step`` (0 = the start), ``trans_scale``, ``delta`` [6] the correction kept
+        (zeros at the start).
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
@@ -140,7 +141,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     delta = torch.zeros(6, dtype=cw0.dtype, device=cw0.device, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
     bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=cw0.device)
-    best = (math.inf, cw0, 0)
+    best = (math.inf, cw0, 0, delta.detach().clone())
     loss_start = None
     for step in range(steps + 1):
         cw = se3_correction(delta, scale) @ cw0
@@ -154,7 +155,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             log.warning("non-finite test-pose loss at step %d: keeping the best pose so far", step)
             break
         if value < best[0]:
-            best = (value, cw.detach().clone(), step)
+            best = (value, cw.detach().clone(), step, delta.detach().clone())
         if step == steps:
             break
         opt.zero_grad(set_to_none=True)
@@ -163,7 +164,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             g["lr"] = testpose_lr(step, steps, lr)
         opt.step()
     return {"cam_from_world": best[1], "loss_start": loss_start, "loss_end": best[0], "best_step": best[2],
-            "trans_scale": scale}
+            "trans_scale": scale, "delta": best[3]}
 
 
 def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
@@ -199,7 +200,13 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
                                   v.camera.height, bg, ran)
         rgb = after["rgb"].clamp(0.0, 1.0)
         write_image(out / "renders" / render_name(v.name), rgb.cpu().numpy())
-        new_cw = res["cam_from_world"].cpu().double().numpy()[:3]
+        # the kept correction applied in float64 to the camera as read (the start itself when
+        # best_step is 0), not the float32 pose the renders used: no float32 round trip in the
+        # written cameras and the recorded pose change
+        start = np.eye(4)
+        start[:3] = v.camera.cam_from_world
+        corr = se3_correction(res["delta"].detach().cpu().double(), res["trans_scale"]).numpy()
+        new_cw = (corr @ start)[:3]
         refined.append(Camera(v.name, v.camera.width, v.camera.height, v.camera.K, new_cw))
         rot_deg, trans = pose_change(v.camera.cam_from_world, new_cw)
         per_view[v.name] = {"rotation_deg": rot_deg, "translation": trans,
