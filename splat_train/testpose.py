@@ -108,7 +108,7 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
 
 def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                      K: torch.Tensor, target: torch.Tensor, steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR,
-                     backend: str = "auto", lambda_dssim: float | None = None) -> dict:
+                     backend: str = "auto", lambda_dssim: float | None = None, patience: int = 0) -> dict:
     """Optimise one camera's pose against its image with the Gaussians frozen (module docstring).
 
     Args:
@@ -119,14 +119,18 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
         steps: Adam steps (0 keeps the start).
         lr: first Adam rate of (omega, u) (:func:`testpose_lr`).
         lambda_dssim: SSIM weight of the loss (training's default when None).
+        patience: stop once this many steps in a row have not lowered the lowest loss seen (the
+            rate schedule stays the one of ``steps``); 0 (the default): every step is run.
 
     Returns:
         ``cam_from_world`` [4, 4] the pose kept (detached), ``loss_start``, ``loss_end`` (of the pose
         kept), ``best_step`` (0 = the start), ``trans_scale``, ``delta`` [6] the correction kept
-        (zeros at the start).
+        (zeros at the start), ``steps_run`` (Adam steps taken: ``steps`` unless stopped early).
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
+    if patience < 0:
+        raise ValueError(f"patience must be >= 0, got {patience}")
     if lambda_dssim is None:
         from splat_train.config import TrainConfig
 
@@ -143,7 +147,9 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=cw0.device)
     best = (math.inf, cw0, 0, delta.detach().clone())
     loss_start = None
+    steps_run = 0
     for step in range(steps + 1):
+        steps_run = step
         cw = se3_correction(delta, scale) @ cw0
         out = rasterize(frozen["means"], quats, scales, opacities, colors, cw, K, width, height, background=bg,
                         sh_degree=sh_degree, backend=backend, kernel_camera_grad=True)
@@ -156,7 +162,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             break
         if value < best[0]:
             best = (value, cw.detach().clone(), step, delta.detach().clone())
-        if step == steps:
+        if step == steps or (patience and step - best[2] >= patience):
             break
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -164,12 +170,12 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             g["lr"] = testpose_lr(step, steps, lr)
         opt.step()
     return {"cam_from_world": best[1], "loss_start": loss_start, "loss_end": best[0], "best_step": best[2],
-            "trans_scale": scale, "delta": best[3]}
+            "trans_scale": scale, "delta": best[3], "steps_run": steps_run}
 
 
 def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
                  steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
-                 backend: str = "auto", names: str | Path | None = None) -> dict:
+                 backend: str = "auto", names: str | Path | None = None, patience: int = 0) -> dict:
     """The test-pose protocol on a camera folder: refined cameras, renders and a record.
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
@@ -193,7 +199,7 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     for v in views:
         cw, K = camera_tensors(v.camera, device)
         target = torch.as_tensor(v.image, device=device)
-        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran)
+        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran, patience=patience)
         with torch.no_grad():
             before = render_params(params, cloud.sh_degree, cw, K, v.camera.width, v.camera.height, bg, ran)
             after = render_params(params, cloud.sh_degree, res["cam_from_world"], K, v.camera.width,
@@ -212,10 +218,11 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
         per_view[v.name] = {"rotation_deg": rot_deg, "translation": trans,
                             "translation_rel_depth": trans / res["trans_scale"], "scene_depth": res["trans_scale"],
                             "loss_start": res["loss_start"], "loss_end": res["loss_end"],
-                            "best_step": res["best_step"],
+                            "best_step": res["best_step"], "steps_run": res["steps_run"],
                             "psnr_start": psnr(before["rgb"].clamp(0.0, 1.0), target), "psnr_end": psnr(rgb, target)}
     write_text_model(out / "sparse" / "0", refined)
-    record = {"protocol": PROTOCOL_NAME, "steps": int(steps), "optimizer": "Adam", "lr": float(lr),
+    record = {"protocol": PROTOCOL_NAME, "steps": int(steps), "patience": int(patience), "optimizer": "Adam",
+              "lr": float(lr),
               "lr_final": testpose_lr(max(steps - 1, 0), steps, lr),
               "loss": "photometric (splat_train.losses.photometric_loss)", "backend": ran, "device": str(device),
               "start": str(cameras), "views": per_view,
