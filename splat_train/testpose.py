@@ -16,9 +16,31 @@ shifts on every scene. The loss is training's photometric loss
 :data:`FINAL_LR_FRACTION` of it over the steps (:func:`testpose_lr`), so the pose settles
 instead of oscillating at the rate's scale; the same for every method, recorded in the output. Intrinsics and Gaussians never change. The pose kept is the one with the lowest loss
 seen (the start included), so the correction never raises the loss against the test image.
+``patience`` K (``--patience``, off by default) ends a view after K steps in a row without a
+new lowest loss; testpose.json records it and each view's ``steps_run``.
 
-Gradients: the "cpu" backend runs its torch projection when the camera needs a gradient (the
-path training's pose refinement uses); gsplat gives the gradient of the view matrix.
+Gradients: the "cpu" backend keeps its fused C++ projection and takes the pose's gradient from
+that kernel's backward (``rasterize(kernel_camera_grad=True)``, :mod:`splat_train.cpu.project`:
+dL/d(cam_from_world) chained from the blend's means2d / conic / colour gradients, summed only over
+the Gaussians the blend reached; the same values as autograd through the torch projection,
+tests/test_train_testpose.py); the activations and SH pair are computed once per view. The
+"torch" backend differentiates its torch projection; gsplat gives the gradient of the view matrix.
+
+Cost on a CPU (AMD EPYC, AVX2, one thread as the workflow runs it, ``OMP_NUM_THREADS=1``, load
+~1 on 2 cores; the demo's cells, 128x96, SH degree 3, 500 steps = 501 renders with their
+backward per view): 7.3 s per view (14.5 ms per step) at 1.1k Gaussians, 7.2-9.1 s (14-18 ms)
+at 2.2k, 32 s (64 ms) at 62k. At 1-2k Gaussians about half a step is the C++ kernels (blend
+forward + backward ~3.7 ms, SSIM ~0.8 ms, projection + pose gradient ~0.6 ms) and half Python
+and autograd dispatch; at 62k the kernels are ~50 of ~60 ms (projection forward 12, pose
+gradient 8, blend forward + backward 17, footprints 9). Through the torch projection it was
+11.2 s, 11.8-12.5 s and 91 s per view. Reproduce after ``make demo``, with
+``R=results/synthetic/bundled`` and ``C=$R/n3/oracle/gated``::
+
+    OMP_NUM_THREADS=1 python -m splat_train testpose --model $C/train/model.ply \\
+        --cameras $C/align/sparse/0 --images $R/test_images --out work/tp
+
+(``wall_time_s`` in ``work/tp/testpose.json``: 3 views, 501 renders each).
+docs/protocols.md states what this costs the demo.
 """
 
 from __future__ import annotations
