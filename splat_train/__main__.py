@@ -23,7 +23,7 @@ Test-pose protocol (each held-out pose optimised against its image, Gaussians fr
 splat_train/testpose.py)::
 
     python -m splat_train testpose --model model.ply --cameras DIR --images DIR --out DIR
-        [--steps N] [--lr LR] [--image-list FILE] [--device cpu|cuda] [--rasterizer BACKEND]
+        [--steps N] [--patience K] [--lr LR] [--image-list FILE] [--device cpu|cuda] [--rasterizer BACKEND]
 """
 
 from __future__ import annotations
@@ -124,6 +124,9 @@ def _testpose_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", required=True, help="the held-out images")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
+    p.add_argument("--patience", type=int, default=0,
+                   help="stop a view after K steps in a row without a new lowest loss (0, the default: "
+                        "every step; recorded in testpose.json with each view's steps_run)")
     p.add_argument("--lr", type=float, default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -179,8 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "testpose":
         args = _testpose_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        if args.steps < 0 or not args.lr > 0:
-            log.error("--steps must be >= 0 and --lr > 0")
+        if args.steps < 0 or args.patience < 0 or not args.lr > 0:
+            log.error("--steps and --patience must be >= 0 and --lr > 0")
             return 2
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train testpose"):
@@ -188,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
         from splat_train.testpose import run_testpose
 
         rec = run_testpose(args.model, args.cameras, args.images, args.out, steps=args.steps, lr=args.lr,
-                           device=args.device, backend=args.rasterizer, names=args.image_list)
+                           device=args.device, backend=args.rasterizer, names=args.image_list,
+                           patience=args.patience)
         print(f"test-pose: {len(rec['views'])} views, {rec['steps']} steps, mean rotation change "
               f"{rec['mean_rotation_deg'] or 0.0:.3f} deg -> {args.out}")
         return 0

@@ -79,11 +79,14 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     return "torch"
 
 
-def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor) -> bool:
+def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor, kernel_camera_grad: bool = False) -> bool:
     """Whether the "cpu" backend can use the fused C++ projection + SH: float32/float64 CPU
-    tensors (resolve_backend has refused "cpu" on other devices) and a camera that needs no
-    gradient (pose refinement keeps the torch path)."""
-    if means.dtype not in (torch.float32, torch.float64) or cam_from_world.requires_grad or K.requires_grad:
+    tensors (resolve_backend has refused "cpu" on other devices), a K that needs no gradient,
+    and a camera that needs none unless ``kernel_camera_grad`` (the kernel then differentiates
+    it; training's pose refinement keeps the torch path)."""
+    if means.dtype not in (torch.float32, torch.float64) or K.requires_grad:
+        return False
+    if cam_from_world.requires_grad and not kernel_camera_grad:
         return False
     from splat_train.cpu import project as cpu_project
 
@@ -144,6 +147,7 @@ def rasterize(
     sh_degree: int | None = None,
     backend: str = "auto",
     near_plane: float = NEAR_PLANE,
+    kernel_camera_grad: bool = False,
 ) -> dict[str, Tensor]:
     """Render Gaussians into one camera, differentiably (3DGS semantics, PROTOCOL.md section 3).
 
@@ -170,6 +174,11 @@ def rasterize(
             needs no gradient, SIMD C++ blending), "torch", "reference" (dense, small scenes
             only) or "gsplat".
         near_plane: Gaussians with camera z below this are culled.
+        kernel_camera_grad: with the "cpu" backend and a ``cam_from_world`` that requires grad
+            (K must not), keep the fused C++ projection and let its backward give the camera's
+            gradient (:mod:`splat_train.cpu.project`) instead of running the torch projection
+            and SH over every Gaussian: the same gradient (float64 maths in both), an order of
+            magnitude faster. The test-pose protocol sets it; training's pose refinement does not.
 
     Returns:
         dict with
@@ -224,7 +233,7 @@ def rasterize(
         background = torch.zeros(3, device=dev, dtype=dt)
     _check("background", background, (3,))
     which = resolve_backend(backend, dev)
-    fused = which == "cpu" and _fused_projection_ok(means, cam_from_world, K)
+    fused = which == "cpu" and _fused_projection_ok(means, cam_from_world, K, kernel_camera_grad)
     if sh_pair and not fused:  # the fused projection reads the pair in place; the rest want one tensor
         colors = sh_concat(*colors, sh_degree)
 
@@ -240,7 +249,8 @@ def rasterize(
         from splat_train.cpu import project as cpu_project
 
         proj, rgb_g, feat = cpu_project.project_sh_cpu(
-            means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D)
+            means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D,
+            camera_grad=kernel_camera_grad)
         # with SH the kernel's (colour, depth) rows are the blend's features as they are
         features = feat if sh_degree is not None else None
     else:

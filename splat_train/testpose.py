@@ -16,9 +16,31 @@ shifts on every scene. The loss is training's photometric loss
 :data:`FINAL_LR_FRACTION` of it over the steps (:func:`testpose_lr`), so the pose settles
 instead of oscillating at the rate's scale; the same for every method, recorded in the output. Intrinsics and Gaussians never change. The pose kept is the one with the lowest loss
 seen (the start included), so the correction never raises the loss against the test image.
+``patience`` K (``--patience``, off by default) ends a view after K steps in a row without a
+new lowest loss; testpose.json records it and each view's ``steps_run``.
 
-Gradients: the "cpu" backend runs its torch projection when the camera needs a gradient (the
-path training's pose refinement uses); gsplat gives the gradient of the view matrix.
+Gradients: the "cpu" backend keeps its fused C++ projection and takes the pose's gradient from
+that kernel's backward (``rasterize(kernel_camera_grad=True)``, :mod:`splat_train.cpu.project`:
+dL/d(cam_from_world) chained from the blend's means2d / conic / colour gradients, summed only over
+the Gaussians the blend reached; the same values as autograd through the torch projection,
+tests/test_train_testpose.py); the activations and SH pair are computed once per view. The
+"torch" backend differentiates its torch projection; gsplat gives the gradient of the view matrix.
+
+Cost on a CPU (AMD EPYC, AVX2, one thread as the workflow runs it, ``OMP_NUM_THREADS=1``, load
+~1 on 2 cores; the demo's cells, 128x96, SH degree 3, 500 steps = 501 renders with their
+backward per view): 7.3 s per view (14.5 ms per step) at 1.1k Gaussians, 7.2-9.1 s (14-18 ms)
+at 2.2k, 32 s (64 ms) at 62k. At 1-2k Gaussians about half a step is the C++ kernels (blend
+forward + backward ~3.7 ms, SSIM ~0.8 ms, projection + pose gradient ~0.6 ms) and half Python
+and autograd dispatch; at 62k the kernels are ~50 of ~60 ms (projection forward 12, pose
+gradient 8, blend forward + backward 17, footprints 9). Through the torch projection it was
+11.2 s, 11.8-12.5 s and 91 s per view. Reproduce after ``make demo``, with
+``R=results/synthetic/bundled`` and ``C=$R/n3/oracle/gated``::
+
+    OMP_NUM_THREADS=1 python -m splat_train testpose --model $C/train/model.ply \\
+        --cameras $C/align/sparse/0 --images $R/test_images --out work/tp
+
+(``wall_time_s`` in ``work/tp/testpose.json``: 3 views, 501 renders each).
+docs/protocols.md states what this costs the demo.
 """
 
 from __future__ import annotations
@@ -38,10 +60,10 @@ from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
 from splat_train.export import camera_tensors, render_name, render_params
-from splat_train.gaussians import params_from_cloud
+from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
 from splat_train.pose import so3_exp
-from splat_train.rasterize import resolve_backend
+from splat_train.rasterize import rasterize, resolve_backend
 
 __all__ = ["DEFAULT_STEPS", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME", "se3_correction", "scene_depth", "pose_change",
            "refine_test_pose", "run_testpose"]
@@ -108,7 +130,7 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
 
 def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                      K: torch.Tensor, target: torch.Tensor, steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR,
-                     backend: str = "auto", lambda_dssim: float | None = None) -> dict:
+                     backend: str = "auto", lambda_dssim: float | None = None, patience: int = 0) -> dict:
     """Optimise one camera's pose against its image with the Gaussians frozen (module docstring).
 
     Args:
@@ -119,29 +141,40 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
         steps: Adam steps (0 keeps the start).
         lr: first Adam rate of (omega, u) (:func:`testpose_lr`).
         lambda_dssim: SSIM weight of the loss (training's default when None).
+        patience: stop once this many steps in a row have not lowered the lowest loss seen (the
+            rate schedule stays the one of ``steps``); 0 (the default): every step is run.
 
     Returns:
         ``cam_from_world`` [4, 4] the pose kept (detached), ``loss_start``, ``loss_end`` (of the pose
-        kept), ``best_step`` (0 = the start), ``trans_scale``.
+        kept), ``best_step`` (0 = the start), ``trans_scale``, ``delta`` [6] the correction kept
+        (zeros at the start), ``steps_run`` (Adam steps taken: ``steps`` unless stopped early).
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
+    if patience < 0:
+        raise ValueError(f"patience must be >= 0, got {patience}")
     if lambda_dssim is None:
         from splat_train.config import TrainConfig
 
         lambda_dssim = TrainConfig().lambda_dssim
     frozen = {k: v.detach() for k, v in params.items()}
+    # what does not depend on the pose, once: activations and the SH pair
+    scales, opacities, quats = activated(frozen)
+    colors = (frozen["sh_dc"], frozen["sh_rest"])
     cw0 = cam_from_world.detach()
     height, width = int(target.shape[0]), int(target.shape[1])
     scale = scene_depth(frozen["means"], cw0)
     delta = torch.zeros(6, dtype=cw0.dtype, device=cw0.device, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
     bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=cw0.device)
-    best = (math.inf, cw0, 0)
+    best = (math.inf, cw0, 0, delta.detach().clone())
     loss_start = None
+    steps_run = 0
     for step in range(steps + 1):
+        steps_run = step
         cw = se3_correction(delta, scale) @ cw0
-        out = render_params(frozen, sh_degree, cw, K, width, height, bg, backend)
+        out = rasterize(frozen["means"], quats, scales, opacities, colors, cw, K, width, height, background=bg,
+                        sh_degree=sh_degree, backend=backend, kernel_camera_grad=True)
         loss, _, _ = photometric_loss(out["rgb"], target, lambda_dssim)
         value = float(loss.detach())
         if loss_start is None:
@@ -150,8 +183,8 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             log.warning("non-finite test-pose loss at step %d: keeping the best pose so far", step)
             break
         if value < best[0]:
-            best = (value, cw.detach().clone(), step)
-        if step == steps:
+            best = (value, cw.detach().clone(), step, delta.detach().clone())
+        if step == steps or (patience and step - best[2] >= patience):
             break
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -159,12 +192,12 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
             g["lr"] = testpose_lr(step, steps, lr)
         opt.step()
     return {"cam_from_world": best[1], "loss_start": loss_start, "loss_end": best[0], "best_step": best[2],
-            "trans_scale": scale}
+            "trans_scale": scale, "delta": best[3], "steps_run": steps_run}
 
 
 def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
                  steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
-                 backend: str = "auto", names: str | Path | None = None) -> dict:
+                 backend: str = "auto", names: str | Path | None = None, patience: int = 0) -> dict:
     """The test-pose protocol on a camera folder: refined cameras, renders and a record.
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
@@ -188,23 +221,30 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     for v in views:
         cw, K = camera_tensors(v.camera, device)
         target = torch.as_tensor(v.image, device=device)
-        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran)
+        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran, patience=patience)
         with torch.no_grad():
             before = render_params(params, cloud.sh_degree, cw, K, v.camera.width, v.camera.height, bg, ran)
             after = render_params(params, cloud.sh_degree, res["cam_from_world"], K, v.camera.width,
                                   v.camera.height, bg, ran)
         rgb = after["rgb"].clamp(0.0, 1.0)
         write_image(out / "renders" / render_name(v.name), rgb.cpu().numpy())
-        new_cw = res["cam_from_world"].cpu().double().numpy()[:3]
+        # the kept correction applied in float64 to the camera as read (the start itself when
+        # best_step is 0), not the float32 pose the renders used: no float32 round trip in the
+        # written cameras and the recorded pose change
+        start = np.eye(4)
+        start[:3] = v.camera.cam_from_world
+        corr = se3_correction(res["delta"].detach().cpu().double(), res["trans_scale"]).numpy()
+        new_cw = (corr @ start)[:3]
         refined.append(Camera(v.name, v.camera.width, v.camera.height, v.camera.K, new_cw))
         rot_deg, trans = pose_change(v.camera.cam_from_world, new_cw)
         per_view[v.name] = {"rotation_deg": rot_deg, "translation": trans,
                             "translation_rel_depth": trans / res["trans_scale"], "scene_depth": res["trans_scale"],
                             "loss_start": res["loss_start"], "loss_end": res["loss_end"],
-                            "best_step": res["best_step"],
+                            "best_step": res["best_step"], "steps_run": res["steps_run"],
                             "psnr_start": psnr(before["rgb"].clamp(0.0, 1.0), target), "psnr_end": psnr(rgb, target)}
     write_text_model(out / "sparse" / "0", refined)
-    record = {"protocol": PROTOCOL_NAME, "steps": int(steps), "optimizer": "Adam", "lr": float(lr),
+    record = {"protocol": PROTOCOL_NAME, "steps": int(steps), "patience": int(patience), "optimizer": "Adam",
+              "lr": float(lr),
               "lr_final": testpose_lr(max(steps - 1, 0), steps, lr),
               "loss": "photometric (splat_train.losses.photometric_loss)", "backend": ran, "device": str(device),
               "start": str(cameras), "views": per_view,

@@ -102,12 +102,17 @@ struct Block {
   D det;
 };
 
+// Lane l of the block starting at entry i0 holds Gaussian i0 + l, or idx[i0 + l] with a list of
+// Gaussian indices idx (the camera-only backward's Gaussians with a non-zero cotangent).
+inline int64_t row(const int64_t* idx, int64_t k) { return idx != nullptr ? idx[k] : k; }
+
 template <typename T>
-inline void load_block(int64_t i0, int64_t n, const T* means, const T* quats, const T* scales, Block& B) {
+inline void load_block(int64_t i0, int64_t n, const T* means, const T* quats, const T* scales, Block& B,
+                       const int64_t* idx = nullptr) {
   B.nl = (int)std::min<int64_t>(LN, n - i0);
   for (int l = 0; l < LN; ++l) {
     const bool real = l < B.nl;
-    const int64_t i = i0 + (real ? l : 0);
+    const int64_t i = row(idx, i0 + (real ? l : 0));
     for (int k = 0; k < 3; ++k) B.m[k][l] = (double)means[3 * i + k];
     for (int k = 0; k < 4; ++k) B.q0[k][l] = (double)quats[4 * i + k];
     for (int k = 0; k < 3; ++k) B.s[k][l] = (double)scales[3 * i + k];
@@ -233,10 +238,10 @@ struct SH {
 
 // The first nb SH coefficients of the block's Gaussians, transposed: co[3 k + ch][lane].
 template <int NB, typename T>
-inline void load_sh_n(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+inline void load_sh_n(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co, const int64_t* idx) {
   const int nr = NB > 0 ? 3 * (NB - 1) : 3 * (nb - 1);
   for (int l = 0; l < LN; ++l) {
-    const int64_t i = i0 + (l < B.nl ? l : 0);
+    const int64_t i = row(idx, i0 + (l < B.nl ? l : 0));
     const T* dc = sh.dc + i * sh.dc_stride;
     const T* src = sh.rest + i * sh.rest_stride;
     for (int j = 0; j < 3; ++j) co[j][l] = (double)dc[j];
@@ -296,18 +301,18 @@ inline bool sh16_block(const Block& B, int nb, const SH<T>& sh) {
 }
 
 template <typename T>
-inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co) {
+inline void load_sh(const Block& B, int64_t i0, int nb, const SH<T>& sh, D* co, const int64_t* idx = nullptr) {
 #if defined(__AVX512VL__)
   if constexpr (sizeof(T) == 4) {
-    if (sh16_block(B, nb, sh)) {
+    if (idx == nullptr && sh16_block(B, nb, sh)) {
       load_sh16_block(sh.dc + i0 * sh.dc_stride, sh.dc_stride, sh.rest + i0 * sh.rest_stride,
                       sh.rest_stride, co);
       return;
     }
   }
 #endif
-  if (nb == 16) load_sh_n<16>(B, i0, nb, sh, co);  // degree 3: constant trip counts
-  else load_sh_n<0>(B, i0, nb, sh, co);
+  if (nb == 16) load_sh_n<16>(B, i0, nb, sh, co, idx);  // degree 3: constant trip counts
+  else load_sh_n<0>(B, i0, nb, sh, co, idx);
 }
 
 template <typename T>
@@ -422,22 +427,34 @@ inline void store_sh(const D* vco, const Block& B, int64_t i0, int nb, const SH<
   }
 }
 
-template <typename T>
-void backward_impl(int64_t n, const double* camp, const T* means, const T* quats, const T* scales,
+// GAUSS: the Gaussians' gradients (v_means .. v_rest), else the camera's alone (v_cam), over the
+// n Gaussians listed in idx (every other Gaussian's cotangent rows must be zero: it would add
+// nothing); a compile-time flag, so that the camera-only pass carries none of the quaternion,
+// scale and SH-coefficient chains.
+template <typename T, bool GAUSS>
+void backward_impl(int64_t n, const int64_t* idx, const double* camp, const T* means, const T* quats, const T* scales,
                    int64_t sh_deg, const SH<T> sh, const T* v_means2d, int64_t sm, const T* v_conics,
                    int64_t sc, const T* v_feat, int64_t sf, T* v_means, T* v_quats, T* v_scales,
-                   T* v_dc, T* v_rest, int64_t* next) {
+                   T* v_dc, T* v_rest, double* v_cam, int64_t* next) {
   const Cam cam(camp);
   const int nb = sh_deg >= 0 ? (int)((sh_deg + 1) * (sh_deg + 1)) : 0;
+  D lane;
+  for (int l = 0; l < LN; ++l) lane[l] = (double)l;
   for (int64_t ch; (ch = __atomic_fetch_add(next, 1, __ATOMIC_RELAXED)) * CHUNK < n;) {
     const int64_t i1 = std::min(n, (ch + 1) * CHUNK);
+    // camera gradient of this chunk, per lane: dL/dR (9, row-major) and dL/dt (3) through the
+    // camera-frame means and T = J R; then (3) the sum over Gaussians of dL/d(mean) through the
+    // SH view direction (mean - centre), i.e. -dL/d(centre)
+    D acc[15];
+    for (int k = 0; k < 15; ++k) acc[k] = bc(0.0);
     for (int64_t ib = ch * CHUNK; ib < i1; ib += LN) {
       Block P;
-      load_block(ib, n, means, quats, scales, P);
+      load_block(ib, n, means, quats, scales, P, idx);
       project_block(cam, P);
+      const Mk real = lane < bc((double)P.nl);  // padding lanes repeat a real Gaussian: not summed
       D g0, g1, g2, vu, vv, vdep, vcin[3];
       for (int l = 0; l < LN; ++l) {
-        const int64_t i = ib + (l < P.nl ? l : 0);
+        const int64_t i = row(idx, ib + (l < P.nl ? l : 0));
         g0[l] = (double)v_conics[sc * i]; g1[l] = (double)v_conics[sc * i + 1]; g2[l] = (double)v_conics[sc * i + 2];
         vu[l] = (double)v_means2d[sm * i]; vv[l] = (double)v_means2d[sm * i + 1];
         vdep[l] = (double)v_feat[sf * i + 3];
@@ -500,6 +517,22 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
         const D zero = bc(0.0);
         for (int j = 0; j < 3; ++j)
           vm[j] = P.ok ? cam.R[j] * vx + cam.R[3 + j] * vy + cam.R[6 + j] * vz : zero;
+        if (v_cam != nullptr) {
+          // p = R m + t: dR += g_p m^T, dt += g_p; T = J R: dR[k][j] += sum_r J[r][k] vT[r][j]
+          // (J = [[J0, 0, J2], [0, J4, J5]]). Selects, not products with 0: a culled lane's
+          // Jacobian or vT may be inf / NaN, and the torch code passes it no gradient.
+          const Mk use = P.ok & real;
+          const D gp[3] = {vx, vy, vz};
+          for (int i = 0; i < 3; ++i) {
+            for (int j = 0; j < 3; ++j) acc[3 * i + j] += use ? gp[i] * P.m[j] : zero;
+            acc[9 + i] += use ? gp[i] : zero;
+          }
+          for (int j = 0; j < 3; ++j) {
+            acc[j] += use ? P.J0 * vT[j] : zero;
+            acc[3 + j] += use ? P.J4 * vT[3 + j] : zero;
+            acc[6 + j] += use ? P.J2 * vT[j] + P.J5 * vT[3 + j] : zero;
+          }
+        }
         for (int k = 0; k < 4; ++k) vq[k] = P.ok ? vq[k] : zero;
         for (int j = 0; j < 3; ++j) vs[j] = P.ok ? vs[j] : zero;
       }
@@ -508,15 +541,16 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
         D d[3], norm, basis[16], co[48];
         view_dir(cam, P.m, d, norm);
         sh_basis((int)sh_deg, d, basis);
-        load_sh(P, ib, nb, sh, co);
+        load_sh(P, ib, nb, sh, co, idx);
         D vcol[3];
         for (int ch3 = 0; ch3 < 3; ++ch3) {
           D v = bc(0.0);
           for (int k = 0; k < nb; ++k) v += basis[k] * co[3 * k + ch3];
           vcol[ch3] = (v + 0.5 >= bc(0.0)) ? vcin[ch3] : bc(0.0);
         }
-        for (int k = 0; k < nb; ++k)
-          for (int ch3 = 0; ch3 < 3; ++ch3) vco[3 * k + ch3] = basis[k] * vcol[ch3];
+        if constexpr (GAUSS)
+          for (int k = 0; k < nb; ++k)
+            for (int ch3 = 0; ch3 < 3; ++ch3) vco[3 * k + ch3] = basis[k] * vcol[ch3];
         if (sh_deg >= 1) {
           D sk[16], vd[3] = {bc(0.0), bc(0.0), bc(0.0)};
           for (int k = 1; k < nb; ++k)
@@ -524,16 +558,37 @@ void backward_impl(int64_t n, const double* camp, const T* means, const T* quats
           sh_grad_dot((int)sh_deg, d, sk, vd);
           const D dot = vd[0] * d[0] + vd[1] * d[1] + vd[2] * d[2];
           const Mk far = norm > bc(1e-12);
-          for (int j = 0; j < 3; ++j) vm[j] = far ? vm[j] + (vd[j] - d[j] * dot) / norm : vm[j];
+          for (int j = 0; j < 3; ++j) {
+            const D vdir = (vd[j] - d[j] * dot) / norm;
+            vm[j] = far ? vm[j] + vdir : vm[j];
+            if (v_cam != nullptr) acc[12 + j] += (far & real) ? vdir : bc(0.0);
+          }
         }
       }
-      for (int l = 0; l < P.nl; ++l) {
-        const int64_t i = ib + l;
-        for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
-        for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
-        for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
+      if constexpr (GAUSS) {
+        for (int l = 0; l < P.nl; ++l) {
+          const int64_t i = ib + l;
+          for (int j = 0; j < 3; ++j) v_means[3 * i + j] = (T)vm[j][l];
+          for (int j = 0; j < 4; ++j) v_quats[4 * i + j] = (T)vq[j][l];
+          for (int j = 0; j < 3; ++j) v_scales[3 * i + j] = (T)vs[j][l];
+        }
+        if (sh_deg >= 0) store_sh(vco, P, ib, nb, sh, v_dc, v_rest);
       }
-      if (sh_deg >= 0) store_sh(vco, P, ib, nb, sh, v_dc, v_rest);
+    }
+    if (v_cam != nullptr) {
+      // this chunk's row of 12: dL/dR (row-major) and dL/dt, lanes summed in order; the centre
+      // c = -R^T t adds dL/dt += R vdir and dL/dR[i][j] += t[i] vdir[j] (dL/dc = -vdir). One
+      // row per chunk, summed by the caller in chunk order: the thread count changes nothing.
+      double s[15];
+      for (int k = 0; k < 15; ++k) {
+        s[k] = 0.0;
+        for (int l = 0; l < LN; ++l) s[k] += acc[k][l];
+      }
+      double* out = v_cam + 12 * ch;
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) out[3 * i + j] = s[3 * i + j] + cam.t[i] * s[12 + j];
+        out[9 + i] = s[9 + i] + cam.R[3 * i] * s[12] + cam.R[3 * i + 1] * s[13] + cam.R[3 * i + 2] * s[14];
+      }
     }
   }
 }
@@ -547,7 +602,10 @@ extern "C" {
 // input, no concatenation; colour 0 without SH), and the backward reads the cotangents of
 // means2d, conics and that row through row strides (sm, sc, sf elements): the blend backward's
 // [N, 6 + F] gradient columns are read in place, where torch copied each strided slice.
-int splat_project_abi_version() { return 3; }
+// ABI 4: the backward's optional camera gradient (v_cam: one row of 12 doubles per chunk of
+// CHUNK Gaussians, dL/dR row-major then dL/dt; null skips it); splat_project_camgrad_*: the
+// camera gradient alone over a list of Gaussians (the test-pose protocol's frozen model).
+int splat_project_abi_version() { return 4; }
 
 #define SPLAT_PROJECT_ENTRIES(T, SFX)                                                                  \
   void splat_project_forward_##SFX(int64_t n, const double* cam, const T* means, const T* quats,       \
@@ -564,10 +622,20 @@ int splat_project_abi_version() { return 3; }
                                     const T* sh_rest, int64_t rest_stride, int64_t rest_k,             \
                                     const T* v_means2d, int64_t sm, const T* v_conics, int64_t sc,     \
                                     const T* v_feat, int64_t sf, T* v_means, T* v_quats, T* v_scales,  \
-                                    T* v_dc, T* v_rest, int64_t* next) {                               \
+                                    T* v_dc, T* v_rest, double* v_cam, int64_t* next) {                \
     const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
-    backward_impl<T>(n, cam, means, quats, scales, sh_deg, sh, v_means2d, sm, v_conics, sc, v_feat, sf, \
-                     v_means, v_quats, v_scales, v_dc, v_rest, next);                                   \
+    backward_impl<T, true>(n, nullptr, cam, means, quats, scales, sh_deg, sh, v_means2d, sm, v_conics, sc, \
+                           v_feat, sf, v_means, v_quats, v_scales, v_dc, v_rest, v_cam, next);          \
+  }                                                                                                     \
+  void splat_project_camgrad_##SFX(int64_t n, const int64_t* idx, const double* cam, const T* means,   \
+                                   const T* quats, const T* scales, int64_t sh_deg, const T* sh_dc,     \
+                                   int64_t dc_stride, const T* sh_rest, int64_t rest_stride,           \
+                                   int64_t rest_k, const T* v_means2d, int64_t sm, const T* v_conics,  \
+                                   int64_t sc, const T* v_feat, int64_t sf, double* v_cam,             \
+                                   int64_t* next) {                                                    \
+    const SH<T> sh{sh_dc, dc_stride, sh_rest, rest_stride, rest_k};                                     \
+    backward_impl<T, false>(n, idx, cam, means, quats, scales, sh_deg, sh, v_means2d, sm, v_conics, sc, \
+                            v_feat, sf, nullptr, nullptr, nullptr, nullptr, nullptr, v_cam, next);      \
   }
 
 SPLAT_PROJECT_ENTRIES(float, f32)

@@ -6,8 +6,14 @@ compares values and gradients in float64). One C pass per Gaussian replaces some
 ops and their autograd graph: at 100k Gaussians that graph cost ~1.3 us per Gaussian per
 iteration (benchmarks/profile_rasterizer.py).
 
-Only for leaf-free cameras: when ``cam_from_world`` or ``K`` requires grad (pose refinement)
-the caller must use the torch path, which differentiates through the camera.
+The camera: ``K`` gets no gradient (focal refinement uses the torch path). ``cam_from_world``
+gets one only when asked (``camera_grad=True``; the test-pose protocol, :mod:`splat_train.testpose`):
+the backward then also sums, per chunk of 1024 Gaussians, dL/dR and dL/dt of the
+world -> camera transform through the camera-frame means, the covariance's ``J R`` and the SH
+view direction's camera centre, the same chain autograd runs through the torch code (float64
+maths; tests/test_train_testpose.py checks it against that code and against finite
+differences). Called without it on a camera that requires grad, :func:`project_sh_cpu` raises,
+and the caller uses the torch path (training's pose refinement does).
 
 SH coefficients come as one [N, K, 3] tensor or as the pair (DC [N, 3], rest [N, K - 1, 3]),
 the trainer's ``sh_dc`` / ``sh_rest``, read in place with their gradients written directly
@@ -40,12 +46,16 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         f.argtypes = [i64, vp, vp, vp, vp] + sh + [i64] + [vp] * 8
         f.restype = None
         b = getattr(lib, f"splat_project_backward_{dt}")
-        b.argtypes = [i64, vp, vp, vp, vp] + sh + [vp, i64] * 3 + [vp] * 6
+        b.argtypes = [i64, vp, vp, vp, vp] + sh + [vp, i64] * 3 + [vp] * 7
         b.restype = None
+        c = getattr(lib, f"splat_project_camgrad_{dt}")
+        c.argtypes = [i64, vp, vp, vp, vp, vp] + sh + [vp, i64] * 3 + [vp] * 2
+        c.restype = None
     return lib
 
 
-_KERNELS.setdefault("project", _Kernel("project", "project.cpp", 3, True, "splat_project_abi_version", _declare))
+_KERNELS.setdefault("project", _Kernel("project", "project.cpp", 4, True, "splat_project_abi_version", _declare))
+_CHUNK = 1024  # Gaussians per work item of the kernel (CHUNK in project.cpp): one camera-gradient row each
 
 
 def available() -> bool:
@@ -101,10 +111,13 @@ class _ProjectSH(torch.autograd.Function):
 
     Outputs means2d [N, 2], conics [N, 3], feat [N, 4] = (r, g, b, depth) (colour 0 without
     SH; the blend's feature rows as they are, no concatenation), then the non-differentiable
-    cov2d, radii, rect, visible."""
+    cov2d, radii, rect, visible.
+
+    ``cam_from_world``: the [4, 4] / [3, 4] tensor ``cam`` was made from, or None; given, it
+    receives dL/d(cam_from_world) (rows 0-2; a [4, 4]'s last row gets zeros)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, sh_dc, sh_rest, cam, sh_degree, width, height):
+    def forward(ctx, means, quats, scales, sh_dc, sh_rest, cam, sh_degree, width, height, cam_from_world=None):
         lib = _KERNELS["project"].load()
         dt = means.dtype
         sfx = _suffix(dt)
@@ -123,6 +136,7 @@ class _ProjectSH(torch.autograd.Function):
                       _ptr(radii), _ptr(rect), _ptr(visible))
         ctx.save_for_backward(m, q, s, dc, rest, cam)
         ctx.deg = deg
+        ctx.cw_meta = None if cam_from_world is None else (cam_from_world.shape, cam_from_world.dtype)
         ctx.set_materialize_grads(False)  # no zero tensors for unused outputs (None handled)
         ctx.mark_non_differentiable(cov2d, radii, rect, visible)
         return means2d, conics, feat, cov2d, radii, rect, visible
@@ -133,19 +147,46 @@ class _ProjectSH(torch.autograd.Function):
         lib = _KERNELS["project"].load()
         dt, n, deg = m.dtype, m.shape[0], ctx.deg
         cots = [_rows(v, dt, n, w) for v, w in ((v_means2d, 2), (v_conics, 3), (v_feat, 4))]
-        v_m, v_q, v_s, v_dc = (torch.empty(t.shape, dtype=t.dtype) for t in (m, q, s, dc))
-        v_rest = torch.empty(rest.shape, dtype=rest.dtype) if rest is not None else None
-        if deg >= 0:
-            shp, vshp = _sh_ptrs(dc, rest), _sh_ptrs(v_dc, v_rest)
-            vsh = [vshp[0], vshp[2]]  # same layout as the coefficients
-        else:
-            shp, vsh = [None, 0, None, 0, 0], [None, None]
-        _run_threaded(getattr(lib, f"splat_project_backward_{_suffix(dt)}"), n, _ptr(cam), _ptr(m), _ptr(q),
-                      _ptr(s), deg, *shp, *(x for t, st in cots for x in (_ptr(t), st)),
-                      _ptr(v_m), _ptr(v_q), _ptr(v_s), *vsh)
+        gauss = any(ctx.needs_input_grad[:5])
+        want_cam = ctx.cw_meta is not None and ctx.needs_input_grad[9]
+        shp = _sh_ptrs(dc, rest) if deg >= 0 else [None, 0, None, 0, 0]
+        cot_ptrs = [x for t, st in cots for x in (_ptr(t), st)]
+        sfx = _suffix(dt)
+        v_m = v_q = v_s = v_dc = v_rest = v_cam = None
+        if gauss:
+            v_m, v_q, v_s, v_dc = (torch.empty(t.shape, dtype=t.dtype) for t in (m, q, s, dc))
+            v_rest = torch.empty(rest.shape, dtype=rest.dtype) if rest is not None else None
+            vsh = [None, None]
+            if deg >= 0:
+                vshp = _sh_ptrs(v_dc, v_rest)
+                vsh = [vshp[0], vshp[2]]  # same layout as the coefficients
+            if want_cam:
+                v_cam = torch.zeros(max(1, (n + _CHUNK - 1) // _CHUNK), 12, dtype=torch.float64)
+            _run_threaded(getattr(lib, f"splat_project_backward_{sfx}"), n, _ptr(cam), _ptr(m), _ptr(q),
+                          _ptr(s), deg, *shp, *cot_ptrs, _ptr(v_m), _ptr(v_q), _ptr(v_s), *vsh,
+                          None if v_cam is None else _ptr(v_cam))
+        elif want_cam:
+            # the Gaussians frozen: the camera's gradient alone, over the Gaussians whose
+            # cotangent rows are not all zero (the blend gives zero rows to every Gaussian it did
+            # not reach: about half of them, culled or behind the last contributor; a zero row
+            # adds exactly nothing to the sum)
+            live = cots[0][0].ne(0).any(1) | cots[1][0].ne(0).any(1) | cots[2][0].ne(0).any(1)
+            idx = live.nonzero().view(-1)
+            k = idx.numel()
+            v_cam = torch.zeros(max(1, (k + _CHUNK - 1) // _CHUNK), 12, dtype=torch.float64)
+            _run_threaded(getattr(lib, f"splat_project_camgrad_{sfx}"), k, _ptr(idx), _ptr(cam), _ptr(m), _ptr(q),
+                          _ptr(s), deg, *shp, *cot_ptrs, _ptr(v_cam))
+        v_cw = None
+        if v_cam is not None:
+            shape, cw_dt = ctx.cw_meta
+            g = v_cam.sum(0)  # chunk rows in order (one serial sum: no thread dependence)
+            v_cw = torch.zeros(shape, dtype=torch.float64)
+            v_cw[:3, :3] = g[:9].view(3, 3)
+            v_cw[:3, 3] = g[9:]
+            v_cw = v_cw.to(cw_dt)
         if deg < 0:
-            return v_m, v_q, v_s, None, None, None, None, None, None
-        return v_m, v_q, v_s, v_dc, v_rest, None, None, None, None
+            v_dc = v_rest = None
+        return v_m, v_q, v_s, v_dc, v_rest, None, None, None, None, v_cw
 
 
 def project_sh_cpu(
@@ -160,6 +201,7 @@ def project_sh_cpu(
     height: int,
     near: float,
     eps2d: float,
+    camera_grad: bool = False,
 ) -> tuple[Projected, Tensor, Tensor]:
     """Projection and per-Gaussian colour in one C pass (CPU tensors, float32 or float64).
 
@@ -169,9 +211,11 @@ def project_sh_cpu(
             coefficients (K >= (sh_degree + 1) ** 2) or the pair (DC [N, 3], rest [N, K - 1, 3]),
             e.g. the trainer's ``sh_dc`` and ``sh_rest`` parameters: read in place and given
             their gradients directly, with no [N, K, 3] concatenation per call.
-        cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera (no gradient: see module doc).
-        K: [3, 3] intrinsics; width, height: image size; near, eps2d as in
+        cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera.
+        K: [3, 3] intrinsics (no gradient); width, height: image size; near, eps2d as in
             :func:`splat_train.projection.project_gaussians`.
+        camera_grad: differentiate ``cam_from_world`` too (when it requires grad; module doc).
+            False refuses a camera that requires grad.
 
     Returns:
         (:class:`splat_train.projection.Projected`, colours [N, 3], feat [N, 4]): the values of
@@ -179,8 +223,9 @@ def project_sh_cpu(
         is (colour, depth) per row, the blend's features with no concatenation (colour 0 when
         ``sh_degree`` is None); ``Projected.depths`` and the SH colours are its columns.
     """
-    if cam_from_world.requires_grad or K.requires_grad:
-        raise ValueError("project_sh_cpu does not differentiate the camera; use project_gaussians for pose refinement")
+    if K.requires_grad or (cam_from_world.requires_grad and not camera_grad):
+        raise ValueError("project_sh_cpu differentiates the pose only with camera_grad=True and never K; "
+                         "use project_gaussians for pose refinement or focal refinement")
     cam = _camera_block(cam_from_world, K, width, height, near, eps2d)
     sh_dc = sh_rest = None
     if sh_degree is not None:
@@ -188,8 +233,9 @@ def project_sh_cpu(
         k = sh_dc.shape[1] if sh_rest is None else 1 + sh_rest.shape[1]
         if k < num_sh_bases(sh_degree):
             raise ValueError(f"sh_degree={sh_degree} needs {num_sh_bases(sh_degree)} SH coefficients, got {k}")
+    cw = cam_from_world if camera_grad and cam_from_world.requires_grad else None
     means2d, conics, feat, cov2d, radii, rect, visible = _ProjectSH.apply(
-        means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height))
+        means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height), cw)
     proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=feat[:, 3], radii=radii, rect=rect,
                      visible=visible)
     return proj, (colors if sh_degree is None else feat[:, :3]), feat
