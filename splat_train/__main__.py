@@ -129,8 +129,10 @@ def _testpose_parser() -> argparse.ArgumentParser:
                         "every step; recorded in testpose.json with each view's steps_run)")
     p.add_argument("--lr", type=float, default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--rasterizer", default="auto", choices=list(BACKENDS))
+    p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
+                   help="where to render and optimise (auto: CUDA when available, else CPU; default cpu)")
+    p.add_argument("--rasterizer", default="auto", choices=list(BACKENDS), help="rasterizer backend (auto: "
+                   "gsplat on CUDA, the C++ kernel on a CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
     return p
@@ -188,10 +190,11 @@ def main(argv: list[str] | None = None) -> int:
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train testpose"):
             return 2
+        from splat_train.config import resolve_device
         from splat_train.testpose import run_testpose
 
         rec = run_testpose(args.model, args.cameras, args.images, args.out, steps=args.steps, lr=args.lr,
-                           device=args.device, backend=args.rasterizer, names=args.image_list,
+                           device=resolve_device(args.device), backend=args.rasterizer, names=args.image_list,
                            patience=args.patience)
         print(f"test-pose: {len(rec['views'])} views, {rec['steps']} steps, mean rotation change "
               f"{rec['mean_rotation_deg'] or 0.0:.3f} deg -> {args.out}")

@@ -99,7 +99,7 @@ def _mode_run(d: Path, scene: str, n: int, init: str, mode: str) -> None:
     if init == "vggt":  # scored under the test-pose protocol too: 1 dB above the strict PSNR
         _write(d / "testpose" / "metrics.json", {"psnr": p + 1.0, "ssim": 0.6, "lpips_alex": 0.25,
                                                  "lpips_vgg": 0.35, "n_images": 2, "per_image": []})
-        _write(d / "testpose" / "refine" / "testpose.json", {"protocol": "test-pose", "steps": 500,
+        _write(d / "testpose" / "refine" / "testpose.json", {"protocol": "test-pose", "steps": 500, "patience": 100,
                                                              "mean_rotation_deg": 0.5, "views": {}})
     _write(d / "train" / "train.json", {"wall_time_s": 100.0 + n, "num_gaussians": 1000 * n, "iterations": 1000})
     it = np.arange(0, 1001, 100)

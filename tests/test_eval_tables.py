@@ -71,6 +71,15 @@ def test_both_protocols_side_by_side(runs, tmp_path):
     assert math.isnan(r3["PSNR [test-pose] colmap (matched)"])
     t2 = table_two(runs)
     assert {"PSNR [strict]", "PSNR [test-pose]", "LPIPS-vgg [test-pose]"} <= set(t2.columns)
+    # the test-pose settings every run recorded are stated once, with the runs they cover
+    from evaluation.reports.tables import protocol_note
+
+    n_tp = int(runs["testpose_steps"].notna().sum())
+    assert n_tp == int((runs["init"] == "vggt").sum()) > 0
+    note = protocol_note(runs)
+    assert ("at most 500 Adam steps per held-out view, a view ending after 100 steps without a lower loss, "
+            f"in {n_tp} runs (docs") in note
+    assert protocol_note(runs[runs["init"] == "colmap"]) is None
     # a mode folder with only the test-pose metrics has no strict PSNR
     from evaluation.reports.results import read_run
 

@@ -175,6 +175,14 @@ def test_testpose_protocol_switch(tmp_path):
     counts, out = dry_run(tmp_path / "on", synth_config(initialisers=["oracle"], views=[3],
                                                         evaluation={"testpose": True}))
     assert jobs(counts, "image_metrics") == jobs(counts, "testpose_refine") == jobs(counts, "testpose_metrics") == 1
+    cmd = next(line for line in out.splitlines() if "splat_train testpose" in line)
+    assert "--device auto" in cmd and "--steps" not in cmd and "--patience" not in cmd  # the CLI's defaults
+    (tmp_path / "set").mkdir()
+    counts, out = dry_run(tmp_path / "set", synth_config(initialisers=["oracle"], views=[3], train={"iterations": 10, "device": "cpu"},
+                                                         evaluation={"testpose": True, "testpose_steps": 50,
+                                                                     "testpose_patience": 10}))
+    cmd = next(line for line in out.splitlines() if "splat_train testpose" in line)
+    assert "--device cpu" in cmd and "--steps 50" in cmd and "--patience 10" in cmd
     counts, out = dry_run(tmp_path / "off", synth_config(initialisers=["oracle"], views=[3],
                                                          evaluation={"testpose": False}))
     assert jobs(counts, "image_metrics") == 1

@@ -30,7 +30,7 @@ from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
 from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
-from evaluation.reports.tables import build_tables, table_notes
+from evaluation.reports.tables import build_tables, protocol_note, table_notes
 
 __all__ = ["render_grid_html", "run_report"]
 
@@ -195,15 +195,18 @@ def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
 
 
 def _heldout_cameras_note(runs: pd.DataFrame) -> list[str]:
-    """One sentence: which training cameras the held-out Sim(3) alignments used (issue 19)."""
+    """Which training cameras the held-out Sim(3) alignments used, and the test-pose protocol's
+    settings (:func:`evaluation.reports.tables.protocol_note`) where it ran."""
+    note = protocol_note(runs)
+    out = [f"<p>{html.escape(note)}</p>"] if note else []
     if "heldout_cameras" not in runs or runs["heldout_cameras"].isna().all():
-        return []
+        return out
     counts = runs["heldout_cameras"].dropna().value_counts().sort_index()
     words = {"initialiser": "the initialiser's training cameras",
              "refined": "the training cameras refined during training (pose refinement)"}
     text = "; ".join(f"{words.get(k, k)}: {v} run{'s' if v != 1 else ''}" for k, v in counts.items())
-    return [f"<p>Held-out test cameras were aligned (Sim(3) on the training-camera centres) with "
-            f"{html.escape(text)}.</p>"]
+    return out + [f"<p>Held-out test cameras were aligned (Sim(3) on the training-camera centres) with "
+                  f"{html.escape(text)}.</p>"]
 
 
 def _study_section(results: Path, images: Path) -> list[str]:

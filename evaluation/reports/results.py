@@ -34,7 +34,8 @@ file               what is read
                    folder's ``testpose/``, never by the name look-up above:
                    ``testpose/metrics.json`` (columns ``testpose_psnr``, ``testpose_ssim``,
                    ``testpose_lpips_alex``, ``testpose_lpips_vgg``) and
-                   ``testpose/refine/testpose.json`` (``testpose_rot_deg_mean``)
+                   ``testpose/refine/testpose.json`` (``testpose_rot_deg_mean``,
+                   ``testpose_steps``, ``testpose_patience``)
 =================  ==========================================================================
 
 A scene without reference cameras has no ``pose.json``; a failed COLMAP run has only
@@ -81,7 +82,7 @@ RUN_COLUMNS = [
     "dataset", "scene", "n", "init", "bridge_mode", "success_paper", "success_gated", "has_reference",
     "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
     "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
-    *TESTPOSE_COLUMNS.values(), "testpose_rot_deg_mean",
+    *TESTPOSE_COLUMNS.values(), "testpose_rot_deg_mean", "testpose_steps", "testpose_patience",
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "recipe", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
     "repeats", "repeats_success_rate", "repeats_registered_min", "repeats_registered_max", "heldout_cameras",
@@ -308,6 +309,8 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         "n_test": _first(metrics, "n_images"),
         **{tp: _metric(tp_metrics, k) for k, tp in TESTPOSE_COLUMNS.items()},
         "testpose_rot_deg_mean": _first(tp_record, "mean_rotation_deg"),
+        "testpose_steps": _first(tp_record, "steps"),
+        "testpose_patience": _first(tp_record, "patience"),
         **{k: _first(pose, k) for k in ("ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg",
                                          "rpe_trans_dir_deg", "rel_rot_err_mean_deg", "rel_rot_err_max_deg",
                                          "fy_fx_max_dev")},

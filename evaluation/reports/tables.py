@@ -218,13 +218,31 @@ def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: s
     return notes
 
 
-def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig()) -> str:
-    """The Markdown document: criteria, then every non-empty table (empty ones are named once
-    at the end; a table that cannot be filled says why instead)."""
+def protocol_note(runs: pd.DataFrame) -> str | None:
+    """One sentence on the test-pose protocol's settings over the runs it scored (steps and
+    patience as their testpose.json records them); None when no run has it."""
+    if "testpose_steps" not in runs or runs["testpose_steps"].isna().all():
+        return None
+    tp = runs[runs["testpose_steps"].notna()]
+    pairs = sorted({(int(s), int(p) if pd.notna(p) else 0) for s, p in zip(tp["testpose_steps"], tp["testpose_patience"])})
+    words = "; ".join(f"at most {s} Adam steps per held-out view" + (f", a view ending after {p} steps without a "
+                                                                        "lower loss" if p else "")
+                      for s, p in pairs)
+    same = "" if len(pairs) == 1 else " (the runs differ: compare like with like)"
+    return (f"Held-out protocols: [strict] renders each test view at its reference pose mapped by the Sim(3) "
+            f"fitted on the training cameras (the paper's); [test-pose] first optimises that pose alone "
+            f"against the test image with the model frozen: {words}, in {len(tp)} runs{same} "
+            "(docs/protocols.md).")
+
+
+def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig(), note: str | None = None) -> str:
+    """The Markdown document: criteria (and ``note``, e.g. :func:`protocol_note`), then every
+    non-empty table (empty ones are named once at the end; a table that cannot be filled says
+    why instead)."""
     out = ["# Results", "",
            *success_criteria_text(gate),
            "Matched: scenes where COLMAP succeeded (paper criterion) and has held-out metrics at that n; "
-           "delta = ours - COLMAP.", ""]
+           "delta = ours - COLMAP.", *([note] if note else []), ""]
     notes = table_notes(tables)
     empty = []
     for title, df in tables.items():
@@ -253,7 +271,7 @@ def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConf
         runs.to_parquet(tmp, index=False)
     tables = build_tables(runs, gate, lpips, results)
     with atomic_path(out / "tables.md") as tmp:
-        tmp.write_text(tables_markdown(tables, gate) + "\n")
+        tmp.write_text(tables_markdown(tables, gate, protocol_note(runs)) + "\n")
     log.info("tables: %d runs -> %s and %s in %.2f s", len(runs), out / "runs.parquet", out / "tables.md",
              time.perf_counter() - t0)
     return tables

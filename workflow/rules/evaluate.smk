@@ -45,10 +45,13 @@ rule testpose_refine:
     resources:
         mem_mb=2000,
         runtime=short_runtime,
+        gpu=train_gpus,
         cpus_per_task=cpus_per_task,
+    params:
+        args=testpose_args,
     shell:
         "python -m splat_train testpose --model {input.model} --cameras {input.cameras}/0 "
-        "--images {input.test_images} --out {output} > {log} 2>&1"
+        "--images {input.test_images} --out {output} {params.args} > {log} 2>&1"
 
 
 rule testpose_metrics:

@@ -138,6 +138,17 @@ def lpips_args(wildcards):
     return f"--lpips-nets {' '.join(config['evaluation']['lpips_nets'])}"
 
 
+def testpose_args(wildcards):
+    """The test-pose job's device (training's) and, when set, its steps and patience."""
+    ev = config["evaluation"]
+    args = [f"--device {config['train']['device']}"]
+    if ev["testpose_steps"] is not None:
+        args.append(f"--steps {ev['testpose_steps']}")
+    if ev["testpose_patience"]:
+        args.append(f"--patience {ev['testpose_patience']}")
+    return " ".join(args)
+
+
 def has_heldout(wildcards):
     """Held-out evaluation applies: reference cameras and a test split."""
     return has_reference(wildcards.dataset, wildcards.scene) and has_test_split(
