@@ -1,4 +1,4 @@
-"""Repeated, seeded runs of the COLMAP baseline and the spread of their results (issue 10).
+"""Repeated, seeded runs of the COLMAP baseline and the spread of their results.
 
 ``run_colmap_repeats`` runs :func:`evaluation.initialisers.colmap_run.run_colmap` once per seed,
 optionally evaluates each run against reference cameras (ATE, relative rotation error, the

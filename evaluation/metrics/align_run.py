@@ -7,7 +7,7 @@ Outputs (``--out DIR``):
   reference), per-camera centre and rotation residuals, ``rmse``, ``collinearity``,
   ``collinear``, ``used_orientations``, the training and test names used, ``train_cameras``
   (which training cameras the fit used: "initialiser", or "refined" = the trainer's
-  ``cameras_refined`` after pose refinement, issue 19), and
+  ``cameras_refined`` after pose refinement), and
   ``intrinsics``: which intrinsics the test cameras carry ("reference", scaled to the
   test image size, as the seed code did).
 * ``DIR/sparse/0/*.txt``: the reference TEST cameras brought into the prediction frame

@@ -1,5 +1,5 @@
 """Pose accuracy of an initialiser's cameras against reference cameras,
-and the accuracy-gated success of issue 10.
+and the accuracy-gated success (docs/contracts.md).
 
 Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of camera i):
 
@@ -12,7 +12,7 @@ Definitions (cameras matched by image name; ``R_i, t_i`` = cam_from_world of cam
   direction error is the angle between the directions of ``t_ij = t_i - R_i R_j^T t_j``
   (pairs with zero baseline on either side are skipped). ``rpe_rot_deg`` and
   ``rpe_trans_dir_deg`` are means, ``*_max_deg`` maxima; ``rel_rot_err_mean_deg`` /
-  ``rel_rot_err_max_deg`` (issue 10's names) are the same rotation numbers.
+  ``rel_rot_err_max_deg`` (the accuracy gate's names) are the same rotation numbers.
 * ``fy_fx_*``: fy / fx of the predicted PINHOLE cameras (1 for SIMPLE_PINHOLE); a drift away
   from 1 flags a bad model.
 * Success: the two criteria of docs/contracts.md ("Success"), side by side under the same

@@ -1,4 +1,4 @@
-"""Per-run records -> Parquet -> Markdown tables (issue 6 item 6, issue 10 items 1, 2, 4).
+"""Per-run records -> Parquet -> Markdown tables.
 
 * Table I (per dataset and n): COLMAP success k/N under the paper criterion and under the
   accuracy gate (k/N over scenes with reference cameras), VGGT's success the same way;
