@@ -12,46 +12,19 @@ stays the reconstruction's.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-from pathlib import Path
 
 from camio.images import ImageReadError
-from camio.logs import setup_logging
 from camio.outdir import prepare_out, run_stage, typed_line
 from evaluation.initialisers import colmap_repeats
 from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.metrics.pose import add_gate_args, gate_from_args
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
+from evaluation.initialisers.views import add_view_args, parse_training_args
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 
 log = logging.getLogger(__name__)
-
-
-def _read_names(args) -> list[str]:
-    """Training names from --split/--n, --image-list or --names."""
-    if args.split:
-        if args.n is None:
-            raise SystemExit("--split needs --n (the number of training views)")
-        data = json.loads(Path(args.split).read_text())
-        try:
-            return list(data["train"][str(args.n)])
-        except KeyError:
-            raise SystemExit(f"{args.split} has no training list for n = {args.n}; "
-                             f"it has {sorted(data.get('train', {}))}") from None
-    if args.image_list:
-        lst = Path(args.image_list)
-        if not lst.is_file():
-            raise SystemExit(f"error: image list {lst} does not exist")
-        names = [ln.strip() for ln in lst.read_text().splitlines()
-                 if ln.strip() and not ln.startswith("#")]
-        if not names:
-            raise SystemExit(f"error: image list {lst} is empty: one training image name per line")
-        return names
-    if args.names:
-        return list(args.names)
-    raise SystemExit("give the training images: --split JSON --n N, --image-list FILE or --names")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,10 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.colmap_baseline",
                                 description="The train-only COLMAP baseline, seeded and repeatable.")
     p.add_argument("--images", required=True, help="scene image folder")
-    p.add_argument("--split", help="split.json (docs/contracts.md); use with --n")
-    p.add_argument("--n", type=int, help="number of training views (key in split.json)")
-    p.add_argument("--image-list", help="text file with one training image name per line")
-    p.add_argument("--names", nargs="+", help="training image names")
+    add_view_args(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
     p.add_argument("--repeats", type=int, default=1,
@@ -81,12 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     add_fallback_args(p)
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
-    args = p.parse_args(argv)
-    setup_logging(args.verbose)
-    try:
-        names = _read_names(args)
-    except SystemExit as exc:  # bad arguments: argparse's usage line and exit code 2
-        p.error(str(exc.code).removeprefix("error: "))
+    args, names = parse_training_args(p, argv)
     settings = ColmapSettings(args.max_image_size, args.max_num_features,
                               not args.no_guided_matching, "PINHOLE", args.threads)
     seeds = args.seeds or [args.seed + i for i in range(max(1, args.repeats))]

@@ -45,8 +45,9 @@ from pathlib import Path
 import numpy as np
 
 from camio.atomic import save_npz, write_json
-from camio.cameras import Camera, camera_center, scale_intrinsics
+from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
+from evaluation.initialisers.views import add_view_args, parse_training_args
 
 __all__ = ["CONF_MODES", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
            "unproject_depth", "reassign_confidence", "make_oracle_predictions", "run_oracle"]
@@ -303,15 +304,11 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
 
-    from camio.logs import setup_logging
 
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
-    p.add_argument("--split", help="split.json; use with --n")
-    p.add_argument("--n", type=int, help="number of training views")
-    p.add_argument("--image-list", help="file with one training image name per line")
-    p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
+    add_view_args(p)
     p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
     p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
     p.add_argument("--trans-frac", type=float, default=0.0,
@@ -328,18 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 at most")
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
-    args = p.parse_args(argv)
-    setup_logging(args.verbose)
-    if args.split:
-        if args.n is None:
-            p.error("--split needs --n")
-        names = json.loads(Path(args.split).read_text())["train"][str(args.n)]
-    elif args.image_list:
-        names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    elif args.names:
-        names = args.names
-    else:
-        p.error("give the training images: --split JSON --n N, --image-list FILE or --names NAME ...")
+    args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError

@@ -41,6 +41,7 @@ from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
+from evaluation.initialisers.views import add_view_args, parse_training_args
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
 
@@ -128,12 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     [--rot-deg --trans-frac --depth-rel --outlier-frac] [--seed S] [--threads T]``."""
     import argparse
 
-    from camio.logs import setup_logging
-
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.posed", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
-    p.add_argument("--image-list", help="file with one training image name per line")
-    p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
+    add_view_args(p, split=False)
     p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
     p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
     p.add_argument("--trans-frac", type=float, default=0.0, help="RMS centre noise, fraction of the radius")
@@ -143,16 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
     add_fallback_args(p)
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
-    args = p.parse_args(argv)
-    setup_logging(args.verbose)
-    if not (args.image_list or args.names):
-        p.error("give the training images: --image-list FILE or --names NAME ...")
-    if args.image_list and not Path(args.image_list).is_file():
-        p.error(f"image list {args.image_list} does not exist")
-    if args.image_list:
-        names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    else:
-        names = args.names
+    args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     from camio.outdir import prepare_out, run_stage
 

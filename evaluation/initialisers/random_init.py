@@ -58,6 +58,7 @@ from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.metrics.pose import paper_success
+from evaluation.initialisers.views import read_image_list
 
 __all__ = ["N_POINTS", "POINTS_PER_PIXEL", "default_points", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
            "FALLBACK_DIR", "depth_range", "random_points", "run_random", "apply_fallback", "seed_model_dir",
@@ -209,13 +210,6 @@ def _place(cameras: list[Camera], n_points: int | None, seed: int, near: float |
             "min_views": min(2, len(cameras)), "n_points": int(n_points)}
 
 
-def _read_names(image_list: str | Path) -> list[str]:
-    names = [x.strip() for x in Path(image_list).read_text().splitlines() if x.strip() and not x.startswith("#")]
-    if not names:
-        raise ValueError(f"random_init: image list {image_list} is empty: one training image name per line")
-    return names
-
-
 def run_random(cameras_dir: str | Path, names: list[str], out_dir: str | Path, n_points: int | None = None,
                seed: int = 0, near: float | None = None, far: float | None = None) -> dict:
     """Write ``out_dir/sparse/0`` and ``out_dir/status.json`` (module docstring).
@@ -351,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
         prepare_out(args.out, {"--cameras": args.cameras, "--image-list": args.image_list}, "evaluation.random_init")
-        run_random(args.cameras, _read_names(args.image_list), args.out, args.points, args.seed, args.near, args.far)
+        run_random(args.cameras, read_image_list(args.image_list), args.out, args.points, args.seed, args.near, args.far)
 
     return run_stage(log, work)
 
