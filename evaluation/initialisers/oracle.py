@@ -302,7 +302,6 @@ def main(argv: list[str] | None = None) -> int:
     """CLI: ``python -m evaluation.initialisers.oracle --scene DIR (--split JSON --n N | --image-list FILE |
     --names ...) --out DIR [noise options] [--seed S]``."""
     import argparse
-    import json
 
 
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
