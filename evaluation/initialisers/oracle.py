@@ -303,7 +303,6 @@ def main(argv: list[str] | None = None) -> int:
     --names ...) --out DIR [noise options] [--seed S]``."""
     import argparse
 
-
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
