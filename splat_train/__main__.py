@@ -112,7 +112,7 @@ def _render_parser() -> argparse.ArgumentParser:
 
 def _testpose_parser() -> argparse.ArgumentParser:
     from splat_train.rasterize import BACKENDS
-    from splat_train.testpose import DEFAULT_LR, DEFAULT_STEPS
+    from splat_train.testpose import DEFAULT_LR, DEFAULT_PATIENCE, DEFAULT_STEPS
 
     p = argparse.ArgumentParser(prog="python -m splat_train testpose",
                                 description="Test-pose protocol: optimise each held-out camera's pose against its "
@@ -124,8 +124,8 @@ def _testpose_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", required=True, help="the held-out images")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
-    p.add_argument("--patience", type=int, default=0,
-                   help="stop a view after K steps in a row without a new lowest loss (0, the default: "
+    p.add_argument("--patience", type=int, default=DEFAULT_PATIENCE,
+                   help=f"stop a view after K steps in a row without a new lowest loss ({DEFAULT_PATIENCE}; 0: "
                         "every step; recorded in testpose.json with each view's steps_run)")
     p.add_argument("--lr", type=float, default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")

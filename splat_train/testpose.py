@@ -14,9 +14,10 @@ shifts on every scene. The loss is training's photometric loss
 (:func:`splat_train.losses.photometric_loss`), Adam for a fixed number of steps
 (:data:`DEFAULT_STEPS`) with its rate decayed exponentially from :data:`DEFAULT_LR` to
 :data:`FINAL_LR_FRACTION` of it over the steps (:func:`testpose_lr`), so the pose settles
-instead of oscillating at the rate's scale; the same for every method, recorded in the output. Intrinsics and Gaussians never change. The pose kept is the one with the lowest loss
-seen (the start included), so the correction never raises the loss against the test image.
-``patience`` K (``--patience``, off by default) ends a view after K steps in a row without a
+instead of oscillating at the rate's scale; the same for every method, recorded in the output.
+Intrinsics and Gaussians never change. The pose kept is the one with the lowest loss seen (the
+start included), so the correction never raises the loss against the test image.
+``patience`` K (``--patience``, :data:`DEFAULT_PATIENCE`: off) ends a view after K steps in a row without a
 new lowest loss; testpose.json records it and each view's ``steps_run``.
 
 Gradients: the "cpu" backend keeps its fused C++ projection and takes the pose's gradient from
@@ -65,13 +66,15 @@ from splat_train.losses import photometric_loss, psnr
 from splat_train.pose import so3_exp
 from splat_train.rasterize import rasterize, resolve_backend
 
-__all__ = ["DEFAULT_STEPS", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME", "se3_correction", "scene_depth", "pose_change",
-           "refine_test_pose", "run_testpose"]
+__all__ = ["DEFAULT_STEPS", "DEFAULT_PATIENCE", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME",
+           "se3_correction", "scene_depth", "pose_change", "refine_test_pose", "run_testpose"]
 
 log = logging.getLogger(__name__)
 
 #: Adam steps per held-out view (InstantSplat's count), the same for every method.
 DEFAULT_STEPS = 500
+#: Steps in a row without a lower loss that end a view early; 0: every step is run.
+DEFAULT_PATIENCE = 0
 #: Adam rate of the rotation vector (radians) and the translation (units of the scene depth).
 DEFAULT_LR = 1e-3
 #: The rate at the last step as a fraction of the first (exponential decay between them).
@@ -130,7 +133,8 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
 
 def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                      K: torch.Tensor, target: torch.Tensor, steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR,
-                     backend: str = "auto", lambda_dssim: float | None = None, patience: int = 0) -> dict:
+                     backend: str = "auto", lambda_dssim: float | None = None,
+                     patience: int = DEFAULT_PATIENCE) -> dict:
     """Optimise one camera's pose against its image with the Gaussians frozen (module docstring).
 
     Args:
@@ -197,7 +201,8 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
 
 def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
                  steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
-                 backend: str = "auto", names: str | Path | None = None, patience: int = 0) -> dict:
+                 backend: str = "auto", names: str | Path | None = None,
+                 patience: int = DEFAULT_PATIENCE) -> dict:
     """The test-pose protocol on a camera folder: refined cameras, renders and a record.
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the

@@ -69,3 +69,22 @@ def test_random_initialiser_defaults_live_in_code():
     assert f"POINTS_PER_PIXEL, {random_init.POINTS_PER_PIXEL}" in points
     assert f"FALLBACK_MIN_POINTS, {random_init.FALLBACK_MIN_POINTS}" in " ".join(
         props["fallback_min_points"]["description"].split())
+
+
+def test_testpose_defaults_live_in_code():
+    """evaluation.testpose_steps: null means splat_train.testpose.DEFAULT_STEPS; the patience
+    default is DEFAULT_PATIENCE in the schema, the CLI and the functions."""
+    import inspect
+
+    from splat_train.__main__ import _testpose_parser
+    from splat_train.testpose import DEFAULT_PATIENCE, DEFAULT_STEPS, refine_test_pose, run_testpose
+
+    props = _schema()["properties"]["evaluation"]["properties"]
+    assert props["testpose_steps"]["default"] is None
+    assert f"DEFAULT_STEPS, {DEFAULT_STEPS}" in " ".join(props["testpose_steps"]["description"].split())
+    assert props["testpose_patience"]["default"] == DEFAULT_PATIENCE
+    args = _testpose_parser().parse_args(["--model", "m", "--cameras", "c", "--images", "i", "--out", "o"])
+    assert (args.steps, args.patience) == (DEFAULT_STEPS, DEFAULT_PATIENCE)
+    for fn in (refine_test_pose, run_testpose):
+        sig = inspect.signature(fn).parameters
+        assert (sig["steps"].default, sig["patience"].default) == (DEFAULT_STEPS, DEFAULT_PATIENCE)
