@@ -258,9 +258,18 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--steps", type=int, default=None, help="test-pose Adam steps per view (default: the protocol's)")
     pr.add_argument("--inits", default=",".join(INITS), help="comma list of prepared initialisers to run")
     args = p.parse_args(argv)
-    if args.cmd == "prepare":
-        print(f"protocols: prepared {prepare(args.dest, args.results)}")
-        return 0
+    try:
+        if args.cmd == "prepare":
+            print(f"protocols: prepared {prepare(args.dest, args.results)}")
+            return 0
+        folder, out = args.folder.resolve(), args.out.resolve()
+        if not (folder / "prepared.json").is_file():
+            raise FileNotFoundError(f"{args.folder} is not a folder made by `protocols.py prepare` (no prepared.json)")
+        if out == folder or folder in out.parents or out in folder.parents:
+            raise ValueError(f"--out {args.out} overlaps the prepared folder {args.folder}: choose another")
+    except (OSError, ValueError) as exc:
+        print(f"protocols: error: {exc}", file=sys.stderr)
+        return 2
     report = run(args.folder, args.out, args.device, args.iterations, args.steps, tuple(args.inits.split(",")))
     print(table(report))
     return 0 if all("error" not in r for r in report["cells"].values()) else 1

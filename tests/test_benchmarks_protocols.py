@@ -38,3 +38,15 @@ def test_table_has_both_protocols_in_its_headers():
     assert "PSNR [strict]" in md and "PSNR [test-pose]" in md
     assert "| posed | 5 | 12.00 | 0.300 | 14.50 | 0.400 |" in md
     assert "error: RuntimeError: boom" in md
+
+
+def test_bad_folders_are_one_line_and_exit_2(tmp_path, capsys):
+    assert protocols.main(["run", str(tmp_path / "nope"), "--out", str(tmp_path / "out")]) == 2
+    assert "not a folder made by `protocols.py prepare`" in capsys.readouterr().err
+    (tmp_path / "prep").mkdir()
+    (tmp_path / "prep" / "prepared.json").write_text("{}")
+    assert protocols.main(["run", str(tmp_path / "prep"), "--out", str(tmp_path / "prep" / "out")]) == 2
+    assert "overlaps the prepared folder" in capsys.readouterr().err
+    assert not (tmp_path / "prep" / "out").exists()
+    assert protocols.main(["prepare", str(tmp_path / "prep")]) == 2  # exists: refused, nothing run
+    assert "exists" in capsys.readouterr().err
