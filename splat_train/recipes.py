@@ -1,4 +1,4 @@
-"""The two training recipes, ``paper`` and ``sparse``: the one place for their defaults.
+"""The training recipes, ``paper``, ``sparse`` and ``mcmc``: the one place for their defaults.
 
 A recipe fills every config key that is left at ``None`` (:class:`splat_train.config.TrainConfig`);
 a key the user sets keeps its value, and means what it says: schedule keys are iterations of
@@ -33,14 +33,35 @@ printed by the trainer).
 
     The densification period follows the run (1 % of it, at least :data:`MIN_DENSIFY_EVERY`), so
     a 300-iteration run densifies as often relative to its length as a 10,000-iteration one.
+
+``mcmc``
+    3DGS as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024, arXiv:2404.09591) as
+    gsplat's ``mcmc`` preset runs it (``examples/simple_trainer.py``, ``gsplat/strategy/mcmc.py``
+    ``MCMCStrategy``; here :mod:`splat_train.mcmc`): no clone / split / prune / opacity reset;
+    every 100 iterations (absolute, as gsplat's ``refine_every``) from 500/30000 to 25000/30000
+    of the run, dead Gaussians (opacity <= ``prune_opacity`` 0.005) are relocated onto live ones
+    and 5 % more are added until the cap; position noise ``noise_lr`` 5e5 x the position rate
+    after every step; the loss adds ``opacity_reg`` 0.01 x mean opacity and ``scale_reg`` 0.01 x
+    mean scale; the SH degree rises every 1000/30000 of the run (gsplat's
+    ``sh_degree_interval``). No dropout, no depth term.
+
+    The cap is ``gaussians_per_pixel`` 0.175 x the training pixels: LLFF at 1/8 resolution
+    (504 x 378) with 3 views has 571,536 training pixels, so the cap is 100k, the size of the
+    field's LLFF 3-view models (80k-120k). gsplat's absolute ``cap_max`` 1e6 is sized for
+    dense 360-degree captures of 100-300 views (under 0.01 per pixel); an absolute cap would
+    not follow the view count or resolution, and 1e6 is ten times the field's 3-view models.
+
+    Initial opacity and scale: gsplat's preset starts SfM points at opacity 0.5 and a tenth of
+    the neighbour distance; here the seed PLY's own opacities and scales are kept (the Bridge's
+    uncertainty-gated opacity is part of the initialiser under test), as in the other recipes.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "MIN_DENSIFY_EVERY",
-           "recipe_defaults"]
+__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "STRATEGIES",
+           "MIN_DENSIFY_EVERY", "recipe_defaults"]
 
 DEFAULT_RECIPE = "sparse"
 
@@ -52,7 +73,11 @@ MIN_DENSIFY_EVERY = 20
 # an int, as ``paper`` does).
 SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
 # The regularisation parts and their "off" values.
-PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0}
+PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
+             "scale_reg": 0.0}
+# How the model grows: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
+# (relocation under a cap, splat_train.mcmc); the config's ``strategy`` (None: the recipe's).
+STRATEGIES = ("densify", "mcmc")
 
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {
@@ -65,6 +90,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
         "gaussians_per_pixel": 0.0,
+        "strategy": "densify",
+        "opacity_reg": 0.0,
+        "scale_reg": 0.0,
     },
     "sparse": {
         "densify_from_fraction": 0.05,
@@ -85,6 +113,27 @@ RECIPES: dict[str, dict[str, Any]] = {
         # training pixel (17k Gaussians) held out 20.6 dB against 20.3 for 0.1 (55k), at half
         # the time per iteration; the field's LLFF 3-view models hold 80k-120k
         "gaussians_per_pixel": 0.03,
+        "strategy": "densify",
+        "opacity_reg": 0.0,
+        "scale_reg": 0.0,
+    },
+    "mcmc": {
+        # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
+        # refine_every 100 (absolute); simple_trainer's sh_degree_interval 1000
+        "densify_from_fraction": 500 / 30000,
+        "densify_until_fraction": 25000 / 30000,
+        "densify_every": 100,
+        "opacity_reset_every_fraction": None,
+        "sh_increase_every_fraction": 1000 / 30000,
+        "dropout_rate": 0.0,
+        "depth_weight": 0.0,
+        "depth_ramp_fraction": 0.0,
+        # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
+        "gaussians_per_pixel": 0.175,
+        "strategy": "mcmc",
+        # simple_trainer's mcmc preset
+        "opacity_reg": 0.01,
+        "scale_reg": 0.01,
     },
 }
 RECIPE_NAMES = tuple(RECIPES)

@@ -70,12 +70,12 @@ def test_bad_recipe_values_are_refused(bad):
 
 def test_cli_lists_recipe_and_schema_has_it():
     out = subprocess.run([sys.executable, "-m", "splat_train", "--help"], cwd=REPO, capture_output=True, text=True)
-    assert out.returncode == 0 and "--recipe {paper,sparse}" in out.stdout and "--depth-prior" in out.stdout
+    assert out.returncode == 0 and "--recipe {paper,sparse,mcmc}" in out.stdout and "--depth-prior" in out.stdout
     import yaml
 
     schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
     train_props = schema["properties"]["train"]["properties"]
-    assert train_props["recipe"]["enum"] == ["paper", "sparse"]
+    assert train_props["recipe"]["enum"] == ["paper", "sparse", "mcmc"]
     assert train_props["recipe"]["default"] == TrainConfig.__dataclass_fields__["recipe"].default
 
 
