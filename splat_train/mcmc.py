@@ -184,15 +184,27 @@ def sample_add(params: Params, optimizer: torch.optim.Optimizer, n_new: int, min
     return n_new
 
 
+def _randn(shape: tuple[int, ...], like: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """Standard normal draws of ``shape`` in ``like``'s dtype and device. On the CPU they come
+    from ``generator``; on an accelerator from a generator of that device seeded by one draw
+    from ``generator`` (still reproducible and resumable from ``generator``'s state, without
+    drawing [N, 3] numbers on the host and copying them every iteration)."""
+    if like.device.type == "cpu" or generator is None:
+        return torch.randn(shape, generator=generator, dtype=like.dtype, device="cpu").to(like.device)
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+    dev_gen = torch.Generator(device=like.device).manual_seed(seed)
+    return torch.randn(shape, generator=dev_gen, dtype=like.dtype, device=like.device)
+
+
 def inject_noise(params: Params, noise_scale: float, generator: torch.Generator | None = None) -> None:
     """Add to every centre Sigma eps * gate * ``noise_scale`` in place (gsplat's
-    ``inject_noise_to_position``), where eps ~ N(0, I_3) [N, 3] (one draw from ``generator``),
+    ``inject_noise_to_position``), where eps ~ N(0, I_3) [N, 3] (drawn by :func:`_randn`),
     Sigma = R diag(s^2) R^T the Gaussian's world covariance and
     gate = sigmoid(-NOISE_K (opacity - NOISE_T)): the nearly transparent Gaussians explore, the
     opaque ones stay. ``noise_scale`` is the position learning rate times ``noise_lr``."""
     means = params["means"]
     with torch.no_grad():
-        eps = torch.randn(means.shape, generator=generator, dtype=means.dtype, device="cpu").to(means.device)
+        eps = _randn(tuple(means.shape), means, generator)
         gate = torch.sigmoid(-NOISE_K * (torch.sigmoid(params["opacity"].detach()) - NOISE_T))
         rot = quat_to_rotmat(params["quats"].detach())  # [N, 3, 3]
         var = torch.exp(2.0 * params["scales"].detach())  # [N, 3]
