@@ -223,7 +223,8 @@ class MCMCStrategy:
         refine_from, refine_until, refine_every: relocate and add at iterations it with
             refine_from < it < refine_until and it % refine_every == 0 (1-based; gsplat's test,
             the config's densify_* schedule keys).
-        cap: the Gaussian count never grows past this by additions (relocation keeps the count).
+        cap: the Gaussian count never grows past this by additions (relocation keeps the count);
+            a seed already larger keeps its size (nothing is removed; only relocation runs).
         min_opacity: a Gaussian at or below this opacity is dead (the config's prune_opacity).
         noise_lr: noise scale per unit of position learning rate (gsplat's 5e5).
         growth: new Gaussians per refine step as a fraction of the count (:data:`GROWTH`).

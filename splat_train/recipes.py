@@ -49,7 +49,8 @@ printed by the trainer).
     (504 x 378) with 3 views has 571,536 training pixels, so the cap is 100k, the size of the
     field's LLFF 3-view models (80k-120k). gsplat's absolute ``cap_max`` 1e6 is sized for
     dense 360-degree captures of 100-300 views (under 0.01 per pixel); an absolute cap would
-    not follow the view count or resolution, and 1e6 is ten times the field's 3-view models.
+    not follow the view count or resolution, and 1e6 is ten times the field's 3-view models. A
+    seed larger than the cap keeps its size (MCMC never removes Gaussians) and is only relocated.
 
     Initial opacity and scale: gsplat's preset starts SfM points at opacity 0.5 and a tenth of
     the neighbour distance; here the seed PLY's own opacities and scales are kept (the Bridge's
