@@ -1,4 +1,5 @@
-"""The training recipes, ``paper``, ``sparse`` and ``mcmc``: the one place for their defaults.
+"""The training recipes, ``paper``, ``dropgaussian``, ``sparse`` and ``mcmc``: the one place for their
+defaults.
 
 A recipe fills every config key that is left at ``None`` (:class:`splat_train.config.TrainConfig`);
 a key the user sets keeps its value, and means what it says: schedule keys are iterations of
@@ -12,8 +13,23 @@ printed by the trainer).
     opacity every 30 %, raise the SH degree every 10 %; no cap on growth, no dropout, no depth
     term. At the paper's 10,000 iterations these are the seed code's absolute counts (500,
     10000, 3000, 1000); a shorter run compresses them in proportion, as the project always did.
+    Pruning is what the official code does, not what its source appears to do: the code
+    computes a screen-size prune (2D radius above 20 px after the first reset), but zeroes the
+    radii it reads before the prune reads them (graphdeco-inria/gaussian-splatting issue 123),
+    so it never prunes by screen size; gsplat's ``DefaultStrategy`` leaves it off by default for
+    the same reason. This recipe leaves it off too (``prune_screen_size`` 0), so that it trains
+    as 3DGS and gsplat's own loop do (tests/test_train_recipes.py pins the two strategies
+    together on a small scene).
     In the sparse regime this recipe overfits: held-out PSNR peaks early and falls while the
     model grows (docs/sparse-recipe.md).
+
+``dropgaussian``
+    DropGaussian (Park et al., CVPR 2025) as its release trains LLFF 3 views
+    (DCVL-3D/DropGaussian_release): 3DGS with Gaussian dropout during training, the rate ramped
+    linearly to 0.2 over the run, survivors scaled by 1 / (1 - p); densify from 500 to 10,000
+    of 10,000 iterations every 100 with the gradient threshold 5e-4 (2.5x 3DGS's), opacity
+    reset every 3,000 (30 %). No cap, no depth term. As for ``paper``, a shorter run compresses
+    the schedule in proportion and the period stays 100.
 
 ``sparse``
     The sparse-view regularisation the field converged on, each part with its own switch:
@@ -61,7 +77,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "STRATEGIES",
+__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES",
            "MIN_DENSIFY_EVERY", "recipe_defaults"]
 
 DEFAULT_RECIPE = "sparse"
@@ -76,8 +92,13 @@ SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_rese
 # The regularisation parts and their "off" values.
 PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
              "scale_reg": 0.0}
-# How the model grows: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
-# (relocation under a cap, splat_train.mcmc); the config's ``strategy`` (None: the recipe's).
+# Values a recipe sets (a config value wins); every recipe gives each one: the densification
+# thresholds, and how the model grows (``strategy``).
+VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy")
+# 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
+GRAD_THRESHOLD_3DGS = 2e-4
+# The growth strategies: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
+# (relocation under a cap, splat_train.mcmc).
 STRATEGIES = ("densify", "mcmc")
 
 RECIPES: dict[str, dict[str, Any]] = {
@@ -91,6 +112,25 @@ RECIPES: dict[str, dict[str, Any]] = {
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
         "gaussians_per_pixel": 0.0,
+        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
+        # off: the official code never applies it (see the module docstring)
+        "prune_screen_size": 0.0,
+        "strategy": "densify",
+        "opacity_reg": 0.0,
+        "scale_reg": 0.0,
+    },
+    "dropgaussian": {
+        "densify_from_fraction": 0.05,
+        "densify_until_fraction": 1.0,
+        "densify_every": 100,
+        "opacity_reset_every_fraction": 0.3,
+        "sh_increase_every_fraction": 0.1,
+        "dropout_rate": 0.2,
+        "depth_weight": 0.0,
+        "depth_ramp_fraction": 0.0,
+        "gaussians_per_pixel": 0.0,
+        "densify_grad_threshold": 5e-4,
+        "prune_screen_size": 0.0,
         "strategy": "densify",
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
@@ -114,6 +154,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         # training pixel (17k Gaussians) held out 20.6 dB against 20.3 for 0.1 (55k), at half
         # the time per iteration; the field's LLFF 3-view models hold 80k-120k
         "gaussians_per_pixel": 0.03,
+        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
+        "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
         "strategy": "densify",
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
@@ -132,6 +174,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
         "gaussians_per_pixel": 0.175,
         "strategy": "mcmc",
+        # not read by the mcmc strategy (no clone / split / size prune)
+        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
+        "prune_screen_size": 0.0,
         # simple_trainer's mcmc preset
         "opacity_reg": 0.01,
         "scale_reg": 0.01,
