@@ -105,7 +105,7 @@ class TrainConfig:
             are kept (:mod:`splat_train.densify`).
         gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
             over the training views at the training resolution); the smaller cap applies.
-            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.03).
+            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
         strategy: how the model grows: "densify" (3DGS clone / split / prune,
             :mod:`splat_train.densify`) or "mcmc" (relocation of dead Gaussians and 5 % growth
             per refine step up to the cap, :mod:`splat_train.mcmc`; needs a cap, and reads the

@@ -54,8 +54,8 @@ printed by the trainer).
     3DGS as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024, arXiv:2404.09591) as
     gsplat's ``mcmc`` preset runs it (``examples/simple_trainer.py``, ``gsplat/strategy/mcmc.py``
     ``MCMCStrategy``; here :mod:`splat_train.mcmc`): no clone / split / prune / opacity reset;
-    every 100 iterations (absolute, as gsplat's ``refine_every``) from 500/30000 to 25000/30000
-    of the run, dead Gaussians (opacity <= ``prune_opacity`` 0.005) are relocated onto live ones
+    every 100/30000 of the run (gsplat's ``refine_every`` 100 at its 30,000 steps; at least
+    :data:`MIN_DENSIFY_EVERY`) from 500/30000 to 25000/30000 of the run, dead Gaussians (opacity <= ``prune_opacity`` 0.005) are relocated onto live ones
     and 5 % more are added until the cap; position noise ``noise_lr`` 5e5 x the position rate
     after every step; the loss adds ``opacity_reg`` 0.01 x mean opacity and ``scale_reg`` 0.01 x
     mean scale; the SH degree rises every 1000/30000 of the run (gsplat's
@@ -150,10 +150,12 @@ RECIPES: dict[str, dict[str, Any]] = {
         # FSGS's Pearson depth weight (FIELD_FACTS.md), reached after 10 % of the run
         "depth_weight": 0.05,
         "depth_ramp_fraction": 0.1,
-        # fern posed n = 3 at 10,000 iterations (seed 0; docs/sparse-recipe.md): 0.03 per
-        # training pixel (17k Gaussians) held out 20.6 dB against 20.3 for 0.1 (55k), at half
-        # the time per iteration; the field's LLFF 3-view models hold 80k-120k
-        "gaussians_per_pixel": 0.03,
+        # chosen on the tuning scenes only (docs/sparse-recipe.md "Choosing the cap"): on fern
+        # posed n = 3, 1,000 iterations, 3 seeds, 0.1 per training pixel held out LPIPS-Alex
+        # 0.252 / VGG 0.345 against 0.327 / 0.378 for 0.03 and 0.274 / 0.366 for `paper`, at
+        # 0.21 dB below 0.03 and 0.46 dB above `paper`; with no cap the model grew to 100k and
+        # lost 1.4 dB. The field's LLFF 3-view models hold 80k-120k: 0.1 gives 57k there.
+        "gaussians_per_pixel": 0.1,
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
         "strategy": "densify",
@@ -162,10 +164,12 @@ RECIPES: dict[str, dict[str, Any]] = {
     },
     "mcmc": {
         # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
-        # refine_every 100 (absolute); simple_trainer's sh_degree_interval 1000
+        # refine_every 100; simple_trainer's sh_degree_interval 1000. The period is a fraction
+        # too: growth is 5 % per refine step, so an absolute 100 would leave a 1,000-iteration
+        # run 8 steps (x1.5) where gsplat's run has 245 (the cap)
         "densify_from_fraction": 500 / 30000,
         "densify_until_fraction": 25000 / 30000,
-        "densify_every": 100,
+        "densify_every_fraction": 100 / 30000,
         "opacity_reset_every_fraction": None,
         "sh_increase_every_fraction": 1000 / 30000,
         "dropout_rate": 0.0,

@@ -203,7 +203,7 @@ def test_regularisers_add_their_gradient_through_the_rasterizer(scene):
 def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
     r = RECIPES["mcmc"]
     assert r["strategy"] == "mcmc" and r["opacity_reg"] == r["scale_reg"] == 0.01
-    assert r["densify_every"] == 100 and r["opacity_reset_every_fraction"] is None
+    assert r["densify_every_fraction"] == 100 / 30000 and r["opacity_reset_every_fraction"] is None
     assert r["dropout_rate"] == r["depth_weight"] == 0.0 and r["gaussians_per_pixel"] == 0.175
     cfg = TrainConfig(recipe="mcmc", iterations=30000)
     s = cfg.schedule()
@@ -211,6 +211,9 @@ def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
         500, 25000, 100, 0, 1000)
     assert cfg.max_gaussians_for(3 * 504 * 378) == 100018  # LLFF 3 views at 1/8: ~100k
     assert (cfg.noise_lr, cfg.prune_opacity) == (5e5, 0.005)
+    # a shorter run refines as often relative to its length (never more often than every 20)
+    assert TrainConfig(recipe="mcmc", iterations=3000).schedule().densify_every == 20
+    assert TrainConfig(recipe="mcmc", iterations=10000).schedule().densify_every == 33
     strat = MCMCStrategy.from_config(cfg, 1000)
     assert (strat.refine_from, strat.refine_until, strat.refine_every, strat.cap, strat.min_opacity) == (
         500, 25000, 100, 1000, 0.005)

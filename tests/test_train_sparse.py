@@ -48,7 +48,7 @@ def test_sparse_recipe_stops_growth_at_half_and_sizes_the_cap():
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == (500, 5000, 100, 0)
     assert s.source["opacity_reset_every"] == "recipe sparse: never"
-    assert cfg.max_gaussians_for(571_000) == 17_130  # 0.03 per training pixel
+    assert cfg.max_gaussians_for(571_000) == 57_100  # 0.1 per training pixel
     assert TrainConfig(recipe="sparse", iterations=10000, max_gaussians=1000).max_gaussians_for(571_000) == 1000
     assert TrainConfig(recipe="sparse", iterations=10000, gaussians_per_pixel=0).max_gaussians_for(571_000) is None
     assert TrainConfig(recipe="sparse", iterations=300).schedule().densify_every == 20  # MIN_DENSIFY_EVERY
