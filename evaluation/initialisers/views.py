@@ -35,7 +35,9 @@ def read_image_list(path: str | Path) -> list[str]:
     names = [ln.strip() for ln in lst.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not names:
         raise ValueError(f"image list {lst} is empty: one training image name per line")
-    return names
+    from camio.outdir import check_name_list
+
+    return check_name_list(names, lst)
 
 
 def training_names(args: argparse.Namespace) -> list[str]:
@@ -47,12 +49,14 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if getattr(args, "split", None):
         if args.n is None:
             raise ValueError("--split needs --n (the number of training views)")
-        data = json.loads(Path(args.split).read_text())
+        from camio.split import read_split
+
+        split = read_split(args.split)  # checked: plain names, none twice
         try:
-            return list(data["train"][str(args.n)])
+            return list(split.train[str(args.n)])
         except KeyError:
             raise ValueError(f"{args.split} has no training list for n = {args.n}; "
-                             f"it has {sorted(data.get('train', {}))}") from None
+                             f"it has {sorted(split.train)}") from None
     if args.image_list:
         return read_image_list(args.image_list)
     if args.names:
