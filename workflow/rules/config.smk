@@ -18,7 +18,13 @@ _check_spec = importlib.util.spec_from_file_location(
 )
 _check_config = importlib.util.module_from_spec(_check_spec)
 _check_spec.loader.exec_module(_check_config)
-_problems = _check_config.config_problems(config)
+_problems = []
+for _file in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
+    try:
+        _check_config.read_yaml(_file)
+    except (OSError, ValueError) as _exc:
+        _problems.append(str(_exc))
+_problems += _check_config.config_problems(config)
 for _problem in _problems:
     print(f"config error: {_problem}", file=sys.stderr)
 if _problems:
