@@ -21,8 +21,8 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   ``splat_train render``, ``splat_train testpose``) first removes, file by file, what its
   own earlier run wrote (recorded in the marker; after a run that did not finish, everything
   but what was there before it), so the folder never mixes two runs; anything else stays.
-* A file ``--out`` that exists is replaced only if this command (or one of the stages named
-  in ``same_file_as``, e.g. ``camio convert`` for ``split.json``) wrote it: the folder's
+* A file ``--out`` that exists is replaced only if this command (or, for the file names
+  given in ``same_file_as``, another stage: ``split.json`` of ``camio convert``) wrote it: the folder's
   ledger :data:`LEDGER` (or a replacing stage's marker) records who wrote which file. A
   photo, a camera file or a split the user made is refused, never overwritten.
 * One writer per output folder: :func:`prepare_out` takes an exclusive lock
@@ -230,7 +230,7 @@ def check_name_list(names: Iterable[str], source: PathLike, what: str = "image n
 
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
               folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
-              same_file_as: Iterable[str] = ()) -> Path:
+              same_file_as: Mapping[str, Iterable[str]] | None = None) -> Path:
     """Refuse an ``--out`` that breaks the output rule (module docstring); write nothing.
 
     Args:
@@ -241,9 +241,9 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         may_hold_out: input names whose folder may hold ``out`` (results-tree readers).
         replaces: the stage replaces its folder whole (its writer is ``camio.atomic.atomic_dir``
             on ``out``): only its own entries, in every subfolder, may be there.
-        same_file_as: for a file ``out``: other stages whose file of that name this command
-            may replace (``camio split`` replaces the ``split.json`` that ``camio convert``
-            wrote).
+        same_file_as: for a file ``out``: other stage -> the names of its files that this
+            command may replace (``camio split`` replaces the ``split.json`` that ``camio
+            convert`` wrote, and nothing else of it).
 
     Returns:
         ``out`` as a Path.
@@ -277,7 +277,8 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             raise OutputFolderError(f"--out {out}: {o.name} is the output rule's own file; name another file")
         if o.exists() or out_p.is_symlink():
             writers = _file_writers(o.parent, o.name)
-            if not writers & ({stage} | set(same_file_as)):
+            kin = {other for other, names in (same_file_as or {}).items() if o.name in set(names)}
+            if not writers & ({stage} | kin):
                 who = f"was written by `{sorted(writers)[0]}`" if writers else f"was not written by `{stage}`"
                 raise OutputFolderError(f"--out {out} exists and {who}: {stage} never replaces a file it did not "
                                         "write; move it away or name a new file (nothing was changed)")
@@ -440,7 +441,7 @@ def _clear_own(folder: Path, stage: str) -> None:
 
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
                 folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
-                fresh: bool = False, same_file_as: Iterable[str] = ()) -> Path:
+                fresh: bool = False, same_file_as: Mapping[str, Iterable[str]] | None = None) -> Path:
     """:func:`check_out`, then create a folder ``out``, take its writer's lock and mark it as
     ``stage``'s (a file ``out`` gets its parent folder created and is entered in the folder's
     :data:`LEDGER`). A folder that cannot be written (read-only, no permission) is refused as
