@@ -418,3 +418,43 @@ def test_viewer_bad_input_is_one_line(scene, tmp_path, case):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert ("not a 3DGS PLY" in err) if "port" not in case else ("not a port" in err)
+
+
+# --- no traceback where a user meets these ---------------------------------------------------------
+
+def test_convert_refuses_an_image_name_that_is_not_utf8(tmp_path):
+    from PIL import Image
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in (b"a.png", b"b.png", b"c.png", b"bad\xff.png"):
+        Image.fromarray(np.full((12, 16, 3), 90, np.uint8)).save(os.fsdecode(os.fsencode(src) + b"/" + name))
+    proc = subprocess.run([sys.executable, "-m", "camio", "convert", "--src", str(src), "--out", str(tmp_path / "o"),
+                           "--n", "1"], capture_output=True, text=True, cwd=ROOT, env=ENV, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "not UTF-8" in proc.stderr and not (tmp_path / "o").exists()
+
+
+def test_the_workflow_refuses_a_scene_path_that_does_not_exist_in_one_line(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"results: {tmp_path / 'r'}\ndatasets:\n  mine:\n    scenes:\n      room:\n"
+                   f"        path: {tmp_path / 'nowhere'}\nviews: [3]\ninitialisers: [colmap]\n")
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--cores", "1", "--configfile", str(cfg)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 2 and "Traceback" not in text, text[-2000:]
+    assert f"config error: datasets.mine.scenes.room: the scene path {tmp_path / 'nowhere'} does not exist" in text
+
+
+def test_a_full_disk_while_writing_a_checkpoint_is_one_oserror(tmp_path, monkeypatch):
+    import torch
+
+    from splat_train import checkpoint
+
+    def full(obj, f):
+        raise RuntimeError("[enforce fail at inline_container.cc:626] . unexpected pos 128 vs 64")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(OSError, match="cannot write the checkpoint .*the previous checkpoint is intact"):
+        checkpoint.save_checkpoint(tmp_path, 10, {"x": 1})
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # no temporary left

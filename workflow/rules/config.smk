@@ -31,6 +31,20 @@ if _problems:
     raise SystemExit(2)
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 
+# A scene converted from disk must be there before anything is planned (its format decides
+# the jobs): one line here, not an InputFunctionException with a traceback during planning.
+_missing = [
+    f"datasets.{_ds}.scenes.{_sc}: the scene path {_cfg['path']} does not exist (relative paths are read "
+    "from the working directory)"
+    for _ds, _block in config["datasets"].items()
+    for _sc, _cfg in _block["scenes"].items()
+    if "path" in _cfg and not Path(_cfg["path"]).exists()
+]
+for _problem in _missing:
+    print(f"config error: {_problem}", file=sys.stderr)
+if _missing:
+    raise SystemExit(2)
+
 R = config["results"].rstrip("/")
 SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
