@@ -230,7 +230,8 @@ def check_name_list(names: Iterable[str], source: PathLike, what: str = "image n
 
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
               folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
-              same_file_as: Mapping[str, Iterable[str]] | None = None) -> Path:
+              same_file_as: Mapping[str, Iterable[str]] | None = None,
+              derived: Callable[[Path], bool] | None = None) -> Path:
     """Refuse an ``--out`` that breaks the output rule (module docstring); write nothing.
 
     Args:
@@ -278,7 +279,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         if o.exists() or out_p.is_symlink():
             writers = _file_writers(o.parent, o.name)
             kin = {other for other, names in (same_file_as or {}).items() if o.name in set(names)}
-            if not writers & ({stage} | kin):
+            if not writers & ({stage} | kin) and not (derived is not None and o.is_file() and derived(o)):
                 who = f"was written by `{sorted(writers)[0]}`" if writers else f"was not written by `{stage}`"
                 raise OutputFolderError(f"--out {out} exists and {who}: {stage} never replaces a file it did not "
                                         "write; move it away or name a new file (nothing was changed)")
@@ -398,17 +399,24 @@ def _lock(folder: Path, out: PathLike) -> None:
 def release_locks() -> None:
     """Give up every writer's lock this process holds (removing the lock files). Runs at exit
     and when :func:`run_stage` ends."""
-    for key, fd in list(_LOCKS.items()):
-        _LOCKS.pop(key, None)
-        try:
-            if os.fstat(fd).st_ino == os.stat(key / LOCK).st_ino:
-                os.unlink(key / LOCK)
-        except OSError:
-            pass
-        try:
-            os.close(fd)
-        except OSError:
-            pass
+    for key in list(_LOCKS):
+        _unlock(key)
+
+
+def _unlock(key: Path) -> None:
+    """Give up the lock of the folder ``key`` (resolved), removing its lock file if it is ours."""
+    fd = _LOCKS.pop(key, None)
+    if fd is None:
+        return
+    try:
+        if os.fstat(fd).st_ino == os.stat(key / LOCK).st_ino:
+            os.unlink(key / LOCK)
+    except OSError:
+        pass
+    try:
+        os.close(fd)
+    except OSError:
+        pass
 
 
 atexit.register(release_locks)
@@ -441,7 +449,8 @@ def _clear_own(folder: Path, stage: str) -> None:
 
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
                 folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
-                fresh: bool = False, same_file_as: Mapping[str, Iterable[str]] | None = None) -> Path:
+                fresh: bool = False, same_file_as: Mapping[str, Iterable[str]] | None = None,
+                derived: Callable[[Path], bool] | None = None) -> Path:
     """:func:`check_out`, then create a folder ``out``, take its writer's lock and mark it as
     ``stage``'s (a file ``out`` gets its parent folder created and is entered in the folder's
     :data:`LEDGER`). A folder that cannot be written (read-only, no permission) is refused as
@@ -455,7 +464,7 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
         ``out`` as a Path.
     """
     out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
-                      same_file_as=same_file_as)
+                      same_file_as=same_file_as, derived=derived)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
         created = []  # the folders this call creates, deepest first (the parents too)
@@ -465,8 +474,18 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
             probe = probe.parent
         target.mkdir(parents=True, exist_ok=True)
         if folder:
-            _lock(target, out)
-            check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces)
+            try:
+                _lock(target, out)
+                # again under the lock: another writer may have filled the folder meanwhile
+                check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces)
+            except OutputFolderError:
+                _unlock(_resolved(target))
+                for made in created:  # leave no folder this call made
+                    try:
+                        made.rmdir()
+                    except OSError:
+                        break
+                raise
             marker = target / MARKER
             owner, written = _read_marker(target)
             if fresh:

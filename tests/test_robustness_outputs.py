@@ -314,3 +314,19 @@ def test_trainer_image_list_with_a_duplicate_is_one_line(view, tmp_path):
                  "--images", str(tmp_path / "images"), "--image-list", str(lst), "--out", str(tmp_path / "o")])
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "listed twice" in proc.stderr and str(lst) in proc.stderr
+
+
+def test_lpips_convert_keeps_to_the_output_rule(tmp_path):
+    """The weight converter writes two files into a folder: never over its --src, never over
+    a file of that name it did not write (weights that load as such count as its own)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    proc = _run(["-m", "evaluation.metrics.lpips_convert", "--src", str(src), "--out", str(src / "alex.safetensors"),
+                 "--nets", "alex"])
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    user = tmp_path / "cache"
+    user.mkdir()
+    (user / "alex.safetensors").write_bytes(b"the user's file")
+    proc = _run(["-m", "evaluation.metrics.lpips_convert", "--src", str(src), "--out", str(user), "--nets", "alex"])
+    _refused(proc, str(user / "alex.safetensors"), "exists")
+    assert (user / "alex.safetensors").read_bytes() == b"the user's file"

@@ -49,14 +49,19 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if getattr(args, "split", None):
         if args.n is None:
             raise ValueError("--split needs --n (the number of training views)")
-        from camio.split import read_split
+        from camio.outdir import check_name_list
 
-        split = read_split(args.split)  # checked: plain names, none twice
         try:
-            return list(split.train[str(args.n)])
-        except KeyError:
+            data = json.loads(Path(args.split).read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{args.split}: not a split.json (JSON): {exc}") from None
+        train = data.get("train") if isinstance(data, dict) else None
+        if not isinstance(train, dict) or str(args.n) not in train:
             raise ValueError(f"{args.split} has no training list for n = {args.n}; "
-                             f"it has {sorted(split.train)}") from None
+                             f"it has {sorted(train) if isinstance(train, dict) else []}")
+        if not isinstance(train[str(args.n)], list):
+            raise ValueError(f"{args.split}: the training list for n = {args.n} must be a list of names")
+        return check_name_list(train[str(args.n)], args.split)  # plain names, none twice
     if args.image_list:
         return read_image_list(args.image_list)
     if args.names:
