@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Mapping
 
 __all__ = ["MARKER", "LOCK", "LEDGER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs",
-           "run_stage", "typed_line", "release_locks", "check_name", "check_name_list",
+           "run_stage", "typed_line", "release_locks", "check_name", "check_name_list", "finish_outs",
            "Stopped"]
 
 MARKER = ".stage"
@@ -89,6 +89,7 @@ def tidy_outs() -> None:
     the marker, and the folder and its parents where :func:`prepare_out` created them. A failed stage leaves
     nothing behind. Runs at interpreter exit; the CLIs also call it on their error paths."""
     release_locks()
+    _STAGES.clear()  # a failed command records nothing: its marker says the run did not finish
     for out, (entry, created) in list(_PREPARED_FILES.items()):
         _PREPARED_FILES.pop(out, None)
         try:
@@ -231,7 +232,7 @@ def check_name_list(names: Iterable[str], source: PathLike, what: str = "image n
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
               folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
               same_file_as: Mapping[str, Iterable[str]] | None = None,
-              derived: Callable[[Path], bool] | None = None) -> Path:
+              derived: Callable[[Path], bool] | None = None, fresh: bool = False) -> Path:
     """Refuse an ``--out`` that breaks the output rule (module docstring); write nothing.
 
     Args:
@@ -302,7 +303,26 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             if foreign:
                 raise OutputFolderError(f"--out {out} holds {o / foreign[0].rstrip('/')}, which `{stage}` did not "
                                         f"write and would replace: move it away or choose a new folder")
+        if not replaces and not fresh and owner == stage and kind == _FILES:
+            inside = _inside_own(o, paths)
+            if inside:
+                raise OutputFolderError(f"--out {out} holds {o / inside[0].rstrip('/')} inside a folder that `{stage}` "
+                                        "wrote and replaces on a rerun: move it away or choose a new folder")
     return out_p
+
+
+def _inside_own(folder: Path, written: set[str]) -> list[str]:
+    """Entries of ``folder`` the stage did not write that lie inside a folder it did write (a
+    rerun replaces such a folder whole, e.g. ``sparse/0``); entries beside its outputs at the
+    top level are not among them."""
+    out = []
+    for p in _tree(folder):
+        if p in written:
+            continue
+        parts = p.rstrip("/").split("/")
+        if any("/".join(parts[:k]) + "/" in written for k in range(1, len(parts))):
+            out.append(p)
+    return out
 
 
 def _file_writers(folder: Path, name: str) -> set[str]:
@@ -447,6 +467,44 @@ def _clear_own(folder: Path, stage: str) -> None:
     (folder / MARKER).write_text("\n".join([stage, _KEPT, *kept]) + "\n")
 
 
+def _keep_others(folder: Path, stage: str) -> None:
+    """Record as kept (:data:`_KEPT`) what is in ``folder`` that ``stage``'s earlier run did
+    not write, so that :func:`seal_out` records what this run writes, file by file."""
+    owner, kind, paths = _marker(folder)
+    present = _tree(folder)
+    if owner == stage and kind == _FILES:
+        kept = [p for p in present if p not in paths]
+    elif owner == stage and kind == _KEPT:
+        kept = [p for p in present if p in paths]
+    elif owner == stage:
+        kept = []  # an older marker: everything there counts as the stage's
+    else:
+        kept = present  # the workflow's logs/ and benchmarks/
+    (folder / MARKER).write_text("\n".join([stage, _KEPT, *kept]) + "\n")
+
+
+_STAGES: dict[Path, str] = {}
+"""Folders :func:`prepare_out` prepared in this process -> their stage (sealed by
+:func:`finish_outs` when the command succeeds, unless :func:`seal_out` already did)."""
+
+_SEALED: set[Path] = set()
+
+
+def finish_outs() -> None:
+    """Record what each folder prepared in this process received (:func:`seal_out`), for the
+    folders the command did not seal itself. :func:`run_stage` calls it when the command
+    succeeds; a command that failed leaves its marker saying its run did not finish."""
+    for folder, stage in list(_STAGES.items()):
+        _STAGES.pop(folder, None)
+        if folder in _SEALED or not folder.is_dir():
+            continue
+        try:
+            seal_out(folder, stage)
+        except OSError:
+            pass
+    _SEALED.clear()
+
+
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
                 folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
                 fresh: bool = False, same_file_as: Mapping[str, Iterable[str]] | None = None,
@@ -464,7 +522,7 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
         ``out`` as a Path.
     """
     out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
-                      same_file_as=same_file_as, derived=derived)
+                      same_file_as=same_file_as, derived=derived, fresh=fresh)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
         created = []  # the folders this call creates, deepest first (the parents too)
@@ -477,7 +535,8 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
             try:
                 _lock(target, out)
                 # again under the lock: another writer may have filled the folder meanwhile
-                check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces)
+                check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
+                          fresh=fresh)
             except OutputFolderError:
                 _unlock(_resolved(target))
                 for made in created:  # leave no folder this call made
@@ -490,10 +549,13 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
             owner, written = _read_marker(target)
             if fresh:
                 _clear_own(target, stage)
+            elif not replaces:
+                _keep_others(target, stage)
             elif owner != stage:
                 marker.write_text(stage + "\n")
             if owner != stage:
                 _PREPARED[_resolved(target)] = tuple(created)
+            _STAGES[_resolved(target)] = stage
         else:
             if not os.access(target, os.W_OK | os.X_OK):
                 raise PermissionError(errno.EACCES, "Permission denied", str(target))
@@ -513,6 +575,7 @@ def seal_out(out: PathLike, stage: str) -> Path:
     kept = paths if (owner == stage and kind == _KEPT) else set()
     names = [p for p in _tree(out_p) if p not in kept]
     (out_p / MARKER).write_text("\n".join([stage, _FILES, *names]) + "\n")
+    _SEALED.add(_resolved(out_p))
     return out_p
 
 
@@ -541,7 +604,10 @@ def run_stage(log: logging.Logger, work: Callable[[], int | None], *,
     """
     previous = _catch_signals()
     try:
-        return int(work() or 0)
+        rc = int(work() or 0)
+        if rc == 0:
+            finish_outs()
+        return rc
     except OutputFolderError as exc:
         tidy_outs()
         log.error("%s", exc)

@@ -330,3 +330,22 @@ def test_lpips_convert_keeps_to_the_output_rule(tmp_path):
     proc = _run(["-m", "evaluation.metrics.lpips_convert", "--src", str(src), "--out", str(user), "--nets", "alex"])
     _refused(proc, str(user / "alex.safetensors"), "exists")
     assert (user / "alex.safetensors").read_bytes() == b"the user's file"
+
+
+def test_a_stage_rerun_refuses_a_foreign_file_inside_a_folder_it_wrote(synth, tmp_path):
+    """Every stage records what it wrote (the marker's ``#files``); a rerun that would replace
+    one of its folders whole (``sparse/0``) refuses while a user's file lies inside it, and a
+    file beside its outputs at the top level stays through the rerun."""
+    out = tmp_path / "posed"
+    args = ["-m", "evaluation.initialisers.posed", "--scene", str(synth), "--names", "0001.png", "0002.png",
+            "0003.png", "--out", str(out)]
+    assert _run(args).returncode == 0
+    written = (out / MARKER).read_text().splitlines()
+    assert written[:2] == ["evaluation.posed", "#files"] and "sparse/0/cameras.txt" in written
+    (out / "notes.txt").write_text("beside")
+    proc = _run(args)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "notes.txt").read_text() == "beside" and "notes.txt" not in (out / MARKER).read_text()
+    (out / "sparse" / "0" / "mine.txt").write_text("inside")
+    _refused(_run(args), str(out / "sparse" / "0" / "mine.txt"), "inside a folder")
+    assert (out / "sparse" / "0" / "mine.txt").read_text() == "inside"
