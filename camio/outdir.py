@@ -17,18 +17,26 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   records in the marker every file and folder it wrote, in every subfolder
   (:func:`seal_out`); a rerun refuses a folder that holds anything else (a user's file in
   ``images/``, a ``sparse/1/`` model), so a file the stage did not write is never deleted.
+* Every stage records in the marker what it wrote when it succeeds (:func:`finish_outs`,
+  called by :func:`run_stage`); a rerun refuses while a foreign entry lies inside a folder
+  the stage wrote (it would replace that folder whole, e.g. ``sparse/0``), and keeps what
+  lies beside its outputs.
 * A stage that writes a folder of results beside whatever else is there (``fresh=True``:
-  ``splat_train render``, ``splat_train testpose``) first removes, file by file, what its
-  own earlier run wrote (recorded in the marker; after a run that did not finish, everything
+  ``splat_train render``, ``splat_train testpose``, the COLMAP baseline) first removes,
+  file by file, what its own earlier run wrote (recorded in the marker; after a run that did not finish, everything
   but what was there before it), so the folder never mixes two runs; anything else stays.
 * A file ``--out`` that exists is replaced only if this command (or, for the file names
-  given in ``same_file_as``, another stage: ``split.json`` of ``camio convert``) wrote it: the folder's
-  ledger :data:`LEDGER` (or a replacing stage's marker) records who wrote which file. A
-  photo, a camera file or a split the user made is refused, never overwritten.
+  given in ``same_file_as``, another stage: ``split.json`` of ``camio convert``) wrote it:
+  the folder's ledger :data:`LEDGER` (or a replacing stage's marker) records who wrote
+  which file. A photo, a camera file or a split the user made is refused, never overwritten.
 * One writer per output folder: :func:`prepare_out` takes an exclusive lock
   (:data:`LOCK`, ``flock``, holding the writer's pid) for the life of the command. A
   second command on the same folder is refused with one line naming the holder's pid; the
   lock of a killed process is released by the kernel, so it is taken over (with a log line).
+* SIGTERM and SIGHUP end a command through :class:`Stopped` (:func:`run_stage`), so every
+  ``finally`` runs and no temporary file or folder is left; exit code 128 + the signal.
+* A name read from a file (a split, an image list) is a plain file name, listed once
+  (:func:`check_name`, :func:`check_name_list`).
 
 Every refusal is an :class:`OutputFolderError` (a ``ValueError``), one line naming both
 paths; the stage CLIs print it and exit with code 2 (:func:`run_stage`, the ending they share).
