@@ -199,8 +199,9 @@ def _foreign(folder: Path, written: set[str], skip_workflow: bool) -> list[str]:
 
 def check_name(name: str, what: str, source: PathLike) -> str:
     """Refuse a file name read from a file (a split, an image list) that is not a plain name
-    in one folder: empty, absolute, with a ``/`` or ``\\`` separator, ``.`` or ``..``, a NUL
-    or a line break. Such a name would make a command read or write outside its folders.
+    in one folder: empty, absolute, with a ``/`` or ``\\`` separator, ``.`` or ``..``, a NUL,
+    a line break, or characters that are not UTF-8. Such a name would make a command read or
+    write outside its folders (or fail in a writer that needs text).
 
     Returns:
         ``name`` unchanged.
@@ -209,11 +210,19 @@ def check_name(name: str, what: str, source: PathLike) -> str:
         ValueError: one line naming ``source`` and the name.
     """
     bad = (not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name
-           or any(c in name for c in "\0\n\r"))
+           or any(c in name for c in "\0\n\r") or not _utf8(name))
     if bad:
-        raise ValueError(f"{source}: the {what} {name!r} is not a plain file name (no folders, '..' or "
-                         "separators): fix the file")
+        raise ValueError(f"{source}: the {what} {name!r} is not a plain file name (no folders, '..', "
+                         "separators or non-UTF-8 bytes): fix the file")
     return name
+
+
+def _utf8(name: str) -> bool:
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # lone surrogates: bytes that were not UTF-8
+        return False
+    return True
 
 
 def check_name_list(names: Iterable[str], source: PathLike, what: str = "image name") -> list[str]:

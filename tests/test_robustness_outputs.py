@@ -295,7 +295,8 @@ def test_a_stopped_command_leaves_no_temporary_folder(tmp_path, sig):
 
 # --- names read from files ---------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["../x.png", "/abs.png", "a/b.png", "a\\b.png", "..", ".", "", "x\0.png", "a\nb"])
+@pytest.mark.parametrize("name", ["../x.png", "/abs.png", "a/b.png", "a\\b.png", "..", ".", "", "x\0.png", "a\nb",
+                                  "bad\udcff.png"])
 def test_a_name_that_is_not_a_plain_file_name_is_refused(name):
     with pytest.raises(ValueError, match="not a plain file name"):
         check_name(name, "image name", "list.txt")

@@ -65,7 +65,9 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if args.image_list:
         return read_image_list(args.image_list)
     if args.names:
-        return list(args.names)
+        from camio.outdir import check_name_list
+
+        return check_name_list(args.names, "--names")
     if hasattr(args, "split"):
         raise ValueError("give the training images: --split JSON --n N, --image-list FILE or --names NAME ...")
     raise ValueError("give the training images: --image-list FILE or --names NAME ...")
