@@ -73,3 +73,15 @@ def test_make_targets_use_the_clones_own_venv():
     assert "pip install" in install and "$BASE_PY -m pip" not in install
     dry = subprocess.run(["make", "-n", "test"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert dry.returncode == 0 and ".venv/bin/python -m pytest -q" in dry.stdout
+
+
+def test_readme_python_example_runs(tmp_path):
+    """The README's Python API example runs as written (into ``work/`` of its working folder)."""
+    block = README[README.index("```python") + len("```python"):]
+    block = block[: block.index("```")]
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", block], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert re.search(r"^\d+ seed points -> \d+ Gaussians: work/api/train/model.ply$", proc.stdout, re.M), proc.stdout
+    assert (tmp_path / "work" / "api" / "train" / "train.json").is_file()
