@@ -2,13 +2,14 @@
 (through the session fixture ``workflow_run`` of tests/conftest.py).
 
 The config is the CI config (.test/config.yaml: a 16-view, 128-px synthetic scene, the tiny VGGT
-fixture model, 30 iterations) with every initialiser a test follows through the DAG:
+fixture model, 30 iterations) with a second dataset for the initialisers that need reference
+cameras, so that each test's runs are made once and nothing more is run than the tests read:
 
-* ``ci/tiny`` (synthetic): vggt, colmap, oracle and random at n = 3 and 6
-  (tests/test_workflow_run.py, tests/test_workflow_random.py);
+* ``ci/tiny`` (synthetic): vggt, colmap and oracle at n = 3 and 6 (tests/test_workflow_run.py);
 * ``real/posedscene`` (a converted posed scene: images and reference cameras, no ground-truth
-  depth) and ``real/photos`` (a bare photo folder): posed and oracle at n = 3, where the oracle
-  cannot run on either and posed not on the photos (tests/test_workflow_posed.py).
+  depth): posed, random and oracle at n = 3, where the oracle cannot run
+  (tests/test_workflow_posed.py, tests/test_workflow_random.py);
+* ``real/photos`` (a bare photo folder): posed and oracle, neither of which can run there.
 
 Its default target runs everything: initialisers, Bridges, training, evaluation, tables, the
 report. A test that needs a DAG of its own (a kill, a different scene) runs it itself.
@@ -81,10 +82,9 @@ def shared_config(root: Path) -> dict:
     cfg["results"] = "results"
     cfg["vggt"]["checkpoint"] = str(FIXTURE / "weights.safetensors")
     cfg["vggt"]["model_config"] = str(FIXTURE / "config.json")
-    cfg["initialisers"] = ["vggt", "colmap", "oracle", "random"]
     cfg["random"] = dict(RANDOM)
     cfg["datasets"]["real"] = {"scenes": {
-        "posedscene": {"path": str(src), "views": [3], "initialisers": ["posed", "oracle"]},
+        "posedscene": {"path": str(src), "views": [3], "initialisers": ["posed", "random", "oracle"]},
         "photos": {"path": str(photos), "format": "folder", "views": [3], "initialisers": ["posed", "oracle"]},
     }}
     return cfg

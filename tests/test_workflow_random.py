@@ -1,7 +1,8 @@
-"""The random-point initialiser through the DAG on the synthetic scene: planned like the other
-initialisers (uniform Bridge mode only), seeded from random points for the reference cameras,
-trained and scored, and in the tables; and posed's random-point fallback on a scene where
-triangulation finds no point, seeding the Bridge from the fallback's model."""
+"""The random-point initialiser through the DAG: planned like the other initialisers (uniform
+Bridge mode only) on a synthetic scene; seeded from random points for a posed scene's reference
+cameras, trained and scored, and in the tables (the shared end-to-end run); and posed's
+random-point fallback on a scene where triangulation finds no point, seeding the Bridge from the
+fallback's model."""
 
 from __future__ import annotations
 
@@ -50,9 +51,10 @@ def test_random_initialiser_is_planned_like_the_others(tmp_path):
 
 @pytest.mark.slow
 def test_random_initialiser_runs_through_the_dag(workflow_run):
-    """The shared end-to-end run (tests/_workflow_run.py): seeded from random points for the
-    reference cameras, uniform mode only (gated configured), trained, scored and tabled."""
-    run = workflow_run.results / "ci" / "tiny" / "n3" / "random"
+    """The shared end-to-end run (tests/_workflow_run.py), on its posed scene: seeded from
+    random points for the reference cameras, uniform mode only (gated configured), trained,
+    scored and tabled."""
+    run = workflow_run.results / "real" / "posedscene" / "n3" / "random"
     status = json.loads((run / "status.json").read_text())
     assert status["success_paper"] and status["points"] == RANDOM["points"] and status["registered"] == 3
     assert status["seed"] == RANDOM["seed"] and status["random"]["n_points"] == RANDOM["points"]
