@@ -207,4 +207,6 @@ def skipped_initialisers_json(wildcards=None):
 def init_modes(init):
     """Bridge modes of an initialiser: the configured ones where it has a confidence (the
     registry's ``confidence``), else uniform only (COLMAP, posed, random points)."""
-    return config["bridge"]["modes"] if initialisers.get(init).confidence else ["uniform"]
+    return (
+        config["bridge"]["modes"] if initialisers.get(init).confidence else ["uniform"]
+    )
