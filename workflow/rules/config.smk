@@ -41,9 +41,12 @@ elif workflow.non_local_exec or workflow.remote_exec:
 else:
     COLMAP_THREADS = max(1, int(workflow.resource_settings.cores or 1))
 
-# The workflow's own helper script, found from the workflow (any working directory works).
+# The workflow's own helper scripts, found from the workflow (any working directory works).
 VIEWS_SCRIPT = str(
     (Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve()
+)
+PHOTOS_SCRIPT = str(
+    (Path(str(workflow.current_basedir)) / "../scripts/photos_summary.py").resolve()
 )
 
 
