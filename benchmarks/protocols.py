@@ -178,9 +178,9 @@ def run(folder: Path, out: Path, device: str = "cuda", iterations: int | None = 
         row: dict = {}
         report["cells"][init] = row
         try:
-            train = [sys.executable, "-m", "splat_train", "--seed", str(cell / "bridge" / "seed.ply"),
+            train = [sys.executable, "-m", "splat_train", "--init", str(cell / "bridge" / "seed.ply"),
                      "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(folder / "images"),
-                     "--image-list", str(folder / "train.txt"), "--out", str(work / "train"), "--seed-rng", "0",
+                     "--image-list", str(folder / "train.txt"), "--out", str(work / "train"), "--seed", "0",
                      "--device", device, "--test-cameras", str(cell / "align" / "sparse" / "0"),
                      "--test-images", str(folder / "test_images"), "--no-eval-lpips"]
             if iterations is not None:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import sys
 import webbrowser
 
+from camio.cliargs import deprecated_flags
 from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT
 
 log = logging.getLogger("splat_train.view")
@@ -21,15 +23,17 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="the trained model.ply (3DGS layout)")
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
-    p.add_argument("--seed", help="the seed PLY, to toggle against the trained model")
+    p.add_argument("--init", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 
 def main(argv: list[str]) -> int:
-    args = parser().parse_args(argv)
+    args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--init", None)}))
     from pathlib import Path
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
@@ -37,14 +41,26 @@ def main(argv: list[str]) -> int:
     try:
         check_installed()
     except ViewerNotInstalled as e:
-        print(f"splat_train view: {e}", file=sys.stderr)
+        print(f"python -m splat_train view: error: {e}", file=sys.stderr)
         return 2
-    for label, path in (("--model", args.model), ("--seed", args.seed)):
+    for label, path in (("--model", args.model), ("--init", args.init)):
         if path is not None and not Path(path).is_file():
-            print(f"splat_train view: {label} {path}: no such file", file=sys.stderr)
+            print(f"python -m splat_train view: error: {label} {path}: no such file", file=sys.stderr)
             return 2
+    from camio.logs import setup_logging
+
+    setup_logging(args.verbose, args.quiet)
     blob = cameras_json(args.cameras, args.test_cameras)
-    srv = make_server(build_routes(args.model, args.seed, blob), args.host, args.port)
+    try:
+        srv = make_server(build_routes(args.model, args.init, blob), args.host, args.port)
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "
+                  "(another viewer?); pass --port 0 to pick a free one", file=sys.stderr)
+        else:
+            print(f"python -m splat_train view: error: cannot serve on {args.host}:{args.port}: {e}",
+                  file=sys.stderr)
+        return 2
     url = f"http://{args.host}:{srv.server_port}/"
     print(f"[view] serving {args.model} at {url} (Ctrl-C stops)", flush=True)
     if not args.no_browser:
