@@ -47,7 +47,7 @@ def train_argv(res: Path, out: Path, cfg: dict, device: str) -> list[str]:
     """``python -m splat_train`` as the train_splats rule runs it for :data:`CELL` (the keys
     the rule passes, from the CPU run's train.json ``config``), on ``device``."""
     cell, scene = res / CELL, res / SCENE
-    return [sys.executable, "-m", "splat_train", "--init", str(cell / "bridge" / "seed.ply"),
+    return [sys.executable, "-m", "splat_train", "--seed-ply", str(cell / "bridge" / "seed.ply"),
             "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(scene / "synth" / "images"),
             "--image-list", str(scene / "n3" / "train.txt"), "--out", str(out), "--iterations", str(cfg["iterations"]),
             "--recipe", cfg["recipe"], "--seed", str(cfg["seed"]), "--eval-every", str(cfg["eval_every"]),

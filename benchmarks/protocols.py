@@ -178,7 +178,7 @@ def run(folder: Path, out: Path, device: str = "cuda", iterations: int | None = 
         row: dict = {}
         report["cells"][init] = row
         try:
-            train = [sys.executable, "-m", "splat_train", "--init", str(cell / "bridge" / "seed.ply"),
+            train = [sys.executable, "-m", "splat_train", "--seed-ply", str(cell / "bridge" / "seed.ply"),
                      "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(folder / "images"),
                      "--image-list", str(folder / "train.txt"), "--out", str(work / "train"), "--seed", "0",
                      "--device", device, "--test-cameras", str(cell / "align" / "sparse" / "0"),

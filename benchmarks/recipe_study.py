@@ -110,7 +110,7 @@ def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterati
     if not (out / "train.json").is_file():
         special = {"ITERATIONS": iterations, "RESET_30": max(1, round(0.3 * iterations))}
         cfg = {k: special.get(v, v) if isinstance(v, str) else v for k, v in VARIANTS[variant].items()}
-        sh(["-m", "splat_train", "--init", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
+        sh(["-m", "splat_train", "--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
             "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
             "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),

@@ -1,7 +1,7 @@
 """Flag spellings shared by every command line: old spellings kept for one release.
 
 One meaning per flag name across the project's CLIs (tests/test_cli_flags.py checks it):
-``--seed`` is always an integer random seed, ``--init`` a seed point cloud (PLY), ``-v``/``-q``
+``--seed`` is always an integer random seed, ``--seed-ply`` a seed point cloud (PLY file), ``-v``/``-q``
 more / less log output after the subcommand. :func:`deprecated_flags` rewrites an old spelling
 to the new one with a one-line deprecation message, before argparse sees the arguments.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
-__all__ = ["deprecated_flags", "is_int"]
+__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command"]
 
 
 def is_int(text: str) -> bool:
@@ -49,7 +49,7 @@ def deprecated_flags(argv: list[str], prog: str,
             if test is None or test(value):
                 if flag not in told:
                     told.add(flag)
-                    print(f"{prog}: warning: {flag} {'<file>' if test else value} is deprecated and will be "
+                    print(f"{prog}: warning: {flag} {value} is deprecated and will be "
                           f"removed in the next release; use {new}", file=sys.stderr)
                 out += [new, value]
                 i += 1 if eq else 2
@@ -57,3 +57,22 @@ def deprecated_flags(argv: list[str], prog: str,
         out.append(arg)
         i += 1
     return out
+
+
+def add_log_flags(p, subcommand: bool = False) -> None:
+    """``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet`` on a parser. On a subcommand's
+    parser (``subcommand=True``) they default to nothing, so that the flags work before the
+    subcommand (the main parser's) and after it alike."""
+    import argparse
+
+    kw = {"default": argparse.SUPPRESS} if subcommand else {}
+    p.add_argument("-v", "--verbose", action="count", help="more log output (repeatable)",
+                   **(kw or {"default": 0}))
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only", **kw)
+
+
+def not_a_command(module: str, instead: str) -> int:
+    """What a library module beside the commands does when run as one: one line naming the
+    command to use instead, exit code 2 (``python -m MODULE`` used to print nothing and exit 0)."""
+    print(f"python -m {module}: error: this module is a library, not a command; use {instead}", file=sys.stderr)
+    return 2

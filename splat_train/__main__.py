@@ -2,7 +2,7 @@
 
 Train::
 
-    python -m splat_train --init seed.ply --cameras DIR --images DIR --out DIR
+    python -m splat_train --seed-ply seed.ply --cameras DIR --images DIR --out DIR
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed INT] [--checkpoint-every K]
@@ -11,7 +11,7 @@ Train::
 
 Look at a trained model in the browser (splat_train/view)::
 
-    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--init seed.ply]
+    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed-ply seed.ply]
         [--port P] [--host 127.0.0.1] [--no-browser]
 
 Render a trained model into any camera set::
@@ -40,8 +40,8 @@ from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES
 log = logging.getLogger("splat_train")
 
 # Old spellings, kept for one release: --seed naming the seed PLY (a value that is not an
-# integer) is now --init; --seed-rng is now --seed.
-_OLD_TRAIN_FLAGS = {"--seed": ("--init", lambda v: not is_int(v)), "--seed-rng": ("--seed", None)}
+# integer) is now --seed-ply; --seed-rng is now --seed.
+_OLD_TRAIN_FLAGS = {"--seed": ("--seed-ply", lambda v: not is_int(v)), "--seed-rng": ("--seed", None)}
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -50,7 +50,7 @@ def _train_parser() -> argparse.ArgumentParser:
                                             "(resumes from OUT/ckpt automatically). "
                                             "`python -m splat_train render -h` renders a trained model, "
                                             "`python -m splat_train view -h` shows one in the browser.")
-    p.add_argument("--init", required=True, help="the seed point cloud to start from: a PLY in the 3DGS layout, "
+    p.add_argument("--seed-ply", dest="seed_ply", required=True, help="the seed point cloud to start from: a PLY in the 3DGS layout, "
                    "e.g. the Bridge's seed.ply")
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
@@ -62,7 +62,7 @@ def _train_parser() -> argparse.ArgumentParser:
                         "depth prior and a growth cap sized to the training pixels; 'paper' is the paper's "
                         "3DGS schedule (splat_train.recipes)")
     p.add_argument("--depth-prior", dest="depth_prior",
-                   help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --init, if any)")
+                   help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed-ply, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args = _train_parser().parse_args(deprecated_flags(argv, "python -m splat_train", _OLD_TRAIN_FLAGS))
     setup_logging(args.verbose, args.quiet)
-    if not _out_ok(args.out, {"--init": args.init, "--cameras": args.cameras, "--images": args.images,
+    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
                               "--test-cameras": args.test_cameras, "--test-images": args.test_images,
                               "--image-list": args.image_list, "--test-image-list": args.test_image_list,
                               "--resume-dir": args.resume_dir}, "splat_train"):
@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     from splat_train.config import load_config
     from splat_train.trainer import train
 
-    for warning in check_seed_cloud(read_gaussian_ply(args.init), args.init):
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
         log.warning("degenerate seed: %s", warning)
 
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed,
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.images import ImageReadError
 
     try:
-        result = train(args.init, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
+        result = train(args.seed_ply, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                        test_images=args.test_images, image_list=args.image_list,
                        test_image_list=args.test_image_list, resume_dir=args.resume_dir,
                        depth_prior=args.depth_prior)

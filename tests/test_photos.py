@@ -92,7 +92,7 @@ def test_photo_folder_to_a_viewable_model(tmp_path, photos):
     from splat_train.view.cli import parser
 
     parsed = parser().parse_args(argv[4:])
-    for path in (parsed.model, parsed.cameras, parsed.init):
+    for path in (parsed.model, parsed.cameras, parsed.seed_ply):
         assert Path(path).exists(), path
 
     again = _photos(tmp_path, *args)  # the same command again resumes: nothing to do

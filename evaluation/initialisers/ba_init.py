@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.cliargs import add_log_flags
 from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.metrics.pose import paper_success
@@ -207,9 +208,9 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"fewer triangulated points fall back (default {DEFAULT_MIN_POINTS})")
     p.add_argument("--seed", type=int, default=0, help="pycolmap's random seed")
     p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
     from camio.outdir import prepare_out, run_stage
 

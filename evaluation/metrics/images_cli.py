@@ -37,6 +37,7 @@ from typing import Sequence
 
 import torch
 
+from camio.cliargs import add_log_flags
 from camio.atomic import write_json
 from camio.images import list_images, read_image
 from camio.logs import progress, setup_logging, timed
@@ -206,9 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     """Standalone entry point (``python -m evaluation.metrics.images_cli``)."""
     p = argparse.ArgumentParser(prog="python -m evaluation.metrics.images_cli", description=__doc__.split("\n\n")[0])
     _configure(p)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     return _run(args)
 
 

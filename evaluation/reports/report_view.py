@@ -31,7 +31,7 @@ def view_command(model: Path, port: int) -> list[str]:
             cmd += ["--test-cameras", str(test)]
             break
     if (mode / "bridge" / "seed.ply").is_file():
-        cmd += ["--init", str(mode / "bridge" / "seed.ply")]
+        cmd += ["--seed-ply", str(mode / "bridge" / "seed.ply")]
     return cmd + ["--port", str(port)]
 
 

@@ -23,7 +23,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="the trained model.ply (3DGS layout)")
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
-    p.add_argument("--init", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
+    p.add_argument("--seed-ply", dest="seed_ply", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
@@ -33,7 +33,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> int:
-    args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--init", None)}))
+    args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--seed-ply", None)}))
     from pathlib import Path
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
     except ViewerNotInstalled as e:
         print(f"python -m splat_train view: error: {e}", file=sys.stderr)
         return 2
-    for label, path in (("--model", args.model), ("--init", args.init)):
+    for label, path in (("--model", args.model), ("--seed-ply", args.seed_ply)):
         if path is not None and not Path(path).is_file():
             print(f"python -m splat_train view: error: {label} {path}: no such file", file=sys.stderr)
             return 2
@@ -52,7 +52,7 @@ def main(argv: list[str]) -> int:
     setup_logging(args.verbose, args.quiet)
     blob = cameras_json(args.cameras, args.test_cameras)
     try:
-        srv = make_server(build_routes(args.model, args.init, blob), args.host, args.port)
+        srv = make_server(build_routes(args.model, args.seed_ply, blob), args.host, args.port)
     except OSError as e:
         if e.errno == errno.EADDRINUSE:
             print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "

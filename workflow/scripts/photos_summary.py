@@ -63,7 +63,7 @@ def summary(results: str | Path, runs: list[dict]) -> str:
                     lines.append(f"- {mode}: no trained model (see {m / 'logs'})")
                     continue
                 view = ["python", "-m", "splat_train", "view", "--model", str(model),
-                        "--cameras", str(m / "bridge" / "sparse" / "0"), "--init", str(m / "bridge" / "seed.ply")]
+                        "--cameras", str(m / "bridge" / "sparse" / "0"), "--seed-ply", str(m / "bridge" / "seed.ply")]
                 lines += [
                     f"- seed ({mode} Bridge): {m / 'bridge' / 'seed.ply'}",
                     f"- cameras in the model's frame: {m / 'bridge' / 'sparse' / '0'}",
