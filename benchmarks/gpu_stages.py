@@ -143,7 +143,9 @@ def vggt_cli(folder: Path, device: str = "cuda") -> dict:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     pp = sub.add_parser("prepare", help="run the cell with snakemake here and keep what the GPU needs")
     pp.add_argument("dest", type=Path)

@@ -179,7 +179,9 @@ def table(summary: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--scene", choices=["synthetic", *REAL], required=True)
     p.add_argument("--n", type=int, default=3)
     p.add_argument("--init", choices=["posed", "colmap", "oracle"], required=True)

@@ -13,14 +13,14 @@ import logging
 import sys
 from pathlib import Path
 
-from camio.cliargs import add_log_flags
+from camio.cliargs import add_log_flags, plain
 from camio.logs import setup_logging, timed
 
 log = logging.getLogger("camio")
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m camio", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m camio", description=plain(__doc__).split("\n")[0])
     add_log_flags(p)
     sub = p.add_subparsers(dest="command", required=True)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
-__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command"]
+__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command", "plain"]
 
 
 def is_int(text: str) -> bool:
@@ -76,3 +76,14 @@ def not_a_command(module: str, instead: str) -> int:
     command to use instead, exit code 2 (``python -m MODULE`` used to print nothing and exit 0)."""
     print(f"python -m {module}: error: this module is a library, not a command; use {instead}", file=sys.stderr)
     return 2
+
+
+def plain(text: str | None) -> str | None:
+    """``text`` (a docstring used as a --help description) without reStructuredText markup:
+    ``:mod:`x``` and double back-ticks become the bare name."""
+    import re
+
+    if text is None:
+        return None
+    text = re.sub(r":[a-z]+:`~?([^`]*)`", r"\1", text)
+    return re.sub(r"``([^`]*)``", r"\1", text)

@@ -18,7 +18,7 @@ import argparse
 import logging
 import sys
 
-from camio.cliargs import add_log_flags
+from camio.cliargs import add_log_flags, plain
 from camio.logs import setup_logging
 
 log = logging.getLogger("evaluation")
@@ -176,7 +176,7 @@ def _add_images(sub, wanted: bool) -> None:
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m evaluation", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m evaluation", description=plain(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_log_flags(parser)
     sub = parser.add_subparsers(dest="command", required=True)

@@ -130,6 +130,23 @@ def test_one_error_prefix_style(monkeypatch):
             assert parser.prog.startswith(f"python -m {package}"), (where, parser.prog)
 
 
+def test_help_texts_are_plain_words(monkeypatch):
+    """No reStructuredText markup (a :mod: role, double back-ticks) in any --help."""
+    import re
+
+    def walk(parser, where):
+        yield where, parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    yield from walk(sub, f"{where} {name}")
+
+    for where, parser in _parsers(monkeypatch).items():
+        for leaf, p in walk(parser, where):
+            markup = re.findall(r":[a-z]+:`[^`]*`|``[^`]*``", p.format_help())
+            assert not markup, (leaf, markup[:3])
+
+
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=120, cwd=ROOT)
 
@@ -162,3 +179,10 @@ def test_library_modules_are_not_commands(module, args):
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.startswith(f"python -m evaluation.initialisers.{module}: error: this module is a library")
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_a_failing_step_never_logs_done(tmp_path):
+    (tmp_path / "src").mkdir()
+    proc = _run("-m", "camio", "convert", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 2
+    assert "convert failed after" in proc.stderr and " done" not in proc.stderr, proc.stderr

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.cliargs import add_log_flags
+from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
@@ -329,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         return 0
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.random_init",
-                                description=__doc__.split("\n\n")[0])
+                                description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--cameras", required=True, help="COLMAP model with a camera per training view "
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
