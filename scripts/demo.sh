@@ -40,7 +40,8 @@ heartbeat &
 HB=$!
 trap 'kill "$HB" 2>/dev/null' EXIT
 
-if python3 -m snakemake --cores 2 --keep-going "$@"; then
+# snakemake's progress total grows after the COLMAP checkpoint: progress.py says so in a line
+if python3 -m snakemake --cores 2 --keep-going "$@" 2>&1 | python3 workflow/scripts/progress.py --prefix "[demo]"; then
   skipped=$(python3 -c "import sys; from evaluation.reports.run_status import read_skipped; print(', '.join(read_skipped(sys.argv[1])))" "$RESULTS")
   if [ -n "$skipped" ]; then
     echo "[demo] done WITHOUT $skipped (skipped, see $RESULTS/skipped.json): $RESULTS/tables/tables.md and $RESULTS/report/index.html"

@@ -148,7 +148,13 @@ def main(argv: list[str] | None = None) -> int:
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
            "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), *(["-n"] if args.dry_run else []),
            *extra]
-    rc = subprocess.call(cmd)
+    from progress import annotate  # says when the progress total grows after the COLMAP checkpoint
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    for line in annotate(proc.stdout, "[photos]"):
+        sys.stdout.write(line)
+        sys.stdout.flush()
+    rc = proc.wait()
     if rc != 0:
         print(f"[photos] FAILED (snakemake exit {rc}): see the output above and the logs under {out}",
               file=sys.stderr)

@@ -186,3 +186,25 @@ def test_a_failing_step_never_logs_done(tmp_path):
     proc = _run("-m", "camio", "convert", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "out"))
     assert proc.returncode == 2
     assert "convert failed after" in proc.stderr and " done" not in proc.stderr, proc.stderr
+
+
+def test_viewer_on_a_busy_port_names_it_and_suggests_port_0(tmp_path):
+    import socket
+
+    from splat_train.view.server import ViewerNotInstalled, check_installed
+
+    try:
+        check_installed()
+    except ViewerNotInstalled:
+        pytest.skip("the viewer's browser files are not installed (make install)")
+    (tmp_path / "model.ply").write_bytes(b"ply\n")
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        proc = _run("-m", "splat_train", "view", "--model", str(tmp_path / "model.ply"), "--port", str(port),
+                    "--no-browser")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip().splitlines() == [
+        f"python -m splat_train view: error: port {port} on 127.0.0.1 is already in use (another viewer?); "
+        "pass --port 0 to pick a free one"]
