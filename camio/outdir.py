@@ -50,6 +50,9 @@ whole (which would delete them) still refuses it."""
 PathLike = str | os.PathLike
 
 
+_FILE_PARENTS: list[tuple[Path, ...]] = []
+"""The folders :func:`prepare_out` created for a file ``out`` (deepest first)."""
+
 _PREPARED: dict[Path, tuple[Path, ...]] = {}
 """Folders :func:`prepare_out` marked in this process -> the folders it created for them
 (the folder and its new parents, deepest first; empty when the folder was there)."""
@@ -69,6 +72,13 @@ def tidy_outs() -> None:
                     made.rmdir()
         except OSError:
             pass
+    for made in _FILE_PARENTS:  # parents made for a file --out: removed while still empty
+        for folder in made:
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+    _FILE_PARENTS.clear()
 
 
 atexit.register(tidy_outs)
@@ -185,8 +195,11 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
             if owner != stage:
                 marker.write_text(stage + "\n")
                 _PREPARED[_resolved(target)] = tuple(created)
-        elif not os.access(target, os.W_OK | os.X_OK):
-            raise PermissionError(errno.EACCES, "Permission denied", str(target))
+        else:
+            if created:
+                _FILE_PARENTS.append(tuple(created))
+            if not os.access(target, os.W_OK | os.X_OK):
+                raise PermissionError(errno.EACCES, "Permission denied", str(target))
     except OSError as exc:
         raise OutputFolderError(f"cannot write --out {out}: {exc.strerror or exc} ({exc.filename or target}); "
                                 "choose a writable folder") from exc

@@ -81,13 +81,13 @@ rule testpose_metrics:
 rule unavailable_initialisers:
     output:
         f"{R}/skipped.json",
+    log:
+        f"{R}/logs/unavailable_initialisers.log",
     localrule: True
     params:
         skipped=unavailable_json,
     run:
-        from camio.atomic import write_json
-
-        write_json(output[0], json.loads(params.skipped))
+        write_skipped_file(output[0], log[0], params.skipped)
 
 
 rule tables:

@@ -46,6 +46,8 @@ rule photos_summary:
         cpus_per_task=cpus_per_task,
     params:
         script=PHOTOS_SCRIPT,
+        results=folder_of_output,
         runs=photo_runs_json,
     shell:
-        "python {params.script} --results {R:q} --runs {params.runs:q} --out {output} > {log} 2>&1"
+        "python {params.script} --results {params.results:q} --runs {params.runs:q} --out {output} "
+        "> {log} 2>&1"

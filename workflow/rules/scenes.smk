@@ -229,9 +229,22 @@ def unavailable_inits():
 
 
 def unavailable_json(wildcards=None):
-    """:func:`unavailable_inits` as a JSON string (a rule parameter: a change reruns the
+    """:func:`unavailable_inits` as a JSON string (a rule parameter; a change reruns the
     tables and the report)."""
     return json.dumps(unavailable_inits(), sort_keys=True)
+
+
+def write_skipped_file(out, log_file, skipped_json):
+    """R/skipped.json ({initialiser: reason}; {} when all can run) and a line per entry in the log."""
+    from camio.atomic import write_json
+
+    skipped = json.loads(skipped_json)
+    write_json(out, skipped)
+    Path(log_file).parent.mkdir(parents=True, exist_ok=True)
+    Path(log_file).write_text(
+        "".join(f"{i} skipped: {why}\n" for i, why in skipped.items())
+        or "every configured initialiser can run\n"
+    )
 
 
 def scene_inits(dataset, scene):
@@ -282,8 +295,3 @@ def init_modes(init):
         if init in ("colmap", "posed", "posed_ba", "random")
         else config["bridge"]["modes"]
     )
-
-
-# Asked when the workflow is read, so that the one line saying VGGT is skipped (or the error)
-# comes before any job, in a dry run too.
-unavailable_inits()
