@@ -39,7 +39,7 @@ DATASET = "photos"
 
 
 def _fail(msg: str) -> int:
-    print(f"photos: error: {msg}", file=sys.stderr)
+    print(f"scripts/photos.py: error: {msg}", file=sys.stderr)
     return 2
 
 

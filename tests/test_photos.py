@@ -48,7 +48,7 @@ def _photos(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
 
 def test_bad_folder_is_one_line(tmp_path):
     proc = _photos(tmp_path, str(tmp_path / "nothing"))
-    assert proc.returncode == 2 and proc.stderr.startswith("photos: error:"), proc.stderr
+    assert proc.returncode == 2 and proc.stderr.startswith("scripts/photos.py: error:"), proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
 

@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         runs = json.loads(args.runs)
     except ValueError as exc:
-        print(f"photos_summary: error: --runs is not JSON: {exc}", file=sys.stderr)
+        print(f"workflow/scripts/photos_summary.py: error: --runs is not JSON: {exc}", file=sys.stderr)
         return 2
     text = summary(args.results, runs)
     with atomic_path(args.out) as tmp:
