@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="command", required=True)
     pp = sub.add_parser("prepare", help="run the cell with snakemake here and keep what the GPU needs")
     pp.add_argument("dest", type=Path)
     pp.add_argument("--results", type=Path, default=None, help="a results folder that already holds the cell")
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("folder", type=Path)
     pr.add_argument("--device", default="cuda")
     args = p.parse_args(argv)
-    if args.cmd == "prepare":
+    if args.command == "prepare":
         print(f"gpu_stages: prepared {prepare(args.dest, args.results)}")
         return 0
     print(json.dumps({"workflow_cell": workflow_cell(args.folder, args.device),

@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="command", required=True)
     pp = sub.add_parser("prepare", help="run the CPU stages with snakemake here and keep what `run` reads")
     pp.add_argument("dest", type=Path, help="folder to create")
     pp.add_argument("--results", type=Path, default=None, help="a results folder that already holds the cells")
@@ -261,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--inits", default=",".join(INITS), help="comma list of prepared initialisers to run")
     args = p.parse_args(argv)
     try:
-        if args.cmd == "prepare":
+        if args.command == "prepare":
             print(f"protocols: prepared {prepare(args.dest, args.results)}")
             return 0
         folder, out = args.folder.resolve(), args.out.resolve()

@@ -128,6 +128,9 @@ def test_one_error_prefix_style(monkeypatch):
         if rel.startswith(("camio/", "vggt_init/", "bridge/", "splat_train/", "evaluation/")):
             package = rel.split("/")[0]
             assert parser.prog.startswith(f"python -m {package}"), (where, parser.prog)
+        for action in parser._actions:  # "required: command", the same word everywhere
+            if isinstance(action, argparse._SubParsersAction):
+                assert action.dest == "command", (where, action.dest)
 
 
 def test_help_texts_are_plain_words(monkeypatch):
