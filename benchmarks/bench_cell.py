@@ -45,6 +45,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
 from benchmarks._proc import StageError, run_logged  # noqa: E402
+from splat_train.recipes import RECIPE_NAMES  # noqa: E402
 
 log = logging.getLogger("bench_cell")
 
@@ -473,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="a --prepare-only folder: train, render and score from it (--scene and --n from it)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None, help="training and render device")
     p.add_argument("--rasterizer", default=None, help="training rasterizer backend (splat_train --rasterizer)")
-    p.add_argument("--recipe", choices=["paper", "sparse"], default=None,
+    p.add_argument("--recipe", choices=list(RECIPE_NAMES), default=None,
                    help="training recipe (splat_train --recipe; default: the trainer's)")
     args = p.parse_args(argv)
     from camio.atomic import write_json

@@ -1,4 +1,4 @@
-"""The training-recipe study: ``paper`` against ``sparse`` and ``sparse`` with each part off, over seeds.
+"""The training-recipe study: ``paper`` against ``sparse`` (and ``mcmc``) and ``sparse`` with each part off, over seeds.
 
 Each cell (scene, n training views, initialiser) is prepared once through the stage CLIs
 (docs/contracts.md): scene conversion or synthesis, split, initialiser, Bridge (which writes
@@ -51,6 +51,7 @@ VARIANTS: dict[str, dict] = {
     "cap-0.3": {"recipe": "sparse", "gaussians_per_pixel": 0.3},
     "sparse-pose": {"recipe": "sparse", "pose_refine": True},
     "paper-pose": {"recipe": "paper", "pose_refine": True},
+    "mcmc": {"recipe": "mcmc"},
 }
 
 

@@ -60,7 +60,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
                    help=f"training recipe (default {DEFAULT_RECIPE}): 'sparse' adds Gaussian dropout, the "
                         "depth prior and a growth cap sized to the training pixels; 'paper' is the paper's "
-                        "3DGS schedule (splat_train.recipes)")
+                        "3DGS schedule; 'dropgaussian' is 3DGS with DropGaussian's dropout; 'mcmc' is "
+                        "3DGS as MCMC (relocation under a cap, gsplat's preset) "
+                        "(splat_train.recipes)")
     p.add_argument("--depth-prior", dest="depth_prior",
                    help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed-ply, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")

@@ -1,7 +1,7 @@
 """Training hyperparameters (the evaluation protocol's defaults) and the schedule they imply.
 
 Every key is a field of :class:`TrainConfig`. The keys a training *recipe* decides
-(:mod:`splat_train.recipes`: ``paper`` or ``sparse``, chosen by ``recipe``) default to None
+(:mod:`splat_train.recipes`, chosen by ``recipe``) default to None
 and take the recipe's value when the config is made; a value the user sets is kept as it is.
 Schedule keys (densify_from, densify_until, densify_every, opacity_reset_every,
 sh_increase_every) are iterations of this run: the recipes give them as fractions of the run
@@ -29,7 +29,7 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
            "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
-                                 recipe_defaults)
+                                 STRATEGIES, VALUE_KEYS, recipe_defaults)
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
@@ -72,8 +72,8 @@ class TrainConfig:
     Attributes (learning rates are Adam step sizes for the stored parameterisation):
         iterations: optimisation steps; None (the default): :func:`default_iterations` of
             ``device`` (10,000 on a GPU, 1,000 on a CPU), resolved when the config is made.
-        recipe: "sparse" (the default) or "paper" (:mod:`splat_train.recipes`); fills every
-            key below whose value is None.
+        recipe: "sparse" (the default), "paper", "dropgaussian" or "mcmc"
+            (:mod:`splat_train.recipes`); fills every key below whose value is None.
         seed: seed of the run's random generator (view order, random backgrounds, splits,
             dropout masks).
         sh_degree: maximum SH degree (3 as in 3DGS).
@@ -88,7 +88,8 @@ class TrainConfig:
         densify_from, densify_until, densify_every: densification window and period
             (iterations of this run; None: the recipe's fraction of the run).
         densify_grad_threshold: mean view-space (NDC) positional gradient norm above which a
-            Gaussian is cloned (small) or split (large).
+            Gaussian is cloned (small) or split (large); None: the recipe's (3DGS's 2e-4;
+            ``dropgaussian``: 5e-4).
         percent_dense: a Gaussian is "large" when its largest scale exceeds this fraction of
             the scene extent.
         opacity_reset_every: set every opacity to min(opacity, opacity_reset_value) this often
@@ -96,14 +97,25 @@ class TrainConfig:
             ``sparse`` never).
         prune_opacity: remove Gaussians whose opacity falls below this at densification.
         prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
-            radius exceeded this many pixels ...
+            radius exceeded this many pixels (0: never, as the official 3DGS code and gsplat
+            run; None: the recipe's, 0 in every recipe) ...
         prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
         max_gaussians: cap on the Gaussian count (None: none). When the clone and split
             candidates exceed the room left, the ones with the largest view-space gradient
             are kept (:mod:`splat_train.densify`).
         gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
             over the training views at the training resolution); the smaller cap applies.
-            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.03).
+            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
+        strategy: how the model grows: "densify" (3DGS clone / split / prune,
+            :mod:`splat_train.densify`) or "mcmc" (relocation of dead Gaussians and 5 % growth
+            per refine step up to the cap, :mod:`splat_train.mcmc`; needs a cap, and reads the
+            densify_* schedule as its refine schedule and prune_opacity as its dead
+            threshold); None: the recipe's (``mcmc`` for the ``mcmc`` recipe, ``densify`` in
+            the others).
+        noise_lr: with the mcmc strategy, the position noise per unit of position rate
+            (gsplat's 5e5).
+        opacity_reg, scale_reg: weights of mean(opacity) and mean(scale) added to the loss
+            (0 = off; None: the recipe's, 0.01 each in ``mcmc``, off elsewhere).
         dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's):
             :mod:`splat_train.dropout`.
         depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
@@ -167,15 +179,19 @@ class TrainConfig:
     densify_from: int | None = None
     densify_until: int | None = None
     densify_every: int | None = None
-    densify_grad_threshold: float = 2e-4
+    densify_grad_threshold: float | None = None
     percent_dense: float = 0.01
     opacity_reset_every: int | None = None
     opacity_reset_value: float = 0.01
     prune_opacity: float = 0.005
-    prune_screen_size: float = 20.0
+    prune_screen_size: float | None = None
     prune_world_size: float = 0.1
     max_gaussians: int | None = None
     gaussians_per_pixel: float | None = None
+    strategy: str | None = None
+    noise_lr: float = 5e5
+    opacity_reg: float | None = None
+    scale_reg: float | None = None
     dropout_rate: float | None = None
     depth_weight: float | None = None
     depth_ramp_fraction: float | None = None
@@ -210,7 +226,7 @@ class TrainConfig:
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         preset = recipe_defaults(self.recipe)
-        for key in (*PART_KEYS, "depth_ramp_fraction"):
+        for key in (*PART_KEYS, "depth_ramp_fraction", *VALUE_KEYS):
             if getattr(self, key) is None:
                 setattr(self, key, preset[key])
         for key in SCHEDULE_KEYS:
@@ -224,6 +240,13 @@ class TrainConfig:
         if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
             raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")
+        if self.strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
+        if not (self.opacity_reg >= 0.0 and self.scale_reg >= 0.0 and self.noise_lr >= 0.0):
+            raise ValueError(f"opacity_reg, scale_reg and noise_lr must be >= 0, got {self.opacity_reg}, "
+                             f"{self.scale_reg} and {self.noise_lr}")
+        if self.strategy == "mcmc" and not self.gaussians_per_pixel and self.max_gaussians is None:
+            raise ValueError("the mcmc strategy grows to a cap: set gaussians_per_pixel > 0 or max_gaussians")
         if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel >= 0:
             raise ValueError(f"gaussians_per_pixel must be >= 0 (0: no cap), got {self.gaussians_per_pixel}")
         if self.max_gaussians is not None and self.max_gaussians < 1:

@@ -194,8 +194,8 @@ class DensifyStrategy:
         percent_dense: clone if max scale <= percent_dense * extent, else split.
         prune_opacity: prune alpha below this.
         prune_screen_size, prune_world_size: after the first reset, prune Gaussians whose 2D
-            radius exceeded prune_screen_size pixels or whose max scale exceeds
-            prune_world_size * extent.
+            radius exceeded prune_screen_size pixels (0: no screen-size prune) or whose max
+            scale exceeds prune_world_size * extent.
         reset_value: opacity after a reset.
         max_gaussians: no more Gaussians than this after clone/split (None: unlimited); when
             the candidates exceed the room, the best are kept (:func:`cap_candidates`).
@@ -306,7 +306,8 @@ class DensifyStrategy:
             alpha = torch.sigmoid(params["opacity"].detach()[src])
             prune = alpha < self.prune_opacity
             if 0 < self.opacity_reset_every < iteration:
-                prune |= radii > self.prune_screen_size
+                if self.prune_screen_size > 0:
+                    prune |= radii > self.prune_screen_size
                 max_scale = torch.cat([torch.exp(params["scales"].detach()[src[:n_plain]]),
                                        torch.exp(children_scales)]).amax(1)
                 prune |= max_scale > self.prune_world_size * extent

@@ -18,7 +18,8 @@ import torch.nn.functional as F
 from splat_train.cpu import ssim as cpu_ssim
 from camio.image_metrics import gaussian_window, gaussian_window_1d, ssim_map
 
-__all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_window", "gaussian_window_1d"]
+__all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_regularisers", "gaussian_window",
+           "gaussian_window_1d"]
 
 
 def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
@@ -118,3 +119,23 @@ def photometric_loss(
     l1 = l1_loss(render, target)
     s = _training_ssim(render, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+def gaussian_regularisers(opacity_logits: torch.Tensor, log_scales: torch.Tensor, opacity_reg: float,
+                          scale_reg: float) -> torch.Tensor | None:
+    """The MCMC recipe's regularisers (gsplat ``opacity_reg_loss``, ``scale_reg_loss``):
+    ``opacity_reg`` mean(sigmoid(opacity_logits)) + ``scale_reg`` mean(exp(log_scales)).
+
+    Args:
+        opacity_logits: [N] logit opacities; log_scales: [N, 3] log scales.
+        opacity_reg, scale_reg: weights (0: that term off).
+
+    Returns:
+        The scalar term (carries the gradient), or None when both weights are 0.
+    """
+    terms = []
+    if opacity_reg > 0:
+        terms.append(opacity_reg * torch.sigmoid(opacity_logits).mean())
+    if scale_reg > 0:
+        terms.append(scale_reg * torch.exp(log_scales).mean())
+    return sum(terms[1:], terms[0]) if terms else None

@@ -7,7 +7,8 @@ the next training view from a shuffled stack (refilled with a new permutation wh
 view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled, their
 rate ramped by :func:`splat_train.pose.pose_lr_factor` and their scale gauge restored), the
 held-out evaluation when due, then densify / prune / reset opacity when the schedule says so
-(:mod:`splat_train.densify`), then the checkpoint when due.
+(:mod:`splat_train.densify`), or with the ``mcmc`` strategy relocate / add and inject position
+noise (:mod:`splat_train.mcmc`), then the checkpoint when due.
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
@@ -58,7 +59,8 @@ from splat_train.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
-from splat_train.losses import photometric_loss
+from splat_train.losses import gaussian_regularisers, photometric_loss
+from splat_train.mcmc import MCMCStrategy
 from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
 from splat_train.cpu.build import build_seconds
@@ -141,9 +143,9 @@ class Trainer:
         self.sched = cfg.schedule()
         train_pixels = sum(v.camera.width * v.camera.height for v in train_views)
         self.max_gaussians = cfg.max_gaussians_for(train_pixels)
-        log.info("recipe %s: schedule %s; growth cap %s (%d training pixels); dropout %g; depth weight %g",
-                 cfg.recipe, {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items()
-                              if k != "source"},
+        log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels); dropout %g; "
+                 "depth weight %g", cfg.recipe, cfg.strategy,
+                 {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
                  self.max_gaussians or "none", train_pixels, cfg.dropout_rate, cfg.depth_weight)
         self.dev = _device(cfg.device)
         if self.dev.type == "cuda":  # train.json's peak_cuda_mb is this run's, not the process's
@@ -160,7 +162,8 @@ class Trainer:
         for v in [*self.train_views, *self.test_views]:  # once here: rasterize checks CPU tensors only
             if float(v.camera.K[0, 1]) != 0.0:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
-        self.strategy = DensifyStrategy.from_config(cfg, self.max_gaussians)
+        strategy_cls = MCMCStrategy if cfg.strategy == "mcmc" else DensifyStrategy
+        self.strategy = strategy_cls.from_config(cfg, self.max_gaussians)
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
@@ -173,7 +176,7 @@ class Trainer:
                              "check the Bridge output (bridge.json counts) or its filters")
         self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
-        self.state = DensifyStrategy.init_state(len(self.params["means"]), self.dev)
+        self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
         self.pose = self.pose_opt = None
         if cfg.pose_refine:
             self.pose = PoseCorrections(len(train_views), self.dev, refine_focal=cfg.pose_refine_focal,
@@ -318,6 +321,9 @@ class Trainer:
         w_depth = depth_weight_at(it, cfg.iterations, cfg.depth_weight, cfg.depth_ramp_fraction)
         if samples is not None and w_depth > 0:
             loss = loss + w_depth * samples.loss(out["depth"])
+        reg = gaussian_regularisers(self.params["opacity"], self.params["scales"], cfg.opacity_reg, cfg.scale_reg)
+        if reg is not None:
+            loss = loss + reg
         if self.sync_every == 1 and not torch.isfinite(loss.detach()):
             self._non_finite(float(loss.detach()), it, cam.name)  # before the step moves anything
         loss.backward()
@@ -465,6 +471,8 @@ class Trainer:
             "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
             "recipe": cfg.recipe, "max_gaussians": self.max_gaussians,
+            # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
+            "strategy_totals": ({k: int(v) for k, v in self.state.items()} if cfg.strategy == "mcmc" else {}),
             "depth_prior": None if self.prior is None else {"path": str(self.prior.path),
                                                             "samples": self.prior.num_samples,
                                                             "views": sorted(self.prior.views)},

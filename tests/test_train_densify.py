@@ -183,7 +183,8 @@ def _three_step_reference(strat, params, opt, state, iteration, extent, generato
     radii = torch.cat([radii[~split_mask], radii.new_zeros(2 * int(split_mask.sum()))])
     prune = torch.sigmoid(params["opacity"].detach()) < strat.prune_opacity
     if iteration > strat.opacity_reset_every:
-        prune |= radii > strat.prune_screen_size
+        if strat.prune_screen_size > 0:
+            prune |= radii > strat.prune_screen_size
         prune |= torch.exp(params["scales"].detach()).amax(1) > strat.prune_world_size * extent
     n_pruned = remove(params, opt, prune)
     assert n_pruned == int(prune.sum())

@@ -18,6 +18,7 @@ from _train_scene import write_scene
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, read_depth_prior, write_depth_prior
 from splat_train import rasterize
 from splat_train.cpu.raster import available as kernel_available
+from splat_train.recipes import RECIPE_NAMES
 from splat_train.config import TrainConfig
 from splat_train.densify import cap_candidates
 from splat_train.depth_prior import load_depth_prior, pearson_depth_loss
@@ -47,7 +48,7 @@ def test_sparse_recipe_stops_growth_at_half_and_sizes_the_cap():
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == (500, 5000, 100, 0)
     assert s.source["opacity_reset_every"] == "recipe sparse: never"
-    assert cfg.max_gaussians_for(571_000) == 17_130  # 0.03 per training pixel
+    assert cfg.max_gaussians_for(571_000) == 57_100  # 0.1 per training pixel
     assert TrainConfig(recipe="sparse", iterations=10000, max_gaussians=1000).max_gaussians_for(571_000) == 1000
     assert TrainConfig(recipe="sparse", iterations=10000, gaussians_per_pixel=0).max_gaussians_for(571_000) is None
     assert TrainConfig(recipe="sparse", iterations=300).schedule().densify_every == 20  # MIN_DENSIFY_EVERY
@@ -70,12 +71,13 @@ def test_bad_recipe_values_are_refused(bad):
 
 def test_cli_lists_recipe_and_schema_has_it():
     out = subprocess.run([sys.executable, "-m", "splat_train", "--help"], cwd=REPO, capture_output=True, text=True)
-    assert out.returncode == 0 and "--recipe {paper,sparse}" in out.stdout and "--depth-prior" in out.stdout
+    assert out.returncode == 0 and "--recipe {" + ",".join(RECIPE_NAMES) + "}" in out.stdout
+    assert "--depth-prior" in out.stdout
     import yaml
 
     schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
     train_props = schema["properties"]["train"]["properties"]
-    assert train_props["recipe"]["enum"] == ["paper", "sparse"]
+    assert train_props["recipe"]["enum"] == list(RECIPE_NAMES)  # the schema lists every recipe, in order
     assert train_props["recipe"]["default"] == TrainConfig.__dataclass_fields__["recipe"].default
 
 

@@ -1,0 +1,124 @@
+"""``python -m benchmarks.sparse_views``: run the sparse-view grid, or rebuild its table.
+
+    run      train every (scene, n, recipe, seed) of one role that has no record yet
+    summary  records -> summary.json and the docs table (no training)
+    list     the protocol's scenes, their role and whether their data is here
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from benchmarks.sparse_views import protocol
+from benchmarks.sparse_views.protocol import HERE, REPO
+
+RECORDS = REPO / "benchmarks" / "records" / "sparse_views"
+DOC = REPO / "docs" / "results-sparse-views.md"
+# the field's recipes beside ours, in the table's order
+DEFAULT_RECIPES = ("paper", "dropgaussian", "mcmc", "sparse")
+
+
+def _variant(text: str) -> tuple[str, dict]:
+    """``name`` (a recipe) or ``name=JSON`` (a tuning variant: a recipe plus config keys)."""
+    if "=" not in text:
+        return text, {}
+    name, cfg = text.split("=", 1)
+    cfg = json.loads(cfg)
+    if not isinstance(cfg, dict) or "recipe" not in cfg:
+        raise ValueError(f"variant {name!r}: JSON object with a 'recipe' key expected")
+    return name, cfg
+
+
+def cmd_run(args) -> int:
+    from benchmarks.sparse_views.cells import prepare
+    from benchmarks.sparse_views.runs import record, run_name, train_and_score
+
+    scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
+              and (not args.scenes or s.name in args.scenes)]
+    variants = [_variant(v) for v in args.recipes]
+    runs_dir = args.records / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    todo = []
+    for s in scenes:
+        if not s.available:
+            print(f"SKIP {s.name}: {s.path} is not here (benchmarks/sparse_views/fetch_scenes.py fetches it)",
+                  flush=True)
+            continue
+        for n in s.views if args.n is None else [n for n in args.n if n in s.views]:
+            for seed in args.seeds:  # seed-major: an interrupted grid holds whole seeds
+                for name, cfg in variants:
+                    rec_path = runs_dir / f"{run_name(s.name, n, name, seed, args.iterations)}.json"
+                    if not rec_path.is_file():
+                        todo.append((s, n, seed, name, cfg, rec_path))
+    if args.shard:
+        k, m = (int(x) for x in args.shard.split("/"))
+        todo = todo[k::m]
+    print(f"{len(todo)} runs to do ({args.role}, {args.iterations} iterations)", flush=True)
+    t0 = time.perf_counter()
+    for i, (s, n, seed, name, cfg, rec_path) in enumerate(todo, 1):
+        cell = prepare(args.work / f"{s.name}_n{n}", s, n)
+        out = args.work / f"{s.name}_n{n}" / "runs" / run_name(s.name, n, name, seed, args.iterations)
+        res = train_and_score(cell, out, cfg.get("recipe", name), seed, args.iterations,
+                              args.eval_every or max(1, args.iterations // 10),
+                              {k: v for k, v in cfg.items() if k != "recipe"}, args.kernel_threads)
+        rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
+        rec["load_avg"] = os.getloadavg()
+        rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+        print(f"[{i}/{len(todo)} {time.perf_counter() - t0:6.0f} s] {s.name} n={n} {name} seed {seed}: "
+              f"PSNR {rec['psnr']:.2f} SSIM {rec['ssim']:.3f} LPIPS-alex {rec['lpips_alex']:.3f} "
+              f"vgg {rec['lpips_vgg']:.3f}, {rec['gaussians']} Gaussians, {rec['train_s']:.0f} s", flush=True)
+    return 0
+
+
+def cmd_summary(args) -> int:
+    from benchmarks.sparse_views.summary import write_summary
+
+    write_summary(args.records, args.doc, protocol.load(args.protocol, args.data))
+    return 0
+
+
+def cmd_list(args) -> int:
+    for s in protocol.load(args.protocol, args.data):
+        where = "generated" if s.path is None else (str(s.path) if s.available else f"missing: {s.path}")
+        print(f"{s.name:24s} {s.role:10s} {s.kind:28s} n={list(s.views)}  {where}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views", description=__doc__.split("\n\n")[0])
+    p.add_argument("--protocol", type=Path, default=protocol.PROTOCOL, help="the scenes file (default %(default)s)")
+    p.add_argument("--data", type=Path, default=None,
+                   help=f"folder of the real scenes (default ${protocol.DATA_ENV}, else the protocol's data_root)")
+    p.add_argument("--records", type=Path, default=RECORDS, help="records folder (default %(default)s)")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="train and score the runs of one role that have no record")
+    r.add_argument("--role", choices=protocol.ROLES, required=True)
+    r.add_argument("--scenes", nargs="*", default=None, help="only these scenes (default: every one of the role)")
+    r.add_argument("--n", nargs="*", type=int, default=None, help="only these view counts")
+    r.add_argument("--recipes", nargs="+", default=list(DEFAULT_RECIPES),
+                   help="recipes, or tuning variants NAME='{\"recipe\": ..., key: value}' (default %(default)s)")
+    r.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    r.add_argument("--iterations", type=int, default=1000)
+    r.add_argument("--eval-every", type=int, default=None, help="held-out curve period (default iterations / 10)")
+    r.add_argument("--work", type=Path, required=True, help="cells and trained models (not committed)")
+    r.add_argument("--kernel-threads", type=int, default=1,
+                   help="C++ kernel threads per run (default %(default)s: run two shards side by side)")
+    r.add_argument("--shard", default=None, help="K/M: run every M-th missing run from the K-th (0-based)")
+    s = sub.add_parser("summary", help="rebuild summary.json and the docs table from the records")
+    s.add_argument("--doc", type=Path, default=DOC, help="markdown table to write (default %(default)s)")
+    sub.add_parser("list", help="the protocol's scenes")
+    args = p.parse_args(argv)
+    try:
+        return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list}[args.command](args)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

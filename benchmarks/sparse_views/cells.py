@@ -1,0 +1,69 @@
+"""One benchmark cell (scene, n training views), prepared once through the stage CLIs.
+
+Scene conversion (or synthesis), the every-8th split, the ``posed`` initialiser (reference
+cameras, points triangulated from the n training views), the Bridge and the alignment of the
+held-out cameras, each a ``python -m`` stage command (docs/contracts.md) whose output is kept:
+a second call finds the files and runs nothing.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from benchmarks.sparse_views.protocol import REPO, Scene
+
+
+def sh(args: list[str], log: Path) -> None:
+    """Run a stage command with this interpreter, output appended to ``log``; raise on failure."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as f:
+        f.write("$ " + " ".join(args) + "\n")
+        f.flush()
+        rc = subprocess.run([sys.executable, *args], cwd=REPO, stdout=f, stderr=subprocess.STDOUT).returncode
+    if rc != 0:
+        raise RuntimeError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")
+
+
+def prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
+    """Prepare the cell of ``scene`` at ``n`` training views in ``work``; return its paths
+    (scene, train / test name lists, bridge, align). Shards running side by side take turns
+    (a lock file beside the cell)."""
+    work.parent.mkdir(parents=True, exist_ok=True)
+    with open(work.parent / f".{work.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return _prepare(work, scene, n)
+
+
+def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
+    s, logf = work / "scene", work / "prepare.log"
+    if not (s / "split.json").is_file():
+        if scene.generate:
+            cmd = [str(s) if a == "{out}" else a for a in scene.generate]
+            if cmd[:2] != ["python", "-m"]:
+                raise ValueError(f"{scene.name}: 'generate' must be a 'python -m ...' command, got {cmd}")
+            sh(cmd[1:], logf)
+        else:
+            sh(["-m", "camio", "convert", "--src", str(scene.path), *scene.convert, "--out", str(s)], logf)
+        sh(["-m", "camio", "split", "--scene", str(s), "--n", str(n), "--out", str(s / "split.json")], logf)
+    train_txt, test_txt = work / "train.txt", work / "test.txt"
+    if not train_txt.is_file():
+        split = json.loads((s / "split.json").read_text())
+        if str(n) not in split.get("train", {}):
+            raise ValueError(f"{scene.name}: the split has no n = {n} (pool of {len(split['train_pool'])})")
+        test_txt.write_text("\n".join(split["test"]) + "\n")
+        train_txt.write_text("\n".join(split["train"][str(n)]) + "\n")
+    init_dir, bridge, align = work / "posed", work / "bridge", work / "align"
+    if not (bridge / "bridge.json").is_file():
+        sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
+            "--out", str(init_dir)], logf)
+        sh(["-m", "bridge", "--colmap", str(init_dir / "sparse" / "0"), "--images", str(s / "images"),
+            "--out", str(bridge)], logf)
+    if not (align / "align.json").is_file():
+        sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(s / "sparse" / "0"),
+            "--train-names", str(s / "split.json"), "--n", str(n), "--images", str(s / "images"), "--out",
+            str(align)], logf)
+    return {"scene": s, "train": train_txt, "test": test_txt, "bridge": bridge, "align": align}

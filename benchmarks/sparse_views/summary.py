@@ -1,0 +1,194 @@
+"""The sparse-view table, rebuilt from the run records: summary.json and a markdown page.
+
+Per (scene, n, recipe, iterations): mean and 95 % t half-width over seeds
+(:func:`evaluation.study.stats.t_interval`) of the final PSNR, SSIM, LPIPS-Alex, LPIPS-VGG,
+Gaussian count and training seconds. Per evaluation scene, ``sparse`` against every other
+recipe paired by seed. The verdicts of the benchmark's targets are computed here from the
+same numbers, never written by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+from benchmarks.sparse_views.runs import RECORD_KEYS
+
+MEASURES = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "gaussians", "train_s")
+HEAD = {"psnr": "PSNR", "ssim": "SSIM", "lpips_alex": "LPIPS-Alex", "lpips_vgg": "LPIPS-VGG",
+        "gaussians": "Gaussians", "train_s": "train s"}
+OURS, BASE = "sparse", "paper"
+MAX_GAUSSIANS = 60_000  # the size target of a sparse-view model
+
+
+def load_records(records: Path) -> list[dict]:
+    rows = []
+    for p in sorted((records / "runs").glob("*.json")):
+        r = json.loads(p.read_text())
+        missing = [k for k in RECORD_KEYS if k not in r]
+        if missing:
+            raise ValueError(f"{p}: record lacks {missing}")
+        rows.append(r)
+    return rows
+
+
+def _interval(values) -> dict:
+    from evaluation.study.stats import t_interval
+
+    mean, hw, k = t_interval([v for v in values if v is not None])
+    return {"mean": None if math.isnan(mean) else mean, "hw95": None if math.isnan(hw) else hw, "k": k}
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    """One row per (role, scene, n, iterations, recipe), recipes in first-seen order."""
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in rows:
+        groups[(r["role"], r["scene"], r["n"], r["iterations"], r["recipe"])].append(r)
+    out = []
+    for (role, scene, n, its, recipe), rs in groups.items():
+        row = {"role": role, "scene": scene, "n": n, "iterations": its, "recipe": recipe,
+               "seeds": sorted(r["seed"] for r in rs), "backend": sorted({str(r["backend"]) for r in rs})}
+        for m in MEASURES:
+            row[m] = _interval([r[m] for r in rs])
+        row["best_psnr"] = _interval([r.get("best_psnr") for r in rs])
+        out.append(row)
+    return out
+
+
+def paired(rows: list[dict], role: str = "evaluation") -> list[dict]:
+    """Per scene, n and iterations: ``sparse`` - each other recipe, paired by seed."""
+    by = defaultdict(dict)
+    for r in rows:
+        if r["role"] == role:
+            by[(r["scene"], r["n"], r["iterations"])][(r["recipe"], r["seed"])] = r
+    out = []
+    for (scene, n, its), runs in by.items():
+        recipes = sorted({k[0] for k in runs} - {OURS})
+        for other in recipes:
+            seeds = sorted(s for (rc, s) in runs if rc == OURS and (other, s) in runs)
+            if not seeds:
+                continue
+            d = {"scene": scene, "n": n, "iterations": its, "against": other, "seeds": seeds}
+            for m in ("psnr", "ssim", "lpips_alex", "lpips_vgg"):
+                d[m] = _interval([runs[(OURS, s)][m] - runs[(other, s)][m] for s in seeds
+                                  if runs[(OURS, s)][m] is not None and runs[(other, s)][m] is not None])
+            if other == BASE:  # sparse's final against paper's best along its run, per seed
+                d["final_minus_paper_best"] = _interval([runs[(OURS, s)]["psnr"] - runs[(BASE, s)]["best_psnr"]
+                                                         for s in seeds if runs[(BASE, s)].get("best_psnr")])
+            out.append(d)
+    return out
+
+
+def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict]) -> dict:
+    """The targets, computed on the evaluation scenes at n = 3 (None where data is missing)."""
+    ev = [a for a in agg if a["role"] == "evaluation" and a["n"] == 3]
+    scenes = sorted({a["scene"] for a in ev})
+    out = {"evaluation_scenes": scenes}
+    if not ev:
+        return out
+    # mean over scenes of each recipe's mean final PSNR (recipes present on every scene)
+    per = defaultdict(dict)
+    for a in ev:
+        per[a["recipe"]][a["scene"]] = a
+    full = {rc: v for rc, v in per.items() if set(v) == set(scenes)}
+    mean_psnr = {rc: sum(v[s]["psnr"]["mean"] for s in scenes) / len(scenes) for rc, v in full.items()}
+    out["mean_final_psnr"] = mean_psnr
+    if OURS in mean_psnr:
+        others = [m for rc, m in mean_psnr.items() if rc != OURS]
+        out["psnr_lead_over_best_other"] = mean_psnr[OURS] - max(others) if others else None
+        out["psnr_lead_ok"] = (out["psnr_lead_over_best_other"] or 0) >= 0.5
+        vp = [p for p in pairs if p["n"] == 3 and p["against"] == BASE]
+        for net in ("lpips_alex", "lpips_vgg"):
+            # paired over every (scene, seed) of the evaluation scenes
+            diffs = [r_o[net] - r_b[net] for r_o, r_b in _pairs(rows, BASE) if r_o[net] is not None and r_b[net] is not None]
+            iv = _interval(diffs)
+            out[f"{net}_minus_paper"] = iv
+            # no worse: the interval of (sparse - paper) does not lie wholly above zero
+            out[f"{net}_no_worse"] = None if iv["k"] < 2 else iv["mean"] - iv["hw95"] <= 0
+        out["final_ge_paper_best_scenes"] = sum(1 for p in vp if p.get("final_minus_paper_best", {}).get("mean") is not None
+                                                and p["final_minus_paper_best"]["mean"] >= 0)
+        out["max_gaussians_ours"] = max((r["gaussians"] for r in rows if r["role"] == "evaluation"
+                                         and r["recipe"] == OURS), default=None)
+        out["gaussians_ok"] = out["max_gaussians_ours"] is not None and out["max_gaussians_ours"] <= MAX_GAUSSIANS
+    return out
+
+
+def _pairs(rows, other):
+    idx = {(r["scene"], r["n"], r["iterations"], r["recipe"], r["seed"]): r for r in rows if r["role"] == "evaluation"}
+    for (scene, n, its, rc, seed), r in idx.items():
+        if rc == OURS and n == 3 and (scene, n, its, other, seed) in idx:
+            yield r, idx[(scene, n, its, other, seed)]
+
+
+def _fmt(iv: dict, m: str) -> str:
+    if iv["mean"] is None:
+        return "n/a"
+    d = 0 if m in ("gaussians", "train_s") else (3 if m in ("ssim", "lpips_alex", "lpips_vgg") else 2)
+    s = f"{iv['mean']:,.{d}f}"
+    return s if iv["hw95"] is None else f"{s} ± {iv['hw95']:,.{d}f}"
+
+
+def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes) -> str:
+    info = {s.name: s for s in scenes}
+    lines = ["# Sparse-view results: tuning and evaluation scenes apart", "",
+             "Generated by `python -m benchmarks.sparse_views summary` from the run records in",
+             "`benchmarks/records/sparse_views/runs/`; do not edit by hand. Every cell: `posed` initialiser",
+             "(reference cameras, points triangulated from the n training views), every 8th image held out,",
+             "final-iteration scores of the held-out views (mean ± 95 % t half-width over seeds). Recipe values",
+             "were chosen on the tuning scenes only (docs/sparse-recipe.md says which runs chose each).", ""]
+    for role in ("evaluation", "tuning"):
+        rs = [a for a in agg if a["role"] == role]
+        if not rs:
+            continue
+        lines += [f"## {role.capitalize()} scenes", "",
+                  "| scene | kind | n | iterations | recipe | seeds | " + " | ".join(HEAD[m] for m in MEASURES) + " |",
+                  "|---|---|---|---|---|---|" + "---|" * len(MEASURES)]
+        for a in rs:
+            kind = info[a["scene"]].kind if a["scene"] in info else ""
+            lines.append(f"| {a['scene']} | {kind} | {a['n']} | {a['iterations']} | {a['recipe']} | {len(a['seeds'])} | "
+                         + " | ".join(_fmt(a[m], m) for m in MEASURES) + " |")
+        lines.append("")
+    if pairs:
+        lines += ["## `sparse` against each recipe, paired by seed (evaluation scenes)", "",
+                  "| scene | n | against | Δ PSNR | Δ SSIM | Δ LPIPS-Alex | Δ LPIPS-VGG | final − paper's best PSNR |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for p in pairs:
+            best = _fmt(p["final_minus_paper_best"], "psnr") if "final_minus_paper_best" in p else ""
+            lines.append(f"| {p['scene']} | {p['n']} | {p['against']} | " + " | ".join(
+                _fmt(p[m], m) for m in ("psnr", "ssim", "lpips_alex", "lpips_vgg")) + f" | {best} |")
+        lines.append("")
+    if verdict.get("mean_final_psnr"):
+        v = verdict
+        lines += ["## Targets (evaluation scenes, n = 3)", ""]
+        lines.append("- mean final PSNR over the scenes: " + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
+        if "psnr_lead_over_best_other" in v and v["psnr_lead_over_best_other"] is not None:
+            lines.append(f"- `sparse` − best other recipe: {v['psnr_lead_over_best_other']:+.2f} dB "
+                         f"(target ≥ +0.5: {'met' if v['psnr_lead_ok'] else 'not met'})")
+        for net in ("lpips_alex", "lpips_vgg"):
+            if f"{net}_minus_paper" in v:
+                lines.append(f"- {HEAD[net]} `sparse` − `paper`, paired over scenes and seeds: "
+                             f"{_fmt(v[net + '_minus_paper'], net)} (no worse: "
+                             f"{ {True: 'met', False: 'not met', None: 'n/a'}[v[net + '_no_worse']] })")
+        if "final_ge_paper_best_scenes" in v:
+            lines.append(f"- scenes where `sparse`'s final PSNR ≥ `paper`'s best along its run: "
+                         f"{v['final_ge_paper_best_scenes']} of {len(v['evaluation_scenes'])}")
+        if v.get("max_gaussians_ours") is not None:
+            lines.append(f"- largest `sparse` model: {v['max_gaussians_ours']:,} Gaussians (target ≤ {MAX_GAUSSIANS:,}: "
+                         f"{'met' if v['gaussians_ok'] else 'not met'})")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_summary(records: Path, doc: Path, scenes) -> dict:
+    rows = load_records(records)
+    agg, pairs = aggregate(rows), paired(rows)
+    verdict = verdicts(rows, agg, pairs)
+    summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
+               "aggregate": agg, "paired": pairs, "targets": verdict}
+    (records / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(markdown(agg, pairs, verdict, scenes))
+    print(doc.read_text())
+    return summary

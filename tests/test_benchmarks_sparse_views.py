@@ -1,0 +1,86 @@
+"""benchmarks/sparse_views: the protocol file, and the table rebuilt from run records.
+
+The records here are made up to exercise the aggregation (means, paired differences, the
+targets' verdicts); the benchmark's real records are in benchmarks/records/sparse_views.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks.sparse_views import protocol
+from benchmarks.sparse_views.runs import RECORD_KEYS
+from benchmarks.sparse_views.summary import write_summary
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_protocol_keeps_tuning_and_evaluation_apart():
+    scenes = protocol.load()
+    roles = {s.name: s.role for s in scenes}
+    assert roles["llff__fern"] == "tuning" and roles["synthetic"] == "tuning"
+    ev = [s for s in scenes if s.role == "evaluation"]
+    assert len({s.name for s in scenes}) == len(scenes)
+    for s in ev:  # every evaluation scene names where it comes from
+        assert s.source, s.name
+
+
+def test_protocol_resolves_data_folders(tmp_path, monkeypatch):
+    """--data DIR (or $SPARSE_VIEWS_DATA) puts every real scene at DIR/<name>, as fetch_scenes.py
+    leaves them; a generated scene has no folder and is always available."""
+    monkeypatch.delenv(protocol.DATA_ENV, raising=False)
+    scenes = {s.name: s for s in protocol.load(data=tmp_path)}
+    assert scenes["ingp__fox"].path == tmp_path / "ingp__fox" and not scenes["ingp__fox"].available
+    assert scenes["synthetic"].path is None and scenes["synthetic"].available
+    monkeypatch.setenv(protocol.DATA_ENV, str(tmp_path / "x"))
+    assert {s.name: s for s in protocol.load()}["ingp__fox"].path == tmp_path / "x" / "ingp__fox"
+
+
+def _rec(scene, role, recipe, seed, psnr, lpips, best=None, gaussians=1000):
+    return {"scene": scene, "role": role, "n": 3, "recipe": recipe, "seed": seed, "iterations": 1000,
+            "psnr": psnr, "ssim": 0.5, "lpips_alex": lpips, "lpips_vgg": lpips + 0.05, "gaussians": gaussians,
+            "train_s": 10.0, "backend": "cpu-kernel", "best_psnr": best if best is not None else psnr}
+
+
+def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
+    runs = tmp_path / "rec" / "runs"
+    runs.mkdir(parents=True)
+    recs = []
+    for scene in ("a", "b"):
+        for seed in (0, 1, 2):
+            recs.append(_rec(scene, "evaluation", "paper", seed, 18.0 + 0.1 * seed, 0.30, best=19.0 + 0.1 * seed))
+            recs.append(_rec(scene, "evaluation", "sparse", seed, 19.0 + 0.1 * seed, 0.28 + 0.01 * seed,
+                             gaussians=70_000 if scene == "b" else 5_000))
+        recs.append(_rec("t", "tuning", "sparse", 0, 25.0, 0.1))
+    for i, r in enumerate(recs):
+        (runs / f"{i}.json").write_text(json.dumps(r))
+    doc = tmp_path / "results.md"
+    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"),
+                          "summary", "--doc", str(doc)], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    s = json.loads((tmp_path / "rec" / "summary.json").read_text())
+    assert len(s["rows"]) == len(recs) and set(RECORD_KEYS) <= set(s["rows"][0])
+    t = s["targets"]
+    assert t["evaluation_scenes"] == ["a", "b"]
+    assert t["mean_final_psnr"]["sparse"] == pytest.approx(19.1) and t["mean_final_psnr"]["paper"] == pytest.approx(18.1)
+    assert t["psnr_lead_over_best_other"] == pytest.approx(1.0) and t["psnr_lead_ok"]
+    # LPIPS sparse - paper: -0.02, -0.01, 0.00 on both scenes: not above zero
+    assert t["lpips_alex_minus_paper"]["mean"] == pytest.approx(-0.01) and t["lpips_alex_no_worse"]
+    # sparse's final (19.x) equals paper's best (19.x) on both scenes
+    assert t["final_ge_paper_best_scenes"] == 2
+    assert t["max_gaussians_ours"] == 70_000 and not t["gaussians_ok"]
+    text = doc.read_text()
+    assert "## Evaluation scenes" in text and "## Tuning scenes" in text and "not met" in text
+
+
+def test_run_skips_a_scene_whose_data_is_absent(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("scenes:\n- {name: far, role: evaluation, kind: outdoor, licence: x, local: /nonexistent/far,\n"
+                 "   source: {repo: a/b, commit: '" + "0" * 40 + "', path: .}, convert: [], views: [3]}\n")
+    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+                          str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w")],
+                         cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0 and "SKIP far" in out.stdout and "0 runs to do" in out.stdout

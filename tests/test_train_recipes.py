@@ -1,0 +1,114 @@
+"""The recipes: each one's published values, and ``paper`` densifying as gsplat's own loop does.
+
+``paper`` stands for 3DGS as its code runs; gsplat's ``DefaultStrategy`` is the field's
+reference implementation of that code. The pin test feeds both strategies the same Gaussians
+and the same per-view statistics, lets each densify at the same iterations (before and after
+the first opacity reset), and checks that they clone, split and prune the same Gaussians.
+gsplat's strategy is pure PyTorch and runs on the CPU (gsplat is a dev dependency).
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from splat_train.config import TrainConfig
+from splat_train.densify import DensifyStrategy
+from splat_train.gaussians import make_optimizer, params_from_cloud
+from splat_train.recipes import RECIPE_NAMES, RECIPES, VALUE_KEYS, recipe_defaults
+from camio.ply import GaussianCloud
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
+W, H = 160, 120
+
+
+def test_every_recipe_gives_every_value_key_and_the_config_takes_it():
+    for name in RECIPE_NAMES:
+        preset = recipe_defaults(name)
+        cfg = TrainConfig(recipe=name, iterations=1000)
+        for key in VALUE_KEYS:
+            assert key in preset, (name, key)
+            assert getattr(cfg, key) == preset[key]
+    # a value the user sets wins over the recipe's
+    assert TrainConfig(recipe="dropgaussian", densify_grad_threshold=1e-4).densify_grad_threshold == 1e-4
+
+
+def test_dropgaussian_is_its_release_llff_setting():
+    """DropGaussian's LLFF training: 10k iterations, densify 500-10k every 100 at gradient
+    threshold 5e-4, opacity reset every 3,000, dropout ramped to 0.2; no cap, no depth term."""
+    cfg = TrainConfig(recipe="dropgaussian", iterations=10000)
+    s = cfg.schedule()
+    assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == (500, 10000, 100, 3000)
+    assert cfg.densify_grad_threshold == 5e-4 and cfg.dropout_rate == 0.2
+    assert cfg.depth_weight == 0.0 and cfg.gaussians_per_pixel == 0.0 and cfg.prune_screen_size == 0.0
+
+
+def test_paper_is_3dgs_at_10k():
+    cfg = TrainConfig(recipe="paper", iterations=10000)
+    s = cfg.schedule()
+    assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every, s.sh_increase_every) == \
+        (500, 10000, 100, 3000, 1000)
+    assert cfg.densify_grad_threshold == 2e-4 and cfg.dropout_rate == 0.0 and cfg.prune_screen_size == 0.0
+    assert RECIPES["paper"]["gaussians_per_pixel"] == 0.0
+
+
+def _scene(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    # log-uniform sizes around the clone / split border (1 % of the extent 1.0) and past the
+    # world-size prune (10 %), opacities spread over the prune threshold
+    cloud = GaussianCloud.from_points(rng.normal(size=(n, 3)), rng.uniform(0, 1, (n, 3)),
+                                      rng.uniform(0.001, 0.9, n), np.exp(rng.uniform(np.log(1e-3), np.log(0.3), n)))
+    return params_from_cloud(cloud)
+
+
+def _views(n: int, k: int, seed: int):
+    """k views' statistics: d loss / d means2d [N, 2] in pixels and screen radii [N] (0: not
+    seen; a quarter of the radii exceed 20 px, where a screen-size prune would act)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(k):
+        grad = torch.randn(n, 2, generator=g) * 4e-6
+        radii = torch.randint(0, 40, (n,), generator=g)
+        out.append((grad, radii))
+    return out
+
+
+@pytest.mark.parametrize("iteration", [1100, 3100])  # before and after the first reset (3,000)
+def test_paper_densifies_as_gsplat_default_strategy(iteration):
+    gsplat_strategy = pytest.importorskip("gsplat.strategy")
+    n, extent = 600, 1.0
+    cfg = TrainConfig(recipe="paper", iterations=10000)
+    ours = DensifyStrategy.from_config(cfg)
+    theirs = gsplat_strategy.DefaultStrategy(
+        prune_opa=cfg.prune_opacity, grow_grad2d=cfg.densify_grad_threshold, grow_scale3d=cfg.percent_dense,
+        prune_scale3d=cfg.prune_world_size, refine_start_iter=ours.densify_from, refine_stop_iter=ours.densify_until,
+        reset_every=ours.opacity_reset_every, refine_every=ours.densify_every)
+
+    p_ours = _scene(n, 7)
+    opt = make_optimizer(p_ours, cfg, extent=extent)
+    names = {"means": "means", "scales": "scales", "quats": "quats", "opacities": "opacity", "sh0": "sh_dc"}
+    p_theirs = torch.nn.ParameterDict({k: torch.nn.Parameter(p_ours[v].detach().clone()) for k, v in names.items()})
+    opts = {k: torch.optim.Adam([{"params": [p_theirs[k]], "lr": 1e-3, "name": k}]) for k in p_theirs}
+    st_ours = ours.init_state(n)
+    st_theirs = theirs.initialize_state(scene_scale=extent)
+
+    for grad, radii in _views(n, 5, seed=iteration):
+        ours.update_state(st_ours, grad, radii, radii > 0, W, H, iteration=iteration)
+        means2d = torch.zeros(1, n, 2, requires_grad=True)
+        means2d.grad = grad[None].clone()
+        info = {"width": W, "height": H, "n_cameras": 1, "radii": torch.stack([radii, radii], -1)[None],
+                "gaussian_ids": None, "means2d": means2d}
+        theirs._update_state(p_theirs, st_theirs, info, packed=False)
+
+    counts = ours.step(p_ours, opt, st_ours, iteration, extent, torch.Generator().manual_seed(0))
+    n_dupli, n_split = theirs._grow_gs(p_theirs, opts, st_theirs, iteration)
+    n_prune = theirs._prune_gs(p_theirs, opts, st_theirs, iteration)
+    assert counts["cloned"] > 0 and counts["split"] > 0 and counts["pruned"] > 0  # every path taken
+    assert (counts["cloned"], counts["split"], counts["pruned"]) == (n_dupli, n_split, n_prune)
+    assert len(p_ours["means"]) == len(p_theirs["means"])
+    # the same Gaussians survive: compare the parameters the split does not redraw, as sets of rows
+    def rows(opacity, sh):
+        r = torch.cat([opacity.detach().reshape(-1, 1), sh.detach().reshape(len(opacity), -1)], 1)
+        return r[torch.argsort(r[:, 0] * 1e3 + r[:, 1])]
+    torch.testing.assert_close(rows(p_ours["opacity"], p_ours["sh_dc"]),
+                               rows(p_theirs["opacities"], p_theirs["sh0"]), rtol=0, atol=0)
