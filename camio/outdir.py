@@ -30,7 +30,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable, Mapping
 
-__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs", "run_stage",
+__all__ = ["MARKER", "OutputFolderError", "prepare_out", "seal_out", "keep_out", "check_out", "tidy_outs", "run_stage",
            "typed_line"]
 
 MARKER = ".stage"
@@ -212,7 +212,14 @@ def seal_out(out: PathLike, stage: str) -> Path:
     out_p = Path(out)
     names = sorted(e.name for e in out_p.iterdir() if e.name != MARKER)
     (out_p / MARKER).write_text("\n".join([stage, *names]) + "\n")
+    keep_out(out_p)
     return out_p
+
+
+def keep_out(out: PathLike) -> None:
+    """The stage that prepared ``out`` has finished: its folder stays, even when it wrote
+    nothing into it (e.g. no plot to draw), rather than being tidied away at exit."""
+    _PREPARED.pop(_resolved(Path(out)), None)
 
 
 def typed_line(exc: BaseException) -> str:

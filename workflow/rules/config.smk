@@ -5,6 +5,7 @@ import importlib.util
 import json
 import sys
 
+from snakemake.exceptions import IncompleteCheckpointException
 from snakemake.logging import logger
 from pathlib import Path
 

@@ -14,11 +14,25 @@ def colmap_runs(wildcards=None):
     ]
 
 
+_colmap_pending = False
+
+
 def colmap_status(dataset, scene, n):
     """status.json of a finished COLMAP run. Read through the colmap_index checkpoint, which
     waits for every COLMAP run, so the jobs after COLMAP are planned once all results exist
     (success or failure) rather than one checkpoint at a time."""
-    checkpoints.colmap_index.get()
+    global _colmap_pending
+    try:
+        checkpoints.colmap_index.get()
+    except IncompleteCheckpointException:
+        _colmap_pending = True
+        raise
+    if _colmap_pending:  # said once, when the jobs after COLMAP join the plan
+        _colmap_pending = False
+        logger.info(
+            "The COLMAP runs have finished: the jobs after them are planned now, so the "
+            "step total grows (the steps done so far stay done)."
+        )
     run = RUN.format(dataset=dataset, scene=scene, n=n, init="colmap")
     path = f"{run}/status.json"
     return json.loads(Path(path).read_text())
