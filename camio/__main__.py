@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
 
             # split.json belongs in the scene folder (docs/contracts.md), never over an input
             prepare_out(args.out, {"--scene": args.scene, "--manifest": args.manifest}, "camio split", folder=False,
-                        may_hold_out=("--scene",))
+                        may_hold_out=("--scene",), same_file_as={"camio convert": ("split.json",), "camio synth": ("split.json",)})
             folder = args.scene / "images" if (args.scene / "images").is_dir() else args.scene
             split = make_split(list_images(folder), tuple(args.n), args.manifest)
             write_split(args.out, split)

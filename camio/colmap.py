@@ -193,6 +193,85 @@ _FOCALS = {"SIMPLE_PINHOLE": 1, "SIMPLE_RADIAL": 1, "RADIAL": 1, "SIMPLE_RADIAL_
            "PINHOLE": 2, "OPENCV": 2, "FULL_OPENCV": 2, "OPENCV_FISHEYE": 2, "FOV": 2, "THIN_PRISM_FISHEYE": 2}
 
 
+PRINCIPAL_POINT_SLACK = 1.0
+"""A principal point may lie up to this many image sizes outside the image (cx in
+[-s w, (1 + s) w], cy likewise) before the camera is refused; outside the image but within
+that bound it is read with a warning. A principal point outside the image happens only for
+crops of a larger image; one further out is a damaged or mis-scaled model (training on it
+gives a few dB)."""
+
+DISTORTION_FOV_FACTOR = 10.0
+"""Distortion may change the radius of the image's farthest corner (in normalised
+coordinates) by at most this factor; OPENCV k1 = 1e12 shrinks the undistorted view to a
+point (every undistorted image black) and is refused."""
+
+# parameter layout of the distorted models: (number of focal lengths, radial terms' slice,
+# kind: "poly" r(1 + k1 r^2 + k2 r^4 + ...), "rational" (FULL_OPENCV), "fisheye" theta-based)
+_DISTORTION = {"SIMPLE_RADIAL": (slice(3, 4), "poly"), "RADIAL": (slice(3, 5), "poly"),
+               "OPENCV": (slice(4, 6), "poly"), "FULL_OPENCV": (slice(4, 12), "rational"),
+               "OPENCV_FISHEYE": (slice(4, 8), "fisheye"), "SIMPLE_RADIAL_FISHEYE": (slice(3, 4), "fisheye"),
+               "RADIAL_FISHEYE": (slice(3, 5), "fisheye")}
+
+
+def _radial_map(kind: str, k: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Distorted normalised radius of the undistorted radius (or angle, fisheye) ``x`` [N]."""
+    if kind == "rational":  # k1 k2 p1 p2 k3 k4 k5 k6: (1 + k1 r2 + k2 r4 + k3 r6) / (1 + k4 r2 + k5 r4 + k6 r6)
+        r2 = x * x
+        num = 1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3
+        den = 1 + k[5] * r2 + k[6] * r2**2 + k[7] * r2**3
+        with np.errstate(all="ignore"):
+            return x * num / den
+    r2 = x * x
+    poly = 1 + sum(kk * r2 ** (j + 1) for j, kk in enumerate(k))
+    return x * poly
+
+
+def camera_problem(model: str, width: int, height: int, params) -> tuple[str | None, str | None]:
+    """(refusal, warning) for one camera's values, each a sentence or None.
+
+    Refused: a principal point more than :data:`PRINCIPAL_POINT_SLACK` image sizes outside
+    the image; distortion under which undistortion is not defined over the image (the
+    distorted radius not strictly increasing out to the farthest corner, or changing that
+    corner's radius by more than :data:`DISTORTION_FOV_FACTOR`). Warned: a principal point
+    outside the image but within that bound.
+    """
+    params = np.asarray(params, dtype=np.float64)
+    nf = _FOCALS.get(model, 0)
+    if not nf or len(params) < nf + 2 or not np.all(np.isfinite(params)):
+        return None, None
+    cx, cy = params[nf], params[nf + 1]
+    s = PRINCIPAL_POINT_SLACK
+    if not (-s * width <= cx <= (1 + s) * width and -s * height <= cy <= (1 + s) * height):
+        return (f"has the principal point ({cx:g}, {cy:g}), more than {s:g} image size outside its {width}x{height} "
+                "image (a damaged or mis-scaled model)"), None
+    warning = None
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        warning = f"has the principal point ({cx:g}, {cy:g}) outside its {width}x{height} image"
+    spec = _DISTORTION.get(model)
+    f = float(np.min(params[:nf])) if nf else 0.0
+    if spec is None or not f > 0:
+        return None, warning
+    sl, kind = spec
+    k = params[sl] if kind != "rational" else params[4:12]
+    if not np.any(k):
+        return None, warning
+    corner = max(np.hypot(u - cx, v - cy) for u in (0, width) for v in (0, height)) / f
+    # undistorted radius (angle for fisheye) grid out to far beyond the corner
+    top = np.pi / 2 * 0.999 if kind == "fisheye" else DISTORTION_FOV_FACTOR * corner
+    x = np.linspace(0.0, top, 4097)
+    g = _radial_map(kind, k, x)
+    reach = np.nonzero(g >= corner)[0]
+    stop = reach[0] if len(reach) else len(x) - 1
+    d = np.diff(g[: stop + 1])
+    if not np.all(np.isfinite(g[: stop + 1])) or not len(reach) or np.any(d <= 0):
+        return (f"has the {model} distortion {k.tolist()}, which is not invertible over the image (the distorted "
+                "radius stops growing before the image corner): undistortion is not defined there"), warning
+    if x[stop] < corner / DISTORTION_FOV_FACTOR:
+        return (f"has the {model} distortion {k.tolist()}, which shrinks the view to {x[stop] / corner:.2g} of its "
+                f"size (more than a factor {DISTORTION_FOV_FACTOR:g}): a damaged or mis-scaled model"), warning
+    return None, warning
+
+
 def _data_lines(f: Path) -> list[tuple[int, list[str]]]:
     """(1-based line number, whitespace-split tokens) of every data line of a text model file,
     as COLMAP's reader takes them: comments and blank lines are skipped, except that in
@@ -253,6 +332,13 @@ def _check_text_model(model_dir: Path) -> int:
             if bad:
                 raise ValueError(f"{cams_f}:{n}: camera {cid} ({t[1]}) has the focal length {bad[0]:g}; focal "
                                  "lengths must be positive (a negative one flips the image, zero collapses it)")
+            refusal, warning = camera_problem(t[1], w, h, params)
+            if refusal:
+                raise ValueError(f"{cams_f}:{n}: camera {cid} ({t[1]}) {refusal}; fix or re-export the model")
+            if warning:
+                log.warning("%s:%d: camera %d (%s) %s", cams_f, n, cid, t[1], warning)
+            if cid in camera_ids:
+                raise ValueError(f"{cams_f}:{n}: camera id {cid} is defined twice; each camera id once")
             camera_ids.add(cid)
     point_ids = set()
     if pts_f.is_file():
@@ -261,8 +347,19 @@ def _check_text_model(model_dir: Path) -> int:
                 raise ValueError(f"{pts_f}:{n}: expected POINT3D_ID X Y Z R G B ERROR TRACK[], got {' '.join(t)!r}")
             pid, = _numbers(pts_f, n, t[:1], "the point id", int)
             _numbers(pts_f, n, t[1:4], f"point {pid}'s position")
+            rgb = _numbers(pts_f, n, t[4:7], f"point {pid}'s colour", int)
+            if not all(0 <= c <= 255 for c in rgb):
+                raise ValueError(f"{pts_f}:{n}: point {pid} has the colour {' '.join(t[4:7])}; colours are "
+                                 "integers 0-255")
+            _numbers(pts_f, n, t[7:8], f"point {pid}'s error")
+            if (len(t) - 8) % 2:
+                raise ValueError(f"{pts_f}:{n}: point {pid}'s TRACK must be (IMAGE_ID, POINT2D_IDX) pairs")
+            if pid in point_ids:
+                raise ValueError(f"{pts_f}:{n}: point id {pid} is defined twice; each point id once")
             point_ids.add(pid)
     missing = 0
+    image_ids: dict[int, int] = {}
+    names: dict[str, int] = {}
     if imgs_f.is_file():
         lines = _data_lines(imgs_f)
         for k in range(0, len(lines), 2):
@@ -281,6 +378,13 @@ def _check_text_model(model_dir: Path) -> int:
             if not np.linalg.norm(q) > 1e-12:
                 raise ValueError(f"{imgs_f}:{n}: image {t[9]!r} has the zero quaternion {' '.join(t[1:5])}: "
                                  "no rotation; fix or re-export the model")
+            if iid in image_ids:
+                raise ValueError(f"{imgs_f}:{n}: image id {iid} is defined twice (also line {image_ids[iid]})")
+            if t[9] in names:
+                raise ValueError(f"{imgs_f}:{n}: the image {t[9]!r} appears twice (also line {names[t[9]]}): "
+                                 "each image may appear once")
+            image_ids[iid] = n
+            names[t[9]] = n
             if cams_f.is_file() and cid not in camera_ids:
                 raise ValueError(f"{imgs_f}:{n}: image {t[9]!r} uses camera {cid}, which {cams_f.name} does "
                                  f"not define (defined: {sorted(camera_ids)})")
@@ -296,12 +400,20 @@ def _check_text_model(model_dir: Path) -> int:
 
 def _check_read(model_dir: Path, rec) -> None:
     """The same checks on what pycolmap read (binary models have no lines to name)."""
+    binary = (model_dir / "cameras.bin").is_file()
     for cid, cam in rec.cameras.items():
         params = np.asarray(cam.params, dtype=np.float64)
         k = _FOCALS.get(cam.model.name, 0)
         if not np.all(np.isfinite(params)) or np.any(params[:k] <= 0) or cam.width <= 0 or cam.height <= 0:
             raise ValueError(f"{model_dir}: camera {cid} ({cam.model.name} {cam.width}x{cam.height} "
                              f"{params.tolist()}) is not finite or has a non-positive size or focal length")
+        if binary:  # a text model had these checks line by line
+            refusal, warning = camera_problem(cam.model.name, cam.width, cam.height, params)
+            if refusal:
+                raise ValueError(f"{model_dir / 'cameras.bin'}: camera {cid} ({cam.model.name}) {refusal}; fix or "
+                                 "re-export the model")
+            if warning:
+                log.warning("%s: camera %d (%s) %s", model_dir / "cameras.bin", cid, cam.model.name, warning)
     for iid, img in rec.images.items():
         if img.camera_id not in rec.cameras:
             raise ValueError(f"{model_dir}: image {img.name!r} uses camera {img.camera_id}, which the model "
@@ -310,6 +422,19 @@ def _check_read(model_dir: Path, rec) -> None:
             m = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
             if not np.all(np.isfinite(m)):
                 raise ValueError(f"{model_dir}: image {img.name!r} has a non-finite pose (or a zero quaternion)")
+
+
+def _one_format(model_dir: Path) -> None:
+    """A folder with ``cameras.bin`` is read as a binary model: every other binary file
+    must be there too, and text files beside it are named in a warning (they are not read)."""
+    missing = [n for n in ("images.bin", "points3D.bin") if not (model_dir / n).is_file()]
+    if missing:
+        raise ValueError(f"{model_dir} holds cameras.bin but not {missing[0]}: a binary model needs cameras.bin, "
+                         "images.bin and points3D.bin; copy or export the model again")
+    text = [n for n in ("cameras.txt", "images.txt", "points3D.txt") if (model_dir / n).is_file()]
+    if text:
+        log.warning("%s holds both a binary and a text model (%s): reading the binary one (cameras.bin, "
+                    "images.bin, points3D.bin); remove the files you do not mean", model_dir, ", ".join(text))
 
 
 def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
@@ -337,6 +462,11 @@ def read_model(path: str | Path, allow_distorted: bool = False) -> SparseModel:
     model_dir = find_model_dir(path)
     _check_text_ends(model_dir)
     text = not (model_dir / "cameras.bin").is_file()
+    if not text:
+        _one_format(model_dir)
+        from camio.colmap_bin import check_binary_model
+
+        check_binary_model(model_dir)  # every record fits: pycolmap never reads past or allocates blindly
     missing = _check_text_model(model_dir) if text else 0
     rec = pycolmap.Reconstruction()
     import tempfile
@@ -409,6 +539,10 @@ def camera_model_names(path: str | Path) -> list[str]:
 
     try:
         model_dir = find_model_dir(path)
+        if (model_dir / "cameras.bin").is_file():
+            from camio.colmap_bin import check_binary_model
+
+            check_binary_model(model_dir)  # never hand pycolmap a file whose counts overrun it
         rec = pycolmap.Reconstruction()
         rec.read(str(model_dir))
     except Exception:  # an unreadable model is the converter's error to report

@@ -19,6 +19,7 @@ Unreadable, truncated or missing files raise :class:`ImageReadError` naming the 
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -70,6 +71,14 @@ def check_image_name(name: str, folder: str | Path | None = None) -> str:
     Raises:
         ImageNameError: one line naming the file and a suggested rename.
     """
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # bytes that are not UTF-8 (os.fsdecode keeps them as surrogates)
+        path = Path(folder) / name if folder is not None else Path(name)
+        shown = os.fsencode(name).decode("utf-8", errors="replace")
+        raise ImageNameError(f"image {str(path)!r}: the name is not UTF-8 text ({shown!r}), which COLMAP models, "
+                             "JSON and the image readers cannot hold; rename the file with UTF-8 "
+                             "characters") from None
     if any(ch.isspace() for ch in name):
         path = Path(folder) / name if folder is not None else Path(name)
         suggest = "_".join(name.split())

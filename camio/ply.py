@@ -155,30 +155,83 @@ _PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4"}
 
 
-def _read_vertices(path: Path) -> np.ndarray:
-    """The vertex element of a binary little-endian PLY as a structured array."""
-    raw = path.read_bytes()
+def _header(path: Path, raw: bytes) -> tuple[list[tuple[str, int, list[tuple[str, str, str | None]]]], int]:
+    """The elements of a binary little-endian PLY header, in file order, and the body's offset.
+
+    Returns:
+        ([(element name, count, [(property name, numpy type, list count type or None)])],
+        offset of the first body byte).
+    """
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply\n") or end < 0:
         raise PlyFormatError(f"{path}: not a PLY file (no 'ply' magic or end_header)")
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in header:
         raise PlyFormatError(f"{path}: only binary_little_endian PLY is supported")
-    n, props, in_vertex = None, [], False
-    for line in header:
+    elements: list[tuple[str, int, list]] = []
+    for k, line in enumerate(header, 1):
         parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            n, in_vertex = int(parts[2]), True
-        elif parts and parts[0] == "element":
-            in_vertex = False
-        elif parts and parts[0] == "property" and in_vertex:
-            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
-                raise PlyFormatError(f"{path}: unsupported vertex property {line!r}")
-            props.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
-    if n is None:
+        if not parts or parts[0] in ("ply", "format", "comment", "obj_info"):
+            continue
+        if parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise PlyFormatError(f"{path}: header line {k}: expected 'element NAME COUNT', got {line!r}")
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[0] == "property" and elements:
+            props = elements[-1][2]
+            if len(parts) == 5 and parts[1] == "list" and parts[2] in _PLY_TYPES and parts[3] in _PLY_TYPES:
+                props.append((parts[4], "<" + _PLY_TYPES[parts[3]], "<" + _PLY_TYPES[parts[2]]))
+            elif len(parts) == 3 and parts[1] in _PLY_TYPES:
+                props.append((parts[2], "<" + _PLY_TYPES[parts[1]], None))
+            else:
+                raise PlyFormatError(f"{path}: header line {k}: unsupported property {line!r}")
+            if [p[0] for p in props].count(props[-1][0]) > 1:
+                raise PlyFormatError(f"{path}: header line {k}: the property {props[-1][0]!r} appears twice in "
+                                     f"element {elements[-1][0]!r}")
+        else:
+            raise PlyFormatError(f"{path}: header line {k}: unexpected {line!r}")
+    return elements, end + len(b"end_header\n")
+
+
+def _skip_element(path: Path, raw: bytes, pos: int, name: str, count: int, props: list) -> int:
+    """Offset after ``count`` records of an element that is not read (lists walked, each size
+    checked against the bytes left)."""
+    if all(p[2] is None for p in props):
+        size = count * np.dtype([(p[0], p[1]) for p in props]).itemsize if props else 0
+        if size > len(raw) - pos:
+            raise PlyFormatError(f"{path}: truncated: element {name!r} needs {size} bytes, {len(raw) - pos} left")
+        return pos + size
+    for _ in range(count):
+        for _, typ, count_type in props:
+            if count_type is None:
+                pos += np.dtype(typ).itemsize
+            else:
+                ct = np.dtype(count_type)
+                if pos + ct.itemsize > len(raw):
+                    raise PlyFormatError(f"{path}: truncated inside element {name!r}")
+                k = int(np.frombuffer(raw, ct, 1, pos)[0])
+                pos += ct.itemsize + max(k, 0) * np.dtype(typ).itemsize
+            if pos > len(raw):
+                raise PlyFormatError(f"{path}: truncated inside element {name!r}")
+    return pos
+
+
+def _read_vertices(path: Path) -> np.ndarray:
+    """The vertex element of a binary little-endian PLY as a structured array (elements before
+    it, such as a camera or a face list, are skipped by their exact sizes)."""
+    raw = path.read_bytes()
+    elements, pos = _header(path, raw)
+    for name, count, props in elements:
+        if name == "vertex":
+            break
+        pos = _skip_element(path, raw, pos, name, count, props)
+    else:
         raise PlyFormatError(f"{path}: no vertex element")
-    dtype = np.dtype(props)
-    body = raw[end + len(b"end_header\n"):]
+    if any(p[2] is not None for p in props):
+        raise PlyFormatError(f"{path}: unsupported list property in the vertex element")
+    n = count
+    dtype = np.dtype([(p[0], p[1]) for p in props])
+    body = raw[pos:]
     if len(body) < n * dtype.itemsize:
         raise PlyFormatError(
             f"{path}: truncated: header promises {n} vertices ({n * dtype.itemsize} bytes), "

@@ -136,9 +136,33 @@ def write_split(path: str | Path, split: Split) -> Path:
 
 
 def read_split(path: str | Path) -> Split:
-    """Read a ``split.json`` written by :func:`write_split`."""
-    data = json.loads(Path(path).read_text())
+    """Read a ``split.json`` written by :func:`write_split`, checked: every name a plain file
+    name (``../x.png`` would lead a command out of its folders), no name twice in a list.
+
+    Raises:
+        ValueError: one line naming the file and what is wrong.
+    """
+    from camio.outdir import check_name
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a split.json (JSON): {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: split.json holds a JSON object, not {type(data).__name__}")
     for key in ("rule", "test", "train_pool", "train"):
         if key not in data:
             raise ValueError(f"{path}: split.json lacks the key {key!r}")
+    if not isinstance(data["train"], dict):
+        raise ValueError(f"{path}: 'train' must map n to a list of names")
+    lists = {"test": data["test"], "train_pool": data["train_pool"],
+             **{f"train {k}": v for k, v in data["train"].items()}}
+    for what, names in lists.items():
+        if not isinstance(names, list):
+            raise ValueError(f"{path}: '{what}' must be a list of image names")
+        for name in names:
+            check_name(name, f"{what} name", path)
+        if len(set(names)) != len(names):
+            dup = sorted({x for x in names if names.count(x) > 1})
+            raise ValueError(f"{path}: the '{what}' list names {dup[0]!r} twice: fix the split")
     return Split(data["rule"], data["test"], data["train_pool"], data["train"])

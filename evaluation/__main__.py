@@ -141,13 +141,11 @@ def _prepare_out(args) -> None:
 
 def _seal_out(args) -> None:
     """Record what a command that replaces its folder whole wrote (camio.outdir.seal_out)."""
-    from camio.outdir import keep_out, seal_out
+    from camio.outdir import seal_out
 
     spec = _OUTPUTS.get(args.command)
     if spec is not None and spec[3]:
         seal_out(args.out, f"evaluation {args.command}")
-    elif spec is not None and spec[1] and getattr(args, "out", None):
-        keep_out(args.out)  # finished: an empty folder (nothing to plot) is still its output
 
 
 def _missing_images(exc: Exception):

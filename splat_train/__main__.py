@@ -146,12 +146,14 @@ def _testpose_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _out_ok(out: str, inputs: dict, stage: str) -> bool:
-    """camio's output rule for ``--out`` (camio.outdir); False after logging the one-line refusal."""
+def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False) -> bool:
+    """camio's output rule for ``--out`` (camio.outdir); False after logging the one-line refusal.
+    ``fresh``: the command writes a folder of results (renders) and first removes its earlier
+    run's files, so the folder never mixes two runs (seal it with camio.outdir.seal_out)."""
     from camio.outdir import OutputFolderError, prepare_out
 
     try:
-        prepare_out(out, inputs, stage)
+        prepare_out(out, inputs, stage, fresh=fresh)
     except OutputFolderError as exc:
         log.error("%s", exc)
         return False
@@ -159,6 +161,20 @@ def _out_ok(out: str, inputs: dict, stage: str) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Train, render, test-pose or view; the output folder's writer's lock is given up when the
+    command returns or raises (camio.outdir)."""
+    from camio.outdir import finish_outs, release_locks
+
+    try:
+        rc = _main(argv)
+        if rc == 0:
+            finish_outs()  # record what the command wrote, file by file (camio.outdir)
+        return rc
+    finally:
+        release_locks()
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "view":
         from splat_train.view.cli import main as view_main
@@ -179,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             log.error("give --images or --width/--height, not both")
             return 2
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
-                                  "--image-list": args.image_list}, "splat_train render"):
+                                  "--image-list": args.image_list}, "splat_train render", fresh=True):
             return 2
         from camio.ply import check_seed_cloud, read_gaussian_ply
 
@@ -187,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
             log.warning("degenerate model: %s", warning)
         render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
                      height=args.height, names=args.image_list, background=bg, device=args.device)
+        from camio.outdir import seal_out
+
+        seal_out(args.out, "splat_train render")
         return 0
 
     if argv and argv[0] == "testpose":
@@ -196,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
             log.error("--steps and --patience must be >= 0 and --lr > 0")
             return 2
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
-                                  "--image-list": args.image_list}, "splat_train testpose"):
+                                  "--image-list": args.image_list}, "splat_train testpose", fresh=True):
             return 2
         from splat_train.config import resolve_device
         from splat_train.testpose import run_testpose
@@ -204,6 +223,9 @@ def main(argv: list[str] | None = None) -> int:
         rec = run_testpose(args.model, args.cameras, args.images, args.out, steps=args.steps, lr=args.lr,
                            device=resolve_device(args.device), backend=args.rasterizer, names=args.image_list,
                            patience=args.patience)
+        from camio.outdir import seal_out
+
+        seal_out(args.out, "splat_train testpose")
         print(f"test-pose: {len(rec['views'])} views, {rec['steps']} steps, mean rotation change "
               f"{rec['mean_rotation_deg'] or 0.0:.3f} deg -> {args.out}")
         return 0

@@ -55,8 +55,18 @@ def save_checkpoint(out_dir: str | Path, iteration: int, payload: dict[str, Any]
     """Write ``payload`` (plus ``iteration``) atomically, then delete all but the newest
     ``keep`` checkpoints."""
     path = checkpoint_path(out_dir, iteration)
-    with atomic_path(path) as tmp:
-        torch.save({**payload, "iteration": int(iteration)}, tmp)
+    try:
+        with atomic_path(path) as tmp:
+            torch.save({**payload, "iteration": int(iteration)}, tmp)
+    except (OSError, RuntimeError) as exc:  # torch reports a full disk as a RuntimeError from its writer
+        import errno
+        import shutil
+
+        free = shutil.disk_usage(Path(out_dir)).free if Path(out_dir).is_dir() else -1
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise OSError(getattr(exc, "errno", None) or errno.EIO,
+                      f"cannot write the checkpoint {path} ({first}; {free / 2**20:.0f} MiB free): the previous "
+                      "checkpoint is intact; free disk space and run the same command again to resume") from exc
     for _, old in list_checkpoints(out_dir)[:-keep]:
         old.unlink(missing_ok=True)
     log.debug("checkpoint %s", path)

@@ -49,16 +49,19 @@ class View:
 
 def read_name_list(path: str | Path) -> list[str]:
     """Image names from a file: a JSON list, or plain text with one name per line ('#'
-    starts a comment, blank lines ignored)."""
+    starts a comment, blank lines ignored); every name plain and none twice
+    (camio.outdir.check_name_list)."""
+    from camio.outdir import check_name_list
+
     path = Path(path)
     text = path.read_text()
     if path.suffix.lower() == ".json":
         data = json.loads(text)
         if not isinstance(data, list) or not all(isinstance(x, str) for x in data):
             raise ValueError(f"{path}: a JSON image list must be a list of names")
-        return list(data)
+        return check_name_list(data, path)
     names = [line.split("#", 1)[0].strip() for line in text.splitlines()]
-    return [n for n in names if n]
+    return check_name_list([n for n in names if n], path)
 
 
 def load_cameras(cameras_dir: str | Path, names: list[str] | None = None) -> list[Camera]:

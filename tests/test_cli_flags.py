@@ -200,7 +200,15 @@ def test_viewer_on_a_busy_port_names_it_and_suggests_port_0(tmp_path):
         check_installed()
     except ViewerNotInstalled:
         pytest.skip("the viewer's browser files are not installed (make install)")
-    (tmp_path / "model.ply").write_bytes(b"ply\n")
+    import numpy as np
+
+    from camio.ply import GaussianCloud, write_gaussian_ply
+
+    n = 4
+    write_gaussian_ply(tmp_path / "model.ply", GaussianCloud(
+        means=np.zeros((n, 3), np.float32), sh_dc=np.zeros((n, 3), np.float32),
+        sh_rest=np.zeros((n, 0, 3), np.float32), opacity_logit=np.zeros(n, np.float32),
+        log_scales=np.zeros((n, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1))))
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen(1)

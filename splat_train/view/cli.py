@@ -32,8 +32,23 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def _stop(signum, frame):
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str]) -> int:
+    """Serve the view until Ctrl-C, SIGTERM or SIGHUP (a quiet stop, exit 0). Bad input (a
+    --model that is not a 3DGS PLY, a port outside 0-65535, an address that cannot be bound)
+    is one line and exit 2."""
+    import signal
+
     args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--seed-ply", None)}))
+    from camio.logs import setup_logging
+
+    setup_logging(args.verbose, args.quiet)
     from pathlib import Path
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
@@ -43,32 +58,53 @@ def main(argv: list[str]) -> int:
     except ViewerNotInstalled as e:
         print(f"python -m splat_train view: error: {e}", file=sys.stderr)
         return 2
+    if not 0 <= args.port <= 65535:
+        print(f"python -m splat_train view: error: --port {args.port} is not a port: give 1-65535 (0 picks a free one)",
+              file=sys.stderr)
+        return 2
+    from camio.ply import PlyFormatError, read_gaussian_ply
+
     for label, path in (("--model", args.model), ("--seed-ply", args.seed_ply)):
-        if path is not None and not Path(path).is_file():
+        if path is None:
+            continue
+        if not Path(path).is_file():
             print(f"python -m splat_train view: error: {label} {path}: no such file", file=sys.stderr)
             return 2
-    from camio.logs import setup_logging
-
-    setup_logging(args.verbose, args.quiet)
-    blob = cameras_json(args.cameras, args.test_cameras)
+        try:  # only a 3DGS PLY is ever served (never a link to some other file)
+            read_gaussian_ply(path)
+        except (PlyFormatError, OSError, ValueError) as e:
+            print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
+            return 2
+    try:
+        blob = cameras_json(args.cameras, args.test_cameras)
+    except (OSError, ValueError) as e:
+        print(f"python -m splat_train view: error: cannot read the cameras: {e}", file=sys.stderr)
+        return 2
     try:
         srv = make_server(build_routes(args.model, args.seed_ply, blob), args.host, args.port)
-    except OSError as e:
+    except OSError as e:  # in use, no permission, an address this machine does not have
         if e.errno == errno.EADDRINUSE:
             print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "
                   "(another viewer?); pass --port 0 to pick a free one", file=sys.stderr)
         else:
-            print(f"python -m splat_train view: error: cannot serve on {args.host}:{args.port}: {e}",
+            print(f"python -m splat_train view: error: cannot listen on {args.host}:{args.port}: {e.strerror or e}",
                   file=sys.stderr)
         return 2
-    url = f"http://{args.host}:{srv.server_port}/"
+    if args.host not in LOOPBACK_HOSTS:
+        print(f"python -m splat_train view: warning: --host {args.host} serves the model to the network (no password); "
+              "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
+    host = f"[{args.host}]" if ":" in args.host else args.host
+    url = f"http://{host}:{srv.server_port}/"
     print(f"[view] serving {args.model} at {url} (Ctrl-C stops)", flush=True)
+    # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _stop)
     if not args.no_browser:
         webbrowser.open(url)
     try:
         srv.serve_forever()
     except KeyboardInterrupt:
-        pass
+        print("[view] stopped", flush=True)
     finally:
         srv.server_close()
     return 0

@@ -3,6 +3,11 @@
 Only the URLs in the table are answered (GET/HEAD); every other path, including ``..``,
 absolute, encoded or symlinked variants, gets 404 without touching the file system, since the
 request path is never joined to a folder. Binds 127.0.0.1 unless told otherwise.
+
+A request is answered only if its ``Host`` header names this server: ``localhost``,
+``127.0.0.1``, ``[::1]``, or the very address the connection arrived at, with the server's
+port (:func:`host_allowed`). A web page the user visits cannot read the model through DNS
+rebinding: its requests carry the attacker's domain name as Host and get 403.
 """
 
 from __future__ import annotations
@@ -80,6 +85,36 @@ def build_routes(model: str | Path, seed: str | Path | None = None, cameras_blob
     return routes
 
 
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def host_allowed(host_header: str | None, local_ip: str, port: int) -> bool:
+    """Whether a request's ``Host`` header names this server (module docstring): a loopback
+    name, or ``local_ip`` (the address the connection arrived at), with ``port`` when a port
+    is given (the default port 80 is never this server's)."""
+    if not host_header:
+        return False
+    h = host_header.strip().lower()
+    if h.startswith("["):  # [v6]:port
+        name, _, rest = h[1:].partition("]")
+        port_s = rest[1:] if rest.startswith(":") else None
+        if rest and not rest.startswith(":"):
+            return False
+    elif h.count(":") == 1:
+        name, _, port_s = h.partition(":")
+    else:
+        name, port_s = h, None
+    if port_s is None:
+        if port != 80:
+            return False
+    elif not port_s.isdigit() or int(port_s) != port:
+        return False
+    local = local_ip.lower()
+    if local.startswith("::ffff:"):
+        local = local[7:]
+    return name in LOOPBACK_NAMES or name == local
+
+
 class _Handler(BaseHTTPRequestHandler):
     routes: dict[str, Path | bytes] = {}
     server_version = "splat_train-view"
@@ -93,6 +128,11 @@ class _Handler(BaseHTTPRequestHandler):
         return self.routes.get(path), path
 
     def _send(self, head_only: bool) -> None:
+        if not host_allowed(self.headers.get("Host"), self.connection.getsockname()[0], self.server.server_port):
+            log.warning("refused a request for Host %r (only this server's own address or localhost is "
+                        "answered)", self.headers.get("Host"))
+            self.send_error(403, "Host not served: use this server's address or localhost")
+            return
         target, path = self._lookup()
         if target is None:
             self.send_error(404, "not part of this view")

@@ -19,12 +19,32 @@ _check_spec = importlib.util.spec_from_file_location(
 )
 _check_config = importlib.util.module_from_spec(_check_spec)
 _check_spec.loader.exec_module(_check_config)
-_problems = _check_config.config_problems(config)
+_problems = []
+for _file in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
+    try:
+        _check_config.read_yaml(_file)
+    except (OSError, ValueError) as _exc:
+        _problems.append(str(_exc))
+_problems += _check_config.config_problems(config)
 for _problem in _problems:
     print(f"config error: {_problem}", file=sys.stderr)
 if _problems:
     raise SystemExit(2)
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
+
+# A scene converted from disk must be there before anything is planned (its format decides
+# the jobs): one line here, not an InputFunctionException with a traceback during planning.
+_missing = [
+    f"datasets.{_ds}.scenes.{_sc}: the scene path {_cfg['path']} does not exist (relative paths are read "
+    "from the working directory)"
+    for _ds, _block in config["datasets"].items()
+    for _sc, _cfg in _block["scenes"].items()
+    if "path" in _cfg and not Path(_cfg["path"]).exists()
+]
+for _problem in _missing:
+    print(f"config error: {_problem}", file=sys.stderr)
+if _missing:
+    raise SystemExit(2)
 
 R = config["results"].rstrip("/")
 SCENE = f"{R}/{{dataset}}/{{scene}}"

@@ -36,6 +36,53 @@ def _known(schema: dict, node: dict) -> list[str]:
     return sorted(node.get("properties", {}))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses a key given twice in one mapping (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.get(key)
+            except TypeError:  # an unhashable key: PyYAML's own error follows
+                break
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice (first at line {first + 1}); "
+                    "only one is used: remove or merge the other", key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: str | Path):
+    """A YAML configuration file, with any key given twice in one mapping refused.
+
+    Raises:
+        ValueError: one line ``FILE:LINE: the key 'x' is given twice (first at line N) ...``.
+    """
+    text = Path(path).read_text()
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise ValueError(f"{where}: {exc.problem}") from None
+
+
+def _results_problem(config: dict) -> str | None:
+    """The results folder: not empty, not the file system's root (every output would be
+    planned at the top of the disk)."""
+    results = config.get("results")
+    if not isinstance(results, str):
+        return None  # the schema's type check says it
+    if not results.strip():
+        return "results: the results folder is empty; name a folder (default: results)"
+    if Path(results).expanduser().resolve() == Path(Path(results).expanduser().resolve().anchor):
+        return f"results: {results!r} is the file system's root; name a folder of its own (default: results)"
+    return None
+
+
 def config_problems(config: dict, schema: dict | None = None) -> list[str]:
     """One line per problem of ``config``; [] when it is valid."""
     import jsonschema
@@ -68,13 +115,16 @@ def config_problems(config: dict, schema: dict | None = None) -> list[str]:
             lines.append(f"{where}: {err.instance!r} is not a valid value{hint}")
         else:
             lines.append(f"{where}: {err.message}")
+    results = _results_problem(config)
+    if results:
+        lines.append(results)
     return list(dict.fromkeys(lines))
 
 
 def load(paths: list[str], sets: list[str] = ()) -> dict:
     config: dict = {}
     for p in paths:
-        data = yaml.safe_load(Path(p).read_text()) or {}
+        data = read_yaml(p) or {}
         if not isinstance(data, dict):
             raise ValueError(f"{p}: the configuration must be a mapping of keys")
         config = _merge(config, data)
