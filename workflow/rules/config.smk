@@ -20,7 +20,9 @@ _check_spec = importlib.util.spec_from_file_location(
 _check_config = importlib.util.module_from_spec(_check_spec)
 _check_spec.loader.exec_module(_check_config)
 _problems = []
-for _file in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
+for (
+    _file
+) in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
     try:
         _check_config.read_yaml(_file)
     except (OSError, ValueError) as _exc:
