@@ -6,8 +6,8 @@ The cell is the n = 3 scene at 1/8 resolution trained for 2,000 iterations
 which is what a user (or the Snakemake workflow) gets. ``--inprocess`` calls the same CLI
 ``main(argv)`` functions in this process instead (no start-up cost; used by the smoke test).
 
-Scene: LLFF fern ``images_8`` from ../shared, converted and undistorted (497x372 after
-undistortion), when present; otherwise the synthetic scene of ``python -m camio synth``.
+Scene: LLFF fern ``images_8`` from this project's machine data (SHARED_FERN), converted and
+undistorted (497x372 after undistortion), when present; otherwise the synthetic scene of ``python -m camio synth``.
 Initialisers: the real VGGT checkpoint is not available on the development machine, so the
 cell is initialised by the COLMAP baseline (real scene) or the oracle (synthetic scene, which
 has ground-truth geometry; COLMAP is still timed there). The VGGT forward is timed separately
@@ -52,6 +52,8 @@ log = logging.getLogger("bench_cell")
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 OUT = HERE / "out"
+# machine-data: this project's machines keep real scenes in ../shared/data/scenes, beside the
+# repository; a clone has none, and the benchmark says so and uses the synthetic scene.
 SHARED_FERN = REPO.parent / "shared" / "data" / "scenes" / "llff__fern"
 TARGET_S = 600.0  # the full cell in under 10 minutes
 QUICK_ITERATIONS = 10
@@ -457,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 epilog="Times are one run on a shared machine: compare within a run.")
     p.add_argument("--scene", choices=["auto", "fern", "synthetic"], default="auto",
-                   help="auto: ../shared llff fern if present, else synthetic")
+                   help="auto: LLFF fern where this machine has it, else synthetic")
     p.add_argument("--n", type=int, default=3, help="training views (default 3)")
     p.add_argument("--iterations", type=int, default=None, help=f"default 2000 ({QUICK_ITERATIONS} with --quick)")
     p.add_argument("--quick", action="store_true", help="tiny synthetic sizes for a smoke run")

@@ -49,6 +49,8 @@ log = logging.getLogger("bench_pose")
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
+# machine-data: this project's machines keep real scenes in ../shared/data/scenes, beside the
+# repository; a clone has none, and the fern cell says so (--scenes synthetic runs without it).
 SHARED_FERN = HERE.parent.parent / "shared" / "data" / "scenes" / "llff__fern"
 
 # The ground-truth-pose initialiser's noise for this benchmark: VGGT-calibrated.

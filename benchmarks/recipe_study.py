@@ -15,7 +15,8 @@ sqrt(k) over seeds); differences against the first variant are paired by seed.
 
 A run whose train.json exists is not trained again (the study resumes). The summary goes to
 ``--out`` (default benchmarks/out/recipe_study_<cell>.json) and is printed as a table; real
-scenes are read from ../shared/data/scenes and the cell is skipped cleanly without them.
+scenes are read from this project's machine data (SCENES below) and the cell is skipped
+cleanly without them.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
+# machine-data: this project's machines keep real scenes in ../shared/data/scenes, beside the
+# repository; a clone has none, and the benchmark says so and skips the real cells.
 SCENES = REPO.parent / "shared" / "data" / "scenes"
 REAL = {"fern": ("llff__fern", ["--images-subdir", "images_8", "--undistort"]),
         "fountain": ("strecha__fountain-P11", [])}

@@ -1,11 +1,12 @@
 """CLI of the Bridge.
 
     python -m bridge --pred predictions.npz --out DIR [--mode gated|uniform|filtered]
-        [--alpha-min 0.05] [--alpha-max 0.5] [--uniform-alpha 0.1] [--stride 20]
+        [--alpha-min A] [--alpha-max A] [--uniform-alpha A] [--stride K]
         [--max-points N] [--percentile P] [--voxel-size V] [--outlier-removal] [--points3d]
     python -m bridge --colmap MODEL_DIR [--images DIR] --out DIR [...]
 
-Writes DIR/seed.ply, DIR/sparse/0/*.txt and DIR/bridge.json (docs/contracts.md).
+Writes DIR/seed.ply, DIR/sparse/0/*.txt and DIR/bridge.json (docs/contracts.md). Every default
+is BridgeConfig's (bridge/core.py), shown by --help.
 """
 
 from __future__ import annotations
@@ -14,11 +15,14 @@ import argparse
 import logging
 import sys
 
-from bridge.core import MODES, BridgeConfig, run_bridge
-from bridge.equations import ALPHA_MAX, ALPHA_MIN
+from bridge.core import DEFAULT_PERCENTILE, MODES, BridgeConfig, run_bridge
 from camio.logs import setup_logging, timed
 
 log = logging.getLogger("bridge")
+#: the one place of the flags' defaults
+DEFAULTS = BridgeConfig()
+#: --stride for a COLMAP model: every point (its points are few and all triangulated)
+COLMAP_STRIDE = 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,28 +36,34 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--colmap", help="COLMAP model folder (text or binary; or a scene folder with sparse/0)")
     p.add_argument("--images", help="image folder of the COLMAP model (checked: every image must exist)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--mode", choices=MODES, default="gated",
-                   help="opacity: gated (Eq. 2), uniform (constant), filtered (percentile, then Eq. 2)")
-    p.add_argument("--alpha-min", type=float, default=ALPHA_MIN, help="Eq. 2 a_min (default %(default)s)")
-    p.add_argument("--alpha-max", type=float, default=ALPHA_MAX, help="Eq. 2 a_max (default %(default)s)")
-    p.add_argument("--uniform-alpha", type=float, default=0.1, help="opacity of uniform mode (default %(default)s)")
+    p.add_argument("--mode", choices=MODES, default=DEFAULTS.mode,
+                   help="opacity: gated (Eq. 2), uniform (constant), filtered (percentile, then Eq. 2); "
+                        "default %(default)s")
+    p.add_argument("--alpha-min", type=float, default=DEFAULTS.alpha_min, help="Eq. 2 a_min (default %(default)s)")
+    p.add_argument("--alpha-max", type=float, default=DEFAULTS.alpha_max, help="Eq. 2 a_max (default %(default)s)")
+    p.add_argument("--uniform-alpha", type=float, default=DEFAULTS.uniform_alpha,
+                   help="opacity of uniform mode (default %(default)s)")
     p.add_argument("--stride", type=int, default=None,
-                   help="keep every stride-th flattened pixel (default 20 for --pred as the paper, 1 for --colmap)")
+                   help=f"keep every stride-th flattened pixel (default {DEFAULTS.stride} for --pred as the paper, "
+                        f"{COLMAP_STRIDE} for --colmap)")
     p.add_argument("--max-points", type=int, default=None, help="keep at most this many (most confident)")
     p.add_argument("--percentile", type=float, default=None,
-                   help="drop the lowest P %% by confidence (default: off; 40 in filtered mode)")
+                   help=f"drop the lowest P %% by confidence (default: off; {DEFAULT_PERCENTILE:g} in filtered mode)")
     p.add_argument("--voxel-size", type=float, default=None, help="voxel downsampling, normalised units")
     p.add_argument("--outlier-removal", action="store_true", help="open3d statistical outlier removal")
-    p.add_argument("--outlier-neighbors", type=int, default=20, help="outlier removal: neighbours per point")
-    p.add_argument("--outlier-std", type=float, default=2.0,
-                   help="outlier removal: standard deviations of the mean neighbour distance kept")
+    p.add_argument("--outlier-neighbors", type=int, default=DEFAULTS.outlier_neighbors,
+                   help="outlier removal: neighbours per point (default %(default)s)")
+    p.add_argument("--outlier-std", type=float, default=DEFAULTS.outlier_std_ratio,
+                   help="outlier removal: standard deviations of the mean neighbour distance kept "
+                        "(default %(default)s)")
     p.add_argument("--points3d", action="store_true",
                    help="also write the seed points into sparse/0/points3D.txt (for the original 3DGS loader)")
     p.add_argument("--no-depth-prior", dest="depth_prior", action="store_false",
                    help="do not write depth_prior.npz (the initialiser's per-camera depth for training's depth term)")
-    p.add_argument("--depth-prior-samples", type=int, default=50000,
+    p.add_argument("--depth-prior-samples", type=int, default=DEFAULTS.depth_prior_samples,
                    help="at most this many depth-prior samples per camera (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (capping a cloud, the depth prior's subset)")
+    p.add_argument("--seed", type=int, default=DEFAULTS.seed,
+                   help="random seed (capping a cloud, the depth prior's subset; default %(default)s)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
@@ -73,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = BridgeConfig(
             mode=args.mode, alpha_min=args.alpha_min, alpha_max=args.alpha_max,
             uniform_alpha=args.uniform_alpha,
-            stride=args.stride if args.stride is not None else (20 if args.pred else 1),
+            stride=args.stride if args.stride is not None else (DEFAULTS.stride if args.pred else COLMAP_STRIDE),
             percentile=args.percentile, voxel_size=args.voxel_size, outlier_removal=args.outlier_removal,
             outlier_neighbors=args.outlier_neighbors, outlier_std_ratio=args.outlier_std,
             max_points=args.max_points, seed=args.seed, write_points3d=args.points3d,

@@ -1,4 +1,4 @@
-"""The Bridge: predicted geometry -> normalised cameras + seed Gaussians (PROTOCOL.md sec. 2).
+"""The Bridge: predicted geometry -> normalised cameras + seed Gaussians (docs/reference.md section 2).
 
 Steps, in this order (each counted in bridge.json):
 

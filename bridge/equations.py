@@ -1,4 +1,4 @@
-"""The two equations of the Bridge (PROTOCOL.md section 2), one function each.
+"""The two equations of the Bridge (docs/reference.md section 2), one function each.
 
 Both work in float64 and never return NaN: degenerate inputs either have a documented limit
 (Eq. 2 with c_max = c_min) or raise a ValueError that says what to do (Eq. 1 with a zero

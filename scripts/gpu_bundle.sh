@@ -10,7 +10,7 @@
 #             rich, ninja, typing_extensions) are in a torch image already;
 # .gpu_cell/  the fern n = 3 cell's CPU stages (scene, COLMAP seed, Bridge, alignment) run
 #             here, ~2 MB (benchmarks/bench_cell.py --prepare-only), so the GPU machine needs
-#             neither ../shared nor open3d;
+#             neither the real scenes nor open3d;
 # .gpu_wf/    config.yaml's synthetic oracle n = 3 cell run by Snakemake here, its inputs and
 #             results (~1 MB, benchmarks/gpu_stages.py prepare), for the stage commands on CUDA.
 # Then, on the GPU machine, in the repository root (one command; it prints what it measured

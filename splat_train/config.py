@@ -34,7 +34,7 @@ from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, R
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
 DEFAULT_ITERATIONS = 1000
-# The paper's budget ("10K iterations", PROTOCOL.md section 3): the default on a GPU, and the
+# The paper's budget ("10K iterations", docs/reference.md section 3): the default on a GPU, and the
 # run length the seed code's schedule was written for.
 PAPER_ITERATIONS = 10000
 

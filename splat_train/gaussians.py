@@ -69,7 +69,7 @@ def position_lr(cfg: TrainConfig, iteration: int, extent: float) -> float:
 
 def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, extent: float
                    ) -> torch.optim.Adam:
-    """Adam with one named group per parameter at the PROTOCOL.md rates.
+    """Adam with one named group per parameter at the rates of docs/reference.md section 3.
 
     The fused implementation (one pass per parameter tensor) on CPU and CUDA floating-point
     parameters: at 100k Gaussians on one CPU thread the default per-tensor loop took ~45 ms per

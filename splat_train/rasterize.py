@@ -149,7 +149,7 @@ def rasterize(
     near_plane: float = NEAR_PLANE,
     kernel_camera_grad: bool = False,
 ) -> dict[str, Tensor]:
-    """Render Gaussians into one camera, differentiably (3DGS semantics, PROTOCOL.md section 3).
+    """Render Gaussians into one camera, differentiably (3DGS semantics, docs/reference.md section 3).
 
     Args:
         means: [N, 3] world-frame centres.

@@ -8,7 +8,7 @@ here (``*_fraction``), and resolved to iterations once per run (:meth:`TrainConf
 printed by the trainer).
 
 ``paper``
-    The training of the paper's tables (PROTOCOL.md section 3, 3DGS as the seed code ran it for
+    The training of the paper's tables (docs/reference.md section 3, 3DGS as the seed code ran it for
     10,000 iterations): densify from 5 % of the run to its end every 100 iterations, reset
     opacity every 30 %, raise the SH degree every 10 %; no cap on growth, no dropout, no depth
     term. At the paper's 10,000 iterations these are the seed code's absolute counts (500,
@@ -145,9 +145,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         # (docs/sparse-recipe.md). The cap and dropout do the reset's job of bounding the model.
         "opacity_reset_every_fraction": None,
         "sh_increase_every_fraction": 0.1,
-        # DropGaussian's final rate (FIELD_FACTS.md)
+        # DropGaussian's final rate (docs/field.md)
         "dropout_rate": 0.2,
-        # FSGS's Pearson depth weight (FIELD_FACTS.md), reached after 10 % of the run
+        # FSGS's Pearson depth weight (docs/field.md), reached after 10 % of the run
         "depth_weight": 0.05,
         "depth_ramp_fraction": 0.1,
         # chosen on the tuning scenes only (docs/sparse-recipe.md "Choosing the cap"): on fern

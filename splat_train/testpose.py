@@ -1,6 +1,6 @@
 """The test-pose protocol: each held-out camera's pose optimised against its image, Gaussians frozen.
 
-The strict protocol (PROTOCOL.md section 4) renders a held-out view at its reference pose mapped
+The strict protocol (docs/reference.md section 4) renders a held-out view at its reference pose mapped
 into the model frame by the Sim(3) fitted on the training cameras, so every error of the
 training poses is charged to the rendering. The test-pose protocol (InstantSplat's) starts from
 that same pose and optimises a rigid correction of it alone against the test image:

@@ -1,4 +1,4 @@
-"""The 3DGS optimisation loop (PROTOCOL.md section 3) with checkpoints, resume and outputs.
+"""The 3DGS optimisation loop (docs/reference.md section 3) with checkpoints, resume and outputs.
 
 One iteration (1-based ``it``): set the position rate (exponential decay x scene extent), pick
 the next training view from a shuffled stack (refilled with a new permutation when empty, as

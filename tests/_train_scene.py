@@ -1,4 +1,4 @@
-"""Tiny generated scenes for the splat_train trainer tests (no ../shared needed).
+"""Tiny generated scenes for the splat_train trainer tests (no machine data needed).
 
 A few random Gaussians in front of cameras on an arc; the images are rendered with the
 rasterizer itself, so a trainer started from a perturbed copy can fit them exactly.

@@ -52,3 +52,17 @@ def fast_paths_on():
     previous = fastpath.set_fast_paths(True)
     yield
     fastpath.set_fast_paths(previous)
+
+
+@pytest.fixture(scope="session")
+def workflow_run(tmp_path_factory):
+    """The end-to-end Snakemake run shared by every test that reads a whole DAG's outputs: one
+    per pytest run, made on first use (tests/_workflow_run.py has its config). Skips where
+    Snakemake or the VGGT fixture model is missing."""
+    from _workflow_run import FIXTURE, SNAKEMAKE_MISSING, run_shared_workflow
+
+    if SNAKEMAKE_MISSING:
+        pytest.skip("snakemake is not installed")
+    if not (FIXTURE / "weights.safetensors").is_file():
+        pytest.skip("VGGT fixture missing")
+    return run_shared_workflow(tmp_path_factory.mktemp("workflow_run"))

@@ -2,7 +2,7 @@
 sections that are missing are reported as missing (never filled with numbers).
 
 The quick run uses tiny sizes (a few seconds of CPU on an idle 2-core machine; the wall time
-grows with the machine's load). It needs no ../shared: the cell uses the synthetic scene.
+grows with the machine's load). It needs no real scene: the cell uses the synthetic scene.
 """
 
 from __future__ import annotations

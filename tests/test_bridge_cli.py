@@ -15,8 +15,8 @@ import pytest
 from bridge.__main__ import main
 from bridge.synthetic import write_synthetic_predictions
 from camio.cameras import Camera, look_at, qvec_to_rotmat
+from _machine_data import ABSENT, SCENES
 
-SHARED = Path(__file__).parents[1].parent / "shared"
 
 
 def read_pycolmap(model_dir: Path):
@@ -164,15 +164,15 @@ def test_python_dash_m_bridge_runs(tmp_path):
 
 
 @pytest.mark.shared_data
-@pytest.mark.skipif(not (SHARED / "data/scenes/llff__fern/sparse/0").is_dir(), reason="../shared absent")
+@pytest.mark.skipif(not (SCENES / "llff__fern/sparse/0").is_dir(), reason=ABSENT)
 def test_cli_real_colmap_model_fern(tmp_path):
     """The real LLFF fern model (its pinhole part) through the COLMAP path of the Bridge."""
     from camio.colmap import read_model, write_text_model
 
-    src = read_model(SHARED / "data/scenes/llff__fern/sparse/0", allow_distorted=True)
+    src = read_model(SCENES / "llff__fern/sparse/0", allow_distorted=True)
     model = write_text_model(tmp_path / "fern" / "sparse" / "0", src.cameras, src.points, src.colors)
     out = tmp_path / "out"
-    assert main(["--colmap", str(model), "--images", str(SHARED / "data/scenes/llff__fern/images"),
+    assert main(["--colmap", str(model), "--images", str(SCENES / "llff__fern/images"),
                  "--out", str(out), "--outlier-removal", "--points3d", "-q"]) == 0
     report = json.loads((out / "bridge.json").read_text())
     assert report["points_in"] == len(src.points)

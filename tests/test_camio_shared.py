@@ -1,18 +1,16 @@
-"""Real scenes from ../shared/data/scenes (skipped when ../shared is absent)."""
+"""Real scenes of this project's machine data (tests/_machine_data.py; skipped when absent)."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from camio.cameras import project_points
 from camio.scene import check_same_size, load_scene
+from _machine_data import ABSENT, SCENES
 
-SCENES = Path(__file__).parents[1].parent / "shared" / "data" / "scenes"
 pytestmark = [pytest.mark.shared_data,
-              pytest.mark.skipif(not SCENES.is_dir(), reason="../shared/data/scenes not present")]
+              pytest.mark.skipif(not SCENES.is_dir(), reason=ABSENT)]
 FERN = SCENES / "llff__fern"
 
 

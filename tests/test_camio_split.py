@@ -1,4 +1,4 @@
-"""Splits exactly as PROTOCOL.md section 4, manifests, split.json."""
+"""Splits exactly as docs/reference.md section 4, manifests, split.json."""
 
 from __future__ import annotations
 

@@ -88,3 +88,42 @@ def test_testpose_defaults_live_in_code():
     for fn in (refine_test_pose, run_testpose):
         sig = inspect.signature(fn).parameters
         assert (sig["steps"].default, sig["patience"].default) == (DEFAULT_STEPS, DEFAULT_PATIENCE)
+
+
+def test_bridge_cli_defaults_are_bridge_configs():
+    """python -m bridge's flags default to BridgeConfig's fields (one place), and --help shows them."""
+    import dataclasses
+
+    from bridge.__main__ import COLMAP_STRIDE, build_parser
+    from bridge.core import DEFAULT_PERCENTILE, BridgeConfig
+
+    args = build_parser().parse_args(["--pred", "p.npz", "--out", "o"])
+    cfg = BridgeConfig()
+    flag_of = {"outlier_std_ratio": "outlier_std"}
+    for field in ("mode", "alpha_min", "alpha_max", "uniform_alpha", "outlier_neighbors", "outlier_std_ratio",
+                  "depth_prior_samples", "seed", "depth_prior"):
+        assert getattr(args, flag_of.get(field, field)) == getattr(cfg, field), field
+    assert args.stride is None and COLMAP_STRIDE == 1  # --pred: cfg.stride; --colmap: every point
+    assert args.percentile is cfg.percentile is None and args.max_points is cfg.max_points is None
+    assert not args.points3d and not cfg.write_points3d and not args.outlier_removal and not cfg.outlier_removal
+    text = " ".join(build_parser().format_help().split())
+    assert f"default {cfg.stride} for --pred" in text and f"{DEFAULT_PERCENTILE:g} in filtered" in text
+    assert {f.name for f in dataclasses.fields(cfg)} >= set(flag_of) | {"mode", "stride"}
+
+
+def test_vggt_image_size_is_named_once_in_code():
+    """518 is vggt_init.defaults.IMAGE_SIZE: the preprocessing's defaults and the workflow's
+    resource scaling read it, no number repeats it (the AST of the code, not its comments)."""
+    import ast
+    import inspect
+
+    from vggt_init import preprocess
+
+    for fn in (preprocess.resized_size, preprocess.preprocess_rgb, preprocess.load_and_preprocess):
+        assert inspect.signature(fn).parameters["target"].default == vggt_defaults.IMAGE_SIZE, fn.__name__
+    for path in (REPO / "vggt_init" / "preprocess.py", REPO / "vggt_init" / "run.py",
+                 REPO / "vggt_init" / "__main__.py", REPO / "bridge" / "__main__.py"):
+        consts = [n.value for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Constant)]
+        assert vggt_defaults.IMAGE_SIZE not in consts, path
+    smk = (REPO / "workflow" / "rules" / "resources.smk").read_text()
+    assert str(vggt_defaults.IMAGE_SIZE) not in smk and "IMAGE_SIZE" in smk

@@ -6,7 +6,7 @@ skips with that instruction when they are absent. Images: tests/data/lpips (BSD-
 Published (3 decimals): alex 0.722 / 0.138, vgg 0.569 / 0.422 for ex_ref vs ex_p0 / ex_p1.
 Tolerance 6e-4 = half a unit of the last published digit plus 1e-4 of float slack. The
 6-digit values are an independent float64 re-computation of the lpips 0.1.4 definition
-(shared/lpips/SOURCE.txt); we match them to 2e-6 (achieved: < 1e-6 in float32 and float64).
+(tests/data/lpips/README.md); we match them to 2e-6 (achieved: < 1e-6 in float32 and float64).
 """
 
 from __future__ import annotations

@@ -125,7 +125,7 @@ def test_camio_points3d_txt_cut_at_a_line_boundary(model_dir):
 
 
 def test_camio_text_model_without_count_headers_still_reads(model_dir):
-    """Hand-written models (no '# Number of' lines, as in ../shared's LLFF export) stay valid."""
+    """Hand-written models (no '# Number of' lines, as in LLFF fern's published export) stay valid."""
     for fname in ("cameras.txt", "images.txt", "points3D.txt"):
         f = model_dir / fname
         f.write_text("".join(line for line in _lines(f) if not line.startswith("# Number")))

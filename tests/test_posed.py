@@ -79,11 +79,11 @@ def test_cli_refuses_a_scene_without_reference(scene, tmp_path):
     assert r.returncode == 2 and "no reference cameras" in r.stderr and not (tmp_path / "o").exists()
 
 
-SHARED = __import__("pathlib").Path(__file__).parents[1].parent / "shared" / "data" / "scenes"
+from _machine_data import ABSENT, SCENES as SHARED  # noqa: E402
 
 
 @pytest.mark.shared_data
-@pytest.mark.skipif(not (SHARED / "strecha__fountain-P11").is_dir(), reason="../shared/data/scenes not present")
+@pytest.mark.skipif(not (SHARED / "strecha__fountain-P11").is_dir(), reason=ABSENT)
 def test_real_posed_scene(tmp_path):
     """fountain-P11 (LIDAR-calibrated cameras): 3 training views give hundreds of points."""
     from camio.prepare import prepare_scene

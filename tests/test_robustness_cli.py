@@ -6,7 +6,7 @@ damaged image is put among good ones and the command is run in a subprocess. Eac
 exit with a non-zero code, print one error line that names the damaged file, print no Python
 traceback, and leave nothing behind in its output folder. The damages: a JPEG cut in half (it
 used to pass ``vggt_init`` as half-grey pixels and the COLMAP baseline as a 3/3 "success"), a
-PNG cut in half, text bytes named ``.jpg`` and an empty file. Nothing here needs /work/shared
+PNG cut in half, text bytes named ``.jpg`` and an empty file. Nothing here needs real scenes
 or the VGGT checkpoint (images are checked before the checkpoint is looked up).
 """
 

@@ -77,7 +77,13 @@ def test_schema_rejects_trailing_newline_in_names(where):
 def _wildcard_constraints() -> dict[str, str]:
     text = COMMON.read_text()
     block = text[text.index("wildcard_constraints:"):]
-    return {m.group(1): m.group(2) for m in re.finditer(r'^\s+(\w+)=r"([^"]+)",', block, re.M)}
+    cons = {m.group(1): m.group(2) for m in re.finditer(r'^\s+(\w+)=r"([^"]+)",', block, re.M)}
+    # init and mode are the lists of names, joined (the initialiser registry, the Bridge's modes)
+    from bridge.core import MODES
+    from evaluation.initialisers import registry
+
+    assert 'init="|".join(initialisers.NAMES)' in block and 'mode="|".join(BRIDGE_MODES)' in block
+    return {**cons, "init": "|".join(registry.NAMES), "mode": "|".join(MODES)}
 
 
 def test_wildcard_constraints_reject_escaping_values():

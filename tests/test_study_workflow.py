@@ -74,9 +74,9 @@ def test_study_without_references_plans_no_colmap(tmp_path):
 
 def test_real_scene_arm_plans_posed_cells_without_shared_data(tmp_path):
     """config/init_study_fern.yaml's blocks on a generated posed scene (images + reference
-    cameras, no ground-truth mesh) instead of ../shared's fern: posed cells in mode uniform,
+    cameras, no ground-truth mesh) instead of LLFF fern: posed cells in mode uniform,
     no oracle, no floaters, the cell's pose noise and seed on the posed command line."""
-    from test_workflow_posed import _posed_source
+    from _workflow_run import posed_source as _posed_source
 
     _posed_source(tmp_path)
     cfg = yaml.safe_load((REPO / "config" / "init_study_fern.yaml").read_text())

@@ -1,20 +1,21 @@
-"""A short training run from a Bridge PLY on a real scene (LLFF fern, ../shared; skipped
-when absent): fern images_8 -> undistorted prepared scene -> Bridge (COLMAP points) -> train."""
+"""A short training run from a Bridge PLY on a real scene (LLFF fern from this project's
+machine data, tests/_machine_data.py; skipped when absent): fern images_8 -> undistorted
+prepared scene -> Bridge (COLMAP points) -> train."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
 
-SCENES = Path(__file__).parents[1].parent / "shared" / "data" / "scenes"
+from _machine_data import ABSENT, SCENES
+
 FERN = SCENES / "llff__fern"
 pytestmark = [pytest.mark.shared_data, pytest.mark.slow,
-              pytest.mark.skipif(not FERN.is_dir(), reason="../shared/data/scenes/llff__fern not present")]
+              pytest.mark.skipif(not FERN.is_dir(), reason=ABSENT)]
 
 
 def test_train_from_bridge_ply_on_fern(tmp_path):

@@ -1,7 +1,8 @@
 """Parity of our VGGT implementation with the official one, on tiny reference fixtures.
 
-Fixture sets: tests/data/vggt/<set>/ (committed copy of ../shared/vggt/fixtures/shared) and,
-when ../shared exists, every set under ../shared/vggt/fixtures/ (a holdout set with other
+Fixture sets: tests/data/vggt/<set>/ (committed copy of the official fixture set
+``shared``) and, where this project's machine data is present (tests/_machine_data.py), every
+official fixture set (a holdout set with other
 sizes, depths and layer indices is picked up automatically if present).
 
 Tolerances (fixtures README section 6): the float64 run reproduces the reference's float32
@@ -21,19 +22,19 @@ import torch
 from vggt_init.geometry import pose_encoding_to_extri_intri, unproject_depth
 from vggt_init.model import VGGT, VGGTConfig
 from vggt_init.model.heads import activation
+from _machine_data import VGGT_FIXTURES
 
 safetensors_torch = pytest.importorskip("safetensors.torch")
 
 DATA = Path(__file__).parent / "data" / "vggt"
-SHARED = Path(__file__).parents[1].parent / "shared" / "vggt" / "fixtures"
 
 
 def _sets() -> list:
     out = [pytest.param(p, id=f"repo-{p.name}") for p in sorted(DATA.iterdir())
            if (p / "weights.safetensors").is_file()]
-    if SHARED.is_dir():
+    if VGGT_FIXTURES.is_dir():
         out += [pytest.param(p, id=f"shared-{p.name}", marks=pytest.mark.shared_data)
-                for p in sorted(SHARED.iterdir())
+                for p in sorted(VGGT_FIXTURES.iterdir())
                 if (p / "weights.safetensors").is_file() and not (DATA / p.name).exists()]
     return out
 

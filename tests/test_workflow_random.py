@@ -1,7 +1,8 @@
-"""The random-point initialiser through the DAG on the synthetic scene: planned like the other
-initialisers (uniform Bridge mode only), seeded from random points for the reference cameras,
-trained and scored, and in the tables; and posed's random-point fallback on a scene where
-triangulation finds no point, seeding the Bridge from the fallback's model."""
+"""The random-point initialiser through the DAG: planned like the other initialisers (uniform
+Bridge mode only) on a synthetic scene; seeded from random points for a posed scene's reference
+cameras, trained and scored, and in the tables (the shared end-to-end run); and posed's
+random-point fallback on a scene where triangulation finds no point, seeding the Bridge from the
+fallback's model."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _workflow_run import RANDOM
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = shutil.which("snakemake") or (str(Path(sys.executable).parent / "snakemake")
@@ -27,14 +29,15 @@ def _snakemake(tmp: Path, cfg: Path, *args: str) -> subprocess.CompletedProcess:
                            "--configfile", str(cfg)], capture_output=True, text=True, timeout=900, env=env)
 
 
-@pytest.mark.slow
-def test_random_initialiser_runs_through_the_dag(tmp_path):
+def test_random_initialiser_is_planned_like_the_others(tmp_path):
+    """Planned alone on a synthetic scene: its own rule, the COLMAP-model Bridge (uniform), no
+    posed initialiser."""
     cfg = {
         "results": "results",
         "datasets": {"syn": {"scenes": {"tiny": {"synth": {"views": 10, "width": 64, "seed": 0}}}}},
         "views": [3],
         "initialisers": ["random"],
-        "random": {"points": 2000, "seed": 1},
+        "random": dict(RANDOM),
         "bridge": {"modes": ["gated"]},
         "train": {"iterations": 10, "eval_every": 10},
         "evaluation": {"lpips_nets": ["alex"]},
@@ -45,22 +48,27 @@ def test_random_initialiser_runs_through_the_dag(tmp_path):
     assert dry.returncode == 0, (dry.stdout + dry.stderr)[-4000:]
     assert "random_init" in dry.stdout and "bridge_colmap" in dry.stdout and "posed_init" not in dry.stdout
 
-    proc = _snakemake(tmp_path, f, "--cores", "2", "metrics", "results/tables/tables.md")
-    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-6000:]
-    run = tmp_path / "results" / "syn" / "tiny" / "n3" / "random"
+
+@pytest.mark.slow
+def test_random_initialiser_runs_through_the_dag(workflow_run):
+    """The shared end-to-end run (tests/_workflow_run.py), on its posed scene: seeded from
+    random points for the reference cameras, uniform mode only (gated configured), trained,
+    scored and tabled."""
+    run = workflow_run.results / "real" / "posedscene" / "n3" / "random"
     status = json.loads((run / "status.json").read_text())
-    assert status["success_paper"] and status["points"] == 2000 and status["registered"] == 3
-    assert status["seed"] == 1 and status["random"]["n_points"] == 2000
+    assert status["success_paper"] and status["points"] == RANDOM["points"] and status["registered"] == 3
+    assert status["seed"] == RANDOM["seed"] and status["random"]["n_points"] == RANDOM["points"]
     bridge = json.loads((run / "uniform" / "bridge" / "bridge.json").read_text())
     assert bridge["mode"] == "uniform" and bridge["input"].endswith("random/sparse/0")
     assert bridge["depth_prior"] is None  # random points carry no depth
     assert (run / "uniform" / "train" / "model.ply").is_file()
     metrics = json.loads((run / "uniform" / "metrics.json").read_text())
     assert metrics["n_images"] > 0
+    assert workflow_run.config["bridge"]["modes"] == ["gated"]
     assert not (run / "gated").exists()  # no confidence: uniform only
     pose = json.loads((run / "pose.json").read_text())
     assert pose["ate_rel_radius"] < 1e-6  # the reference cameras themselves
-    tables = (tmp_path / "results" / "tables" / "tables.md").read_text()
+    tables = (workflow_run.results / "tables" / "tables.md").read_text()
     assert "random" in tables
 
 

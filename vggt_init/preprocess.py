@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.logs import progress
+from vggt_init.defaults import IMAGE_SIZE, MODE
 from vggt_init.pillow_compat import alpha_composite_over, resize_bicubic
 
 __all__ = [
@@ -171,7 +172,7 @@ def to_rgb8(data: np.ndarray, mode: str) -> np.ndarray:
     return data[..., :3].copy()
 
 
-def resized_size(width: int, height: int, mode: str, target: int = 518) -> tuple[int, int]:
+def resized_size(width: int, height: int, mode: str, target: int = IMAGE_SIZE) -> tuple[int, int]:
     """(new_w, new_h) of the bicubic resize, with the reference's round-half-to-even."""
     if mode == "crop":
         return target, round(height * (target / width) / PATCH) * PATCH
@@ -182,7 +183,8 @@ def resized_size(width: int, height: int, mode: str, target: int = 518) -> tuple
     raise ValueError(f"unknown preprocessing mode {mode!r}; use 'crop' or 'pad'")
 
 
-def preprocess_rgb(rgb: np.ndarray, name: str, mode: str = "crop", target: int = 518) -> tuple[np.ndarray, ImageGeometry]:
+def preprocess_rgb(rgb: np.ndarray, name: str, mode: str = MODE, target: int = IMAGE_SIZE
+                   ) -> tuple[np.ndarray, ImageGeometry]:
     """One RGB image -> (network image [H, W, 3] uint8, geometry) before batch padding."""
     if target % PATCH or target < PATCH:
         raise ValueError(f"target size {target} must be a positive multiple of {PATCH}")
@@ -218,7 +220,8 @@ def _pad_white(img: np.ndarray, H: int, W: int) -> tuple[np.ndarray, tuple[int, 
     return out, (top, left)
 
 
-def load_and_preprocess(paths: list[str | Path], mode: str = "crop", target: int = 518) -> tuple[np.ndarray, list[ImageGeometry]]:
+def load_and_preprocess(paths: list[str | Path], mode: str = MODE, target: int = IMAGE_SIZE
+                        ) -> tuple[np.ndarray, list[ImageGeometry]]:
     """Load images as VGGT's reference loader does.
 
     Args:

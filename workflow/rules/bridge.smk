@@ -13,7 +13,7 @@ rule bridge_predictions:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="vggt|oracle|vggt_ba|oracle_ba",
+        init=INIT_FROM_PREDICTIONS,
     conda:
         "../envs/project.yaml"
     threads: 1
@@ -42,7 +42,7 @@ rule bridge_colmap:
     benchmark:
         f"{MODE}/benchmarks/bridge.tsv"
     wildcard_constraints:
-        init="colmap|posed|posed_ba|random",
+        init=INIT_FROM_COLMAP_MODEL,
         mode="uniform",
     conda:
         "../envs/project.yaml"

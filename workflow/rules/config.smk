@@ -72,10 +72,18 @@ PHOTOS_SCRIPT = str(
     (Path(str(workflow.current_basedir)) / "../scripts/photos_summary.py").resolve()
 )
 
+# The initialisers and the Bridge modes, each listed once (evaluation/initialisers/registry.py,
+# bridge/core.py): the wildcards, the Bridge rules and the planning read them.
+from bridge.core import MODES as BRIDGE_MODES
+from evaluation.initialisers import registry as initialisers
+
+INIT_FROM_PREDICTIONS = "|".join(initialisers.from_predictions())
+INIT_FROM_COLMAP_MODEL = "|".join(initialisers.from_colmap_model())
+
 
 wildcard_constraints:
     dataset=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     scene=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     n=r"\d+",
-    init=r"vggt|colmap|oracle|posed|vggt_ba|oracle_ba|posed_ba|random",
-    mode=r"gated|uniform|filtered",
+    init="|".join(initialisers.NAMES),
+    mode="|".join(BRIDGE_MODES),

@@ -106,7 +106,7 @@ def ba_base_inputs(wildcards):
         init=wildcards.base,
     )
     out = {"init": f"{run}/{init_marker_of(wildcards.base)}"}
-    if wildcards.base in ("vggt", "oracle"):
+    if initialisers.get(wildcards.base).confidence:
         out["predictions"] = f"{run}/predictions.npz"
     return out
 
@@ -157,9 +157,9 @@ def has_heldout(wildcards):
 
 
 def init_marker_of(init):
-    """The file that marks a finished initialiser run: VGGT writes timing.json, the COLMAP
-    baseline, the oracle and posed status.json."""
-    return "timing.json" if init == "vggt" else "status.json"
+    """The file that marks a finished initialiser run (the registry's ``marker``: VGGT's
+    timing.json, every other initialiser's status.json)."""
+    return initialisers.get(init).marker
 
 
 def init_marker(wildcards):

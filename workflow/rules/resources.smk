@@ -5,7 +5,8 @@ sets ``--default-resources`` / ``--set-resources`` (account, partition) never dr
 
 Scaling (a retry, ``attempt`` 2, gets twice the memory and time):
 
-    VGGT      mem_mb, runtime  x max(1, n (s/518)^2 / 12)    n views, s the network input width
+    VGGT      mem_mb, runtime  x max(1, n (s/S)^2 / 12)      n views, s the network input width,
+                                                             S its default (vggt_init.defaults)
     training  mem_mb           x max(1, n / 12)
               runtime          x max(1, n / 12) x iterations / 10000
 """
@@ -24,8 +25,12 @@ def short_runtime(wildcards, attempt):
 
 
 def _vggt_work(wildcards):
-    size = config["vggt"]["image_size"] or 518
-    return max(1.0, int(wildcards.n) * (size / 518) ** 2 / 12)
+    """The VGGT job's work relative to the one vggt.mem_mb and vggt.runtime are set for: 12
+    views at the default network input width (vggt_init.defaults.IMAGE_SIZE)."""
+    from vggt_init.defaults import IMAGE_SIZE
+
+    size = config["vggt"]["image_size"] or IMAGE_SIZE
+    return max(1.0, int(wildcards.n) * (size / IMAGE_SIZE) ** 2 / 12)
 
 
 def vggt_mem_mb(wildcards, attempt):

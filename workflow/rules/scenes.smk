@@ -156,15 +156,14 @@ def scene_views(dataset, scene):
     return cfg.get("views", config["views"])
 
 
+# What a scene must have for an initialiser to run (the registry's ``needs`` that planning can
+# check; VGGT's weights are looked up when its job runs).
+_SCENE_CHECKS = {"reference": has_reference, "gt_geometry": has_gt_geometry}
 _NOT_APPLICABLE = {
-    "oracle": (has_gt_geometry, "it needs ground-truth depth (synthetic scenes only)"),
-    "posed": (has_reference, "it needs reference cameras and the scene has none"),
-    "oracle_ba": (
-        has_gt_geometry,
-        "it needs ground-truth depth (synthetic scenes only)",
-    ),
-    "posed_ba": (has_reference, "it needs reference cameras and the scene has none"),
-    "random": (has_reference, "it needs reference cameras and the scene has none"),
+    name: (_SCENE_CHECKS[need], initialisers.NEEDS[need])
+    for name, init in initialisers.INITIALISERS.items()
+    for need in sorted(init.needs)
+    if need in _SCENE_CHECKS
 }
 _told = set()
 
@@ -288,10 +287,8 @@ def skipped_initialisers_json(wildcards=None):
 
 
 def init_modes(init):
-    """Bridge modes of an initialiser: COLMAP, posed (with or without bundle adjustment) and
-    random points have no confidence, so uniform only."""
+    """Bridge modes of an initialiser: the configured ones where it has a confidence (the
+    registry's ``confidence``), else uniform only (COLMAP, posed, random points)."""
     return (
-        ["uniform"]
-        if init in ("colmap", "posed", "posed_ba", "random")
-        else config["bridge"]["modes"]
+        config["bridge"]["modes"] if initialisers.get(init).confidence else ["uniform"]
     )
