@@ -362,7 +362,9 @@ def run(only: list[str], quick: bool, threads: int, cell_threads: int | None, fr
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n")[0])
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks", description=plain(__doc__).split("\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke run)")
     p.add_argument("--only", default=",".join(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
     p.add_argument("--out", type=Path, default=HERE / "out", help="folder for the JSON (default benchmarks/out)")

@@ -339,9 +339,9 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
     n, used, inits, desc = state["n"], state["used"], state["inits"], state["desc"]
     scene, train_txt, test_dir = work / state["scene"], work / state["train_txt"], work / state["test_dir"]
     bridge = work / "bridge"
-    train_args = ["--seed", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
+    train_args = ["--seed-ply", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
                   "--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "train"),
-                  "--iterations", str(iterations), "--seed-rng", "0",
+                  "--iterations", str(iterations), "--seed", "0",
                   "--test-cameras", str(work / "align" / "sparse" / "0"), "--test-images", str(test_dir)]
     if threads:
         train_args += ["--threads", str(threads)]

@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, nargs="+", default=[3, 6, 12])
     p.add_argument("--dtypes", nargs="+", choices=("fp32", "bf16"), default=["fp32", "bf16"])
-    p.add_argument("--size", type=int, default=518)
+    p.add_argument("--image-size", dest="size", type=int, default=518, help="network input width (as vggt_init's --image-size)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--heads", default="camera,depth,point", help="comma list; the reference ran all three")
     p.add_argument("--seed", type=int, default=0)
@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.frames:
         for dt in args.dtypes:
             log.info("running %d frames, %s, %dx%d, %d threads ...", n, dt, args.size, args.size, args.threads)
-            cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--size", str(args.size),
+            cmd = [sys.executable, __file__, "--child", "--frames", str(n), "--dtypes", dt, "--image-size", str(args.size),
                    "--threads", str(args.threads), "--heads", args.heads, "--seed", str(args.seed)]
             if args.no_trim:
                 cmd.append("--no-trim")

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _view_scene import make_cameras, make_model  # noqa: E402
+from camio.cliargs import plain
 from camio.colmap import write_text_model  # noqa: E402
 from camio.ply import write_gaussian_ply  # noqa: E402
 from splat_train.view import server  # noqa: E402
@@ -24,7 +25,7 @@ from splat_train.view.headless import Chromium  # noqa: E402
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--gaussians", type=int, default=200_000)
     p.add_argument("--size", default="640x480", help="window and camera size WxH")
     args = p.parse_args(argv)

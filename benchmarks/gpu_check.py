@@ -381,7 +381,9 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_pr
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out")
     args = p.parse_args()
     if not torch.cuda.is_available():

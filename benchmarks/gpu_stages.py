@@ -47,10 +47,10 @@ def train_argv(res: Path, out: Path, cfg: dict, device: str) -> list[str]:
     """``python -m splat_train`` as the train_splats rule runs it for :data:`CELL` (the keys
     the rule passes, from the CPU run's train.json ``config``), on ``device``."""
     cell, scene = res / CELL, res / SCENE
-    return [sys.executable, "-m", "splat_train", "--seed", str(cell / "bridge" / "seed.ply"),
+    return [sys.executable, "-m", "splat_train", "--seed-ply", str(cell / "bridge" / "seed.ply"),
             "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(scene / "synth" / "images"),
             "--image-list", str(scene / "n3" / "train.txt"), "--out", str(out), "--iterations", str(cfg["iterations"]),
-            "--recipe", cfg["recipe"], "--seed-rng", str(cfg["seed"]), "--eval-every", str(cfg["eval_every"]),
+            "--recipe", cfg["recipe"], "--seed", str(cfg["seed"]), "--eval-every", str(cfg["eval_every"]),
             "--checkpoint-every", str(cfg["checkpoint_every"]), "--device", device, "--threads",
             str(cfg["num_threads"]), "--test-cameras", str(cell / "align" / "sparse" / "0"),
             "--test-images", str(scene / "test_images"), "--no-eval-lpips"]
@@ -143,8 +143,10 @@ def vggt_cli(folder: Path, device: str = "cuda") -> dict:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
     pp = sub.add_parser("prepare", help="run the cell with snakemake here and keep what the GPU needs")
     pp.add_argument("dest", type=Path)
     pp.add_argument("--results", type=Path, default=None, help="a results folder that already holds the cell")
@@ -152,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("folder", type=Path)
     pr.add_argument("--device", default="cuda")
     args = p.parse_args(argv)
-    if args.cmd == "prepare":
+    if args.command == "prepare":
         print(f"gpu_stages: prepared {prepare(args.dest, args.results)}")
         return 0
     print(json.dumps({"workflow_cell": workflow_cell(args.folder, args.device),

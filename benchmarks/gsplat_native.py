@@ -138,7 +138,9 @@ def train_native(cell: Path, iterations: int, seed: int = 0, device: str = "cuda
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cell", type=Path, required=True, help="folder of bench_cell.py --prepare-only")
     p.add_argument("--iterations", type=int, default=10000)
     p.add_argument("--seed", type=int, default=0)

@@ -20,7 +20,7 @@ Nothing is written: the checkpoint's folder is left as it is. The malloc setting
 are those of a CLI run.
 
     python benchmarks/profile_iteration.py --checkpoint RUN/ckpt/ckpt_0009500.pt \\
-        --seed BRIDGE/seed.ply --cameras BRIDGE/sparse/0 --images SCENE/images
+        --seed-ply BRIDGE/seed.ply --cameras BRIDGE/sparse/0 --images SCENE/images
     python benchmarks/profile_iteration.py ... --torch-profile   # also torch's operator table
 """
 
@@ -38,6 +38,8 @@ from unittest import mock
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from camio.cliargs import deprecated_flags  # noqa: E402
 
 PHASES = ("render", "loss", "backward", "densify_state", "adam", "other", "strategy")
 
@@ -110,18 +112,19 @@ def profile_steps(tr, steps: int) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--checkpoint", required=True, help="a splat_train checkpoint (RUN/ckpt/ckpt_*.pt)")
-    ap.add_argument("--seed", required=True, help="the run's seed PLY")
+    ap.add_argument("--seed-ply", dest="seed_ply", required=True, help="the run's seed point cloud (PLY)")
     ap.add_argument("--cameras", required=True, help="the run's training cameras (COLMAP model folder)")
     ap.add_argument("--images", required=True, help="the run's training images folder")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=2, help="iterations run first and not timed")
     ap.add_argument("--kernel-threads", type=int, default=0, help="0: the checkpoint's setting / all cores")
     ap.add_argument("--torch-profile", action="store_true", help="also print torch.profiler's operator table")
-    args = ap.parse_args(argv)
+    args = ap.parse_args(deprecated_flags(list(sys.argv[1:] if argv is None else argv),
+                                          "benchmarks/profile_iteration.py", {"--seed": ("--seed-ply", None)}))
     from camio.memory import retain_freed_memory
 
     retain_freed_memory()
-    tr = make_trainer(args.checkpoint, args.seed, args.cameras, args.images, args.kernel_threads)
+    tr = make_trainer(args.checkpoint, args.seed_ply, args.cameras, args.images, args.kernel_threads)
     profile_steps(tr, args.warmup)
     load0, t0, c0 = os.getloadavg()[0], time.perf_counter(), time.process_time()
     ph = profile_steps(tr, args.steps)

@@ -178,9 +178,9 @@ def run(folder: Path, out: Path, device: str = "cuda", iterations: int | None = 
         row: dict = {}
         report["cells"][init] = row
         try:
-            train = [sys.executable, "-m", "splat_train", "--seed", str(cell / "bridge" / "seed.ply"),
+            train = [sys.executable, "-m", "splat_train", "--seed-ply", str(cell / "bridge" / "seed.ply"),
                      "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(folder / "images"),
-                     "--image-list", str(folder / "train.txt"), "--out", str(work / "train"), "--seed-rng", "0",
+                     "--image-list", str(folder / "train.txt"), "--out", str(work / "train"), "--seed", "0",
                      "--device", device, "--test-cameras", str(cell / "align" / "sparse" / "0"),
                      "--test-images", str(folder / "test_images"), "--no-eval-lpips"]
             if iterations is not None:
@@ -245,8 +245,10 @@ def table(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
     pp = sub.add_parser("prepare", help="run the CPU stages with snakemake here and keep what `run` reads")
     pp.add_argument("dest", type=Path, help="folder to create")
     pp.add_argument("--results", type=Path, default=None, help="a results folder that already holds the cells")
@@ -259,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--inits", default=",".join(INITS), help="comma list of prepared initialisers to run")
     args = p.parse_args(argv)
     try:
-        if args.cmd == "prepare":
+        if args.command == "prepare":
             print(f"protocols: prepared {prepare(args.dest, args.results)}")
             return 0
         folder, out = args.folder.resolve(), args.out.resolve()

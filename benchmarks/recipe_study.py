@@ -114,11 +114,11 @@ def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterati
     if not (out / "train.json").is_file():
         special = {"ITERATIONS": iterations, "RESET_30": max(1, round(0.3 * iterations))}
         cfg = {k: special.get(v, v) if isinstance(v, str) else v for k, v in VARIANTS[variant].items()}
-        sh(["-m", "splat_train", "--seed", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
+        sh(["-m", "splat_train", "--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
             "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
             "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
-            "--seed-rng", str(seed), "--eval-every", str(eval_every), "--eval-lpips", "--checkpoint-every",
+            "--seed", str(seed), "--eval-every", str(eval_every), "--eval-lpips", "--checkpoint-every",
             str(iterations), "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg)],
            out.parent / f"{out.name}.log")
     if synthetic and not (out / "floaters.json").is_file():
@@ -183,7 +183,9 @@ def table(summary: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--scene", choices=["synthetic", *REAL], required=True)
     p.add_argument("--n", type=int, default=3)
     p.add_argument("--init", choices=["posed", "colmap", "oracle"], required=True)

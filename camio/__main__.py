@@ -13,16 +13,16 @@ import logging
 import sys
 from pathlib import Path
 
+from camio.cliargs import add_log_flags, plain
 from camio.logs import setup_logging, timed
 
 log = logging.getLogger("camio")
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="camio", description=__doc__.split("\n")[0])
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
-    sub = p.add_subparsers(dest="cmd", required=True)
+    p = argparse.ArgumentParser(prog="python -m camio", description=plain(__doc__).split("\n")[0])
+    add_log_flags(p)
+    sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
@@ -33,6 +33,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--layout", choices=("arc", "sphere"), default="arc",
                    help="cameras on an arc facing the scene, or spread over a sphere")
     s.add_argument("--supersample", type=int, default=1, help="anti-aliasing rays per pixel side")
+    add_log_flags(s, subcommand=True)
 
     c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
     c.add_argument("--src", required=True, type=Path, help="the downloaded scene folder (its format is detected)")
@@ -48,12 +49,14 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--allow-mixed", action="store_true",
                    help="bare folder: accept images of mixed pixel types or sizes")
     c.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts for split.json")
+    add_log_flags(c, subcommand=True)
 
     t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")
     t.add_argument("--scene", required=True, type=Path, help="scene folder (its images/) or an image folder")
     t.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts")
     t.add_argument("--manifest", type=Path, default=None, help="JSON split manifest overriding the rule")
     t.add_argument("--out", required=True, type=Path, help="split.json to write")
+    add_log_flags(t, subcommand=True)
     return p
 
 
@@ -63,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.outdir import prepare_out, run_stage, seal_out
 
     def work() -> None:
-        if args.cmd == "synth":
+        if args.command == "synth":
             from camio.synthetic import write_synthetic_scene
 
             prepare_out(args.out, {}, "camio synth", replaces=True)
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
                 write_synthetic_scene(args.out, views=args.views, width=args.width, seed=args.seed,
                                       arc_deg=args.arc_deg, layout=args.layout, supersample=args.supersample)
             seal_out(args.out, "camio synth")
-        elif args.cmd == "convert":
+        elif args.command == "convert":
             from camio.prepare import prepare_scene
 
             prepare_out(args.out, {"--src": args.src}, "camio convert", replaces=True)
@@ -80,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                               args.undistort, tuple(args.n), allow_mixed=args.allow_mixed,
                               skip_missing=args.skip_missing, announce=lambda s: print(s, flush=True))
             seal_out(args.out, "camio convert")
-        elif args.cmd == "split":
+        elif args.command == "split":
             from camio.images import list_images
             from camio.split import make_split, write_split
 

@@ -31,16 +31,19 @@ def peak_rss_mb() -> float:
 
 @contextlib.contextmanager
 def timed(what: str, logger: logging.Logger, record: dict | None = None) -> Iterator[None]:
-    """Log the wall time of a block; store it in ``record[what]`` (seconds) if given."""
+    """Log the wall time of a block; store it in ``record[what]`` (seconds) if given. A block
+    that raises logs "failed after", never "done"."""
     t0 = time.perf_counter()
     logger.info("%s ...", what)
     try:
         yield
-    finally:
-        dt = time.perf_counter() - t0
-        if record is not None:
-            record[what] = dt
-        logger.info("%s done in %.2f s", what, dt)
+    except BaseException:
+        logger.info("%s failed after %.2f s", what, time.perf_counter() - t0)
+        raise
+    dt = time.perf_counter() - t0
+    if record is not None:
+        record[what] = dt
+    logger.info("%s done in %.2f s", what, dt)
 
 
 def progress(iterable, total: int | None = None, desc: str = "", disable: bool | None = None):

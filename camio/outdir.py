@@ -520,6 +520,7 @@ def finish_outs() -> None:
         except OSError:
             pass
     _SEALED.clear()
+    _PREPARED.clear()  # finished: a folder it wrote nothing into (no plot to draw) is still its output
 
 
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,

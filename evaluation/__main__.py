@@ -18,6 +18,7 @@ import argparse
 import logging
 import sys
 
+from camio.cliargs import add_log_flags, plain
 from camio.logs import setup_logging
 
 log = logging.getLogger("evaluation")
@@ -167,7 +168,7 @@ def _add_images(sub, wanted: bool) -> None:
             p.add_argument("rest", nargs=argparse.REMAINDER)
             p.set_defaults(func=_missing_images(exc))
             return
-        images_cli.add_parser(sub)
+        add_log_flags(images_cli.add_parser(sub), subcommand=True)
         return
     sub.add_parser("images", help="image metrics of renders against ground truth -> metrics.json",
                    add_help=False)
@@ -175,10 +176,9 @@ def _add_images(sub, wanted: bool) -> None:
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m evaluation", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m evaluation", description=plain(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    add_log_flags(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("pose", help="pose accuracy against reference cameras -> pose.json")
@@ -190,6 +190,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
                    help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
     _add_gate_args(p)
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_pose)
 
     command = next((a for a in argv if not a.startswith("-")), None)
@@ -211,17 +212,20 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="what --pred holds (recorded in align.json): the initialiser's cameras, or the "
                         "training cameras refined during training (splat_train --pose-refine)")
     p.add_argument("--out", required=True, help="output folder (align.json, sparse/0)")
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_align)
 
     p = sub.add_parser("tables", help="results tree -> runs.parquet + tables.md")
     p.add_argument("--results", required=True, help="the results tree (results/)")
     p.add_argument("--out", required=True, help="folder to write (runs.parquet, tables.md)")
     _add_gate_args(p)
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_tables)
 
     p = sub.add_parser("plots", help="training curves and the Pareto plot (PNG)")
     p.add_argument("--results", required=True, help="the results tree (results/)")
     p.add_argument("--out", required=True, help="folder to write (PNG plots)")
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_plots)
 
     p = sub.add_parser("report", help="static HTML report")
@@ -231,6 +235,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    "({scenes}/{dataset}/{scene}/images or {scenes}/{scene}/images)")
     p.add_argument("--max-views", type=int, default=4, help="test views per render grid")
     _add_gate_args(p)
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("floaters", help="floater measure against a synthetic scene's surface")
@@ -241,6 +246,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="threshold as a fraction of the reference trajectory radius "
                    "(default: evaluation.metrics.floaters.TAU_REL)")
     p.add_argument("--out", required=True, help="floaters.json to write")
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_floaters)
 
     p = sub.add_parser("study", help="the initialisation study's report (docs/init-study.md)")
@@ -255,6 +261,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="report only these seeds (default: every seed found); with --cells and --views, "
                         "runs of an earlier grid in the same tree are left out (logged)")
     p.add_argument("--views", type=int, nargs="+", help="report only these view counts n (default: every n found)")
+    add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_study)
     return parser
 

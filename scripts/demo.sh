@@ -3,11 +3,9 @@
 # tables and the HTML report. Extra arguments go to snakemake (e.g. --configfile other.yaml).
 # Its run time on a 2-core CPU: README.md, "Quick start".
 #
-# The VGGT branch needs the VGGT-1B checkpoint (vggt_init/checkpoint.py says where it is looked
-# for). Before anything runs, this script asks whether VGGT can run here (a checkpoint in place,
-# or the Hugging Face Hub reachable for the download). If not, it says so once, runs the DAG
-# without VGGT and records the reason in $RESULTS/skipped.json, so that the tables and the report
-# list VGGT as skipped and why. Any failure is then a real failure.
+# Without the VGGT-1B checkpoint (and no way to download it) the workflow itself skips VGGT,
+# says so once at the start, and lists it as skipped with the reason in $RESULTS/skipped.json,
+# the tables and the report (config key unavailable_initialisers).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 # this clone's own environment (make install), when there is one
@@ -23,23 +21,6 @@ for ((i = 0; i < ${#args[@]}; i++)); do
 done
 python3 workflow/scripts/check_config.py "${conf[@]}" || exit 2
 RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml')).get('results', 'results'))")
-INITS=$(python3 -c "import yaml; print(' '.join(yaml.safe_load(open('config.yaml'))['initialisers']))")
-
-extra=()
-skipped=""
-if [[ " $INITS " == *" vggt "* ]]; then
-  skipped=$(python3 -c "from vggt_init.checkpoint import skip_reason; print(skip_reason() or '')" 2>/dev/null)
-fi
-if [ -n "$skipped" ]; then
-  echo "[demo] VGGT skipped: $skipped."
-  echo "[demo] Running the other initialisers ($(echo "$INITS" | tr ' ' '\n' | grep -vx vggt | paste -sd, -)); the tables and the report list VGGT as skipped."
-  echo "[demo] For the VGGT rows: VGGT_CHECKPOINT=/path/to/model.pt make demo (see vggt_init/checkpoint.py)."
-  others=$(python3 -c "import yaml; print(','.join(repr(i) for i in yaml.safe_load(open('config.yaml'))['initialisers'] if i != 'vggt'))")
-  extra=(--config "initialisers=[$others]")
-  python3 -c "import sys; from evaluation.reports.run_status import write_skipped; write_skipped(sys.argv[1], {'vggt': sys.argv[2]})" "$RESULTS" "$skipped"
-else
-  python3 -c "import sys; from evaluation.reports.run_status import write_skipped; write_skipped(sys.argv[1], {})" "$RESULTS"
-fi
 
 # Progress during long steps: snakemake prints a line per finished job only, and a job's own
 # output goes to its log; every DEMO_HEARTBEAT_S seconds (default 30) print the newest log line
@@ -59,10 +40,11 @@ heartbeat &
 HB=$!
 trap 'kill "$HB" 2>/dev/null' EXIT
 
-# tables and report read skipped.json, which snakemake does not track: always remake them
-if python3 -m snakemake --cores 2 --keep-going --forcerun tables report "${extra[@]}" "$@"; then
+# snakemake's progress total grows after the COLMAP checkpoint: progress.py says so in a line
+if python3 -m snakemake --cores 2 --keep-going "$@" 2>&1 | python3 workflow/scripts/progress.py --prefix "[demo]"; then
+  skipped=$(python3 -c "import sys; from evaluation.reports.run_status import read_skipped; print(', '.join(read_skipped(sys.argv[1])))" "$RESULTS")
   if [ -n "$skipped" ]; then
-    echo "[demo] done WITHOUT VGGT (skipped, see above): $RESULTS/tables/tables.md and $RESULTS/report/index.html"
+    echo "[demo] done WITHOUT $skipped (skipped, see $RESULTS/skipped.json): $RESULTS/tables/tables.md and $RESULTS/report/index.html"
   else
     echo "[demo] done: $RESULTS/tables/tables.md and $RESULTS/report/index.html"
   fi

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--arch", default="9.0", help="TORCH_CUDA_ARCH_LIST (default 9.0: Hopper)")
     ap.add_argument("--work", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "gsplat_build_check")
     ap.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
-    ap.add_argument("--verbose", action="store_true", help="print ninja's compile lines ([k/30] progress)")
+    ap.add_argument("-v", "--verbose", action="count", default=0, help="print ninja's compile lines ([k/30] progress)")
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         ce.load(name="gsplat_cuda", sources=sources, extra_cflags=["-O3", "-Wno-attributes"],
                 extra_cuda_cflags=["-O3", "-use_fast_math"],
                 extra_include_paths=[str(src / "include"), str(src / "csrc/third_party/glm")],
-                build_directory=str(build), verbose=args.verbose, with_cuda=True)
+                build_directory=str(build), verbose=bool(args.verbose), with_cuda=True)
         loaded = True
     except ImportError as e:  # built, but not loadable here (no GPU driver; another torch)
         loaded, why = False, str(e).splitlines()[0]

@@ -2,16 +2,16 @@
 
 Train::
 
-    python -m splat_train --seed seed.ply --cameras DIR --images DIR --out DIR
+    python -m splat_train --seed-ply seed.ply --cameras DIR --images DIR --out DIR
         [--iterations N] [--test-cameras DIR --test-images DIR] [--image-list FILE]
         [--test-image-list FILE]
-        [--downsample K] [--config JSON] [--seed-rng INT] [--checkpoint-every K]
+        [--downsample K] [--config JSON] [--seed INT] [--checkpoint-every K]
         [--eval-every M] [--eval-lpips | --no-eval-lpips] [--lpips-weights PATH] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
         [--resume-dir DIR] [--rasterizer BACKEND]
 
 Look at a trained model in the browser (splat_train/view)::
 
-    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed seed.ply]
+    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed-ply seed.ply]
         [--port P] [--host 127.0.0.1] [--no-browser]
 
 Render a trained model into any camera set::
@@ -32,11 +32,16 @@ import argparse
 import logging
 import sys
 
+from camio.cliargs import deprecated_flags, is_int
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES
 
 log = logging.getLogger("splat_train")
+
+# Old spellings, kept for one release: --seed naming the seed PLY (a value that is not an
+# integer) is now --seed-ply; --seed-rng is now --seed.
+_OLD_TRAIN_FLAGS = {"--seed": ("--seed-ply", lambda v: not is_int(v)), "--seed-rng": ("--seed", None)}
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -45,7 +50,8 @@ def _train_parser() -> argparse.ArgumentParser:
                                             "(resumes from OUT/ckpt automatically). "
                                             "`python -m splat_train render -h` renders a trained model, "
                                             "`python -m splat_train view -h` shows one in the browser.")
-    p.add_argument("--seed", required=True, help="seed PLY (3DGS layout, e.g. the Bridge's seed.ply)")
+    p.add_argument("--seed-ply", dest="seed_ply", required=True, help="the seed point cloud to start from: a PLY in the 3DGS layout, "
+                   "e.g. the Bridge's seed.ply")
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
@@ -58,7 +64,7 @@ def _train_parser() -> argparse.ArgumentParser:
                         "3DGS as MCMC (relocation under a cap, gsplat's preset) "
                         "(splat_train.recipes)")
     p.add_argument("--depth-prior", dest="depth_prior",
-                   help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed, if any)")
+                   help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed-ply, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
@@ -66,7 +72,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--downsample", type=int, help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
-    p.add_argument("--seed-rng", type=int, dest="seed_rng", help="random seed (default 0)")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
     p.add_argument("--eval-every", type=int, help="held-out evaluation period M (PSNR, SSIM; default 200)")
     p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
@@ -224,9 +230,9 @@ def _main(argv: list[str] | None = None) -> int:
               f"{rec['mean_rotation_deg'] or 0.0:.3f} deg -> {args.out}")
         return 0
 
-    args = _train_parser().parse_args(argv)
+    args = _train_parser().parse_args(deprecated_flags(argv, "python -m splat_train", _OLD_TRAIN_FLAGS))
     setup_logging(args.verbose, args.quiet)
-    if not _out_ok(args.out, {"--seed": args.seed, "--cameras": args.cameras, "--images": args.images,
+    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
                               "--test-cameras": args.test_cameras, "--test-images": args.test_images,
                               "--image-list": args.image_list, "--test-image-list": args.test_image_list,
                               "--resume-dir": args.resume_dir}, "splat_train"):
@@ -235,10 +241,10 @@ def _main(argv: list[str] | None = None) -> int:
     from splat_train.config import load_config
     from splat_train.trainer import train
 
-    for warning in check_seed_cloud(read_gaussian_ply(args.seed), args.seed):
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
         log.warning("degenerate seed: %s", warning)
 
-    cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed_rng,
+    cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
                       num_threads=args.threads, rasterizer=args.rasterizer,
@@ -247,7 +253,7 @@ def _main(argv: list[str] | None = None) -> int:
     from camio.images import ImageReadError
 
     try:
-        result = train(args.seed, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
+        result = train(args.seed_ply, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                        test_images=args.test_images, image_list=args.image_list,
                        test_image_list=args.test_image_list, resume_dir=args.resume_dir,
                        depth_prior=args.depth_prior)

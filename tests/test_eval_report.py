@@ -118,5 +118,31 @@ def test_report_says_what_the_names_mean_and_prints_counts_as_integers(tmp_path)
     # Table II's best iteration is a whole number, not 1000.00
     table = page[page.index("Table II"):]
     table = table[: table.index("</table>")]
-    assert "<td>1000</td>" in table and "1000.00" not in table
+    assert '<td class="num">1000</td>' in table and "1000.00" not in table
     assert table.count("held-out PSNR") == 0 and "log PSNR final" in table
+
+
+def test_report_tables_left_align_text_and_right_align_numbers(tmp_path):
+    from evaluation.reports.report import run_report
+
+    results, _ = build(tmp_path / "fake")
+    page = run_report(results, tmp_path / "r", plots=False).read_text()
+    assert "text-align:left" in page and "td.num{text-align:right}" in page
+    table = page[page.index("Table II"):]
+    table = table[: table.index("</table>")]
+    assert '<td class="num">1000</td>' in table  # a number
+    assert re.search(r"<td>[a-z]+</td>", table)  # a word: the style sheet's left alignment
+    assert 'style="text-align: right;"' not in page
+
+
+def test_plots_command_keeps_its_empty_folder(tmp_path):
+    """Nothing to plot (every run failed before training): the command's folder is still its
+    output after the process ends (the workflow's plots rule declares it)."""
+    import subprocess
+    import sys
+
+    (tmp_path / "results").mkdir()
+    proc = subprocess.run([sys.executable, "-m", "evaluation", "plots", "--results", str(tmp_path / "results"),
+                           "--out", str(tmp_path / "plots"), "-q"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "plots").is_dir()

@@ -67,7 +67,7 @@ def test_colmap_baseline_without_training_names_prints_usage(tmp_path, capsys):
 
 
 def test_splat_train_with_a_missing_seed_leaves_no_output_folder(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "splat_train", "--seed", str(tmp_path / "none.ply"),
+    proc = subprocess.run([sys.executable, "-m", "splat_train", "--seed-ply", str(tmp_path / "none.ply"),
                            "--cameras", str(tmp_path / "none"), "--images", str(tmp_path / "none"),
                            "--out", "work/train"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
                           env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})

@@ -43,9 +43,9 @@ CONFIG = {"densify_from": 5, "densify_until": 80, "densify_every": 20, "opacity_
 
 
 def _command(scene: dict, out: Path) -> list[str]:
-    return [sys.executable, "-m", "splat_train", "--seed", str(scene["seed"]), "--cameras",
+    return [sys.executable, "-m", "splat_train", "--seed-ply", str(scene["seed"]), "--cameras",
             str(scene["cameras"]), "--images", str(scene["images"]), "--out", str(out),
-            "--iterations", str(ITERATIONS), "--checkpoint-every", str(CKPT_EVERY), "--seed-rng", "7",
+            "--iterations", str(ITERATIONS), "--checkpoint-every", str(CKPT_EVERY), "--seed", "7",
             "--device", "cpu", "--threads", "1", "--config", json.dumps(CONFIG), "-q"]
 
 

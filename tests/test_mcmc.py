@@ -232,7 +232,7 @@ def test_cli_mcmc_with_a_binding_cap_grows_to_it_and_stays(scene, tmp_path):
     over = {"max_gaussians": 90, "densify_every": 4, "sh_degree": 0, "eval_every": 50, "device": "cpu",
             "checkpoint_every": 1000}
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "splat_train", "--seed", str(scene["seed"]), "--cameras", str(scene["cameras"]),
+    cmd = [sys.executable, "-m", "splat_train", "--seed-ply", str(scene["seed"]), "--cameras", str(scene["cameras"]),
            "--images", str(scene["images"]), "--out", str(out), "--iterations", "100", "--recipe", "mcmc",
            "--test-cameras", str(scene["test_cameras"]), "--test-images", str(scene["test_images"]),
            "--config", json.dumps(over), "-q"]
@@ -250,7 +250,7 @@ def test_cli_mcmc_with_a_binding_cap_grows_to_it_and_stays(scene, tmp_path):
 
 
 def test_cli_refuses_mcmc_without_a_cap_in_one_line(scene, tmp_path):
-    cmd = [sys.executable, "-m", "splat_train", "--seed", str(scene["seed"]), "--cameras", str(scene["cameras"]),
+    cmd = [sys.executable, "-m", "splat_train", "--seed-ply", str(scene["seed"]), "--cameras", str(scene["cameras"]),
            "--images", str(scene["images"]), "--out", str(tmp_path / "o"), "--recipe", "mcmc",
            "--config", '{"gaussians_per_pixel": 0}']
     r = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=120)

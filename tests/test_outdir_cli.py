@@ -77,7 +77,7 @@ def _stages():
         ("evaluation.initialisers.oracle", "evaluation.initialisers.oracle",
          lambda i, o: ["--scene", str(i["root"]), "--names", "a.png", "--out", str(o)], "root"),
         ("splat_train", "splat_train.__main__",
-         lambda i, o: ["--seed", str(i["list"]), "--cameras", str(i["model"]), "--images", str(i["images"]),
+         lambda i, o: ["--seed-ply", str(i["list"]), "--cameras", str(i["model"]), "--images", str(i["images"]),
                        "--out", str(o)], "images"),
         ("splat_train render", "splat_train.__main__",
          lambda i, o: ["render", "--model", str(i["list"]), "--cameras", str(i["model"]), "--images",

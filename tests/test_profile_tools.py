@@ -40,7 +40,7 @@ def _script(name: str, *args) -> str:
 def test_profile_iteration_continues_the_checkpoint_and_writes_nothing(run):
     scene, ckpt = run
     before = sorted(p.name for p in ckpt.parent.parent.rglob("*"))
-    out = _script("profile_iteration.py", "--checkpoint", ckpt, "--seed", scene["seed"], "--cameras",
+    out = _script("profile_iteration.py", "--checkpoint", ckpt, "--seed-ply", scene["seed"], "--cameras",
                   scene["cameras"], "--images", scene["images"], "--steps", 6, "--warmup", 1)
     # warm-up iteration 13, timed 14-19: the densify step at 15 runs inside the timed window
     assert "iterations 14-19" in out, out

@@ -1,6 +1,6 @@
 """The README's stage commands ("Stages, one command each") run as written, in order, from a
 copy of the repository root, on the synthetic scene with the posed initialiser, and write only
-into ``work/``. Lines marked ``# needs ...`` (the VGGT weights, a downloaded scene, the
+into ``work/``; then "Look at a model" serves the model they trained. Lines marked ``# needs ...`` (the VGGT weights, a downloaded scene, the
 workflow's results) are left out; ``[...]`` options are left out."""
 from __future__ import annotations
 
@@ -37,6 +37,15 @@ def stage_commands(readme: str) -> tuple[list[str], list[str]]:
     return run, left_out
 
 
+def view_command(readme: str) -> str:
+    """The command of "Look at a model", without its [...] options."""
+    block = readme[readme.index("## Look at a model"):]
+    block = block[block.index("```bash") + 7:]
+    block = re.sub(r"\\\n\s*", "", block[: block.index("```")]).strip()
+    assert len(block.splitlines()) == 1, block
+    return re.sub(r"\s*\[[^\]]*\]", "", block).strip()
+
+
 def test_stage_block_parses():
     run, left_out = stage_commands((ROOT / "README.md").read_text())
     assert any(c.startswith("python -m vggt_init") for c in left_out)
@@ -58,6 +67,17 @@ def test_readme_stage_commands_run_verbatim(tmp_path):
         argv[0] = sys.executable
         proc = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, f"{cmd}\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
+    view = view_command((ROOT / "README.md").read_text())
+    argv = shlex.split(view)
+    argv[0] = sys.executable
+    viewer = subprocess.Popen([*argv, "--no-browser", "--port", "0"], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = viewer.stdout.readline()
+    finally:
+        viewer.terminate()
+        _, err = viewer.communicate(timeout=30)
+    assert line.startswith("[view] serving work/train/model.ply"), f"{view}\n{line}\n{err[-3000:]}"
     work = tmp_path / "work"
     for out in ("scene/split.json", "posed/sparse/0", "bridge/seed.ply", "train/model.ply", "train/train.json",
                 "metrics.json", "pose.json"):

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import html
+import re
 import shlex
 
 from evaluation.reports.report_view import view_command, view_section
@@ -32,11 +34,17 @@ def test_each_run_has_its_command_and_link(tmp_path):
     assert cmd_a[:4] == ["python", "-m", "splat_train", "view"]
     args = cli.parser().parse_args(cmd_a[4:])  # the command parses as the viewer's CLI
     assert args.cameras == str(a / "bridge" / "sparse") and args.test_cameras == str(a / "align" / "sparse")
-    assert args.seed == str(a / "bridge" / "seed.ply") and args.port == 8765
+    assert args.seed_ply == str(a / "bridge" / "seed.ply") and args.port == 8765
     cmd_b = view_command(b / "train" / "model.ply", 8766)
     args_b = cli.parser().parse_args(cmd_b[4:])
     assert args_b.cameras == str(b / "train" / "cameras_refined") and args_b.test_cameras is None
-    assert shlex.join(cmd_a).replace("&", "&amp;") in html_text or shlex.join(cmd_a) in html_text
+    # the command as written, wrapping only between arguments: each flag with its value in one
+    # unbreakable span
+    row = next(ln for ln in html_text.split("<tr>") if "8765/" in ln)
+    code = re.search(r"<code>(.*?)</code>", row).group(1)
+    assert html.unescape(re.sub(r"<[^>]+>", "", code)) == shlex.join(cmd_a)
+    spans = [html.unescape(s) for s in re.findall(r'<span class="arg">(.*?)</span>', code)]
+    assert f"--port 8765" in spans and f"--cameras {a / 'bridge' / 'sparse'}" in spans
 
 
 def test_no_runs(tmp_path):

@@ -108,7 +108,7 @@ def test_trainer_cli_rejects_damaged_image(tmp_path, kind):
     sc = write_scene(tmp_path / "scene", n_views=3, n_test=1)
     _damage(sc["images"] / "view_02.png", kind)
     out = tmp_path / "out"
-    proc = _run(["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+    proc = _run(["-m", "splat_train", "--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]),
                  "--images", str(sc["images"]), "--out", str(out), "--iterations", "2",
                  "--threads", "1"], tmp_path)
     _assert_clean_failure(proc, "view_02.png", out)
@@ -119,7 +119,7 @@ def test_trainer_cli_rejects_damaged_held_out_image(tmp_path):
     bad = next(sc["test_images"].iterdir())
     _damage(bad, "truncated_png")
     out = tmp_path / "out"
-    proc = _run(["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+    proc = _run(["-m", "splat_train", "--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]),
                  "--images", str(sc["images"]), "--out", str(out), "--iterations", "2",
                  "--threads", "1", "--test-cameras", str(sc["test_cameras"]),
                  "--test-images", str(sc["test_images"])], tmp_path)
@@ -274,7 +274,7 @@ def _cut(path: Path, keep: float) -> Path:
 
 
 def _train_cmd(sc: dict, out: Path, *extra: str) -> list[str]:
-    return ["-m", "splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+    return ["-m", "splat_train", "--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]),
             "--images", str(sc["images"]), "--out", str(out), "--iterations", "2", "--threads", "1", *extra]
 
 

@@ -118,7 +118,7 @@ def test_trainer_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(trainer, "train", interrupted)
-    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]),
+    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]),
                                       "--images", str(sc["images"]), "--out", str(tmp_path / "out")])
     assert cli._cli() == 130
     err = capsys.readouterr().err
@@ -153,7 +153,7 @@ def test_trainer_warns_on_a_degenerate_seed(tmp_path, monkeypatch, capsys, case,
         raise KeyboardInterrupt  # the warning comes before training starts
 
     monkeypatch.setattr(trainer, "train", stop)
-    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed", str(seed), "--cameras", str(sc["cameras"]),
+    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed-ply", str(seed), "--cameras", str(sc["cameras"]),
                                       "--images", str(sc["images"]), "--out", str(tmp_path / "out")])
     assert cli._cli() == 130
     err = capsys.readouterr().err
@@ -167,7 +167,7 @@ def test_trainer_refuses_a_non_finite_seed_naming_the_file(tmp_path, monkeypatch
 
     sc = write_scene(tmp_path / "scene")
     seed = _seed(tmp_path, means=lambda a: np.where(np.arange(len(a))[:, None] == 3, np.nan, a).astype(np.float32))
-    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed", str(seed), "--cameras", str(sc["cameras"]),
+    monkeypatch.setattr(sys, "argv", ["splat_train", "--seed-ply", str(seed), "--cameras", str(sc["cameras"]),
                                       "--images", str(sc["images"]), "--out", str(tmp_path / "out")])
     assert cli._cli() == 2
     err = capsys.readouterr().err

@@ -27,10 +27,10 @@ def test_cli_train_then_render(tmp_path, capsys):
     out = tmp_path / "out"
     cfg = json.dumps({"densify_from": 4, "densify_until": 12, "densify_every": 4,
                       "random_background": True})
-    argv = ["--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
+    argv = ["--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
             "--out", str(out), "--iterations", "16", "--test-cameras", str(sc["test_cameras"]),
             "--test-images", str(sc["test_images"]), "--image-list", str(tmp_path / "list.txt"),
-            "--config", cfg, "--seed-rng", "3", "--checkpoint-every", "8", "--eval-every", "8", "-q"]
+            "--config", cfg, "--seed", "3", "--checkpoint-every", "8", "--eval-every", "8", "-q"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "test PSNR" in printed
@@ -65,11 +65,11 @@ def test_cli_train_then_render(tmp_path, capsys):
 def test_cli_reports_bad_input(tmp_path):
     sc = write_scene(tmp_path / "scene", n_views=2)
     with pytest.raises(ValueError, match="unknown training config keys"):
-        main(["--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
+        main(["--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
               "--out", str(tmp_path / "o"), "--config", '{"lr_nonsense": 1}'])
     with pytest.raises(KeyError, match="not in the camera model"):
         (tmp_path / "l.txt").write_text("missing.png\n")
-        main(["--seed", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
+        main(["--seed-ply", str(sc["seed"]), "--cameras", str(sc["cameras"]), "--images", str(sc["images"]),
               "--out", str(tmp_path / "o"), "--image-list", str(tmp_path / "l.txt"), "-q"])
 
 

@@ -36,7 +36,7 @@ def test_train_from_bridge_ply_on_fern(tmp_path):
         (tmp_path / "test.txt").write_text("\n".join(split["test"]))
         cams = str(tmp_path / "bridge" / "sparse" / "0")
         out = tmp_path / "out"
-        assert train_main(["--seed", str(tmp_path / "bridge" / "seed.ply"), "--cameras", cams,
+        assert train_main(["--seed-ply", str(tmp_path / "bridge" / "seed.ply"), "--cameras", cams,
                            "--images", str(scene / "images"), "--image-list", str(tmp_path / "train.txt"),
                            "--test-cameras", cams, "--test-images", str(scene / "images"),
                            "--test-image-list", str(tmp_path / "test.txt"), "--downsample", "4",

@@ -289,7 +289,7 @@ def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
     bj = json.loads((tmp_path / "b" / "bridge.json").read_text())
     assert bj["depth_prior"]["samples"] == len(prior.z)
     for name in ("b", "b_off"):
-        rc = subprocess.run([sys.executable, "-m", "splat_train", "--seed", str(tmp_path / name / "seed.ply"),
+        rc = subprocess.run([sys.executable, "-m", "splat_train", "--seed-ply", str(tmp_path / name / "seed.ply"),
                              "--cameras", str(tmp_path / name), "--images", str(scene["images"]), "--out",
                              str(tmp_path / f"t_{name}"), "--iterations", "12", "--recipe", "sparse",
                              "--eval-every", "0", "--config", '{"device": "cpu"}'],

@@ -57,7 +57,7 @@ def scene(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("testpose")
     paths = write_scene(root, n_views=4, width=40, height=30, n_test=2)
     out = root / "train"
-    assert main(["--seed", str(paths["seed"]), "--cameras", str(paths["cameras"]), "--images", str(paths["images"]),
+    assert main(["--seed-ply", str(paths["seed"]), "--cameras", str(paths["cameras"]), "--images", str(paths["images"]),
                  "--out", str(out), "--iterations", "300", "--rasterizer", "cpu", "--eval-every", "100000",
                  "--checkpoint-every", "100000", "-q"]) == 0
     paths["model"] = out / "model.ply"

@@ -6,6 +6,7 @@ keep the rules' memory and runtime."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -16,6 +17,9 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = shutil.which("snakemake")
+# VGGT is planned as on a machine with its checkpoint (any existing file will do for a dry run);
+# tests/test_workflow_no_checkpoint.py plans and runs without one.
+WITH_CHECKPOINT = {**os.environ, "VGGT_CHECKPOINT": str(REPO / "tests" / "data" / "vggt" / "shared" / "weights.safetensors")}
 
 pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
 
@@ -42,7 +46,7 @@ def dry_run(tmp_path: Path, cfg: dict, *args: str, targets: tuple[str, ...] = ()
     cfg_file.write_text(yaml.safe_dump(cfg))
     cmd = [SNAKEMAKE, *targets, "-n", "-p", "--snakefile", str(REPO / "Snakefile"),
            "--directory", str(tmp_path), *args, "--configfile", str(cfg_file)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=WITH_CHECKPOINT)
     out = proc.stdout + proc.stderr
     if not expect_ok:
         assert proc.returncode != 0, out

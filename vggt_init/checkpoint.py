@@ -187,16 +187,16 @@ def resolve_checkpoint(
     raise CheckpointNotFoundError(_not_found_message(repo_id))
 
 
-def skip_reason(env: dict | None = None) -> str | None:
+def skip_reason(env: dict | None = None, explicit: str | os.PathLike | None = None) -> str | None:
     """Why VGGT cannot run here, in one sentence, or None (a checkpoint is in place, or the hub
-    can be reached and the job will download it). Used by the demo to skip VGGT up front
-    instead of letting its jobs fail."""
+    can be reached and the job will download it). ``explicit``: the configured checkpoint
+    path, if any. Used by the workflow to skip VGGT up front instead of letting its jobs fail."""
     env = dict(os.environ) if env is None else env
     try:
-        resolve_checkpoint(env=env, allow_download=False)
+        resolve_checkpoint(explicit=explicit, env=env, allow_download=False)
         return None
     except CheckpointNotFoundError as exc:
-        if env.get(ENV_VAR):
+        if explicit or env.get(ENV_VAR):
             return str(exc)
     if _offline(env):
         return ("no VGGT-1B checkpoint (VGGT_CHECKPOINT unset, none in the Hugging Face cache) and "

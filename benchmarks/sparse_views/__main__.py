@@ -90,7 +90,9 @@ def cmd_list(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views", description=__doc__.split("\n\n")[0])
+    from camio.cliargs import plain
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--protocol", type=Path, default=protocol.PROTOCOL, help="the scenes file (default %(default)s)")
     p.add_argument("--data", type=Path, default=None,
                    help=f"folder of the real scenes (default ${protocol.DATA_ENV}, else the protocol's data_root)")

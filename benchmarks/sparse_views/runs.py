@@ -30,11 +30,11 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
     logf = out.parent / f"{out.name}.log"
     if not (out / "train.json").is_file():
         cfg = {"recipe": recipe, **(config or {})}
-        sh(["-m", "splat_train", "--seed", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
+        sh(["-m", "splat_train", "--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
             "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
             "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
-            "--seed-rng", str(seed), "--eval-every", str(eval_every), "--checkpoint-every", str(iterations),
+            "--seed", str(seed), "--eval-every", str(eval_every), "--checkpoint-every", str(iterations),
             "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg)], logf)
     metrics = out / "final" / "metrics.json"
     if not metrics.is_file():

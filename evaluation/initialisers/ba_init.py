@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.cliargs import add_log_flags, plain
 from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.metrics.pose import paper_success
@@ -195,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from camio.logs import setup_logging
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.ba_init", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.ba_init", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--init", required=True, help="initialiser output folder (sparse/0, predictions.npz)")
     p.add_argument("--images", required=True, help="the scene's images folder")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
@@ -206,10 +207,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-points", type=int, default=DEFAULT_MIN_POINTS,
                    help=f"fewer triangulated points fall back (default {DEFAULT_MIN_POINTS})")
     p.add_argument("--seed", type=int, default=0, help="pycolmap's random seed")
-    p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="pycolmap threads of the triangulation (its feature extraction and matching) and of "
+                        "the bundle adjustment; 1 (the default) is reproducible")
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
     from camio.outdir import prepare_out, run_stage
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from camio.cliargs import add_log_flags
 from camio.images import ImageReadError
 from camio.outdir import prepare_out, run_stage, seal_out, typed_line
 from evaluation.initialisers import colmap_repeats
@@ -50,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     add_fallback_args(p)
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    add_log_flags(p)
     args, names = parse_training_args(p, argv)
     settings = ColmapSettings(args.max_image_size, args.max_num_features,
                               not args.no_guided_matching, "PINHOLE", args.threads)

@@ -125,3 +125,11 @@ def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | 
              f", gated rate {rep['success_gated_rate']:.2f}, ATE/radius "
              f"{rep['ate_rel_radius']['values']}" if "success_gated_rate" in rep else "")
     return primary
+
+
+if __name__ == "__main__":
+    import sys
+
+    from camio.cliargs import not_a_command
+
+    sys.exit(not_a_command("evaluation.initialisers.colmap_repeats", "python -m evaluation.initialisers.colmap_baseline --repeats N"))

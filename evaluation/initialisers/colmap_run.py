@@ -350,3 +350,11 @@ def model_fingerprint(model_dir: str | Path) -> dict:
         "points": np.round(model.points[np.lexsort(model.points.T[::-1])], 12).tolist()
         if len(model.points) else [],
     }
+
+
+if __name__ == "__main__":
+    import sys
+
+    from camio.cliargs import not_a_command
+
+    sys.exit(not_a_command("evaluation.initialisers.colmap_run", "python -m evaluation.initialisers.colmap_baseline"))

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.cliargs import add_log_flags
 from camio.atomic import save_npz, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
@@ -322,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--downsample", type=int, default=1, help="prediction grid stride")
     p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 at most")
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    add_log_flags(p)
     args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)

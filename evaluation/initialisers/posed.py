@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.cliargs import add_log_flags, plain
 from camio.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
@@ -129,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     [--rot-deg --trans-frac --depth-rel --outlier-frac] [--seed S] [--threads T]``."""
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.posed", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.posed", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     add_view_args(p, split=False)
     p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise and of pycolmap")
     p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
     add_fallback_args(p)
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    add_log_flags(p)
     args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
     from camio.outdir import prepare_out, run_stage

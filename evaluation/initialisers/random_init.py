@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
@@ -328,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         return 0
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.random_init",
-                                description=__doc__.split("\n\n")[0])
+                                description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--cameras", required=True, help="COLMAP model with a camera per training view "
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
@@ -338,9 +339,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="random seed of the points")
     p.add_argument("--near", type=float, help="near camera depth, scene units (default: from the cameras)")
     p.add_argument("--far", type=float, help="far camera depth, scene units (default: from the cameras)")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
 
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)

@@ -79,9 +79,17 @@ def parse_training_args(p: argparse.ArgumentParser, argv: list[str] | None) -> t
     from camio.logs import setup_logging
 
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, getattr(args, "quiet", False))
     try:
         names = training_names(args)
     except ValueError as exc:
         p.error(str(exc))
     return args, names
+
+
+if __name__ == "__main__":
+    import sys
+
+    from camio.cliargs import not_a_command
+
+    sys.exit(not_a_command("evaluation.initialisers.views", "one of the initialisers, e.g. python -m evaluation.initialisers.colmap_baseline --help"))

@@ -37,6 +37,7 @@ from typing import Sequence
 
 import torch
 
+from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.images import list_images, read_image
 from camio.logs import progress, setup_logging, timed
@@ -196,7 +197,7 @@ def _run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``images`` on an ``argparse`` subparsers object; sets ``func`` (args -> exit code)."""
     p = subparsers.add_parser("images", help="PSNR / SSIM / LPIPS of renders vs ground truth",
-                              description=__doc__.split("\n\n")[0])
+                              description=plain(__doc__.split("\n\n")[0]))
     _configure(p)
     p.set_defaults(func=_run)
     return p
@@ -204,11 +205,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Standalone entry point (``python -m evaluation.metrics.images_cli``)."""
-    p = argparse.ArgumentParser(prog="python -m evaluation.metrics.images_cli", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.metrics.images_cli", description=plain(__doc__.split("\n\n")[0]))
     _configure(p)
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     return _run(args)
 
 

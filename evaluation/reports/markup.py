@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import html
 import math
+import re
 
 import numpy as np
 
@@ -35,10 +36,34 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 
 
 def html_table(header: list[str], rows: list[list[str]]) -> str:
-    """An HTML table of text cells (escaped)."""
+    """An HTML table of text cells (escaped); numbers right-aligned (:func:`number_cells`)."""
     h = "".join(f"<th>{html.escape(x)}</th>" for x in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+    return number_cells(f"<table><tr>{h}</tr>{body}</table>")
+
+
+_NUMBER_CELL = re.compile(r"<td>(\s*(?:[-+]?[\d.,]+(?:e[-+]?\d+)?\s*(?:%|s|dB|deg)?|-|\d+/\d+)\s*)</td>")
+
+
+def number_cells(table: str) -> str:
+    """``table`` (HTML) with the cells that hold a number (or "-", or "k/n") marked
+    ``class="num"``, which the report's style sheet right-aligns; text stays left-aligned."""
+    table = table.replace('<tr style="text-align: right;">', "<tr>")  # pandas' header alignment
+    return _NUMBER_CELL.sub(r'<td class="num">\1</td>', table)
+
+
+def command_html(argv: list[str]) -> str:
+    """A command as HTML that wraps only between arguments: each flag stays on one line with its
+    value (``class="arg"``, which the report's style sheet keeps from wrapping)."""
+    import shlex
+
+    groups: list[list[str]] = []
+    for a in argv:
+        if groups and groups[-1][0].startswith("--") and len(groups[-1]) == 1 and not a.startswith("--"):
+            groups[-1].append(a)
+        else:
+            groups.append([a])
+    return " ".join(f'<span class="arg">{html.escape(shlex.join(g))}</span>' for g in groups)
 
 
 def html_page(title: str, css: str, body: str) -> str:

@@ -36,6 +36,12 @@ def pyplot():
     return plt
 
 
+def fit_layout(fig, top: float = 1.0) -> None:
+    """Margins that fit every label: matplotlib's tight layout (tick labels of any width, the
+    axis labels beside them), below ``top`` (a fraction of the height, for a suptitle)."""
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, top))
+
+
 def save_png(fig, path: Path, dpi: int = 100) -> Path:
     """Write ``fig`` to the PNG ``path`` (atomically) and close it."""
     with atomic_path(path) as tmp:
@@ -74,7 +80,7 @@ def training_curves(runs: pd.DataFrame, out: str | Path) -> list[Path]:
             ax.grid(alpha=0.3)
         axes[0, 0].legend()
         fig.suptitle(f"{dataset} / {scene}, n = {n}")
-        fig.subplots_adjust(left=0.1, right=0.98, bottom=0.08, top=0.92, wspace=0.3, hspace=0.3)
+        fit_layout(fig, top=0.95)
         written.append(save_png(fig, out / "curves" / f"{dataset}__{scene}__n{n}.png"))
     return written
 
@@ -124,7 +130,7 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
         ax.set_ylabel("held-out PSNR (dB), higher = lower error")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-        fig.subplots_adjust(left=0.13, right=0.97, bottom=0.13, top=0.92)
+        fit_layout(fig)
         files.append(save_png(fig, Path(out) / f"pareto__{dataset}__{scene}__n{int(n)}.png"))
     return files
 

@@ -25,7 +25,7 @@ import pandas as pd
 
 from camio.atomic import atomic_dir
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
-from evaluation.reports.markup import html_page
+from evaluation.reports.markup import html_page, number_cells
 from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 
 THUMB_WIDTH = 256
 _CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;
-margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}
+margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
+td.num{text-align:right}.arg{white-space:nowrap}
 th{background:#eee}.grid td{text-align:center;vertical-align:middle}.failed{background:#fdd;
 color:#900;width:160px}.missing{background:#eee;color:#666;width:160px}img{max-width:100%}"""
 
@@ -174,7 +175,7 @@ def _table_html(df: pd.DataFrame) -> str:
             shown[c] = shown[c].map(lambda v: "-" if v is None or (isinstance(v, float) and pd.isna(v))
                                     else ("yes" if isinstance(v, (bool, np.bool_)) and v
                                           else "no" if isinstance(v, (bool, np.bool_)) else v))
-    return shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0)
+    return number_cells(shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0))
 
 
 def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:

@@ -8,10 +8,10 @@ gets its own port, the command that serves it there, and a link to that address.
 from __future__ import annotations
 
 import html
-import shlex
 from pathlib import Path
 
 from camio.view_defaults import VIEW_HOST as DEFAULT_HOST, VIEW_PORT as DEFAULT_PORT
+from evaluation.reports.markup import command_html
 
 # R/{dataset}/{scene}/n{n}/{init}/{mode}/train/model.ply (workflow/rules/common.smk)
 MODEL_GLOB = "*/*/n*/*/*/train/model.ply"
@@ -31,7 +31,7 @@ def view_command(model: Path, port: int) -> list[str]:
             cmd += ["--test-cameras", str(test)]
             break
     if (mode / "bridge" / "seed.ply").is_file():
-        cmd += ["--seed", str(mode / "bridge" / "seed.ply")]
+        cmd += ["--seed-ply", str(mode / "bridge" / "seed.ply")]
     return cmd + ["--port", str(port)]
 
 
@@ -52,8 +52,7 @@ def view_section(results: str | Path) -> list[str]:
         port = DEFAULT_PORT + i
         label = "/".join(model.relative_to(results).parts[:-2])
         url = f"http://{DEFAULT_HOST}:{port}/"
-        cmd = shlex.join(view_command(model, port))
         rows.append(f'<tr><td>{html.escape(label)}</td><td><a href="{url}">{url}</a></td>'
-                    f"<td><code>{html.escape(cmd)}</code></td></tr>")
+                    f"<td><code>{command_html(view_command(model, port))}</code></td></tr>")
     parts.append("<table><tr><th>run</th><th>view</th><th>command</th></tr>" + "".join(rows) + "</table>")
     return parts

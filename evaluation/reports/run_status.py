@@ -8,9 +8,10 @@ Three sources, so that an initialiser that left no result is still named:
   the initialiser left too few (status.json ``fallback``), with that reason;
 * run folders with logs but no result file (the job stopped): "failed" with the last ERROR
   line of its log;
-* ``{results}/skipped.json``, written by whoever decided not to run an initialiser (the demo,
-  when the VGGT checkpoint is missing offline): ``{"vggt": "reason", ...}``; "skipped" with
-  that reason, for every (dataset, scene, n) the other initialisers ran on.
+* ``{results}/skipped.json``, written by the workflow (rule unavailable_initialisers) for the
+  initialisers that cannot run here, e.g. VGGT without its checkpoint offline:
+  ``{"vggt": "reason", ...}`` ({} when all can run); "skipped" with that reason, for every
+  (dataset, scene, n) the other initialisers ran on.
 
 The words are the same in Markdown and HTML (they are plain strings).
 """

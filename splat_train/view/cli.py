@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import sys
 import webbrowser
 
+from camio.cliargs import deprecated_flags
 from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT
 
 log = logging.getLogger("splat_train.view")
@@ -21,10 +23,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="the trained model.ply (3DGS layout)")
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
-    p.add_argument("--seed", help="the seed PLY, to toggle against the trained model")
+    p.add_argument("--seed-ply", dest="seed_ply", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
 
 
@@ -41,7 +45,10 @@ def main(argv: list[str]) -> int:
     is one line and exit 2."""
     import signal
 
-    args = parser().parse_args(argv)
+    args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--seed-ply", None)}))
+    from camio.logs import setup_logging
+
+    setup_logging(args.verbose, args.quiet)
     from pathlib import Path
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
@@ -49,37 +56,42 @@ def main(argv: list[str]) -> int:
     try:
         check_installed()
     except ViewerNotInstalled as e:
-        print(f"splat_train view: {e}", file=sys.stderr)
+        print(f"python -m splat_train view: error: {e}", file=sys.stderr)
         return 2
     if not 0 <= args.port <= 65535:
-        print(f"splat_train view: --port {args.port} is not a port: give 1-65535 (0 picks a free one)",
+        print(f"python -m splat_train view: error: --port {args.port} is not a port: give 1-65535 (0 picks a free one)",
               file=sys.stderr)
         return 2
     from camio.ply import PlyFormatError, read_gaussian_ply
 
-    for label, path in (("--model", args.model), ("--seed", args.seed)):
+    for label, path in (("--model", args.model), ("--seed-ply", args.seed_ply)):
         if path is None:
             continue
         if not Path(path).is_file():
-            print(f"splat_train view: {label} {path}: no such file", file=sys.stderr)
+            print(f"python -m splat_train view: error: {label} {path}: no such file", file=sys.stderr)
             return 2
         try:  # only a 3DGS PLY is ever served (never a link to some other file)
             read_gaussian_ply(path)
         except (PlyFormatError, OSError, ValueError) as e:
-            print(f"splat_train view: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
+            print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
             return 2
     try:
         blob = cameras_json(args.cameras, args.test_cameras)
     except (OSError, ValueError) as e:
-        print(f"splat_train view: cannot read the cameras: {e}", file=sys.stderr)
+        print(f"python -m splat_train view: error: cannot read the cameras: {e}", file=sys.stderr)
         return 2
     try:
-        srv = make_server(build_routes(args.model, args.seed, blob), args.host, args.port)
+        srv = make_server(build_routes(args.model, args.seed_ply, blob), args.host, args.port)
     except OSError as e:  # in use, no permission, an address this machine does not have
-        print(f"splat_train view: cannot listen on {args.host}:{args.port}: {e.strerror or e}", file=sys.stderr)
+        if e.errno == errno.EADDRINUSE:
+            print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "
+                  "(another viewer?); pass --port 0 to pick a free one", file=sys.stderr)
+        else:
+            print(f"python -m splat_train view: error: cannot listen on {args.host}:{args.port}: {e.strerror or e}",
+                  file=sys.stderr)
         return 2
     if args.host not in LOOPBACK_HOSTS:
-        print(f"splat_train view: warning: --host {args.host} serves the model to the network (no password); "
+        print(f"python -m splat_train view: warning: --host {args.host} serves the model to the network (no password); "
               "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"

@@ -31,3 +31,8 @@ include: "scenes.smk"
 include: "params.smk"
 include: "planning.smk"
 include: "resources.smk"
+
+
+# Asked when the workflow is read, so that the one line saying VGGT is skipped (or the error)
+# comes before any job, in a dry run too.
+unavailable_inits()

@@ -5,6 +5,7 @@ import importlib.util
 import json
 import sys
 
+from snakemake.exceptions import IncompleteCheckpointException
 from snakemake.logging import logger
 from pathlib import Path
 
@@ -19,7 +20,9 @@ _check_spec = importlib.util.spec_from_file_location(
 _check_config = importlib.util.module_from_spec(_check_spec)
 _check_spec.loader.exec_module(_check_config)
 _problems = []
-for _file in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
+for (
+    _file
+) in workflow.configfiles:  # a key given twice: YAML keeps the last one silently
     try:
         _check_config.read_yaml(_file)
     except (OSError, ValueError) as _exc:
@@ -61,9 +64,12 @@ elif workflow.non_local_exec or workflow.remote_exec:
 else:
     COLMAP_THREADS = max(1, int(workflow.resource_settings.cores or 1))
 
-# The workflow's own helper script, found from the workflow (any working directory works).
+# The workflow's own helper scripts, found from the workflow (any working directory works).
 VIEWS_SCRIPT = str(
     (Path(str(workflow.current_basedir)) / "../scripts/views.py").resolve()
+)
+PHOTOS_SCRIPT = str(
+    (Path(str(workflow.current_basedir)) / "../scripts/photos_summary.py").resolve()
 )
 
 # The initialisers and the Bridge modes, each listed once (evaluation/initialisers/registry.py,

@@ -78,10 +78,23 @@ rule testpose_metrics:
         "{params.lpips} --out {output} > {log} 2>&1"
 
 
+rule unavailable_initialisers:
+    output:
+        f"{R}/skipped.json",
+    log:
+        f"{R}/logs/unavailable_initialisers.log",
+    localrule: True
+    params:
+        skipped=unavailable_json,
+    run:
+        write_skipped_file(output[0], log[0], params.skipped)
+
+
 rule tables:
     input:
         ALL_TARGETS[0],
         ALL_TARGETS[1],
+        skipped=f"{R}/skipped.json",
     output:
         md=f"{R}/tables/tables.md",
         runs=f"{R}/tables/runs.parquet",
@@ -152,6 +165,7 @@ rule report:
     input:
         tables=f"{R}/tables/tables.md",
         notes=f"{R}/initialisers.json",
+        skipped=f"{R}/skipped.json",
         plots=plot_dirs,
         scenes=prepared_scenes,
         study=study_final_targets,

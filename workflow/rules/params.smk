@@ -269,6 +269,11 @@ def results_of_output(wildcards, output):
     return str(Path(output[0]).parents[1])
 
 
+def folder_of_output(wildcards, output):
+    """The folder of the first output, R for R/<file>."""
+    return str(Path(output[0]).parent)
+
+
 def results_of_input(wildcards, input):
     """The results root, two levels above the first input R/<folder>/<file>."""
     return str(Path(input[0]).parents[1])

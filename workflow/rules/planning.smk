@@ -14,11 +14,25 @@ def colmap_runs(wildcards=None):
     ]
 
 
+_colmap_pending = False
+
+
 def colmap_status(dataset, scene, n):
     """status.json of a finished COLMAP run. Read through the colmap_index checkpoint, which
     waits for every COLMAP run, so the jobs after COLMAP are planned once all results exist
     (success or failure) rather than one checkpoint at a time."""
-    checkpoints.colmap_index.get()
+    global _colmap_pending
+    try:
+        checkpoints.colmap_index.get()
+    except IncompleteCheckpointException:
+        _colmap_pending = True
+        raise
+    if _colmap_pending:  # said once, when the jobs after COLMAP join the plan
+        _colmap_pending = False
+        logger.info(
+            "The COLMAP runs have finished: the jobs after them are planned now, so the "
+            "step total grows (the steps done so far stay done)."
+        )
     run = RUN.format(dataset=dataset, scene=scene, n=n, init="colmap")
     path = f"{run}/status.json"
     return json.loads(Path(path).read_text())
@@ -57,6 +71,10 @@ def run_targets(dataset, scene, n, init, stage):
         if stage == "align":
             continue
         out.append(f"{m}/train/model.ply")
+        if not ref and stage in ("render", "metrics", "all"):
+            out.append(
+                f"{m}/train_renders"
+            )  # no held-out views: a render of every photo
         if stage == "train" or not (heldout and aligned):
             continue
         if config["train"]["pose_refine"]:
@@ -107,9 +125,44 @@ def plot_dirs(wildcards=None):
     return [f"{R}/plots"] if config["train"]["enabled"] else []
 
 
+def photo_scenes():
+    """[(dataset, scene)] without reference cameras (your own photos): their runs end in a
+    render of every photo, and R/photos.md says where everything is."""
+    return [(ds, sc) for ds, sc in all_scenes() if not has_reference(ds, sc)]
+
+
+def photo_runs_json(wildcards=None):
+    """The runs R/photos.md describes, as a JSON string (a rule parameter)."""
+    runs = [
+        {
+            "dataset": ds,
+            "scene": sc,
+            "n": n,
+            "init": init,
+            "modes": init_modes(init),
+            "path": scene_cfg(ds, sc)["path"],
+        }
+        for ds, sc in photo_scenes()
+        for n in scene_views(ds, sc)
+        for init in scene_inits(ds, sc)
+    ]
+    return json.dumps(runs, sort_keys=True)
+
+
+def photo_summary(wildcards=None):
+    """R/photos.md when a scene has no reference cameras."""
+    return [f"{R}/photos.md"] if photo_scenes() and config["train"]["enabled"] else []
+
+
 def final_targets(wildcards=None):
-    """What `all` makes: tables, plots (if training ran) and the report."""
-    return [f"{R}/tables/tables.md", *plot_dirs(), f"{R}/report/index.html"]
+    """What `all` makes: tables, plots (if training ran), the report, and R/photos.md for
+    scenes without reference cameras."""
+    return [
+        f"{R}/tables/tables.md",
+        *plot_dirs(),
+        f"{R}/report/index.html",
+        *photo_summary(),
+    ]
 
 
 def prepared_scenes(wildcards=None):

@@ -167,14 +167,96 @@ _NOT_APPLICABLE = {
 }
 _told = set()
 
+# ----------------------------------------------------------------------------- availability
+# Initialisers that need weights (VGGT, and vggt_ba, which starts from VGGT) are asked once per
+# run whether they can run here. The decision is made by the snakemake that plans the run and
+# written to R/skipped.json (rule unavailable_initialisers, a local rule); the snakemake of a
+# cluster job reads it back rather than asking again on a node that may see another network.
+_NEEDS_VGGT = ("vggt", "vggt_ba")
+_unavailable = None
+
+
+def configured_inits():
+    """Every initialiser some scene is configured with."""
+    return {
+        i
+        for ds, sc in all_scenes()
+        for i in scene_cfg(ds, sc).get("initialisers", config["initialisers"])
+    }
+
+
+def unavailable_inits():
+    """{initialiser: reason} of configured initialisers that cannot run here (no VGGT
+    checkpoint and no way to download one). Decided once; with ``unavailable_initialisers:
+    error`` in the config a missing one stops the run before anything runs (exit 2)."""
+    global _unavailable
+    if _unavailable is not None:
+        return _unavailable
+    wanted = [i for i in _NEEDS_VGGT if i in configured_inits()]
+    _unavailable = {}
+    if not wanted:
+        return _unavailable
+    if workflow.remote_exec and Path(f"{R}/skipped.json").is_file():
+        from evaluation.reports.run_status import read_skipped
+
+        _unavailable = {i: w for i, w in read_skipped(R).items() if i in wanted}
+        return _unavailable
+    from vggt_init.checkpoint import skip_reason
+
+    reason = skip_reason(explicit=config["vggt"]["checkpoint"])
+    if reason is None:
+        return _unavailable
+    if config["unavailable_initialisers"] == "error":
+        print(
+            f"error: VGGT cannot run: {reason}. (unavailable_initialisers: skip runs the "
+            "other initialisers instead.)",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
+    _unavailable = {
+        i: reason if i == "vggt" else f"it starts from VGGT, which cannot run: {reason}"
+        for i in wanted
+    }
+    others = sorted(configured_inits() - set(_unavailable))
+    logger.warning(
+        f"VGGT skipped: {reason}. Running {', '.join(others) or 'no other initialiser'}; "
+        f"{R}/skipped.json, the tables and the report list VGGT as skipped. (For the VGGT "
+        "rows: VGGT_CHECKPOINT=/path/to/model.pt, see vggt_init/checkpoint.py; "
+        "unavailable_initialisers: error makes this an error.)"
+    )
+    return _unavailable
+
+
+def unavailable_json(wildcards=None):
+    """:func:`unavailable_inits` as a JSON string (a rule parameter; a change reruns the
+    tables and the report)."""
+    return json.dumps(unavailable_inits(), sort_keys=True)
+
+
+def write_skipped_file(out, log_file, skipped_json):
+    """R/skipped.json ({initialiser: reason}; {} when all can run) and a line per entry in the log."""
+    from camio.atomic import write_json
+
+    skipped = json.loads(skipped_json)
+    write_json(out, skipped)
+    Path(log_file).parent.mkdir(parents=True, exist_ok=True)
+    Path(log_file).write_text(
+        "".join(f"{i} skipped: {why}\n" for i, why in skipped.items())
+        or "every configured initialiser can run\n"
+    )
+
 
 def scene_inits(dataset, scene):
     """Initialisers that apply: the oracle needs ground-truth geometry, ``posed`` reference
-    cameras. A configured one that does not apply is named once in the log (and in
-    R/initialisers.json, which the report lists)."""
+    cameras; one that cannot run here (:func:`unavailable_inits`) is left out. A configured
+    one that does not apply is named once in the log (and in R/initialisers.json, which the
+    report lists)."""
     inits = scene_cfg(dataset, scene).get("initialisers", config["initialisers"])
+    skipped = unavailable_inits()
     out = []
     for i in inits:
+        if i in skipped:
+            continue
         check, why = _NOT_APPLICABLE.get(i, (None, None))
         if check is not None and not check(dataset, scene):
             if (dataset, scene, i) not in _told:

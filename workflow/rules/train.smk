@@ -62,9 +62,9 @@ rule train_splats:
         pose=pose_refine_args,
         lpips=train_lpips_args,
     shell:
-        "python -m splat_train --seed {input.seed} --cameras {input.cameras}/0 "
+        "python -m splat_train --seed-ply {input.seed} --cameras {input.cameras}/0 "
         "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
-        "{params.recipe} --seed-rng {params.seed} "
+        "{params.recipe} --seed {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
         "--resume-dir {params.resume} --device {params.device} --threads {threads} "
         "{params.test} {params.pose} {params.lpips} > {log} 2>&1"

@@ -103,7 +103,7 @@ def index_status(paths: list[str], out: str | Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="workflow/scripts/views.py", description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="command", required=True)
     a = sub.add_parser("names", help="write the training (or test) names, one per line")
     a.add_argument("--split", required=True)
     a.add_argument("--which", choices=["train", "test"], default="train")
@@ -124,21 +124,21 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging()
     t0 = time.perf_counter()
-    stage = f"views {args.cmd}"
+    stage = f"views {args.command}"
 
     def work() -> int:
-        if args.cmd == "names":
+        if args.command == "names":
             prepare_out(args.out, {"--split": args.split}, stage, folder=False)
             names = split_names(args.split, args.which, args.n)
             write_names(names, args.out)
             log.info("wrote %d %s names to %s", len(names), args.which, args.out)
-        elif args.cmd == "link":
+        elif args.command == "link":
             prepare_out(args.out, {"--split": args.split, "--images": args.images}, stage, replaces=True)
             names = split_names(args.split, args.which, args.n)
             link_images(names, args.images, args.out)
             seal_out(args.out, stage)
             log.info("linked %d %s images into %s", len(names), args.which, args.out)
-        elif args.cmd == "notes":
+        elif args.command == "notes":
             skipped = _skipped(args.skipped)
             prepare_out(args.out, {}, stage, folder=False)
             write_json(args.out, {"skipped": skipped})

@@ -1,0 +1,99 @@
+"""Your own photos in one command (scripts/photos.py): a folder of a few small photos becomes
+cameras, a seed, a trained model, a render of every photo and the command that views it,
+through the real Snakemake workflow; VGGT is the weight-compatible test model
+(tests/data/vggt/shared). Without weights the run says so and plans COLMAP alone."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+FIXTURE = REPO / "tests" / "data" / "vggt" / "shared"
+N_PHOTOS = 4
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory) -> Path:
+    """A folder of N_PHOTOS small photographs and nothing else (no cameras)."""
+    scene = tmp_path_factory.mktemp("synth") / "scene"
+    subprocess.run([sys.executable, "-m", "camio", "-q", "synth", "--out", str(scene), "--views", str(N_PHOTOS + 1),
+                    "--width", "64", "--seed", "0"], check=True, capture_output=True)
+    folder = tmp_path_factory.mktemp("mine") / "garden"
+    folder.mkdir()
+    for p in sorted((scene / "images").iterdir())[:N_PHOTOS]:
+        shutil.copy(p, folder / p.name)
+    return folder
+
+
+def _env(tmp_path: Path) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("VGGT_CHECKPOINT", "HF_HUB_CACHE", "HF_HOME")}
+    env.update(HF_HUB_OFFLINE="1", HF_HOME=str(tmp_path / "hf"),
+               PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    return env
+
+
+def _photos(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(REPO / "scripts" / "photos.py"), *args], capture_output=True,
+                          text=True, timeout=900, env=_env(tmp_path), cwd=tmp_path)
+
+
+def test_bad_folder_is_one_line(tmp_path):
+    proc = _photos(tmp_path, str(tmp_path / "nothing"))
+    assert proc.returncode == 2 and proc.stderr.startswith("scripts/photos.py: error:"), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_without_weights_says_so_and_plans_colmap_alone(tmp_path, photos):
+    proc = _photos(tmp_path, str(photos), "--out", str(tmp_path / "out"), "-n")
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    assert sum(ln.startswith("VGGT skipped:") for ln in out.splitlines()) == 1, out[-4000:]
+    assert "rule colmap_baseline:" in out and "rule vggt_init:" not in out
+    cfg = yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())
+    scene = cfg["datasets"]["photos"]["scenes"]["garden"]
+    assert scene["views"] == [N_PHOTOS] and scene["reference"] is False
+    split = json.loads((tmp_path / "out" / "split.json").read_text())
+    assert split["test"] == [] and len(split["train"][str(N_PHOTOS)]) == N_PHOTOS
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (FIXTURE / "weights.safetensors").is_file(), reason="VGGT fixture missing")
+def test_photo_folder_to_a_viewable_model(tmp_path, photos):
+    out = tmp_path / "out"
+    args = [str(photos), "--out", str(out), "--init", "vggt", "--iterations", "3",
+            "--vggt-checkpoint", str(FIXTURE / "weights.safetensors"),
+            "--vggt-model-config", str(FIXTURE / "config.json"), "--vggt-image-size", "56"]
+    proc = _photos(tmp_path, *args)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-6000:]
+
+    run = out / "photos" / "garden" / f"n{N_PHOTOS}" / "vggt"
+    assert (run / "sparse" / "0").is_dir()
+    mode = run / "gated"
+    assert (mode / "bridge" / "seed.ply").is_file() and (mode / "train" / "model.ply").is_file()
+    renders = sorted(p.stem for p in (mode / "train_renders").glob("*.png"))
+    assert renders == sorted(p.stem for p in photos.iterdir())
+    assert (out / "report" / "index.html").is_file()
+
+    summary = (out / "photos.md").read_text()
+    assert summary in proc.stdout
+    view = [ln.strip() for ln in summary.splitlines() if "splat_train view" in ln]
+    assert len(view) == 1
+    argv = shlex.split(view[0])
+    assert argv[:4] == ["python", "-m", "splat_train", "view"]
+    from splat_train.view.cli import parser
+
+    parsed = parser().parse_args(argv[4:])
+    for path in (parsed.model, parsed.cameras, parsed.seed_ply):
+        assert Path(path).exists(), path
+
+    again = _photos(tmp_path, *args)  # the same command again resumes: nothing to do
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
