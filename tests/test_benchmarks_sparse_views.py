@@ -55,6 +55,7 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
             recs.append(_rec(scene, "evaluation", "sparse", seed, 19.0 + 0.1 * seed, 0.28 + 0.01 * seed,
                              gaussians=70_000 if scene == "b" else 5_000))
         recs.append(_rec("t", "tuning", "sparse", 0, 25.0, 0.1))
+    recs.append(_rec("c", "evaluation", "paper", 0, 30.0, 0.1))  # a scene the grid has not finished
     for i, r in enumerate(recs):
         (runs / f"{i}.json").write_text(json.dumps(r))
     doc = tmp_path / "results.md"
@@ -64,7 +65,7 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     s = json.loads((tmp_path / "rec" / "summary.json").read_text())
     assert len(s["rows"]) == len(recs) and set(RECORD_KEYS) <= set(s["rows"][0])
     t = s["targets"]
-    assert t["evaluation_scenes"] == ["a", "b"]
+    assert t["evaluation_scenes"] == ["a", "b"] and t["incomplete_scenes"] == ["c"]
     assert t["mean_final_psnr"]["sparse"] == pytest.approx(19.1) and t["mean_final_psnr"]["paper"] == pytest.approx(18.1)
     assert t["psnr_lead_over_best_other"] == pytest.approx(1.0) and t["psnr_lead_ok"]
     # LPIPS sparse - paper: -0.02, -0.01, 0.00 on both scenes: not above zero

@@ -84,8 +84,15 @@ def paired(rows: list[dict], role: str = "evaluation") -> list[dict]:
 def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict]) -> dict:
     """The targets, computed on the evaluation scenes at n = 3 (None where data is missing)."""
     ev = [a for a in agg if a["role"] == "evaluation" and a["n"] == 3]
-    scenes = sorted({a["scene"] for a in ev})
-    out = {"evaluation_scenes": scenes}
+    recipes = {a["recipe"] for a in ev}
+    # a scene counts once every recipe has run on it (a grid still running leaves some out)
+    have = defaultdict(set)
+    for a in ev:
+        have[a["scene"]].add(a["recipe"])
+    scenes = sorted(sc for sc, rs in have.items() if rs == recipes)
+    out = {"evaluation_scenes": scenes, "incomplete_scenes": sorted(set(have) - set(scenes))}
+    ev = [a for a in ev if a["scene"] in scenes]
+    rows = [r for r in rows if r["role"] != "evaluation" or r["scene"] in scenes]
     if not ev:
         return out
     # mean over scenes of each recipe's mean final PSNR (recipes present on every scene)
@@ -99,7 +106,7 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict]) -> dict:
         others = [m for rc, m in mean_psnr.items() if rc != OURS]
         out["psnr_lead_over_best_other"] = mean_psnr[OURS] - max(others) if others else None
         out["psnr_lead_ok"] = (out["psnr_lead_over_best_other"] or 0) >= 0.5
-        vp = [p for p in pairs if p["n"] == 3 and p["against"] == BASE]
+        vp = [p for p in pairs if p["n"] == 3 and p["against"] == BASE and p["scene"] in scenes]
         for net in ("lpips_alex", "lpips_vgg"):
             # paired over every (scene, seed) of the evaluation scenes
             diffs = [r_o[net] - r_b[net] for r_o, r_b in _pairs(rows, BASE) if r_o[net] is not None and r_b[net] is not None]
@@ -162,6 +169,8 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes) -> str:
     if verdict.get("mean_final_psnr"):
         v = verdict
         lines += ["## Targets (evaluation scenes, n = 3)", ""]
+        if v.get("incomplete_scenes"):
+            lines.append("- not counted until every recipe has run there: " + ", ".join(v["incomplete_scenes"]))
         lines.append("- mean final PSNR over the scenes: " + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
         if "psnr_lead_over_best_other" in v and v["psnr_lead_over_best_other"] is not None:
             lines.append(f"- `sparse` − best other recipe: {v['psnr_lead_over_best_other']:+.2f} dB "
