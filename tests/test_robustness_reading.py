@@ -413,7 +413,7 @@ def test_viewer_bad_input_is_one_line(scene, tmp_path, case):
     args = {"not_ply": ["--model", str(text)], "link_to_text": ["--model", str(link)],
             "port_low": ["--model", str(scene["model"]), "--port", "-1"],
             "port_high": ["--model", str(scene["model"]), "--port", "70000"],
-            "seed_not_ply": ["--model", str(scene["model"]), "--seed", str(text)]}[case]
+            "seed_not_ply": ["--model", str(scene["model"]), "--seed-ply", str(text)]}[case]
     proc = _serve(args)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
