@@ -29,3 +29,19 @@ def run_logged(argv: list[str], log: Path, what: str | None = None) -> float:
         raise StageError(f"{what or ' '.join(argv[1:5])} failed with status {res.returncode} after {dt:.1f} s; "
                          f"end of {log}:\n{tail}")
     return dt
+
+
+def run_stage(args: list[str], log: Path) -> None:
+    """Run the stage command ``python args...`` with this interpreter from the repository root,
+    appending the command line and its output to ``log`` (one log for a cell's several
+    stages); a non-zero status raises :class:`StageError` naming the log."""
+    import sys
+
+    log = Path(log)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as fh:
+        fh.write("$ " + " ".join(args) + "\n")
+        fh.flush()
+        rc = subprocess.run([sys.executable, *args], cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT).returncode
+    if rc != 0:
+        raise StageError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")

@@ -25,10 +25,12 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
+from benchmarks._proc import run_stage as sh  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -56,17 +58,6 @@ VARIANTS: dict[str, dict] = {
     "paper-pose": {"recipe": "paper", "pose_refine": True},
     "mcmc": {"recipe": "mcmc"},
 }
-
-
-def sh(args: list[str], log: Path) -> None:
-    """Run a stage CLI with this interpreter; its output goes to ``log``; raise on failure."""
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "a") as f:
-        f.write("$ " + " ".join(args) + "\n")
-        f.flush()
-        rc = subprocess.run([sys.executable, *args], cwd=REPO, stdout=f, stderr=subprocess.STDOUT).returncode
-    if rc != 0:
-        raise RuntimeError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")
 
 
 def prepare(work: Path, scene: str, n: int, init: str, oracle_noise: str = "none") -> dict[str, Path]:

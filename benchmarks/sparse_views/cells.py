@@ -10,22 +10,10 @@ from __future__ import annotations
 
 import fcntl
 import json
-import subprocess
-import sys
 from pathlib import Path
 
-from benchmarks.sparse_views.protocol import REPO, Scene
-
-
-def sh(args: list[str], log: Path) -> None:
-    """Run a stage command with this interpreter, output appended to ``log``; raise on failure."""
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "a") as f:
-        f.write("$ " + " ".join(args) + "\n")
-        f.flush()
-        rc = subprocess.run([sys.executable, *args], cwd=REPO, stdout=f, stderr=subprocess.STDOUT).returncode
-    if rc != 0:
-        raise RuntimeError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")
+from benchmarks._proc import run_stage as sh
+from benchmarks.sparse_views.protocol import Scene
 
 
 def prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:

@@ -13,7 +13,7 @@ import json
 import time
 from pathlib import Path
 
-from benchmarks.sparse_views.cells import sh
+from benchmarks._proc import run_stage as sh
 
 RECORD_KEYS = ("scene", "role", "n", "recipe", "seed", "iterations", "psnr", "ssim", "lpips_alex", "lpips_vgg",
                "gaussians", "train_s", "backend")
