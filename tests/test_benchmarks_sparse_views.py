@@ -85,3 +85,24 @@ def test_run_skips_a_scene_whose_data_is_absent(tmp_path):
                           str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w")],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0 and "SKIP far" in out.stdout and "0 runs to do" in out.stdout
+
+
+def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
+    """``run`` on a small generated scene: the cell is prepared by the stage commands, one run
+    trained and scored, and its record holds the table's keys; a second ``run`` finds the record
+    and trains nothing."""
+    f = tmp_path / "p.yaml"
+    f.write_text("scenes:\n- {name: tiny, role: tuning, kind: synthetic, views: [3],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}', --views, '16', --width, '128']}\n")
+    cmd = [sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
+           "run", "--role", "tuning", "--recipes", "paper", "--seeds", "0", "--iterations", "20",
+           "--work", str(tmp_path / "w")]
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+    (rec_path,) = (tmp_path / "rec" / "runs").glob("*.json")
+    rec = json.loads(rec_path.read_text())
+    assert rec_path.name == "tiny_n3_paper_s0_i20.json" and set(RECORD_KEYS) <= set(rec)
+    assert rec["role"] == "tuning" and rec["iterations"] == 20 and rec["gaussians"] > 0
+    assert 5 < rec["psnr"] < 60 and 0 < rec["ssim"] <= 1 and rec["curve"]["psnr"]
+    again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    assert again.returncode == 0 and "0 runs to do" in again.stdout
