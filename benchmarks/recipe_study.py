@@ -31,6 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
 from benchmarks._proc import run_stage as sh  # noqa: E402
+from benchmarks.sparse_views.cells import bridge_and_align  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -76,8 +77,8 @@ def prepare(work: Path, scene: str, n: int, init: str, oracle_noise: str = "none
             str(train_txt)], logf)
         test = json.loads((s / "split.json").read_text())["test"]
         test_txt.write_text("\n".join(test) + "\n")
-    init_dir, bridge, align = work / init, work / "bridge", work / "align"
-    if not (bridge / "bridge.json").is_file():
+    init_dir = work / init
+    if not (work / "bridge" / "bridge.json").is_file():
         if init == "posed":
             sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
                 "--out", str(init_dir)], logf)
@@ -87,16 +88,7 @@ def prepare(work: Path, scene: str, n: int, init: str, oracle_noise: str = "none
         elif init == "oracle":
             sh(["-m", "evaluation.initialisers.oracle", "--scene", str(s), "--image-list", str(train_txt), "--out",
                 str(init_dir), *(VGGT_LIKE if oracle_noise == "vggt_like" else []), "--downsample", "2"], logf)
-        if (init_dir / "predictions.npz").is_file():
-            sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], logf)
-        else:
-            sh(["-m", "bridge", "--colmap", str(init_dir / "sparse" / "0"), "--images", str(s / "images"),
-                "--out", str(bridge)], logf)
-    if not (align / "align.json").is_file():
-        sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(s / "sparse" / "0"),
-            "--train-names", str(s / "split.json"), "--n", str(n), "--images", str(s / "images"), "--out",
-            str(align)], logf)
-    return {"scene": s, "train": train_txt, "test": test_txt, "bridge": bridge, "align": align}
+    return {"scene": s, "train": train_txt, "test": test_txt, **bridge_and_align(work, s, init_dir, n, logf)}
 
 
 def train_one(cell: dict[str, Path], out: Path, variant: str, seed: int, iterations: int, eval_every: int,

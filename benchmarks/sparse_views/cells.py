@@ -50,14 +50,26 @@ def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
             raise ValueError(f"{scene.name}: the split has no n = {n} (pool of {len(split['train_pool'])})")
         test_txt.write_text("\n".join(split["test"]) + "\n")
         train_txt.write_text("\n".join(split["train"][str(n)]) + "\n")
-    init_dir, bridge, align = work / "posed", work / "bridge", work / "align"
-    if not (bridge / "bridge.json").is_file():
+    init_dir = work / "posed"
+    if not (work / "bridge" / "bridge.json").is_file():
         sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
             "--out", str(init_dir)], logf)
-        sh(["-m", "bridge", "--colmap", str(init_dir / "sparse" / "0"), "--images", str(s / "images"),
-            "--out", str(bridge)], logf)
+    return {"scene": s, "train": train_txt, "test": test_txt, **bridge_and_align(work, s, init_dir, n, logf)}
+
+
+def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path) -> dict[str, Path]:
+    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else its
+    COLMAP model) into ``work/bridge``, then the held-out cameras aligned to it into
+    ``work/align``; each skipped when its output exists. Returns {"bridge", "align"}."""
+    bridge, align = work / "bridge", work / "align"
+    if not (bridge / "bridge.json").is_file():
+        if (init_dir / "predictions.npz").is_file():
+            sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], log)
+        else:
+            sh(["-m", "bridge", "--colmap", str(init_dir / "sparse" / "0"), "--images", str(scene / "images"),
+                "--out", str(bridge)], log)
     if not (align / "align.json").is_file():
-        sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref", str(s / "sparse" / "0"),
-            "--train-names", str(s / "split.json"), "--n", str(n), "--images", str(s / "images"), "--out",
-            str(align)], logf)
-    return {"scene": s, "train": train_txt, "test": test_txt, "bridge": bridge, "align": align}
+        sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref",
+            str(scene / "sparse" / "0"), "--train-names", str(scene / "split.json"), "--n", str(n), "--images",
+            str(scene / "images"), "--out", str(align)], log)
+    return {"bridge": bridge, "align": align}
