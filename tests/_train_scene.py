@@ -103,3 +103,20 @@ def write_pose_scene(root: Path, n_views: int = 5, width: int = 64, rot_deg: flo
     write_gaussian_ply(root / "seed.ply", gt)
     return {"seed": root / "seed.ply", "cameras": root / "sparse" / "0", "images": root / "images",
             "truth": cams, "given": noisy}
+
+
+def kill_at_loss_call(monkeypatch, call: int):
+    """Make the trainer's loss raise KeyboardInterrupt at its ``call``-th call, as a run killed
+    inside that iteration; returns a function that puts the real loss back (for the resume)."""
+    from splat_train import trainer as trainer_mod
+
+    real, calls = trainer_mod.photometric_loss, {"n": 0}
+
+    def killed(*args):
+        calls["n"] += 1
+        if calls["n"] == call:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    return lambda: monkeypatch.setattr(trainer_mod, "photometric_loss", real)

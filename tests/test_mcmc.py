@@ -15,9 +15,8 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from _train_scene import write_scene
+from _train_scene import kill_at_loss_call, write_scene
 from camio.ply import read_gaussian_ply
-from splat_train import trainer as trainer_mod
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
 from splat_train.densify import quat_to_rotmat
@@ -276,22 +275,13 @@ def test_resume_of_an_mcmc_run_gives_the_identical_model(scene, tmp_path, monkey
 
     full, part = tmp_path / "full", tmp_path / "part"
     run(full)
-    real = trainer_mod.photometric_loss
-    calls = {"n": 0}
-
-    def killed(*args):
-        calls["n"] += 1
-        if calls["n"] == 19:
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    restore = kill_at_loss_call(monkeypatch, 19)
     with pytest.raises(KeyboardInterrupt):
         run(part)
     ck = load_checkpoint(list_checkpoints(part)[-1][1])
     assert ck["iteration"] == 16 and set(ck["strategy_state"]) == {"relocated", "added"}
     assert int(ck["strategy_state"]["added"]) > 0
-    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    restore()
     res = run(part)
     assert res.summary["resumed_from"].endswith("ckpt_0000016.pt")
     a, b = read_gaussian_ply(full / "model.ply"), read_gaussian_ply(part / "model.ply")

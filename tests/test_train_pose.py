@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from _train_scene import write_pose_scene
+from _train_scene import kill_at_loss_call, write_pose_scene
 from camio.colmap import SparseModel, read_model
 from evaluation.metrics.pose import evaluate_pose
 from splat_train.config import TrainConfig
@@ -118,22 +118,12 @@ def test_refinement_off_leaves_the_cameras_and_zero_rate_does_nothing(pose_scene
 
 
 def test_resume_with_refinement_is_exact(pose_scene, tmp_path, monkeypatch):
-    from splat_train import trainer as trainer_mod
-
     over = dict(iterations=30, checkpoint_every=10, pose_refine=True, pose_refine_focal=True, lr_focal=1e-3)
     _train(pose_scene, tmp_path / "full", **over)
-    real, calls = trainer_mod.photometric_loss, {"n": 0}
-
-    def killed(*args):
-        calls["n"] += 1
-        if calls["n"] == 25:
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    restore = kill_at_loss_call(monkeypatch, 25)
     with pytest.raises(KeyboardInterrupt):
         _train(pose_scene, tmp_path / "part", **over)
-    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    restore()
     res = _train(pose_scene, tmp_path / "part", **over)
     assert res.summary["resumed_from"].endswith("ckpt_0000020.pt")
     for a, b in zip(read_model(tmp_path / "full" / "cameras_refined").cameras,

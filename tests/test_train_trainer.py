@@ -8,7 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from _train_scene import write_scene
+from _train_scene import kill_at_loss_call, write_scene
 from camio.colmap import read_model
 from camio.ply import read_gaussian_ply
 from splat_train import trainer as trainer_mod
@@ -82,20 +82,11 @@ def test_resume_gives_identical_model(scene, tmp_path, monkeypatch):
     _train(scene, full)
     # "killed" run: dies inside iteration 19 (checkpoints at 8 and 16), then resumes to 24.
     part = tmp_path / "part"
-    real = trainer_mod.photometric_loss
-    calls = {"n": 0}
-
-    def killed(*args):
-        calls["n"] += 1
-        if calls["n"] == 19:
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
+    restore = kill_at_loss_call(monkeypatch, 19)
     with pytest.raises(KeyboardInterrupt):
         _train(scene, part)
     assert [i for i, _ in list_checkpoints(part)] == [8, 16]
-    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    restore()
     res = _train(scene, part)
     assert res.summary["resumed_from"].endswith("ckpt_0000016.pt")
     a, b = read_gaussian_ply(full / "model.ply"), read_gaussian_ply(part / "model.ply")
