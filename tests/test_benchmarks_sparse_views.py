@@ -106,3 +106,13 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert 5 < rec["psnr"] < 60 and 0 < rec["ssim"] <= 1 and rec["curve"]["psnr"]
     again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     assert again.returncode == 0 and "0 runs to do" in again.stdout
+    # the same name with other recipe values: the kept record, then (record removed) the kept
+    # model, are refused by name, never reused
+    changed = [*cmd[:cmd.index("paper")], 'paper={"recipe": "paper", "densify_grad_threshold": 0.001}',
+               *cmd[cmd.index("paper") + 1:]]
+    stale = subprocess.run(changed, cwd=REPO, capture_output=True, text=True)
+    assert stale.returncode == 2 and "densify_grad_threshold" in stale.stderr and "remove it" in stale.stderr
+    rec_path.unlink()
+    stale = subprocess.run(changed, cwd=REPO, capture_output=True, text=True)
+    assert stale.returncode == 2 and "densify_grad_threshold" in stale.stderr and "remove the folder" in stale.stderr
+    assert "Traceback" not in stale.stderr and not rec_path.exists()

@@ -36,7 +36,7 @@ def _variant(text: str) -> tuple[str, dict]:
 
 def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import prepare
-    from benchmarks.sparse_views.runs import record, run_name, train_and_score
+    from benchmarks.sparse_views.runs import record, resolved_values, run_name, stale_keys, train_and_score
 
     scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
               and (not args.scenes or s.name in args.scenes)]
@@ -55,6 +55,16 @@ def cmd_run(args) -> int:
                     rec_path = runs_dir / f"{run_name(s.name, n, name, seed, args.iterations)}.json"
                     if not rec_path.is_file():
                         todo.append((s, n, seed, name, cfg, rec_path))
+                        continue
+                    kept = json.loads(rec_path.read_text()).get("values")
+                    want = resolved_values(cfg.get("recipe", name), {k: v for k, v in cfg.items() if k != "recipe"},
+                                           args.iterations)
+                    bad = ["values (an older record)"] if kept is None else stale_keys(kept, want)
+                    if bad:
+                        print(f"error: {rec_path} was made with other values of {', '.join(bad)} than "
+                              f"{name!r} gives now: remove it (and its run folder under --work) to run it "
+                              f"again", file=sys.stderr)
+                        return 2
     if args.shard:
         k, m = (int(x) for x in args.shard.split("/"))
         todo = todo[k::m]

@@ -5,6 +5,12 @@ the final model is rendered into the aligned held-out cameras (``python -m splat
 render``) and scored by ``python -m evaluation images`` (PSNR, SSIM, LPIPS-Alex, LPIPS-VGG),
 the same commands the workflow runs. The record holds the keys of the results table
 (:data:`RECORD_KEYS`) and the held-out curve.
+
+A run is found again by its name (scene, n, recipe, seed, iterations), so a recipe whose values
+changed since would silently reuse the old model and record. Every record therefore keeps the
+values its run resolved (``values``: the recipe's parts, thresholds and schedule in
+iterations, :func:`resolved_values`); a kept model or record whose values differ from what the
+recipe gives now stops the run with :class:`StaleRun`, naming the keys and the path to remove.
 """
 
 from __future__ import annotations
@@ -14,6 +20,37 @@ import time
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
+
+class StaleRun(ValueError):
+    """A kept model or record was made with other recipe values than the recipe gives now."""
+
+
+def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
+    """What a run of ``recipe`` with config ``overrides`` resolves to: the recipe-set values
+    (regularisation parts, densification thresholds, strategy) and the schedule in iterations."""
+    from splat_train.config import load_config
+    from splat_train.recipes import PART_KEYS, VALUE_KEYS
+
+    cfg = load_config({"recipe": recipe, **overrides}, iterations=iterations, device="cpu")
+    out = {k: getattr(cfg, k) for k in (*PART_KEYS, "depth_ramp_fraction", *VALUE_KEYS)}
+    sched = cfg.schedule().to_dict()
+    sched.pop("source", None)
+    return {**out, **sched}
+
+
+def stale_keys(found: dict, want: dict) -> list[str]:
+    """The keys of ``want`` whose value in ``found`` differs (numbers compared as floats)."""
+    def same(a, b) -> bool:
+        if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+            return float(a) == float(b)
+        return a == b
+    return sorted(k for k, v in want.items() if k not in found or not same(found[k], v))
+
+
+def train_values(tj: dict) -> dict:
+    """The values a finished run resolved, read from its train.json (config + schedule)."""
+    return {**(tj.get("config") or {}), **(tj.get("schedule") or {})}
+
 
 RECORD_KEYS = ("scene", "role", "n", "recipe", "seed", "iterations", "psnr", "ssim", "lpips_alex", "lpips_vgg",
                "gaussians", "train_s", "backend")
@@ -28,7 +65,13 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
     exists, then score the final model unless its metrics.json exists; return the measures."""
     logf = out.parent / f"{out.name}.log"
-    if not (out / "train.json").is_file():
+    want = resolved_values(recipe, config or {}, iterations)
+    if (out / "train.json").is_file():
+        bad = stale_keys(train_values(json.loads((out / "train.json").read_text())), want)
+        if bad:
+            raise StaleRun(f"{out} was trained with other values of {', '.join(bad)} than recipe {recipe!r} "
+                           f"gives now: remove the folder to train it again")
+    else:
         cfg = {"recipe": recipe, **(config or {})}
         sh(["-m", "splat_train", "--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
             "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
@@ -51,7 +94,7 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
             "--lpips-nets", "alex", "vgg"], logf)
     tj = json.loads((out / "train.json").read_text())
     m = json.loads(metrics.read_text())
-    return {"train": tj, "metrics": m}
+    return {"train": tj, "metrics": m, "values": want}
 
 
 def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, result: dict,
@@ -68,5 +111,5 @@ def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, re
         "best_psnr": c.get("best_test_psnr"), "best_iteration": c.get("best_iteration"),
         "curve": {"iterations": c.get("iterations"), "psnr": c.get("test_psnr")},
         "config": {"recipe": recipe, **(config or {})}, "schedule": tj.get("schedule"),
-        "device": tj.get("device"), "recorded": time.strftime("%Y-%m-%d"),
+        "values": result.get("values"), "device": tj.get("device"), "recorded": time.strftime("%Y-%m-%d"),
     }
