@@ -43,15 +43,20 @@ def test_paper_recipe_keeps_the_seed_schedule(iterations, expected):
     assert (cfg.dropout_rate, cfg.depth_weight, cfg.max_gaussians_for(10**6)) == (0.0, 0.0, None)
 
 
-def test_sparse_recipe_stops_growth_at_half_and_sizes_the_cap():
-    cfg = TrainConfig(recipe="sparse", iterations=10000)
+@pytest.mark.parametrize("iterations, expected", [
+    (10000, (500, 10000, 100, 0)),
+    (1000, (50, 1000, 100, 0)),  # the field's period at any length, never 1 % of the run
+])
+def test_sparse_recipe_grows_every_100_to_the_end_under_its_cap(iterations, expected):
+    cfg = TrainConfig(recipe="sparse", iterations=iterations)
     s = cfg.schedule()
-    assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == (500, 5000, 100, 0)
+    assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == expected
     assert s.source["opacity_reset_every"] == "recipe sparse: never"
     assert cfg.max_gaussians_for(571_000) == 57_100  # 0.1 per training pixel
     assert TrainConfig(recipe="sparse", iterations=10000, max_gaussians=1000).max_gaussians_for(571_000) == 1000
     assert TrainConfig(recipe="sparse", iterations=10000, gaussians_per_pixel=0).max_gaussians_for(571_000) is None
-    assert TrainConfig(recipe="sparse", iterations=300).schedule().densify_every == 20  # MIN_DENSIFY_EVERY
+    # a period that is a fraction of the run (mcmc's 100/30000) never falls below MIN_DENSIFY_EVERY
+    assert TrainConfig(recipe="mcmc", iterations=300).schedule().densify_every == 20
 
 
 def test_a_schedule_value_means_what_it_says():
