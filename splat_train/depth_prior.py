@@ -174,5 +174,6 @@ class DepthPriorLoss(TrainPart):
         return w * samples.loss(render["depth"])
 
     def summary(self) -> dict:
+        """``depth_prior``: the file, its usable samples and the views that have them."""
         return {"depth_prior": {"path": str(self.prior.path), "samples": self.prior.num_samples,
                                 "views": sorted(self.prior.views)}}

@@ -66,6 +66,8 @@ class GaussianDropout(TrainPart):
         self.final_rate, self.iterations, self.generator = float(final_rate), int(iterations), generator
 
     def opacity_fn(self, iteration: int) -> OpacityFn | None:
+        """[N] opacities -> :func:`gaussian_dropout` at this iteration's rate (None at rate 0);
+        each call of the map draws one mask from the generator."""
         rate = dropout_rate_at(iteration, self.iterations, self.final_rate)
         if rate <= 0:
             return None

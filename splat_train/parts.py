@@ -29,9 +29,9 @@ from splat_train.depth_prior import DepthPriorLoss, load_depth_prior
 from splat_train.dropout import GaussianDropout
 from splat_train.losses import gaussian_regularisers
 from splat_train.pose import PoseRefinement
-from splat_train.train_part import TrainPart
+from splat_train.train_part import OpacityFn, TrainPart
 
-__all__ = ["GaussianRegularisers", "recipe_parts"]
+__all__ = ["GaussianRegularisers", "opacity_map", "recipe_parts"]
 
 log = logging.getLogger(__name__)
 
@@ -83,3 +83,17 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
         parts.append(PoseRefinement(cameras, names, cfg.pose_refine_focal, cfg.lr_pose, cfg.lr_focal,
                                     cfg.pose_refine_from, cfg.pose_warmup))
     return parts
+
+
+def opacity_map(parts: list[TrainPart], iteration: int) -> OpacityFn | None:
+    """The parts' maps of the training render's [N] opacities at ``iteration``, composed in the
+    parts' order (None when no part maps them)."""
+    fns = [f for f in (p.opacity_fn(iteration) for p in parts) if f is not None]
+    if len(fns) <= 1:
+        return fns[0] if fns else None
+
+    def composed(opacities: Tensor) -> Tensor:
+        for f in fns:
+            opacities = f(opacities)
+        return opacities
+    return composed

@@ -217,6 +217,7 @@ class PoseRefinement(TrainPart):
         return self.corrections(view, cam_from_world), self.corrections.intrinsics(view, K)
 
     def after_step(self, iteration: int) -> None:
+        """Adam step of the corrections at the ramped rates, then the scale gauge (no host read)."""
         f = pose_lr_factor(iteration, self.refine_from, self.warmup)
         for g in self.optimizer.param_groups:
             g["lr"] = f * self.lr[g["name"]]
@@ -225,6 +226,8 @@ class PoseRefinement(TrainPart):
         self.corrections.fix_scale_(self.given)
 
     def state_dict(self) -> dict[str, Any]:
+        """``state``: the corrections ([C, 6] ``delta``, [C] ``log_focal``, [C, 1] ``free``),
+        ``optimizer``: their Adam state."""
         return {"state": {k: v.detach().clone() for k, v in self.corrections.state_dict().items()},
                 "optimizer": self.optimizer.state_dict()}
 

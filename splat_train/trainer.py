@@ -67,10 +67,9 @@ from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_c
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
 from splat_train.losses import photometric_loss
 from splat_train.mcmc import MCMCStrategy
-from splat_train.parts import recipe_parts
+from splat_train.parts import opacity_map, recipe_parts
 from splat_train.pose import PoseCorrections, PoseRefinement
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
-from splat_train.train_part import OpacityFn
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
 
@@ -284,36 +283,15 @@ class Trainer:
             cw, K = part.camera(self.iteration, idx, cw, K)
         return cw, K
 
-    def camera(self, idx: int) -> torch.Tensor:
-        """[4, 4] cam_from_world of training view ``idx`` (:meth:`view_camera`)."""
-        return self.view_camera(idx)[0]
-
-    def intrinsics(self, idx: int) -> torch.Tensor:
-        """[3, 3] K of training view ``idx`` (:meth:`view_camera`)."""
-        return self.view_camera(idx)[1]
-
-    def opacity_fn(self, it: int) -> OpacityFn | None:
-        """The parts' maps of the training render's [N] opacities at iteration ``it``, composed
-        in the parts' order (None when no part maps them)."""
-        fns = [f for f in (p.opacity_fn(it) for p in self.parts) if f is not None]
-        if len(fns) <= 1:
-            return fns[0] if fns else None
-
-        def composed(opacities: torch.Tensor) -> torch.Tensor:
-            for f in fns:
-                opacities = f(opacities)
-            return opacities
-        return composed
-
     def refined_cameras(self) -> list[torch.Tensor]:
         """[4, 4] cam_from_world per training view (refined when pose refinement is on)."""
         with torch.no_grad():
-            return [self.camera(i).detach() for i in range(len(self.train_views))]
+            return [self.view_camera(i)[0].detach() for i in range(len(self.train_views))]
 
     def refined_intrinsics(self) -> list[torch.Tensor]:
         """[3, 3] K per training view (refined with focal refinement)."""
         with torch.no_grad():
-            return [self.intrinsics(i).detach() for i in range(len(self.train_views))]
+            return [self.view_camera(i)[1].detach() for i in range(len(self.train_views))]
 
     def step(self) -> torch.Tensor:
         """One optimisation iteration (``self.iteration`` is advanced first).
@@ -335,7 +313,7 @@ class Trainer:
         cam = self.train_views[idx].camera
         cam_from_world, K = self.view_camera(idx)
         out = render_params(self.params, deg, cam_from_world, K, cam.width, cam.height, bg, self.backend,
-                            opacity_fn=self.opacity_fn(it))
+                            opacity_fn=opacity_map(self.parts, it))
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
         for part in self.parts:
             term = part.loss(it, idx, out, self.params)
