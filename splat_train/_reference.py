@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from splat_train.projection import TILE_SIZE
+from splat_train.projection import Projected
 
 __all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "blend_dense", "depth_order"]
 
@@ -47,34 +47,25 @@ def depth_order(depths: Tensor, visible: Tensor) -> Tensor:
     return idx[order]
 
 
-def blend_dense(
-    means2d: Tensor,
-    conics: Tensor,
-    features: Tensor,
-    opacities: Tensor,
-    depths: Tensor,
-    rect: Tensor,
-    visible: Tensor,
-    width: int,
-    height: int,
-    tile_size: int = TILE_SIZE,
-) -> tuple[Tensor, Tensor]:
+def blend_dense(proj: Projected, features: Tensor, opacities: Tensor) -> tuple[Tensor, Tensor]:
     """Dense front-to-back blending of projected Gaussians.
 
     Args:
-        means2d: [N, 2] pixel coordinates (COLMAP: pixel (i, j) centre at (j + .5, i + .5)).
-        conics: [N, 3] inverse 2D covariance (a, b, c).
+        proj: the screen-space Gaussians of one image (:class:`splat_train.projection.Projected`);
+            read: ``means2d`` [N, 2] pixel coordinates (COLMAP: pixel (i, j) centre at
+            (j + .5, i + .5)), ``conics`` [N, 3] inverse 2D covariance (a, b, c), ``depths``
+            [N] camera z (sort key only), ``rect`` [N, 4] int tile rectangle (x_min, x_max,
+            y_min, y_max) in tiles of ``tile_size`` pixels, max exclusive, ``visible`` [N]
+            bool, and the image size ``width`` x ``height``.
         features: [N, F] per-Gaussian values to blend (colour, depth, ...).
         opacities: [N] in [0, 1].
-        depths: [N] camera z (sort key only).
-        rect: [N, 4] int tile rectangle (x_min, x_max, y_min, y_max), max exclusive.
-        visible: [N] bool.
-        width, height: image size.
 
     Returns:
-        accum [H, W, F] (no background) and T_final [H, W].
+        accum [H, W, F] (no background) and T_final [H, W], rows = image y.
     """
-    order = depth_order(depths, visible)
+    means2d, conics, rect = proj.means2d, proj.conics, proj.rect
+    width, height, tile_size = proj.width, proj.height, proj.tile_size
+    order = depth_order(proj.depths, proj.visible)
     dev, dt = means2d.device, means2d.dtype
     nf = features.shape[1]
     if order.numel() == 0:

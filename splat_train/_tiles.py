@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from splat_train._reference import ALPHA_MAX, ALPHA_MIN, T_MIN, depth_order
-from splat_train.projection import TILE_SIZE
+from splat_train.projection import TILE_SIZE, Projected
 
 __all__ = ["tile_pairs", "blend_tiles"]
 
@@ -97,23 +97,16 @@ def _blend_chunk(tiles, offsets, gauss, means2d, conics, features, opacities, ti
     return accum, trans[..., -1]
 
 
-def blend_tiles(
-    means2d: Tensor,
-    conics: Tensor,
-    features: Tensor,
-    opacities: Tensor,
-    depths: Tensor,
-    rect: Tensor,
-    visible: Tensor,
-    width: int,
-    height: int,
-    tile_size: int = TILE_SIZE,
-) -> tuple[Tensor, Tensor]:
+def blend_tiles(proj: Projected, features: Tensor, opacities: Tensor) -> tuple[Tensor, Tensor]:
     """Vectorised tile blending (autograd); arguments and results as
-    :func:`splat_train._reference.blend_dense`: accum [H, W, F], T_final [H, W]."""
+    :func:`splat_train._reference.blend_dense`: ``proj`` the screen-space Gaussians of one image
+    (pixels, COLMAP convention), ``features`` [N, F], ``opacities`` [N]; returns accum
+    [H, W, F] (no background) and T_final [H, W], rows = image y."""
+    means2d, conics = proj.means2d, proj.conics
+    width, height, tile_size = proj.width, proj.height, proj.tile_size
     dev, dt = means2d.device, means2d.dtype
     nf = features.shape[1]
-    offsets, gauss, tiles_x, tiles_y = tile_pairs(depths, rect, visible, width, height, tile_size)
+    offsets, gauss, tiles_x, tiles_y = tile_pairs(proj.depths, proj.rect, proj.visible, width, height, tile_size)
     n_tiles = tiles_x * tiles_y
     npix = tile_size * tile_size
     counts = offsets[1:] - offsets[:-1]

@@ -7,7 +7,8 @@ depth samples of each training camera, in the seed's normalised frame, each with
 depth (``rasterize(...)["depth"]``, differentiable in every backend) is read at the samples'
 pixels and compared with :func:`pearson_depth_loss`, which is invariant to the scale and
 shift of either depth: a prior whose scale or offset differs from the model's still shapes
-the geometry. The weight ramps in (:func:`depth_weight_at`).
+the geometry. The weight ramps in (:func:`depth_weight_at`). :class:`DepthPriorLoss` is the
+training part (:mod:`splat_train.train_part`) that adds the term to the trainer's loss.
 
 This is where the initialiser's confidence keeps acting after iteration 0: a confident sample
 pulls the rendered depth more than an unsure one.
@@ -24,8 +25,10 @@ import torch
 from torch import Tensor
 
 from camio.depth_prior import read_depth_prior
+from splat_train.train_part import TrainPart
 
-__all__ = ["DepthPrior", "ViewSamples", "load_depth_prior", "pearson_depth_loss", "depth_weight_at"]
+__all__ = ["DepthPrior", "DepthPriorLoss", "ViewSamples", "load_depth_prior", "pearson_depth_loss",
+           "depth_weight_at"]
 
 log = logging.getLogger(__name__)
 
@@ -143,3 +146,34 @@ def load_depth_prior(path: str | Path, sizes: dict[str, tuple[int, int]], device
             weight=torch.as_tensor(wk[ok] if use_confidence else np.ones(int(ok.sum())), dtype=torch.float32,
                                    device=device))
     return DepthPrior(Path(path), views)
+
+
+class DepthPriorLoss(TrainPart):
+    """The depth prior as a training part: adds ``depth_weight_at(it) x`` the Pearson loss of
+    the rendered depth at the view's samples (no term for a view without samples).
+
+    Args:
+        prior: the loaded prior (:func:`load_depth_prior`).
+        view_names: image name of each training view, in the trainer's order.
+        weight, ramp_fraction, iterations: as :func:`depth_weight_at`.
+    """
+
+    name = "depth_prior"
+
+    def __init__(self, prior: DepthPrior, view_names: list[str], weight: float, ramp_fraction: float,
+                 iterations: int) -> None:
+        self.prior, self.view_names = prior, list(view_names)
+        self.weight, self.ramp_fraction, self.iterations = float(weight), float(ramp_fraction), int(iterations)
+
+    def loss(self, iteration: int, view: int, render: dict[str, Tensor], params: dict[str, Tensor]) -> Tensor | None:
+        """``w(it) x`` :meth:`ViewSamples.loss` of ``render["depth"]`` [H, W] (camera z), or None."""
+        samples = self.prior.views.get(self.view_names[view])
+        w = depth_weight_at(iteration, self.iterations, self.weight, self.ramp_fraction)
+        if samples is None or w <= 0:
+            return None
+        return w * samples.loss(render["depth"])
+
+    def summary(self) -> dict:
+        """``depth_prior``: the file, its usable samples and the views that have them."""
+        return {"depth_prior": {"path": str(self.prior.path), "samples": self.prior.num_samples,
+                                "views": sorted(self.prior.views)}}

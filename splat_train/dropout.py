@@ -4,8 +4,10 @@ At each training iteration every Gaussian's opacity is zeroed with probability p
 survivors' opacity is divided by 1 - p, so that the expected opacity of each Gaussian is
 unchanged; p ramps linearly from 0 to the final rate over the run (:func:`dropout_rate_at`).
 The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
-anything: only :meth:`splat_train.trainer.Trainer.step` calls :func:`gaussian_dropout`. Working
-on the opacities before the rasterizer, it acts the same through every backend.
+anything: only the training render of :meth:`splat_train.trainer.Trainer.step` goes through
+:class:`GaussianDropout`, the training part (:mod:`splat_train.train_part`) that applies
+:func:`gaussian_dropout`. Working on the opacities before the rasterizer, it acts the same
+through every backend.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["dropout_rate_at", "gaussian_dropout"]
+from splat_train.train_part import OpacityFn, TrainPart
+
+__all__ = ["dropout_rate_at", "gaussian_dropout", "GaussianDropout"]
 
 
 def dropout_rate_at(iteration: int, iterations: int, final_rate: float) -> float:
@@ -44,3 +48,27 @@ def gaussian_dropout(opacities: Tensor, rate: float, generator: torch.Generator 
     u = torch.rand(opacities.shape[0], generator=generator, dtype=torch.float32)
     keep = (u >= rate).to(device=opacities.device, dtype=opacities.dtype)
     return opacities * (keep / (1.0 - rate))
+
+
+class GaussianDropout(TrainPart):
+    """Gaussian dropout as a training part: each training render's opacities go through
+    :func:`gaussian_dropout` at the rate :func:`dropout_rate_at` gives for the iteration.
+
+    Args:
+        final_rate: the rate reached at the last iteration (> 0).
+        iterations: the run's length.
+        generator: the trainer's CPU generator (checkpointed by the trainer).
+    """
+
+    name = "dropout"
+
+    def __init__(self, final_rate: float, iterations: int, generator: torch.Generator) -> None:
+        self.final_rate, self.iterations, self.generator = float(final_rate), int(iterations), generator
+
+    def opacity_fn(self, iteration: int) -> OpacityFn | None:
+        """[N] opacities -> :func:`gaussian_dropout` at this iteration's rate (None at rate 0);
+        each call of the map draws one mask from the generator."""
+        rate = dropout_rate_at(iteration, self.iterations, self.final_rate)
+        if rate <= 0:
+            return None
+        return lambda opacities: gaussian_dropout(opacities, rate, self.generator)

@@ -23,13 +23,21 @@ Gauge (the photometric loss does not see it, so it must not drift):
   of the given cameras (:func:`scale_gauge_factor`). The Gaussians also pin the scale, but
   only weakly through the view-space gradients; this keeps the refined cameras in the seed's
   units exactly, which the held-out Sim(3) alignment and the benchmarks rely on.
+
+:class:`PoseRefinement` is the training part (:mod:`splat_train.train_part`): it owns the
+corrections and their Adam, gives the trainer the refined camera of each view and steps after
+the Gaussians.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
-__all__ = ["so3_exp", "scale_gauge_factor", "camera_spread", "PoseCorrections", "pose_lr_factor"]
+from splat_train.train_part import TrainPart
+
+__all__ = ["so3_exp", "scale_gauge_factor", "camera_spread", "PoseCorrections", "PoseRefinement", "pose_lr_factor"]
 
 
 def so3_exp(omega: torch.Tensor) -> torch.Tensor:
@@ -163,3 +171,79 @@ def pose_lr_factor(iteration: int, start: int, warmup: int) -> float:
     if warmup <= 0:
         return 1.0
     return min(1.0, (iteration - start + 1) / float(warmup))
+
+
+class PoseRefinement(TrainPart):
+    """Pose (and focal) refinement as a training part.
+
+    From iteration ``refine_from`` on, view c is rendered with the corrected camera
+    (:meth:`PoseCorrections.forward`, :meth:`PoseCorrections.intrinsics`); after every
+    Gaussian step the corrections take an Adam step at the rates ramped by
+    :func:`pose_lr_factor`, and the scale gauge is restored (:meth:`PoseCorrections.fix_scale_`).
+
+    Args:
+        given: C [4, 4] cam_from_world of the training views as given (world frame of the seed),
+            on the training device, camera 0 first (the fixed one).
+        view_names: image name of each view (camera 0's is reported as the fixed camera).
+        refine_focal: also learn one log-focal correction per camera.
+        lr_pose, lr_focal: Adam rates of the corrections (before the ramp).
+        refine_from, warmup: as :func:`pose_lr_factor`.
+
+    Attributes:
+        corrections: the :class:`PoseCorrections`; optimizer: their ``torch.optim.Adam``
+            (groups "pose" and, with ``refine_focal``, "focal").
+    """
+
+    name = "pose"
+
+    def __init__(self, given: list[torch.Tensor], view_names: list[str], refine_focal: bool, lr_pose: float,
+                 lr_focal: float, refine_from: int, warmup: int) -> None:
+        self.given, self.view_names = list(given), list(view_names)
+        self.lr = {"pose": float(lr_pose), "focal": float(lr_focal)}
+        self.refine_from, self.warmup = int(refine_from), int(warmup)
+        self.corrections = PoseCorrections(len(given), given[0].device, refine_focal=refine_focal,
+                                           trans_scale=camera_spread(given))
+        groups = [{"params": [self.corrections.delta], "lr": lr_pose, "name": "pose"}]
+        if self.corrections.log_focal is not None:
+            groups.append({"params": [self.corrections.log_focal], "lr": lr_focal, "name": "focal"})
+        self.optimizer = torch.optim.Adam(groups)
+
+    def camera(self, iteration: int, view: int, cam_from_world: torch.Tensor,
+               K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The refined [4, 4] cam_from_world and [3, 3] K of ``view`` from ``refine_from`` on
+        (differentiable in the corrections), the given ones before."""
+        if iteration < self.refine_from:
+            return cam_from_world, K
+        return self.corrections(view, cam_from_world), self.corrections.intrinsics(view, K)
+
+    def after_step(self, iteration: int) -> None:
+        """Adam step of the corrections at the ramped rates, then the scale gauge (no host read)."""
+        f = pose_lr_factor(iteration, self.refine_from, self.warmup)
+        for g in self.optimizer.param_groups:
+            g["lr"] = f * self.lr[g["name"]]
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.corrections.fix_scale_(self.given)
+
+    def state_dict(self) -> dict[str, Any]:
+        """``state``: the corrections ([C, 6] ``delta``, [C] ``log_focal``, [C, 1] ``free``),
+        ``optimizer``: their Adam state."""
+        return {"state": {k: v.detach().clone() for k, v in self.corrections.state_dict().items()},
+                "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.corrections.load_state_dict(state["state"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+    def summary(self) -> dict[str, Any]:
+        """``pose_correction``: the gauge, the largest rotation (radians), translation (world
+        units) and log-focal correction."""
+        c = self.corrections
+        d = c.delta.detach().cpu()
+        return {"pose_correction": {
+            "fixed_camera": self.view_names[0],
+            "gauge": "first camera and the RMS centre distance from it fixed",
+            "max_log_focal": None if c.log_focal is None else float(c.log_focal.detach().abs().max()),
+            "max_rot_rad": float(d[:, :3].norm(dim=1).max()),
+            "max_trans": float(d[:, 3:].norm(dim=1).max()) * c.trans_scale,
+            "trans_scale": c.trans_scale}}

@@ -46,7 +46,10 @@ EPS2D = 0.3
 
 @dataclass
 class Projected:
-    """Screen-space Gaussians. All tensors have N rows; culled rows hold harmless finite values.
+    """Screen-space Gaussians of one image: what the blending backends read (``means2d``,
+    ``conics``, ``depths``, ``rect``, ``visible`` and the image size), one argument instead of
+    their former nine positional tensors. All tensors have N rows; culled rows hold harmless
+    finite values. Pixel coordinates follow COLMAP (top-left pixel centre at (0.5, 0.5)).
 
     Attributes:
         means2d: [N, 2] pixel coordinates (COLMAP convention), dtype of the input means.
@@ -56,6 +59,8 @@ class Projected:
         radii: [N] int32 3-sigma radius in pixels, 0 when culled.
         rect: [N, 4] int64 tile rectangle (x_min, x_max, y_min, y_max), max exclusive.
         visible: [N] bool, ``radii > 0``.
+        width, height: the image size in pixels that ``means2d`` and ``rect`` refer to.
+        tile_size: edge in pixels of the tiles that ``rect`` counts (16).
     """
 
     means2d: Tensor
@@ -65,6 +70,9 @@ class Projected:
     radii: Tensor
     rect: Tensor
     visible: Tensor
+    width: int
+    height: int
+    tile_size: int = TILE_SIZE
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
@@ -214,4 +222,7 @@ def project_gaussians(
         radii=radii,
         rect=rect,
         visible=visible,
+        width=int(width),
+        height=int(height),
+        tile_size=int(tile_size),
     )

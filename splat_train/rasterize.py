@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from splat_train import _reference
-from splat_train.projection import EPS2D, NEAR_PLANE, project_gaussians
+from splat_train.projection import EPS2D, NEAR_PLANE, Projected, project_gaussians
 from splat_train.sh import num_sh_bases, sh_concat, sh_to_color
 
 __all__ = ["rasterize", "resolve_backend", "BACKENDS", "SKEW_ERROR"]
@@ -93,37 +93,30 @@ def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor, kerne
     return cpu_project.available()
 
 
-def blend(
-    backend: str,
-    means2d: Tensor,
-    conics: Tensor,
-    features: Tensor,
-    opacities: Tensor,
-    depths: Tensor,
-    rect: Tensor,
-    visible: Tensor,
-    width: int,
-    height: int,
-) -> tuple[Tensor, Tensor]:
+def blend(backend: str, proj: Projected, features: Tensor, opacities: Tensor) -> tuple[Tensor, Tensor]:
     """Front-to-back blend projected Gaussians with one backend ("cpu", "torch", "reference").
 
-    Args/returns as :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no
-    background) and final transmittance [H, W].
+    Args:
+        backend: the blending backend.
+        proj: the screen-space Gaussians of one image (pixels, COLMAP convention).
+        features: [N, F] per-Gaussian values to blend (colour, then depth).
+        opacities: [N] in [0, 1], dtype of ``proj.means2d``.
+
+    Returns:
+        As :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no background) and
+        final transmittance [H, W].
     """
     if backend == "reference":
-        fn = _reference.blend_dense
-    elif backend == "torch":
+        return _reference.blend_dense(proj, features, opacities)
+    if backend == "torch":
         from splat_train import _tiles
 
-        fn = _tiles.blend_tiles
-    elif backend == "cpu":
+        return _tiles.blend_tiles(proj, features, opacities)
+    if backend == "cpu":
         from splat_train.cpu import raster as cpu_raster
 
-        return cpu_raster.blend_cpu(means2d, conics, features, opacities, depths, rect, visible, width, height,
-                                    kernel=backend)
-    else:
-        raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
-    return fn(means2d, conics, features, opacities, depths, rect, visible, width, height)
+        return cpu_raster.blend_cpu(proj, features, opacities, kernel=backend)
+    raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
 
 
 def _check_zero_skew(K: Tensor) -> None:
@@ -267,10 +260,7 @@ def rasterize(
         means2d.retain_grad()
     if features is None:
         features = torch.cat([rgb_g.to(dt), proj.depths[:, None]], dim=1)
-    accum, t_final = blend(
-        which, means2d, proj.conics, features, opacities.to(dt), proj.depths, proj.rect,
-        proj.visible, width, height,
-    )
+    accum, t_final = blend(which, proj, features, opacities.to(dt))
     alpha = 1.0 - t_final
     if background.device.type == "cpu" and not background.requires_grad and not bool(background.any()):
         # black (the trainer's default): the same values as the sum below, in one copy instead

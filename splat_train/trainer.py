@@ -4,11 +4,18 @@ One iteration (1-based ``it``): set the position rate (exponential decay x scene
 the next training view from a shuffled stack (refilled with a new permutation when empty, as
 3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
 (+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
-view-space gradient statistics, Adam step (Gaussians, then pose corrections if enabled, their
-rate ramped by :func:`splat_train.pose.pose_lr_factor` and their scale gauge restored), the
-held-out evaluation when due, then densify / prune / reset opacity when the schedule says so
-(:mod:`splat_train.densify`), or with the ``mcmc`` strategy relocate / add and inject position
-noise (:mod:`splat_train.mcmc`), then the checkpoint when due.
+view-space gradient statistics, Adam step of the Gaussians, the held-out evaluation when due,
+then densify / prune / reset opacity when the schedule says so (:mod:`splat_train.densify`), or
+with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat_train.mcmc`),
+then the checkpoint when due.
+
+The recipe's regularisers and extra optimisations are training parts
+(:mod:`splat_train.train_part`, listed by :func:`splat_train.parts.recipe_parts`), whose hooks
+the iteration runs in the list's order: the view's camera (pose refinement), a map of the
+opacities of the training render (Gaussian dropout), loss terms added after the photometric
+loss (depth prior, opacity / scale regularisers), and a step after the Gaussians' Adam step
+(the pose corrections' Adam, their rate ramped by :func:`splat_train.pose.pose_lr_factor` and
+their scale gauge restored). Each part's state is in every checkpoint.
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
@@ -54,14 +61,14 @@ from splat_train.cpu import raster as cpu_raster
 from splat_train.cpu.optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
-from splat_train.depth_prior import DepthPrior, depth_weight_at, load_depth_prior
-from splat_train.dropout import dropout_rate_at, gaussian_dropout
+from splat_train.depth_prior import DepthPrior, DepthPriorLoss
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
-from splat_train.losses import gaussian_regularisers, photometric_loss
+from splat_train.losses import photometric_loss
 from splat_train.mcmc import MCMCStrategy
-from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
+from splat_train.parts import opacity_map, recipe_parts
+from splat_train.pose import PoseCorrections, PoseRefinement
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
@@ -177,24 +184,9 @@ class Trainer:
         self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
-        self.pose = self.pose_opt = None
-        if cfg.pose_refine:
-            self.pose = PoseCorrections(len(train_views), self.dev, refine_focal=cfg.pose_refine_focal,
-                                        trans_scale=camera_spread([c[0] for c in self.cams]))
-            groups = [{"params": [self.pose.delta], "lr": cfg.lr_pose, "name": "pose"}]
-            if self.pose.log_focal is not None:
-                groups.append({"params": [self.pose.log_focal], "lr": cfg.lr_focal, "name": "focal"})
-            self.pose_opt = torch.optim.Adam(groups)
         self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
-        self.prior: DepthPrior | None = None
-        if self.depth_prior_path is not None:
-            self.prior = load_depth_prior(self.depth_prior_path, {v.name: (v.camera.width, v.camera.height)
-                                                                  for v in train_views}, self.dev,
-                                          use_confidence=cfg.depth_use_confidence)
-            log.info("depth prior %s: %d samples in %d of %d training views", self.depth_prior_path,
-                     self.prior.num_samples, len(self.prior.views), len(train_views))
-        elif cfg.depth_weight > 0:
-            log.info("depth term off: the seed has no depth prior (%s beside it)", DEPTH_PRIOR_FILE)
+        self.parts = recipe_parts(cfg, train_views, [c[0] for c in self.cams], self.gen, self.depth_prior_path)
+        log.info("training parts: %s", ", ".join(p.name for p in self.parts) or "none")
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -210,9 +202,7 @@ class Trainer:
             "params": {k: p.detach().clone() for k, p in self.params.items()},
             "optimizer": self.optimizer.state_dict(),
             "strategy_state": {k: v.clone() for k, v in self.state.items()},
-            "pose": None if self.pose is None else {"state": {k: v.detach().clone() for k, v in
-                                                              self.pose.state_dict().items()},
-                                                    "optimizer": self.pose_opt.state_dict()},
+            "parts": {p.name: s for p in self.parts if (s := p.state_dict()) is not None},
             "rng": self.gen.get_state(),
             "view_stack": torch.tensor(self.stack, dtype=torch.int64),
             "train_names": [v.name for v in self.train_views],
@@ -244,9 +234,11 @@ class Trainer:
         self.optimizer = make_optimizer(self.params, self.cfg, self.extent)
         self.optimizer.load_state_dict(data["optimizer"])
         self.state = {k: v.to(self.dev) for k, v in data["strategy_state"].items()}
-        if self.pose is not None:
-            self.pose.load_state_dict(data["pose"]["state"])
-            self.pose_opt.load_state_dict(data["pose"]["optimizer"])
+        # checkpoints written before the parts kept the pose corrections' state under "pose"
+        states = data["parts"] if "parts" in data else {"pose": data.get("pose")}
+        for part in self.parts:
+            if part.state_dict() is not None:
+                part.load_state_dict(states[part.name])
         self.gen.set_state(data["rng"])
         self.stack = [int(x) for x in data["view_stack"].tolist()]
         self.log.load_state_dict(data["log"])
@@ -272,27 +264,34 @@ class Trainer:
             self.stack = torch.randperm(len(self.train_views), generator=self.gen).tolist()
         return self.stack.pop()
 
-    def camera(self, idx: int) -> torch.Tensor:
-        cw = self.cams[idx][0]
-        if self.pose is not None and self.iteration >= self.cfg.pose_refine_from:
-            cw = self.pose(idx, cw)
-        return cw
+    @property
+    def pose(self) -> PoseCorrections | None:
+        """The pose corrections of the pose-refinement part (None without one)."""
+        return next((p.corrections for p in self.parts if isinstance(p, PoseRefinement)), None)
 
-    def intrinsics(self, idx: int) -> torch.Tensor:
-        K = self.cams[idx][1]
-        if self.pose is not None and self.iteration >= self.cfg.pose_refine_from:
-            K = self.pose.intrinsics(idx, K)
-        return K
+    @property
+    def prior(self) -> DepthPrior | None:
+        """The depth prior of the depth part (None without one)."""
+        return next((p.prior for p in self.parts if isinstance(p, DepthPriorLoss)), None)
+
+    def view_camera(self, idx: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """[4, 4] cam_from_world (world -> OpenCV camera) and [3, 3] K (pixels) that training
+        view ``idx`` is rendered with at the current iteration: the given ones, through every
+        part's :meth:`~splat_train.train_part.TrainPart.camera` (refined with pose refinement)."""
+        cw, K = self.cams[idx]
+        for part in self.parts:
+            cw, K = part.camera(self.iteration, idx, cw, K)
+        return cw, K
 
     def refined_cameras(self) -> list[torch.Tensor]:
         """[4, 4] cam_from_world per training view (refined when pose refinement is on)."""
         with torch.no_grad():
-            return [self.camera(i).detach() for i in range(len(self.train_views))]
+            return [self.view_camera(i)[0].detach() for i in range(len(self.train_views))]
 
     def refined_intrinsics(self) -> list[torch.Tensor]:
         """[3, 3] K per training view (refined with focal refinement)."""
         with torch.no_grad():
-            return [self.intrinsics(i).detach() for i in range(len(self.train_views))]
+            return [self.view_camera(i)[1].detach() for i in range(len(self.train_views))]
 
     def step(self) -> torch.Tensor:
         """One optimisation iteration (``self.iteration`` is advanced first).
@@ -312,18 +311,14 @@ class Trainer:
         idx = self.last_view = self.next_view()
         bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
-        rate = dropout_rate_at(it, cfg.iterations, cfg.dropout_rate)
-        drop = (lambda o: gaussian_dropout(o, rate, self.gen)) if rate > 0 else None
-        out = render_params(self.params, deg, self.camera(idx), self.intrinsics(idx), cam.width, cam.height, bg,
-                            self.backend, opacity_fn=drop)
+        cam_from_world, K = self.view_camera(idx)
+        out = render_params(self.params, deg, cam_from_world, K, cam.width, cam.height, bg, self.backend,
+                            opacity_fn=opacity_map(self.parts, it))
         loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
-        samples = self.prior.views.get(cam.name) if self.prior is not None else None
-        w_depth = depth_weight_at(it, cfg.iterations, cfg.depth_weight, cfg.depth_ramp_fraction)
-        if samples is not None and w_depth > 0:
-            loss = loss + w_depth * samples.loss(out["depth"])
-        reg = gaussian_regularisers(self.params["opacity"], self.params["scales"], cfg.opacity_reg, cfg.scale_reg)
-        if reg is not None:
-            loss = loss + reg
+        for part in self.parts:
+            term = part.loss(it, idx, out, self.params)
+            if term is not None:
+                loss = loss + term
         if self.sync_every == 1 and not torch.isfinite(loss.detach()):
             self._non_finite(float(loss.detach()), it, cam.name)  # before the step moves anything
         loss.backward()
@@ -333,13 +328,8 @@ class Trainer:
                                        cam.width, cam.height, it)
         adam_step(self.optimizer)  # on the CPU kernel's threads where it applies, else optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if self.pose_opt is not None:
-            f = pose_lr_factor(it, cfg.pose_refine_from, cfg.pose_warmup)
-            for g in self.pose_opt.param_groups:
-                g["lr"] = f * (cfg.lr_pose if g["name"] == "pose" else cfg.lr_focal)
-            self.pose_opt.step()
-            self.pose_opt.zero_grad(set_to_none=True)
-            self.pose.fix_scale_([c[0] for c in self.cams])
+        for part in self.parts:
+            part.after_step(it)
         with torch.no_grad():
             mse = ((out["rgb"].detach() - self.targets[idx]) ** 2).mean()
             return torch.stack([loss.detach(), l1.detach(), s.detach(), mse])
@@ -453,10 +443,11 @@ class Trainer:
         render_set = self.test_views if self.test_views else self.train_views
         test_psnr = self.evaluate(self.test_views, out / "renders") if self.test_views else float("nan")
         train_psnr = self.evaluate(self.train_views, None if self.test_views else out / "renders", refined=True)
-        if self.pose is not None:
+        pose = self.pose
+        if pose is not None:
             # at the training image size; K is the refined one with focal refinement
             cams = [Camera(v.name, v.camera.width, v.camera.height,
-                           (v.camera.K if self.pose.log_focal is None else K.cpu().double().numpy()),
+                           (v.camera.K if pose.log_focal is None else K.cpu().double().numpy()),
                            cw.cpu().double().numpy()[:3])
                     for v, cw, K in zip(self.train_views, self.refined_cameras(), self.refined_intrinsics())]
             write_text_model(out / "cameras_refined", cams)
@@ -473,23 +464,14 @@ class Trainer:
             "recipe": cfg.recipe, "max_gaussians": self.max_gaussians,
             # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
             "strategy_totals": ({k: int(v) for k, v in self.state.items()} if cfg.strategy == "mcmc" else {}),
-            "depth_prior": None if self.prior is None else {"path": str(self.prior.path),
-                                                            "samples": self.prior.num_samples,
-                                                            "views": sorted(self.prior.views)},
+            "depth_prior": None,  # the depth part's entry below when it runs
             "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),
             "heldout_lpips": {"enabled": bool(cfg.eval_lpips), "net": LPIPS_NET,
                               "weights": None if self.scorer is None else self.scorer.weights},
         }
-        if self.pose is not None:
-            d = self.pose.delta.detach().cpu()
-            summary["pose_correction"] = {"fixed_camera": self.train_views[0].name,
-                                          "gauge": "first camera and the RMS centre distance from it fixed",
-                                          "max_log_focal": (None if self.pose.log_focal is None else
-                                                            float(self.pose.log_focal.detach().abs().max())),
-                                          "max_rot_rad": float(d[:, :3].norm(dim=1).max()),
-                                          "max_trans": float(d[:, 3:].norm(dim=1).max()) * self.pose.trans_scale,
-                                          "trans_scale": self.pose.trans_scale}
+        for part in self.parts:
+            summary.update(part.summary())
         write_json(out / "train.json", summary)
         log.info("trained %d iterations in %.1f s (training time): %d Gaussians, train PSNR %.2f, "
                  "test PSNR %s -> %s", cfg.iterations, self.wall, self.num_gaussians, train_psnr,

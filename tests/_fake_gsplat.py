@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from splat_train._reference import blend_dense
+from splat_train.projection import Projected
 
 
 def _tile_rects(isect_ids: Tensor, flatten_ids: Tensor, n: int, tile_width: int, tile_height: int
@@ -149,8 +150,14 @@ def rasterization(
     rect, hit = _tile_rects(isect_ids, flatten_ids, n, tile_width, tile_height)
     with_depth = render_mode == "RGB+ED"
     feats = torch.cat([rgb[0], depths[0, :, None]], dim=-1) if with_depth else rgb[0]
-    accum, t_final = blend_dense(means2d[0], conics[0], feats, opacities, depths[0], rect,
-                                 visible[0] & hit, width, height, tile_size)
+    a, b, c = conics[0].unbind(-1)  # the dilated 2D covariance is the conic's inverse
+    det = (a * c - b * b).detach()
+    det = torch.where(det > 0, det, torch.ones_like(det))
+    shown = visible[0] & hit
+    proj = Projected(means2d=means2d[0], conics=conics[0], cov2d=torch.stack([c, -b, a], -1) / det[:, None],
+                     depths=depths[0], radii=torch.where(shown, radii[0].amax(-1), 0).to(torch.int32), rect=rect,
+                     visible=shown, width=width, height=height, tile_size=tile_size)
+    accum, t_final = blend_dense(proj, feats, opacities)
     bg = torch.zeros(feats.shape[-1], dtype=means.dtype, device=means.device)
     if backgrounds is not None:
         bg[:3] = backgrounds[0]

@@ -237,5 +237,5 @@ def project_sh_cpu(
     means2d, conics, feat, cov2d, radii, rect, visible = _ProjectSH.apply(
         means, quats, scales, sh_dc, sh_rest, cam, sh_degree, int(width), int(height), cw)
     proj = Projected(means2d=means2d, conics=conics, cov2d=cov2d, depths=feat[:, 3], radii=radii, rect=rect,
-                     visible=visible)
+                     visible=visible, width=int(width), height=int(height), tile_size=TILE_SIZE)
     return proj, (colors if sh_degree is None else feat[:, :3]), feat

@@ -32,7 +32,7 @@ from splat_train.cpu.build import ptr as _ptr
 from splat_train.cpu.build import run_threaded as _run_threaded
 from splat_train.cpu.build import suffix as _suffix
 from splat_train._reference import depth_order
-from splat_train.projection import TILE_SIZE
+from splat_train.projection import TILE_SIZE, Projected
 
 __all__ = [
     "KERNELS", "available", "load_library", "blend_cpu", "build_error", "forward_raw", "backward_raw",
@@ -408,29 +408,26 @@ class _BlendCPU(torch.autograd.Function):
         return v[:, 0:2], v[:, 2:5], v[:, 6:], v[:, 5], None, None, None, None
 
 
-def blend_cpu(
-    means2d: Tensor,
-    conics: Tensor,
-    features: Tensor,
-    opacities: Tensor,
-    depths: Tensor,
-    rect: Tensor,
-    visible: Tensor,
-    width: int,
-    height: int,
-    kernel: str = "cpu",
-) -> tuple[Tensor, Tensor]:
+def blend_cpu(proj: Projected, features: Tensor, opacities: Tensor, kernel: str = "cpu") -> tuple[Tensor, Tensor]:
     """C++ tile blending with a hand-written backward (CPU tensors, float32 or float64).
 
-    Arguments and results as :func:`splat_train._reference.blend_dense`: accum [H, W, F]
-    (no background) and final transmittance [H, W]. ``kernel``: "cpu" (the SIMD kernel).
+    Arguments and results as :func:`splat_train._reference.blend_dense`: ``proj`` the
+    screen-space Gaussians of one image (pixels, COLMAP convention; 16-pixel tiles, the
+    kernel's), ``features`` [N, F], ``opacities`` [N]; returns accum [H, W, F] (no
+    background) and final transmittance [H, W], rows = image y. ``kernel``: "cpu" (the SIMD
+    kernel).
     """
+    means2d = proj.means2d
     if means2d.device.type != "cpu":
         raise ValueError(f"the CPU kernel needs CPU tensors, got {means2d.device}; use backend='torch'")
+    if proj.tile_size != TILE_SIZE:
+        raise ValueError(f"the CPU kernel bins {TILE_SIZE}-pixel tiles, got a projection with tile_size "
+                         f"{proj.tile_size}; use backend='torch'")
     if load_library(kernel) is None:
         raise RuntimeError(f"CPU rasterizer kernel {kernel!r} unavailable: {build_error(kernel)}; use backend='torch'")
     dt = means2d.dtype
-    conics, features, opacities = conics.to(dt), features.to(dt), opacities.to(dt)
+    width, height = proj.width, proj.height
+    conics, features, opacities = proj.conics.to(dt), features.to(dt), opacities.to(dt)
     # tight tile lists (only tiles the alpha >= 1/255 ellipse reaches)
-    bins = bin_cpu(depths, rect, visible, width, height, kernel, means2d, conics, opacities)
+    bins = bin_cpu(proj.depths, proj.rect, proj.visible, width, height, kernel, means2d, conics, opacities)
     return _BlendCPU.apply(means2d, conics, features, opacities, bins, width, height, kernel)
