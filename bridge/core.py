@@ -31,7 +31,7 @@ from camio.cameras import Camera
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
 from camio.logs import timed
 from camio.modes import BRIDGE_MODES
-from camio.ply import GaussianCloud
+from camio.ply import SH_DEGREE, GaussianCloud
 
 __all__ = ["MODES", "BridgeConfig", "SeedResult", "build_seed", "write_outputs", "run_bridge"]
 
@@ -83,7 +83,7 @@ class BridgeConfig:
     outlier_std_ratio: float = 2.0
     max_points: int | None = None
     seed: int = 0
-    sh_degree: int = 3
+    sh_degree: int = SH_DEGREE
     write_points3d: bool = False
     depth_prior: bool = True
     depth_prior_samples: int = 50000
