@@ -13,6 +13,8 @@ strings' ``--flag N`` included), and a literal is a *repeat* of a default when
   ``--name 3``) and has its value, the value not :data:`TRIVIAL`; or
 * it has a :func:`distinctive` value of a default, bound to any name or none.
 
+Two defining files that bind one value to one name define one default twice: a repeat too.
+
 Numbers compare by absolute value (``-1`` is ``1``). A file's own module- or class-level
 definitions are its one place for their values (another concept that happens to share a
 number: floaters' TAU_REL and the Bridge's ALPHA_MIN, both 0.05), unless a definition binds a
@@ -31,10 +33,13 @@ from pathlib import Path
 
 #: the files that define defaults (relative to the repository root)
 SOURCES = (
-    "splat_train/config.py", "splat_train/recipes.py", "splat_train/testpose.py",
+    "splat_train/config.py", "splat_train/recipes.py", "splat_train/testpose.py", "splat_train/mcmc.py",
     "bridge/core.py", "bridge/equations.py", "bridge/selection.py",
     "vggt_init/defaults.py", "vggt_init/run.py",
-    "evaluation/metrics/pose.py", "evaluation/initialisers/random_init.py",
+    "evaluation/metrics/pose.py", "evaluation/metrics/floaters.py",
+    "evaluation/initialisers/random_init.py", "evaluation/initialisers/oracle.py",
+    "evaluation/initialisers/posed.py", "evaluation/initialisers/colmap_baseline.py",
+    "evaluation/initialisers/ba_init.py",
     "camio/ply.py", "camio/view_defaults.py",
 )
 #: the packages whose code is walked, and the workflow
@@ -196,12 +201,15 @@ def repeats(root: Path, sources=SOURCES, shared: dict | None = None) -> list[str
     purpose (a stage that may not import the defining one)."""
     shared = shared or {}
     defaults: dict[float, dict[str, str]] = {}  # value -> {name: home}
+    out = []
     for rel in sources:
         for d in definitions((root / rel).read_text(), rel):
-            if d.value not in TRIVIAL:
-                defaults.setdefault(d.value, {}).setdefault(d.name, rel)
+            if d.value in TRIVIAL:
+                continue
+            home = defaults.setdefault(d.value, {}).setdefault(d.name, rel)
+            if home != rel and (rel, d.name) not in shared:  # two defining files, one default
+                out.append(f"{rel}:{d.line}: {d.value:g} ({d.name}) is the default of {home}:{d.name}")
     homes = {v: set(names.values()) for v, names in defaults.items()}
-    out = []
     for path in walked_files(root):
         rel = str(path.relative_to(root))
         own = {d.value for d in definitions(path.read_text(), rel)} if path.suffix == ".py" else set()

@@ -184,3 +184,9 @@ def test_the_literal_check_finds_repeats(tmp_path):
         "workflow/rules/a.smk:6: 5000 (max_points) is the default of camio/defaults.py:max_points",
         "workflow/rules/a.smk:6: 518 is the default of camio/defaults.py:image_size",
     ]), found
+    # a second defining file with the same default: a repeat, unless shared with its reason
+    two = ("camio/defaults.py", "camio/again.py")
+    assert "camio/again.py:1: 5000 (max_points) is the default of camio/defaults.py:max_points" in \
+        literals.repeats(tmp_path, sources=two)
+    assert not any(f.startswith("camio/again.py") for f in literals.repeats(
+        tmp_path, sources=two, shared={("camio/again.py", "max_points"): "a stage that may not import camio"}))
