@@ -111,6 +111,13 @@ def test_each_initialiser_has_its_command_and_its_rule(name):
         assert init.confidence and f"/{folder}/predictions.npz\"" in INIT_SMK
 
 
+@pytest.mark.parametrize("name", registry.studied())
+def test_a_studied_initialiser_takes_the_noise_flags(name):
+    source = Path(importlib.util.find_spec(registry.get(name).command).origin).read_text()
+    for flag in ("--rot-deg", "--trans-frac", "--depth-rel", "--outlier-frac"):
+        assert f'"{flag}"' in source, (name, flag)
+
+
 def test_the_bridge_reads_each_initialiser_by_its_output():
     assert set(registry.from_predictions()) | set(registry.from_colmap_model()) == set(registry.NAMES)
     assert not set(registry.from_predictions()) & set(registry.from_colmap_model())

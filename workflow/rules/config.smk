@@ -77,11 +77,8 @@ PHOTOS_SCRIPT = str(
 from camio.modes import BRIDGE_MODES
 from evaluation.initialisers import registry as initialisers
 
-
-def _alternatives(names):
-    """A wildcard constraint matching exactly ``names`` (nothing when there are none)."""
-    return "|".join(names) or "(?!)"
-
+# a wildcard constraint matching exactly these names ("(?!)", nothing, when there are none)
+_alternatives = lambda names: "|".join(names) or "(?!)"
 
 INIT_FROM_PREDICTIONS = _alternatives(initialisers.from_predictions())
 INIT_FROM_COLMAP_MODEL = _alternatives(initialisers.from_colmap_model())
