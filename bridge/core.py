@@ -30,13 +30,14 @@ from bridge.selection import (MIN_DIST2, cap_points, knn_scales, percentile_mask
 from camio.cameras import Camera
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
 from camio.logs import timed
-from camio.ply import GaussianCloud
+from camio.modes import BRIDGE_MODES
+from camio.ply import SH_DEGREE, GaussianCloud
 
 __all__ = ["MODES", "BridgeConfig", "SeedResult", "build_seed", "write_outputs", "run_bridge"]
 
 log = logging.getLogger(__name__)
 
-MODES = ("gated", "uniform", "filtered")
+MODES = BRIDGE_MODES  # camio.modes, the one list (evaluation and the workflow read it too)
 DEFAULT_PERCENTILE = 40.0
 UNIFORM_ALPHA = 0.1
 MEDIAN_SET = ("every row with a finite point and a finite confidence, over all pixels of all views, "
@@ -82,7 +83,7 @@ class BridgeConfig:
     outlier_std_ratio: float = 2.0
     max_points: int | None = None
     seed: int = 0
-    sh_degree: int = 3
+    sh_degree: int = SH_DEGREE
     write_points3d: bool = False
     depth_prior: bool = True
     depth_prior_samples: int = 50000

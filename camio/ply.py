@@ -24,9 +24,12 @@ from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
            "read_gaussian_ply", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
-           "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE"]
+           "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE", "SH_DEGREE"]
 
 SH_C0 = 0.28209479177387814
+#: 3DGS's spherical-harmonics degree: a PLY of this degree has 3 ((SH_DEGREE + 1)^2 - 1)
+#: ``f_rest_*`` properties; the Bridge's seed and the trainer use it unless told otherwise
+SH_DEGREE = 3
 
 
 class PlyFormatError(ValueError):
@@ -91,7 +94,7 @@ class GaussianCloud:
 
     @staticmethod
     def from_points(
-        means: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, scales: np.ndarray, sh_degree: int = 3
+        means: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, scales: np.ndarray, sh_degree: int = SH_DEGREE
     ) -> "GaussianCloud":
         """Seed Gaussians: identity rotations, SH DC from RGB in [0,1], higher bands zero,
         alpha in (0, 1) stored as logit, linear scales [N,3] (or [N]) stored as log."""

@@ -1,5 +1,45 @@
-"""splat_train package."""
-from splat_train.rasterize import rasterize  # noqa: E402,F401
-from splat_train.config import TrainConfig  # noqa: E402,F401
-from splat_train.losses import psnr, ssim  # noqa: E402,F401
-from splat_train.trainer import NonFiniteLossError, TrainResult, train  # noqa: E402,F401
+"""splat_train package: 3DGS training from a seed PLY and COLMAP cameras.
+
+The package face hands on :func:`rasterize`, :class:`TrainConfig`, :func:`psnr`, :func:`ssim`,
+:func:`train`, :class:`TrainResult` and :class:`NonFiniteLossError`, each imported on first
+use, so that reading a light module (``splat_train.recipes``, whose recipe names the workflow's
+config check reads) does not import torch.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+import types
+
+_FACE = {
+    "rasterize": "splat_train.rasterize",
+    "TrainConfig": "splat_train.config",
+    "psnr": "splat_train.losses",
+    "ssim": "splat_train.losses",
+    "NonFiniteLossError": "splat_train.trainer",
+    "TrainResult": "splat_train.trainer",
+    "train": "splat_train.trainer",
+}
+
+__all__ = sorted(_FACE)
+
+
+def __getattr__(name: str):
+    if name in _FACE:
+        value = getattr(importlib.import_module(_FACE[name]), name)
+        setattr(sys.modules[__name__], name, value)
+        return value
+    raise AttributeError(f"module 'splat_train' has no attribute {name!r}")
+
+
+class _Face(types.ModuleType):
+    """``splat_train.rasterize`` is the function, as it always was: importing the submodule of
+    the same name binds the package attribute to its function, not to the module."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "rasterize" and isinstance(value, types.ModuleType):
+            value = value.rasterize
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Face

@@ -28,6 +28,7 @@ from typing import Any
 __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
            "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
+from camio.ply import SH_DEGREE
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  STRATEGIES, VALUE_KEYS, recipe_defaults)
 
@@ -163,7 +164,7 @@ class TrainConfig:
     iterations: int | None = None
     recipe: str = DEFAULT_RECIPE
     seed: int = 0
-    sh_degree: int = 3
+    sh_degree: int = SH_DEGREE
     sh_increase_every: int | None = None
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -251,8 +252,8 @@ class TrainConfig:
             raise ValueError(f"gaussians_per_pixel must be >= 0 (0: no cap), got {self.gaussians_per_pixel}")
         if self.max_gaussians is not None and self.max_gaussians < 1:
             raise ValueError(f"max_gaussians must be >= 1 (or null: no cap), got {self.max_gaussians}")
-        if not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if not 0 <= self.sh_degree <= SH_DEGREE:
+            raise ValueError(f"sh_degree must be 0..{SH_DEGREE}, got {self.sh_degree}")
         if len(self.background) != 3:
             raise ValueError(f"background must be 3 numbers (RGB in [0, 1]), got {self.background}")
         self.background = [float(x) for x in self.background]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from camio.ply import GaussianCloud
+from camio.ply import SH_DEGREE, GaussianCloud
 from splat_train.config import TrainConfig
 from splat_train.sh import sh_concat
 
@@ -27,7 +27,7 @@ __all__ = ["PARAM_NAMES", "params_from_cloud", "params_to_cloud", "make_optimize
 PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacity", "scales", "quats")
 
 
-def params_from_cloud(cloud: GaussianCloud, sh_degree: int = 3, device: str | torch.device = "cpu"
+def params_from_cloud(cloud: GaussianCloud, sh_degree: int = SH_DEGREE, device: str | torch.device = "cpu"
                       ) -> dict[str, torch.nn.Parameter]:
     """Trainable float32 parameters from a seed cloud; ``sh_rest`` is zero-padded (or cut) to
     ``(sh_degree + 1)^2 - 1`` coefficients. Quaternions that are zero become identity."""

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from splat_train.cpu import ssim as cpu_ssim
 from camio.image_metrics import gaussian_window, gaussian_window_1d, ssim_map
+from splat_train.config import TrainConfig
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_regularisers", "gaussian_window",
            "gaussian_window_1d"]
@@ -99,7 +100,7 @@ def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def photometric_loss(
-    render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2
+    render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = TrainConfig.lambda_dssim
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The 3DGS loss (1 - lambda) L1 + lambda (1 - SSIM).
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from camio.ply import SH_C0  # the DC constant, shared with the PLY format's colour conversion
+
 __all__ = ["SH_C0", "num_sh_bases", "eval_sh", "sh_to_color", "rgb_to_sh"]
 
-SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (
     1.0925484305920792,

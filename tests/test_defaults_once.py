@@ -1,5 +1,7 @@
-"""Defaults defined once in code: the CLI flags read the constants, and the copies that a YAML
-file must spell out (config.yaml, the workflow schema) agree with them."""
+"""Defaults defined once in code: the CLI flags read the constants, the copies that a YAML
+file must spell out (config.yaml, the workflow schema) agree with them, and no number that a
+config dataclass, a registry or a defaults module defines appears as a literal elsewhere in the
+package code, the CLIs or the workflow (the AST walk of tests/_default_literals.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from pathlib import Path
 
 import yaml
 
+import _default_literals as literals
 from evaluation.metrics.pose import MAX_ATE_REL_RADIUS, MAX_REL_ROT_DEG, GateConfig, add_gate_args, gate_from_args
 from vggt_init import defaults as vggt_defaults
 
@@ -55,7 +58,7 @@ def test_vggt_cli_and_run_options_share_the_defaults():
     assert args.mode == opts.mode and args.frames_chunk == opts.frames_chunk_size
     points_from = _schema()["properties"]["vggt"]["properties"]["points_from"]
     assert points_from["default"] == vggt_defaults.POINTS_FROM
-    assert tuple(points_from["enum"]) == vggt_defaults.POINT_SOURCES
+    assert points_from["x-enum-from"] == "vggt_point_sources"  # the config check reads POINT_SOURCES
 
 
 def test_random_initialiser_defaults_live_in_code():
@@ -114,16 +117,76 @@ def test_bridge_cli_defaults_are_bridge_configs():
 def test_vggt_image_size_is_named_once_in_code():
     """518 is vggt_init.defaults.IMAGE_SIZE: the preprocessing's defaults and the workflow's
     resource scaling read it, no number repeats it (the AST of the code, not its comments)."""
-    import ast
     import inspect
 
     from vggt_init import preprocess
 
     for fn in (preprocess.resized_size, preprocess.preprocess_rgb, preprocess.load_and_preprocess):
         assert inspect.signature(fn).parameters["target"].default == vggt_defaults.IMAGE_SIZE, fn.__name__
-    for path in (REPO / "vggt_init" / "preprocess.py", REPO / "vggt_init" / "run.py",
-                 REPO / "vggt_init" / "__main__.py", REPO / "bridge" / "__main__.py"):
-        consts = [n.value for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Constant)]
-        assert vggt_defaults.IMAGE_SIZE not in consts, path
+    assert literals.distinctive(vggt_defaults.IMAGE_SIZE)  # so no file repeats it: the test below
     smk = (REPO / "workflow" / "rules" / "resources.smk").read_text()
     assert str(vggt_defaults.IMAGE_SIZE) not in smk and "IMAGE_SIZE" in smk
+
+
+# Definitions that restate a default on purpose: {(file, name): why}.
+SHARED = {
+    ("evaluation/initialisers/oracle.py", "max_points"):
+        "the oracle caps its model at VGGT's vggt_init.defaults.MAX_POINTS; evaluation does not import vggt_init",
+}
+
+
+def test_no_default_number_repeats_as_a_literal():
+    """Every number a config dataclass, registry or defaults module defines (SOURCES of
+    tests/_default_literals.py) is written there only: elsewhere the code imports the constant
+    (argparse defaults read the dataclass, their help says %(default)s)."""
+    found = literals.repeats(REPO, shared=SHARED)
+    assert not found, "defaults written again as literals (import the constant):\n" + "\n".join(found)
+
+
+def test_shared_restatements_equal_their_default():
+    from evaluation.initialisers import oracle
+
+    assert oracle.MAX_POINTS == vggt_defaults.MAX_POINTS
+    assert {rel for rel, _ in SHARED} <= {str(p.relative_to(REPO)) for p in literals.walked_files(REPO)}
+
+
+def test_the_literal_check_finds_repeats(tmp_path):
+    """The checker on a small tree: a repeat by value, by name (keyword, parameter, argparse
+    flag, a rule's shell string; a constant restating a default under its name), and what it
+    leaves alone (trivial numbers, a file's own constants, numbers that are neither distinctive
+    nor bound to a default's name with its value: other=5000, mem_mb=5000, 0.2 unnamed)."""
+    (tmp_path / "camio").mkdir()
+    (tmp_path / "workflow" / "rules").mkdir(parents=True)
+    (tmp_path / "camio" / "defaults.py").write_text(
+        "from dataclasses import dataclass\nIMAGE_SIZE = 518\nRATE = 0.2\n\n\n@dataclass\nclass Cfg:\n"
+        "    max_points: int = 5000\n    seed: int = 0\n    weights: dict = None\n\n\nTABLE = {'lr': 1.6e-4}\n")
+    (tmp_path / "camio" / "use.py").write_text(
+        "import argparse\n\n\ndef f(x, max_points=5000, other=5000, rate=0.2):\n"
+        "    y = x * 518\n    z = 0.2 * x - 1.6e-4\n    seed = 0\n    return g(size=-518, rate=0.2)\n\n\n"
+        "p = argparse.ArgumentParser()\np.add_argument('--max-points', type=int, default=5000)\n")
+    (tmp_path / "camio" / "own.py").write_text("GREY = 518\n\n\ndef f():\n    return 518\n")
+    (tmp_path / "camio" / "again.py").write_text("MAX_POINTS = 5000\n")
+    (tmp_path / "workflow" / "rules" / "a.smk").write_text(
+        'rule a:\n    resources:\n        max_points=5000,\n        mem_mb=5000,\n'
+        '    shell:\n        "run --max-points 5000 --rate 0.2 --seed 0 --other 518"\n')
+    found = literals.repeats(tmp_path, sources=("camio/defaults.py",))
+    assert found == sorted([
+        "camio/again.py:1: 5000 (max_points) is the default of camio/defaults.py:max_points",
+        "camio/use.py:12: 5000 (max_points) is the default of camio/defaults.py:max_points",
+        "camio/use.py:4: 0.2 (rate) is the default of camio/defaults.py:rate",
+        "camio/use.py:4: 5000 (max_points) is the default of camio/defaults.py:max_points",
+        "camio/use.py:5: 518 is the default of camio/defaults.py:image_size",
+        "camio/use.py:6: 0.00016 is the default of camio/defaults.py:lr",
+        "camio/use.py:8: 0.2 (rate) is the default of camio/defaults.py:rate",
+        "camio/use.py:8: 518 is the default of camio/defaults.py:image_size",
+        "workflow/rules/a.smk:3: 5000 (max_points) is the default of camio/defaults.py:max_points",
+        "workflow/rules/a.smk:6: 0.2 (rate) is the default of camio/defaults.py:rate",
+        "workflow/rules/a.smk:6: 5000 (max_points) is the default of camio/defaults.py:max_points",
+        "workflow/rules/a.smk:6: 518 is the default of camio/defaults.py:image_size",
+    ]), found
+    # a second defining file with the same default: a repeat, unless shared with its reason
+    two = ("camio/defaults.py", "camio/again.py")
+    assert "camio/again.py:1: 5000 (max_points) is the default of camio/defaults.py:max_points" in \
+        literals.repeats(tmp_path, sources=two)
+    assert not any(f.startswith("camio/again.py") for f in literals.repeats(
+        tmp_path, sources=two, shared={("camio/again.py", "max_points"): "a stage that may not import camio"}))

@@ -1,44 +1,106 @@
 """One list per concept: the initialisers (evaluation/initialisers/registry.py), the Bridge modes
-(bridge/core.py) and the training recipes (splat_train/recipes.py). Every copy a file must
-spell out (the config schema's enums, the study's names) equals the list, and the workflow's
-rules have what the registry says each initialiser runs and writes."""
+(camio/modes.py) and the training recipes (splat_train/recipes.py). The config schema names
+these lists rather than copying them (``x-enum-from``, filled by the config check), the stages
+and the study read them, and the workflow's rules have what the registry says each initialiser
+runs and writes."""
 
 from __future__ import annotations
 
+import ast
 import importlib.util
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 from bridge.core import MODES
+from camio.modes import BRIDGE_MODES
 from evaluation.initialisers import registry
 from evaluation.study import collect
-from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES
+from splat_train.recipes import RECIPE_NAMES
+from vggt_init.defaults import POINT_SOURCES
 
 REPO = Path(__file__).resolve().parents[1]
-SCHEMA = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
+SCHEMA_FILE = REPO / "workflow" / "schemas" / "config.schema.yaml"
 INIT_SMK = (REPO / "workflow" / "rules" / "init.smk").read_text()
+sys.path.insert(0, str(REPO / "workflow" / "scripts"))
+
+import check_config  # noqa: E402
 
 
-def test_schema_enums_equal_the_lists():
-    assert SCHEMA["$defs"]["initialisers"]["items"]["enum"] == list(registry.NAMES)
-    assert SCHEMA["properties"]["bridge"]["properties"]["modes"]["items"]["enum"] == list(MODES)
-    recipe = SCHEMA["properties"]["train"]["properties"]["recipe"]
-    assert recipe["enum"] == list(RECIPE_NAMES) and recipe["default"] == DEFAULT_RECIPE
-    study_inits = SCHEMA["properties"]["study"]["properties"]["initialiser"]["enum"]
-    assert study_inits == list(collect.STUDY_INITS) and set(study_inits) <= set(registry.NAMES)
+def test_the_checked_schema_reads_the_lists():
+    schema = check_config.load_schema()
+    assert schema["$defs"]["initialisers"]["items"]["enum"] == list(registry.NAMES)
+    assert schema["properties"]["bridge"]["properties"]["modes"]["items"]["enum"] == list(BRIDGE_MODES)
+    recipe = schema["properties"]["train"]["properties"]["recipe"]
+    assert recipe["enum"] == [*RECIPE_NAMES, None] and recipe["default"] is None  # null: DEFAULT_RECIPE
+    assert schema["properties"]["study"]["properties"]["initialiser"]["enum"] == list(registry.studied())
+    assert schema["properties"]["vggt"]["properties"]["points_from"]["enum"] == list(POINT_SOURCES)
 
 
-def test_the_study_names_the_bridge_modes_as_the_bridge_does():
-    assert collect.MODES == MODES  # evaluation may not import bridge: a copy, checked here
+def test_the_schema_file_copies_no_list():
+    """No enum of the schema file spells out one of the lists, in whole or in part (each is
+    x-enum-from); a single name (study.references: colmap) is a choice, not a copy."""
+    lists = {tuple(v) for v in check_config.enum_sources().values()}
+    enums = []
+
+    def walk(node):
+        if isinstance(node, dict):
+            if "enum" in node:
+                enums.append(tuple(v for v in node["enum"] if v is not None))
+            for v in node.values():
+                walk(v)
+        elif isinstance(node, list):
+            for v in node:
+                walk(v)
+
+    walk(yaml.safe_load(SCHEMA_FILE.read_text()))
+    copies = {e for e in enums if any(len(set(e) & set(lst)) >= 2 for lst in lists)}
+    assert enums and not copies, copies
+
+
+def test_a_bad_list_name_in_the_schema_is_one_line(tmp_path):
+    bad = tmp_path / "schema.yaml"
+    bad.write_text(SCHEMA_FILE.read_text().replace("x-enum-from: bridge_modes", "x-enum-from: bridge_mode"))
+    with pytest.raises(ValueError, match="x-enum-from 'bridge_mode' names no list; known: initialisers"):
+        check_config.load_schema(bad)
+
+
+def test_the_study_and_the_bridge_read_one_mode_list():
+    assert collect.MODES is BRIDGE_MODES and MODES is BRIDGE_MODES
+    assert collect.STUDY_INITS == registry.studied() == ("oracle", "posed")
+
+
+def test_reading_the_lists_imports_no_heavy_module():
+    """The config check reads the lists from light modules: no torch at workflow start."""
+    code = ("import sys; sys.path.insert(0, 'workflow/scripts'); import check_config; "
+            "check_config.load_schema(); print(sorted({'torch', 'pandas'} & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_no_module_spells_out_the_bridge_modes():
+    """The tuple ("gated", "uniform", "filtered") is written once in the packages: camio/modes.py."""
+    found = []
+    for pkg in ("camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks"):
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.Tuple, ast.List)) and len(node.elts) >= 2 and all(
+                        isinstance(e, ast.Constant) and e.value in BRIDGE_MODES for e in node.elts):
+                    found.append(str(path.relative_to(REPO)))
+    assert found == ["camio/modes.py"], found
 
 
 @pytest.mark.parametrize("name", registry.NAMES)
 def test_each_initialiser_has_its_command_and_its_rule(name):
     init = registry.get(name)
     assert importlib.util.find_spec(init.command) is not None, init.command
+    if not init.own_rule:  # the common rule runs it (tests/test_add_initialiser.py)
+        assert "init=INIT_COMMON_RULE" in INIT_SMK and "python -m {params.command} " in INIT_SMK
+        return
     assert f"python -m {init.command} " in INIT_SMK, f"no rule of init.smk runs {init.command}"
     folder = "{{base}}_ba" if init.base else name
     assert f"/{folder}/{init.marker}\"" in INIT_SMK, f"no rule of init.smk writes {name}/{init.marker}"
@@ -49,15 +111,25 @@ def test_each_initialiser_has_its_command_and_its_rule(name):
         assert init.confidence and f"/{folder}/predictions.npz\"" in INIT_SMK
 
 
+@pytest.mark.parametrize("name", registry.studied())
+def test_a_studied_initialiser_takes_the_noise_flags(name):
+    source = Path(importlib.util.find_spec(registry.get(name).command).origin).read_text()
+    for flag in ("--rot-deg", "--trans-frac", "--depth-rel", "--outlier-frac"):
+        assert f'"{flag}"' in source, (name, flag)
+
+
 def test_the_bridge_reads_each_initialiser_by_its_output():
     assert set(registry.from_predictions()) | set(registry.from_colmap_model()) == set(registry.NAMES)
     assert not set(registry.from_predictions()) & set(registry.from_colmap_model())
     assert set(registry.from_predictions()) == {"vggt", "oracle", "vggt_ba", "oracle_ba"}
     bridge_smk = (REPO / "workflow" / "rules" / "bridge.smk").read_text()
     assert "init=INIT_FROM_PREDICTIONS" in bridge_smk and "init=INIT_FROM_COLMAP_MODEL" in bridge_smk
-    # no rule file spells the list out again
+    assert "base=BA_FROM_PREDICTIONS" in INIT_SMK and "base=BA_FROM_COLMAP_MODEL" in INIT_SMK
+    # no rule file spells a list out again
     for smk in (REPO / "workflow" / "rules").glob("*.smk"):
-        assert not re.search(r"vggt\|colmap|colmap\|posed", smk.read_text()), smk.name
+        text = smk.read_text()
+        assert not re.search(r"vggt\|colmap|colmap\|posed|vggt\|oracle|gated\|uniform", text), smk.name
+        assert not re.search(r"\(\s*\"vggt\",\s*\"vggt_ba\"", text), smk.name
 
 
 def test_unknown_names_and_needs_are_refused():
@@ -67,3 +139,6 @@ def test_unknown_names_and_needs_are_refused():
         registry.Initialiser("x", "m", ("status.json",), "status.json", False, frozenset({"a GPU"}))
     with pytest.raises(ValueError, match="marker"):
         registry.Initialiser("x", "m", ("sparse/0",), "status.json", False)
+    with pytest.raises(ValueError, match="the common rule runs a CPU command that writes sparse/0 and status.json"):
+        registry.Initialiser("x", "m", ("predictions.npz", "sparse/0", "status.json"), "status.json", True)
+    assert not registry.with_common_rule()  # every shipped initialiser has its rule

@@ -50,12 +50,15 @@ from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
 from evaluation.initialisers.views import add_view_args, parse_training_args
 
-__all__ = ["CONF_MODES", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
+__all__ = ["CONF_MODES", "MAX_POINTS", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
            "unproject_depth", "reassign_confidence", "make_oracle_predictions", "run_oracle"]
 
 log = logging.getLogger(__name__)
 
 CONF_MODES = ("ranked", "noise", "anti")
+#: points kept in sparse/0 at most: VGGT's cap (vggt_init.defaults.MAX_POINTS), so that the two
+#: seed the same number of points (evaluation does not import vggt_init: the value is restated here)
+MAX_POINTS = 100_000
 
 
 @dataclass
@@ -267,7 +270,7 @@ def make_oracle_predictions(scene: str | Path, names: list[str], noise: OracleNo
 
 
 def run_oracle(scene: str | Path, names: list[str], out_dir: str | Path, noise: OracleNoise,
-               seed: int = 0, downsample: int = 1, max_points: int = 100_000) -> dict:
+               seed: int = 0, downsample: int = 1, max_points: int = MAX_POINTS) -> dict:
     """Write ``out_dir/predictions.npz``, ``out_dir/sparse/0`` (noisy cameras and the
     confidence-ranked top ``max_points`` foreground points) and ``out_dir/status.json``.
 
@@ -321,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="confidence informativeness: ranked (ranks the depth error), noise "
                    "(random order), anti (reversed ranks); see the module docstring")
     p.add_argument("--downsample", type=int, default=1, help="prediction grid stride")
-    p.add_argument("--max-points", type=int, default=100_000, help="points kept in sparse/0 at most")
+    p.add_argument("--max-points", type=int, default=MAX_POINTS, help="points kept in sparse/0 at most (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
     add_log_flags(p)
     args, names = parse_training_args(p, argv)

@@ -58,6 +58,7 @@ from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
+from camio.ply import SH_C0
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.views import read_image_list
 
@@ -188,7 +189,7 @@ def random_points(cameras: list[Camera], n_points: int, rng: np.random.Generator
         have += len(cand)
     points = np.concatenate(kept)[:n_points]
     sh_dc = rng.random((n_points, 3)) / 255.0  # 3DGS: shs = random / 255, rgb = 0.5 + C0 * shs
-    colors = np.clip(np.rint((0.5 + 0.28209479177387814 * sh_dc) * 255.0), 0, 255).astype(np.uint8)
+    colors = np.clip(np.rint((0.5 + SH_C0 * sh_dc) * 255.0), 0, 255).astype(np.uint8)
     return points, colors
 
 

@@ -1,9 +1,11 @@
 """The initialisers, listed once: name, command, what each writes and needs, how the Bridge reads it.
 
-The workflow reads this list (the ``init`` wildcard, which Bridge rule and which Bridge modes an
-initialiser gets, the file that marks its finished run, the scenes it cannot run on), and
-tests/test_initialiser_registry.py checks that the config schema's enum and the workflow's
-rules agree with it. Adding an initialiser: docs/contracts.md, "Adding an initialiser".
+The workflow reads this list (the config check's ``initialisers`` enum, the ``init`` wildcard,
+the rule that runs an initialiser, which Bridge rule and which Bridge modes it gets, the file
+that marks its finished run, the scenes it cannot run on), and
+tests/test_initialiser_registry.py checks that the workflow's rules agree with it.
+Adding an initialiser: docs/contracts.md, "Adding an initialiser" (this file and the
+initialiser's own module; tests/test_add_initialiser.py proves it).
 
 Nothing here imports a stage: a command is named by its module, run as ``python -m``.
 """
@@ -11,7 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "get", "from_predictions", "from_colmap_model"]
+__all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -20,6 +23,11 @@ NEEDS = {
     "reference": "it needs reference cameras and the scene has none",
     "gt_geometry": "it needs ground-truth depth (synthetic scenes only)",
 }
+
+#: the command line of an initialiser without a rule of its own (``own_rule`` False): the
+#: workflow's common rule (workflow/rules/init.smk, ``registry_init``) runs
+#: ``python -m COMMAND`` with these flags; it writes a COLMAP model and status.json
+COMMON_ARGS = "--scene SCENE --image-list TRAIN_TXT --out DIR"
 
 
 @dataclass(frozen=True)
@@ -37,6 +45,11 @@ class Initialiser:
         needs: keys of :data:`NEEDS`.
         base: for a bundle-adjustment step, the initialiser whose cameras it refines.
         gpu: it runs on a GPU when one is configured (``vggt.device``).
+        own_rule: workflow/rules/init.smk has a rule of its own for it (its flags come from its
+            config block); otherwise the common rule runs it with :data:`COMMON_ARGS`, and it
+            writes ``sparse/0`` and ``status.json`` (its marker), with no confidence.
+        study: a study cell can degrade it (config ``study.initialiser``): its command takes
+            the noise flags ``--rot-deg --trans-frac --depth-rel --outlier-frac``.
     """
 
     name: str
@@ -47,6 +60,8 @@ class Initialiser:
     needs: frozenset[str] = frozenset()
     base: str | None = None
     gpu: bool = False
+    own_rule: bool = False
+    study: bool = False
 
     def __post_init__(self) -> None:
         unknown = set(self.needs) - set(NEEDS)
@@ -54,6 +69,11 @@ class Initialiser:
             raise ValueError(f"initialiser {self.name}: unknown needs {sorted(unknown)}; known: {sorted(NEEDS)}")
         if self.marker not in self.writes:
             raise ValueError(f"initialiser {self.name}: its marker {self.marker} is not among what it writes")
+        if not self.own_rule and (self.writes != _MODEL or self.marker != "status.json" or self.confidence
+                                  or self.base or self.gpu):
+            raise ValueError(f"initialiser {self.name}: the common rule runs a CPU command that writes "
+                             f"{' and '.join(_MODEL)} (marker status.json, no confidence, no base); "
+                             "anything else needs own_rule=True and its rule in workflow/rules/init.smk")
 
 
 _PREDICTIONS = ("predictions.npz", "sparse/0")
@@ -64,27 +84,27 @@ def _ba(base: Initialiser) -> Initialiser:
     """The bundle-adjustment step on ``base``: its cameras refined, its seed kept."""
     return Initialiser(f"{base.name}_ba", "evaluation.initialisers.ba_init",
                        (*_PREDICTIONS, "status.json") if base.confidence else _MODEL, "status.json",
-                       base.confidence, base.needs, base=base.name)
+                       base.confidence, base.needs, base=base.name, own_rule=True)
 
 
 _VGGT = Initialiser("vggt", "vggt_init", (*_PREDICTIONS, "timing.json"), "timing.json", True,
-                    frozenset({"weights"}), gpu=True)
+                    frozenset({"weights"}), gpu=True, own_rule=True)
 _ORACLE = Initialiser("oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS, "status.json"), "status.json",
-                      True, frozenset({"gt_geometry"}))
+                      True, frozenset({"gt_geometry"}), own_rule=True, study=True)
 _POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.json", False,
-                     frozenset({"reference"}))
+                     frozenset({"reference"}), own_rule=True, study=True)
 
 #: every initialiser, by name, in the order tables list them
 INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     _VGGT,
-    Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False),
+    Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False, own_rule=True),
     _ORACLE,
     _POSED,
     _ba(_VGGT),
     _ba(_ORACLE),
     _ba(_POSED),
     Initialiser("random", "evaluation.initialisers.random_init", _MODEL, "status.json", False,
-                frozenset({"reference"})),
+                frozenset({"reference"}), own_rule=True),
 )}
 NAMES = tuple(INITIALISERS)
 
@@ -105,3 +125,18 @@ def from_predictions() -> tuple[str, ...]:
 def from_colmap_model() -> tuple[str, ...]:
     """Names of the initialisers the Bridge reads from their COLMAP model (uniform only)."""
     return tuple(n for n, i in INITIALISERS.items() if not i.confidence)
+
+
+def with_common_rule() -> tuple[str, ...]:
+    """Names of the initialisers the workflow's common rule runs (no rule of their own)."""
+    return tuple(n for n, i in INITIALISERS.items() if not i.own_rule)
+
+
+def studied() -> tuple[str, ...]:
+    """Names of the initialisers a study cell can degrade (config ``study.initialiser``)."""
+    return tuple(n for n, i in INITIALISERS.items() if i.study)
+
+
+def ba_bases(confidence: bool) -> tuple[str, ...]:
+    """Names of the initialisers a bundle-adjustment step refines, with (or without) a confidence."""
+    return tuple(i.base for i in INITIALISERS.values() if i.base and i.confidence == confidence)

@@ -102,7 +102,7 @@ def measure_tables(summary: pd.DataFrame, order: list[str], cells: dict) -> dict
 def difference_tables(runs: pd.DataFrame, order: list[str], cells: dict) -> dict[str, tuple[list, list]]:
     """{title: (header, rows)}: gated - uniform and filtered - uniform, paired by seed."""
     out = {}
-    for a in ("gated", "filtered"):
+    for a in (m for m in MODES if m != "uniform"):
         d = paired_differences(runs, a, "uniform")
         if d.empty:
             continue

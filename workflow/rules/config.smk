@@ -73,12 +73,18 @@ PHOTOS_SCRIPT = str(
 )
 
 # The initialisers and the Bridge modes, each listed once (evaluation/initialisers/registry.py,
-# bridge/core.py): the wildcards, the Bridge rules and the planning read them.
-from bridge.core import MODES as BRIDGE_MODES
+# camio/modes.py): the wildcards, the rules and the planning read them.
+from camio.modes import BRIDGE_MODES
 from evaluation.initialisers import registry as initialisers
 
-INIT_FROM_PREDICTIONS = "|".join(initialisers.from_predictions())
-INIT_FROM_COLMAP_MODEL = "|".join(initialisers.from_colmap_model())
+# a wildcard constraint matching exactly these names ("(?!)", nothing, when there are none)
+_alternatives = lambda names: "|".join(names) or "(?!)"
+
+INIT_FROM_PREDICTIONS = _alternatives(initialisers.from_predictions())
+INIT_FROM_COLMAP_MODEL = _alternatives(initialisers.from_colmap_model())
+INIT_COMMON_RULE = _alternatives(initialisers.with_common_rule())
+BA_FROM_PREDICTIONS = _alternatives(initialisers.ba_bases(confidence=True))
+BA_FROM_COLMAP_MODEL = _alternatives(initialisers.ba_bases(confidence=False))
 
 
 wildcard_constraints:

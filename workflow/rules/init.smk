@@ -1,6 +1,6 @@
 # Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle, the ground-truth-pose
-# initialiser on posed scenes, random points for the reference cameras), their bundle-adjusted
-# variants (*_ba) and pose accuracy.
+# initialiser on posed scenes, random points for the reference cameras, and any registered one
+# without a rule of its own), their bundle-adjusted variants (*_ba) and pose accuracy.
 
 
 rule vggt_init:
@@ -158,6 +158,36 @@ rule random_init:
         "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
 
 
+# Every initialiser without a rule of its own (the registry's ``own_rule`` False): its command
+# with the registry's common flags (COMMON_ARGS), writing a COLMAP model and status.json.
+rule registry_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        model=directory(f"{RUN}/sparse"),
+        status=f"{RUN}/status.json",
+    log:
+        f"{RUN}/logs/init.log",
+    benchmark:
+        f"{RUN}/benchmarks/init.tsv"
+    wildcard_constraints:
+        init=INIT_COMMON_RULE,
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    params:
+        command=init_command,
+        out=out_dir,
+    shell:
+        "python -m {params.command} --scene {input.scene} --image-list {input.image_list} "
+        "--out {params.out} > {log} 2>&1"
+
+
 rule ba_predictions:
     input:
         unpack(ba_base_inputs),
@@ -172,7 +202,7 @@ rule ba_predictions:
     benchmark:
         f"{SCENE}/n{{n}}/{{base}}_ba/benchmarks/ba_init.tsv"
     wildcard_constraints:
-        base="vggt|oracle",
+        base=BA_FROM_PREDICTIONS,
     conda:
         "../envs/project.yaml"
     threads: 1
@@ -201,7 +231,7 @@ rule ba_posed:
     benchmark:
         f"{SCENE}/n{{n}}/{{base}}_ba/benchmarks/ba_init.tsv"
     wildcard_constraints:
-        base="posed",
+        base=BA_FROM_COLMAP_MODEL,
     conda:
         "../envs/project.yaml"
     threads: 1

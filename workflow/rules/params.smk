@@ -162,6 +162,11 @@ def init_marker_of(init):
     return initialisers.get(init).marker
 
 
+def init_command(wildcards):
+    """The module the common rule runs for a job's initialiser (the registry's ``command``)."""
+    return initialisers.get(wildcards.init).command
+
+
 def init_marker(wildcards):
     """Input function: the finished-run marker of a job's initialiser."""
     return f"{RUN.format(**wildcards)}/{init_marker_of(wildcards.init)}"
@@ -205,12 +210,12 @@ def pose_refine_args(wildcards):
 
 
 def train_recipe_args(wildcards):
-    """--recipe, and --iterations and the recipe parts set in the config (null keys are left
-    to splat_train, whose config is the one place of their defaults)."""
+    """--recipe, --iterations and the recipe parts set in the config (null keys are left to
+    splat_train, whose recipes and config are the one place of their defaults)."""
     import json
 
     t = config["train"]
-    args = [f"--recipe {t['recipe']}"]
+    args = [f"--recipe {t['recipe']}"] if t["recipe"] is not None else []
     if t["iterations"] is not None:
         args.append(f"--iterations {t['iterations']}")
     keys = (

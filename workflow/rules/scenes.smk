@@ -172,7 +172,9 @@ _told = set()
 # run whether they can run here. The decision is made by the snakemake that plans the run and
 # written to R/skipped.json (rule unavailable_initialisers, a local rule); the snakemake of a
 # cluster job reads it back rather than asking again on a node that may see another network.
-_NEEDS_VGGT = ("vggt", "vggt_ba")
+_NEEDS_VGGT = tuple(
+    n for n, i in initialisers.INITIALISERS.items() if "weights" in i.needs
+)
 _unavailable = None
 
 

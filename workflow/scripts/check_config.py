@@ -1,5 +1,6 @@
 """Check a workflow configuration against workflow/schemas/config.schema.yaml, one line per
-problem, naming the key and, for an unknown key, the nearest valid one.
+problem, naming the key and, for an unknown key, the nearest valid one. The schema's enums of
+the lists the code defines once (``x-enum-from``) are read from the code here.
 
     python workflow/scripts/check_config.py config.yaml [more.yaml ...] [--set KEY=YAML ...]
 
@@ -83,11 +84,57 @@ def _results_problem(config: dict) -> str | None:
     return None
 
 
+def enum_sources() -> dict[str, tuple]:
+    """The lists the schema names (``x-enum-from: KEY``), each read from its one place; light
+    modules only (no torch)."""
+    from camio.modes import BRIDGE_MODES
+    from evaluation.initialisers import registry
+    from splat_train.recipes import RECIPE_NAMES
+    from vggt_init.defaults import POINT_SOURCES
+
+    return {
+        "initialisers": registry.NAMES,
+        "study_initialisers": registry.studied(),
+        "bridge_modes": BRIDGE_MODES,
+        "recipes": RECIPE_NAMES,
+        "vggt_point_sources": POINT_SOURCES,
+    }
+
+
+def load_schema(path: Path = SCHEMA) -> dict:
+    """The config schema with every ``x-enum-from: KEY`` filled in as ``enum`` from
+    :func:`enum_sources` (``None`` added where the key may be null).
+
+    Raises:
+        ValueError: a ``x-enum-from`` names no list.
+    """
+    schema = yaml.safe_load(Path(path).read_text())
+    sources = enum_sources()
+
+    def fill(node):
+        if isinstance(node, dict):
+            if "x-enum-from" in node:
+                key = node["x-enum-from"]
+                if key not in sources:
+                    raise ValueError(f"{path}: x-enum-from {key!r} names no list; known: {', '.join(sources)}")
+                types = node.get("type", [])
+                node["enum"] = list(sources[key]) + ([None] if "null" in types else [])
+            for v in node.values():
+                fill(v)
+        elif isinstance(node, list):
+            for v in node:
+                fill(v)
+
+    fill(schema)
+    return schema
+
+
 def config_problems(config: dict, schema: dict | None = None) -> list[str]:
-    """One line per problem of ``config``; [] when it is valid."""
+    """One line per problem of ``config`` (against :func:`load_schema` unless ``schema`` is
+    given); [] when it is valid."""
     import jsonschema
 
-    schema = schema or yaml.safe_load(SCHEMA.read_text())
+    schema = schema or load_schema()
     if not isinstance(config, dict):
         return [f"the configuration must be a mapping of keys, got {type(config).__name__}"]
     lines, suggested = [], set()
