@@ -35,7 +35,7 @@ import sys
 from camio.cliargs import deprecated_flags, is_int
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.logs import setup_logging
-from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES
+from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
 
 log = logging.getLogger("splat_train")
 
@@ -58,11 +58,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
-                   help=f"training recipe (default {DEFAULT_RECIPE}): 'sparse' adds Gaussian dropout, the "
-                        "depth prior and a growth cap sized to the training pixels; 'paper' is the paper's "
-                        "3DGS schedule; 'dropgaussian' is 3DGS with DropGaussian's dropout; 'mcmc' is "
-                        "3DGS as MCMC (relocation under a cap, gsplat's preset) "
-                        "(splat_train.recipes)")
+                   help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
+                        + "; ".join(f"'{k}': {v}" for k, v in RECIPE_SUMMARIES.items()))
     p.add_argument("--depth-prior", dest="depth_prior",
                    help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed-ply, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")

@@ -80,7 +80,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["RECIPES", "RECIPE_NAMES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES",
+__all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES",
            "MIN_DENSIFY_EVERY", "recipe_defaults"]
 
 DEFAULT_RECIPE = "sparse"
@@ -194,6 +194,13 @@ RECIPES: dict[str, dict[str, Any]] = {
     },
 }
 RECIPE_NAMES = tuple(RECIPES)
+# One line per recipe, for help texts (the module docstring has the full account).
+RECIPE_SUMMARIES = {
+    "paper": "3DGS as its code trains (the paper's tables)",
+    "dropgaussian": "3DGS with Gaussian dropout, as DropGaussian trains LLFF",
+    "sparse": "dropout, the initialiser's depth prior, growth capped per training pixel, no opacity reset",
+    "mcmc": "3DGS as MCMC: dead Gaussians relocated, growth to a per-pixel cap (gsplat's preset)",
+}
 
 
 def recipe_defaults(name: str) -> dict[str, Any]:

@@ -77,6 +77,9 @@ def test_bad_recipe_values_are_refused(bad):
 def test_cli_lists_recipe_and_schema_has_it():
     out = subprocess.run([sys.executable, "-m", "splat_train", "--help"], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0 and "--recipe {" + ",".join(RECIPE_NAMES) + "}" in out.stdout
+    from splat_train.recipes import RECIPE_SUMMARIES
+    assert tuple(RECIPE_SUMMARIES) == RECIPE_NAMES  # every recipe has its one line, and only they
+    assert all(f"'{name}':" in " ".join(out.stdout.split()) for name in RECIPE_NAMES)
     assert "--depth-prior" in out.stdout
     sys.path.insert(0, str(REPO / "workflow" / "scripts"))
     import check_config
