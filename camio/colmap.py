@@ -100,8 +100,8 @@ class SparseModel:
 # blas_memory_alloc from the same call path (colmap/colmap#3648). Measured with the 3-image
 # baseline CLI on 2 cores: 11 of 400 runs as shipped; 30 of 800 with OPENBLAS_NUM_THREADS=1
 # or OMP_NUM_THREADS=1 (no help); 0 of 700 with one matcher thread (this code), 0 of 400
-# with every stage on one thread. Cost: exhaustive matching of 12 fern images_8 views takes
-# 2.1 s instead of 1.6 s. Extraction and mapping keep every core.
+# with every stage on one thread. Cost: matching runs on one core (about a third slower on
+# 12 small views). Extraction and mapping keep every core.
 MATCHING_THREADS = 1
 
 

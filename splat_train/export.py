@@ -62,8 +62,8 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
     if opacity_fn is not None:
         opac = opacity_fn(opac)
     # SH as the (sh_dc, sh_rest) pair: the fused CPU projection reads both parameters in place
-    # and writes their gradients directly (no [N, 16, 3] concatenation and slice-gradient copy:
-    # ~7 ms per iteration at 206k Gaussians in the torch profile); other backends concatenate
+    # and writes their gradients directly (no [N, 16, 3] concatenation and slice-gradient copy
+    # per iteration); other backends concatenate
     return rasterize(params["means"], quats, scales, opac, (params["sh_dc"], params["sh_rest"]),
                      cam_from_world, K, width, height, background=background, sh_degree=sh_degree,
                      backend=backend)

@@ -26,7 +26,7 @@ Count: :data:`N_POINTS` (3DGS's 100k), but never more than :data:`POINTS_PER_PIX
 pixel (summed over the training views at their camera sizes; :func:`default_points`). On the
 field's benchmark scenes the 100k stands (LLFF at 1/8, three views: 571k pixels, a limit of
 143k); a small scene is not seeded with more points than it has pixels to constrain them (the
-bundled 128x96 scene at n = 3: 9,216 points instead of 100k, whose training ran at 2 it/s).
+bundled 128x96 scene at n = 3: 9,216 points instead of 100k).
 ``--points`` / ``--fallback-points`` give a count outright.
 
 Colours are 3DGS's: SH DC drawn from U(0, 1/255), i.e. RGB 0.5 + C0 U(0, 1/255), mid grey

@@ -157,8 +157,8 @@ def _scratch(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
     """A reused scratch tensor (grow-only, one per name; callers hold the lock that guards
     that name while they use it: ``_scratch_lock`` for binning's, ``_workspace_lock`` for the
     backward's pair gradients): binning's temporaries (spans, the radix sort's buffers, pair
-    counts) are ~20 MB at 200k Gaussians, and fresh allocations of that size are fresh pages,
-    so each iteration paid their page faults (~3-4 ms of a ~17 ms binning)."""
+    counts) are tens of MB at 200k Gaussians, and fresh allocations of that size are fresh
+    pages, whose page faults each iteration would pay again."""
     numel = math.prod(shape)
     buf = _scratch_bufs.get(name)
     if buf is None or buf.dtype != dtype or buf.numel() < numel:
@@ -345,8 +345,7 @@ def backward_raw(means2d, conics, features, opacities, bins: Bins, width: int, h
     # the reduction writes every row: the Gaussians in order, and with vis the others' zeros
     v = torch.empty(n, 6 + nf, dtype=dt) if vis is not None else torch.zeros(n, 6 + nf, dtype=dt)
     # trailing feature channels whose cotangent is zero everywhere are skipped (exact): one
-    # pass in C over v_accum (two strided torch .any() calls, the depth and the blue channel,
-    # cost ~8 ms CPU at 185k pixels)
+    # pass in C over v_accum (instead of strided torch .any() calls per channel)
     n_active = int(getattr(lib, f"splat2_active_{suffix}")(v_accum.numel() // max(nf, 1), nf, _ptr(v_accum)))
     # the buffer needs no clearing: "cpu" writes the row of every pair it reaches and the
     # reduction reads only those (live: one byte per pair, written by the backward)

@@ -2,17 +2,12 @@
 and hand-written backward.
 
 CPU twin of :func:`splat_train.losses.ssim` (mean reduction, gradient for the first image only),
-which stays the reference and the evaluation metric. Five grouped 11 x 11 ``conv2d`` calls and
-their backward took ~100 ms of a ~126 ms training iteration at 497x372 on one torch thread
-(fern cell, few Gaussians); the row-then-column filter in C took 9.4 + 6.0 ms (forward +
-backward, 2 kernel threads) with a scalar row pass and one channel per work item, and takes
-4.2 + 2.2 ms with the row pass vectorised across x (zero-padded rows, taps outer) and
-(channel, band of rows) work items that keep both cores busy on 3 channels. Summing each
-filter output in registers over the taps (instead of a load and store per tap) and the map's
-and L1's sums in eight double lanes (instead of one chain of scalar adds) then took one
-thread's forward + backward from 6.6-7.0 + 3.7-4.0 to 4.6-4.9 + 3.3-3.4 ms (random
-497x372x3 float32 images, best of 30, one process each; the training iteration's loss phase
-at 200k Gaussians 4.1-4.3 -> 3.1 ms).
+which stays the reference and the evaluation metric. On the CPU five grouped 11 x 11
+``conv2d`` calls and their backward dominate a training iteration with few Gaussians; here the
+separable filter runs row then column, the row pass vectorised across x (zero-padded rows,
+taps outer), work items are (channel, band of rows) so that every core is busy on 3 channels,
+each filter output is summed in registers over the taps, and the map's and L1's sums run in
+eight double lanes. Timings: ``python -m benchmarks`` (benchmarks/README.md).
 tests/test_train_losses.py compares value and gradient with the reference in float64.
 """
 
