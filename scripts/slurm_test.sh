@@ -21,7 +21,8 @@
 # (.test/config.yaml with this script's test_overrides.yaml) instead of making one.
 # SLURM_TEST_ETC_CONF (default /etc/slurm/slurm.conf) and SLURM_TEST_TMP (default /tmp) move
 # the linked configuration and the state folder; SLURM_TEST_PREFLIGHT_ONLY=1 stops after checking
-# that the configuration path is free (tests/test_slurm_preflight.py).
+# that the configuration path is free (tests/test_slurm_preflight.py); SLURM_TEST_INSTALL_ONLY=1
+# only installs the packages (.ci/run, while the suite runs).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
@@ -31,6 +32,21 @@ skip() { say "SKIP: $*"; exit "$SKIP"; }
 
 [[ $(id -u) -eq 0 ]] || skip "needs root (it installs and starts SLURM daemons)"
 [[ -f /etc/debian_version ]] || skip "needs Debian or Ubuntu (apt packages slurm-wlm, slurmdbd, munge, mariadb-server)"
+
+PKGS=(slurm-wlm slurmdbd munge mariadb-server)
+install_packages() {  # apt, when any daemon is missing; a skip when apt cannot
+    if ! command -v slurmctld >/dev/null || ! command -v slurmdbd >/dev/null || ! command -v munged >/dev/null \
+        || ! command -v mariadbd >/dev/null; then
+        say "installing ${PKGS[*]} (apt)"
+        if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+                "${PKGS[@]}"; } >/tmp/slurm_test_apt.log 2>&1; then
+            tail -5 /tmp/slurm_test_apt.log
+            skip "apt could not install ${PKGS[*]} (no network or mirror?); see /tmp/slurm_test_apt.log"
+        fi
+    fi
+}
+# .ci/run installs them while the suite runs (network and dpkg, little CPU)
+[[ ${SLURM_TEST_INSTALL_ONLY:-0} == 1 ]] && { install_packages; say "install only: packages present"; exit 0; }
 
 # /etc/slurm/slurm.conf must be free: this test links its own configuration there for the run.
 # A link into a folder of this test whose run was killed (SIGKILL, power loss: no cleanup ran)
@@ -138,16 +154,7 @@ else
     set +m
 fi
 
-PKGS=(slurm-wlm slurmdbd munge mariadb-server)
-if ! command -v slurmctld >/dev/null || ! command -v slurmdbd >/dev/null || ! command -v munged >/dev/null \
-    || ! command -v mariadbd >/dev/null; then
-    say "installing ${PKGS[*]} (apt)"
-    if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
-            "${PKGS[@]}"; } >/tmp/slurm_test_apt.log 2>&1; then
-        tail -5 /tmp/slurm_test_apt.log
-        skip "apt could not install ${PKGS[*]} (no network or mirror?); see /tmp/slurm_test_apt.log"
-    fi
-fi
+install_packages
 T_INSTALL=$(( $(date +%s) - T0 ))
 
 free_port() { "$PY" -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
