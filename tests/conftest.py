@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import re
+import time
 from collections import defaultdict
 
 import pytest
@@ -121,6 +122,11 @@ def pytest_collection_modifyitems(config, items):
 
 
 _FILE_SECONDS: defaultdict[str, float] = defaultdict(float)
+_SESSION_START: list[float] = []
+
+
+def pytest_sessionstart(session):
+    _SESSION_START.append(time.monotonic())
 
 
 def pytest_runtest_logreport(report):
@@ -129,12 +135,16 @@ def pytest_runtest_logreport(report):
 
 def pytest_terminal_summary(terminalreporter, config):
     """The slowest test files (setup, call and teardown of all their tests), beside
-    ``--durations``' slowest tests; under xdist the seconds are the workers' (they overlap)."""
+    ``--durations``' slowest tests, and the tests' seconds in all against the run's (under
+    xdist the workers' seconds overlap: their ratio is how parallel the run was)."""
     if config.getoption("durations", None) is None or not _FILE_SECONDS:
         return
     terminalreporter.write_sep("=", "slowest 15 test files")
     for path, secs in sorted(_FILE_SECONDS.items(), key=lambda kv: -kv[1])[:15]:
         terminalreporter.write_line(f"{secs:8.2f}s {path}")
+    total, wall = sum(_FILE_SECONDS.values()), time.monotonic() - _SESSION_START[0]
+    terminalreporter.write_line(f"{total:8.2f}s in all {len(_FILE_SECONDS)} files, in {wall:.0f} s of wall time "
+                                f"({total / wall:.2f} tests at a time on average)")
 
 
 @pytest.fixture(scope="module")
