@@ -142,7 +142,7 @@ def pytest_terminal_summary(terminalreporter, config):
     terminalreporter.write_sep("=", "slowest 15 test files")
     for path, secs in sorted(_FILE_SECONDS.items(), key=lambda kv: -kv[1])[:15]:
         terminalreporter.write_line(f"{secs:8.2f}s {path}")
-    total, wall = sum(_FILE_SECONDS.values()), time.monotonic() - _SESSION_START[0]
+    total, wall = sum(_FILE_SECONDS.values()), max(time.monotonic() - _SESSION_START[0], 1e-6)
     terminalreporter.write_line(f"{total:8.2f}s in all {len(_FILE_SECONDS)} files, in {wall:.0f} s of wall time "
                                 f"({total / wall:.2f} tests at a time on average)")
 
