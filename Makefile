@@ -15,8 +15,10 @@ install:
 demo: install
 	bash scripts/demo.sh
 
+# The suite on every core (pytest-xdist; tests/conftest.py: each worker's share of the cores,
+# the units of work and their order); `$(PY) -m pytest -q` runs it serially, the same tests.
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 lint: install
 	snakefmt --check Snakefile workflow

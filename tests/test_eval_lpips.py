@@ -21,7 +21,7 @@ from safetensors.torch import save_file
 from evaluation.metrics import lpips_convert
 from camio.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
 
-pytestmark = pytest.mark.usefixtures("two_threads")
+pytestmark = pytest.mark.usefixtures("core_threads")
 
 ALEX_CONVS = [0, 3, 6, 8, 10]
 VGG_CONVS = [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28]

@@ -20,7 +20,7 @@ from camio.images import read_image
 from evaluation.metrics.images_cli import evaluate_images
 from camio.lpips import find_weights, load_lpips, lpips_distance
 
-pytestmark = pytest.mark.usefixtures("two_threads")
+pytestmark = pytest.mark.usefixtures("core_threads")
 
 DATA = Path(__file__).parent / "data" / "lpips"
 PUBLISHED = {"alex": (0.722, 0.138), "vgg": (0.569, 0.422)}

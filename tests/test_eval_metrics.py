@@ -27,7 +27,7 @@ from evaluation.metrics.image import (
     to_bchw,
 )
 
-pytestmark = pytest.mark.usefixtures("two_threads")
+pytestmark = pytest.mark.usefixtures("core_threads")
 
 
 def _rand_pair(seed: int, h: int = 24, w: int = 31, noise: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

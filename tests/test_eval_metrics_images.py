@@ -16,7 +16,7 @@ from evaluation.metrics.images_cli import add_parser, evaluate_images, main, mat
 from camio.lpips import LPIPS
 from evaluation.metrics.image import PSNR_CAP_DB
 
-pytestmark = pytest.mark.usefixtures("two_threads")
+pytestmark = pytest.mark.usefixtures("core_threads")
 
 
 @pytest.fixture

@@ -67,12 +67,14 @@ def test_help_texts_cite_no_file_outside_the_repository(module):
 def test_make_targets_use_the_clones_own_venv():
     make = (ROOT / "Makefile").read_text()
     assert re.search(r"^VENV \?= \.venv$", make, re.M) and "PY := $(VENV)/bin/python" in make
-    assert "$(PY) -m pytest -q" in make  # what .ci/run runs through `make test`
+    # what .ci/run runs through `make test`: the suite on every core, as the README says
+    assert "$(PY) -m pytest -q -n auto --dist loadfile" in make
+    assert "`-n auto --dist loadfile`" in README
     install = (ROOT / "scripts" / "install.sh").read_text()
     assert '-m venv' in install and 'PY="$VENV/bin/python"' in install
     assert "pip install" in install and "$BASE_PY -m pip" not in install
     dry = subprocess.run(["make", "-n", "test"], cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert dry.returncode == 0 and ".venv/bin/python -m pytest -q" in dry.stdout
+    assert dry.returncode == 0 and ".venv/bin/python -m pytest -q -n auto --dist loadfile" in dry.stdout
 
 
 def test_readme_python_example_runs(tmp_path):
