@@ -56,6 +56,9 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
                              gaussians=70_000 if scene == "b" else 5_000))
         recs.append(_rec("t", "tuning", "sparse", 0, 25.0, 0.1))
     recs.append(_rec("c", "evaluation", "paper", 0, 30.0, 0.1))  # a scene the grid has not finished
+    # n = 6 runs count in their own measures, never in the n = 3 targets
+    recs += [dict(_rec("a", "evaluation", rc, 0, p, 0.2, gaussians=g), n=6)
+             for rc, p, g in (("paper", 21.0, 9_000), ("sparse", 20.0, 99_000))]
     for i, r in enumerate(recs):
         (runs / f"{i}.json").write_text(json.dumps(r))
     doc = tmp_path / "results.md"
@@ -73,7 +76,11 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     # sparse's final (19.x) equals paper's best (19.x) on both scenes
     assert t["final_ge_paper_best_scenes"] == 2
     assert t["max_gaussians_ours"] == 70_000 and not t["gaussians_ok"]
+    six = s["measures_by_n"]["6"]
+    assert six["evaluation_scenes"] == ["a"] and six["psnr_lead_over_best_other"] == pytest.approx(-1.0)
+    assert six["max_gaussians_ours"] == 99_000
     text = doc.read_text()
+    assert "## The same measures at n = 6" in text
     assert "## Evaluation scenes" in text and "## Tuning scenes" in text and "not met" in text
 
 
