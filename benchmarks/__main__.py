@@ -362,7 +362,7 @@ def run(only: list[str], quick: bool, threads: int, cell_threads: int | None, fr
 
 
 def main(argv: list[str] | None = None) -> int:
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(prog="python -m benchmarks", description=plain(__doc__).split("\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke run)")
@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma list of --gpu parts, run in this order (default: all, see benchmarks/gpu_check.py)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
-    from camio.logs import setup_logging
+    from runtime.logs import setup_logging
 
     setup_logging()
     if args.gpu:

@@ -480,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="training recipe (splat_train --recipe; default: the trainer's)")
     args = p.parse_args(argv)
     from camio.atomic import write_json
-    from camio.logs import setup_logging
+    from runtime.logs import setup_logging
 
     setup_logging()
     if args.prepare_only is not None:

@@ -20,7 +20,7 @@ measured float32 matmul GFLOP/s on the same threads divided by FLOPS_PER_PAIR.
 
 Threads and memory as the trainer runs them (``splat_train.config.TrainConfig``: torch ops on
 ``num_threads = 1``, the C++ kernel on ``kernel_threads`` = every core; the CLI's malloc
-settings, :func:`camio.memory.retain_freed_memory`): ``--threads T`` gives the kernel T
+settings, :func:`runtime.memory.retain_freed_memory`): ``--threads T`` gives the kernel T
 threads and torch one. The matmul bound and the pure-torch backend ("torch", "reference") run
 on T torch threads. (Before 2026-11-25 the kernel rows ran on T torch threads too; torch's
 OpenMP workers then spin between its parallel regions on the cores the kernel's threads want:
@@ -246,8 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/...)")
     args = ap.parse_args(argv)
     from camio.atomic import write_json
-    from camio.logs import setup_logging
-    from camio.memory import retain_freed_memory
+    from runtime.logs import setup_logging
+    from runtime.memory import retain_freed_memory
 
     setup_logging()
     retain_freed_memory()  # the splat_train CLI's malloc settings

@@ -40,11 +40,11 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     """Build the random-weight model, run one forward, return timings (runs in a subprocess).
 
     Memory settings as in the vggt_init CLI: freed memory kept in the process
-    (``camio.memory``, off with VGGT_INIT_RETAIN_MEMORY=0), free pages returned after the
+    (``runtime.memory``, off with VGGT_INIT_RETAIN_MEMORY=0), free pages returned after the
     weights are built and cast (``trim``).
     """
     import vggt_init  # noqa: F401  (sets THP_MEM_ALLOC_ENABLE before torch's first allocation)
-    from camio.memory import release_free_memory, retain_freed_memory
+    from runtime.memory import release_free_memory, retain_freed_memory
 
     retained = retain_freed_memory()
     import torch
@@ -131,7 +131,7 @@ def _compare_outputs(saved: dict[tuple[int, str], Path], frames: list[int]) -> d
 
 _REUSE_PROBE = """
 import json, resource, sys
-from camio.memory import heap_stats, retain_freed_memory
+from runtime.memory import heap_stats, retain_freed_memory
 applied = retain_freed_memory() if sys.argv[1] == "retain" else False
 import torch
 faults, arena = [], []
@@ -148,10 +148,10 @@ print(json.dumps({"retained": applied, "minor_faults": faults, "heap_arena_bytes
 
 def reuse_probe() -> list[dict]:
     """Page faults of a 64 MB tensor allocated, filled and freed 5 times, with glibc's defaults and
-    with freed memory kept (``camio.memory``); huge-page allocation on, as in vggt_init.
+    with freed memory kept (``runtime.memory``); huge-page allocation on, as in vggt_init.
 
     Fault counts are kernel counters: they also depend on reclaim, huge-page splits and other
-    jobs, which is why they are measured here and not asserted in tests (tests/test_camio_memory.py
+    jobs, which is why they are measured here and not asserted in tests (tests/test_runtime_memory.py
     checks glibc's bookkeeping instead).
     """
     rows = []

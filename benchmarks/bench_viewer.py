@@ -17,9 +17,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _view_scene import make_cameras, make_model  # noqa: E402
-from camio.cliargs import plain
 from camio.colmap import write_text_model  # noqa: E402
 from camio.ply import write_gaussian_ply  # noqa: E402
+from runtime.cliargs import plain
 from splat_train.view import server  # noqa: E402
 from splat_train.view.headless import Chromium  # noqa: E402
 

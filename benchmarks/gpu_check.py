@@ -381,7 +381,7 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_pr
 
 
 def main() -> int:
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out")

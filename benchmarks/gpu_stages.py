@@ -143,7 +143,7 @@ def vggt_cli(folder: Path, device: str = "cuda") -> dict:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)

@@ -138,7 +138,7 @@ def train_native(cell: Path, iterations: int, seed: int = 0, device: str = "cuda
 
 
 def main() -> int:
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cell", type=Path, required=True, help="folder of bench_cell.py --prepare-only")

@@ -16,7 +16,7 @@ the iteration is copied here, so a change to the step is profiled as it is):
   iteration: every 100 by default).
 
 Nothing is written: the checkpoint's folder is left as it is. The malloc settings of the
-``splat_train`` CLI (:func:`camio.memory.retain_freed_memory`) are applied, so the times
+``splat_train`` CLI (:func:`runtime.memory.retain_freed_memory`) are applied, so the times
 are those of a CLI run.
 
     python benchmarks/profile_iteration.py --checkpoint RUN/ckpt/ckpt_0009500.pt \\
@@ -39,7 +39,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from camio.cliargs import deprecated_flags  # noqa: E402
+from runtime.cliargs import deprecated_flags  # noqa: E402
 
 PHASES = ("render", "loss", "backward", "densify_state", "adam", "other", "strategy")
 
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--torch-profile", action="store_true", help="also print torch.profiler's operator table")
     args = ap.parse_args(deprecated_flags(list(sys.argv[1:] if argv is None else argv),
                                           "benchmarks/profile_iteration.py", {"--seed": ("--seed-ply", None)}))
-    from camio.memory import retain_freed_memory
+    from runtime.memory import retain_freed_memory
 
     retain_freed_memory()
     tr = make_trainer(args.checkpoint, args.seed_ply, args.cameras, args.images, args.kernel_threads)

@@ -25,7 +25,7 @@ cell, whose cost profile differs from the synthetic scene's (more, smaller footp
 
 Memory: this script runs with glibc's default malloc settings, so a fresh buffer above the mmap
 threshold (sh_rest's 37 MB gradient at 206k Gaussians) is faulted in on every call; the
-``splat_train`` CLI keeps freed memory (``camio.memory.retain_freed_memory``), and
+``splat_train`` CLI keeps freed memory (``runtime.memory.retain_freed_memory``), and
 ``profile_iteration.py`` does the same, so use that one for what a training run pays.
 """
 

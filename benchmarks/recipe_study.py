@@ -166,7 +166,7 @@ def table(summary: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--scene", choices=["synthetic", *REAL], required=True)

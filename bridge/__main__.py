@@ -16,7 +16,7 @@ import logging
 import sys
 
 from bridge.core import DEFAULT_PERCENTILE, MODES, BridgeConfig, run_bridge
-from camio.logs import setup_logging, timed
+from runtime.logs import setup_logging, timed
 
 log = logging.getLogger("bridge")
 #: the one place of the flags' defaults

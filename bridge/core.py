@@ -29,9 +29,9 @@ from bridge.selection import (MIN_DIST2, cap_points, knn_scales, percentile_mask
                               stride_mask, voxel_downsample)
 from camio.cameras import Camera
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
-from camio.logs import timed
 from camio.modes import BRIDGE_MODES
 from camio.ply import SH_DEGREE, GaussianCloud
+from runtime.logs import timed
 
 __all__ = ["MODES", "BridgeConfig", "SeedResult", "build_seed", "write_outputs", "run_bridge"]
 

@@ -13,8 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
-from camio.cliargs import add_log_flags, plain
-from camio.logs import setup_logging, timed
+from runtime.cliargs import add_log_flags, plain
+from runtime.logs import setup_logging, timed
 
 log = logging.getLogger("camio")
 

@@ -362,7 +362,7 @@ def downsample_folder(
     Returns:
         name -> (width, height) written.
     """
-    from camio.logs import progress
+    from runtime.logs import progress
 
     src, dst = Path(src), Path(dst)
     names = list_images(src) if names is None else list(names)

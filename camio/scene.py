@@ -168,7 +168,7 @@ def _fit_to_images(model: SparseModel, image_dir: Path, names: list[str]) -> Spa
 
 
 def _verify_readable(image_dir: Path, names: list[str]) -> None:
-    from camio.logs import progress
+    from runtime.logs import progress
 
     for n in progress(names, desc="verify images"):
         read_image(image_dir / n)  # raises ImageReadError naming the file

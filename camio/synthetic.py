@@ -307,7 +307,7 @@ def write_synthetic_scene(
     Returns:
         The output folder.
     """
-    from camio.logs import progress
+    from runtime.logs import progress
 
     t0 = time.perf_counter()
     scene = build_scene(seed)

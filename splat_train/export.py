@@ -17,8 +17,8 @@ import torch
 
 from camio import Camera
 from camio.images import write_image
-from camio.logs import progress
 from camio.ply import read_gaussian_ply
+from runtime.logs import progress
 from splat_train.data import View, load_views, read_name_list
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import psnr

@@ -6,9 +6,9 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
 
 * PSNR: :func:`splat_train.losses.psnr` (float64 MSE), dB;
 * SSIM: :func:`splat_train.losses.ssim` (the 3DGS definition, the one
-  :func:`evaluation.metrics.image.ssim` also calls), computed in float32;
+  :func:`imgmetrics.psnr_ssim.ssim` also calls), computed in float32;
 * LPIPS: LPIPS v0.1 with the AlexNet backbone and the weights ``python -m evaluation images``
-  uses (:func:`camio.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
+  uses (:func:`imgmetrics.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
   NaN (null in log.parquet) when it is off or the weights are absent, never 0.
 
 The means over the test views are the ``test_*`` columns of ``log.parquet``
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camio.lpips import find_weights, load_lpips, lpips_distance
+from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
 __all__ = ["HeldoutScorer", "LPIPS_NET"]

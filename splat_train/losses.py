@@ -15,8 +15,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from imgmetrics.ssim import gaussian_window, gaussian_window_1d, ssim_map
 from splat_train.cpu import ssim as cpu_ssim
-from camio.image_metrics import gaussian_window, gaussian_window_1d, ssim_map
 from splat_train.config import TrainConfig
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "gaussian_regularisers", "gaussian_window",

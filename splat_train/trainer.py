@@ -53,8 +53,8 @@ from camio import Camera
 from camio.atomic import write_json
 from camio.colmap import write_text_model
 from camio.depth_prior import DEPTH_PRIOR_FILE
-from camio.logs import peak_rss_mb, progress
 from camio.ply import read_gaussian_ply, write_gaussian_ply
+from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
 from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
 from splat_train.cpu import raster as cpu_raster

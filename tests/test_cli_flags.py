@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-_PACKAGES = ("camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "scripts", "workflow")
+_PACKAGES = ("runtime", "camio", "imgmetrics", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "scripts", "workflow")
 # splat_train dispatches its subcommands by hand: each is its own parser
 _SUBCOMMANDS = {"splat_train/__main__.py": ([], ["render"], ["testpose"], ["view"])}
 
@@ -160,7 +160,7 @@ def test_camio_takes_q_after_the_subcommand(tmp_path):
 
 
 def test_old_spellings_work_with_a_deprecation_line(tmp_path):
-    from camio.cliargs import deprecated_flags
+    from runtime.cliargs import deprecated_flags
     from splat_train.__main__ import _OLD_TRAIN_FLAGS
 
     argv = deprecated_flags(["--seed", "a/seed.ply", "--seed-rng", "3", "--out", "o"], "python -m splat_train",

@@ -155,7 +155,7 @@ def test_matching_runs_on_one_thread_whatever_the_core_count(scene, tmp_path, mo
     import pycolmap
 
     from camio.colmap import read_model
-    from camio.triangulate import triangulate_known_poses
+    from evaluation.initialisers.triangulate import triangulate_known_poses
 
     seen: list[tuple[str, int]] = []
     real_extract, real_match = pycolmap.extract_features, pycolmap.match_exhaustive

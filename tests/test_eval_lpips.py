@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from safetensors.torch import save_file
 
 from evaluation.metrics import lpips_convert
-from camio.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
+from imgmetrics.lpips import LPIPS, canonical_net, find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("core_threads")
 

@@ -18,7 +18,7 @@ import torch
 
 from camio.images import read_image
 from evaluation.metrics.images_cli import evaluate_images
-from camio.lpips import find_weights, load_lpips, lpips_distance
+from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 
 pytestmark = pytest.mark.usefixtures("core_threads")
 

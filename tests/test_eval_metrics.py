@@ -1,4 +1,4 @@
-"""PSNR and SSIM (evaluation.metrics.image) against float64 direct implementations.
+"""PSNR and SSIM (imgmetrics.psnr_ssim) against float64 direct implementations.
 
 Tolerances: float64 vs float64 references 1e-10 (same maths, different summation order);
 float32 vs float64 1e-5 for SSIM (float32 rounding of local variances) and 1e-4 dB for PSNR;
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from evaluation.metrics.image import (
+from imgmetrics.psnr_ssim import (
     PSNR_CAP_DB,
     capped_psnr,
     gaussian_window,

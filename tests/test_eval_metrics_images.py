@@ -13,8 +13,8 @@ from safetensors.torch import save_file
 
 from camio.images import write_image
 from evaluation.metrics.images_cli import add_parser, evaluate_images, main, match_images
-from camio.lpips import LPIPS
-from evaluation.metrics.image import PSNR_CAP_DB
+from imgmetrics.lpips import LPIPS
+from imgmetrics.psnr_ssim import PSNR_CAP_DB
 
 pytestmark = pytest.mark.usefixtures("core_threads")
 

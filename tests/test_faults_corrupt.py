@@ -167,7 +167,7 @@ def test_vggt_truncated_safetensors_checkpoint(tmp_path):
 def test_lpips_truncated_weights_are_refused(tmp_path):
     from safetensors.torch import save_file
 
-    from camio.lpips import LPIPS, load_lpips
+    from imgmetrics.lpips import LPIPS, load_lpips
 
     path = tmp_path / "alex.safetensors"
     save_file(LPIPS("alex").state_dict(), str(path), metadata={"net": "alex"})
@@ -180,7 +180,7 @@ def test_lpips_truncated_weights_error_names_the_file(tmp_path):
     """(Was a bare SafetensorError 'incomplete metadata'; fixed in 7dbcb10.)"""
     from safetensors.torch import save_file
 
-    from camio.lpips import LPIPS, load_lpips
+    from imgmetrics.lpips import LPIPS, load_lpips
 
     path = tmp_path / "alex.safetensors"
     save_file(LPIPS("alex").state_dict(), str(path), metadata={"net": "alex"})

@@ -7,9 +7,10 @@ A package ``__init__`` only hands names on and is left out of the module graph.
 
 Three levels are checked:
 
-* packages: the graph between the top-level packages (camio, vggt_init, bridge, splat_train,
-  evaluation) has no cycle; camio, the shared package, imports no stage, and no stage imports
-  another stage (what several stages use lives in camio; stages talk through files);
+* packages: the graph between the top-level packages has no cycle. The ground floor
+  (:data:`GROUND_FLOOR`: runtime, camio, imgmetrics, one job each) imports no stage, each of its
+  packages only those below it; a stage (:data:`STAGES`) imports the ground floor and no other
+  stage (what several stages use lives on the ground floor; stages talk through files);
 * subpackages: inside a package, its subpackages (e.g. evaluation.metrics, splat_train.cpu) and
   top-level modules import each other one way; evaluation's subpackages follow its layers
   (:data:`EVALUATION_LAYERS`);
@@ -24,7 +25,12 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("camio", "vggt_init", "bridge", "splat_train", "evaluation")
+# The ground floor, lowest first, each package importing only those before it:
+# runtime (what every command shares while it runs: flags, logging, memory, C++ builds),
+# camio (cameras, scenes, file formats), imgmetrics (image-quality metrics).
+GROUND_FLOOR = ("runtime", "camio", "imgmetrics")
+STAGES = ("vggt_init", "bridge", "splat_train", "evaluation")
+PACKAGES = GROUND_FLOOR + STAGES
 # evaluation's subpackages by job, lowest first: each imports only those before it
 # (evaluation/__init__.py); evaluation.__main__, the CLI, sits above them all.
 EVALUATION_LAYERS = ("evaluation.metrics", "evaluation.initialisers", "evaluation.reports", "evaluation.study")
@@ -141,11 +147,25 @@ def test_no_cycle_between_packages():
 
 
 def test_package_layers():
-    """camio imports no stage; a stage imports camio and no other stage."""
+    """The ground floor imports no stage, each of its packages only those below it; a stage
+    imports the ground floor and no other stage."""
     pkgs = package_graph(import_graph())
-    assert pkgs["camio"] == set(), pkgs["camio"]
-    for stage in ("vggt_init", "bridge", "splat_train", "evaluation"):
-        assert pkgs[stage] <= {"camio"}, (stage, pkgs[stage])
+    for i, pkg in enumerate(GROUND_FLOOR):
+        assert pkgs.get(pkg, set()) <= set(GROUND_FLOOR[:i]), (pkg, pkgs[pkg])
+    for stage in STAGES:
+        assert pkgs[stage] <= set(GROUND_FLOOR), (stage, pkgs[stage])
+
+
+def test_every_package_has_its_floor():
+    """The packages ``pip install`` ships are the ones these rules cover, and each top-level
+    folder with an ``__init__.py`` besides tests, benchmarks and scripts is one of them."""
+    import re
+
+    include = re.search(r"^include = \[(.*)\]$", (ROOT / "pyproject.toml").read_text(), re.M).group(1)
+    shipped = {s.strip().strip('"').rstrip("*") for s in include.split(",")}
+    assert shipped == set(PACKAGES), shipped ^ set(PACKAGES)
+    folders = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests", "benchmarks", "scripts"}
+    assert folders == set(PACKAGES), folders ^ set(PACKAGES)
 
 
 def test_graph_sees_subpackages():

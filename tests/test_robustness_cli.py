@@ -364,7 +364,7 @@ def test_metrics_cli_truncated_lpips_weights(tmp_path):
     converter; no metrics.json."""
     from safetensors.torch import save_file
 
-    from camio.lpips import LPIPS
+    from imgmetrics.lpips import LPIPS
 
     weights = tmp_path / "w"
     weights.mkdir()

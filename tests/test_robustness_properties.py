@@ -183,7 +183,7 @@ _kinds = st.sampled_from(["random", "black", "white", "constant", "binary"])
 @settings(max_examples=12, deadline=None)
 @given(kind=_kinds, seed=st.integers(0, 2**16))
 def test_psnr_ssim_limits_on_identical_images(kind, seed):
-    from evaluation.metrics.image import PSNR_CAP_DB, capped_psnr, psnr, ssim
+    from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim
 
     x = _image(kind, seed)
     p = float(psnr(x, x.copy())[0])
@@ -196,7 +196,7 @@ def test_psnr_ssim_limits_on_identical_images(kind, seed):
 @settings(max_examples=15, deadline=None)
 @given(a=_kinds, b=_kinds, sa=st.integers(0, 2**16), sb=st.integers(0, 2**16))
 def test_psnr_ssim_symmetric_and_bounded_on_stiff_pairs(a, b, sa, sb):
-    from evaluation.metrics.image import psnr, ssim
+    from imgmetrics.psnr_ssim import psnr, ssim
 
     x, y = _image(a, sa), _image(b, sb)
     assume(not np.array_equal(x, y))
@@ -211,7 +211,7 @@ _LPIPS = {}
 
 def _lpips():
     if "alex" not in _LPIPS:
-        from camio.lpips import LPIPS
+        from imgmetrics.lpips import LPIPS
 
         g = torch.Generator().manual_seed(5)
         m = LPIPS("alex").double()

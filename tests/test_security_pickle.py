@@ -6,7 +6,7 @@ marker must not exist. Files: ``torch.save`` (zip container) and a bare pickle, 
 names each loader accepts (.pt, .pth, .bin, .ckpt, and .safetensors for good measure).
 
 Loaders: the VGGT checkpoint (vggt_init.checkpoint), the trainer's resume
-(splat_train.checkpoint, through ``train``), LPIPS weights at run time (camio.lpips) and
+(splat_train.checkpoint, through ``train``), LPIPS weights at run time (imgmetrics.lpips) and
 the one-time LPIPS converter's numpy-only unpickler (evaluation.metrics.lpips_convert).
 """
 
@@ -123,7 +123,7 @@ def test_trainer_resume_refuses_code(tmp_path, marker):
 
 @pytest.mark.parametrize("container", ["torch", "pickle"])
 def test_lpips_weights_refuse_code(tmp_path, marker, container, monkeypatch):
-    from camio.lpips import load_lpips
+    from imgmetrics.lpips import load_lpips
 
     monkeypatch.delenv("LPIPS_WEIGHTS_DIR", raising=False)
     path = _evil(tmp_path / "alex.safetensors", marker, container)
@@ -138,7 +138,7 @@ def test_lpips_weights_refuse_code(tmp_path, marker, container, monkeypatch):
 
 def test_lpips_weights_pickle_error_is_clear(tmp_path, marker):
     """(Was a bare SafetensorError 'header too large'; fixed in 7dbcb10.)"""
-    from camio.lpips import load_lpips
+    from imgmetrics.lpips import load_lpips
 
     path = _evil(tmp_path / "alex.safetensors", marker, "torch")
     with pytest.raises(ValueError, match=rf"{path}.*lpips_convert"):

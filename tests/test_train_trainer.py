@@ -242,7 +242,7 @@ def _random_lpips_weights(folder):
     """alex.safetensors with seeded random LPIPS weights: the test needs no download."""
     from safetensors.torch import save_file
 
-    from camio.lpips import LPIPS, WEIGHTS_FORMAT
+    from imgmetrics.lpips import LPIPS, WEIGHTS_FORMAT
 
     torch.manual_seed(0)
     m = LPIPS("alex")
@@ -260,11 +260,11 @@ def lpips_scene(tmp_path_factory, one_thread):
 
 
 def test_heldout_ssim_and_lpips_along_the_run_agree_with_the_evaluation_metrics(lpips_scene, tmp_path):
-    """log.parquet's test_ssim / test_lpips are evaluation.metrics.image.ssim and LPIPS-alex of the
+    """log.parquet's test_ssim / test_lpips are imgmetrics.psnr_ssim.ssim and LPIPS-alex of the
     same float renders: recomputed here in float64 from the final model (no densification or
     reset after the last evaluation), they agree to 1e-5 (the trainer scores in float32)."""
-    from camio.lpips import load_lpips, lpips_distance
-    from evaluation.metrics.image import ssim as eval_ssim
+    from imgmetrics.lpips import load_lpips, lpips_distance
+    from imgmetrics.psnr_ssim import ssim as eval_ssim
     from splat_train.data import load_views
     from splat_train.export import render_views
     from splat_train.trainer import Trainer

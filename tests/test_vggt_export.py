@@ -42,7 +42,7 @@ def scene(tmp_path):
 
 def _cli(images: Path, out: Path, *extra: str) -> int:
     # In-process, so --no-retain-memory leaves this pytest process's malloc settings alone;
-    # test_camio_memory.py runs the CLI with them, in a subprocess.
+    # test_runtime_memory.py runs the CLI with them, in a subprocess.
     return main(["--images", str(images), "--out", str(out), "--model-config", str(FIX / "config.json"),
                  "--checkpoint", str(FIX / "weights.safetensors"), "--image-size", str(SIZE),
                  "--threads", "2", "--max-points", "500", "--no-retain-memory", *extra])

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from camio.logs import setup_logging
+from runtime.logs import setup_logging
 from vggt_init import defaults
 
 log = logging.getLogger("vggt_init")
@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-retain-memory", action="store_true",
                    help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "
-                        "see camio/memory.py)")
+                        "see runtime/memory.py)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
@@ -54,8 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     from vggt_init.preprocess import ImageInputError
     from vggt_init.run import MemoryBudgetError, RunOptions, run
 
-    from camio.memory import retain_freed_memory
     from camio.outdir import prepare_out, run_stage, typed_line
+    from runtime.memory import retain_freed_memory
 
     def work() -> None:
         prepare_out(args.out, {"--images": args.images, "--image-list": args.image_list,

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.logs import progress
+from runtime.logs import progress
 from vggt_init.defaults import IMAGE_SIZE, MODE
 from vggt_init.pillow_compat import alpha_composite_over, resize_bicubic
 

@@ -20,8 +20,8 @@ import torch
 
 from camio.atomic import write_json
 from camio.images import list_images
-from camio.logs import peak_rss_mb, timed
-from camio.memory import memory_retained, release_free_memory
+from runtime.logs import peak_rss_mb, timed
+from runtime.memory import memory_retained, release_free_memory
 from vggt_init.checkpoint import load_model, resolve_checkpoint
 from vggt_init.defaults import FRAMES_CHUNK, IMAGE_SIZE, MAX_POINTS, MODE, POINT_SOURCES, POINTS_FROM
 from vggt_init.export import select_points, write_colmap, write_predictions
@@ -285,7 +285,7 @@ def run(opts: RunOptions) -> dict:
         "torch_threads": torch.get_num_threads(),
         "cpu_fast_paths": fast_paths_enabled(),  # oneDNN Linear/attention (vggt_init.model.fastpath)
         "thp_alloc": os.environ.get("THP_MEM_ALLOC_ENABLE", ""),
-        "retain_freed_memory": memory_retained(),  # camio.memory (the CLI turns it on)
+        "retain_freed_memory": memory_retained(),  # runtime.memory (the CLI turns it on)
         "num_sparse_points": int(len(pts)),
         "estimated_memory_gb": need / 1e9,
         "wall_time_s": {**times, "total": time.perf_counter() - t_start},

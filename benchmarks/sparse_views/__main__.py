@@ -100,7 +100,7 @@ def cmd_list(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from camio.cliargs import plain
+    from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--protocol", type=Path, default=protocol.PROTOCOL, help="the scenes file (default %(default)s)")

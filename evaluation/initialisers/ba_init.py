@@ -4,10 +4,10 @@
 From an initialiser's output folder (``sparse/0`` cameras, optionally ``predictions.npz``):
 
 1. SIFT features and exhaustive matching on the training views, triangulation with the
-   predicted poses and intrinsics held fixed (:func:`camio.triangulate.triangulate_known_poses`,
+   predicted poses and intrinsics held fixed (:func:`evaluation.initialisers.triangulate.triangulate_known_poses`,
    the COLMAP baseline's feature settings);
 2. bundle adjustment of cameras and points with the first camera and the scale fixed, focal
-   lengths optional (:func:`camio.bundle.bundle_adjust`);
+   lengths optional (:func:`evaluation.initialisers.bundle.bundle_adjust`);
 3. the seed: ``dense`` (default, when the input has ``predictions.npz``) keeps the dense
    predicted points, each view's points moved rigidly with its refined camera
    (:func:`move_points_with_cameras`); ``triangulated`` keeps the bundle-adjusted points
@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.cliargs import add_log_flags, plain
 from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.metrics.pose import paper_success
+from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["SEED_POINTS", "DEFAULT_MIN_POINTS", "move_points_with_cameras", "refine_predictions", "run_ba_init"]
 
@@ -94,8 +94,8 @@ def refine_predictions(pred: dict, old: dict, new: dict) -> dict:
 def _refine(images: Path, cameras: list, refine_focal: bool, min_points: int, seed: int,
             num_threads: int) -> tuple[SparseModel | None, dict, str | None]:
     """(refined model or None, stats, fallback reason or None)."""
-    from camio.bundle import bundle_adjust
-    from camio.triangulate import triangulate_known_poses
+    from evaluation.initialisers.bundle import bundle_adjust
+    from evaluation.initialisers.triangulate import triangulate_known_poses
 
     stats: dict = {"triangulation": None, "bundle_adjustment": None}
     try:
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     [--refine-focal] [--seed-points dense|triangulated] [--min-points N] [--seed S] [--threads T]``."""
     import argparse
 
-    from camio.logs import setup_logging
+    from runtime.logs import setup_logging
 
     p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.ba_init", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--init", required=True, help="initialiser output folder (sparse/0, predictions.npz)")

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import logging
 
-from camio.cliargs import add_log_flags
 from camio.images import ImageReadError
 from camio.outdir import prepare_out, run_stage, seal_out, typed_line
 from evaluation.initialisers import colmap_repeats
@@ -22,6 +21,7 @@ from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, 
 from evaluation.metrics.pose import add_gate_args, gate_from_args
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.cliargs import add_log_flags
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
 

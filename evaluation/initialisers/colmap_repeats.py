@@ -130,6 +130,6 @@ def run_colmap_repeats(images_dir: str | Path, names: list[str], out_dir: str | 
 if __name__ == "__main__":
     import sys
 
-    from camio.cliargs import not_a_command
+    from runtime.cliargs import not_a_command
 
     sys.exit(not_a_command("evaluation.initialisers.colmap_repeats", "python -m evaluation.initialisers.colmap_baseline --repeats N"))

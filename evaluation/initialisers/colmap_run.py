@@ -39,8 +39,8 @@ import numpy as np
 from camio.atomic import atomic_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import ImageReadError, check_images
-from camio.logs import peak_rss_mb
 from evaluation.metrics.pose import paper_success
+from runtime.logs import peak_rss_mb
 
 __all__ = [
     "ColmapSettings",
@@ -355,6 +355,6 @@ def model_fingerprint(model_dir: str | Path) -> dict:
 if __name__ == "__main__":
     import sys
 
-    from camio.cliargs import not_a_command
+    from runtime.cliargs import not_a_command
 
     sys.exit(not_a_command("evaluation.initialisers.colmap_run", "python -m evaluation.initialisers.colmap_baseline"))

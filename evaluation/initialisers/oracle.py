@@ -44,11 +44,11 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.cliargs import add_log_flags
 from camio.atomic import save_npz, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.cliargs import add_log_flags
 
 __all__ = ["CONF_MODES", "MAX_POINTS", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
            "unproject_depth", "reassign_confidence", "make_oracle_predictions", "run_oracle"]

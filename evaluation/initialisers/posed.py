@@ -3,7 +3,7 @@
 On any scene with reference cameras (``sparse/0`` of a prepared scene) it takes the reference
 cameras of the *training views only*, triangulates points from those views with pycolmap (SIFT,
 exhaustive matching, triangulation with the poses and intrinsics held fixed;
-:func:`camio.triangulate.triangulate_known_poses`) and, when asked, applies the oracle's seeded
+:func:`evaluation.initialisers.triangulate.triangulate_known_poses`) and, when asked, applies the oracle's seeded
 noise model (:class:`evaluation.initialisers.oracle.OracleNoise`):
 
 * poses: :func:`evaluation.initialisers.oracle.perturb_cameras` (RMS rotation ``rot_deg``, centre noise
@@ -36,13 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.cliargs import add_log_flags, plain
 from camio.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
 
@@ -84,7 +84,7 @@ def run_posed(scene: str | Path, names: list[str], out_dir: str | Path, noise: O
     Raises:
         ValueError: the scene has no reference cameras, or not for every training view.
     """
-    from camio.triangulate import triangulate_known_poses
+    from evaluation.initialisers.triangulate import triangulate_known_poses
 
     t0 = time.perf_counter()
     scene, out_dir = Path(scene), Path(out_dir)

@@ -54,13 +54,13 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from camio.ply import SH_C0
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.views import read_image_list
+from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["N_POINTS", "POINTS_PER_PIXEL", "default_points", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
            "FALLBACK_DIR", "depth_range", "random_points", "run_random", "apply_fallback", "seed_model_dir",
@@ -316,8 +316,8 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
-    from camio.logs import setup_logging
     from camio.outdir import prepare_out, run_stage
+    from runtime.logs import setup_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["seed-model"]:

@@ -76,7 +76,7 @@ def training_names(args: argparse.Namespace) -> list[str]:
 def parse_training_args(p: argparse.ArgumentParser, argv: list[str] | None) -> tuple[argparse.Namespace, list[str]]:
     """Parse ``argv`` with ``p`` (which has :func:`add_view_args` and ``-v``), start logging and
     read the training names; a bad choice of views is argparse's usage line and exit code 2."""
-    from camio.logs import setup_logging
+    from runtime.logs import setup_logging
 
     args = p.parse_args(argv)
     setup_logging(args.verbose, getattr(args, "quiet", False))
@@ -90,6 +90,6 @@ def parse_training_args(p: argparse.ArgumentParser, argv: list[str] | None) -> t
 if __name__ == "__main__":
     import sys
 
-    from camio.cliargs import not_a_command
+    from runtime.cliargs import not_a_command
 
     sys.exit(not_a_command("evaluation.initialisers.views", "one of the initialisers, e.g. python -m evaluation.initialisers.colmap_baseline --help"))

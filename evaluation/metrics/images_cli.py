@@ -21,7 +21,7 @@ Output (``metrics.json``, written atomically; docs/contracts.md)::
      "lpips_weights": {"alex": path | null, "vgg": path | null},
      "pred_dir": .., "gt_dir": .., "wall_time_s": ..}
 
-PSNR is computed in float64 and capped at :data:`evaluation.metrics.image.PSNR_CAP_DB` (identical
+PSNR is computed in float64 and capped at :data:`imgmetrics.psnr_ssim.PSNR_CAP_DB` (identical
 images have PSNR = inf; JSON has no inf, and a mean of inf says nothing), SSIM in float64,
 LPIPS in float32 (agrees with float64 to ~1e-7 on the reference images). An LPIPS backbone
 whose weights are absent, or that was not requested, is null (missing), never zero.
@@ -37,12 +37,12 @@ from typing import Sequence
 
 import torch
 
-from camio.cliargs import add_log_flags, plain
 from camio.atomic import write_json
 from camio.images import list_images, read_image
-from camio.logs import progress, setup_logging, timed
-from camio.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
-from evaluation.metrics.image import PSNR_CAP_DB, capped_psnr, psnr, ssim
+from imgmetrics.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
+from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim
+from runtime.cliargs import add_log_flags, plain
+from runtime.logs import progress, setup_logging, timed
 
 __all__ = ["match_images", "evaluate_images", "add_parser", "main"]
 
@@ -103,7 +103,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         out_json: output path (atomic write), or None to only return the record.
         lpips_nets: LPIPS backbones among ``("alex", "vgg")``; others are reported null.
         lpips_weights: folder with ``{net}.safetensors`` (default: LPIPS_WEIGHTS_DIR, then
-            the user cache; see :mod:`camio.lpips`).
+            the user cache; see :mod:`imgmetrics.lpips`).
         device: torch device for LPIPS.
 
     Returns:

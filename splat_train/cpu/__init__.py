@@ -13,7 +13,7 @@ Each kernel is one C++ source beside its loader, compiled on first use and cache
 
 Dependencies run one way: these loaders import only the torch building blocks they mirror
 (:mod:`splat_train.projection`, :mod:`splat_train._reference`, :mod:`splat_train.sh`,
-:mod:`camio.image_metrics`), never the modules that call them (``rasterize``, ``losses``,
+:mod:`imgmetrics.ssim`), never the modules that call them (``rasterize``, ``losses``,
 ``densify``, ``trainer``; tests/test_import_layers.py checks). This package imports none of its
 modules itself, and importing one builds nothing until its kernel is first used.
 

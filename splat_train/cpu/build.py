@@ -3,7 +3,7 @@
 Each kernel is one C++ source with a plain C ABI and no torch headers or OpenMP, compiled with
 the system compiler (``$CXX``, else ``c++`` / ``g++``) on first use into a cache folder
 (``$SPLAT_TRAIN_KERNEL_DIR``, else ``~/.cache/splat_train/kernels``), keyed by a hash of the
-source, compiler and flags (:mod:`camio.cbuild`), and loaded with ctypes. SIMD flags are chosen
+source, compiler and flags (:mod:`runtime.cbuild`), and loaded with ctypes. SIMD flags are chosen
 at load time from the CPU's flags (``/proc/cpuinfo``): AVX-512 (F, DQ, BW, VL) where present,
 else AVX2 + FMA, else none (SSE2, the x86-64 baseline, or the target's default); if that build
 fails, the next level down is tried. ``$SPLAT_TRAIN_KERNEL_SIMD`` = ``avx512`` | ``avx2`` |
@@ -32,7 +32,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from camio.cbuild import build_shared, find_compiler
+from runtime.cbuild import build_shared, find_compiler
 
 __all__ = ["KERNEL_REGISTRY", "Kernel", "set_kernel_threads", "kernel_threads", "run_threaded", "ptr", "suffix",
            "build_seconds", "build_all"]

@@ -8,7 +8,7 @@ import logging
 import sys
 import webbrowser
 
-from camio.cliargs import deprecated_flags
+from runtime.cliargs import deprecated_flags
 from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT
 
 log = logging.getLogger("splat_train.view")
@@ -46,7 +46,7 @@ def main(argv: list[str]) -> int:
     import signal
 
     args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--seed-ply", None)}))
-    from camio.logs import setup_logging
+    from runtime.logs import setup_logging
 
     setup_logging(args.verbose, args.quiet)
     from pathlib import Path

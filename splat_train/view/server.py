@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.view_defaults import VIEW_HOST, VIEW_PORT
+from runtime.view_defaults import VIEW_HOST, VIEW_PORT
 
 log = logging.getLogger("splat_train.view")
 

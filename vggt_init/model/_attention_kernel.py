@@ -8,7 +8,7 @@ row sum and rounded to bf16. No [N, N] score matrix is ever stored. The precisio
 
 Build: on first use with the system compiler (``$CXX``, else c++ / g++ / clang++) and
 ``-mavx512f -mavx512bw -mavx512vl -mavx512bf16 -mfma`` into ``$VGGT_INIT_KERNEL_DIR`` (else
-``~/.cache/vggt_init/kernels``), via :mod:`camio.cbuild`; loaded with ctypes. :func:`available`
+``~/.cache/vggt_init/kernels``), via :mod:`runtime.cbuild`; loaded with ctypes. :func:`available`
 is False (and callers use the oneDNN path) without a compiler, on a CPU without avx512_bf16, after
 a failed build (logged once), or with ``VGGT_INIT_NO_KERNEL=1``.
 
@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from camio.cbuild import build_shared, find_compiler
+from runtime.cbuild import build_shared, find_compiler
 
 __all__ = ["available", "build_error", "supports", "attention_bf16", "HEAD_DIMS"]
 

@@ -27,9 +27,9 @@ import time
 from pathlib import Path
 
 from camio.atomic import atomic_dir, atomic_path, write_json
-from camio.logs import setup_logging
 from camio.outdir import check_name, prepare_out, run_stage, seal_out
 from camio.split import read_split
+from runtime.logs import setup_logging
 
 log = logging.getLogger("workflow.views")
 

@@ -22,7 +22,7 @@ Reuse relies on torch's 2 MB-aligned large allocations (``THP_MEM_ALLOC_ENABLE=1
 ``vggt_init`` sets): with 64-byte alignment glibc's memalign needs a few bytes more than a
 freed block of the same size offers, so a block freed in the middle of the heap is not
 reused for the same request (seen with ``THP_MEM_ALLOC_ENABLE=0``: a 64 MB buffer allocated
-and freed in a loop moved up the heap each round). tests/test_camio_memory.py runs with huge
+and freed in a loop moved up the heap each round). tests/test_runtime_memory.py runs with huge
 pages on.
 
 Reuse is not guaranteed even then, so the tests assert only what the settings control (heap,

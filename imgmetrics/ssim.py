@@ -3,8 +3,8 @@
 The SSIM of 3DGS (its Gaussian window and per-pixel map) and the layout conversion that the
 metrics and LPIPS use. Both stages import them from here, so neither imports the other:
 the training loss (:mod:`splat_train.losses`, and the C++ kernel's loader
-:mod:`splat_train.cpu.ssim`) and the evaluation metrics (:mod:`evaluation.metrics.image`,
-:mod:`camio.lpips`).
+:mod:`splat_train.cpu.ssim`) and the evaluation metrics (:mod:`imgmetrics.psnr_ssim`,
+:mod:`imgmetrics.lpips`).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: flo
     """Per-pixel SSIM map of the 3DGS definition (see :func:`ssim`): [B, C, H, W] x2 -> [B, C, H, W].
 
     The one implementation in the project: the training loss (:mod:`splat_train.losses`) and the
-    evaluation metric (:func:`evaluation.metrics.image.ssim_map`) both call it. C1 = (0.01 max_val)^2,
+    evaluation metric (:func:`imgmetrics.psnr_ssim.ssim_map`) both call it. C1 = (0.01 max_val)^2,
     C2 = (0.03 max_val)^2.
     The 2D window is an outer product, so each local mean is a row pass then a column pass with
     the 1D window (zero 'same' padding in both): 22 instead of 121 multiply-adds per pixel, the

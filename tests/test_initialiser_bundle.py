@@ -1,12 +1,12 @@
-"""camio.bundle: bundle adjustment on a scene with exact correspondences must reduce the
+"""evaluation.initialisers.bundle: bundle adjustment on a scene with exact correspondences must reduce the
 reprojection error and the pose error, and keep the gauge (first camera, scale) fixed."""
 
 import numpy as np
 import pytest
 
-from camio.bundle import bundle_adjust, reprojection_errors
 from camio.cameras import Camera, look_at, project_points
 from camio.colmap import SparseModel
+from evaluation.initialisers.bundle import bundle_adjust, reprojection_errors
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import evaluate_pose
 

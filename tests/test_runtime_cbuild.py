@@ -1,4 +1,4 @@
-"""camio.cbuild.build_shared: the cache key covers the local headers a source includes."""
+"""runtime.cbuild.build_shared: the cache key covers the local headers a source includes."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import ctypes
 
 import pytest
 
-from camio.cbuild import build_shared, find_compiler
+from runtime.cbuild import build_shared, find_compiler
 
 CXX = find_compiler()
 FLAGS = ["-O1", "-std=c++17", "-fPIC", "-shared"]

@@ -1,9 +1,9 @@
-"""camio.memory: a large buffer comes from glibc's heap instead of its own mmap and stays
+"""runtime.memory: a large buffer comes from glibc's heap instead of its own mmap and stays
 in the process when freed (not unmapped, not trimmed); the environment switch and the CLI flag
 turn it off.
 
 Each check runs in a subprocess: the malloc settings are process-wide. The checks read glibc's
-own bookkeeping (``mallinfo2`` through :func:`camio.memory.heap_stats`), which depends
+own bookkeeping (``mallinfo2`` through :func:`runtime.memory.heap_stats`), which depends
 only on the allocation sequence. They do not count page faults: those also depend on what the
 kernel does between allocations (background reclaim, huge-page splits and compaction, other
 jobs), and a fault-count test failed one clean-clone CI run in three. The fault counts, the
@@ -47,7 +47,7 @@ ROUNDS = 4
 _SCRIPT = textwrap.dedent(f"""
     ROUNDS = {ROUNDS}
     import ctypes, json, sys
-    from camio.memory import heap_stats, memory_retained, retain_freed_memory
+    from runtime.memory import heap_stats, memory_retained, retain_freed_memory
     applied = retain_freed_memory() if sys.argv[1] == "retain" else False
     if heap_stats() is None:
         print(json.dumps({{"no_mallinfo2": True}}))

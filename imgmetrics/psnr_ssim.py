@@ -29,8 +29,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from camio.image_metrics import ArrayLike, gaussian_window, to_bchw
-from camio.image_metrics import ssim_map as _ssim_map
+from imgmetrics.ssim import ArrayLike, gaussian_window, to_bchw
+from imgmetrics.ssim import ssim_map as _ssim_map
 
 __all__ = [
     "PSNR_CAP_DB",

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from camio.image_metrics import to_bchw
+from imgmetrics.ssim import to_bchw
 
 __all__ = [
     "NETS",

@@ -1,0 +1,13 @@
+"""runtime: what every command of the project shares while it runs, none of it camera I/O.
+
+* :mod:`runtime.cliargs`: flag spellings and helpers shared by the command lines;
+* :mod:`runtime.logs`: logging, timing and progress bars of the CLIs;
+* :mod:`runtime.memory`: glibc's malloc settings that keep freed memory in the process
+  (``RETAIN_FREED_MEMORY=0`` turns them off);
+* :mod:`runtime.cbuild`: the cached build of single-file C++ kernels loaded with ctypes;
+* :mod:`runtime.view_defaults`: where the browser viewer listens, read by the viewer and by the
+  report that prints its commands.
+
+Ground floor, lowest of all (tests/test_import_layers.py): it imports no other package of the
+project.
+"""
