@@ -40,7 +40,7 @@ def _child(frames: int, dtype: str, size: int, threads: int, heads: list[str], s
     """Build the random-weight model, run one forward, return timings (runs in a subprocess).
 
     Memory settings as in the vggt_init CLI: freed memory kept in the process
-    (``runtime.memory``, off with VGGT_INIT_RETAIN_MEMORY=0), free pages returned after the
+    (``runtime.memory``, off with RETAIN_FREED_MEMORY=0), free pages returned after the
     weights are built and cast (``trim``).
     """
     import vggt_init  # noqa: F401  (sets THP_MEM_ALLOC_ENABLE before torch's first allocation)
@@ -156,7 +156,7 @@ def reuse_probe() -> list[dict]:
     """
     rows = []
     for mode in ("default", "retain"):
-        env = {k: v for k, v in os.environ.items() if k != "VGGT_INIT_RETAIN_MEMORY"}
+        env = {k: v for k, v in os.environ.items() if k not in ("RETAIN_FREED_MEMORY", "VGGT_INIT_RETAIN_MEMORY")}
         env["THP_MEM_ALLOC_ENABLE"] = "1"
         res = subprocess.run([sys.executable, "-c", _REUSE_PROBE, mode], capture_output=True, text=True, env=env)
         if res.returncode != 0:
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-thp", action="store_true",
                    help="4 kB pages for torch's large allocations (THP_MEM_ALLOC_ENABLE=0)")
     p.add_argument("--no-retain", action="store_true",
-                   help="let glibc return freed memory to the system (VGGT_INIT_RETAIN_MEMORY=0)")
+                   help="let glibc return freed memory to the system (RETAIN_FREED_MEMORY=0)")
     p.add_argument("--no-trim", action="store_true", help="no malloc_trim after building the weights")
     p.add_argument("--no-compare", action="store_true",
                    help="skip the bf16-vs-fp32 output comparison (outputs are kept in a temp dir otherwise)")
@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.no_thp:
                 env["THP_MEM_ALLOC_ENABLE"] = "0"
             if args.no_retain:
-                env["VGGT_INIT_RETAIN_MEMORY"] = "0"
+                env["RETAIN_FREED_MEMORY"] = "0"
             res = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if res.returncode != 0:
                 log.error("configuration %d/%s failed:\n%s", n, dt, res.stderr[-2000:])

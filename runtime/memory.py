@@ -37,8 +37,9 @@ memory stays in the process either way (no unmap, no trim); what the growth cost
 touches of the new pages, which ``benchmarks/bench_vggt.py --reuse-probe`` measures.
 
 Only glibc (Linux) is affected; elsewhere both functions do nothing and return False. The
-settings are process-wide: the ``vggt_init`` CLI applies them, library users opt in.
-``VGGT_INIT_RETAIN_MEMORY=0`` (environment) turns :func:`retain_freed_memory` off.
+settings are process-wide: the ``vggt_init`` and ``splat_train`` CLIs apply them, library users
+opt in. ``RETAIN_FREED_MEMORY=0`` (environment, :data:`ENV`) turns :func:`retain_freed_memory`
+off; the former name ``VGGT_INIT_RETAIN_MEMORY`` still works, with a deprecation warning.
 """
 
 from __future__ import annotations
@@ -49,7 +50,10 @@ import logging
 import os
 import sys
 
-__all__ = ["retain_freed_memory", "release_free_memory", "memory_retained", "heap_stats"]
+__all__ = ["ENV", "retain_freed_memory", "release_free_memory", "memory_retained", "heap_stats"]
+
+ENV = "RETAIN_FREED_MEMORY"  # "0" turns retain_freed_memory off
+_OLD_ENV = "VGGT_INIT_RETAIN_MEMORY"  # the former name, read when ENV is unset
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +62,14 @@ _M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD = 2**31 - 1  # allocations below this (2 GB; mallopt takes an int) come from the heap
 TRIM_THRESHOLD = 2**31 - 1  # free heap top kept up to this
 _STATE = {"retained": False}
+
+
+def _switched_off() -> bool:
+    """``RETAIN_FREED_MEMORY=0``, or the former ``VGGT_INIT_RETAIN_MEMORY=0`` (one warning)."""
+    value = os.environ.get(ENV)
+    if value is None and (value := os.environ.get(_OLD_ENV)) is not None:
+        log.warning("%s is deprecated: set %s=%s instead", _OLD_ENV, ENV, value)
+    return value == "0"
 
 
 def _glibc() -> ctypes.CDLL | None:
@@ -76,9 +88,9 @@ def retain_freed_memory() -> bool:
 
     Returns:
         True when the settings were applied (glibc, not switched off by
-        ``VGGT_INIT_RETAIN_MEMORY=0``), False otherwise.
+        ``RETAIN_FREED_MEMORY=0``), False otherwise.
     """
-    if os.environ.get("VGGT_INIT_RETAIN_MEMORY", "1") == "0":
+    if _switched_off():
         return False
     libc = _glibc()
     if libc is None:

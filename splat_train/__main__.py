@@ -289,7 +289,7 @@ if __name__ == "__main__":
     # training iteration allocates and frees MB-sized tensors (per-Gaussian gradients, images,
     # the SSIM statistics), which glibc's defaults map and fault in anew each time: ~2,100 minor
     # faults and ~8 ms of kernel time per iteration at 100k Gaussians, 256x256, none with the
-    # freed memory kept. VGGT_INIT_RETAIN_MEMORY=0 turns it off.
+    # freed memory kept. RETAIN_FREED_MEMORY=0 turns it off.
     from runtime.memory import retain_freed_memory
 
     retain_freed_memory()

@@ -44,6 +44,7 @@ MB64 = 64 * 2**20
 # (page faults per round) is measured by benchmarks/bench_vggt.py --reuse-probe.
 # PYTHONHASHSEED is fixed by _run: hash randomisation changes the interpreter's own allocations.
 ROUNDS = 4
+_SWITCHES = ("RETAIN_FREED_MEMORY", "VGGT_INIT_RETAIN_MEMORY")  # the name, the former name
 _SCRIPT = textwrap.dedent(f"""
     ROUNDS = {ROUNDS}
     import ctypes, json, sys
@@ -80,7 +81,7 @@ _SCRIPT = textwrap.dedent(f"""
 
 
 def _run(mode: str, **env: str) -> dict:
-    full_env = {k: v for k, v in os.environ.items() if k != "VGGT_INIT_RETAIN_MEMORY"}
+    full_env = {k: v for k, v in os.environ.items() if k not in _SWITCHES}
     full_env.update(THP_MEM_ALLOC_ENABLE="1", PYTHONHASHSEED="0")
     full_env.update(env)
     res = subprocess.run([sys.executable, "-c", _SCRIPT, mode], capture_output=True, text=True, env=full_env,
@@ -113,9 +114,25 @@ def test_retained_memory_comes_from_and_stays_in_the_heap():
 
 
 def test_environment_switch_turns_it_off():
-    off = _run("retain", VGGT_INIT_RETAIN_MEMORY="0")
+    off = _run("retain", RETAIN_FREED_MEMORY="0")
     assert off["applied"] is False and off["retained"] is False
     _assert_mmapped_each_round(off)
+
+
+def test_former_switch_name_still_works_with_one_warning():
+    """VGGT_INIT_RETAIN_MEMORY (the name before the switch covered splat_train too): still read
+    when RETAIN_FREED_MEMORY is unset, with a one-line deprecation warning; the new name wins."""
+    code = "from runtime.memory import retain_freed_memory as r; print(r())"
+    env = {k: v for k, v in os.environ.items() if k not in _SWITCHES}
+    old = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         env=dict(env, VGGT_INIT_RETAIN_MEMORY="0"))
+    assert old.returncode == 0 and old.stdout.split() == ["False"], old.stderr
+    warning = [ln for ln in old.stderr.splitlines() if ln.strip()]
+    assert len(warning) == 1 and "VGGT_INIT_RETAIN_MEMORY is deprecated" in warning[0], old.stderr
+    assert "RETAIN_FREED_MEMORY=0" in warning[0]
+    both = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          env=dict(env, VGGT_INIT_RETAIN_MEMORY="0", RETAIN_FREED_MEMORY="0"))
+    assert both.returncode == 0 and both.stdout.split() == ["False"] and not both.stderr.strip(), both.stderr
 
 
 def test_cli_applies_it_and_records_it(tmp_path):
@@ -133,7 +150,7 @@ def test_cli_applies_it_and_records_it(tmp_path):
     cmd = [sys.executable, "-m", "vggt_init", "--images", str(images), "--out", str(out),
            "--model-config", str(FIX / "config.json"), "--checkpoint", str(FIX / "weights.safetensors"),
            "--image-size", "56", "--threads", "1", "--max-points", "100", "-q"]
-    env = {k: v for k, v in os.environ.items() if k != "VGGT_INIT_RETAIN_MEMORY"}
+    env = {k: v for k, v in os.environ.items() if k not in _SWITCHES}
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]
     assert json.loads((out / "timing.json").read_text())["retain_freed_memory"] is True
