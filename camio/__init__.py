@@ -1,4 +1,7 @@
-"""camio: camera maths and file formats shared by every stage.
+"""camio: camera maths, scenes and file formats shared by every stage.
+
+One job: cameras, scenes and the files they live in. Beside it on the ground floor:
+:mod:`runtime` (flags, logging, memory, C++ builds) and :mod:`imgmetrics` (SSIM, LPIPS).
 
 Conventions (stated once, converted at every boundary):
 
