@@ -1,6 +1,6 @@
 """Check a workflow configuration against workflow/schemas/config.schema.yaml, one line per
 problem, naming the key and, for an unknown key, the nearest valid one. The schema's enums of
-the lists the code defines once (``x-enum-from``) are read from the code here.
+the lists the code defines once (x-enum-from) are read from the code here.
 
     python workflow/scripts/check_config.py config.yaml [more.yaml ...] [--set KEY=YAML ...]
 
