@@ -350,7 +350,13 @@ def scene(tmp_path_factory) -> dict:
     return write_view_scene(tmp_path_factory.mktemp("view"), n=40, width=32, height=24)
 
 
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _serve(args: list[str]) -> subprocess.Popen:
+    """The viewer started as a non-interactive shell starts `cmd &`: with SIGINT ignored, which
+    Python then leaves ignored unless the program installs its own handler."""
     from splat_train.view import server
 
     try:
@@ -358,7 +364,8 @@ def _serve(args: list[str]) -> subprocess.Popen:
     except server.ViewerNotInstalled as e:
         pytest.skip(str(e))
     return subprocess.Popen([sys.executable, "-m", "splat_train", "view", "--no-browser", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
+                            preexec_fn=_ignore_sigint)
 
 
 def _get(port: int, host: str | None) -> int:

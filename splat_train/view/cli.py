@@ -96,8 +96,10 @@ def main(argv: list[str]) -> int:
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"
     print(f"[view] serving {args.model} at {url} (Ctrl-C stops)", flush=True)
-    # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM. SIGINT
+    # too: a process started in the background by a non-interactive shell (`cmd &`) inherits
+    # SIGINT ignored, and Python then installs no Ctrl-C handler of its own
+    for signum in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(signum, _stop)
     if not args.no_browser:
         webbrowser.open(url)
