@@ -390,7 +390,12 @@ def test_viewer_answers_only_its_own_host_and_stops_quietly(scene, sig):
         assert _get(port, None) == 403
     finally:
         proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # it did not stop: fail, leaving no server behind
+            proc.kill()
+            proc.communicate()
+            raise
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "***" not in err and "SIGTERM" not in err, err
 
