@@ -59,6 +59,9 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     # n = 6 runs count in their own measures, never in the n = 3 targets
     recs += [dict(_rec("a", "evaluation", rc, 0, p, 0.2, gaussians=g), n=6)
              for rc, p, g in (("paper", 21.0, 9_000), ("sparse", 20.0, 99_000))]
+    # a shorter grid at n = 3: its own measures; the targets take the most iterations run
+    recs += [dict(_rec("a", "evaluation", rc, 0, p, 0.2, gaussians=g), iterations=300)
+             for rc, p, g in (("paper", 10.0, 500), ("sparse", 12.0, 88_000))]
     for i, r in enumerate(recs):
         (runs / f"{i}.json").write_text(json.dumps(r))
     doc = tmp_path / "results.md"
@@ -76,11 +79,14 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     # sparse's final (19.x) equals paper's best (19.x) on both scenes
     assert t["final_ge_paper_best_scenes"] == 2
     assert t["max_gaussians_ours"] == 70_000 and not t["gaussians_ok"]
-    six = s["measures_by_n"]["6"]
+    assert t["iterations"] == 1000 and s["measures_by_n"]["n3_i1000"] == t
+    short = s["measures_by_n"]["n3_i300"]
+    assert short["psnr_lead_over_best_other"] == pytest.approx(2.0) and short["max_gaussians_ours"] == 88_000
+    six = s["measures_by_n"]["n6_i1000"]
     assert six["evaluation_scenes"] == ["a"] and six["psnr_lead_over_best_other"] == pytest.approx(-1.0)
     assert six["max_gaussians_ours"] == 99_000
     text = doc.read_text()
-    assert "## The same measures at n = 6" in text
+    assert "## The same measures at n = 6, 1000 iterations" in text
     assert "## Evaluation scenes" in text and "## Tuning scenes" in text and "not met" in text
 
 

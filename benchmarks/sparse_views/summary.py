@@ -82,19 +82,25 @@ def paired(rows: list[dict], role: str = "evaluation") -> list[dict]:
     return out
 
 
-def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARGET_N) -> dict:
-    """The targets, computed on the evaluation scenes at ``n`` views (the targets are stated at
-    :data:`TARGET_N`; other view counts get the same measures), None where data is missing."""
-    ev = [a for a in agg if a["role"] == "evaluation" and a["n"] == n]
+def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARGET_N,
+             iterations: int | None = None) -> dict:
+    """The targets, computed on the evaluation scenes at ``n`` views and ``iterations`` (None:
+    the most iterations any evaluation run has at ``n``); the targets are stated at
+    :data:`TARGET_N`, other view counts get the same measures. None where data is missing."""
+    if iterations is None:
+        iterations = max((r["iterations"] for r in rows if r["role"] == "evaluation" and r["n"] == n), default=0)
+    ev = [a for a in agg if a["role"] == "evaluation" and a["n"] == n and a["iterations"] == iterations]
     recipes = {a["recipe"] for a in ev}
     # a scene counts once every recipe has run on it (a grid still running leaves some out)
     have = defaultdict(set)
     for a in ev:
         have[a["scene"]].add(a["recipe"])
     scenes = sorted(sc for sc, rs in have.items() if rs == recipes)
-    out = {"evaluation_scenes": scenes, "incomplete_scenes": sorted(set(have) - set(scenes))}
+    out = {"n": n, "iterations": iterations, "evaluation_scenes": scenes,
+           "incomplete_scenes": sorted(set(have) - set(scenes))}
     ev = [a for a in ev if a["scene"] in scenes]
-    rows = [r for r in rows if r["role"] == "evaluation" and r["n"] == n and r["scene"] in scenes]
+    rows = [r for r in rows if r["role"] == "evaluation" and r["n"] == n and r["iterations"] == iterations
+            and r["scene"] in scenes]
     if not ev:
         return out
     # mean over scenes of each recipe's mean final PSNR (recipes present on every scene)
@@ -108,7 +114,8 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
         others = [m for rc, m in mean_psnr.items() if rc != OURS]
         out["psnr_lead_over_best_other"] = mean_psnr[OURS] - max(others) if others else None
         out["psnr_lead_ok"] = (out["psnr_lead_over_best_other"] or 0) >= 0.5
-        vp = [p for p in pairs if p["n"] == n and p["against"] == BASE and p["scene"] in scenes]
+        vp = [p for p in pairs if p["n"] == n and p["iterations"] == iterations and p["against"] == BASE
+              and p["scene"] in scenes]
         for net in ("lpips_alex", "lpips_vgg"):
             # paired over every (scene, seed) of the evaluation scenes
             diffs = [r_o[net] - r_b[net] for r_o, r_b in _pairs(rows, BASE, n) if r_o[net] is not None and r_b[net] is not None]
@@ -168,11 +175,12 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
             lines.append(f"| {p['scene']} | {p['n']} | {p['against']} | " + " | ".join(
                 _fmt(p[m], m) for m in ("psnr", "ssim", "lpips_alex", "lpips_vgg")) + f" | {best} |")
         lines.append("")
-    for n, v in {TARGET_N: verdict, **{k: x for k, x in (by_n or {}).items() if k != TARGET_N}}.items():
+    for (n, its), v in (by_n or {(verdict.get("n", TARGET_N), verdict.get("iterations")): verdict}).items():
         if not v.get("mean_final_psnr"):
             continue
-        lines += [f"## Targets (evaluation scenes, n = {n})" if n == TARGET_N else
-                  f"## The same measures at n = {n} (the targets are stated at n = {TARGET_N})", ""]
+        lines += [f"## Targets (evaluation scenes, n = {n}, {its} iterations)" if n == TARGET_N else
+                  f"## The same measures at n = {n}, {its} iterations (the targets are stated at n = {TARGET_N})",
+                  ""]
         if v.get("incomplete_scenes"):
             lines.append("- not counted until every recipe has run there: " + ", ".join(v["incomplete_scenes"]))
         lines.append("- mean final PSNR over the scenes: " + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
@@ -197,11 +205,13 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
 def write_summary(records: Path, doc: Path, scenes) -> dict:
     rows = load_records(records)
     agg, pairs = aggregate(rows), paired(rows)
+    # the targets at n = TARGET_N and the most iterations run there; every (n, iterations) measured
     verdict = verdicts(rows, agg, pairs)
-    by_n = {n: verdicts(rows, agg, pairs, n) for n in sorted({r["n"] for r in rows if r["role"] == "evaluation"})}
+    by_n = {(n, its): verdicts(rows, agg, pairs, n, its)
+            for n, its in sorted({(r["n"], r["iterations"]) for r in rows if r["role"] == "evaluation"})}
     summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
                "aggregate": agg, "paired": pairs, "targets": verdict,
-               "measures_by_n": {str(n): v for n, v in by_n.items()}}
+               "measures_by_n": {f"n{n}_i{its}": v for (n, its), v in by_n.items()}}
     (records / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text(markdown(agg, pairs, verdict, scenes, by_n))
