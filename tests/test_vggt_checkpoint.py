@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 import json
 import pickle
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -184,3 +186,13 @@ def test_unreachable_hub_says_it_will_not_download_and_never_that_it_is_download
     text = caplog.text
     assert "not downloading facebook/VGGT-1B" in text
     assert "downloading facebook/VGGT-1B from" not in text
+
+
+def test_finding_a_checkpoint_imports_no_torch():
+    """The workflow asks whether VGGT can run at every Snakefile parse (each SLURM job parses
+    it): finding the checkpoint must not pay torch's import."""
+    code = ("import sys, vggt_init.checkpoint as c; c.skip_reason(env={'HF_HUB_OFFLINE': '1'}); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stdout + out.stderr

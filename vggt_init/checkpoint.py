@@ -23,12 +23,16 @@ import logging
 import os
 import pickle
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
-from vggt_init.model.config import HEAD_NAMES, VGGTConfig
-from vggt_init.model.vggt import TRACK_HEAD_PREFIX, VGGT
+    from vggt_init.model.config import VGGTConfig
+    from vggt_init.model.vggt import VGGT
+
+# torch and the model are imported where a checkpoint is read: finding one (resolve_checkpoint,
+# skip_reason) imports neither, since the workflow asks at every Snakefile parse
 
 __all__ = [
     "HF_REPO_ID",
@@ -219,6 +223,8 @@ def read_state_dict(path: str | os.PathLike, keys: Iterable[str] | None = None) 
     Raises:
         CheckpointFormatError: unknown suffix, pickled non-tensor objects, or not a dict.
     """
+    import torch
+
     path = Path(path)
     wanted = None if keys is None else set(keys)
     suffix = path.suffix.lower()
@@ -271,6 +277,11 @@ def _file_shapes(path: Path) -> dict[str, tuple[int, ...]] | None:
 
 def expected_shapes(config: VGGTConfig) -> dict[str, tuple[int, ...]]:
     """Every parameter of our architecture (all heads, no track head) -> shape (meta device)."""
+    import torch
+
+    from vggt_init.model.config import HEAD_NAMES
+    from vggt_init.model.vggt import VGGT
+
     with torch.device("meta"):
         model = VGGT(config, heads=HEAD_NAMES)
     return {k: tuple(v.shape) for k, v in model.state_dict().items()}
@@ -287,6 +298,8 @@ def check_state_dict(shapes: dict[str, tuple[int, ...]], config: VGGTConfig) -> 
     Raises:
         StateDictMismatchError: listing missing keys, unexpected keys and shape mismatches.
     """
+    from vggt_init.model.vggt import TRACK_HEAD_PREFIX
+
     expected = expected_shapes(config)
     skipped = sorted(k for k in shapes if k.startswith(TRACK_HEAD_PREFIX))
     present = {k: tuple(v) for k, v in shapes.items() if not k.startswith(TRACK_HEAD_PREFIX)}
@@ -312,15 +325,22 @@ def check_state_dict(shapes: dict[str, tuple[int, ...]], config: VGGTConfig) -> 
     return skipped
 
 
-def load_model(config: VGGTConfig, checkpoint: str | os.PathLike, heads: Iterable[str] = HEAD_NAMES,
-               device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> VGGT:
-    """Build the model with only ``heads`` and load the checkpoint into it, strictly checked.
+def load_model(config: VGGTConfig, checkpoint: str | os.PathLike, heads: Iterable[str] | None = None,
+               device: str | torch.device = "cpu", dtype: torch.dtype | None = None) -> VGGT:
+    """Build the model with only ``heads`` (None: every head, ``HEAD_NAMES``) and load the
+    checkpoint into it in ``dtype`` (None: float32), strictly checked.
 
     The model is created on the meta device and the file's tensors are assigned (no second
     copy of the weights). Returns the model in eval mode, parameters frozen.
     """
+    import torch
+
+    from vggt_init.model.config import HEAD_NAMES
+    from vggt_init.model.vggt import TRACK_HEAD_PREFIX, VGGT
+
     path = Path(checkpoint)
-    heads = tuple(heads)
+    heads = tuple(HEAD_NAMES if heads is None else heads)
+    dtype = torch.float32 if dtype is None else dtype
     shapes = _file_shapes(path)
     state = None
     if shapes is None:
