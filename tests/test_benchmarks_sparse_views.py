@@ -129,3 +129,11 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     stale = subprocess.run(changed, cwd=REPO, capture_output=True, text=True)
     assert stale.returncode == 2 and "densify_grad_threshold" in stale.stderr and "remove the folder" in stale.stderr
     assert "Traceback" not in stale.stderr and not rec_path.exists()
+
+
+@pytest.mark.parametrize("bad", ["2/2", "1", "a/b", "0/0", "-1/2"])
+def test_run_refuses_a_bad_shard_in_one_line(tmp_path, bad):
+    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"), "run",
+                          "--role", "evaluation", "--work", str(tmp_path / "w"), f"--shard={bad}"],
+                         cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 2 and "--shard must be K/M" in out.stderr and "Traceback" not in out.stderr

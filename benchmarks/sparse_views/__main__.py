@@ -44,6 +44,15 @@ def cmd_run(args) -> int:
     runs_dir = args.records / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     todo = []
+    index, shard = -1, None
+    if args.shard:
+        try:
+            shard = tuple(int(x) for x in args.shard.split("/"))
+            if len(shard) != 2 or not 0 <= shard[0] < shard[1]:
+                raise ValueError
+        except ValueError:
+            print(f"error: --shard must be K/M with 0 <= K < M, got {args.shard!r}", file=sys.stderr)
+            return 2
     for s in scenes:
         if not s.available:
             print(f"SKIP {s.name}: {s.path} is not here (benchmarks/sparse_views/fetch_scenes.py fetches it)",
@@ -53,6 +62,9 @@ def cmd_run(args) -> int:
             for seed in args.seeds:  # seed-major: an interrupted grid holds whole seeds
                 for name, cfg in variants:
                     rec_path = runs_dir / f"{run_name(s.name, n, name, seed, args.iterations)}.json"
+                    index += 1  # the run's place in the requested grid, recorded or not
+                    if shard is not None and index % shard[1] != shard[0]:
+                        continue
                     if not rec_path.is_file():
                         todo.append((s, n, seed, name, cfg, rec_path))
                         continue
@@ -65,9 +77,6 @@ def cmd_run(args) -> int:
                               f"{name!r} gives now: remove it (and its run folder under --work) to run it "
                               f"again", file=sys.stderr)
                         return 2
-    if args.shard:
-        k, m = (int(x) for x in args.shard.split("/"))
-        todo = todo[k::m]
     print(f"{len(todo)} runs to do ({args.role}, {args.iterations} iterations)", flush=True)
     t0 = time.perf_counter()
     for i, (s, n, seed, name, cfg, rec_path) in enumerate(todo, 1):
@@ -120,7 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--work", type=Path, required=True, help="cells and trained models (not committed)")
     r.add_argument("--kernel-threads", type=int, default=1,
                    help="C++ kernel threads per run (default %(default)s: run two shards side by side)")
-    r.add_argument("--shard", default=None, help="K/M: run every M-th missing run from the K-th (0-based)")
+    r.add_argument("--shard", default=None,
+                   help="K/M: of the requested grid's runs (recorded or not), every M-th from the K-th "
+                        "(0-based), so that shards started at different times never share or skip a run")
     s = sub.add_parser("summary", help="rebuild summary.json and the docs table from the records")
     s.add_argument("--doc", type=Path, default=DOC, help="markdown table to write (default %(default)s)")
     sub.add_parser("list", help="the protocol's scenes")
