@@ -40,7 +40,11 @@ def cmd_run(args) -> int:
 
     scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
               and (not args.scenes or s.name in args.scenes)]
-    variants = [_variant(v) for v in args.recipes]
+    # each variant once: its name, config, recipe, config overrides and the values its runs resolve
+    plans = []
+    for name, cfg in (_variant(v) for v in args.recipes):
+        recipe, overrides = cfg.get("recipe", name), {k: v for k, v in cfg.items() if k != "recipe"}
+        plans.append((name, cfg, recipe, overrides, resolved_values(recipe, overrides, args.iterations)))
     runs_dir = args.records / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     todo = []
@@ -60,17 +64,15 @@ def cmd_run(args) -> int:
             continue
         for n in s.views if args.n is None else [n for n in args.n if n in s.views]:
             for seed in args.seeds:  # seed-major: an interrupted grid holds whole seeds
-                for name, cfg in variants:
+                for name, cfg, recipe, overrides, want in plans:
                     rec_path = runs_dir / f"{run_name(s.name, n, name, seed, args.iterations)}.json"
                     index += 1  # the run's place in the requested grid, recorded or not
                     if shard is not None and index % shard[1] != shard[0]:
                         continue
                     if not rec_path.is_file():
-                        todo.append((s, n, seed, name, cfg, rec_path))
+                        todo.append((s, n, seed, name, cfg, recipe, overrides, rec_path))
                         continue
                     kept = json.loads(rec_path.read_text()).get("values")
-                    want = resolved_values(cfg.get("recipe", name), {k: v for k, v in cfg.items() if k != "recipe"},
-                                           args.iterations)
                     bad = ["values (an older record)"] if kept is None else stale_keys(kept, want)
                     if bad:
                         print(f"error: {rec_path} was made with other values of {', '.join(bad)} than "
@@ -79,12 +81,11 @@ def cmd_run(args) -> int:
                         return 2
     print(f"{len(todo)} runs to do ({args.role}, {args.iterations} iterations)", flush=True)
     t0 = time.perf_counter()
-    for i, (s, n, seed, name, cfg, rec_path) in enumerate(todo, 1):
+    for i, (s, n, seed, name, cfg, recipe, overrides, rec_path) in enumerate(todo, 1):
         cell = prepare(args.work / f"{s.name}_n{n}", s, n)
         out = args.work / f"{s.name}_n{n}" / "runs" / run_name(s.name, n, name, seed, args.iterations)
-        res = train_and_score(cell, out, cfg.get("recipe", name), seed, args.iterations,
-                              args.eval_every or max(1, args.iterations // 10),
-                              {k: v for k, v in cfg.items() if k != "recipe"}, args.kernel_threads)
+        res = train_and_score(cell, out, recipe, seed, args.iterations, args.eval_every or max(1, args.iterations // 10),
+                              overrides, args.kernel_threads)
         rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
         rec["load_avg"] = os.getloadavg()
         rec_path.write_text(json.dumps(rec, indent=1) + "\n")
