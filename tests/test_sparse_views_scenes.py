@@ -26,10 +26,12 @@ def test_scene_list_keeps_tuning_apart_and_each_evaluation_scene_converts_with_c
     scenes = fetch_scenes.load_scenes()
     tuning = {s["name"] for s in scenes if s["role"] == "tuning"}
     evaluation = [s for s in scenes if s["role"] == "evaluation"]
-    assert tuning == {"llff__fern", "synthetic"}
+    # the first evaluation's six scenes were measured, then tuned on: tuning scenes for good
+    assert tuning == {"llff__fern", "synthetic", "strecha__fountain-P11", "strecha__Herz-Jesus-P25",
+                      "strecha__castle-P30", "strecha__entry-P10", "ingp__fox", "nerd__ethiopianHead"}
     assert len(evaluation) >= 4
     assert len({s["kind"] for s in evaluation}) >= 2
-    for s in evaluation:
+    for s in [*evaluation, *(s for s in scenes if "source" in s)]:
         assert 3 in s["views"]
         # the stored arguments are ones camio convert accepts, and leave --src/--out/--n to the script
         args = camio_parser().parse_args(["convert", "--src", "a", "--out", "b", *s["convert"]])
@@ -46,7 +48,8 @@ def test_dry_run_prints_every_pinned_fetch_and_conversion_and_writes_nothing(tmp
         assert f"https://github.com/{src['repo']}.git" in r.stdout
         assert f"origin {src['commit']}" in r.stdout
         assert f"--out {dest / (s['name'] + '_conv')} {' '.join(s['convert'])} --n" in r.stdout
-    assert "llff__fern" not in r.stdout  # tuning scenes are not fetched
+    assert "llff__fern_conv" in r.stdout  # a tuning scene from a public repo is fetched too
+    assert "synthetic" not in r.stdout  # the generated one is not
     assert not dest.exists()
 
 

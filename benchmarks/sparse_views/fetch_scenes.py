@@ -1,8 +1,9 @@
-"""Fetch the evaluation scenes of scenes.yaml from their sources, each at its pinned commit.
+"""Fetch the scenes of scenes.yaml that have a source, each at its pinned commit.
 
     python benchmarks/sparse_views/fetch_scenes.py DEST [--scenes NAME ...] [--convert] [--dry-run]
 
-For every evaluation scene (or those named): a shallow, blob-less, sparse git fetch of the
+For every scene with a ``source`` (every evaluation scene, and the tuning scenes taken from
+public repositories), or those named: a shallow, blob-less, sparse git fetch of the
 scene's ``source.path`` at ``source.commit`` into ``DEST/.fetch/NAME``, whose files are then
 moved to ``DEST/NAME`` (``DEST/NAME/FETCHED.json`` records repo, commit and path). A scene
 already in ``DEST`` is left alone. ``--convert`` also runs ``python -m camio convert`` with the
@@ -10,7 +11,7 @@ scene's ``convert`` arguments and ``views`` into ``DEST/NAME_conv`` (images, ref
 scaled to them, split.json). ``--dry-run`` prints the commands and writes nothing.
 
 Needs git >= 2.27 and network access to the sources (GitHub); ``--git-base`` points at a mirror.
-Tuning scenes are not fetched here (LLFF fern and the generated synthetic scene).
+The synthetic tuning scene has no source: the benchmark generates it.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         _need(isinstance(views, list) and bool(views) and all(isinstance(v, int) and not isinstance(v, bool) and v > 0
                                                                for v in views),
               f"{where}: 'views' must be a list of positive integers")
-        if s["role"] != "evaluation":
+        if s["role"] != "evaluation" and "source" not in s:
             continue
         for key in ("kind", "licence", "local"):
             _need(isinstance(s.get(key), str) and bool(s[key].strip()), f"{where}: '{key}' missing")
@@ -88,13 +89,14 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
 
 
 def select(scenes: list[dict], names: list[str] | None) -> list[dict]:
-    """The evaluation scenes, or those of ``names`` (each must be an evaluation scene)."""
+    """The scenes that have a ``source`` (every evaluation scene, and the tuning scenes taken from
+    public repositories), or those of ``names`` (each must have one)."""
     by_name = {s["name"]: s for s in scenes}
     if not names:
-        return [s for s in scenes if s["role"] == "evaluation"]
+        return [s for s in scenes if "source" in s]
     for n in names:
         _need(n in by_name, f"unknown scene {n!r} (known: {', '.join(by_name)})")
-        _need(by_name[n]["role"] == "evaluation", f"scene {n!r} is a {by_name[n]['role']} scene, not fetched here")
+        _need("source" in by_name[n], f"scene {n!r} has no source to fetch (it is generated or local)")
     return [by_name[n] for n in names]
 
 
@@ -154,7 +156,8 @@ def fetch_scene(scene: dict, dest: Path, git_base: str = GIT_BASE, dry_run: bool
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fetch_scenes.py", description=__doc__.split("\n")[0])
     p.add_argument("dest", type=Path, help="folder to fetch the scenes into (DEST/NAME)")
-    p.add_argument("--scenes", nargs="+", default=None, help="evaluation scenes to fetch (default: all of them)")
+    p.add_argument("--scenes", nargs="+", default=None,
+                   help="scenes to fetch (default: every scene with a source, evaluation and tuning)")
     p.add_argument("--yaml", type=Path, default=SCENES_YAML, help="the scene list (default: scenes.yaml beside this script)")
     p.add_argument("--convert", action="store_true", help="also run camio convert into DEST/NAME_conv")
     p.add_argument("--dry-run", action="store_true", help="print the commands; fetch and write nothing")
