@@ -137,3 +137,16 @@ def test_run_refuses_a_bad_shard_in_one_line(tmp_path, bad):
                           "--role", "evaluation", "--work", str(tmp_path / "w"), f"--shard={bad}"],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 2 and "--shard must be K/M" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_cell_seeds_from_the_random_fallback_only_when_its_views_triangulate_no_point(tmp_path):
+    from benchmarks.sparse_views.cells import seed_model
+
+    init = tmp_path / "posed"
+    init.mkdir()
+    assert seed_model(init) == init / "sparse" / "0"  # no status: the triangulated model
+    fallback = {"applied": True, "model": "random_fallback/sparse/0", "points_found": 0}
+    (init / "status.json").write_text(json.dumps({"points": 12, "fallback": {**fallback, "points_found": 12}}))
+    assert seed_model(init) == init / "sparse" / "0"  # few points are still measured geometry
+    (init / "status.json").write_text(json.dumps({"points": 0, "fallback": fallback}))
+    assert seed_model(init) == init / "random_fallback" / "sparse" / "0"

@@ -7,9 +7,10 @@ a second call finds the files and runs nothing.
 
 The seed is the triangulated points alone, however few: unlike the workflow, the cell does not
 switch to ``posed``'s random-point fallback (``evaluation.initialisers.random_init``) below 100
-points, so every recipe starts from the same measured geometry. At the benchmark's image sizes
-the evaluation scenes triangulate 12-95 points from 3 views (fern 188); a cell with none stops
-with the Bridge's one-line error.
+points, so every recipe starts from the same measured geometry (at the benchmark's image sizes
+most scenes triangulate 12-95 points from 3 views, fern 188). Only a cell whose views
+triangulate no point at all (three views around an object share too little) seeds from that
+fallback, 3DGS's random initialisation, as the workflow would (:func:`seed_model`).
 """
 
 from __future__ import annotations
@@ -54,19 +55,33 @@ def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
     if not (work / "bridge" / "bridge.json").is_file():
         sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
             "--out", str(init_dir)], logf)
-    return {"scene": s, "train": train_txt, "test": test_txt, **bridge_and_align(work, s, init_dir, n, logf)}
+    return {"scene": s, "train": train_txt, "test": test_txt,
+            **bridge_and_align(work, s, init_dir, n, logf, seed_model(init_dir))}
 
 
-def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path) -> dict[str, Path]:
-    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else its
-    COLMAP model) into ``work/bridge``, then the held-out cameras aligned to it into
-    ``work/align``; each skipped when its output exists. Returns {"bridge", "align"}."""
+def seed_model(init_dir: Path) -> Path:
+    """The COLMAP model the cell seeds from: ``posed``'s triangulated model, or its random-point
+    fallback model when the views triangulated no point at all (``status.json``)."""
+    status_path = init_dir / "status.json"
+    status = json.loads(status_path.read_text()) if status_path.is_file() else {}
+    fb = status.get("fallback") or {}
+    if status.get("points") == 0 and fb.get("applied") and fb.get("model"):
+        return init_dir / fb["model"]
+    return init_dir / "sparse" / "0"
+
+
+def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path,
+                     model: Path | None = None) -> dict[str, Path]:
+    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else the
+    COLMAP model ``model``, by default its ``sparse/0``) into ``work/bridge``, then the held-out
+    cameras aligned to it into ``work/align``; each skipped when its output exists. Returns
+    {"bridge", "align"}."""
     bridge, align = work / "bridge", work / "align"
     if not (bridge / "bridge.json").is_file():
         if (init_dir / "predictions.npz").is_file():
             sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], log)
         else:
-            sh(["-m", "bridge", "--colmap", str(init_dir / "sparse" / "0"), "--images", str(scene / "images"),
+            sh(["-m", "bridge", "--colmap", str(model or init_dir / "sparse" / "0"), "--images", str(scene / "images"),
                 "--out", str(bridge)], log)
     if not (align / "align.json").is_file():
         sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref",
