@@ -46,8 +46,14 @@ printed by the trainer).
       every 100 iterations (the field's period: 3DGS, gsplat, DropGaussian) from 5 % of the run
       to its end, so that the Gaussians the cap keeps go on being replaced by better ones;
     * no opacity reset (nor the size prune 3DGS runs after one): measured, the reset cost the
-      sparse model about 1 dB held out that it never recovered.
+      sparse model about 1 dB held out that it never recovered;
+    * gsplat's opacity regulariser in its place (``opacity_reg`` 0.01 x mean opacity, the value
+      of its MCMC preset, :mod:`splat_train.parts`): Gaussians that no training view needs
+      fade, and the 3DGS prune (opacity below 0.005) removes them, which frees the cap for
+      Gaussians the views do need.
 
+    The regulariser was chosen on the tuning scenes (docs/sparse-recipe.md, "Third tuning
+    round"), beside SH degree 1 and 0, which did not help.
     The period and the growth to the end of the run were chosen on the tuning scenes
     (docs/sparse-recipe.md, "Second tuning round"): a period of 1 % of the run (20 at 1,000
     iterations) filled the cap by iteration 200 on statistics of 20 steps and lost held-out PSNR
@@ -100,6 +106,8 @@ PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.
 VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy")
 # 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
 GRAD_THRESHOLD_3DGS = 2e-4
+# gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
+OPACITY_REG_GSPLAT = 0.01
 # The growth strategies: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
 # (relocation under a cap, splat_train.mcmc).
 STRATEGIES = ("densify", "mcmc")
@@ -166,7 +174,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
         "strategy": "densify",
-        "opacity_reg": 0.0,
+        # chosen on the tuning scenes (docs/sparse-recipe.md "Third tuning round")
+        "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.0,
     },
     "mcmc": {
@@ -189,7 +198,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,
         # simple_trainer's mcmc preset
-        "opacity_reg": 0.01,
+        "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.01,
     },
 }
@@ -198,7 +207,8 @@ RECIPE_NAMES = tuple(RECIPES)
 RECIPE_SUMMARIES = {
     "paper": "3DGS as its code trains (the paper's tables)",
     "dropgaussian": "3DGS with Gaussian dropout, as DropGaussian trains LLFF",
-    "sparse": "dropout, the initialiser's depth prior, growth capped per training pixel, no opacity reset",
+    "sparse": "dropout, the initialiser's depth prior, growth capped per training pixel, an opacity regulariser "
+              "instead of the opacity reset",
     "mcmc": "3DGS as MCMC: dead Gaussians relocated, growth to a per-pixel cap (gsplat's preset)",
 }
 

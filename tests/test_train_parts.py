@@ -66,13 +66,14 @@ def _names(cfg, scene, prior=True):
 
 
 def test_each_recipe_runs_its_parts(scene):
-    """paper is plain 3DGS; dropgaussian drops Gaussians; sparse drops and adds the depth prior
-    (when the seed has one); mcmc adds the opacity and scale regularisers; pose refinement is a
-    part of any recipe, run last."""
+    """paper is plain 3DGS; dropgaussian drops Gaussians; sparse drops, adds the depth prior
+    (when the seed has one) and the opacity regulariser; mcmc adds the opacity and scale
+    regularisers; pose refinement is a part of any recipe, run last."""
     assert _names(TrainConfig(recipe="paper"), scene) == []
     assert _names(TrainConfig(recipe="dropgaussian"), scene) == ["dropout"]
-    assert _names(TrainConfig(recipe="sparse"), scene) == ["dropout", "depth_prior"]
-    assert _names(TrainConfig(recipe="sparse"), scene, prior=False) == ["dropout"]
+    assert _names(TrainConfig(recipe="sparse"), scene) == ["dropout", "depth_prior", "regularisers"]
+    assert _names(TrainConfig(recipe="sparse"), scene, prior=False) == ["dropout", "regularisers"]
+    assert _names(TrainConfig(recipe="sparse", opacity_reg=0.0), scene) == ["dropout", "depth_prior"]
     assert _names(TrainConfig(recipe="mcmc"), scene) == ["regularisers"]
     assert _names(TrainConfig(recipe="paper", pose_refine=True), scene) == ["pose"]
     assert _names(TrainConfig(**ALL_ON), scene) == ["dropout", "depth_prior", "regularisers", "pose"]
