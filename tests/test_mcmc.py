@@ -216,9 +216,12 @@ def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
     strat = MCMCStrategy.from_config(cfg, 1000)
     assert (strat.refine_from, strat.refine_until, strat.refine_every, strat.cap, strat.min_opacity) == (
         500, 25000, 100, 1000, 0.005)
-    for other in ("paper", "sparse"):
+    for other in ("paper", "dropgaussian"):
         c = TrainConfig(recipe=other)
         assert c.strategy == "densify" and c.opacity_reg == c.scale_reg == 0.0
+    # sparse grows as 3DGS does and borrows only the opacity regulariser
+    c = TrainConfig(recipe="sparse")
+    assert c.strategy == "densify" and (c.opacity_reg, c.scale_reg) == (0.01, 0.0)
     with pytest.raises(ValueError, match="cap"):
         TrainConfig(recipe="mcmc", gaussians_per_pixel=0)
     with pytest.raises(ValueError, match="strategy"):
