@@ -55,8 +55,7 @@ def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
     if not (work / "bridge" / "bridge.json").is_file():
         sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
             "--out", str(init_dir)], logf)
-    return {"scene": s, "train": train_txt, "test": test_txt,
-            **bridge_and_align(work, s, init_dir, n, logf, seed_model(init_dir))}
+    return {"scene": s, "train": train_txt, "test": test_txt, **bridge_and_align(work, s, init_dir, n, logf)}
 
 
 def seed_model(init_dir: Path) -> Path:
@@ -70,18 +69,16 @@ def seed_model(init_dir: Path) -> Path:
     return init_dir / "sparse" / "0"
 
 
-def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path,
-                     model: Path | None = None) -> dict[str, Path]:
-    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else the
-    COLMAP model ``model``, by default its ``sparse/0``) into ``work/bridge``, then the held-out
-    cameras aligned to it into ``work/align``; each skipped when its output exists. Returns
-    {"bridge", "align"}."""
+def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path) -> dict[str, Path]:
+    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else its
+    COLMAP model, :func:`seed_model`) into ``work/bridge``, then the held-out cameras aligned to
+    it into ``work/align``; each skipped when its output exists. Returns {"bridge", "align"}."""
     bridge, align = work / "bridge", work / "align"
     if not (bridge / "bridge.json").is_file():
         if (init_dir / "predictions.npz").is_file():
             sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], log)
         else:
-            sh(["-m", "bridge", "--colmap", str(model or init_dir / "sparse" / "0"), "--images", str(scene / "images"),
+            sh(["-m", "bridge", "--colmap", str(seed_model(init_dir)), "--images", str(scene / "images"),
                 "--out", str(bridge)], log)
     if not (align / "align.json").is_file():
         sh(["-m", "evaluation", "align", "--pred", str(bridge / "sparse" / "0"), "--ref",
