@@ -218,7 +218,29 @@ def gsplat_build(device: str) -> dict:
 
 
 PARTS = ("vggt_fixtures", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
-         "cell", "native", "cell_sparse")
+         "profile", "cell", "native", "cell_sparse", "vggt_frames")
+# seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
+VGGT_FRAMES_BUDGET_S = 240.0
+
+
+def step_profile(prepared: Path | None) -> dict:
+    """benchmarks/profile_step.py on the prepared cell, both recipes."""
+    if prepared is None:
+        raise ValueError("the step profile needs a prepared cell (--cell-prepared)")
+    from benchmarks.profile_step import profile
+
+    return profile(prepared)
+
+
+def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
+    """benchmarks/vggt_frames.py within :data:`VGGT_FRAMES_BUDGET_S` (environment
+    ``VGGT_FRAMES_BUDGET_S`` overrides it)."""
+    import os
+
+    from benchmarks.vggt_frames import vggt_frames
+
+    budget = float(os.environ.get("VGGT_FRAMES_BUDGET_S", VGGT_FRAMES_BUDGET_S))
+    return vggt_frames(device, deadline_s=time.perf_counter() + budget, on_result=on_result)
 
 
 def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PARTS,
@@ -244,12 +266,21 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
            "vggt_cli": lambda dev: gpu_stages.vggt_cli(stages, dev),
            "cell": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared),
            "native": lambda _dev: native_cell(cell_iterations, cell_prepared),
-           "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse")}
+           "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse"),
+           "profile": lambda _dev: step_profile(cell_prepared),
+           "vggt_frames": lambda dev: vggt_frames_part(dev, on_result=_partial("vggt_frames"))}
     unknown = set(parts) - set(fns)
     if unknown:
         raise ValueError(f"unknown parts {sorted(unknown)}; choose from {', '.join(PARTS)}")
     if stages is None:
         parts = tuple(p for p in parts if p not in ("workflow_cell", "vggt_cli"))
+
+    def _partial(name: str) -> Callable[[dict], None]:
+        def save(partial: dict) -> None:  # a part that measures in steps keeps each step
+            report[name] = dict(partial, partial=True)
+            if on_part is not None:
+                on_part(report)
+        return save
     for name in parts:
         t0 = time.perf_counter()
         try:
@@ -330,6 +361,20 @@ def format_gpu_table(r: dict) -> str:
         rows.append(("vggt_init CLI, fixture model, CUDA vs CPU: max abs diff (world_points, cam_from_world)",
                      f"{_f(g['max_abs_diff_vs_cpu'].get('world_points'))}, "
                      f"{_f(g['max_abs_diff_vs_cpu'].get('cam_from_world'))}"))
+    for recipe, pr in r.get("profile", {}).items():
+        if not isinstance(pr, dict) or "graphs_on" not in pr:
+            continue
+        tp = pr["torch_profiler"]
+        rows.append((f"step profile, {recipe}, it {pr['warm_iterations']}+{pr['steps']} "
+                     f"({pr['graphs_on']['gaussians']} Gaussians): ms per iteration, loss graphed / op by op",
+                     f"{_f(pr['graphs_on']['ms_per_step'])} / {_f(pr['graphs_off']['ms_per_step'])}"))
+        rows.append((f"step profile, {recipe}: device busy ms, kernel launches, syncs, copies per iteration",
+                     f"{_f(tp['device_busy_ms_per_it'])}, {_f(tp['kernel_launches_per_it'], '.0f')}, "
+                     f"{_f(tp['syncs_per_it'], '.2g')}, {_f(tp['memcpy_per_it'], '.2g')}"))
+        rows.append((f"step profile, {recipe}: gsplat forward + backward alone, ms", _f(pr["rasterizer_only_ms"])))
+        ph = pr["phases"]["host_ms"]
+        rows.append((f"step profile, {recipe}: host ms per phase",
+                     ", ".join(f"{k} {_f(v, '.2f')}" for k, v in ph.items())))
     c = r.get("cell", {})
     if "train" in c:
         rows += _cell_rows(c, "cell")

@@ -6,10 +6,10 @@ takes after it. The calls the step makes are timed through thin wrappers around 
 the iteration is copied here, so a change to the step is profiled as it is):
 
 * ``render``: :func:`splat_train.export.render_params` (projection + SH, binning, blending);
-* ``loss``: :func:`splat_train.losses.photometric_loss` (L1 + D-SSIM forward);
+* ``loss``: the trainer's :class:`splat_train.losses.TrainingLoss` (L1 + D-SSIM forward);
 * ``backward``: ``loss.backward()`` (SSIM, blending and projection backward, autograd glue);
 * ``densify_state``: :meth:`DensifyStrategy.update_state` (view-space gradient statistics);
-* ``adam``: :func:`splat_train.cpu.optim.adam_step` and the optimizer's ``zero_grad``;
+* ``adam``: :func:`splat_train.gaussians.adam_step` and the optimizer's ``zero_grad``;
 * ``other``: the rest of ``Trainer.step`` (learning-rate schedule, view choice, the finiteness
   check, the pose step with ``--pose-refine``, any further loss term, the logged scalars);
 * ``strategy``: densify / prune / opacity reset (zero unless the steps cross a densify
@@ -85,7 +85,7 @@ def timed_calls(tr, ph: dict[str, float]):
         return wrapper
 
     with contextlib.ExitStack() as stack:
-        for obj, name, key in ((trainer_mod, "render_params", "render"), (trainer_mod, "photometric_loss", "loss"),
+        for obj, name, key in ((trainer_mod, "render_params", "render"), (tr, "photometric", "loss"),
                                (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),
                                (tr.strategy, "update_state", "densify_state"), (tr.optimizer, "zero_grad", "adam")):
             stack.enter_context(mock.patch.object(obj, name, timed(key, getattr(obj, name))))

@@ -4,7 +4,10 @@
 # Prepare on any x86-64 machine first (bash scripts/gpu_bundle.sh: .whl, .gpu_cell, .gpu_wf),
 # carry those three folders, then in the repository root:
 #
-#   bash scripts/gpu_run.sh OUT_DIR [PARTS]      # PARTS: comma list (default: all, in order)
+#   bash scripts/gpu_run.sh OUT_DIR [PARTS]      # PARTS: comma list (default: the training
+#                                                # profile, cells, gsplat's loop, VGGT frames)
+#   SAVE_GSPLAT_BUILD=DIR: also save gsplat's JIT build there (15 MB parts; carry them back as
+#   .gpu_build/ to skip the ~1.5 min build on the next machine)
 #
 # The parts run in the order of benchmarks/gpu_check.py PARTS (gsplat's CUDA kernels are
 # JIT-built by the part gsplat_build, ~1.5 min once per machine); the JSON + Markdown table
@@ -12,7 +15,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUTDIR=${1:?usage: gpu_run.sh OUT_DIR [PARTS]}
-PARTS=${2:-vggt_fixtures,vggt_cli,gsplat_build,rasterizer_parity,rasterizer_timing,workflow_cell,cell,native,cell_sparse}
+PARTS=${2:-gsplat_build,profile,cell,cell_sparse,native,vggt_frames}
 mkdir -p "$OUTDIR"
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     || { echo "gpu_run: installing .whl failed" >&2; exit 1; }
@@ -21,4 +24,18 @@ CAP=$(python3 -c "import torch; p = torch.cuda.get_device_capability(); print(f'
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$CAP}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-exec python3 -m benchmarks --gpu --gpu-parts "$PARTS" --cell-prepared .gpu_cell --stages .gpu_wf --out "$OUTDIR"
+# gsplat's JIT build folder: restored from .gpu_build (the parts an earlier run saved) when
+# present, so this machine need not build it again; saved into OUT_DIR after the run
+BUILD=$(python3 -c "from torch.utils.cpp_extension import _get_build_directory as d; print(d('gsplat_cuda', False))")
+if ls .gpu_build/gsplat_build.tar.xz.* >/dev/null 2>&1 && [ ! -e "$BUILD/gsplat_cuda.so" ]; then
+    mkdir -p "$(dirname "$BUILD")"
+    cat .gpu_build/gsplat_build.tar.xz.* | tar -xJ -C "$(dirname "$BUILD")" \
+        && find "$BUILD" -type f -exec touch {} + && echo "gpu_run: gsplat build restored into $BUILD"
+fi
+python3 -m benchmarks --gpu --gpu-parts "$PARTS" --cell-prepared .gpu_cell --stages .gpu_wf --out "$OUTDIR"
+rc=$?
+if [ -n "${SAVE_GSPLAT_BUILD:-}" ] && [ -e "$BUILD/gsplat_cuda.so" ]; then
+    tar -C "$(dirname "$BUILD")" -cf - "$(basename "$BUILD")" | xz -T0 -3 | split -b 15m - "$SAVE_GSPLAT_BUILD/gsplat_build.tar.xz."
+    ls -la "$SAVE_GSPLAT_BUILD"/gsplat_build.tar.xz.* 2>/dev/null
+fi
+exit $rc

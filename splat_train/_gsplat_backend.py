@@ -91,6 +91,7 @@ def rasterize_gsplat(
     background: Tensor,
     sh_degree: int | None,
     near_plane: float,
+    depth: bool = True,
 ) -> dict[str, Tensor]:
     """Render with gsplat; arguments, shapes and result keys as :func:`splat_train.rasterize`.
 
@@ -99,6 +100,8 @@ def rasterize_gsplat(
         opacities: [N]; colors: [N, 3] RGB or [N, K, 3] SH coefficients (``sh_degree`` set);
         cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera; K: [3, 3] pixels;
         background: [3]; sh_degree: None or 0..3; near_plane: camera-z cull distance.
+        depth: False renders colour only (``render_mode="RGB"``): ``depth`` and
+            ``depth_accum`` are then None.
 
     Returns:
         ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), ``depth_accum``
@@ -107,12 +110,14 @@ def rasterize_gsplat(
         (gsplat does not return the evaluated colours).
     """
     dt = means.dtype
-    view = torch.eye(4, device=means.device, dtype=dt)
-    view = torch.cat([cam_from_world[:3].to(dt), view[3:]], dim=0)  # differentiable for pose refinement
+    if cam_from_world.shape == (4, 4):  # the trainer's cameras (differentiable with pose refinement)
+        view = cam_from_world.to(dt)
+    else:
+        view = torch.cat([cam_from_world[:3].to(dt), torch.eye(4, device=means.device, dtype=dt)[3:]], dim=0)
     rc, ra, meta = _rasterization()(
         means, quats, scales, opacities, colors, view[None], K.to(dt)[None], width, height,
         near_plane=near_plane, eps2d=EPS2D, sh_degree=sh_degree, packed=False,
-        backgrounds=background.to(dt)[None], render_mode="RGB+ED",
+        backgrounds=background.to(dt)[None], render_mode="RGB+ED" if depth else "RGB",
     )
     m2d_gs = meta["means2d"]  # [1, N, 2] pixels
     means2d = m2d_gs[0].detach().requires_grad_(m2d_gs.requires_grad)  # [N, 2]
@@ -124,16 +129,14 @@ def rasterize_gsplat(
     radii_axes = meta["radii"][0]  # [N, 2] per axis in gsplat 1.5 ([N] in older versions)
     if radii_axes.dim() == 1:
         radii_axes = radii_axes[:, None]
-    visible = (radii_axes > 0).all(dim=-1)
-    radii = _radii_3dgs(meta["conics"][0], visible)
-    visible = visible & (radii > 0)  # (the same mask unless a conic is degenerate)
+    radii, visible = _radii_3dgs(meta["conics"][0], (radii_axes > 0).all(dim=-1))
     alpha = ra[0, ..., 0]
-    depth = rc[0, ..., 3]
+    z = rc[0, ..., 3] if depth else None
     return {
         "rgb": rc[0, ..., :3],
         "alpha": alpha,
-        "depth": depth,
-        "depth_accum": depth * alpha,
+        "depth": z,
+        "depth_accum": z * alpha if depth else None,
         "means2d": means2d,
         "radii": radii,
         "visible": visible,
@@ -144,7 +147,7 @@ def rasterize_gsplat(
 
 
 @torch.no_grad()
-def _radii_3dgs(conics: Tensor, visible: Tensor) -> Tensor:
+def _radii_3dgs(conics: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
     """3DGS radii from gsplat's conics.
 
     Args:
@@ -152,13 +155,14 @@ def _radii_3dgs(conics: Tensor, visible: Tensor) -> Tensor:
         visible: [N] bool; other rows may hold anything (gsplat leaves them unwritten).
 
     Returns:
-        [N] int32 :func:`splat_train.projection.screen_radius` of the covariance
-        [[C, -B], [-B, A]] / (A C - B^2) (computed in float64), 0 where not visible.
+        (radii [N] int32, visible [N] bool): :func:`splat_train.projection.screen_radius` of the
+        covariance [[C, -B], [-B, A]] / d, d = A C - B^2 (its determinant is 1 / d), computed in
+        float64, 0 where not visible; and
+        ``visible`` without the rows whose conic is degenerate (d not finite and > 0).
     """
-    q = conics.double()
-    A, B, C = q.unbind(-1)
-    det = torch.where(visible, A * C - B * B, torch.ones_like(A))
-    ok = visible & torch.isfinite(det) & (det > 0)
-    det = torch.where(ok, det, torch.ones_like(det))
-    r = screen_radius(torch.where(ok, C / det, 1.0), torch.where(ok, -B / det, 0.0), torch.where(ok, A / det, 1.0))
-    return torch.where(ok, r, torch.zeros_like(r)).clamp(max=2**30).to(torch.int32)
+    A, B, C = conics.double().unbind(-1)
+    det = A * C - B * B
+    ok = visible & (det > 0) & (det < float("inf"))
+    inv_det = torch.where(ok, det, 1.0).reciprocal()  # the covariance's determinant
+    r = screen_radius(C * inv_det, None, A * inv_det, det=inv_det)
+    return torch.where(ok, r, 0.0).clamp(max=2**30).to(torch.int32), ok

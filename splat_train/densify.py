@@ -18,6 +18,7 @@ what the 3DGS threshold 2e-4 refers to (gsplat converts the same way).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 from typing import Callable
@@ -32,6 +33,13 @@ __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_chi
 log = logging.getLogger(__name__)
 
 Params = dict[str, torch.nn.Parameter]
+
+
+@functools.lru_cache(maxsize=64)
+def _ndc_scale(width: int, height: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """[2] (W / 2, H / 2) on ``device``: pixel -> NDC gradient units. Cached, because making a
+    device tensor from host numbers is a copy that waits for the device's queue."""
+    return torch.tensor([width / 2.0, height / 2.0], dtype=dtype, device=device)
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -249,7 +257,7 @@ class DensifyStrategy:
             return  # the same accumulation in C on the kernel's threads (CPU float32)
         # dense masked updates, not boolean indexing (each mask index is a nonzero + gather +
         # scatter over N); the same values
-        g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        g = means2d_grad.detach() * _ndc_scale(width, height, means2d_grad.dtype, means2d_grad.device)
         norm = torch.linalg.vector_norm(g, dim=-1)
         # a row with an inf or NaN component has a non-finite norm: one [N] test instead of
         # isfinite(g).all(1) over [N, 2] (it also drops a finite row whose norm overflows,

@@ -159,6 +159,7 @@ class DepthPriorLoss(TrainPart):
     """
 
     name = "depth_prior"
+    needs_depth = True
 
     def __init__(self, prior: DepthPrior, view_names: list[str], weight: float, ramp_fraction: float,
                  iterations: int) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from splat_train.rng import uniform
 from splat_train.train_part import OpacityFn, TrainPart
 
 __all__ = ["dropout_rate_at", "gaussian_dropout", "GaussianDropout"]
@@ -34,7 +35,8 @@ def gaussian_dropout(opacities: Tensor, rate: float, generator: torch.Generator 
         opacities: [N] opacities in [0, 1] (after the sigmoid), any device; differentiable.
         rate: drop probability p in [0, 1).
         generator: CPU generator of the draw (the trainer's, so that a resumed run draws the
-            same masks); the [N] uniform draw is made on the CPU and moved to the device.
+            same masks); the [N] uniform draw is :func:`splat_train.rng.uniform` (on the CPU
+            from ``generator`` itself, on a GPU from a device generator it seeds: no sync).
 
     Returns:
         [N] opacities * keep / (1 - p), keep ~ Bernoulli(1 - p); ``opacities`` itself when
@@ -45,8 +47,10 @@ def gaussian_dropout(opacities: Tensor, rate: float, generator: torch.Generator 
         raise ValueError(f"dropout rate must be in [0, 1), got {rate}")
     if rate == 0.0:
         return opacities
-    u = torch.rand(opacities.shape[0], generator=generator, dtype=torch.float32)
-    keep = (u >= rate).to(device=opacities.device, dtype=opacities.dtype)
+    if generator is None:
+        generator = torch.default_generator
+    u = uniform(opacities.shape[0], generator, opacities.device)
+    keep = (u >= rate).to(opacities.dtype)
     return opacities * (keep / (1.0 - rate))
 
 

@@ -104,19 +104,24 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     return m @ m.transpose(-1, -2)
 
 
-def screen_radius(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+def screen_radius(a: Tensor, b: Tensor | None, c: Tensor, det: Tensor | None = None) -> Tensor:
     """3DGS's screen-space radius: ceil(3 sqrt(lambda_max)) pixels, with lambda_max = mid +
     sqrt(max(0.1, mid^2 - det)) the larger eigenvalue of the (dilated) 2D covariance
     [[a, b], [b, c]] (pixels^2), mid = (a + c) / 2, det = a c - b^2.
 
     Args:
-        a, b, c: [N] entries of the 2D covariance, any float dtype.
+        a, b, c: [N] entries of the 2D covariance, any float dtype (``b`` may be None when
+            ``det`` is given).
+        det: [N] the covariance's determinant when the caller already has it (the gsplat
+            adapter: 1 / det of the conic), else computed as a c - b^2.
 
     Returns:
         [N] radius in pixels (float, integral values).
     """
     mid = 0.5 * (a + c)
-    lam = mid + torch.sqrt(torch.clamp_min(mid * mid - (a * c - b * b), 0.1))
+    if det is None:
+        det = a * c - b * b
+    lam = mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))
     return torch.ceil(3.0 * torch.sqrt(lam))
 
 

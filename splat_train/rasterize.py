@@ -141,6 +141,7 @@ def rasterize(
     backend: str = "auto",
     near_plane: float = NEAR_PLANE,
     kernel_camera_grad: bool = False,
+    depth: bool = True,
 ) -> dict[str, Tensor]:
     """Render Gaussians into one camera, differentiably (3DGS semantics, docs/reference.md section 3).
 
@@ -172,6 +173,9 @@ def rasterize(
             gradient (:mod:`splat_train.cpu.project`) instead of running the torch projection
             and SH over every Gaussian: the same gradient (float64 maths in both), an order of
             magnitude faster. The test-pose protocol sets it; training's pose refinement does not.
+        depth: False lets a backend skip the depth outputs: gsplat then blends colour only and
+            returns ``depth`` and ``depth_accum`` as None (the other backends blend depth with
+            the colour at no extra pass and return them anyway).
 
     Returns:
         dict with
@@ -235,7 +239,7 @@ def rasterize(
 
         return _gsplat_backend.rasterize_gsplat(
             means, quats, scales, opacities, colors, cam_from_world, K, width, height,
-            background, sh_degree, near_plane,
+            background, sh_degree, near_plane, depth=depth,
         )
 
     if fused:

@@ -41,9 +41,13 @@ class TrainPart:
 
     Attributes:
         name: the part's key in the checkpoint's ``parts`` and in the trainer's log line.
+        needs_depth: whether the part's loss reads the render's depth.
     """
 
     name: str = "part"
+    #: whether :meth:`loss` reads the render's ``depth``: when no part does, the training
+    #: render skips the depth outputs (gsplat renders colour only)
+    needs_depth: bool = False
 
     def camera(self, iteration: int, view: int, cam_from_world: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
         """The camera training view ``view`` is rendered with at ``iteration``.

@@ -58,18 +58,18 @@ from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
 from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
 from splat_train.cpu import raster as cpu_raster
-from splat_train.cpu.optim import adam_step
 from splat_train.data import View, load_views, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.depth_prior import DepthPrior, DepthPriorLoss
 from splat_train.export import camera_tensors, render_params, render_views
-from splat_train.gaussians import make_optimizer, params_from_cloud, params_to_cloud, position_lr
+from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer
-from splat_train.losses import photometric_loss
+from splat_train.losses import TrainingLoss
 from splat_train.mcmc import MCMCStrategy
 from splat_train.parts import opacity_map, recipe_parts
 from splat_train.pose import PoseCorrections, PoseRefinement
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
+from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
 
@@ -174,6 +174,7 @@ class Trainer:
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
+        self.photometric = TrainingLoss(cfg.lambda_dssim, self.dev)  # a CUDA graph on CUDA
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         cloud = read_gaussian_ply(seed_ply)
         self.extent = scene_extent([v.camera for v in train_views],
@@ -187,6 +188,7 @@ class Trainer:
         self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
         self.parts = recipe_parts(cfg, train_views, [c[0] for c in self.cams], self.gen, self.depth_prior_path)
         log.info("training parts: %s", ", ".join(p.name for p in self.parts) or "none")
+        self.need_depth = any(p.needs_depth for p in self.parts)  # else gsplat renders colour only
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -309,12 +311,12 @@ class Trainer:
                 g["lr"] = position_lr(cfg, it, self.extent)
         deg = self.sched.sh_degree_at(it, cfg.sh_degree)
         idx = self.last_view = self.next_view()
-        bg = torch.rand(3, generator=self.gen).to(self.dev) if cfg.random_background else self.bg
+        bg = uniform(3, self.gen, self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
         cam_from_world, K = self.view_camera(idx)
         out = render_params(self.params, deg, cam_from_world, K, cam.width, cam.height, bg, self.backend,
-                            opacity_fn=opacity_map(self.parts, it))
-        loss, l1, s = photometric_loss(out["rgb"], self.targets[idx], cfg.lambda_dssim)
+                            opacity_fn=opacity_map(self.parts, it), depth=self.need_depth)
+        loss, stats = self.photometric(out["rgb"], self.targets[idx])  # stats: L1, SSIM, MSE
         for part in self.parts:
             term = part.loss(it, idx, out, self.params)
             if term is not None:
@@ -326,13 +328,11 @@ class Trainer:
             # [N, 2] in pixels for every backend (the rasterize contract; the gsplat adapter too)
             self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
                                        cam.width, cam.height, it)
-        adam_step(self.optimizer)  # on the CPU kernel's threads where it applies, else optimizer.step()
+        adam_step(self.optimizer)  # fused kernel on a GPU, the C++ kernel's threads on the CPU
         self.optimizer.zero_grad(set_to_none=True)
         for part in self.parts:
             part.after_step(it)
-        with torch.no_grad():
-            mse = ((out["rgb"].detach() - self.targets[idx]) ** 2).mean()
-            return torch.stack([loss.detach(), l1.detach(), s.detach(), mse])
+        return torch.cat([loss.detach().reshape(1), stats])
 
     def _non_finite(self, loss: float, it: int, view: str) -> NoReturn:
         last = ckpt.latest_checkpoint(self.ckpt_dir)

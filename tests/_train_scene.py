@@ -108,9 +108,9 @@ def write_pose_scene(root: Path, n_views: int = 5, width: int = 64, rot_deg: flo
 def kill_at_loss_call(monkeypatch, call: int):
     """Make the trainer's loss raise KeyboardInterrupt at its ``call``-th call, as a run killed
     inside that iteration; returns a function that puts the real loss back (for the resume)."""
-    from splat_train import trainer as trainer_mod
+    from splat_train import losses as losses_mod
 
-    real, calls = trainer_mod.photometric_loss, {"n": 0}
+    real, calls = losses_mod.photometric_loss, {"n": 0}
 
     def killed(*args):
         calls["n"] += 1
@@ -118,5 +118,5 @@ def kill_at_loss_call(monkeypatch, call: int):
             raise KeyboardInterrupt
         return real(*args)
 
-    monkeypatch.setattr(trainer_mod, "photometric_loss", killed)
-    return lambda: monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    monkeypatch.setattr(losses_mod, "photometric_loss", killed)
+    return lambda: monkeypatch.setattr(losses_mod, "photometric_loss", real)

@@ -100,3 +100,35 @@ def test_adam_step_falls_back_to_torch():
             opt_b.step()
         for k in SHAPES:
             assert torch.equal(a[k].detach(), b[k].detach()), (case, k)
+
+
+def test_fused_adam_step_matches_the_optimizers_own_step():
+    """The direct fused-kernel step (the trainer's path on a GPU) gives exactly
+    ``optimizer.step()``'s parameters and state, over steps with changing rates (checked on the
+    CPU, where torch's fused Adam also runs)."""
+    from splat_train.gaussians import fused_adam_step
+
+    g = torch.Generator().manual_seed(3)
+    shapes = [(7, 3), (7,), (7, 15, 3)]
+    ours = [torch.nn.Parameter(torch.randn(s, generator=g)) for s in shapes]
+    ref = [torch.nn.Parameter(p.detach().clone()) for p in ours]
+    mk = lambda ps: torch.optim.Adam([{"params": [p], "lr": 0.01 * (i + 1)} for i, p in enumerate(ps)],  # noqa: E731
+                                     eps=1e-15, fused=True)
+    opt_a, opt_b = mk(ours), mk(ref)
+    assert not fused_adam_step(opt_a, devices=("cpu",))  # no state before the first step: not applicable
+    for step in range(5):
+        grads = [torch.randn(s, generator=g) for s in shapes]
+        for p, q, gr in zip(ours, ref, grads):
+            p.grad, q.grad = gr.clone(), gr.clone()
+        for ga, gb in zip(opt_a.param_groups, opt_b.param_groups):
+            ga["lr"] = gb["lr"] = ga["lr"] * 0.9
+        if step == 0:
+            opt_a.step()
+        else:
+            assert fused_adam_step(opt_a, devices=("cpu",))
+        opt_b.step()
+    for p, q in zip(ours, ref):
+        assert torch.equal(p, q)
+        for k in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(opt_a.state[p][k], opt_b.state[q][k])
+    assert not fused_adam_step(opt_a)  # CPU parameters: the trainer's CPU path is the C++ kernel

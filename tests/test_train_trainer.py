@@ -11,6 +11,7 @@ import torch
 from _train_scene import kill_at_loss_call, write_scene
 from camio.colmap import read_model
 from camio.ply import read_gaussian_ply
+from splat_train import losses as losses_mod
 from splat_train import trainer as trainer_mod
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
@@ -112,7 +113,7 @@ def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch,
     (every SYNC_EVERY iterations on a GPU, here at 12, the next log row: the NaN iteration's
     update has run by then, and no checkpoint after it is written)."""
     monkeypatch.setattr(trainer_mod, "host_sync_every", lambda dev: sync_every)
-    real = trainer_mod.photometric_loss
+    real = losses_mod.photometric_loss
     calls = {"n": 0}
 
     def poisoned(render, target, lam):
@@ -120,7 +121,7 @@ def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch,
         loss, l1, s = real(render, target, lam)
         return (loss * float("nan"), l1, s) if calls["n"] == 11 else (loss, l1, s)
 
-    monkeypatch.setattr(trainer_mod, "photometric_loss", poisoned)
+    monkeypatch.setattr(losses_mod, "photometric_loss", poisoned)
     out = tmp_path / "nan"
     with pytest.raises(NonFiniteLossError, match=r"iteration 11.*ckpt_0000008\.pt"):
         _train(scene, out)
@@ -130,7 +131,7 @@ def test_nonfinite_loss_stops_and_keeps_checkpoint(scene, tmp_path, monkeypatch,
     assert all(torch.isfinite(v).all() for v in data["params"].values())
     assert not (out / "model.ply").exists()
     # the checkpoint is usable: a clean run resumes from it
-    monkeypatch.setattr(trainer_mod, "photometric_loss", real)
+    monkeypatch.setattr(losses_mod, "photometric_loss", real)
     res = _train(scene, out)
     assert res.summary["resumed_from"].endswith("ckpt_0000008.pt")
 
