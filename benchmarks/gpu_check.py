@@ -218,7 +218,7 @@ def gsplat_build(device: str) -> dict:
 
 
 PARTS = ("vggt_fixtures", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
-         "profile", "cell", "native", "cell_sparse", "vggt_frames")
+         "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
 
@@ -230,6 +230,16 @@ def step_profile(prepared: Path | None) -> dict:
     from benchmarks.profile_step import profile
 
     return profile(prepared)
+
+
+def step_ab(prepared: Path | None) -> dict:
+    """benchmarks/profile_step.py's in-process comparison of the recipes and the sparse recipe's
+    parts on the prepared cell."""
+    if prepared is None:
+        raise ValueError("the step comparison needs a prepared cell (--cell-prepared)")
+    from benchmarks.profile_step import recipe_ab
+
+    return recipe_ab(prepared)
 
 
 def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
@@ -268,6 +278,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
            "native": lambda _dev: native_cell(cell_iterations, cell_prepared),
            "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse"),
            "profile": lambda _dev: step_profile(cell_prepared),
+           "step_ab": lambda _dev: step_ab(cell_prepared),
            "vggt_frames": lambda dev: vggt_frames_part(dev, on_result=_partial("vggt_frames"))}
     unknown = set(parts) - set(fns)
     if unknown:
@@ -375,6 +386,11 @@ def format_gpu_table(r: dict) -> str:
         ph = pr["phases"]["host_ms"]
         rows.append((f"step profile, {recipe}: host ms per phase",
                      ", ".join(f"{k} {_f(v, '.2f')}" for k, v in ph.items())))
+    ab = r.get("step_ab", {})
+    if "sparse" in ab:
+        rows.append(("step A/B in one process (" + ", ".join(k for k in ab if k != "setup" and "error" not in k)
+                     + "): median ms per iteration",
+                     ", ".join(_f(v["median_ms"]) for k, v in ab.items() if isinstance(v, dict) and "median_ms" in v)))
     c = r.get("cell", {})
     if "train" in c:
         rows += _cell_rows(c, "cell")

@@ -48,16 +48,17 @@ from benchmarks.profile_iteration import PHASES  # noqa: E402
 CELL_ITERATIONS = 10_000  # the paper's training length, which sets the recipes' schedules
 
 
-def cell_trainer(cell: Path, recipe: str, device: str = "cuda", graphs: bool | None = None):
+def cell_trainer(cell: Path, recipe: str, device: str = "cuda", graphs: bool | None = None, **overrides):
     """A :class:`splat_train.trainer.Trainer` on the prepared ``cell`` (training views only),
-    ``recipe`` at :data:`CELL_ITERATIONS`, writing nowhere it keeps (a temporary folder)."""
+    ``recipe`` at :data:`CELL_ITERATIONS` (``overrides``: other config values), writing nowhere
+    it keeps (a temporary folder)."""
     from benchmarks.gsplat_native import load_cell
     from splat_train.config import TrainConfig
     from splat_train.losses import TrainingLoss
     from splat_train.trainer import Trainer
 
     train, _test, _cloud = load_cell(cell)
-    cfg = TrainConfig(recipe=recipe, iterations=CELL_ITERATIONS, device=device)
+    cfg = TrainConfig(recipe=recipe, iterations=CELL_ITERATIONS, device=device, **overrides)
     out = tempfile.mkdtemp(prefix="profile_step_")
     tr = Trainer(cfg, cell / "bridge" / "seed.ply", train, out, [], ckpt_dir=out)
     tr.photometric = TrainingLoss(cfg.lambda_dssim, tr.dev, graphs=graphs)
@@ -192,8 +193,13 @@ def torch_profile(tr, n: int) -> dict:
 
 
 def profile_recipe(cell: Path, recipe: str, warm: int = 1000, steps: int = 200, profile_steps: int = 30) -> dict:
-    """The profile of ``recipe`` on ``cell`` (module docstring); a fresh trainer per variant, so
-    both variants time the same iterations ``warm + 1 .. warm + steps``."""
+    """The profile of ``recipe`` on ``cell`` (module docstring)."""
+    return profile(cell, (recipe,), warm=warm, steps=steps, profile_steps=profile_steps)[recipe]
+
+
+def _time_recipe(cell: Path, recipe: str, warm: int, steps: int):
+    """The timed part of a recipe's profile (a fresh trainer per variant, so both variants time
+    the same iterations ``warm + 1 .. warm + steps``) and the last trainer."""
     out: dict = {"recipe": recipe, "warm_iterations": warm, "steps": steps}
     for graphs in (False, True):
         tr = cell_trainer(cell, recipe, graphs=graphs)
@@ -205,16 +211,54 @@ def profile_recipe(cell: Path, recipe: str, warm: int = 1000, steps: int = 200, 
         print(f"profile {recipe} {key}: {ms:.2f} ms per iteration at {tr.num_gaussians} Gaussians", flush=True)
     out["phases"] = phase_times(tr, steps)
     out["rasterizer_only_ms"] = rasterizer_only_ms(tr)
-    out["torch_profiler"] = torch_profile(tr, profile_steps)
     out["ms_per_step"] = out["graphs_on"]["ms_per_step"]
-    prof = out["torch_profiler"]
-    out["host_bound"] = out["ms_per_step"] > 1.2 * prof["device_busy_ms_per_it"]
+    return out, tr
+
+
+#: the recipes and the sparse recipe without each of its per-iteration parts
+AB_VARIANTS = {"paper": {"recipe": "paper"}, "sparse": {"recipe": "sparse"},
+               "sparse_no_dropout": {"recipe": "sparse", "dropout_rate": 0.0},
+               "sparse_no_opacity_reg": {"recipe": "sparse", "opacity_reg": 0.0}}
+
+
+def recipe_ab(cell: Path, variants: dict[str, dict] | None = None, rounds: int = 3, warm: int = 300,
+              steps: int = 200) -> dict:
+    """Milliseconds per iteration of each variant (config overrides, :data:`AB_VARIANTS`),
+    measured in turns in one process (``rounds`` blocks of ``steps`` iterations each, after
+    ``warm``), so that a difference between recipes is not one between processes or moments.
+    Run it before any ``torch.profiler`` session in the process: the profiler's hooks stay
+    and slow every later launch."""
+    import os
+
+    variants = variants or AB_VARIANTS
+    trainers = {}
+    for name, v in variants.items():
+        v = dict(v)
+        trainers[name] = cell_trainer(cell, v.pop("recipe"), **v)
+        iterate(trainers[name], warm)
+    ms = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, tr in trainers.items():
+            ms[name].append(ms_per_step(tr, steps))
+    out = {name: {"ms_per_step": vals, "median_ms": sorted(vals)[len(vals) // 2],
+                  "gaussians": trainers[name].num_gaussians, "config": variants[name]}
+           for name, vals in ms.items()}
+    out["setup"] = {"warm": warm, "steps": steps, "rounds": rounds, "cpus": len(os.sched_getaffinity(0)),
+                    "loadavg": os.getloadavg()}
+    for name in variants:
+        print(f"step A/B {name}: {out[name]['median_ms']:.2f} ms per iteration ({ms[name]})", flush=True)
     return out
 
 
-def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), **kwargs) -> dict:
-    """:func:`profile_recipe` for each recipe."""
-    return {r: profile_recipe(cell, r, **kwargs) for r in recipes}
+def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), warm: int = 1000, steps: int = 200,
+            profile_steps: int = 30) -> dict:
+    """The profile of each recipe (module docstring): every recipe's timings first, then the
+    ``torch.profiler`` runs (its hooks stay in the process and slow every later launch)."""
+    timed = {r: _time_recipe(cell, r, warm, steps) for r in recipes}
+    for r, (out, tr) in timed.items():
+        out["torch_profiler"] = torch_profile(tr, profile_steps)
+        out["host_bound"] = out["ms_per_step"] > 1.2 * out["torch_profiler"]["device_busy_ms_per_it"]
+    return {r: out for r, (out, _tr) in timed.items()}
 
 
 def main() -> int:
