@@ -53,6 +53,7 @@ def test_gpu_report_json_and_table(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(gpu_check, "native_cell", lambda iterations, prepared: {
         "iterations": iterations, "wall_s": 50.0, "s_per_1000_it": 5.0, "final_gaussians": 12, "test_psnr": 19.9,
         "peak_cuda_mb": 900.0})
+    monkeypatch.setattr(gpu_check, "vggt_frames_part", lambda dev, on_result=None: {"frames": []})
     assert gpu_check.run_cli(tmp_path, 7) == 0
     (js,), (md,) = tmp_path.glob("benchmarks_gpu_*.json"), tmp_path.glob("benchmarks_gpu_*.md")
     rep = json.loads(js.read_text())
@@ -155,3 +156,52 @@ def test_gpu_stages_reproduce_the_workflow_cell_on_cpu(tmp_path):
     assert res["device_run"]["train"]["num_gaussians"] == cpu["train"]["num_gaussians"]
     v = gpu_stages.vggt_cli(folder, "cpu")
     assert v["names_equal"] and max(v["max_abs_diff_vs_cpu"].values()) == 0.0
+
+
+def _cpu_stand_ins(monkeypatch):
+    """CUDA events and synchronisation stood in for on the CPU, and the profile's trainers made
+    on the CPU (the step's own code runs unchanged; the loss is never a CUDA graph there)."""
+    from benchmarks import profile_step
+
+    class Event:
+        def __init__(self, enable_timing: bool = False) -> None:
+            self.t = None
+
+        def record(self) -> None:
+            import time
+
+            self.t = time.perf_counter()
+
+        def elapsed_time(self, end: "Event") -> float:
+            return 1e3 * (end.t - self.t)
+
+    monkeypatch.setattr(torch.cuda, "Event", Event)
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda *a, **k: None)
+    real = profile_step.cell_trainer
+    monkeypatch.setattr(profile_step, "cell_trainer",
+                        lambda cell, recipe, device="cuda", graphs=None, **o: real(cell, recipe, "cpu", graphs, **o))
+    return profile_step
+
+
+def test_step_profile_parts_and_report(quick_bundle, monkeypatch):
+    """The GPU step profile's plumbing on the CPU (benchmarks/profile_step.py): per recipe the
+    plain loop with the loss graphed and not, every phase timed, the rasterizer alone and the
+    torch.profiler counts; the recipes in turns in one process; the table rows of both."""
+    profile_step = _cpu_stand_ins(monkeypatch)
+    from benchmarks.profile_iteration import PHASES
+
+    prof = profile_step.profile(quick_bundle, ("paper", "sparse"), warm=3, steps=2, profile_steps=1)
+    for recipe in ("paper", "sparse"):
+        p = prof[recipe]
+        assert p["graphs_on"]["loss_graphed"] is False  # never a CUDA graph off CUDA
+        assert p["ms_per_step"] == p["graphs_on"]["ms_per_step"] > 0
+        assert set(p["phases"]["host_ms"]) == set(PHASES) and p["phases"]["host_ms"]["render"] > 0
+        assert p["rasterizer_only_ms"] > 0 and p["torch_profiler"]["iterations"] == 1
+        assert p["torch_profiler"]["top_host"] and isinstance(p["host_bound"], bool)
+    ab = profile_step.recipe_ab(quick_bundle, rounds=2, warm=2, steps=2)
+    assert set(ab) == set(profile_step.AB_VARIANTS) | {"setup"}
+    assert all(len(ab[k]["ms_per_step"]) == 2 and ab[k]["median_ms"] > 0 for k in profile_step.AB_VARIANTS)
+    assert ab["sparse_no_dropout"]["config"] == {"recipe": "sparse", "dropout_rate": 0.0}
+    table = gpu_check.format_gpu_table({"profile": prof, "step_ab": ab})
+    assert "step profile, sparse: host ms per phase | render" in table
+    assert "| step A/B in one process (paper, sparse, sparse_no_dropout, sparse_no_opacity_reg)" in table

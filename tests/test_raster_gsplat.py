@@ -345,3 +345,27 @@ def test_gsplat_adapter_renders_depth_for_the_depth_prior(fake_gsplat, sh_degree
         scale = b.abs().max().clamp_min(1e-12)
         assert float(scale) > 1e-9, name
         torch.testing.assert_close(a / scale, b / scale, **TOL, msg=f"d depth loss / d {name}")
+
+
+@pytest.mark.parametrize("cam44", [False, True])
+def test_gsplat_adapter_colour_only_render(fake_gsplat, cam44):
+    """``depth=False`` (a training step no part reads depth from) renders colour only: the same
+    image, radii, visibility and gradients as with depth, ``depth`` and ``depth_accum`` None;
+    a [4, 4] camera gives what its [3, 4] top does."""
+    outs, grads = [], []
+    for depth in (True, False):
+        leaves, cw, K = make_scene(5, 3)
+        if cam44:
+            cw = torch.cat([cw, torch.tensor([[0, 0, 0, 1.0]], dtype=D)])
+        out = rasterize(*leaves.values(), cw, K, W, H, torch.tensor([0.1, 0.2, 0.3], dtype=D), sh_degree=3,
+                        backend="gsplat", depth=depth)
+        outs.append(out)
+        grads.append(torch.autograd.grad(out["rgb"].square().sum(), list(leaves.values()), allow_unused=True))
+    with_depth, colour_only = outs
+    assert colour_only["depth"] is None and colour_only["depth_accum"] is None
+    assert with_depth["depth"] is not None
+    for key in ("rgb", "alpha", "radii", "visible"):
+        torch.testing.assert_close(colour_only[key], with_depth[key], **TOL)
+    for a, b in zip(*grads):
+        if a is not None:
+            torch.testing.assert_close(a, b, **TOL)

@@ -191,3 +191,24 @@ def test_photometric_loss_fused_path_equals_the_two_terms():
     (g_got,) = torch.autograd.grad(loss, render)
     (g_ref,) = torch.autograd.grad(ref, render)
     torch.testing.assert_close(g_got, g_ref, rtol=1e-12, atol=1e-12 * g_ref.abs().max().item())
+
+
+def test_training_loss_is_the_photometric_loss_and_its_statistics():
+    """The trainer's loss object (a CUDA graph on CUDA only): the 3DGS loss and the logged L1,
+    SSIM and MSE of the render, with the loss's gradient; off CUDA it never builds a graph."""
+    from splat_train.losses import TrainingLoss, photometric_loss
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(24, 32, 3, generator=g, dtype=torch.float64)
+    render = (target + 0.1 * torch.randn(24, 32, 3, generator=g, dtype=torch.float64)).clamp(0, 1)
+    fn = TrainingLoss(0.2, torch.device("cpu"), graphs=True)
+    assert not fn.use_graphs
+    r1 = render.clone().requires_grad_(True)
+    loss, stats = fn(r1, target)
+    r2 = render.clone().requires_grad_(True)
+    ref, l1, s = photometric_loss(r2, target, 0.2)
+    assert loss.item() == ref.item() and not stats.requires_grad
+    assert stats.tolist() == [l1.item(), s.item(), ((render - target) ** 2).mean().item()]
+    loss.backward()
+    ref.backward()
+    assert torch.equal(r1.grad, r2.grad)
