@@ -1,7 +1,9 @@
 """Camera head, DPT dense heads and their output activations (chosen by name).
 
 Every head reads the aggregator outputs ``tokens = {layer index: [B, S, N, 2C]}`` with
-N = patch_start_idx + P.
+N = patch_start_idx + P, or each output as its (frame, global) halves [B, S, N, C]
+(``Aggregator(..., concat=False)``); the heads join and cast only the slice they read
+(:func:`take_tokens`), a frame chunk at a time in the DPT heads.
 """
 
 from __future__ import annotations
@@ -15,7 +17,25 @@ from torch import nn
 from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
 from vggt_init.model.layers import Block, Linear, Mlp
 
-__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
+__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding", "take_tokens"]
+
+
+def take_tokens(t: torch.Tensor | tuple[torch.Tensor, torch.Tensor], frames: slice, tokens: slice | int,
+                dtype: torch.dtype) -> torch.Tensor:
+    """``t[:, frames, tokens]`` of one aggregator output, in ``dtype``.
+
+    Args:
+        t: [B, S, N, 2C], or its halves (frame, global) [B, S, N, C] each (joined frame first).
+        frames, tokens: index of dims 1 and 2 (an int token index drops dim 2).
+
+    Returns:
+        [B, s, n, 2C] (or [B, s, 2C]); a copy only where joining or casting needs one.
+    """
+    if isinstance(t, tuple):
+        out = torch.cat((t[0][:, frames, tokens], t[1][:, frames, tokens]), dim=-1)
+    else:
+        out = t[:, frames, tokens]
+    return out.to(dtype)
 
 
 def _inv_log(x: torch.Tensor) -> torch.Tensor:
@@ -71,10 +91,13 @@ class CameraHead(nn.Module):
         return torch.cat((activation(c.trans_act)(raw[..., :3]), activation(c.quat_act)(raw[..., 3:7]),
                           activation(c.fl_act)(raw[..., 7:])), dim=-1)
 
-    def forward(self, tokens: torch.Tensor, debug: dict | None = None) -> list[torch.Tensor]:
-        """tokens [B, S, N, 2C] (one aggregator output) -> list of num_iterations [B, S, 9]."""
-        B, S = tokens.shape[:2]
-        tok = self.token_norm(tokens[:, :, 0])
+    def forward(self, tokens: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                debug: dict | None = None) -> list[torch.Tensor]:
+        """tokens [B, S, N, 2C] (one aggregator output, or its two halves) -> list of
+        num_iterations [B, S, 9]. Reads the camera token (token 0) only."""
+        tok = take_tokens(tokens, slice(None), 0, self.token_norm.weight.dtype)  # [B, S, 2C]
+        B, S = tok.shape[:2]
+        tok = self.token_norm(tok)
         raw = None
         out: list[torch.Tensor] = []
         for it in range(self.cfg.num_iterations):
@@ -220,7 +243,7 @@ class DPTHead(nn.Module):
         h, w = H // p, W // p
         feats = []
         for k, layer in enumerate(self.layers):
-            x = tokens[layer][:, s0:s1, patch_start_idx:]
+            x = take_tokens(tokens[layer], slice(s0, s1), slice(patch_start_idx, None), self.norm.weight.dtype)
             B, s = x.shape[:2]
             x = self.norm(x.reshape(B * s, -1, x.shape[-1]))
             x = x.permute(0, 2, 1).reshape(B * s, x.shape[-1], h, w)
@@ -247,27 +270,34 @@ class DPTHead(nn.Module):
         """Dense prediction, processed ``frames_chunk_size`` frames at a time.
 
         Args:
-            tokens: {layer: [B, S, N, 2C]} holding every index in ``self.layers``.
+            tokens: {layer: [B, S, N, 2C] or its two halves} holding every index in ``self.layers``
+                (any float dtype: each chunk is cast to the head's).
             image_hw: (H, W) of the network input.
 
         Returns:
             value [B, S, H, W, output_dim - 1] and confidence [B, S, H, W].
         """
         H, W = image_hw
-        any_t = next(iter(tokens.values()))
-        B, S = any_t.shape[:2]
+        any_t = tokens[self.layers[0]]
+        B, S = (any_t[0] if isinstance(any_t, tuple) else any_t).shape[:2]
         chunk = frames_chunk_size or self.cfg.frames_chunk_size or S
         act_v, act_c = activation(self.cfg.activation), activation(self.cfg.conf_activation)
-        values, confs, fused_all = [], [], []
+        values = confs = None  # written a chunk at a time (no list of chunks and its concatenation)
+        fused_all = []
         for s0 in range(0, S, chunk):
             s1 = min(S, s0 + chunk)
             fused, raw = self._forward_frames(tokens, patch_start_idx, H, W, s0, s1)
             if debug is not None:
                 fused_all.append(fused.reshape(B, s1 - s0, *fused.shape[1:]))
             fmap = raw.permute(0, 2, 3, 1)
-            values.append(act_v(fmap[..., :-1]).reshape(B, s1 - s0, *fmap.shape[1:3], -1))
-            confs.append(act_c(fmap[..., -1]).reshape(B, s1 - s0, *fmap.shape[1:3]))
-            del raw, fmap, fused
+            value = act_v(fmap[..., :-1]).reshape(B, s1 - s0, *fmap.shape[1:3], -1)
+            conf = act_c(fmap[..., -1]).reshape(B, s1 - s0, *fmap.shape[1:3])
+            if values is None:
+                values = torch.empty(B, S, *value.shape[2:], dtype=value.dtype, device=value.device)
+                confs = torch.empty(B, S, *conf.shape[2:], dtype=conf.dtype, device=conf.device)
+            values[:, s0:s1] = value
+            confs[:, s0:s1] = conf
+            del raw, fmap, fused, value, conf
         if debug is not None:
             debug[f"{debug_name}.fused"] = torch.cat(fused_all, dim=1).flatten(0, 1)
-        return torch.cat(values, dim=1), torch.cat(confs, dim=1)
+        return values, confs

@@ -122,13 +122,14 @@ class VGGT(nn.Module):
         else:
             ctx = contextlib.nullcontext()
         with ctx:
-            tokens = self.aggregator(images.to(param_dtype), keep=self.layers_needed, debug=debug)
+            tokens = self.aggregator(images.to(param_dtype), keep=self.layers_needed, debug=debug, concat=False)
         timings["aggregator"] = _now(images.device) - t0
 
         out: dict = {}
         psi = self.aggregator.patch_start_idx
         with torch.autocast(device_type=device_type, enabled=False):
-            tokens = {k: v.to(param_dtype) for k, v in tokens.items()}
+            # The kept layers stay as the trunk made them (their frame and global halves); each
+            # head joins and casts to its dtype only the slice it reads (see heads.take_tokens).
             if self.camera_head is not None:
                 t0 = _now(images.device)
                 ch_debug = {} if debug is not None else None
