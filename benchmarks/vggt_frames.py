@@ -3,7 +3,11 @@
 RANDOM WEIGHTS (speed and memory only): the outputs are meaningless and never reported.
 518x392 px, the trunk cast to bf16 (``model.cast_trunk_weights(torch.bfloat16)``, as vggt_init's
 ``--dtype bf16``), camera + point heads in float32 (what vggt_init runs). Called by the GPU check
-as ``vggt_frames("cuda", deadline_s)``; on the CPU only with a tiny ``config`` (the tests).
+as ``vggt_frames("cuda", deadline_s)``, or alone (the JSON rewritten after every measurement):
+
+    python benchmarks/vggt_frames.py --minutes 10 --out vggt_frames.json [--counts 12 50 100 200]
+
+On the CPU it runs only with a tiny ``config`` (the tests).
 
 What it measures (:func:`vggt_frames`):
 
@@ -13,39 +17,48 @@ What it measures (:func:`vggt_frames`):
 2. the same counts under :func:`vggt_init.model.fastpath.memory_probe` (every allocation of the
    forward, attention not computed: MEANINGLESS outputs), whose peak must match the real one
    (``peak_ratio_probe_to_real``);
-3. probe-only forwards from ``search_from`` frames up in ``search_step`` steps until CUDA runs out
-   of memory, then bisection to ``search_resolution`` frames: the largest count that fits. These
-   counts are labelled probe-only: a real forward there also needs the O(N^2) attention time;
+3. probe-only forwards from a start count up (or down) in doubling steps until CUDA runs out of
+   memory (or it fits), then bisection to ``search_resolution`` frames: the largest count that
+   fits. The start is 98 % of what the probe's affine fit predicts for the free memory (or
+   ``search_from``). These counts are labelled probe-only: a real forward there also needs the
+   O(N^2) attention time, and a fused attention kernel that accepts that many tokens;
 4. an affine fit of peak against frames (intercept, MB per frame) and a quadratic fit of time
    against frames from the real runs; then, where the deadline allows the predicted time with
    ``time_margin``, one real forward at the largest of ``bigger`` that fits (``real_frames``
    lists the counts run for real, ``probe_only_frames`` the others).
 
 Expected memory per frame (arithmetic, 518x392: 37 x 28 = 1036 patches + 5 special = 1041 tokens
-per frame, width C = 1024; R = one float32 [tokens, C] tensor = 4.26 MB per frame). The residual
-stream is float32 under autocast (LayerScale multiplies the bf16 branch by a float32 gamma), so
-every kept layer half is R. At the peak, global block 23 (the last kept layer):
+per frame, width C = 1024; R = one float32 [tokens, C] map = 4,263,936 B = 4.07 MiB per frame).
+The residual stream is float32 under autocast (LayerScale multiplies the bf16 branch by a float32
+gamma; checked on the CPU: every kept layer is float32), so each kept layer half is R. At the
+peak, global block 23 (the last kept layer), during attention:
 
 - kept layers 4, 11, 17 as (frame, global) halves: 6 R; frame output 23 (the block's input): R;
-- the block (token-chunked, ``vggt_init.model.layers.TOKEN_CHUNK``): q, k, v in bf16 1.5 R and
-  the attention output 0.5 R, then the new residual R with the output 0.5 R;
-- so ~9 R = 38 MB per frame, plus the input images (float32, 2.4 MB per frame) and the heads'
-  outputs afterwards (world points and confidence, float32 at 518x392: 3.2 MB per frame, while
-  the kept layers are 8 R = 34 MB): about 41 MB per frame, ~1,800 frames in 78 GiB after the
-  weights (~2.9 GB: trunk in bf16, camera head in float32) and the DPT chunk's transients (~2 GB
-  for 8 frames at full resolution, a constant).
-- Before these changes, same point: 6 R kept + R input + LayerNorm output R + qkv [N, 3C] bf16
-  1.5 R + q, k float32 2 R and their bf16 casts R + SDPA output 0.5 R + RoPE temporaries ~1 R
-  = ~13-14 R; the MLP (LayerNorm R + [N, 4C] fc1 and GELU 2 R each) as much; then the
-  concatenation of layer 23 and every head chunk on top: ~60 MB per frame.
+- the token-chunked block (``vggt_init.model.layers.TOKEN_CHUNK``): q, k, v in bf16 1.5 R and the
+  attention output 0.5 R (then the new residual R beside the output 0.5 R);
+- the input images, float32 3 x 392 x 518: 2.32 MiB = 0.57 R;
+- so ~9.6 R = 38.9 MiB per frame. The heads' phase after it is lower: 8 R kept + the input +
+  world points and confidence written in place (3.1 MiB per frame) = 37.9 MiB per frame.
 
-The measured figures are measured by this module on the GPU (benchmarks/README.md, "VGGT at many
-frames").
+Constants: weights 2.62 GiB (aggregator 909 M parameters in bf16, 1.70 GiB; camera head 216 M and
+point head 33 M in float32, 0.93 GiB); one DPT chunk of 8 frames at full resolution 1.73 GiB
+(counted by LiveTensorBytes on the meta device); one token chunk of 32,768 tokens ~0.8 GiB. So
+about 1,900-2,000 frames should fit in an H100's ~79 GiB (fragmentation and the CUDA context take
+some of it), against ~1,300 before these changes: then the same point held 6 R kept + R input +
+LayerNorm output R + qkv [N, 3C] bf16 1.5 R + q, k roped in float32 2 R and autocast's bf16 casts
+of them R + SDPA output 0.5 R + the normalised images 0.57 R: ~14 R = 57 MiB per frame (the MLP
+at 4C, fc1 and GELU outputs 2 R each, as much). The model's former ``tokens.to(param_dtype)``
+before the heads copied nothing: the kept layers already were float32.
+
+MB in key names is 2^20 bytes, as in the GPU check. The measured figures: docs/results.md,
+"VGGT at many frames on one GPU".
 """
 
 from __future__ import annotations
 
+import argparse
 import gc
+import sys
 import statistics
 import time
 import weakref
@@ -230,7 +243,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
                 on_result: Callable[[dict], None] | None = None, *, config=None, width: int = 518,
                 height: int = 392, search_from: int = 1000, search_step: int = 250,
                 search_resolution: int = 25, search_max: int | None = None,
-                bigger=(1000, 700, 400), time_margin: float = 1.5) -> dict:
+                search_from_prediction: bool = True, bigger=(1000, 700, 400),
+                time_margin: float = 1.5) -> dict:
     """Time and peak memory of VGGT (RANDOM weights) against the frame count; see the module docstring.
 
     Args:
@@ -240,7 +254,11 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         on_result: called with the result dict after each measurement (a run cut short keeps them).
         config: a :class:`VGGTConfig` (default VGGT-1B); width, height: the input size in px.
         search_from, search_step, search_resolution: the probe search for the largest count that
-            fits (ascending from ``search_from``, then bisection to ``search_resolution``).
+            fits: from ``search_from`` up (steps ``search_step``, doubling) until CUDA runs out of
+            memory, or down until it fits, then bisection to ``search_resolution`` frames.
+        search_from_prediction: on CUDA, start instead at 98 % of the count the probe's affine
+            fit predicts for the memory the allocator can still hand out, with steps of
+            2 x ``search_resolution`` (each probe at ~2,000 frames takes tens of seconds).
         search_max: the largest count the search tries (None: no cap on CUDA; on the CPU the search
             runs only with a cap, since nothing there runs out of memory cleanly).
         bigger: counts for one more real forward, the largest that fits the remaining time
@@ -252,7 +270,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         per-count records: ``frames``, ``oom``, ``wall_s``, ``s_per_frame``, ``peak_mb``,
         ``timings_s``, ``output_shapes``; real ones ``wall_s_runs``, probe ones
         ``peak_ratio_probe_to_real``), ``search`` (``tries``, ``largest_fit_frames``,
-        ``largest_fit_peak_mb``, ``first_oom_frames``, ``start_frames``), ``fit_memory``
+        ``largest_fit_peak_mb``, ``first_oom_frames``, ``start_frames``, on CUDA ``capacity_mb`` and
+        ``predicted_fit_frames``), ``fit_memory``
         (``intercept_mb``, ``mb_per_frame``; from the real runs) and ``fit_memory_probe``,
         ``fit_time`` (``s``, ``s_per_frame``, ``s_per_frame2``), ``predicted_s_at_largest_fit``,
         ``real_frames``, ``probe_only_frames``, ``stopped_at_deadline``, ``elapsed_s``.
@@ -338,32 +357,56 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
     # 3. the largest count that fits (probe only)
     search = res["search"]
     cap = search_max if search_max is not None else (None if meter.cuda else 0)
-    if cap is None or cap >= search_from:
-        fits = [r["frames"] for r in ok_real + ok_probe]
-        lo = max(fits) if fits else 0  # the largest count known to fit
-        hi = None  # the smallest count known not to fit
-        n = search_from
-        search["start_frames"] = n
-        while (cap is None or n <= cap) and not late():
+    known = max((r["frames"] for r in ok_real + ok_probe), default=0)  # the largest count known to fit
+    fm = res["fit_memory_probe"] or res["fit_memory"]
+    start, first_step = search_from, search_step
+    if meter.cuda and fm is not None and fm["mb_per_frame"] > 0:
+        meter.free()
+        free, _total = torch.cuda.mem_get_info()
+        capacity = (free + torch.cuda.memory_reserved()) / MB  # what the allocator can still hand out
+        pred = (capacity - fm["intercept_mb"]) / fm["mb_per_frame"]
+        search["capacity_mb"], search["predicted_fit_frames"] = capacity, pred
+        if search_from_prediction and pred > known + search_resolution:
+            start = int(0.98 * pred) // search_resolution * search_resolution
+            first_step = 2 * search_resolution
+    if start <= known:
+        start = known + first_step
+    if cap is None or cap >= start:
+        search["start_frames"] = start
+
+        def fits(n: int) -> bool:
             rec = _try(meter, n, size, probe=True)
             search["tries"].append({"frames": n, "fits": not rec["oom"], "peak_mb": rec.get("peak_mb"),
                                     "wall_s": rec.get("wall_s")})
             report()
-            if rec["oom"]:
-                hi = n
-                break
-            lo = max(lo, n)
-            n += search_step
-        while hi is not None and hi - lo > search_resolution and not late():
+            return not rec["oom"]
+
+        lo, hi = known, None
+        step = first_step
+        if late():
+            pass
+        elif fits(start):  # up, the step doubling, until out of memory
+            lo, n = start, start + step
+            while (cap is None or n <= cap) and not late():
+                if not fits(n):
+                    hi = n
+                    break
+                lo, step = n, 2 * step
+                n = lo + step
+        else:  # down, the step doubling, until it fits
+            hi, n = start, start - step
+            while n > known and not late():
+                if fits(n):
+                    lo = n
+                    break
+                hi, step = n, 2 * step
+                n = start - step
+        while hi is not None and hi - lo > search_resolution and not late():  # then bisect
             n = (lo + hi) // 2
-            rec = _try(meter, n, size, probe=True)
-            search["tries"].append({"frames": n, "fits": not rec["oom"], "peak_mb": rec.get("peak_mb"),
-                                    "wall_s": rec.get("wall_s")})
-            report()
-            if rec["oom"]:
-                hi = n
-            else:
+            if fits(n):
                 lo = n
+            else:
+                hi = n
         fit_tries = [t for t in search["tries"] if t["fits"]]
         best = max(fit_tries, key=lambda t: t["frames"]) if fit_tries else None
         search["largest_fit_frames"] = best["frames"] if best else None
@@ -403,3 +446,31 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         torch.cuda.empty_cache()
     report()
     return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line: exit 2 with one line when torch sees no CUDA device."""
+    p = argparse.ArgumentParser(description="VGGT-1B time and peak memory against the frame count on one "
+                                            "CUDA GPU (RANDOM weights: speed and memory only)")
+    p.add_argument("--minutes", type=float, default=10.0, help="no new forward starts after this (default 10)")
+    p.add_argument("--counts", type=int, nargs="+", default=[12, 50, 100, 200], help="frame counts run for real")
+    p.add_argument("--out", default="vggt_frames.json", help="JSON written after every measurement")
+    args = p.parse_args(argv)
+    if not torch.cuda.is_available():
+        print(f"vggt_frames: needs a CUDA GPU, and torch {torch.__version__} sees none", file=sys.stderr)
+        return 2
+    if args.minutes <= 0 or min(args.counts) < 1:
+        print("vggt_frames: --minutes and --counts must be positive", file=sys.stderr)
+        return 2
+    from camio.atomic import write_json
+
+    res = vggt_frames("cuda", time.perf_counter() + 60 * args.minutes, tuple(args.counts),
+                      on_result=lambda r: write_json(args.out, r))
+    write_json(args.out, res)
+    print(f"vggt_frames: real {res['real_frames']}, probe only {res['probe_only_frames']}, largest fit "
+          f"{res['search'].get('largest_fit_frames')}; {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

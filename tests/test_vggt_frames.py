@@ -79,3 +79,38 @@ def test_live_tensor_bytes_counts_storages_once():
         assert t.peak == 8000
         del view, b
         assert t.now == 0 and t.peak == 8000
+
+
+def test_vggt_frames_search_finds_the_largest_count(monkeypatch):
+    """Up in doubling steps until out of memory, then bisection; out-of-memory errors are caught
+    and the run goes on (the forward is a stand-in above the measured counts: the search's logic)."""
+    from benchmarks import vggt_frames as vf
+
+    real_run = vf._Meter.run
+
+    def run(self, n, size, probe):
+        if n <= 3:
+            return real_run(self, n, size, probe)
+        if n > 9:
+            raise torch.OutOfMemoryError("stand-in")
+        return {"frames": n, "wall_s": 0.01, "peak_mb": float(n), "timings_s": {}, "output_shapes": {},
+                "output_dtypes": {}}
+
+    monkeypatch.setattr(vf._Meter, "run", run)
+    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+                    search_from=4, search_step=2, search_resolution=1, search_max=100, bigger=(12, 9))
+    tries = [(t["frames"], t["fits"]) for t in r["search"]["tries"]]
+    assert tries == [(4, True), (6, True), (10, False), (8, True), (9, True)]
+    assert r["search"]["largest_fit_frames"] == 9 and r["search"]["first_oom_frames"] == 10
+    assert r["probe_only_frames"] == [4, 6, 8] and 9 in r["real_frames"]  # the larger real run: 9 (12 does not fit)
+    assert [x["frames"] for x in r["real"] if x.get("extra")] == [9]
+
+
+def test_cli_without_cuda_exits_2(capsys):
+    from benchmarks.vggt_frames import main
+
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    assert main(["--minutes", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "CUDA" in err
