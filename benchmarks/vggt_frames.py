@@ -152,11 +152,15 @@ def _oom_types() -> tuple[type, ...]:
                  if t is not None)
 
 
+def _is_cuda(device: str) -> bool:
+    return device.startswith("cuda")
+
+
 class _Meter:
     """Wall time and peak memory of one forward (CUDA allocator, or LiveTensorBytes on the CPU)."""
 
-    def __init__(self, device: str, model: torch.nn.Module) -> None:
-        self.cuda = device.startswith("cuda")
+    def __init__(self, cuda: bool, model: torch.nn.Module) -> None:
+        self.cuda = cuda
         self.model = model
         self.name = ("torch.cuda.max_memory_allocated (weights and input included)" if self.cuda else
                      "live tensor bytes (CPU dispatch tracker) + weights + input")
@@ -285,7 +289,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
                  "fit_memory": None, "fit_memory_probe": None, "fit_time": None,
                  "predicted_s_at_largest_fit": None, "real_frames": [], "probe_only_frames": [],
                  "stopped_at_deadline": False}
-    if device.startswith("cuda"):
+    cuda = _is_cuda(device)
+    if cuda:
         res["device_name"] = torch.cuda.get_device_name(torch.device(device))
         res["device_memory_mb"] = torch.cuda.get_device_properties(torch.device(device)).total_memory / MB
 
@@ -309,7 +314,7 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         return res
     t0 = time.perf_counter()
     model = _build(device, config)
-    meter = _Meter(device, model)
+    meter = _Meter(cuda, model)
     meter.sync()
     res["build_s"] = time.perf_counter() - t0
     res["weights_mb"] = sum(p.numel() * p.element_size() for p in model.parameters()) / MB
@@ -442,7 +447,7 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         break
     del model, meter
     gc.collect()
-    if device.startswith("cuda"):
+    if cuda:
         torch.cuda.empty_cache()
     report()
     return res

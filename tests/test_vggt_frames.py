@@ -114,3 +114,51 @@ def test_cli_without_cuda_exits_2(capsys):
     assert main(["--minutes", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "CUDA" in err
+
+
+def test_vggt_frames_cuda_branch_with_stand_ins(monkeypatch):
+    """Every CUDA line of the benchmark (allocator statistics, the prediction-led search, the
+    larger real run) runs here with torch.cuda stood in for: a peak of 100 + 10 n MiB and room
+    for 9.5 frames, n > 9 frames out of memory inside the forward."""
+    from benchmarks import vggt_frames as vf
+
+    state = {"n": 0}
+    build = vf._build
+
+    def build_hooked(device, config):
+        model = build("cpu", config)
+
+        def pre(_m, args, kwargs):
+            n = args[0].shape[1]
+            state["n"] = n
+            if n > 9:
+                raise torch.OutOfMemoryError("stand-in")
+
+        model.register_forward_pre_hook(pre, with_kwargs=True)
+        return model
+
+    calls = []
+    mib = 2 ** 20
+    fake = {"synchronize": lambda *a: calls.append("sync"), "reset_peak_memory_stats": lambda *a: calls.append("reset"),
+            "max_memory_allocated": lambda *a: (100 + 10 * state["n"]) * mib, "empty_cache": lambda: calls.append("empty"),
+            "mem_get_info": lambda *a: (int(150 * mib), int(80 * 1024 * mib)), "memory_reserved": lambda *a: int(45 * mib),
+            "get_device_name": lambda *a: "stand-in GPU"}
+    for name, fn in fake.items():
+        monkeypatch.setattr(torch.cuda, name, fn)
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda *a: type("P", (), {"total_memory": 80 * 1024 * mib})())
+    monkeypatch.setattr(vf, "_is_cuda", lambda device: True)
+    monkeypatch.setattr(vf, "_build", build_hooked)
+    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+                    search_resolution=1, bigger=(12, 9))
+    assert r["device_name"] == "stand-in GPU" and r["memory_meter"].startswith("torch.cuda.max_memory_allocated")
+    assert r["fit_memory"]["intercept_mb"] == pytest.approx(100) and r["fit_memory"]["mb_per_frame"] == pytest.approx(10)
+    assert [p["peak_ratio_probe_to_real"] for p in r["probe"]] == [1.0, 1.0]
+    s = r["search"]
+    assert s["capacity_mb"] == pytest.approx(195) and s["predicted_fit_frames"] == pytest.approx(9.5)
+    assert s["start_frames"] == 9
+    assert [(t["frames"], t["fits"]) for t in s["tries"]] == [(9, True), (11, False), (10, False)]
+    assert s["largest_fit_frames"] == 9 and s["first_oom_frames"] == 10 and s["largest_fit_peak_mb"] == pytest.approx(190)
+    extra = [x for x in r["real"] if x.get("extra")]
+    assert [x["frames"] for x in extra] == [9] and not extra[0]["oom"]
+    assert r["real_frames"] == [2, 3, 9] and r["probe_only_frames"] == []
+    assert "reset" in calls and "empty" in calls and "sync" in calls
