@@ -30,25 +30,29 @@ What it measures (:func:`vggt_frames`):
 Expected memory per frame (arithmetic, 518x392: 37 x 28 = 1036 patches + 5 special = 1041 tokens
 per frame, width C = 1024; R = one float32 [tokens, C] map = 4,263,936 B = 4.07 MiB per frame).
 The residual stream is float32 under autocast (LayerScale multiplies the bf16 branch by a float32
-gamma; checked on the CPU: every kept layer is float32), so each kept layer half is R. At the
-peak, global block 23 (the last kept layer), during attention:
+gamma; checked on the CPU: every aggregator output is float32). No aggregator output is kept:
+as each of layers 4, 11, 17, 23 is made, the point head's LayerNorm + 1x1 projection of its patch
+tokens is (256, 512, 1024, 1024 float32 channels per patch: 0.25, 0.50, 0.99, 0.99 R), and the
+camera head's token. At the peak, global block 23 during attention:
 
-- kept layers 4, 11, 17 as (frame, global) halves: 6 R; frame output 23 (the block's input): R;
+- the projections of layers 4, 11, 17: 1.74 R; frame output 23 (the block's input): R;
 - the token-chunked block (``vggt_init.model.layers.TOKEN_CHUNK``): q, k, v in bf16 1.5 R and the
   attention output 0.5 R (then the new residual R beside the output 0.5 R);
 - the input images, float32 3 x 392 x 518: 2.32 MiB = 0.57 R;
-- so ~9.6 R = 38.9 MiB per frame. The heads' phase after it is lower: 8 R kept + the input +
-  world points and confidence written in place (3.1 MiB per frame) = 37.9 MiB per frame.
+- so ~5.3 R = 21.6 MiB per frame. The heads' phase is lower: the four projections 2.7 R + the
+  input + world points and confidence written in place (3.1 MiB per frame) = 4.1 R.
 
 Constants: weights 2.62 GiB (aggregator 909 M parameters in bf16, 1.70 GiB; camera head 216 M and
 point head 33 M in float32, 0.93 GiB); one DPT chunk of 8 frames at full resolution 1.73 GiB
 (counted by LiveTensorBytes on the meta device); one token chunk of 32,768 tokens ~0.8 GiB. So
-about 1,900-2,000 frames should fit in an H100's ~79 GiB (fragmentation and the CUDA context take
-some of it), against ~1,300 before these changes: then the same point held 6 R kept + R input +
-LayerNorm output R + qkv [N, 3C] bf16 1.5 R + q, k roped in float32 2 R and autocast's bf16 casts
-of them R + SDPA output 0.5 R + the normalised images 0.57 R: ~14 R = 57 MiB per frame (the MLP
-at 4C, fc1 and GELU outputs 2 R each, as much). The model's former ``tokens.to(param_dtype)``
-before the heads copied nothing: the kept layers already were float32.
+about 3,000-3,500 frames should fit in an H100's ~79 GiB (fragmentation and the CUDA context take
+some of it), against ~1,300 before these changes, when the same point held the four layers as
+[N, 2C] float32 (6 R of them by then) + R input + LayerNorm output R + qkv [N, 3C] bf16 1.5 R +
+q, k roped in float32 2 R and autocast's bf16 casts of them R + SDPA output 0.5 R + the
+normalised images 0.57 R: ~14 R = 57 MiB per frame (the MLP at 4C, fc1 and GELU outputs 2 R
+each, as much). The model's former ``tokens.to(param_dtype)`` before the heads copied nothing:
+the kept layers already were float32. Past ~2,000 frames q and k hold more than 2^31 elements;
+whether the fused attention kernels index that far is only known from a real run.
 
 MB in key names is 2^20 bytes, as in the GPU check. The measured figures: docs/results.md,
 "VGGT at many frames on one GPU".

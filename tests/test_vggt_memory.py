@@ -167,6 +167,42 @@ def test_aggregator_halves_are_the_concatenation():
         assert torch.equal(take_tokens(cat[i], slice(None), 0, torch.float64), cat[i][:, :, 0])
 
 
+@pytest.mark.parametrize("chunk", [None, 2])
+def test_forward_equals_heads_on_the_kept_layers(chunk):
+    """The model hands each kept layer to its heads as soon as it exists (camera token, DPT
+    projections) instead of keeping it: the outputs are those of the heads run on the kept
+    layers afterwards, bit for bit, and the timings still name the trunk and each head."""
+    model = _fixture_model(torch.float32)
+    x = safetensors_torch.load_file(str(FIX / "inputs.safetensors"))["images"][None]
+    H, W = x.shape[-2:]
+    psi = model.aggregator.patch_start_idx
+    timings = {}
+    with torch.inference_mode():
+        out = model(x, frames_chunk_size=chunk, timings=timings)
+        tokens = model.aggregator(x, keep=model.layers_needed)
+        poses = model.camera_head(tokens[model.config.camera_head.token_layer % model.config.aggregator.depth])
+        depth, depth_conf = model.depth_head(tokens, (H, W), psi, chunk)
+        points, points_conf = model.point_head(tokens, (H, W), psi, chunk)
+    assert torch.equal(out["pose_enc"], poses[-1])
+    for got, want in ((out["depth"], depth), (out["depth_conf"], depth_conf), (out["world_points"], points),
+                      (out["world_points_conf"], points_conf)):
+        assert torch.equal(got, want)
+    assert set(timings) == {"aggregator", "camera_head", "depth_head", "point_head"}
+    assert all(v >= 0 for v in timings.values())
+
+
+def test_aggregator_hands_kept_layers_over_once():
+    model = _fixture_model(torch.float64)
+    x = safetensors_torch.load_file(str(FIX / "inputs.safetensors"))["images"].double()[None]
+    seen = []
+    with torch.inference_mode():
+        ref = model.aggregator(x, keep=[1, 3])
+        kept = model.aggregator(x, keep=[1, 3], on_layer=lambda i, f, g: seen.append((i, torch.cat((f, g), -1))))
+    assert kept == {} and [i for i, _ in seen] == [1, 3]
+    for i, t in seen:
+        assert torch.equal(t, ref[i])
+
+
 # ---------------------------------------------------------------------- query-chunked attention
 @pytest.mark.parametrize("rows", [1, 7, 64, 1000])
 def test_query_chunked_attention_float32(rows):

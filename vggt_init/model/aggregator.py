@@ -7,6 +7,7 @@ Only the aggregator outputs that the heads read are kept (``keep`` argument).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -131,7 +132,8 @@ class Aggregator(nn.Module):
         return self.cfg.patch_start_idx
 
     def forward(self, images: torch.Tensor, keep: list[int] | None = None,
-                debug: dict | None = None, concat: bool = True) -> dict[int, LayerTokens]:
+                debug: dict | None = None, concat: bool = True,
+                on_layer: Callable[[int, torch.Tensor, torch.Tensor], None] | None = None) -> dict[int, LayerTokens]:
         """Run the trunk.
 
         Args:
@@ -143,10 +145,14 @@ class Aggregator(nn.Module):
                 of every kept layer for all frames at once; the heads join the halves a frame
                 chunk at a time, see :func:`vggt_init.model.heads.take_tokens`).
 
+            on_layer: if given, each kept output is handed to ``on_layer(i, frame, global)``
+                (halves [B, S, P + patch_start_idx, C]) as soon as step i is done, and not
+                returned: the caller keeps what it needs of it (the model: the heads' inputs).
+
         Returns:
             {i: [B, S, P + patch_start_idx, 2C]} = concat(frame output, global output) of
             step i, frame part first; with ``concat=False`` {i: (frame output, global output)},
-            each [B, S, P + patch_start_idx, C].
+            each [B, S, P + patch_start_idx, C]; empty with ``on_layer``.
         """
         cfg = self.cfg
         B, S, _, H, W = images.shape
@@ -190,7 +196,12 @@ class Aggregator(nn.Module):
                         global_i += 1
                         global_out.append(tokens.reshape(B, S, N, C) if out_i + len(global_out) in keep_set else None)
             for f, g in zip(frame_out, global_out):
-                if out_i in keep_set:
+                if out_i in keep_set and on_layer is not None:
+                    on_layer(out_i, f, g)
+                elif out_i in keep_set:
                     outputs[out_i] = torch.cat((f, g), dim=-1) if concat else (f, g)
                 out_i += 1
+            # drop this step's outputs now: the loop variables would keep a kept pair (2 [B,S,N,C])
+            # alive through the next step
+            f = g = frame_out = global_out = None
         return outputs

@@ -200,7 +200,7 @@ class Block(nn.Module):
                                        device=t.device) for t in parts)
             for dst, src in zip((q, k, v), parts):
                 dst[:, :, i:j] = src
-            del parts
+            del parts, dst, src  # the loop variables would keep v (and a chunk) alive
         o = attention(q, k, v)  # [B, N, nh, D]
         del q, k, v
         y = None
