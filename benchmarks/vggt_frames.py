@@ -54,6 +54,17 @@ each, as much). The model's former ``tokens.to(param_dtype)`` before the heads c
 the kept layers already were float32. Past ~2,000 frames q and k hold more than 2^31 elements;
 whether the fused attention kernels index that far is only known from a real run.
 
+Checked on the CPU with the full-size model at 56x42 px and 128 frames (LiveTensorBytes, the
+probe, token chunks of 256): the trunk's peak is q, k, v 1.5 R + the three projections + the
+block's input R + chunk transients, as above.
+
+Expected durations on an H100 (from the 12-frame bf16 forward, 0.22 s): everything but attention
+costs ~18 ms per frame, so a probe forward takes ~1 min near 3,400 frames and the search 3-5 of
+them; global attention grows with the square of the frames (4.3e15 FLOPs at 200 frames, ~10 s at
+~400 TFLOP/s; 25 times that at 1,000 frames, ~4-5 min).
+A deadline that leaves ~6 minutes covers the real and probe counts and the search; the real
+1,000-frame forward needs ~7 more (its predicted time x ``time_margin``).
+
 MB in key names is 2^20 bytes, as in the GPU check. The measured figures: docs/results.md,
 "VGGT at many frames on one GPU".
 """
