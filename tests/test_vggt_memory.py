@@ -191,6 +191,26 @@ def test_forward_equals_heads_on_the_kept_layers(chunk):
     assert all(v >= 0 for v in timings.values())
 
 
+def test_dpt_projected_input_equals_tokens_and_checks_chunks():
+    from vggt_init.model.heads import Projected
+
+    model = _fixture_model(torch.float64)
+    x = safetensors_torch.load_file(str(FIX / "inputs.safetensors"))["images"].double()[None]
+    H, W = x.shape[-2:]
+    psi = model.aggregator.patch_start_idx
+    head = model.point_head
+    with torch.inference_mode():
+        tokens = model.aggregator(x, keep=model.layers_needed, concat=False)
+        ref = head(tokens, (H, W), psi, 2)
+        proj = Projected(1, x.shape[1], 2, [head.project_all(k, tokens[layer], psi, (H, W), 2)
+                                            for k, layer in enumerate(head.layers)])
+        got = head(None, (H, W), psi, 2, projected=proj)
+        assert all(m is None for maps in proj.maps for m in maps)  # consumed chunk by chunk
+        with pytest.raises(ValueError, match="frames_chunk_size"):
+            head(None, (H, W), psi, 1, projected=Projected(1, x.shape[1], 2, [[None, None]] * 4))
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
+
+
 def test_aggregator_hands_kept_layers_over_once():
     model = _fixture_model(torch.float64)
     x = safetensors_torch.load_file(str(FIX / "inputs.safetensors"))["images"].double()[None]

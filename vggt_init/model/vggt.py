@@ -37,9 +37,10 @@ class _HeadsInput:
     (``Aggregator(on_layer=...)``) so that no [B, S, N, 2C] layer outlives its step.
 
     The camera head keeps the camera token [B, S, 1, 2C]; a DPT head its LayerNorm + 1x1
-    projection of the patch tokens, [B, S, out_channels[k], h, w] float32 (256-1024 channels
-    instead of 2C = 2048), made ``frames_chunk_size`` frames at a time exactly as its forward
-    would. ``seconds`` holds the time spent per head (charged to the head, not the trunk).
+    projection of the patch tokens (:class:`~vggt_init.model.heads.Projected`: per frame chunk
+    [B*s, out_channels[k], h, w] float32, 256-1024 channels instead of 2C = 2048), made
+    ``frames_chunk_size`` frames at a time exactly as its forward would. ``seconds`` holds the
+    time spent per head (charged to the head, not the trunk).
     """
 
     def __init__(self, model: "VGGT", device_type: str, psi: int, image_hw: tuple[int, int],
@@ -109,10 +110,6 @@ class VGGT(nn.Module):
         self._trunk_weight_dtype = dtype
         return self
 
-    def _heads_input(self, device_type: str, psi: int, image_hw: tuple[int, int], frames_chunk_size: int | None,
-                     device: torch.device) -> _HeadsInput:
-        return _HeadsInput(self, device_type, psi, image_hw, frames_chunk_size, device)
-
     @property
     def layers_needed(self) -> list[int]:
         """Aggregator outputs the built heads read (the only ones kept in memory)."""
@@ -161,7 +158,7 @@ class VGGT(nn.Module):
         device_type = images.device.type
 
         psi = self.aggregator.patch_start_idx
-        heads_in = self._heads_input(device_type, psi, (H, W), frames_chunk_size, images.device)
+        heads_in = _HeadsInput(self, device_type, psi, (H, W), frames_chunk_size, images.device)
         t0 = _now(images.device)
         if trunk_dtype is not None and trunk_dtype != param_dtype:
             ctx = torch.autocast(device_type=device_type, dtype=trunk_dtype)
