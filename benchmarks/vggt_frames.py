@@ -227,15 +227,29 @@ class _null:
         return False
 
 
+_MEMORY_WORDS = ("out of memory", "ALLOC_FAILED", "CUBLAS_STATUS_ALLOC", "CUDNN_STATUS_ALLOC")
+
+
 def _try(meter: _Meter, n: int, size, probe: bool) -> dict:
-    """meter.run, with an out-of-memory error recorded as {"frames": n, "oom": True} and freed."""
+    """meter.run; an out-of-memory error (torch's, or a library's allocation failure) is recorded
+    as {"frames": n, "oom": True}, any other error as {"frames": n, "oom": False, "error": ...}.
+    Memory is freed either way and the caller goes on."""
     try:
         rec = meter.run(n, size, probe)
         rec["oom"] = False
     except _oom_types():
         rec = {"frames": n, "oom": True}
+    except Exception as exc:  # noqa: BLE001  (recorded: the measurements before it are kept)
+        msg = f"{type(exc).__name__}: {exc}"[:500]
+        rec = {"frames": n, "oom": any(w in msg for w in _MEMORY_WORDS)}
+        if not rec["oom"]:
+            rec["error"] = msg
     meter.free()
     return rec
+
+
+def _ok(rec: dict) -> bool:
+    return not rec["oom"] and "error" not in rec
 
 
 def _affine(xs, ys) -> dict | None:
@@ -286,7 +300,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
     Returns:
         dict: ``weights``, ``device``, ``size``, ``dtype``, ``heads``, ``memory_meter``,
         ``upstream``, ``build_s``, ``weights_mb``, ``warmup_s``, ``real`` and ``probe`` (lists of
-        per-count records: ``frames``, ``oom``, ``wall_s``, ``s_per_frame``, ``peak_mb``,
+        per-count records: ``frames``, ``oom`` (and ``error`` for any other failure), ``wall_s``,
+        ``s_per_frame``, ``peak_mb``,
         ``timings_s``, ``output_shapes``; real ones ``wall_s_runs``, probe ones
         ``peak_ratio_probe_to_real``), ``search`` (``tries``, ``largest_fit_frames``,
         ``largest_fit_peak_mb``, ``first_oom_frames``, ``start_frames``, on CUDA ``capacity_mb`` and
@@ -310,8 +325,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         res["device_memory_mb"] = torch.cuda.get_device_properties(torch.device(device)).total_memory / MB
 
     def report() -> None:
-        res["real_frames"] = sorted({r["frames"] for r in res["real"] if not r["oom"]})
-        probed = {r["frames"] for r in res["probe"] if not r["oom"]}
+        res["real_frames"] = sorted({r["frames"] for r in res["real"] if _ok(r)})
+        probed = {r["frames"] for r in res["probe"] if _ok(r)}
         probed |= {t["frames"] for t in res["search"]["tries"] if t["fits"]}
         res["probe_only_frames"] = sorted(probed - set(res["real_frames"]))
         res["elapsed_s"] = time.perf_counter() - t_start
@@ -344,31 +359,32 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         if late():
             break
         runs = [_try(meter, n, size, probe=False) for _ in range(3 if n < 50 else 1)]
-        rec = runs[0] if runs[0]["oom"] or len(runs) == 1 else min(runs, key=lambda r: r["wall_s"])
-        if not rec["oom"]:
+        bad = [r for r in runs if not _ok(r)]
+        rec = bad[0] if bad else min(runs, key=lambda r: r["wall_s"])
+        if _ok(rec):
             rec["wall_s_runs"] = [r["wall_s"] for r in runs]
             rec["wall_s"] = statistics.median(rec["wall_s_runs"])
             rec["s_per_frame"] = rec["wall_s"] / n
         res["real"].append(rec)
         report()
-        if rec["oom"]:
+        if not _ok(rec):
             break
 
     # 2. the probe at the same counts
-    real_by_n = {r["frames"]: r for r in res["real"] if not r["oom"]}
+    real_by_n = {r["frames"]: r for r in res["real"] if _ok(r)}
     for n in counts:
         if late():
             break
         rec = _try(meter, n, size, probe=True)
-        if not rec["oom"]:
+        if _ok(rec):
             rec["s_per_frame"] = rec["wall_s"] / n
             if n in real_by_n:
                 rec["peak_ratio_probe_to_real"] = rec["peak_mb"] / real_by_n[n]["peak_mb"]
                 rec["output_shapes_match_real"] = rec["output_shapes"] == real_by_n[n]["output_shapes"]
         res["probe"].append(rec)
         report()
-    ok_real = [r for r in res["real"] if not r["oom"]]
-    ok_probe = [r for r in res["probe"] if not r["oom"]]
+    ok_real = [r for r in res["real"] if _ok(r)]
+    ok_probe = [r for r in res["probe"] if _ok(r)]
     res["fit_memory"] = _affine([r["frames"] for r in ok_real], [r["peak_mb"] for r in ok_real])
     res["fit_memory_probe"] = _affine([r["frames"] for r in ok_probe], [r["peak_mb"] for r in ok_probe])
     res["fit_time"] = _quadratic([r["frames"] for r in ok_real], [r["wall_s"] for r in ok_real])
@@ -396,10 +412,10 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
 
         def fits(n: int) -> bool:
             rec = _try(meter, n, size, probe=True)
-            search["tries"].append({"frames": n, "fits": not rec["oom"], "peak_mb": rec.get("peak_mb"),
-                                    "wall_s": rec.get("wall_s")})
+            search["tries"].append({"frames": n, "fits": _ok(rec), "peak_mb": rec.get("peak_mb"),
+                                    "wall_s": rec.get("wall_s"), **({"error": rec["error"]} if "error" in rec else {})})
             report()
-            return not rec["oom"]
+            return _ok(rec)
 
         lo, hi = known, None
         step = first_step
@@ -455,7 +471,7 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         rec = _try(meter, n, size, probe=False)
         rec["extra"] = True
         rec["predicted_s"] = pred
-        if not rec["oom"]:
+        if _ok(rec):
             rec["s_per_frame"] = rec["wall_s"] / n
         res["real"].append(rec)
         report()

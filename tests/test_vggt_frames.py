@@ -162,3 +162,26 @@ def test_vggt_frames_cuda_branch_with_stand_ins(monkeypatch):
     assert [x["frames"] for x in extra] == [9] and not extra[0]["oom"]
     assert r["real_frames"] == [2, 3, 9] and r["probe_only_frames"] == []
     assert "reset" in calls and "empty" in calls and "sync" in calls
+
+
+def test_vggt_frames_records_failures_and_goes_on(monkeypatch):
+    """A library's allocation failure counts as out of memory; any other error is recorded with
+    its message, the counts after it are not run for real, and the probe still runs."""
+    from benchmarks import vggt_frames as vf
+
+    real_run = vf._Meter.run
+
+    def run(self, n, size, probe):
+        if n == 3 and not probe:
+            raise RuntimeError("CUDA error: an illegal stand-in")
+        if n == 3 and probe:
+            raise RuntimeError("CUBLAS_STATUS_ALLOC_FAILED when calling cublasCreate(handle)")
+        return real_run(self, n, size, probe)
+
+    monkeypatch.setattr(vf._Meter, "run", run)
+    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3, 4), config=_cfg(), width=56, height=42, bigger=())
+    assert [(x["frames"], x["oom"], "error" in x) for x in r["real"]] == [(2, False, False), (3, False, True)]
+    assert "illegal stand-in" in r["real"][1]["error"]
+    assert [(x["frames"], x["oom"]) for x in r["probe"]] == [(2, False), (3, True), (4, False)]
+    assert r["real_frames"] == [2] and r["probe_only_frames"] == [4]
+    assert r["fit_memory"] is None and r["fit_memory_probe"]["points"] == 2
