@@ -284,31 +284,33 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         device: "cuda" (or "cuda:i"), or "cpu" with a tiny ``config`` (tests).
         deadline_s: a ``time.perf_counter()`` value; no new forward starts after it.
         counts: frame counts run for real and probed (ascending order is used).
-        on_result: called with the result dict after each measurement (a run cut short keeps them).
+        on_result: called with the result dict after each measurement (a run cut short keeps
+            them); it is the live dict, filled further later: write it out (or copy it) at once.
         config: a :class:`VGGTConfig` (default VGGT-1B); width, height: the input size in px.
         search_from, search_step, search_resolution: the probe search for the largest count that
             fits: from ``search_from`` up (steps ``search_step``, doubling) until CUDA runs out of
             memory, or down until it fits, then bisection to ``search_resolution`` frames.
         search_from_prediction: on CUDA, start instead at 98 % of the count the probe's affine
             fit predicts for the memory the allocator can still hand out, with steps of
-            2 x ``search_resolution`` (each probe at ~2,000 frames takes tens of seconds).
+            2 x ``search_resolution`` (a probe near 3,400 frames takes ~1 min on an H100).
         search_max: the largest count the search tries (None: no cap on CUDA; on the CPU the search
             runs only with a cap, since nothing there runs out of memory cleanly).
         bigger: counts for one more real forward, the largest that fits the remaining time
             (``time_margin`` x the quadratic time prediction) and memory.
 
     Returns:
-        dict: ``weights``, ``device``, ``size``, ``dtype``, ``heads``, ``memory_meter``,
-        ``upstream``, ``build_s``, ``weights_mb``, ``warmup_s``, ``real`` and ``probe`` (lists of
-        per-count records: ``frames``, ``oom`` (and ``error`` for any other failure), ``wall_s``,
-        ``s_per_frame``, ``peak_mb``,
-        ``timings_s``, ``output_shapes``; real ones ``wall_s_runs``, probe ones
-        ``peak_ratio_probe_to_real``), ``search`` (``tries``, ``largest_fit_frames``,
-        ``largest_fit_peak_mb``, ``first_oom_frames``, ``start_frames``, on CUDA ``capacity_mb`` and
-        ``predicted_fit_frames``), ``fit_memory``
-        (``intercept_mb``, ``mb_per_frame``; from the real runs) and ``fit_memory_probe``,
-        ``fit_time`` (``s``, ``s_per_frame``, ``s_per_frame2``), ``predicted_s_at_largest_fit``,
-        ``real_frames``, ``probe_only_frames``, ``stopped_at_deadline``, ``elapsed_s``.
+        dict: ``weights``, ``device`` (on CUDA also ``device_name``, ``device_memory_mb``), ``size``,
+        ``dtype``, ``heads``, ``memory_meter``, ``upstream``, ``build_s``, ``weights_mb``,
+        ``warmup_s``; ``real`` and ``probe``: lists of per-count records (``frames``, ``oom``,
+        ``error`` for any other failure, ``wall_s``, ``s_per_frame``, ``peak_mb``, ``timings_s``,
+        ``output_shapes``, ``output_dtypes``; real ones ``wall_s_runs``, the larger one ``extra``
+        and ``predicted_s``; probe ones ``peak_ratio_probe_to_real``, ``output_shapes_match_real``);
+        ``search`` (``tries``, ``start_frames``, ``largest_fit_frames``, ``largest_fit_peak_mb``,
+        ``first_oom_frames``, ``resolution_frames``, on CUDA ``capacity_mb`` and
+        ``predicted_fit_frames``); ``fit_memory`` (real runs) and ``fit_memory_probe``
+        (``intercept_mb``, ``mb_per_frame``, ``points``); ``fit_time`` (``s``, ``s_per_frame``,
+        ``s_per_frame2``, ``degree``); ``predicted_s_at_largest_fit``; ``real_frames``,
+        ``probe_only_frames``, ``stopped_at_deadline``, ``elapsed_s``.
     """
     t_start = time.perf_counter()
     counts = sorted(set(int(c) for c in counts))
