@@ -7,6 +7,7 @@ Only the aggregator outputs that the heads read are kept (``keep`` argument).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -15,7 +16,9 @@ from torch import nn
 from vggt_init.model.config import AggregatorConfig, DinoConfig, VGGTConfig
 from vggt_init.model.layers import Block, RoPE2D
 
-__all__ = ["DinoViT", "Aggregator"]
+__all__ = ["DinoViT", "Aggregator", "LayerTokens"]
+
+LayerTokens = torch.Tensor | tuple[torch.Tensor, torch.Tensor]  # [B,S,N,2C], or its two [B,S,N,C] halves
 
 
 class PatchEmbed(nn.Module):
@@ -129,17 +132,27 @@ class Aggregator(nn.Module):
         return self.cfg.patch_start_idx
 
     def forward(self, images: torch.Tensor, keep: list[int] | None = None,
-                debug: dict | None = None) -> dict[int, torch.Tensor]:
+                debug: dict | None = None, concat: bool = True,
+                on_layer: Callable[[int, torch.Tensor, torch.Tensor], None] | None = None) -> dict[int, LayerTokens]:
         """Run the trunk.
 
         Args:
             images: [B, S, 3, H, W] RGB in [0, 1]; H, W multiples of the patch size.
             keep: aggregator output indices (0-based, non-negative) to return; all if None.
             debug: if a dict, DINO intermediates are stored in it.
+            concat: False returns each output as its two halves instead of their concatenation
+                (what the model passes to its heads: the concatenation would be a second copy
+                of every kept layer for all frames at once; the heads join the halves a frame
+                chunk at a time, see :func:`vggt_init.model.heads.take_tokens`).
+
+            on_layer: if given, each kept output is handed to ``on_layer(i, frame, global)``
+                (halves [B, S, P + patch_start_idx, C]) as soon as step i is done, and not
+                returned: the caller keeps what it needs of it (the model: the heads' inputs).
 
         Returns:
             {i: [B, S, P + patch_start_idx, 2C]} = concat(frame output, global output) of
-            step i, frame part first.
+            step i, frame part first; with ``concat=False`` {i: (frame output, global output)},
+            each [B, S, P + patch_start_idx, C]; empty with ``on_layer``.
         """
         cfg = self.cfg
         B, S, _, H, W = images.shape
@@ -152,6 +165,7 @@ class Aggregator(nn.Module):
         std = std.to(images.dtype).view(1, 1, 3, 1, 1)
         x = ((images - mean) / std).reshape(B * S, 3, H, W)
         patches = self.patch_embed(x, debug)  # [B*S, P, C]
+        del x
         dtype = patches.dtype
         tokens = torch.cat((_special_tokens(self.camera_token, B, S).to(dtype),
                             _special_tokens(self.register_token, B, S).to(dtype),
@@ -182,7 +196,12 @@ class Aggregator(nn.Module):
                         global_i += 1
                         global_out.append(tokens.reshape(B, S, N, C) if out_i + len(global_out) in keep_set else None)
             for f, g in zip(frame_out, global_out):
-                if out_i in keep_set:
-                    outputs[out_i] = torch.cat((f, g), dim=-1)
+                if out_i in keep_set and on_layer is not None:
+                    on_layer(out_i, f, g)
+                elif out_i in keep_set:
+                    outputs[out_i] = torch.cat((f, g), dim=-1) if concat else (f, g)
                 out_i += 1
+            # drop this step's outputs now: the loop variables would keep a kept pair (2 [B,S,N,C])
+            # alive through the next step
+            f = g = frame_out = global_out = None
         return outputs

@@ -22,10 +22,28 @@ rounds q, k to bf16 where they come as float32, as autocast's SDPA does). float6
 other autocast dtypes and non-CPU tensors always take the ATen path, so the float64 parity runs
 never use this module. ``VGGT_INIT_ONEDNN=0`` (environment) or ``set_fast_paths(False)``
 switches it all off; ``VGGT_INIT_NO_KERNEL=1`` only the fused kernel.
+
+Off the CPU, attention is ``F.scaled_dot_product_attention``. Global attention at many frames
+(N = frames x 1041 tokens at 518x392, ~1e6 at 1,000 frames) goes through
+:func:`attention_query_chunked` once B x heads x N exceeds :data:`QUERY_CHUNK_MIN_ROWS`: the
+queries in chunks of :data:`QUERY_CHUNK_ROWS` rows, each chunk against the full K and V, written
+into one [B, N, nh, D] output. Why: SDPA's fused backends (flash, memory-efficient) keep no
+scores, but the math backend (float64, shapes or dtypes the fused kernels refuse) materialises
+[B, nh, N, N] scores, impossible at N ~ 1e6; with query chunks it holds at most
+B x nh x QUERY_CHUNK_ROWS x N of them. The output also lands token-major directly, instead of
+SDPA's [B, nh, N, D] buffer and a transposed copy of it. Each query row is computed from the
+same full K, V as in one pass (equal within the backend's rounding; flash's rows are independent
+of the other rows). Both thresholds are read at call time (tests set them small).
+
+:func:`memory_probe` is for memory searches only (``benchmarks/vggt_frames.py``): inside it, the
+attention returns a tensor of the real output's shape, dtype and allocation without computing it
+(MEANINGLESS values), so a forward at S frames allocates what the real one does, without the
+O(N^2) arithmetic. Nothing in the ``vggt_init`` command line enters it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 
@@ -34,12 +52,15 @@ import torch.nn.functional as F
 
 from vggt_init.model import _attention_kernel
 
-__all__ = ["set_fast_paths", "fast_paths_enabled", "onednn_linear", "attention", "ATTENTION_CHUNK"]
+__all__ = ["set_fast_paths", "fast_paths_enabled", "onednn_linear", "attention", "ATTENTION_CHUNK",
+           "attention_query_chunked", "memory_probe", "probing", "QUERY_CHUNK_MIN_ROWS", "QUERY_CHUNK_ROWS"]
 
 log = logging.getLogger(__name__)
 
-_STATE = {"enabled": os.environ.get("VGGT_INIT_ONEDNN", "1") != "0"}
+_STATE = {"enabled": os.environ.get("VGGT_INIT_ONEDNN", "1") != "0", "probe": False}
 ATTENTION_CHUNK = 256  # query rows per oneDNN score block: 256 x N float32 scores at a time
+QUERY_CHUNK_MIN_ROWS = 1 << 22  # off the CPU, B x heads x N above this: queries in chunks (~250 frames, 16 heads)
+QUERY_CHUNK_ROWS = 1 << 15  # query rows per chunk of attention_query_chunked
 _FAST_DTYPES = (torch.float32, torch.bfloat16)
 
 
@@ -104,6 +125,82 @@ def onednn_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | No
         return None
 
 
+@contextlib.contextmanager
+def memory_probe():
+    """Inside: :func:`attention` returns MEANINGLESS values (for memory searches only).
+
+    The output has the real one's shape, dtype and allocation (and SDPA's autocast casts of
+    q, k, v are made as the real call makes them), filled from V's first rows instead of
+    computed. The fused SDPA backends' own workspace (a float32 [B, nh, N] log-sum-exp) is not
+    allocated; a math-backend fallback's O(N^2) scores would not be either.
+    """
+    previous = _STATE["probe"]
+    _STATE["probe"] = True
+    try:
+        yield
+    finally:
+        _STATE["probe"] = previous
+
+
+def probing() -> bool:
+    """True inside :func:`memory_probe`."""
+    return _STATE["probe"]
+
+
+def _sdpa_dtype(q: torch.Tensor) -> torch.dtype:
+    """The dtype SDPA computes and returns: the autocast dtype under autocast (not float64)."""
+    dev = q.device.type
+    if torch.is_autocast_enabled(dev) and q.dtype != torch.float64:
+        return torch.get_autocast_dtype(dev)
+    return q.dtype
+
+
+def _sdpa(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``F.scaled_dot_product_attention(q, k, v)`` -> [B, nh, Nq, D]; the stand-in when probing."""
+    if not _STATE["probe"]:
+        return F.scaled_dot_product_attention(q, k, v)
+    dt = _sdpa_dtype(q)
+    q, k, v = q.to(dt), k.to(dt), v.to(dt)  # the copies autocast would make (none when already dt)
+    out = torch.empty(*q.shape[:-1], v.shape[-1], dtype=dt, device=q.device)
+    out.copy_(v[..., :q.shape[-2], :])
+    return out
+
+
+def attention_query_chunked(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, rows: int) -> torch.Tensor:
+    """SDPA of ``rows`` query rows at a time against the full K and V.
+
+    Args:
+        q: [B, nh, N, D]; k, v: [B, nh, M, D] (any strides, any device).
+        rows: query rows per chunk (>= 1).
+
+    Returns:
+        [B, N, nh, D] token-major, equal to ``F.scaled_dot_product_attention(q, k, v)
+        .transpose(1, 2)`` within the backend's rounding; the extra memory is one chunk's
+        [B, nh, rows, D] output (and, where the backend materialises scores, B x nh x rows x M).
+    """
+    if rows < 1:
+        raise ValueError(f"query chunk must be >= 1 row, got {rows}")
+    B, H, N, _ = q.shape
+    out = None
+    for i in range(0, N, rows):
+        part = _sdpa(q[:, :, i:i + rows], k, v).transpose(1, 2)
+        if out is None:
+            out = torch.empty(B, N, H, v.shape[-1], dtype=part.dtype, device=part.device)
+        out[:, i:i + rows] = part
+        del part
+    if out is None:  # N == 0
+        out = torch.empty(B, 0, H, v.shape[-1], dtype=_sdpa_dtype(q), device=q.device)
+    return out
+
+
+def _probe_cpu(q: torch.Tensor, v: torch.Tensor, dt: torch.dtype) -> torch.Tensor:
+    """Probe stand-in for the CPU fast paths: [B, N, nh, D] in their output dtype ``dt``."""
+    B, H, N, D = q.shape
+    out = torch.empty(B, N, H, D, dtype=dt, device=q.device)
+    out.copy_(v.transpose(1, 2))
+    return out
+
+
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Softmax attention without mask, scale 1/sqrt(D).
 
@@ -113,9 +210,12 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor
     Returns:
         [B, N, nh, D] (token-major, ready for the output projection). In bf16 the fused
         C++ kernel (``_attention_kernel``) where it is available for this D, else the oneDNN
-        path where ``_compute_dtype`` allows it, else ``F.scaled_dot_product_attention``.
+        path where ``_compute_dtype`` allows it, else ``F.scaled_dot_product_attention``
+        (off the CPU in query chunks beyond ``QUERY_CHUNK_MIN_ROWS``; see the module docstring).
     """
     dt = _compute_dtype(q, k, v)
+    if dt is not None and _STATE["probe"]:
+        return _probe_cpu(q, v, dt)
     if dt == torch.bfloat16 and _attention_kernel.supports(q.shape[-1]):
         return _attention_kernel.attention_bf16(q, k, v)
     if dt is not None:
@@ -123,7 +223,10 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor
             return _attention_onednn(q, k, v, dt)
         except (RuntimeError, AttributeError, NotImplementedError) as exc:
             _disable("attention", exc)
-    return F.scaled_dot_product_attention(q, k, v).transpose(1, 2)
+    B, H, N, _ = q.shape
+    if q.device.type != "cpu" and B * H * N > QUERY_CHUNK_MIN_ROWS:
+        return attention_query_chunked(q, k, v, QUERY_CHUNK_ROWS)
+    return _sdpa(q, k, v).transpose(1, 2)
 
 
 def _attention_onednn(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, dt: torch.dtype) -> torch.Tensor:

@@ -1,11 +1,14 @@
 """Camera head, DPT dense heads and their output activations (chosen by name).
 
 Every head reads the aggregator outputs ``tokens = {layer index: [B, S, N, 2C]}`` with
-N = patch_start_idx + P.
+N = patch_start_idx + P, or each output as its (frame, global) halves [B, S, N, C]
+(``Aggregator(..., concat=False)``); the heads join and cast only the slice they read
+(:func:`take_tokens`), a frame chunk at a time in the DPT heads.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -15,7 +18,26 @@ from torch import nn
 from vggt_init.model.config import CameraHeadConfig, DPTHeadConfig
 from vggt_init.model.layers import Block, Linear, Mlp
 
-__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "dpt_position_embedding"]
+__all__ = ["ACTIVATIONS", "activation", "CameraHead", "DPTHead", "Projected", "dpt_position_embedding",
+           "take_tokens"]
+
+
+def take_tokens(t: torch.Tensor | tuple[torch.Tensor, torch.Tensor], frames: slice, tokens: slice | int,
+                dtype: torch.dtype) -> torch.Tensor:
+    """``t[:, frames, tokens]`` of one aggregator output, in ``dtype``.
+
+    Args:
+        t: [B, S, N, 2C], or its halves (frame, global) [B, S, N, C] each (joined frame first).
+        frames, tokens: index of dims 1 and 2 (an int token index drops dim 2).
+
+    Returns:
+        [B, s, n, 2C] (or [B, s, 2C]); a copy only where joining or casting needs one.
+    """
+    if isinstance(t, tuple):
+        out = torch.cat((t[0][:, frames, tokens], t[1][:, frames, tokens]), dim=-1)
+    else:
+        out = t[:, frames, tokens]
+    return out.to(dtype)
 
 
 def _inv_log(x: torch.Tensor) -> torch.Tensor:
@@ -71,10 +93,13 @@ class CameraHead(nn.Module):
         return torch.cat((activation(c.trans_act)(raw[..., :3]), activation(c.quat_act)(raw[..., 3:7]),
                           activation(c.fl_act)(raw[..., 7:])), dim=-1)
 
-    def forward(self, tokens: torch.Tensor, debug: dict | None = None) -> list[torch.Tensor]:
-        """tokens [B, S, N, 2C] (one aggregator output) -> list of num_iterations [B, S, 9]."""
-        B, S = tokens.shape[:2]
-        tok = self.token_norm(tokens[:, :, 0])
+    def forward(self, tokens: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                debug: dict | None = None) -> list[torch.Tensor]:
+        """tokens [B, S, N, 2C] (one aggregator output, or its two halves) -> list of
+        num_iterations [B, S, 9]. Reads the camera token (token 0) only."""
+        tok = take_tokens(tokens, slice(None), 0, self.token_norm.weight.dtype)  # [B, S, 2C]
+        B, S = tok.shape[:2]
+        tok = self.token_norm(tok)
         raw = None
         out: list[torch.Tensor] = []
         for it in range(self.cfg.num_iterations):
@@ -91,6 +116,17 @@ class CameraHead(nn.Module):
 
 
 # ---------------------------------------------------------------------------- DPT head
+@dataclass
+class Projected:
+    """A DPT head's input made ahead: per layer k and frame chunk j (``DPTHead.frame_chunks(frames,
+    chunk)``) the map ``maps[k][j]`` [batch * s_j, out_channels[k], h, w] of ``DPTHead.project``."""
+
+    batch: int
+    frames: int
+    chunk: int | None  # the frames_chunk_size the maps were made with
+    maps: list[list[torch.Tensor | None]] = field(default_factory=list)
+
+
 def _sincos(pos: torch.Tensor, dim: int, omega_0: float) -> torch.Tensor:
     """pos [M] -> [M, dim]: sin(pos*omega_j) for j < dim/2, then cos; float64 maths."""
     omega = torch.arange(dim // 2, dtype=torch.float64, device=pos.device) / (dim / 2.0)
@@ -212,19 +248,51 @@ class DPTHead(nn.Module):
         x[:, half:] += ey[None, :, :, None]
         return x
 
-    def _forward_frames(self, tokens: dict[int, torch.Tensor], patch_start_idx: int, H: int, W: int,
-                        s0: int, s1: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def project(self, k: int, tokens: torch.Tensor | tuple[torch.Tensor, torch.Tensor], patch_start_idx: int,
+                H: int, W: int, s0: int, s1: int) -> torch.Tensor:
+        """Layer ``self.layers[k]``'s patch tokens of frames s0:s1 -> [B*s, out_channels[k], h, w]:
+        LayerNorm, 1x1 projection and position embedding (the per-layer part before the resize)."""
+        p = self.cfg.patch_size
+        h, w = H // p, W // p
+        x = take_tokens(tokens, slice(s0, s1), slice(patch_start_idx, None), self.norm.weight.dtype)
+        B, s = x.shape[:2]
+        x = self.norm(x.reshape(B * s, -1, x.shape[-1]))
+        x = x.permute(0, 2, 1).reshape(B * s, x.shape[-1], h, w)
+        return self._pos(self.projects[k](x), W, H)
+
+    def frame_chunks(self, S: int, frames_chunk_size: int | None = None) -> list[tuple[int, int]]:
+        """The (s0, s1) frame ranges :meth:`forward` processes together."""
+        chunk = frames_chunk_size or self.cfg.frames_chunk_size or S
+        return [(s0, min(S, s0 + chunk)) for s0 in range(0, S, chunk)]
+
+    def project_all(self, k: int, tokens: torch.Tensor | tuple[torch.Tensor, torch.Tensor], patch_start_idx: int,
+                    image_hw: tuple[int, int], frames_chunk_size: int | None = None) -> list[torch.Tensor]:
+        """:meth:`project` of every frame chunk of :meth:`frame_chunks` -> one [B*s, out_channels[k], h, w]
+        per chunk, kept as the projection made it (its memory layout decides the next convolution's
+        algorithm, hence its rounding).
+
+        What :meth:`forward` takes as ``projected``: a kept layer's 2C channels per token become
+        out_channels[k] (256 to 1024) as soon as the layer exists, the same numbers as projecting
+        it inside the forward.
+        """
+        H, W = image_hw
+        S = (tokens[0] if isinstance(tokens, tuple) else tokens).shape[1]
+        return [self.project(k, tokens, patch_start_idx, H, W, s0, s1)
+                for s0, s1 in self.frame_chunks(S, frames_chunk_size)]
+
+    def _forward_frames(self, tokens: dict[int, torch.Tensor] | None, patch_start_idx: int, H: int, W: int,
+                        s0: int, s1: int, projected: list[torch.Tensor] | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames s0:s1 -> (fused [B*s, F/2, 8h', 8w'] output_conv1 map, raw output [B*s, od, H, W])."""
         cfg = self.cfg
         p = cfg.patch_size
         h, w = H // p, W // p
         feats = []
         for k, layer in enumerate(self.layers):
-            x = tokens[layer][:, s0:s1, patch_start_idx:]
-            B, s = x.shape[:2]
-            x = self.norm(x.reshape(B * s, -1, x.shape[-1]))
-            x = x.permute(0, 2, 1).reshape(B * s, x.shape[-1], h, w)
-            x = self._pos(self.projects[k](x), W, H)
+            if projected is not None:
+                x = projected[k]  # this chunk's projection (forward checks the ranges)
+            else:
+                x = self.project(k, tokens[layer], patch_start_idx, H, W, s0, s1)
             feats.append(self.resize_layers[k](x))
         sc = self.scratch
         r1, r2, r3, r4 = (getattr(sc, f"layer{i}_rn")(f) for i, f in enumerate(feats, start=1))
@@ -241,33 +309,53 @@ class DPTHead(nn.Module):
         out = conv_b(F.relu_(out))
         return fused, out
 
-    def forward(self, tokens: dict[int, torch.Tensor], image_hw: tuple[int, int], patch_start_idx: int,
+    def forward(self, tokens: dict[int, torch.Tensor] | None, image_hw: tuple[int, int], patch_start_idx: int,
                 frames_chunk_size: int | None = None, debug: dict | None = None,
-                debug_name: str = "dpt") -> tuple[torch.Tensor, torch.Tensor]:
+                debug_name: str = "dpt", projected: "Projected | None" = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Dense prediction, processed ``frames_chunk_size`` frames at a time.
 
         Args:
-            tokens: {layer: [B, S, N, 2C]} holding every index in ``self.layers``.
+            tokens: {layer: [B, S, N, 2C] or its two halves} holding every index in ``self.layers``
+                (any float dtype: each chunk is cast to the head's); None with ``projected``.
             image_hw: (H, W) of the network input.
+            projected: instead of ``tokens``, every layer's :meth:`project_all` (see
+                :class:`Projected`), made with the same ``frames_chunk_size``; each chunk's maps
+                are dropped (set to None) once used.
 
         Returns:
             value [B, S, H, W, output_dim - 1] and confidence [B, S, H, W].
         """
         H, W = image_hw
-        any_t = next(iter(tokens.values()))
-        B, S = any_t.shape[:2]
-        chunk = frames_chunk_size or self.cfg.frames_chunk_size or S
+        if projected is not None:
+            B, S = projected.batch, projected.frames
+            if self.frame_chunks(S, projected.chunk) != self.frame_chunks(S, frames_chunk_size):
+                raise ValueError("projected was made with another frames_chunk_size")
+        else:
+            any_t = tokens[self.layers[0]]
+            B, S = (any_t[0] if isinstance(any_t, tuple) else any_t).shape[:2]
         act_v, act_c = activation(self.cfg.activation), activation(self.cfg.conf_activation)
-        values, confs, fused_all = [], [], []
-        for s0 in range(0, S, chunk):
-            s1 = min(S, s0 + chunk)
-            fused, raw = self._forward_frames(tokens, patch_start_idx, H, W, s0, s1)
+        values = confs = None  # written a chunk at a time (no list of chunks and its concatenation)
+        fused_all = []
+        for j, (s0, s1) in enumerate(self.frame_chunks(S, frames_chunk_size)):
+            proj = None
+            if projected is not None:
+                proj = [maps[j] for maps in projected.maps]
+                for maps in projected.maps:
+                    maps[j] = None  # used: dropped
+            fused, raw = self._forward_frames(tokens, patch_start_idx, H, W, s0, s1, proj)
+            del proj
             if debug is not None:
                 fused_all.append(fused.reshape(B, s1 - s0, *fused.shape[1:]))
             fmap = raw.permute(0, 2, 3, 1)
-            values.append(act_v(fmap[..., :-1]).reshape(B, s1 - s0, *fmap.shape[1:3], -1))
-            confs.append(act_c(fmap[..., -1]).reshape(B, s1 - s0, *fmap.shape[1:3]))
-            del raw, fmap, fused
+            value = act_v(fmap[..., :-1]).reshape(B, s1 - s0, *fmap.shape[1:3], -1)
+            conf = act_c(fmap[..., -1]).reshape(B, s1 - s0, *fmap.shape[1:3])
+            if values is None:
+                values = torch.empty(B, S, *value.shape[2:], dtype=value.dtype, device=value.device)
+                confs = torch.empty(B, S, *conf.shape[2:], dtype=conf.dtype, device=conf.device)
+            values[:, s0:s1] = value
+            confs[:, s0:s1] = conf
+            del raw, fmap, fused, value, conf
         if debug is not None:
             debug[f"{debug_name}.fused"] = torch.cat(fused_all, dim=1).flatten(0, 1)
-        return torch.cat(values, dim=1), torch.cat(confs, dim=1)
+        return values, confs

@@ -3,6 +3,15 @@
 Parameter names follow the official checkpoint (``norm1``, ``attn.qkv``, ``attn.q_norm``,
 ``ls1.gamma``, ``mlp.fc1`` ...). Shapes: B batch of sequences, N tokens, C width,
 nh heads, D = C / nh head dim.
+
+Memory at many frames: a :class:`Block` whose input holds more than :data:`TOKEN_CHUNK` tokens
+(B x N) runs in pieces when autograd is off (inference). Many short sequences (the frame blocks,
+DINO: B = frames) go through the block a group of whole sequences at a time; long sequences (the
+global blocks, N = frames x tokens per frame) run the token-wise parts (LayerNorms, qkv projection,
+q/k norms and RoPE, output projection, MLP) over TOKEN_CHUNK tokens at a time and attention once
+over all tokens. Every row is the same arithmetic as in one pass (a matrix product over fewer rows
+may sum in another order: float32 differences ~1e-7), and the transients are bounded by the chunk
+instead of [B*N, 4C] MLP activations, a [B*N, 3C] qkv and float32 copies of q and k.
 """
 
 from __future__ import annotations
@@ -13,7 +22,19 @@ from torch import nn
 
 from vggt_init.model.fastpath import attention, onednn_linear
 
-__all__ = ["LayerScale", "Linear", "Mlp", "RoPE2D", "Attention", "Block"]
+__all__ = ["LayerScale", "Linear", "Mlp", "RoPE2D", "Attention", "Block", "TOKEN_CHUNK"]
+
+TOKEN_CHUNK = 1 << 15  # tokens per piece when a block's input holds more (~31 frames at 518x392; read at call time)
+
+
+def _attention_input_dtype(t: torch.Tensor) -> torch.dtype:
+    """The dtype ``F.scaled_dot_product_attention`` computes ``t`` in: the autocast dtype under
+    autocast on a non-CPU device (autocast casts every floating input but float64), else t's own.
+    On the CPU the fast paths of :mod:`vggt_init.model.fastpath` take the tensors as they come."""
+    dev = t.device.type
+    if dev != "cpu" and torch.is_autocast_enabled(dev) and t.dtype != torch.float64:
+        return torch.get_autocast_dtype(dev)
+    return t.dtype
 
 
 class Linear(nn.Linear):
@@ -108,13 +129,19 @@ class Attention(nn.Module):
         self.proj = Linear(dim, dim, bias=proj_bias)
         self.rope = rope
 
-    def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
+    def heads(self, x: torch.Tensor, pos: torch.Tensor | None = None):
+        """x [B, N, C], pos [B, N, 2] or None -> q, k, v [B, nh, N, D] (normed, rotated)."""
         B, N, C = x.shape
         qkv = self.qkv(x).reshape(B, N, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
         q, k, v = qkv.unbind(0)
         q, k = self.q_norm(q), self.k_norm(k)
         if self.rope is not None and pos is not None:
             q, k = self.rope(q, pos), self.rope(k, pos)
+        return q, k, v
+
+    def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
+        B, N, C = x.shape
+        q, k, v = self.heads(x, pos)
         return self.proj(attention(q, k, v).reshape(B, N, C))
 
 
@@ -133,5 +160,63 @@ class Block(nn.Module):
         self.ls2 = LayerScale(dim)
 
     def forward(self, x: torch.Tensor, pos: torch.Tensor | None = None) -> torch.Tensor:
+        B, N, _ = x.shape
+        rows = TOKEN_CHUNK
+        if B * N > rows and not torch.is_grad_enabled():
+            if N <= rows:
+                return self._forward_sequences(x, pos, max(1, rows // N))
+            return self._forward_tokens(x, pos, rows)
         x = x + self.ls1(self.attn(self.norm1(x), pos))
         return x + self.ls2(self.mlp(self.norm2(x)))
+
+    def _forward_sequences(self, x: torch.Tensor, pos: torch.Tensor | None, step: int) -> torch.Tensor:
+        """The block on ``step`` whole sequences at a time (attention stays within a sequence)."""
+        y = None
+        for b0 in range(0, x.shape[0], step):
+            xb = x[b0:b0 + step]
+            xb = xb + self.ls1(self.attn(self.norm1(xb), None if pos is None else pos[b0:b0 + step]))
+            xb = xb + self.ls2(self.mlp(self.norm2(xb)))
+            if y is None:
+                y = torch.empty(x.shape, dtype=xb.dtype, device=xb.device)
+            y[b0:b0 + step] = xb
+            del xb
+        return y
+
+    def _forward_tokens(self, x: torch.Tensor, pos: torch.Tensor | None, rows: int) -> torch.Tensor:
+        """The block with its token-wise parts ``rows`` tokens at a time, attention over all N.
+
+        q, k, v are stored [B, nh, N, D] in the dtype attention computes them in (bf16 under CUDA
+        autocast, as autocast would cast them), the attention output [B, N, nh, D] is projected a
+        chunk at a time into the new residual, and the MLP branch is added to it in place.
+        """
+        B, N, C = x.shape
+        attn = self.attn
+        q = k = v = None
+        for i in range(0, N, rows):
+            j = min(N, i + rows)
+            parts = attn.heads(self.norm1(x[:, i:j]), None if pos is None else pos[:, i:j])
+            if q is None:
+                q, k, v = (torch.empty(B, attn.num_heads, N, attn.head_dim, dtype=_attention_input_dtype(t),
+                                       device=t.device) for t in parts)
+            for dst, src in zip((q, k, v), parts):
+                dst[:, :, i:j] = src
+            del parts, dst, src  # the loop variables would keep v (and a chunk) alive
+        o = attention(q, k, v)  # [B, N, nh, D]
+        del q, k, v
+        y = None
+        for i in range(0, N, rows):
+            j = min(N, i + rows)
+            r = x[:, i:j] + self.ls1(attn.proj(o[:, i:j].reshape(B, j - i, C)))
+            if y is None:
+                y = torch.empty(x.shape, dtype=r.dtype, device=r.device)
+            y[:, i:j] = r
+            del r
+        del o
+        for i in range(0, N, rows):
+            j = min(N, i + rows)
+            upd = self.ls2(self.mlp(self.norm2(y[:, i:j])))
+            if torch.promote_types(y.dtype, upd.dtype) != y.dtype:  # x + upd would promote: do so once
+                y = y.to(torch.promote_types(y.dtype, upd.dtype))
+            y[:, i:j].add_(upd)  # y's rows are this block's own: x + upd as in one pass
+            del upd
+        return y

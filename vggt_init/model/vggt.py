@@ -17,7 +17,7 @@ from torch import nn
 
 from vggt_init.model.aggregator import Aggregator
 from vggt_init.model.config import HEAD_NAMES, VGGTConfig
-from vggt_init.model.heads import CameraHead, DPTHead
+from vggt_init.model.heads import CameraHead, DPTHead, Projected, take_tokens
 
 __all__ = ["VGGT", "TRACK_HEAD_PREFIX"]
 
@@ -30,6 +30,47 @@ def _now(device: torch.device) -> float:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     return time.perf_counter()
+
+
+class _HeadsInput:
+    """What the heads keep of each aggregator output they read, made as soon as the output exists
+    (``Aggregator(on_layer=...)``) so that no [B, S, N, 2C] layer outlives its step.
+
+    The camera head keeps the camera token [B, S, 1, 2C]; a DPT head its LayerNorm + 1x1
+    projection of the patch tokens (:class:`~vggt_init.model.heads.Projected`: per frame chunk
+    [B*s, out_channels[k], h, w] float32, 256-1024 channels instead of 2C = 2048), made
+    ``frames_chunk_size`` frames at a time exactly as its forward would. ``seconds`` holds the
+    time spent per head (charged to the head, not the trunk).
+    """
+
+    def __init__(self, model: "VGGT", device_type: str, psi: int, image_hw: tuple[int, int],
+                 frames_chunk_size: int | None, device: torch.device) -> None:
+        self.model, self.device_type, self.psi, self.image_hw = model, device_type, psi, image_hw
+        self.chunk, self.device = frames_chunk_size, device
+        cfg = model.config
+        self.camera_layer = cfg.camera_head.token_layer % cfg.aggregator.depth if model.camera_head is not None else None
+        self.dpt = [(n, h) for n, h in (("depth", model.depth_head), ("point", model.point_head)) if h is not None]
+        self.projected: dict[str, Projected | None] = {n: None for n, _ in self.dpt}
+        self.camera_tokens: torch.Tensor | None = None
+        self.seconds = {"camera": 0.0, **{n: 0.0 for n, _ in self.dpt}}
+
+    def __call__(self, i: int, frame: torch.Tensor, glob: torch.Tensor) -> None:
+        with torch.autocast(device_type=self.device_type, enabled=False):
+            if i == self.camera_layer:
+                t0 = _now(self.device)
+                head = self.model.camera_head
+                self.camera_tokens = take_tokens((frame, glob), slice(None), slice(0, 1), head.token_norm.weight.dtype)
+                self.seconds["camera"] += _now(self.device) - t0
+            for name, head in self.dpt:
+                for k, layer in enumerate(head.layers):
+                    if layer == i:
+                        t0 = _now(self.device)
+                        if self.projected[name] is None:
+                            self.projected[name] = Projected(frame.shape[0], frame.shape[1], self.chunk,
+                                                             [[] for _ in head.layers])
+                        self.projected[name].maps[k] = head.project_all(k, (frame, glob), self.psi, self.image_hw,
+                                                                        self.chunk)
+                        self.seconds[name] += _now(self.device) - t0
 
 
 class VGGT(nn.Module):
@@ -116,35 +157,36 @@ class VGGT(nn.Module):
             trunk_dtype = cast
         device_type = images.device.type
 
+        psi = self.aggregator.patch_start_idx
+        heads_in = _HeadsInput(self, device_type, psi, (H, W), frames_chunk_size, images.device)
         t0 = _now(images.device)
         if trunk_dtype is not None and trunk_dtype != param_dtype:
             ctx = torch.autocast(device_type=device_type, dtype=trunk_dtype)
         else:
             ctx = contextlib.nullcontext()
         with ctx:
-            tokens = self.aggregator(images.to(param_dtype), keep=self.layers_needed, debug=debug)
-        timings["aggregator"] = _now(images.device) - t0
+            self.aggregator(images.to(param_dtype), keep=self.layers_needed, debug=debug, on_layer=heads_in)
+        timings["aggregator"] = _now(images.device) - t0 - sum(heads_in.seconds.values())
 
         out: dict = {}
-        psi = self.aggregator.patch_start_idx
         with torch.autocast(device_type=device_type, enabled=False):
-            tokens = {k: v.to(param_dtype) for k, v in tokens.items()}
             if self.camera_head is not None:
                 t0 = _now(images.device)
                 ch_debug = {} if debug is not None else None
-                pose_list = self.camera_head(tokens[self.config.camera_head.token_layer % self.config.aggregator.depth],
-                                             debug=ch_debug)
+                pose_list = self.camera_head(heads_in.camera_tokens, debug=ch_debug)
+                heads_in.camera_tokens = None
                 out["pose_enc"] = pose_list[-1]
                 out["pose_enc_list"] = pose_list
                 if debug is not None:
                     debug.update(ch_debug)
-                timings["camera_head"] = _now(images.device) - t0
+                timings["camera_head"] = _now(images.device) - t0 + heads_in.seconds["camera"]
             for name, head, keys in (("depth", self.depth_head, ("depth", "depth_conf")),
                                      ("point", self.point_head, ("world_points", "world_points_conf"))):
                 if head is None:
                     continue
                 t0 = _now(images.device)
-                value, conf = head(tokens, (H, W), psi, frames_chunk_size, debug, f"{name}_head")
+                value, conf = head(None, (H, W), psi, frames_chunk_size, debug, f"{name}_head",
+                                   projected=heads_in.projected.pop(name))
                 out[keys[0]], out[keys[1]] = value, conf
-                timings[f"{name}_head"] = _now(images.device) - t0
+                timings[f"{name}_head"] = _now(images.device) - t0 + heads_in.seconds[name]
         return out
