@@ -77,6 +77,25 @@ def _vggt_fixtures(device: str) -> dict:
     return out
 
 
+def vggt_chunked(device: str) -> dict:
+    """The official fixtures on ``device`` with every chunked path of the many-frame forward
+    forced on (token chunks of 16 tokens, attention in query chunks of 16 rows from the first
+    row; TF32 off): the max abs error per output against the float64 and float32 expectations,
+    as :func:`vggt_fixtures` measures the one-pass forward."""
+    from vggt_init.model import fastpath, layers
+
+    saved = (layers.TOKEN_CHUNK, fastpath.QUERY_CHUNK_MIN_ROWS, fastpath.QUERY_CHUNK_ROWS,
+             torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
+    try:
+        layers.TOKEN_CHUNK, fastpath.QUERY_CHUNK_MIN_ROWS, fastpath.QUERY_CHUNK_ROWS = 16, 0, 16
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+        out = _vggt_fixtures(device)
+    finally:
+        (layers.TOKEN_CHUNK, fastpath.QUERY_CHUNK_MIN_ROWS, fastpath.QUERY_CHUNK_ROWS,
+         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32) = saved
+    return {"token_chunk": 16, "query_chunk_rows": 16, **out}
+
+
 def vggt_speed(device: str, frames: int = 12, width: int = 518, height: int = 392, reps: int = 5) -> dict:
     """VGGT-1B forward on ``frames`` images of ``width`` x ``height`` with RANDOM weights (speed
     and memory only), camera and point heads (what vggt_init runs), fp32 and bf16 (the trunk
@@ -217,7 +236,7 @@ def gsplat_build(device: str) -> dict:
             "max_jobs": os.environ.get("MAX_JOBS")}
 
 
-PARTS = ("vggt_fixtures", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
+PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
          "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
@@ -244,13 +263,17 @@ def step_ab(prepared: Path | None) -> dict:
 
 def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
     """benchmarks/vggt_frames.py within :data:`VGGT_FRAMES_BUDGET_S` (environment
-    ``VGGT_FRAMES_BUDGET_S`` overrides it)."""
+    ``VGGT_FRAMES_BUDGET_S`` overrides it), and no later than ``GPU_RUN_DEADLINE`` (a Unix time,
+    when set: the end of a lent machine's time) less a minute for a forward already started."""
     import os
 
     from benchmarks.vggt_frames import vggt_frames
 
     budget = float(os.environ.get("VGGT_FRAMES_BUDGET_S", VGGT_FRAMES_BUDGET_S))
-    return vggt_frames(device, deadline_s=time.perf_counter() + budget, on_result=on_result)
+    if os.environ.get("GPU_RUN_DEADLINE"):
+        budget = min(budget, float(os.environ["GPU_RUN_DEADLINE"]) - time.time() - 60.0)
+    return vggt_frames(device, deadline_s=time.perf_counter() + budget, on_result=on_result,
+                       search_resolution=50)
 
 
 def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PARTS,
@@ -270,7 +293,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
               "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
     from benchmarks import gpu_stages
 
-    fns = {"vggt_fixtures": vggt_fixtures, "vggt_speed": vggt_speed, "gsplat_build": gsplat_build, "rasterizer_parity": rasterizer_parity,
+    fns = {"vggt_fixtures": vggt_fixtures, "vggt_chunked": vggt_chunked, "vggt_speed": vggt_speed, "gsplat_build": gsplat_build, "rasterizer_parity": rasterizer_parity,
            "rasterizer_timing": rasterizer_timing,
            "workflow_cell": lambda dev: gpu_stages.workflow_cell(stages, dev),
            "vggt_cli": lambda dev: gpu_stages.vggt_cli(stages, dev),
@@ -335,6 +358,21 @@ def format_gpu_table(r: dict) -> str:
             if dt in v.get(tf, {}):
                 rows.append((f"VGGT fixtures on CUDA, {dt}, {tf.replace('_', ' ')}: max abs err vs {dt} expectation",
                              _f(v[tf][dt]["max"])))
+    vc = r.get("vggt_chunked", {})
+    for dt in ("float64", "float32"):
+        if dt in vc:
+            rows.append((f"VGGT fixtures on CUDA, every chunked path forced on, {dt}, TF32 off: max abs err",
+                         _f(vc[dt]["max"])))
+    vf = r.get("vggt_frames", {})
+    for rec in vf.get("real", []):
+        if rec.get("peak_mb") is not None:
+            rows.append((f"VGGT-1B {rec['frames']} frames {vf.get('size')} bf16, random weights: s, s per frame, peak MB",
+                         f"{_f(rec.get('wall_s'))}, {_f(rec.get('s_per_frame'))}, {_f(rec.get('peak_mb'), '.0f')}"))
+    search = vf.get("search", {})
+    if search.get("largest_fit_frames"):
+        rows.append(("VGGT-1B largest frame count that fits (memory probe), its peak MB; upstream",
+                     f"{search['largest_fit_frames']}, {_f(search.get('largest_fit_peak_mb'), '.0f')}; "
+                     f"{vf.get('upstream', {}).get('frames')} on {vf.get('upstream', {}).get('memory_gb')} GB"))
     vs = r.get("vggt_speed", {})
     if "bf16" in vs:
         rows.append((f"VGGT-1B forward, {vs['frames']} views {vs['size']}, camera + point heads, random weights: "
