@@ -237,8 +237,8 @@ def _try(meter: _Meter, n: int, size, probe: bool) -> dict:
     try:
         rec = meter.run(n, size, probe)
         rec["oom"] = False
-    except _oom_types():
-        rec = {"frames": n, "oom": True}
+    except _oom_types() as exc:
+        rec = {"frames": n, "oom": True, "message": str(exc)[:300]}
     except Exception as exc:  # noqa: BLE001  (recorded: the measurements before it are kept)
         msg = f"{type(exc).__name__}: {exc}"[:500]
         rec = {"frames": n, "oom": any(w in msg for w in _MEMORY_WORDS)}
@@ -415,7 +415,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         def fits(n: int) -> bool:
             rec = _try(meter, n, size, probe=True)
             search["tries"].append({"frames": n, "fits": _ok(rec), "peak_mb": rec.get("peak_mb"),
-                                    "wall_s": rec.get("wall_s"), **({"error": rec["error"]} if "error" in rec else {})})
+                                    "wall_s": rec.get("wall_s"), **({"error": rec["error"]} if "error" in rec else {}),
+                                    **({"message": rec["message"]} if "message" in rec else {})})
             report()
             return _ok(rec)
 

@@ -6,8 +6,6 @@
 #
 #   bash scripts/gpu_run.sh OUT_DIR [PARTS]      # PARTS: comma list (default: the training
 #                                                # profile, cells, gsplat's loop, VGGT frames)
-#   SAVE_GSPLAT_BUILD=DIR: also save gsplat's JIT build there (15 MB parts; carry them back as
-#   .gpu_build/ to skip the ~1.5 min build on the next machine)
 #
 # The parts run in the order of benchmarks/gpu_check.py PARTS (gsplat's CUDA kernels are
 # JIT-built by the part gsplat_build, ~1.5 min once per machine); the JSON + Markdown table
@@ -29,19 +27,4 @@ CAP=$(python3 -c "import torch; p = torch.cuda.get_device_capability(); print(f'
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$CAP}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-# gsplat's JIT build folder: restored from .gpu_build (the parts an earlier run saved) when
-# present, so this machine need not build it again; saved into OUT_DIR after the run
-BUILD=$(python3 -c "from torch.utils.cpp_extension import _get_build_directory as d; print(d('gsplat_cuda', False))")
-if ls .gpu_build/gsplat_build.tar.xz.* >/dev/null 2>&1 && [ ! -e "$BUILD/gsplat_cuda.so" ]; then
-    mkdir -p "$(dirname "$BUILD")"
-    cat .gpu_build/gsplat_build.tar.xz.* | python3 -c "import sys, tarfile; tarfile.open(fileobj=sys.stdin.buffer, mode='r|xz').extractall(sys.argv[1])" "$(dirname "$BUILD")" \
-        && find "$BUILD" -type f -exec touch {} + && echo "gpu_run: gsplat build restored into $BUILD"
-fi
-python3 -m benchmarks --gpu --gpu-parts "$PARTS" --cell-prepared .gpu_cell --stages .gpu_wf --out "$OUTDIR"
-rc=$?
-if [ -n "${SAVE_GSPLAT_BUILD:-}" ] && [ -e "$BUILD/gsplat_cuda.so" ]; then
-    if command -v xz >/dev/null; then pack() { xz -T0 -3; }; else pack() { python3 -c "import lzma, shutil, sys; shutil.copyfileobj(sys.stdin.buffer, lzma.open(sys.stdout.buffer, 'wb', preset=1))"; }; fi
-    tar -C "$(dirname "$BUILD")" -cf - "$(basename "$BUILD")" | pack | split -b 15m - "$SAVE_GSPLAT_BUILD/gsplat_build.tar.xz."
-    ls -la "$SAVE_GSPLAT_BUILD"/gsplat_build.tar.xz.* 2>/dev/null
-fi
-exit $rc
+exec python3 -m benchmarks --gpu --gpu-parts "$PARTS" --cell-prepared .gpu_cell --stages .gpu_wf --out "$OUTDIR"
