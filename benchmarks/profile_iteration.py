@@ -72,7 +72,6 @@ def timed_calls(tr, ph: dict[str, float]):
     """While inside: the calls that ``tr.step()`` makes add their seconds to ``ph`` (see the
     module doc), by wrappers put where the step looks them up (the trainer module's names, the
     strategy's and the optimizer's methods, ``torch.Tensor.backward``); left as they were after."""
-    from splat_train import trainer as trainer_mod
 
     def timed(key: str, fn):
         @functools.wraps(fn)
@@ -85,11 +84,20 @@ def timed_calls(tr, ph: dict[str, float]):
         return wrapper
 
     with contextlib.ExitStack() as stack:
-        for obj, name, key in ((trainer_mod, "render_params", "render"), (tr, "photometric", "loss"),
-                               (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),
-                               (tr.strategy, "update_state", "densify_state"), (tr.optimizer, "zero_grad", "adam")):
+        for obj, name, key in step_calls(tr):
             stack.enter_context(mock.patch.object(obj, name, timed(key, getattr(obj, name))))
         yield
+
+
+def step_calls(tr) -> tuple[tuple[object, str, str], ...]:
+    """(object, attribute, phase) of each call that ``tr.step()`` makes and a profile times:
+    the names where the step looks them up (the trainer module's, the trainer's own loss, the
+    strategy's and the optimizer's methods, ``torch.Tensor.backward``)."""
+    from splat_train import trainer as trainer_mod
+
+    return ((trainer_mod, "render_params", "render"), (tr, "photometric", "loss"),
+            (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),
+            (tr.strategy, "update_state", "densify_state"), (tr.optimizer, "zero_grad", "adam"))
 
 
 def profile_steps(tr, steps: int) -> dict[str, float]:

@@ -43,7 +43,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.profile_iteration import PHASES  # noqa: E402
+from benchmarks.profile_iteration import PHASES, step_calls  # noqa: E402
 
 CELL_ITERATIONS = 10_000  # the paper's training length, which sets the recipes' schedules
 
@@ -84,7 +84,6 @@ def ms_per_step(tr, n: int) -> float:
 def _timed_calls(tr, spans: list, host: dict[str, float]):
     """While inside, each timed call appends (phase, start event, end event) to ``spans`` and
     adds its host seconds to ``host``."""
-    from splat_train import trainer as trainer_mod
 
     def timed(key: str, fn):
         @functools.wraps(fn)
@@ -102,9 +101,7 @@ def _timed_calls(tr, spans: list, host: dict[str, float]):
         return wrapper
 
     with contextlib.ExitStack() as stack:
-        for obj, name, key in ((trainer_mod, "render_params", "render"), (tr, "photometric", "loss"),
-                               (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),
-                               (tr.strategy, "update_state", "densify_state"), (tr.optimizer, "zero_grad", "adam")):
+        for obj, name, key in step_calls(tr):
             stack.enter_context(mock.patch.object(obj, name, timed(key, getattr(obj, name))))
         yield
 

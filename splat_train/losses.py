@@ -15,7 +15,6 @@ import math
 import os
 
 import torch
-import torch.nn.functional as F
 
 from imgmetrics.ssim import gaussian_window, gaussian_window_1d, ssim_map
 from splat_train.cpu import ssim as cpu_ssim
