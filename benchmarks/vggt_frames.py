@@ -17,9 +17,9 @@ What it measures (:func:`vggt_frames`):
 2. the same counts under :func:`vggt_init.model.fastpath.memory_probe` (every allocation of the
    forward, attention not computed: MEANINGLESS outputs), whose peak must match the real one
    (``peak_ratio_probe_to_real``);
-3. probe-only forwards from a start count up (or down) in doubling steps until CUDA runs out of
-   memory (or it fits), then bisection to ``search_resolution`` frames: the largest count that
-   fits. The start is 98 % of what the probe's affine fit predicts for the free memory (or
+3. probe-only forwards from a start count up in doubling steps until CUDA runs out of memory
+   (when the start itself does not fit: between the largest count known to fit and the start),
+   then bisection to ``search_resolution`` frames: the largest count that fits. The start is 98 % of what the probe's affine fit predicts for the free memory (or
    ``search_from``). These counts are labelled probe-only: a real forward there also needs the
    O(N^2) attention time, and a fused attention kernel that accepts that many tokens;
 4. an affine fit of peak against frames (intercept, MB per frame) and a quadratic fit of time
@@ -234,11 +234,12 @@ def _try(meter: _Meter, n: int, size, probe: bool) -> dict:
     """meter.run; an out-of-memory error (torch's, or a library's allocation failure) is recorded
     as {"frames": n, "oom": True}, any other error as {"frames": n, "oom": False, "error": ...}.
     Memory is freed either way and the caller goes on."""
+    t0 = time.perf_counter()
     try:
         rec = meter.run(n, size, probe)
         rec["oom"] = False
     except _oom_types() as exc:
-        rec = {"frames": n, "oom": True, "message": str(exc)[:300]}
+        rec = {"frames": n, "oom": True, "message": str(exc)[:300], "seconds_to_failure": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001  (recorded: the measurements before it are kept)
         msg = f"{type(exc).__name__}: {exc}"[:500]
         rec = {"frames": n, "oom": any(w in msg for w in _MEMORY_WORDS)}
@@ -289,7 +290,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         config: a :class:`VGGTConfig` (default VGGT-1B); width, height: the input size in px.
         search_from, search_step, search_resolution: the probe search for the largest count that
             fits: from ``search_from`` up (steps ``search_step``, doubling) until CUDA runs out of
-            memory, or down until it fits, then bisection to ``search_resolution`` frames.
+            memory, then bisection to ``search_resolution`` frames (between the largest count
+            known to fit and ``search_from`` when that does not fit).
         search_from_prediction: on CUDA, start instead at 98 % of the count the probe's affine
             fit predicts for the memory the allocator can still hand out, with steps of
             2 x ``search_resolution`` (a probe near 3,400 frames takes ~1 min on an H100).
@@ -415,8 +417,8 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
         def fits(n: int) -> bool:
             rec = _try(meter, n, size, probe=True)
             search["tries"].append({"frames": n, "fits": _ok(rec), "peak_mb": rec.get("peak_mb"),
-                                    "wall_s": rec.get("wall_s"), **({"error": rec["error"]} if "error" in rec else {}),
-                                    **({"message": rec["message"]} if "message" in rec else {})})
+                                    "wall_s": rec.get("wall_s", rec.get("seconds_to_failure")),
+                                    **{k: rec[k] for k in ("error", "message") if k in rec}})
             report()
             return _ok(rec)
 
@@ -432,14 +434,9 @@ def vggt_frames(device: str, deadline_s: float, counts=(12, 50, 100, 200),
                     break
                 lo, step = n, 2 * step
                 n = lo + step
-        else:  # down, the step doubling, until it fits
-            hi, n = start, start - step
-            while n > known and not late():
-                if fits(n):
-                    lo = n
-                    break
-                hi, step = n, 2 * step
-                n = start - step
+        else:  # the start does not fit: bisect between the largest count known to fit and it
+            hi = start  # (on the H100, 3,700-4,500 frames failed far below the linear law's 4,600:
+            # stepping down from the start spent the whole deadline on failures near it)
         while hi is not None and hi - lo > search_resolution and not late():  # then bisect
             n = (lo + hi) // 2
             if fits(n):

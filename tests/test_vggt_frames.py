@@ -185,3 +185,27 @@ def test_vggt_frames_records_failures_and_goes_on(monkeypatch):
     assert [(x["frames"], x["oom"]) for x in r["probe"]] == [(2, False), (3, True), (4, False)]
     assert r["real_frames"] == [2] and r["probe_only_frames"] == [4]
     assert r["fit_memory"] is None and r["fit_memory_probe"]["points"] == 2
+
+
+def test_vggt_frames_search_bisects_below_a_start_that_does_not_fit(monkeypatch):
+    """A start beyond the limit (the linear law overshooting, as on the H100): bisection between
+    the largest count known to fit and the start, each failure recorded with its message."""
+    from benchmarks import vggt_frames as vf
+
+    real_run = vf._Meter.run
+
+    def run(self, n, size, probe):
+        if n <= 3:
+            return real_run(self, n, size, probe)
+        if n > 9:
+            raise torch.OutOfMemoryError(f"stand-in: {n} frames")
+        return {"frames": n, "wall_s": 0.01, "peak_mb": float(n), "timings_s": {}, "output_shapes": {},
+                "output_dtypes": {}}
+
+    monkeypatch.setattr(vf._Meter, "run", run)
+    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+                    search_from=20, search_step=2, search_resolution=1, search_max=100, bigger=())
+    tries = r["search"]["tries"]
+    assert [(t["frames"], t["fits"]) for t in tries] == [(20, False), (11, False), (7, True), (9, True), (10, False)]
+    assert r["search"]["largest_fit_frames"] == 9 and r["search"]["first_oom_frames"] == 10
+    assert tries[0]["message"] == "stand-in: 20 frames" and tries[0]["wall_s"] >= 0
