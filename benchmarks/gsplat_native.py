@@ -42,6 +42,25 @@ def load_cell(cell: Path):
     return train, test, read_gaussian_ply(cell / "bridge" / "seed.ply")
 
 
+def preflight(cell: Path, prog: str) -> str | None:
+    """The one-line reason a GPU script of this folder cannot run on ``cell`` here (no CUDA
+    device, or not a folder of ``bench_cell.py --prepare-only``), or None."""
+    if not torch.cuda.is_available():
+        return f"{prog}: needs a CUDA GPU"
+    if not (cell / "prepared.json").is_file():
+        return f"{prog}: {cell} is not a prepared cell (make one with: python benchmarks/bench_cell.py --prepare-only DIR)"
+    return None
+
+
+def emit(result: dict, out: Path | None) -> None:
+    """Print ``result`` as JSON and, with ``out``, write it there (atomically)."""
+    from camio.atomic import write_json
+
+    print(json.dumps(result, indent=1))
+    if out is not None:
+        write_json(out, result)
+
+
 def _rasterization():
     """``gsplat.rasterization`` (a function so that a CPU test can substitute a stand-in)."""
     from gsplat import rasterization
@@ -146,13 +165,11 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None, help="JSON file to write")
     args = p.parse_args()
-    if not torch.cuda.is_available():
-        print("gsplat_native: needs a CUDA GPU", file=sys.stderr)
+    problem = preflight(args.cell, "gsplat_native")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
-    res = train_native(args.cell, args.iterations, args.seed)
-    print(json.dumps(res, indent=1))
-    if args.out is not None:
-        args.out.write_text(json.dumps(res, indent=2) + "\n")
+    emit(train_native(args.cell, args.iterations, args.seed), args.out)
     return 0
 
 

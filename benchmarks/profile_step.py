@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
-import json
 import sys
 import tempfile
 import time
@@ -259,22 +258,23 @@ def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), warm: in
 
 
 def main() -> int:
+    from benchmarks.gsplat_native import emit, preflight
     from runtime.cliargs import plain
+    from splat_train.recipes import RECIPE_NAMES
 
     p = argparse.ArgumentParser(description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cell", type=Path, required=True, help="folder of bench_cell.py --prepare-only")
-    p.add_argument("--recipe", action="append", help="recipe(s) to profile (default: paper and sparse)")
+    p.add_argument("--recipe", action="append", choices=RECIPE_NAMES,
+                   help="recipe(s) to profile (default: paper and sparse)")
     p.add_argument("--warm", type=int, default=1000, help="iterations run before timing")
     p.add_argument("--steps", type=int, default=200, help="iterations timed")
     p.add_argument("--out", type=Path, default=None, help="JSON file to write")
     args = p.parse_args()
-    if not torch.cuda.is_available():
-        print("profile_step: needs a CUDA GPU", file=sys.stderr)
+    problem = preflight(args.cell, "profile_step")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
-    res = profile(args.cell, tuple(args.recipe or ("paper", "sparse")), warm=args.warm, steps=args.steps)
-    print(json.dumps(res, indent=1))
-    if args.out is not None:
-        args.out.write_text(json.dumps(res, indent=2) + "\n")
+    emit(profile(args.cell, tuple(args.recipe or ("paper", "sparse")), warm=args.warm, steps=args.steps), args.out)
     return 0
 
 

@@ -205,3 +205,18 @@ def test_step_profile_parts_and_report(quick_bundle, monkeypatch):
     table = gpu_check.format_gpu_table({"profile": prof, "step_ab": ab})
     assert "step profile, sparse: host ms per phase | render" in table
     assert "| step A/B in one process (paper, sparse, sparse_no_dropout, sparse_no_opacity_reg)" in table
+
+
+def test_gpu_scripts_refuse_a_folder_that_is_not_a_prepared_cell(tmp_path, monkeypatch, quick_bundle):
+    """gsplat_native.py and profile_step.py say in one line what is missing (CUDA, or a cell
+    made by bench_cell.py --prepare-only) and write their JSON only where --out says."""
+    from benchmarks.gsplat_native import emit, preflight
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert preflight(quick_bundle, "x") == "x: needs a CUDA GPU"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    msg = preflight(tmp_path, "profile_step")
+    assert msg.startswith(f"profile_step: {tmp_path} is not a prepared cell") and "\n" not in msg
+    assert preflight(quick_bundle, "x") is None
+    emit({"a": 1.5}, tmp_path / "r.json")
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1.5}
