@@ -155,10 +155,10 @@ def _radii_3dgs(conics: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
         visible: [N] bool; other rows may hold anything (gsplat leaves them unwritten).
 
     Returns:
-        (radii [N] int32, visible [N] bool): :func:`splat_train.projection.screen_radius` of the
-        covariance [[C, -B], [-B, A]] / d, d = A C - B^2 (its determinant is 1 / d), computed in
-        float64, 0 where not visible; and
-        ``visible`` without the rows whose conic is degenerate (d not finite and > 0).
+        radii [N] int32: :func:`splat_train.projection.screen_radius` of the covariance
+        [[C, -B], [-B, A]] / d, d = A C - B^2 (its determinant is 1 / d), computed in float64,
+        0 where not visible; visible [N] bool: ``visible`` less the rows whose conic is
+        degenerate (d not finite and > 0).
     """
     A, B, C = conics.double().unbind(-1)
     det = A * C - B * B

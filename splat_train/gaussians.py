@@ -83,14 +83,12 @@ def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, exte
     return torch.optim.Adam(groups, lr=0.0, eps=cfg.adam_eps, fused=fused or None)
 
 
-def adam_step(opt: torch.optim.Adam) -> str:
+def adam_step(opt: torch.optim.Adam) -> None:
     """One step of the trainer's Adam by the fastest path that applies: torch's fused kernel
-    called directly (:func:`fused_adam_step`, off the CPU), the C++ kernel on the CPU
-    (:func:`splat_train.cpu.optim.adam_step`), else ``opt.step()``. Returns which ran:
-    "fused", "cpu-kernel" or "step"."""
-    if fused_adam_step(opt):
-        return "fused"
-    return "cpu-kernel" if cpu_optim.adam_step(opt) else "step"
+    called directly (:func:`fused_adam_step`, off the CPU), else the C++ kernel on the CPU
+    (:func:`splat_train.cpu.optim.adam_step`, which runs ``opt.step()`` where it does not apply)."""
+    if not fused_adam_step(opt):
+        cpu_optim.adam_step(opt)
 
 
 def fused_adam_step(opt: torch.optim.Adam, devices: tuple[str, ...] = ("cuda",)) -> bool:
