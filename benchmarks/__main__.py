@@ -385,6 +385,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stages", type=Path, metavar="DIR", default=None,
                    help="the --gpu parts workflow_cell and vggt_cli from a folder of "
                         "`python benchmarks/gpu_stages.py prepare DIR` (skipped without it)")
+    p.add_argument("--gpu-agree-cell", type=Path, metavar="DIR", default=None,
+                   help="the --gpu part backend_agree from a copy of a sparse-view grid cell "
+                        "(scripts/gpu_bundle.sh makes .gpu_agree; benchmarks/backend_agree.py)")
     p.add_argument("--gpu-parts", default=None,
                    help="comma list of --gpu parts, run in this order (default: all, see benchmarks/gpu_check.py)")
     args = p.parse_args(argv)
@@ -400,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             p.error(f"--gpu-parts: unknown {sorted(unknown)}; choose from {', '.join(gpu_check.PARTS)}")
         return gpu_check.run_cli(args.out, args.gpu_iterations, machine_info, cell_prepared=args.cell_prepared,
-                                 stages=args.stages, parts=parts)
+                                 stages=args.stages, parts=parts, agree_cell=args.gpu_agree_cell)
     if args.compare and len(args.compare) > 2:
         p.error("--compare takes OLD.json or OLD.json NEW.json")
     if args.compare and len(args.compare) == 2:

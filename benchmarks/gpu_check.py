@@ -236,10 +236,41 @@ def gsplat_build(device: str) -> dict:
             "max_jobs": os.environ.get("MAX_JOBS")}
 
 
+def gsplat_build_marker(marker: str) -> int:
+    """:func:`gsplat_build` in a process of its own (scripts/gpu_run.sh's background build),
+    its result or its error written to ``marker`` when it ends, failed or not (atomically: the
+    part that waits for the file reads it whole); exit status 0 or 1."""
+    from camio.atomic import write_json
+
+    try:
+        res = gsplat_build("cuda")
+    except Exception:  # noqa: BLE001  (the waiting part reports it)
+        res = {"error": traceback.format_exc()[-3000:]}
+    write_json(marker, res)
+    print(json.dumps(res), flush=True)
+    return 1 if "error" in res else 0
+
+
 PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
-         "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames")
+         "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames", "vggt_many", "backend_agree",
+         "vggt_search")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
+# vggt_many: the upstream model's frame count on 80 GB, run for real after a 12-frame warm-up
+VGGT_MANY_FRAMES = 1000
+# vggt_search: the probe search from here up (doubling steps), bisected to the resolution
+VGGT_SEARCH_FROM, VGGT_SEARCH_STEP, VGGT_SEARCH_RESOLUTION = 2000, 1000, 250
+
+
+def _run_deadline(budget_s: float, reserve_s: float) -> float:
+    """A ``time.time()`` deadline: ``budget_s`` from now, and no later than ``GPU_RUN_DEADLINE``
+    (a Unix time, when set: the end of a lent machine's time) less ``reserve_s``."""
+    import os
+
+    end = time.time() + budget_s
+    if os.environ.get("GPU_RUN_DEADLINE"):
+        end = min(end, float(os.environ["GPU_RUN_DEADLINE"]) - reserve_s)
+    return end
 
 
 def step_profile(prepared: Path | None) -> dict:
@@ -276,9 +307,73 @@ def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = Non
                        search_resolution=50)
 
 
+def vggt_many_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
+    """benchmarks/vggt_frames.py at 12 and :data:`VGGT_MANY_FRAMES` frames, real and probed, no
+    search (``vggt_search`` does that): the upstream figure's frame count, timed."""
+    from benchmarks.vggt_frames import vggt_frames
+
+    end = _run_deadline(float("inf"), 60.0)
+    return vggt_frames(device, deadline_s=time.perf_counter() + (end - time.time()), counts=(12, VGGT_MANY_FRAMES),
+                       on_result=on_result, search_max=0, bigger=())
+
+
+def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
+    """The probe search for the largest frame count that fits, from :data:`VGGT_SEARCH_FROM` up,
+    with the caching allocator's expandable segments on (the search's tensors are GB each, and
+    a fragmented pool failed below the linear law's count); deadline as ``vggt_frames``."""
+    from benchmarks.vggt_frames import vggt_frames
+
+    setting = "expandable_segments:True"
+    try:
+        torch.cuda.memory._set_allocator_settings(setting)
+    except (AttributeError, RuntimeError) as exc:
+        setting = f"default (setting expandable segments failed: {exc})"
+    end = _run_deadline(float("inf"), 90.0)
+    try:
+        res = vggt_frames(device, deadline_s=time.perf_counter() + (end - time.time()), counts=(12,),
+                          on_result=on_result, search_from=VGGT_SEARCH_FROM, search_step=VGGT_SEARCH_STEP,
+                          search_resolution=VGGT_SEARCH_RESOLUTION, search_from_prediction=False, bigger=())
+    finally:
+        if setting.startswith("expandable"):
+            torch.cuda.memory._set_allocator_settings("expandable_segments:False")
+    res["allocator"] = setting
+    return res
+
+
+def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | None = None) -> dict:
+    """benchmarks/backend_agree.py on the carried grid cell (``--gpu-agree-cell``): gsplat on
+    CUDA against the grid's CPU records. Waits first for ``GSPLAT_BUILD_MARKER`` (a file
+    scripts/gpu_run.sh writes when its background JIT build of gsplat ends: importing gsplat
+    while it builds would remove the build folder)."""
+    import os
+
+    from benchmarks.backend_agree import backend_agree
+    from benchmarks.sparse_views.__main__ import RECORDS
+
+    if cell is None:
+        raise ValueError("the backend comparison needs a grid cell (--gpu-agree-cell)")
+    end = _run_deadline(float("inf"), 30.0)
+    marker = os.environ.get("GSPLAT_BUILD_MARKER")
+    waited = time.perf_counter()
+    while marker and not Path(marker).exists() and time.time() < end:
+        time.sleep(1.0)
+    waited = time.perf_counter() - waited
+    build = None
+    if marker:
+        if not Path(marker).exists():
+            raise RuntimeError(f"gsplat's background build wrote no {marker} before the deadline")
+        build = json.loads(Path(marker).read_text())
+        if "error" in build:
+            raise RuntimeError(f"gsplat's background build failed:\n{build['error']}")
+    name = json.loads((Path(cell) / "cell.json").read_text())["name"]
+    res = backend_agree(Path(cell), name, records=RECORDS / "runs", deadline=end, on_result=on_result)
+    res["waited_for_build_s"], res["gsplat_build"] = waited, build
+    return res
+
+
 def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PARTS,
             on_part: Callable[[dict], None] | None = None, cell_prepared: Path | None = None,
-            stages: Path | None = None) -> dict:
+            stages: Path | None = None, agree_cell: Path | None = None) -> dict:
     """Run the parts on CUDA in the order given (each independent: a failure is recorded as
     ``{"error": ...}``); ``on_part(report)`` after each one (the caller saves it: a run cut off
     by a time limit keeps the parts done). ``workflow_cell`` and ``vggt_cli`` need ``stages``
@@ -302,7 +397,10 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
            "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse"),
            "profile": lambda _dev: step_profile(cell_prepared),
            "step_ab": lambda _dev: step_ab(cell_prepared),
-           "vggt_frames": lambda dev: vggt_frames_part(dev, on_result=_partial("vggt_frames"))}
+           "vggt_frames": lambda dev: vggt_frames_part(dev, on_result=_partial("vggt_frames")),
+           "vggt_many": lambda dev: vggt_many_part(dev, on_result=_partial("vggt_many")),
+           "vggt_search": lambda dev: vggt_search_part(dev, on_result=_partial("vggt_search")),
+           "backend_agree": lambda _dev: backend_agree_part(agree_cell, on_result=_partial("backend_agree"))}
     unknown = set(parts) - set(fns)
     if unknown:
         raise ValueError(f"unknown parts {sorted(unknown)}; choose from {', '.join(PARTS)}")
@@ -451,7 +549,7 @@ def format_gpu_table(r: dict) -> str:
 
 
 def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_prepared: Path | None = None,
-            stages: Path | None = None, parts: tuple[str, ...] = PARTS) -> int:
+            stages: Path | None = None, parts: tuple[str, ...] = PARTS, agree_cell: Path | None = None) -> int:
     """``python -m benchmarks --gpu``: every part, JSON + Markdown into ``out``, the table printed.
     Exits 2 with a message when torch sees no CUDA device."""
     if not torch.cuda.is_available():
@@ -472,7 +570,8 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_pr
         stem.with_suffix(".md").write_text(table + "\n")
         return table
 
-    report = run_gpu(iterations or CELL_ITERATIONS, parts, on_part=save, cell_prepared=cell_prepared, stages=stages)
+    report = run_gpu(iterations or CELL_ITERATIONS, parts, on_part=save, cell_prepared=cell_prepared, stages=stages,
+                     agree_cell=agree_cell)
     table = save(report)
     print(table)
     log.info("saved %s.json and %s.md", stem, stem)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.backend_agree import backend_agree
 from benchmarks.sparse_views import protocol
 from benchmarks.sparse_views.runs import RECORD_KEYS
 from benchmarks.sparse_views.summary import write_summary
@@ -119,6 +120,19 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert 5 < rec["psnr"] < 60 and 0 < rec["ssim"] <= 1 and rec["curve"]["psnr"]
     again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     assert again.returncode == 0 and "0 runs to do" in again.stdout
+    # the GPU check's backend comparison, on the CPU against itself: the cell packed by its CLI,
+    # the run trained again and set beside this record (same kernel and seed: the same result)
+    pack = subprocess.run([sys.executable, "-m", "benchmarks.backend_agree", "pack", str(tmp_path / "packed"), "--scene",
+                           "tiny", "--protocol", str(f), "--work", str(tmp_path / "w")],
+                          cwd=REPO, capture_output=True, text=True)
+    assert pack.returncode == 0, pack.stderr
+    assert json.loads((tmp_path / "packed" / "cell.json").read_text())["name"] == "tiny_n3"
+    agree = backend_agree(tmp_path / "packed", "tiny_n3", device="cpu", rasterizer="cpu", runs=(("paper", 0),),
+                          iterations=20, records=tmp_path / "rec" / "runs")
+    (run,) = agree["runs"]
+    assert run["record"]["path"] == rec_path.name and run["record"]["backend"] == run["this"]["backend"] == "cpu"
+    assert run["this"]["at_iteration"] == run["record"]["at_iteration"] == 20
+    assert abs(run["psnr_diff"]) < 0.05 and agree["by_recipe"]["paper"]["seeds"] == [0]
     # the same name with other recipe values: the kept record, then (record removed) the kept
     # model, are refused by name, never reused
     changed = [*cmd[:cmd.index("paper")], 'paper={"recipe": "paper", "densify_grad_threshold": 0.001}',

@@ -61,9 +61,13 @@ def run_name(scene: str, n: int, recipe: str, seed: int, iterations: int) -> str
 
 
 def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, iterations: int,
-                    eval_every: int, config: dict | None = None, kernel_threads: int = 0) -> dict:
+                    eval_every: int, config: dict | None = None, kernel_threads: int = 0,
+                    train_args: tuple[str, ...] = (), score: bool = True) -> dict:
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
-    exists, then score the final model unless its metrics.json exists; return the measures."""
+    exists, then score the final model unless its metrics.json exists; return the measures.
+    ``train_args``: more ``python -m splat_train`` arguments (the GPU check's ``--device cuda
+    --rasterizer gsplat``); ``score=False``: training only (``metrics`` None; the held-out
+    curve in train.json still has the final iteration's PSNR and SSIM)."""
     logf = out.parent / f"{out.name}.log"
     want = resolved_values(recipe, config or {}, iterations)
     if (out / "train.json").is_file():
@@ -78,7 +82,9 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
             "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
             "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
             "--seed", str(seed), "--eval-every", str(eval_every), "--checkpoint-every", str(iterations),
-            "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg)], logf)
+            "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg), *train_args], logf)
+    if not score:
+        return {"train": json.loads((out / "train.json").read_text()), "metrics": None, "values": want}
     metrics = out / "final" / "metrics.json"
     if not metrics.is_file():
         renders, gt = out / "final" / "renders", out / "final" / "gt"
