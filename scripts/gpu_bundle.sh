@@ -14,7 +14,10 @@
 #             here, ~2 MB (benchmarks/bench_cell.py --prepare-only), so the GPU machine needs
 #             neither the real scenes nor open3d;
 # .gpu_wf/    config.yaml's synthetic oracle n = 3 cell run by Snakemake here, its inputs and
-#             results (~1 MB, benchmarks/gpu_stages.py prepare), for the stage commands on CUDA.
+#             results (~1 MB, benchmarks/gpu_stages.py prepare), for the stage commands on CUDA;
+# .gpu_agree/ the sparse-view grid's fern n = 3 cell (~2.6 MB, python -m benchmarks.backend_agree
+#             pack; its work folder is $AGREE_WORK, default /tmp/gpu_agree_work), for the part
+#             backend_agree; skipped with a line when the grid's fern data is not here.
 # Then, on the GPU machine, in the repository root (one command; it prints what it measured
 # after each part and saves the JSON + table after each part, see benchmarks/README.md):
 #
@@ -32,7 +35,7 @@ for p in manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux_2_27_x86_64 manyli
     PLATFORMS+=(--platform "$p")
 done
 
-rm -rf .whl.partial .gpu_cell .gpu_wf
+rm -rf .whl.partial .gpu_cell .gpu_wf .gpu_agree
 mkdir -p .whl.partial
 echo "gpu_bundle: downloading gsplat==$GSPLAT pycolmap==$(version pycolmap) OpenImageIO==$(version OpenImageIO) (cp312)"
 "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -53,11 +56,15 @@ echo "gpu_bundle: preparing the fern n = 3 cell's CPU stages into .gpu_cell"
 echo "gpu_bundle: running config.yaml's synthetic oracle n = 3 cell with snakemake into .gpu_wf"
 "$PY" benchmarks/gpu_stages.py prepare .gpu_wf
 
+echo "gpu_bundle: packing the sparse-view grid's fern n = 3 cell into .gpu_agree"
+"$PY" -m benchmarks.backend_agree pack .gpu_agree --work "${AGREE_WORK:-/tmp/gpu_agree_work}" \
+    || echo "gpu_bundle: no .gpu_agree (the part backend_agree needs it)" >&2
+
 TREE=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
-EXTRA=$(du -cb .gpu_site .gpu_cell .gpu_wf | tail -1 | cut -f1)
+EXTRA=$(du -cb .gpu_site .gpu_cell .gpu_wf $( [ -d .gpu_agree ] && echo .gpu_agree) | tail -1 | cut -f1)
 TOTAL=$((TREE + EXTRA))
-echo "gpu_bundle: tracked files $((TREE / 1048576)) MiB + .gpu_site, .gpu_cell, .gpu_wf $((EXTRA / 1048576)) MiB = $((TOTAL / 1048576)) MiB"
+echo "gpu_bundle: tracked files $((TREE / 1048576)) MiB + .gpu_site, .gpu_cell, .gpu_wf, .gpu_agree $((EXTRA / 1048576)) MiB = $((TOTAL / 1048576)) MiB"
 if [ "$TOTAL" -gt $((64 * 1048576)) ]; then
     echo "gpu_bundle: WARNING: over the lent device's 64 MiB working-tree limit" >&2
 fi
-echo "gpu_bundle: done; carry .gpu_site, .gpu_cell and .gpu_wf, then: bash scripts/gpu_run.sh OUT_DIR"
+echo "gpu_bundle: done; carry .gpu_site, .gpu_cell, .gpu_wf and .gpu_agree, then: bash scripts/gpu_run.sh OUT_DIR"
