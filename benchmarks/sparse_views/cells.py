@@ -60,13 +60,11 @@ def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
 
 def seed_model(init_dir: Path) -> Path:
     """The COLMAP model the cell seeds from: ``posed``'s triangulated model, or its random-point
-    fallback model when the views triangulated no point at all (``status.json``)."""
-    status_path = init_dir / "status.json"
-    status = json.loads(status_path.read_text()) if status_path.is_file() else {}
-    fb = status.get("fallback") or {}
-    if status.get("points") == 0 and fb.get("applied") and fb.get("model"):
-        return init_dir / fb["model"]
-    return init_dir / "sparse" / "0"
+    fallback model when the views triangulated no point at all (``status.json``; the workflow's
+    rule, :func:`evaluation.initialisers.random_init.seed_model_dir`, with its benchmark switch)."""
+    from evaluation.initialisers.random_init import seed_model_dir
+
+    return seed_model_dir(init_dir, only_without_points=True)
 
 
 def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path) -> dict[str, Path]:

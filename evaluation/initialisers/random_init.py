@@ -289,13 +289,21 @@ def apply_fallback(init_dir: str | Path, min_points: int = FALLBACK_MIN_POINTS, 
     return status
 
 
-def seed_model_dir(init_dir: str | Path) -> Path:
+def seed_model_dir(init_dir: str | Path, *, only_without_points: bool = False) -> Path:
     """The COLMAP model the Bridge seeds from: the fallback's when status.json says it applied,
-    else ``init_dir/sparse/0``."""
+    else ``init_dir/sparse/0``.
+
+    ``only_without_points``: the fallback only when the views triangulated no point at all
+    (the sparse-view benchmark's cells keep a few measured points over random ones, and read a
+    missing status.json as no fallback)."""
     init_dir = Path(init_dir)
-    status = json.loads((init_dir / "status.json").read_text())
+    status_path = init_dir / "status.json"
+    if only_without_points and not status_path.is_file():
+        return init_dir / "sparse" / "0"
+    status = json.loads(status_path.read_text())
     fb = status.get("fallback") or {}
-    return init_dir / fb["model"] if fb.get("applied") else init_dir / "sparse" / "0"
+    use = fb.get("applied") and (not only_without_points or (status.get("points") == 0 and fb.get("model")))
+    return init_dir / fb["model"] if use else init_dir / "sparse" / "0"
 
 
 def add_fallback_args(parser) -> None:
