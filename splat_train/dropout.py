@@ -6,8 +6,12 @@ unchanged; p ramps linearly from 0 to the final rate over the run (:func:`dropou
 The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
 anything: only the training render of :meth:`splat_train.trainer.Trainer.step` goes through
 :class:`GaussianDropout`, the training part (:mod:`splat_train.train_part`) that applies
-:func:`gaussian_dropout`. Working on the opacities before the rasterizer, it acts the same
-through every backend.
+:func:`gaussian_dropout`. Working on the opacities before the rasterizer, it renders the same
+through every backend. One difference follows from gsplat's semantics: gsplat culls a Gaussian
+of opacity below 1/255 in its projection, so a dropped Gaussian is not counted as seen in that
+step's densification statistics there, while the CPU backends count it, as 3DGS's rasterizer
+(under DropGaussian's release) does (``splat_train._gsplat_backend``; the measured effect on a
+trained model is within the seed spread, docs/results.md).
 """
 
 from __future__ import annotations
