@@ -13,7 +13,10 @@ measures): ``vggt_fixtures`` (the official fixtures, float64 / float32, TF32 off
 ``benchmarks/gpu_stages.py prepare`` folder; skipped without ``--stages``), ``vggt_speed``
 (VGGT-1B, random weights), ``gsplat_build``, ``rasterizer_parity`` and ``rasterizer_timing``,
 ``cell`` and ``cell_sparse`` (benchmarks/bench_cell.py's fern n = 3 cell, 10,000 iterations on
-gsplat, ``paper`` and ``sparse`` recipes), ``native`` (the same cell, benchmarks/gsplat_native.py).
+gsplat, ``paper`` and ``sparse`` recipes), ``native`` (the same cell, benchmarks/gsplat_native.py),
+``profile`` and ``step_ab`` (benchmarks/profile_step.py), ``vggt_frames``, ``vggt_many`` and
+``vggt_search`` (benchmarks/vggt_frames.py: 12-200 frames, 1,000 frames, the largest count),
+``backend_agree`` (benchmarks/backend_agree.py, on a packed grid cell: ``--gpu-agree-cell``).
 Not part of the test suite (CI has no GPU); tests/test_benchmarks_gpu.py checks the CLI, the
 report and, on CPU stand-ins, the native loop and the stage commands.
 """
@@ -461,16 +464,25 @@ def format_gpu_table(r: dict) -> str:
         if dt in vc:
             rows.append((f"VGGT fixtures on CUDA, every chunked path forced on, {dt}, TF32 off: max abs err",
                          _f(vc[dt]["max"])))
-    vf = r.get("vggt_frames", {})
-    for rec in vf.get("real", []):
-        if rec.get("peak_mb") is not None:
-            rows.append((f"VGGT-1B {rec['frames']} frames {vf.get('size')} bf16, random weights: s, s per frame, peak MB",
-                         f"{_f(rec.get('wall_s'))}, {_f(rec.get('s_per_frame'))}, {_f(rec.get('peak_mb'), '.0f')}"))
-    search = vf.get("search", {})
-    if search.get("largest_fit_frames"):
-        rows.append(("VGGT-1B largest frame count that fits (memory probe), its peak MB; upstream",
-                     f"{search['largest_fit_frames']}, {_f(search.get('largest_fit_peak_mb'), '.0f')}; "
-                     f"{vf.get('upstream', {}).get('frames')} on {vf.get('upstream', {}).get('memory_gb')} GB"))
+    for part in ("vggt_frames", "vggt_many", "vggt_search"):
+        vf = r.get(part, {})
+        for rec in vf.get("real", []):
+            if rec.get("peak_mb") is not None:
+                rows.append((f"VGGT-1B {rec['frames']} frames {vf.get('size')} bf16, random weights: s, s per frame, "
+                             "peak MB", f"{_f(rec.get('wall_s'))}, {_f(rec.get('s_per_frame'))}, "
+                                        f"{_f(rec.get('peak_mb'), '.0f')}"))
+        search = vf.get("search", {})
+        if search.get("largest_fit_frames"):
+            rows.append(("VGGT-1B largest frame count that fits (memory probe), its peak MB; upstream",
+                         f"{search['largest_fit_frames']}, {_f(search.get('largest_fit_peak_mb'), '.0f')}; "
+                         f"{vf.get('upstream', {}).get('frames')} on {vf.get('upstream', {}).get('memory_gb')} GB"))
+    ba = r.get("backend_agree", {})
+    for recipe, b in ba.get("by_recipe", {}).items():
+        hw = "" if b.get("psnr_diff_hw95") is None else f" ± {_f(b['psnr_diff_hw95'], '.2f')}"
+        rows.append((f"{ba.get('rasterizer')} vs the grid's CPU records, {ba.get('cell')} {ba.get('iterations')} it, "
+                     f"{recipe}, seeds {b['seeds']}: final held-out PSNR",
+                     f"{_f(b['this_psnr'], '.2f')} vs {_f(b['record_psnr'], '.2f')} dB, "
+                     f"diff {_f(b['psnr_diff'], '+.2f')}{hw}"))
     vs = r.get("vggt_speed", {})
     if "bf16" in vs:
         rows.append((f"VGGT-1B forward, {vs['frames']} views {vs['size']}, camera + point heads, random weights: "

@@ -133,6 +133,10 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert run["record"]["path"] == rec_path.name and run["record"]["backend"] == run["this"]["backend"] == "cpu"
     assert run["this"]["at_iteration"] == run["record"]["at_iteration"] == 20
     assert abs(run["psnr_diff"]) < 0.05 and agree["by_recipe"]["paper"]["seeds"] == [0]
+    from benchmarks.gpu_check import format_gpu_table
+
+    assert "| cpu vs the grid's CPU records, tiny_n3 20 it, paper, seeds [0]: final held-out PSNR |" in \
+        format_gpu_table({"backend_agree": agree})
     # the same name with other recipe values: the kept record, then (record removed) the kept
     # model, are refused by name, never reused
     changed = [*cmd[:cmd.index("paper")], 'paper={"recipe": "paper", "densify_grad_threshold": 0.001}',
