@@ -198,6 +198,33 @@ def test_densify_statistic_same_units_for_gsplat_and_reference(fake_gsplat):
     torch.testing.assert_close(stats["gsplat"]["count"], stats["reference"]["count"])
 
 
+def test_a_dropped_gaussian_renders_alike_but_counts_as_seen_only_on_the_cpu_backends(fake_gsplat):
+    """The one documented way the backends differ under Gaussian dropout (splat_train/dropout.py):
+    a Gaussian whose opacity dropout zeroed blends nothing in either backend (same image, no
+    gradient), but gsplat culls it in its projection, so only the CPU backends count it in the
+    densification's visibility count, as 3DGS's rasterizer does under DropGaussian's release."""
+    from splat_train.dropout import gaussian_dropout
+
+    out, stats = {}, {}
+    for backend in ("reference", "gsplat"):
+        leaves, cw, K = make_scene(4, 3)
+        with torch.no_grad():  # the same mask for both: a fixed generator
+            leaves["opacities"].copy_(gaussian_dropout(leaves["opacities"], 0.3, torch.Generator().manual_seed(0)))
+        out[backend] = render(backend, leaves, cw, K, 3, 0.01)
+        out[backend]["rgb"].square().sum().backward()
+        state = DensifyStrategy.init_state(24)
+        DensifyStrategy.from_config(TrainConfig(recipe="paper", iterations=10000)).update_state(
+            state, out[backend]["means2d"].grad, out[backend]["radii"], out[backend]["visible"], W, H, 1)
+        stats[backend] = state
+        dropped = leaves["opacities"].detach() == 0
+    assert 3 <= int(dropped.sum()) <= 15
+    torch.testing.assert_close(out["gsplat"]["rgb"], out["reference"]["rgb"], **TOL)
+    seen_ref, seen_gs = stats["reference"]["count"] > 0, stats["gsplat"]["count"] > 0
+    assert seen_ref[dropped].any() and not seen_gs[dropped].any()
+    assert torch.equal(seen_ref[~dropped], seen_gs[~dropped])  # every other Gaussian alike
+    assert (stats["gsplat"]["grad2d"][dropped] == 0).all() and (stats["reference"]["grad2d"][dropped] == 0).all()
+
+
 # ------------------------------------------------------------------ trainer through the adapter
 SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, opacity_reset_every=100,
              sh_increase_every=10, checkpoint_every=24, eval_every=0,
