@@ -23,12 +23,30 @@ import time
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["ITERATIONS", "RUNS", "backend_agree", "cell_paths", "pack_cell"]
+__all__ = ["ITERATIONS", "RUNS", "attach_records", "backend_agree", "cell_paths", "pack_cell", "parse_runs"]
 
 # the issue's measure: final held-out PSNR within 0.3 dB at 3,000 iterations
 ITERATIONS = 3000
 # seed-major, the default recipe first: a run cut short by its deadline keeps whole comparisons
 RUNS = (("sparse", 0), ("paper", 0), ("sparse", 1), ("sparse", 2), ("paper", 1), ("paper", 2))
+
+
+def parse_runs(seeds: str, recipes: str = "sparse,paper") -> tuple[tuple[str, int], ...]:
+    """(recipe, seed) pairs, seed-major, from ``seeds`` ("0-14", "0,1,2" or a mix) and a comma
+    list of ``recipes`` (the GPU check reads them from ``AGREE_SEEDS`` / ``AGREE_RECIPES``)."""
+    from splat_train.recipes import RECIPE_NAMES
+
+    out = []
+    for part in filter(None, (x.strip() for x in seeds.split(","))):
+        lo, _, hi = part.partition("-")
+        if not lo.isdigit() or (hi and not hi.isdigit()) or (hi and int(hi) < int(lo)):
+            raise ValueError(f"seeds are N, N-M or a comma list of them, got {seeds!r}")
+        out += range(int(lo), int(hi or lo) + 1)
+    names = [r.strip() for r in recipes.split(",") if r.strip()]
+    bad = [r for r in names if r not in RECIPE_NAMES]
+    if bad or not names or not out:
+        raise ValueError(f"recipes from {list(RECIPE_NAMES)} and at least one seed, got {recipes!r} / {seeds!r}")
+    return tuple((r, seed) for seed in dict.fromkeys(out) for r in names)
 
 
 def cell_paths(cell: Path) -> dict[str, Path]:

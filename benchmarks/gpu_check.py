@@ -345,16 +345,20 @@ def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = Non
 
 def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | None = None) -> dict:
     """benchmarks/backend_agree.py on the carried grid cell (``--gpu-agree-cell``): gsplat on
-    CUDA against the grid's CPU records. Waits first for ``GSPLAT_BUILD_MARKER`` (a file
-    scripts/gpu_run.sh writes when its background JIT build of gsplat ends: importing gsplat
-    while it builds would remove the build folder)."""
+    CUDA against the grid's CPU records, the runs of :data:`benchmarks.backend_agree.RUNS` or of
+    ``AGREE_SEEDS`` ("0-14") and ``AGREE_RECIPES`` ("sparse,paper"). Waits first for
+    ``GSPLAT_BUILD_MARKER`` (a file scripts/gpu_run.sh writes when its background JIT build of
+    gsplat ends: importing gsplat while it builds would remove the build folder)."""
     import os
 
-    from benchmarks.backend_agree import backend_agree
+    from benchmarks.backend_agree import RUNS, backend_agree, parse_runs
     from benchmarks.sparse_views.__main__ import RECORDS
 
     if cell is None:
         raise ValueError("the backend comparison needs a grid cell (--gpu-agree-cell)")
+    runs = RUNS
+    if os.environ.get("AGREE_SEEDS") or os.environ.get("AGREE_RECIPES"):
+        runs = parse_runs(os.environ.get("AGREE_SEEDS", "0-2"), os.environ.get("AGREE_RECIPES", "sparse,paper"))
     end = _run_deadline(float("inf"), 30.0)
     marker = os.environ.get("GSPLAT_BUILD_MARKER")
     waited = time.perf_counter()
@@ -369,7 +373,7 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
         if "error" in build:
             raise RuntimeError(f"gsplat's background build failed:\n{build['error']}")
     name = json.loads((Path(cell) / "cell.json").read_text())["name"]
-    res = backend_agree(Path(cell), name, records=RECORDS / "runs", deadline=end, on_result=on_result)
+    res = backend_agree(Path(cell), name, runs=runs, records=RECORDS / "runs", deadline=end, on_result=on_result)
     res["waited_for_build_s"], res["gsplat_build"] = waited, build
     return res
 

@@ -168,3 +168,14 @@ def test_a_cell_seeds_from_the_random_fallback_only_when_its_views_triangulate_n
     assert seed_model(init) == init / "sparse" / "0"  # few points are still measured geometry
     (init / "status.json").write_text(json.dumps({"points": 0, "fallback": fallback}))
     assert seed_model(init) == init / "random_fallback" / "sparse" / "0"
+
+
+def test_backend_comparison_runs_are_seed_major_and_bad_lists_are_refused():
+    from benchmarks.backend_agree import RUNS, parse_runs
+
+    assert parse_runs("0-2", "sparse,paper")[:3] == (("sparse", 0), ("paper", 0), ("sparse", 1))
+    assert parse_runs("0,3-4", "sparse") == (("sparse", 0), ("sparse", 3), ("sparse", 4))
+    assert set(parse_runs("0-2")) == set(RUNS)
+    for seeds, recipes in (("x", "paper"), ("3-1", "paper"), ("0", "nope"), ("", "paper")):
+        with pytest.raises(ValueError):
+            parse_runs(seeds, recipes)
