@@ -261,8 +261,11 @@ PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_buil
 VGGT_FRAMES_BUDGET_S = 240.0
 # vggt_many: the upstream model's frame count on 80 GB, run for real after a 12-frame warm-up
 VGGT_MANY_FRAMES = 1000
-# vggt_search: the probe search from here up (doubling steps), bisected to the resolution
-VGGT_SEARCH_FROM, VGGT_SEARCH_STEP, VGGT_SEARCH_RESOLUTION = 2000, 1000, 250
+# vggt_search: the probe search from here up (doubling steps), bisected to the resolution. The
+# start is just under what the H100's 1,000-frame run predicts for 80 GB (20.9 MiB per frame
+# from 200 to 1,000 frames: ~3,670; docs/results.md); a start that does not fit is bisected
+# down from. Each probe near 3,500 frames takes ~1 min.
+VGGT_SEARCH_FROM, VGGT_SEARCH_STEP, VGGT_SEARCH_RESOLUTION = 3500, 250, 50
 
 
 def _run_deadline(budget_s: float, reserve_s: float) -> float:
