@@ -306,10 +306,8 @@ def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = Non
 
     from benchmarks.vggt_frames import vggt_frames
 
-    budget = float(os.environ.get("VGGT_FRAMES_BUDGET_S", VGGT_FRAMES_BUDGET_S))
-    if os.environ.get("GPU_RUN_DEADLINE"):
-        budget = min(budget, float(os.environ["GPU_RUN_DEADLINE"]) - time.time() - 60.0)
-    return vggt_frames(device, deadline_s=time.perf_counter() + budget, on_result=on_result,
+    end = _run_deadline(float(os.environ.get("VGGT_FRAMES_BUDGET_S", VGGT_FRAMES_BUDGET_S)), 60.0)
+    return vggt_frames(device, deadline_s=time.perf_counter() + (end - time.time()), on_result=on_result,
                        search_resolution=50)
 
 
@@ -325,13 +323,15 @@ def vggt_many_part(device: str, on_result: Callable[[dict], None] | None = None)
 
 def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
     """The probe search for the largest frame count that fits, from :data:`VGGT_SEARCH_FROM` up,
-    with the caching allocator's expandable segments on (the search's tensors are GB each, and
-    a fragmented pool failed below the linear law's count); deadline as ``vggt_frames``."""
+    with the caching allocator's expandable segments on (the search's tensors are GB each: a
+    fragmented pool must not be what stops it); deadline as ``vggt_frames``."""
     from benchmarks.vggt_frames import vggt_frames
 
+    # torch 2.11 names it torch._C._accelerator_setAllocatorSettings; older ones only the other
+    set_alloc = getattr(torch._C, "_accelerator_setAllocatorSettings", None) or torch.cuda.memory._set_allocator_settings
     setting = "expandable_segments:True"
     try:
-        torch.cuda.memory._set_allocator_settings(setting)
+        set_alloc(setting)
     except (AttributeError, RuntimeError) as exc:
         setting = f"default (setting expandable segments failed: {exc})"
     end = _run_deadline(float("inf"), 90.0)
@@ -341,7 +341,7 @@ def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = Non
                           search_resolution=VGGT_SEARCH_RESOLUTION, search_from_prediction=False, bigger=())
     finally:
         if setting.startswith("expandable"):
-            torch.cuda.memory._set_allocator_settings("expandable_segments:False")
+            set_alloc("expandable_segments:False")
     res["allocator"] = setting
     return res
 
