@@ -2,14 +2,19 @@
 # The GPU check in one command, on a GPU machine that has torch with CUDA but none of this
 # project's other packages and no network (the lent device: Python 3.12, torch 2.11 + cu130).
 # Prepare on any x86-64 machine first (bash scripts/gpu_bundle.sh: .gpu_site or .whl, .gpu_cell,
-# .gpu_wf), carry them, then in the repository root:
+# .gpu_wf, .gpu_agree), carry them, then in the repository root:
 #
 #   bash scripts/gpu_run.sh OUT_DIR [PARTS]      # PARTS: comma list (default: the training
 #                                                # profile, cells, gsplat's loop, VGGT frames)
 #
-# The parts run in the order of benchmarks/gpu_check.py PARTS (gsplat's CUDA kernels are
-# JIT-built by the part gsplat_build, ~1.5 min once per machine); the JSON + Markdown table
-# are saved after each part, so a run cut short keeps what it measured.
+# The parts run in the order given (gsplat's CUDA kernels are JIT-built by the part
+# gsplat_build, ~1.5 min once per machine, or beside the first parts with GSPLAT_BUILD_BG=1);
+# the JSON + Markdown table are saved after each part, so a run cut short keeps what it
+# measured. GPU_RUN_DEADLINE (a Unix time) keeps the VGGT parts and backend_agree from starting
+# work past it. For example, the open GPU measurements in one ~10-minute call:
+#
+#   GSPLAT_BUILD_BG=1 AGREE_SEEDS=3-9 AGREE_RECIPES=sparse GPU_RUN_DEADLINE=$(($(date +%s) + 570)) \
+#       bash scripts/gpu_run.sh OUT vggt_search,backend_agree
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUTDIR=${1:?usage: gpu_run.sh OUT_DIR [PARTS]}
