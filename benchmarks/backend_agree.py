@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ``... compare RESULT.json``: set a GPU check's backend_agree runs beside the grid's records."""
     p = argparse.ArgumentParser(description="The GPU check's backend comparison: pack a grid cell for it, or set "
                                             "its runs beside the grid's CPU records")
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="command", required=True)
     c = sub.add_parser("compare", help="attach the grid's records to the backend_agree part of a GPU check's "
                                        "JSON (or of a record) and print the comparison")
     c.add_argument("result", type=Path, help="benchmarks_gpu_*.json or benchmarks/records/gpu-*.json")
@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--data", type=Path, default=None, help="the grid's --data folder")
     k.add_argument("--protocol", type=Path, default=None, help="the grid's scenes file (default: its own)")
     args = p.parse_args(argv)
-    if args.cmd == "compare":
+    if args.command == "compare":
         return _compare_cli(args)
     try:
         out = pack_cell(args.dest, args.scene, args.n, args.work, args.data, args.protocol)
