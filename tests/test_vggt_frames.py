@@ -33,7 +33,7 @@ def aten_attention():
 
 def test_vggt_frames_cpu_structure(aten_attention):
     seen = []
-    r = vggt_frames("cpu", time.perf_counter() + 120, counts=(3, 2), config=_cfg(), width=56, height=42,
+    r = vggt_frames("cpu", time.perf_counter() + 600, counts=(3, 2), config=_cfg(), width=56, height=42,
                     search_from=4, search_step=2, search_max=5, bigger=(4, 6),
                     on_result=lambda d: seen.append(json.loads(json.dumps(d))))
     assert r["weights"] == WEIGHTS == "RANDOM (speed and memory only)"
@@ -97,7 +97,7 @@ def test_vggt_frames_search_finds_the_largest_count(monkeypatch):
                 "output_dtypes": {}}
 
     monkeypatch.setattr(vf._Meter, "run", run)
-    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+    r = vggt_frames("cpu", time.perf_counter() + 600, counts=(2, 3), config=_cfg(), width=56, height=42,
                     search_from=4, search_step=2, search_resolution=1, search_max=100, bigger=(12, 9))
     tries = [(t["frames"], t["fits"]) for t in r["search"]["tries"]]
     assert tries == [(4, True), (6, True), (10, False), (8, True), (9, True)]
@@ -148,7 +148,7 @@ def test_vggt_frames_cuda_branch_with_stand_ins(monkeypatch):
     monkeypatch.setattr(torch.cuda, "get_device_properties", lambda *a: type("P", (), {"total_memory": 80 * 1024 * mib})())
     monkeypatch.setattr(vf, "_is_cuda", lambda device: True)
     monkeypatch.setattr(vf, "_build", build_hooked)
-    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+    r = vggt_frames("cpu", time.perf_counter() + 600, counts=(2, 3), config=_cfg(), width=56, height=42,
                     search_resolution=1, bigger=(12, 9))
     assert r["device_name"] == "stand-in GPU" and r["memory_meter"].startswith("torch.cuda.max_memory_allocated")
     assert r["fit_memory"]["intercept_mb"] == pytest.approx(100) and r["fit_memory"]["mb_per_frame"] == pytest.approx(10)
@@ -179,7 +179,7 @@ def test_vggt_frames_records_failures_and_goes_on(monkeypatch):
         return real_run(self, n, size, probe)
 
     monkeypatch.setattr(vf._Meter, "run", run)
-    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3, 4), config=_cfg(), width=56, height=42, bigger=())
+    r = vggt_frames("cpu", time.perf_counter() + 600, counts=(2, 3, 4), config=_cfg(), width=56, height=42, bigger=())
     assert [(x["frames"], x["oom"], "error" in x) for x in r["real"]] == [(2, False, False), (3, False, True)]
     assert "illegal stand-in" in r["real"][1]["error"]
     assert [(x["frames"], x["oom"]) for x in r["probe"]] == [(2, False), (3, True), (4, False)]
@@ -203,7 +203,7 @@ def test_vggt_frames_search_bisects_below_a_start_that_does_not_fit(monkeypatch)
                 "output_dtypes": {}}
 
     monkeypatch.setattr(vf._Meter, "run", run)
-    r = vggt_frames("cpu", time.perf_counter() + 60, counts=(2, 3), config=_cfg(), width=56, height=42,
+    r = vggt_frames("cpu", time.perf_counter() + 600, counts=(2, 3), config=_cfg(), width=56, height=42,
                     search_from=20, search_step=2, search_resolution=1, search_max=100, bigger=())
     tries = r["search"]["tries"]
     assert [(t["frames"], t["fits"]) for t in tries] == [(20, False), (11, False), (7, True), (9, True), (10, False)]
