@@ -453,6 +453,13 @@ def _cell_rows(c: dict, label: str) -> list[tuple[str, str]]:
              _f(sum(c["stages_s"].get(k, 0.0) for k in ("train", "render", "metrics")), ".1f"))]
 
 
+def _all_records_text(a: dict | None) -> str:
+    if not a:
+        return ""
+    hw = "" if a.get("psnr_diff_hw95") is None else f" ± {_f(a['psnr_diff_hw95'], '.2f')}"
+    return f"; against all {a['seeds']} CPU records ({_f(a['mean'], '.2f')} dB): {_f(a['psnr_diff'], '+.2f')}{hw} (Welch)"
+
+
 def format_gpu_table(r: dict) -> str:
     """The report as a Markdown table (one row per measured number)."""
     rows = [("device", r.get("device")), ("torch / CUDA / gsplat", f"{r.get('torch')} / {r.get('cuda')} / {r.get('gsplat')}")]
@@ -489,7 +496,7 @@ def format_gpu_table(r: dict) -> str:
         rows.append((f"{ba.get('rasterizer')} vs the grid's CPU records, {ba.get('cell')} {ba.get('iterations')} it, "
                      f"{recipe}, seeds {b['seeds']}: final held-out PSNR",
                      f"{_f(b['this_psnr'], '.2f')} vs {_f(b['record_psnr'], '.2f')} dB, "
-                     f"diff {_f(b['psnr_diff'], '+.2f')}{hw}"))
+                     f"diff {_f(b['psnr_diff'], '+.2f')}{hw}" + _all_records_text(b.get("all_records"))))
     vs = r.get("vggt_speed", {})
     if "bf16" in vs:
         rows.append((f"VGGT-1B forward, {vs['frames']} views {vs['size']}, camera + point heads, random weights: "

@@ -179,3 +179,22 @@ def test_backend_comparison_runs_are_seed_major_and_bad_lists_are_refused():
     for seeds, recipes in (("x", "paper"), ("3-1", "paper"), ("0", "nope"), ("", "paper")):
         with pytest.raises(ValueError):
             parse_runs(seeds, recipes)
+
+
+def test_backend_comparison_against_every_record_of_the_recipe(tmp_path):
+    """attach_records pairs runs by seed and also sets them against every record of the same
+    cell, recipe and iterations (other seeds, unpaired: Welch), never against another recipe."""
+    from benchmarks.backend_agree import attach_records
+    from evaluation.study.stats import welch_interval
+
+    cpu = {0: 21.0, 1: 21.4, 2: 20.9, 3: 21.3}
+    for seed, psnr in cpu.items():
+        rec = {"recipe": "sparse", "curve": {"iterations": [10, 20], "psnr": [15.0, psnr]}, "backend": "cpu"}
+        (tmp_path / f"c_n3_sparse_s{seed}_i20.json").write_text(json.dumps(rec))
+    (tmp_path / "c_n3_paper_s0_i20.json").write_text(json.dumps({"recipe": "paper", "curve": {"psnr": [9.0]}}))
+    runs = [{"recipe": "sparse", "seed": s, "this": {"psnr": p}} for s, p in ((0, 20.5), (1, 20.9))]
+    res = attach_records({"cell": "c_n3", "iterations": 20, "runs": runs}, tmp_path)
+    assert [r["psnr_diff"] for r in res["runs"]] == [pytest.approx(-0.5), pytest.approx(-0.5)]
+    a = res["by_recipe"]["sparse"]["all_records"]
+    diff, hw, _df = welch_interval([20.5, 20.9], list(cpu.values()))
+    assert a["seeds"] == 4 and a["psnr_diff"] == pytest.approx(diff) and a["psnr_diff_hw95"] == pytest.approx(hw)

@@ -140,6 +140,25 @@ def test_t_interval_against_float64_reference():
     assert t_interval([])[2] == 0
 
 
+def test_welch_interval_against_float64_reference():
+    """Unpaired difference with Welch's degrees of freedom, against the formulas written out
+    (3 and 5 samples: df = 2.38..., the t quantile taken from scipy at that df)."""
+    from scipy.stats import t
+
+    from evaluation.study.stats import welch_interval
+
+    a, b = [20.76, 19.52, 19.91], [20.06, 19.26, 19.78, 19.94, 20.17]
+    ma, mb = sum(a) / 3, sum(b) / 5
+    va = sum((v - ma) ** 2 for v in a) / 2 / 3
+    vb = sum((v - mb) ** 2 for v in b) / 4 / 5
+    df = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 4)
+    diff, hw, got_df = welch_interval(a, b)
+    assert diff == pytest.approx(ma - mb, rel=1e-14) and got_df == pytest.approx(df, rel=1e-12)
+    assert hw == pytest.approx(t.ppf(0.975, df) * math.sqrt(va + vb), rel=1e-12)
+    assert math.isnan(welch_interval([1.0], [1.0, 2.0])[1]) and welch_interval([1.0, 1.0], [2.0, 2.0])[1] == 0.0
+    assert math.isnan(welch_interval([], [1.0, 2.0])[0])
+
+
 def _runs() -> pd.DataFrame:
     rows = []
     for seed, (g, u) in enumerate([(20.0, 19.0), (21.0, 19.5), (22.0, 20.5), (20.5, 20.0), (21.5, 20.0)]):

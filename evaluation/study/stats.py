@@ -15,7 +15,7 @@ import pandas as pd
 
 from evaluation.study.collect import DIFF_MEASURES, MEASURES, POSE_MEASURES
 
-__all__ = ["t_interval", "summarise", "paired_differences", "mean_curves"]
+__all__ = ["t_interval", "welch_interval", "summarise", "paired_differences", "mean_curves"]
 
 
 def t_interval(values) -> tuple[float, float, int]:
@@ -31,6 +31,26 @@ def t_interval(values) -> tuple[float, float, int]:
         return float(x[0]), math.nan, 1
     half = float(t.ppf(0.975, k - 1) * x.std(ddof=1) / math.sqrt(k))
     return float(x.mean()), half, k
+
+
+def welch_interval(a, b) -> tuple[float, float, float]:
+    """(mean(a) - mean(b), 95 % half-width, Welch-Satterthwaite degrees of freedom) for two
+    unpaired samples of different size and spread (finite values; each needs k >= 2, else the
+    half-width and df are NaN): half = t_{0.975, df} sqrt(var_a / k_a + var_b / k_b)."""
+    from scipy.stats import t
+
+    x, y = (np.asarray(v, np.float64) for v in (a, b))
+    x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+    if len(x) == 0 or len(y) == 0:
+        return math.nan, math.nan, math.nan
+    diff = float(x.mean() - y.mean())
+    if len(x) < 2 or len(y) < 2:
+        return diff, math.nan, math.nan
+    va, vb = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
+    if va + vb == 0:
+        return diff, 0.0, math.inf
+    df = (va + vb) ** 2 / (va ** 2 / (len(x) - 1) + vb ** 2 / (len(y) - 1))
+    return diff, float(t.ppf(0.975, df) * math.sqrt(va + vb)), float(df)
 
 
 def summarise(runs: pd.DataFrame, measures=tuple(MEASURES) + tuple(POSE_MEASURES)) -> pd.DataFrame:
