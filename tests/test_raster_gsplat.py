@@ -198,6 +198,33 @@ def test_densify_statistic_same_units_for_gsplat_and_reference(fake_gsplat):
     torch.testing.assert_close(stats["gsplat"]["count"], stats["reference"]["count"])
 
 
+def test_gsplat_gets_opacities_clamped_at_3dgs_alpha_clamp(fake_gsplat, monkeypatch):
+    """gsplat's kernels clamp alpha at 0.999, 3DGS's at 0.99: the adapter passes opacities
+    clamped at 0.99 (dropout's survivors reach 1 / (1 - p) > 1), the others unchanged, and no
+    gradient reaches an opacity above the clamp (the images differ only in the falloff of a
+    Gaussian above 0.99: 0.99 G here, min(0.99, opacity G) in the reference)."""
+    seen = {}
+
+    def spy(means, quats, scales, opacities, *a, **k):
+        seen["op"] = opacities.detach().clone()
+        return _fake_gsplat.rasterization(means, quats, scales, opacities, *a, **k)
+
+    monkeypatch.setattr(_gsplat_backend, "_rasterization", lambda: spy)
+    out = {}
+    for backend in ("reference", "gsplat"):
+        leaves, cw, K = make_scene(5, None)
+        with torch.no_grad():
+            leaves["opacities"][:4] = torch.tensor([1.25, 0.995, 0.99, 0.5], dtype=D)
+        out[backend] = render(backend, leaves, cw, K, None, 0.01)
+        out[backend]["rgb"].sum().backward()
+        out[backend]["grad"] = leaves["opacities"].grad
+    assert seen["op"].max() == _gsplat_backend.OPACITY_MAX == 0.99
+    torch.testing.assert_close(seen["op"][:4], torch.tensor([0.99, 0.99, 0.99, 0.5], dtype=D))
+    torch.testing.assert_close(seen["op"][4:], make_scene(5, None)[0]["opacities"].detach()[4:])
+    assert (out["gsplat"]["grad"][:2] == 0).all() and (out["gsplat"]["grad"][2:4] != 0).all()
+    assert (out["reference"]["grad"][:2] != 0).any()  # 3DGS's falloff below the clamp still learns
+
+
 def test_a_dropped_gaussian_renders_alike_but_counts_as_seen_only_on_the_cpu_backends(fake_gsplat):
     """The one documented way the backends differ under Gaussian dropout (splat_train/dropout.py):
     a Gaussian whose opacity dropout zeroed blends nothing in either backend (same image, no
