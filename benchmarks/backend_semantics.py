@@ -14,7 +14,7 @@ with the CPU kernel and one difference at a time switched to gsplat's:
                   adapter does (``splat_train._gsplat_backend.OPACITY_MAX``)
 
     python -m benchmarks.backend_semantics --cell W/llff__fern_n3 --variants visibility clamp999 \
-        --seeds 0-14 --recipe sparse --out backend_semantics.json
+        --seeds $(seq 0 14) --recipe sparse --out backend_semantics.json
 
 Each run is ``python -m splat_train`` with the grid's arguments (3,000 iterations, held-out curve
 every 300) in a process of its own; the JSON (rewritten after every run) holds each run's final
@@ -84,12 +84,6 @@ def patched_tree(dest: Path) -> Path:
         raise RuntimeError(f"{src}: the alpha clamp constant is not where this experiment expects it")
     src.write_text(text.replace(*KERNEL_CONSTANT))
     return dest
-
-
-def parse_seeds(text: str) -> list[int]:
-    from benchmarks.backend_agree import parse_runs
-
-    return [seed for _recipe, seed in parse_runs(text, "paper")]
 
 
 def _final_psnr(train_json: Path) -> float:
@@ -167,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cell", type=Path, required=True, help="a sparse-view grid cell folder (or one packed by "
                                                              "python -m benchmarks.backend_agree pack)")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    p.add_argument("--seeds", default="0-14", help="N, N-M or a comma list (default %(default)s)")
+    p.add_argument("--seeds", nargs="+", type=int, default=list(range(15)), help="seeds (default 0 to 14)")
     p.add_argument("--recipe", default="sparse")
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--work", type=Path, default=None, help="run folders (default: a temporary folder)")
@@ -175,10 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the grid's records, whose runs stand for 'cpu' (default %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="summary JSON, rewritten after every run")
     args = p.parse_args(argv)
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        p.error(str(exc))
+    seeds = list(dict.fromkeys(args.seeds))
     with tempfile.TemporaryDirectory() as tmp:
         res = run(args.cell, list(args.variants), seeds, args.recipe, args.iterations,
                   args.work or Path(tmp), args.out, args.records)

@@ -133,6 +133,15 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert run["record"]["path"] == rec_path.name and run["record"]["backend"] == run["this"]["backend"] == "cpu"
     assert run["this"]["at_iteration"] == run["record"]["at_iteration"] == 20
     assert abs(run["psnr_diff"]) < 0.05 and agree["by_recipe"]["paper"]["seeds"] == [0]
+    # each of gsplat's semantics emulated on the CPU kernel, through its command line
+    sem = subprocess.run([sys.executable, "-m", "benchmarks.backend_semantics", "--cell", str(tmp_path / "packed"),
+                          "--variants", "cpu", "visibility", "--seeds", "0", "--iterations", "20", "--records",
+                          str(tmp_path / "rec" / "runs"), "--out", str(tmp_path / "sem.json")],
+                         cwd=REPO, capture_output=True, text=True)
+    assert sem.returncode == 0, sem.stderr
+    summary = json.loads((tmp_path / "sem.json").read_text())["summary"]
+    assert summary["cpu"]["seeds"] == summary["visibility"]["seeds"] == 1
+    assert 5 < summary["visibility"]["mean"] < 60 and "minus_cpu" in summary["visibility"]
     from benchmarks.gpu_check import format_gpu_table
 
     assert "| cpu vs the grid's CPU records, tiny_n3 20 it, paper, seeds [0]: final held-out PSNR |" in \
