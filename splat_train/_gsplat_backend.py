@@ -21,8 +21,7 @@ CUDA kernels):
   after an opacity reset to 0.01 they are ~2.4x smaller and the densification's screen-size
   prune (radius > 20 px) would almost never fire; the 3DGS radius keeps that prune as the
   paper and the CPU backends have it. In float32 the round trip through the conic can move
-  a radius that lies within rounding of an integer by one pixel.
-
+  a radius that lies within rounding of an integer by one pixel;
 * ``opacities`` are passed clamped at :data:`OPACITY_MAX` = 0.99 (:func:`clamp_opacities`):
   gsplat's kernels clamp each Gaussian's alpha at 0.999, 3DGS and our CPU backends at 0.99
   (:data:`splat_train._reference.ALPHA_MAX`), so without it a Gaussian whose opacity passes 0.99
