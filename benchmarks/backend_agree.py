@@ -23,7 +23,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["ITERATIONS", "RUNS", "attach_records", "backend_agree", "cell_paths", "pack_cell", "parse_runs"]
+__all__ = ["ITERATIONS", "RUNS", "attach_records", "backend_agree", "cell_name", "cell_paths", "curve_end", "pack_cell",
+           "parse_runs", "split_cell_name"]
 
 # the issue's measure: final held-out PSNR within 0.3 dB at 3,000 iterations
 ITERATIONS = 3000
@@ -60,6 +61,19 @@ def cell_paths(cell: Path) -> dict[str, Path]:
     return paths
 
 
+def cell_name(cell: Path) -> str:
+    """A cell folder's grid name: its ``cell.json`` (:func:`pack_cell`), else the folder's name."""
+    meta = Path(cell) / "cell.json"
+    return json.loads(meta.read_text())["name"] if meta.is_file() else Path(cell).name
+
+
+def curve_end(rec: dict) -> tuple[int | None, float | None]:
+    """(iteration, PSNR) of the last held-out evaluation in a grid record's curve, or Nones."""
+    curve = [(i, v) for i, v in zip(*(rec.get("curve", {}).get(k) or [] for k in ("iterations", "psnr")))
+             if v is not None]
+    return curve[-1] if curve else (None, None)
+
+
 def _final(tj: dict) -> dict:
     """The last held-out evaluation of a train.json and what ran it."""
     c = tj.get("test_curve") or {}
@@ -93,7 +107,7 @@ def backend_agree(cell: Path, name: str, device: str = "cuda", rasterizer: str =
     from benchmarks.sparse_views.runs import train_and_score
 
     paths = cell_paths(cell)
-    _scene_n(name)  # a bad name fails before any training
+    split_cell_name(name)  # a bad name fails before any training
     eval_every = max(1, iterations // 10)  # the grid's default period
     res = {"cell": name, "iterations": iterations, "device": device, "rasterizer": rasterizer, "runs": [],
            "by_recipe": {}, "stopped_at_deadline": False}
@@ -104,7 +118,7 @@ def backend_agree(cell: Path, name: str, device: str = "cuda", rasterizer: str =
                 break
             t0 = time.perf_counter()
             out = train_and_score(paths, Path(tmp) / f"{recipe}_s{seed}", recipe, seed, iterations, eval_every,
-                                  train_args=("--device", device, "--rasterizer", rasterizer), score=False)
+                                  extra_args=("--device", device, "--rasterizer", rasterizer), score=False)
             entry = {"recipe": recipe, "seed": seed, "this": _final(out["train"]), "record": None,
                      "psnr_diff": None, "run_s": time.perf_counter() - t0}
             res["runs"].append(entry)
@@ -125,13 +139,12 @@ def attach_records(res: dict, records: Path) -> dict:
 
     for entry in res["runs"]:
         entry["record"], entry["psnr_diff"] = None, None
-        rec_path = Path(records) / f"{run_name(*_scene_n(res['cell']), entry['recipe'], entry['seed'], res['iterations'])}.json"
+        rec_path = Path(records) / f"{run_name(*split_cell_name(res['cell']), entry['recipe'], entry['seed'], res['iterations'])}.json"
         if not rec_path.is_file():
             continue
         rec = json.loads(rec_path.read_text())
-        curve = [(i, v) for i, v in zip(*(rec.get("curve", {}).get(k) or [] for k in ("iterations", "psnr")))
-                 if v is not None]
-        entry["record"] = {"psnr": curve[-1][1] if curve else None, "at_iteration": curve[-1][0] if curve else None,
+        at, psnr = curve_end(rec)
+        entry["record"] = {"psnr": psnr, "at_iteration": at,
                            "scored_psnr": rec.get("psnr"), "gaussians": rec.get("gaussians"),
                            "train_s": rec.get("train_s"), "backend": rec.get("backend"), "path": rec_path.name}
         if entry["this"]["psnr"] is not None and entry["record"]["psnr"] is not None:
@@ -142,12 +155,6 @@ def attach_records(res: dict, records: Path) -> dict:
     return res
 
 
-def _final_psnr(rec: dict) -> float | None:
-    """The last held-out PSNR of a grid record's curve."""
-    vals = [v for v in (rec.get("curve", {}).get("psnr") or []) if v is not None]
-    return vals[-1] if vals else None
-
-
 def _against_all_records(res: dict, recipe: str, records: Path) -> dict | None:
     """This backend's runs of ``recipe`` against every grid record of the same cell, recipe and
     iterations, whatever their seeds (unpaired): ``seeds``, ``mean``, ``sd``, and the
@@ -155,10 +162,10 @@ def _against_all_records(res: dict, recipe: str, records: Path) -> dict | None:
     from benchmarks.sparse_views.runs import run_name
     from evaluation.study.stats import welch_interval
 
-    scene, n = _scene_n(res["cell"])
+    scene, n = split_cell_name(res["cell"])
     pattern = run_name(scene, n, recipe, 0, res["iterations"]).replace("_s0_", "_s*_")
     recs = [json.loads(p.read_text()) for p in sorted(Path(records).glob(pattern + ".json"))]
-    vals = [v for v in (_final_psnr(r) for r in recs if r.get("recipe") == recipe) if v is not None]
+    vals = [v for v in (curve_end(r)[1] for r in recs if r.get("recipe") == recipe) if v is not None]
     this = [r["this"]["psnr"] for r in res["runs"] if r["recipe"] == recipe and r["this"]["psnr"] is not None]
     if len(vals) < 2 or not this:
         return None
@@ -167,7 +174,7 @@ def _against_all_records(res: dict, recipe: str, records: Path) -> dict | None:
             "this_seeds": len(this), "psnr_diff": diff, "psnr_diff_hw95": None if hw != hw else hw, "df": df}
 
 
-def _scene_n(name: str) -> tuple[str, int]:
+def split_cell_name(name: str) -> tuple[str, int]:
     """The scene and view count of a grid cell name (``llff__fern_n3`` -> ``("llff__fern", 3)``)."""
     head, _, n = name.rpartition("_n")
     if not head or not n.isdigit():

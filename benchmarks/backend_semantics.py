@@ -87,20 +87,20 @@ def patched_tree(dest: Path) -> Path:
 
 
 def _final_psnr(train_json: Path) -> float:
+    """The last held-out PSNR of a run's train.json."""
     return json.loads(train_json.read_text())["test_curve"]["last_test_psnr"]
 
 
 def run(cell: Path, variants: list[str], seeds: list[int], recipe: str, iterations: int, work: Path,
         out: Path, records: Path | None) -> dict:
     """Train every (variant, seed) not done yet in ``work``; the summary JSON into ``out``."""
-    from benchmarks.backend_agree import cell_paths
-    from benchmarks.sparse_views.runs import run_name
+    from benchmarks.backend_agree import cell_name, cell_paths, curve_end, split_cell_name
+    from benchmarks.sparse_views.runs import run_name, train_args
     from camio.atomic import write_json
-    from evaluation.study.stats import t_interval
 
     paths = cell_paths(cell)
-    name = json.loads((cell / "cell.json").read_text())["name"] if (cell / "cell.json").is_file() else cell.name
-    scene, _, n = name.rpartition("_n")
+    name = cell_name(cell)
+    scene, n = split_cell_name(name)
     work.mkdir(parents=True, exist_ok=True)
     runner = work / "runner.py"
     runner.write_text(RUNNER)
@@ -109,25 +109,21 @@ def run(cell: Path, variants: list[str], seeds: list[int], recipe: str, iteratio
         tree = None
         for seed in seeds:
             for v in variants:
-                rec = None if records is None else records / f"{run_name(scene, int(n), recipe, seed, iterations)}.json"
+                rec = None if records is None else records / f"{run_name(scene, n, recipe, seed, iterations)}.json"
                 if v == "cpu" and rec is not None and rec.is_file():
-                    curve = json.loads(rec.read_text())["curve"]
-                    res["psnr"][v][seed] = [p for p in curve["psnr"] if p is not None][-1]
+                    res["psnr"][v][seed] = curve_end(json.loads(rec.read_text()))[1]
                     continue
                 run_dir = work / f"{v}_s{seed}"
                 if not (run_dir / "train.json").is_file():
                     if v.startswith("clamp999") and tree is None:
                         tree = patched_tree(Path(tmp))
+                    # the patched copy must come first on sys.path: it is the working folder too
                     pypath = str(tree if v.startswith("clamp999") else ROOT)
                     env = {**os.environ, "PYTHONPATH": pypath, "BACKEND_SEMANTICS_VARIANT": v}
                     t0 = time.perf_counter()
-                    cmd = [sys.executable, str(runner), "--seed-ply", str(paths["bridge"] / "seed.ply"),
-                           "--cameras", str(paths["bridge"]), "--images", str(paths["scene"] / "images"),
-                           "--image-list", str(paths["train"]), "--test-cameras", str(paths["align"]),
-                           "--test-images", str(paths["scene"] / "images"), "--test-image-list", str(paths["test"]),
-                           "--out", str(run_dir), "--iterations", str(iterations), "--seed", str(seed),
-                           "--eval-every", str(max(1, iterations // 10)), "--checkpoint-every", str(iterations),
-                           "--kernel-threads", "1", "--config", json.dumps({"recipe": recipe})]
+                    cmd = [sys.executable, str(runner),
+                           *train_args(paths, run_dir, recipe, seed, iterations, max(1, iterations // 10),
+                                       kernel_threads=1)]
                     with open(work / f"{v}_s{seed}.log", "w") as log:
                         rc = subprocess.run(cmd, cwd=pypath, env=env, stdout=log, stderr=subprocess.STDOUT).returncode
                     if rc != 0:
@@ -135,12 +131,15 @@ def run(cell: Path, variants: list[str], seeds: list[int], recipe: str, iteratio
                     print(f"{v} seed {seed}: {_final_psnr(run_dir / 'train.json'):.2f} dB, "
                           f"{time.perf_counter() - t0:.0f} s", flush=True)
                 res["psnr"][v][seed] = _final_psnr(run_dir / "train.json")
-            res["summary"] = _summary(res["psnr"], t_interval)
+            res["summary"] = _summary(res["psnr"])
             write_json(out, res)
     return res
 
 
-def _summary(psnr: dict, t_interval) -> dict:
+def _summary(psnr: dict) -> dict:
+    """Per variant: seeds, mean, sd, and the difference to ``cpu`` paired by seed (95 % t)."""
+    from evaluation.study.stats import t_interval
+
     out = {}
     for v, by_seed in psnr.items():
         vals = list(by_seed.values())

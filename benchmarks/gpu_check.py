@@ -354,7 +354,7 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
     gsplat ends: importing gsplat while it builds would remove the build folder)."""
     import os
 
-    from benchmarks.backend_agree import RUNS, backend_agree, parse_runs
+    from benchmarks.backend_agree import RUNS, backend_agree, cell_name, parse_runs
     from benchmarks.sparse_views.__main__ import RECORDS
 
     if cell is None:
@@ -375,8 +375,7 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
         build = json.loads(Path(marker).read_text())
         if "error" in build:
             raise RuntimeError(f"gsplat's background build failed:\n{build['error']}")
-    name = json.loads((Path(cell) / "cell.json").read_text())["name"]
-    res = backend_agree(Path(cell), name, runs=runs, records=RECORDS / "runs", deadline=end, on_result=on_result)
+    res = backend_agree(Path(cell), cell_name(cell), runs=runs, records=RECORDS / "runs", deadline=end, on_result=on_result)
     res["waited_for_build_s"], res["gsplat_build"] = waited, build
     return res
 

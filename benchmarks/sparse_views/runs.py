@@ -60,12 +60,26 @@ def run_name(scene: str, n: int, recipe: str, seed: int, iterations: int) -> str
     return f"{scene}_n{n}_{recipe}_s{seed}_i{iterations}"
 
 
+def train_args(cell: dict[str, Path], out: Path, recipe: str, seed: int, iterations: int, eval_every: int,
+               config: dict | None = None, kernel_threads: int = 0) -> list[str]:
+    """The ``python -m splat_train`` arguments of one grid run (without ``-m splat_train``):
+    ``recipe`` plus ``config`` overrides on ``cell``, into ``out``, the held-out curve every
+    ``eval_every`` iterations."""
+    cfg = {"recipe": recipe, **(config or {})}
+    return ["--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
+            "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
+            "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
+            "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
+            "--seed", str(seed), "--eval-every", str(eval_every), "--checkpoint-every", str(iterations),
+            "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg)]
+
+
 def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, iterations: int,
                     eval_every: int, config: dict | None = None, kernel_threads: int = 0,
-                    train_args: tuple[str, ...] = (), score: bool = True) -> dict:
+                    extra_args: tuple[str, ...] = (), score: bool = True) -> dict:
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
     exists, then score the final model unless its metrics.json exists; return the measures.
-    ``train_args``: more ``python -m splat_train`` arguments (the GPU check's ``--device cuda
+    ``extra_args``: more ``python -m splat_train`` arguments (the GPU check's ``--device cuda
     --rasterizer gsplat``); ``score=False``: training only (``metrics`` None; the held-out
     curve in train.json still has the final iteration's PSNR and SSIM)."""
     logf = out.parent / f"{out.name}.log"
@@ -76,13 +90,8 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
             raise StaleRun(f"{out} was trained with other values of {', '.join(bad)} than recipe {recipe!r} "
                            f"gives now: remove the folder to train it again")
     else:
-        cfg = {"recipe": recipe, **(config or {})}
-        sh(["-m", "splat_train", "--seed-ply", str(cell["bridge"] / "seed.ply"), "--cameras", str(cell["bridge"]),
-            "--images", str(cell["scene"] / "images"), "--image-list", str(cell["train"]),
-            "--test-cameras", str(cell["align"]), "--test-images", str(cell["scene"] / "images"),
-            "--test-image-list", str(cell["test"]), "--out", str(out), "--iterations", str(iterations),
-            "--seed", str(seed), "--eval-every", str(eval_every), "--checkpoint-every", str(iterations),
-            "--kernel-threads", str(kernel_threads), "--config", json.dumps(cfg), *train_args], logf)
+        sh(["-m", "splat_train", *train_args(cell, out, recipe, seed, iterations, eval_every, config, kernel_threads),
+            *extra_args], logf)
     if not score:
         return {"train": json.loads((out / "train.json").read_text()), "metrics": None, "values": want}
     metrics = out / "final" / "metrics.json"
