@@ -208,10 +208,13 @@ def _by_recipe(runs: list[dict]) -> dict:
 def pack_cell(dest: Path, scene: str = "llff__fern", n: int = 3, work: Path | None = None,
               data: Path | None = None, protocol_file: Path | None = None) -> Path:
     """Prepare the grid cell of ``scene`` at ``n`` views in ``work`` (kept files are reused) and
-    copy what training reads into ``dest`` (written whole or not at all), with ``cell.json``
-    naming it; the GPU check carries it (scripts/gpu_bundle.sh: ``.gpu_agree``)."""
+    copy what training reads into the folder ``dest`` (scene, bridge, align, train.txt,
+    test.txt, each replacing its earlier copy whole: an entry is never half-written), with ``cell.json`` naming it; the GPU
+    check carries it (scripts/gpu_bundle.sh: ``.gpu_agree``). The command line checks ``dest``
+    against the output rule first (:func:`main`)."""
     from benchmarks.sparse_views import protocol
     from benchmarks.sparse_views.cells import prepare
+    from camio.atomic import atomic_dir, atomic_path, write_json
 
     protocol_file = protocol_file or protocol.PROTOCOL
     found = [s for s in protocol.load(protocol_file, data) if s.name == scene]
@@ -220,19 +223,17 @@ def pack_cell(dest: Path, scene: str = "llff__fern", n: int = 3, work: Path | No
     if not found[0].available:
         raise FileNotFoundError(f"{scene}: its data is not at {found[0].path}")
     name = f"{scene}_n{n}"
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         paths = prepare(Path(work) / name if work is not None else Path(tmp) / name, found[0], n)
-        dest = Path(dest)
-        part = dest.with_name(dest.name + ".partial")
-        shutil.rmtree(part, ignore_errors=True)
-        part.mkdir(parents=True)
         for key in ("scene", "bridge", "align"):
-            shutil.copytree(paths[key], part / key)
+            with atomic_dir(dest / key) as d:
+                shutil.copytree(paths[key], d, dirs_exist_ok=True)
         for key in ("train", "test"):
-            shutil.copy2(paths[key], part / f"{key}.txt")
-        (part / "cell.json").write_text(json.dumps({"name": name, "scene": scene, "n": n}) + "\n")
-        shutil.rmtree(dest, ignore_errors=True)
-        part.rename(dest)
+            with atomic_path(dest / f"{key}.txt") as f:
+                shutil.copyfile(paths[key], f)
+    write_json(dest / "cell.json", {"name": name, "scene": scene, "n": n})
     return dest
 
 
@@ -258,13 +259,23 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.command == "compare":
         return _compare_cli(args)
-    try:
+    import logging
+
+    from camio.outdir import prepare_out, run_stage, seal_out
+    from runtime.logs import setup_logging
+
+    setup_logging()
+    stage = "backend_agree pack"
+
+    def work() -> None:
+        # the folder is this command's alone: never an input, nor a folder another command wrote
+        prepare_out(args.dest, {"--work": args.work, "--data": args.data, "--protocol": args.protocol}, stage,
+                    replaces=True)
         out = pack_cell(args.dest, args.scene, args.n, args.work, args.data, args.protocol)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(f"backend_agree: packed {args.scene} n = {args.n} into {out}")
-    return 0
+        seal_out(out, stage)
+        print(f"backend_agree: packed {args.scene} n = {args.n} into {out}")
+
+    return run_stage(logging.getLogger("benchmarks.backend_agree"), work)
 
 
 def _compare_cli(args) -> int:

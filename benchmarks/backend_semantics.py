@@ -168,15 +168,31 @@ def main(argv: list[str] | None = None) -> int:
                    help="the grid's records, whose runs stand for 'cpu' (default %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="summary JSON, rewritten after every run")
     args = p.parse_args(argv)
-    seeds = list(dict.fromkeys(args.seeds))
-    with tempfile.TemporaryDirectory() as tmp:
-        res = run(args.cell, list(args.variants), seeds, args.recipe, args.iterations,
-                  args.work or Path(tmp), args.out, args.records)
-    for v, row in res["summary"].items():
-        d = row.get("minus_cpu")
-        print(f"{v:12s} {row['seeds']:2d} seeds: {row['mean']:.2f} dB (sd {row['sd'] or 0:.2f})"
-              + (f", minus cpu {d['mean']:+.2f} ± {d['hw95'] or 0:.2f}" if d else ""))
-    return 0
+    import logging
+
+    from camio.outdir import prepare_out, run_stage
+    from runtime.logs import setup_logging
+    from splat_train.recipes import RECIPE_NAMES
+
+    setup_logging()
+    stage = "backend_semantics"
+
+    def work() -> None:
+        if args.recipe not in RECIPE_NAMES:
+            raise ValueError(f"--recipe must be one of {list(RECIPE_NAMES)}, got {args.recipe!r}")
+        inputs = {"--cell": args.cell, "--records": args.records, "--work": args.work}
+        prepare_out(args.out, inputs, stage, folder=False)
+        if args.work is not None:  # run folders of this command's own, resumed on a rerun
+            prepare_out(args.work, {"--cell": args.cell, "--records": args.records}, stage)
+        with tempfile.TemporaryDirectory() as tmp:
+            res = run(args.cell, list(args.variants), list(dict.fromkeys(args.seeds)), args.recipe,
+                      args.iterations, args.work or Path(tmp), args.out, args.records)
+        for v, row in res["summary"].items():
+            d = row.get("minus_cpu")
+            print(f"{v:12s} {row['seeds']:2d} seeds: {row['mean']:.2f} dB (sd {row['sd'] or 0:.2f})"
+                  + (f", minus cpu {d['mean']:+.2f} ± {d['hw95'] or 0:.2f}" if d else ""))
+
+    return run_stage(logging.getLogger("benchmarks.backend_semantics"), work, errors=(ValueError, OSError, RuntimeError))
 
 
 if __name__ == "__main__":

@@ -127,6 +127,14 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
                           cwd=REPO, capture_output=True, text=True)
     assert pack.returncode == 0, pack.stderr
     assert json.loads((tmp_path / "packed" / "cell.json").read_text())["name"] == "tiny_n3"
+    again = subprocess.run(pack.args, cwd=REPO, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr  # its own folder: packed again in place
+    # never over an input, never into a folder it did not write: one line, nothing changed
+    for dest in (tmp_path / "w", tmp_path / "rec"):
+        before = sorted(p.name for p in dest.iterdir())
+        bad = subprocess.run([*pack.args[:4], str(dest), *pack.args[5:]], cwd=REPO, capture_output=True, text=True)
+        assert bad.returncode == 2 and "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+        assert sorted(p.name for p in dest.iterdir()) == before
     agree = backend_agree(tmp_path / "packed", "tiny_n3", device="cpu", rasterizer="cpu", runs=(("paper", 0),),
                           iterations=20, records=tmp_path / "rec" / "runs")
     (run,) = agree["runs"]
