@@ -166,6 +166,50 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert "Traceback" not in stale.stderr and not rec_path.exists()
 
 
+def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, monkeypatch):
+    """A scene whose images are composited on white (scenes.yaml ``background: [1, 1, 1]``, as
+    NeRF-synthetic's) trains and renders every recipe against white; others stay black."""
+    from benchmarks.sparse_views import __main__ as cli
+    from benchmarks.sparse_views import cells, runs
+
+    f = tmp_path / "p.yaml"
+    f.write_text("scenes:\n- {name: white, role: tuning, kind: synthetic, views: [3], background: [1, 1, 1],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n"
+                 "- {name: black, role: tuning, kind: synthetic, views: [3],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n")
+    assert [s.background for s in protocol.load(f)] == [(1.0, 1.0, 1.0), (0.0, 0.0, 0.0)]
+    calls = []
+
+    def fake_stage(args, log):  # record the command and leave what the next step reads
+        calls.append(args)
+        if args[:2] == ["-m", "splat_train"] and args[2] != "render":
+            out = Path(args[args.index("--out") + 1])
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "train.json").write_text(json.dumps({"config": json.loads(args[args.index("--config") + 1]),
+                                                        "num_gaussians": 1, "wall_time_s": 1.0}))
+        if args[:3] == ["-m", "evaluation", "images"]:
+            Path(args[args.index("--out") + 1]).write_text(json.dumps({"psnr": 20.0, "ssim": 0.5, "lpips_alex": 0.3,
+                                                                       "lpips_vgg": 0.4}))
+
+    def fake_cell(work, scene, n):
+        work.mkdir(parents=True, exist_ok=True)
+        (work / "test.txt").write_text("")
+        return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
+                                                                       "test": work / "test.txt"}
+
+    monkeypatch.setattr(runs, "sh", fake_stage)
+    monkeypatch.setattr(runs, "resolved_values", lambda *a: {})
+    monkeypatch.setattr(cells, "prepare", fake_cell)
+    assert cli.main(["--protocol", str(f), "--records", str(tmp_path / "rec"), "run", "--role", "tuning",
+                     "--recipes", "paper", "--seeds", "0", "--iterations", "20", "--work", str(tmp_path / "w")]) == 0
+    train = [c for c in calls if c[:2] == ["-m", "splat_train"] and c[2] != "render"]
+    render = [c for c in calls if c[:3] == ["-m", "splat_train", "render"]]
+    assert [json.loads(c[c.index("--config") + 1]).get("background") for c in train] == [[1.0, 1.0, 1.0], None]
+    assert [c[c.index("--background") + 1] for c in render] == ["1.0,1.0,1.0", "0.0,0.0,0.0"]
+    rec = json.loads((tmp_path / "rec" / "runs" / "white_n3_paper_s0_i20.json").read_text())
+    assert rec["config"] == {"recipe": "paper", "background": [1.0, 1.0, 1.0]}
+
+
 @pytest.mark.parametrize("bad", ["2/2", "1", "a/b", "0/0", "-1/2"])
 def test_run_refuses_a_bad_shard_in_one_line(tmp_path, bad):
     out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"), "run",

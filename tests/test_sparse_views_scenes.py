@@ -114,6 +114,8 @@ def test_fetch_takes_the_pinned_commit_and_only_the_scene_path(tmp_path, scene_p
     (lambda t: t.replace("role: evaluation", "role: eval"), [], "role must be"),
     (lambda t: t.replace("views: [3]", "views: [0]"), [], "views"),
     (lambda t: t.replace("path: data/s", "path: ../up"), [], "inside the repo"),
+    (lambda t: t.replace("views: [3]", "views: [3]\n    background: [1, 1]"), [], "background"),
+    (lambda t: t.replace("views: [3]", "views: [3]\n    background: [0, 2, 0]"), [], "background"),
     (lambda t: t, ["--scenes", "nope"], "unknown scene"),
     (lambda t: t + "  - [", [], "not valid YAML"),
 ])

@@ -44,8 +44,9 @@ def _need(cond: bool, msg: str) -> None:
 
 def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
     """The scenes of a scenes.yaml, checked: unique names, a known role, views a list of
-    positive ints; an evaluation scene also needs ``source`` (repo owner/name, a 40-hex commit,
-    a path), ``licence``, ``kind``, ``local`` and ``convert`` (a list of strings)."""
+    positive ints, an optional ``background`` of three numbers in [0, 1]; an evaluation scene
+    also needs ``source`` (repo owner/name, a 40-hex commit, a path), ``licence``, ``kind``,
+    ``local`` and ``convert`` (a list of strings)."""
     import yaml
 
     path = Path(path)
@@ -70,6 +71,10 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         _need(isinstance(views, list) and bool(views) and all(isinstance(v, int) and not isinstance(v, bool) and v > 0
                                                                for v in views),
               f"{where}: 'views' must be a list of positive integers")
+        bg = s.get("background", [0, 0, 0])
+        _need(isinstance(bg, list) and len(bg) == 3
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in bg),
+              f"{where}: 'background' must be three numbers in [0, 1] (RGB)")
         if s["role"] != "evaluation" and "source" not in s:
             continue
         for key in ("kind", "licence", "local"):

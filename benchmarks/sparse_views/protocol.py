@@ -24,7 +24,8 @@ __all__ = ["Scene", "load", "PROTOCOL", "ROLES", "DATA_ENV", "REPO"]
 @dataclass(frozen=True)
 class Scene:
     """One protocol scene. ``path`` is None for a generated scene (``generate`` set: a command
-    whose ``{out}`` is the scene folder to write)."""
+    whose ``{out}`` is the scene folder to write). ``background``: the RGB every recipe trains
+    and renders against on this scene (``scenes.yaml``'s ``background``, black by default)."""
 
     name: str
     role: str
@@ -34,6 +35,7 @@ class Scene:
     convert: tuple[str, ...] = ()
     generate: tuple[str, ...] = ()
     source: dict = field(default_factory=dict, compare=False)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def available(self) -> bool:
@@ -48,9 +50,10 @@ def load(protocol: Path = PROTOCOL, data: Path | None = None) -> list[Scene]:
     for s in load_scenes(protocol):
         src = dict(s.get("source") or {}, licence=s.get("licence"), cameras=s.get("cameras"))
         views = tuple(s["views"])
+        bg = tuple(float(v) for v in s.get("background", (0, 0, 0)))
         if s.get("generate"):
             out.append(Scene(s["name"], s["role"], str(s.get("kind", "")), views, None, (),
-                             tuple(map(str, s["generate"])), src))
+                             tuple(map(str, s["generate"])), src, bg))
             continue
         if data is not None:
             path = Path(data) / s["name"]
@@ -59,5 +62,5 @@ def load(protocol: Path = PROTOCOL, data: Path | None = None) -> list[Scene]:
         else:
             raise ValueError(f"{protocol}: scene {s['name']} has neither 'local' nor 'generate'")
         out.append(Scene(s["name"], s["role"], str(s.get("kind", "")), views, path,
-                         tuple(map(str, s.get("convert", []))), (), src))
+                         tuple(map(str, s.get("convert", []))), (), src, bg))
     return out
