@@ -82,8 +82,9 @@ def cmd_run(args) -> int:
     print(f"{len(todo)} runs to do ({args.role}, {args.iterations} iterations)", flush=True)
     t0 = time.perf_counter()
     for i, (s, n, seed, name, cfg, recipe, overrides, rec_path) in enumerate(todo, 1):
-        if any(s.background):  # the scene's own background (scenes.yaml), the same for every recipe
-            overrides, cfg = {**overrides, "background": list(s.background)}, {**cfg, "background": list(s.background)}
+        if s.background is not None:  # the scene's own (scenes.yaml), the same for every recipe
+            bg = {"background": list(s.background)}
+            overrides, cfg = {**overrides, **bg}, {**cfg, **bg}
         cell = prepare(args.work / f"{s.name}_n{n}", s, n)
         out = args.work / f"{s.name}_n{n}" / "runs" / run_name(s.name, n, name, seed, args.iterations)
         res = train_and_score(cell, out, recipe, seed, args.iterations, args.eval_every or max(1, args.iterations // 10),

@@ -71,8 +71,8 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         _need(isinstance(views, list) and bool(views) and all(isinstance(v, int) and not isinstance(v, bool) and v > 0
                                                                for v in views),
               f"{where}: 'views' must be a list of positive integers")
-        bg = s.get("background", [0, 0, 0])
-        _need(isinstance(bg, list) and len(bg) == 3
+        bg = s.get("background")
+        _need(bg is None or isinstance(bg, list) and len(bg) == 3
               and all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in bg),
               f"{where}: 'background' must be three numbers in [0, 1] (RGB)")
         if s["role"] != "evaluation" and "source" not in s:

@@ -25,7 +25,7 @@ __all__ = ["Scene", "load", "PROTOCOL", "ROLES", "DATA_ENV", "REPO"]
 class Scene:
     """One protocol scene. ``path`` is None for a generated scene (``generate`` set: a command
     whose ``{out}`` is the scene folder to write). ``background``: the RGB every recipe trains
-    and renders against on this scene (``scenes.yaml``'s ``background``, black by default)."""
+    and renders against on this scene (``scenes.yaml``'s ``background``); None: the trainer's."""
 
     name: str
     role: str
@@ -35,7 +35,7 @@ class Scene:
     convert: tuple[str, ...] = ()
     generate: tuple[str, ...] = ()
     source: dict = field(default_factory=dict, compare=False)
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    background: tuple[float, float, float] | None = None
 
     @property
     def available(self) -> bool:
@@ -50,7 +50,7 @@ def load(protocol: Path = PROTOCOL, data: Path | None = None) -> list[Scene]:
     for s in load_scenes(protocol):
         src = dict(s.get("source") or {}, licence=s.get("licence"), cameras=s.get("cameras"))
         views = tuple(s["views"])
-        bg = tuple(float(v) for v in s.get("background", (0, 0, 0)))
+        bg = tuple(float(v) for v in s["background"]) if "background" in s else None
         if s.get("generate"):
             out.append(Scene(s["name"], s["role"], str(s.get("kind", "")), views, None, (),
                              tuple(map(str, s["generate"])), src, bg))

@@ -79,7 +79,7 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
                     extra_args: tuple[str, ...] = (), score: bool = True) -> dict:
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
     exists, then score the final model unless its metrics.json exists; return the measures.
-    The held-out renders use the config's ``background`` too (black when it has none).
+    The held-out renders use the config's ``background`` too (the renderer's own without one).
     ``extra_args``: more ``python -m splat_train`` arguments (the GPU check's ``--device cuda
     --rasterizer gsplat``); ``score=False``: training only (``metrics`` None; the held-out
     curve in train.json still has the final iteration's PSNR and SSIM)."""
@@ -98,10 +98,11 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
     metrics = out / "final" / "metrics.json"
     if not metrics.is_file():
         renders, gt = out / "final" / "renders", out / "final" / "gt"
-        bg = ",".join(str(float(v)) for v in (config or {}).get("background", (0, 0, 0)))
+        bg = (config or {}).get("background")
         sh(["-m", "splat_train", "render", "--model", str(out / "model.ply"), "--cameras",
             str(cell["align"] / "sparse" / "0"), "--images", str(cell["scene"] / "images"), "--image-list",
-            str(cell["test"]), "--out", str(renders), "--background", bg, "-q"], logf)
+            str(cell["test"]), "--out", str(renders), "-q",
+            *(["--background", ",".join(str(float(v)) for v in bg)] if bg is not None else [])], logf)
         gt.mkdir(parents=True, exist_ok=True)
         for name in cell["test"].read_text().split():
             link = gt / name
