@@ -257,6 +257,9 @@ def gsplat_build_marker(marker: str) -> int:
 PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
          "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames", "vggt_many", "backend_agree",
          "vggt_search")
+# the parts that import gsplat (they wait for a background build: scripts/gpu_run.sh)
+GSPLAT_PARTS = ("rasterizer_parity", "rasterizer_timing", "workflow_cell", "profile", "step_ab", "cell", "native",
+                "cell_sparse", "backend_agree")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
 # vggt_many: the upstream model's frame count on 80 GB, run for real after a 12-frame warm-up
@@ -324,7 +327,10 @@ def vggt_many_part(device: str, on_result: Callable[[dict], None] | None = None)
 def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = None) -> dict:
     """The probe search for the largest frame count that fits, from :data:`VGGT_SEARCH_FROM` up,
     with the caching allocator's expandable segments on (the search's tensors are GB each: a
-    fragmented pool must not be what stops it); deadline as ``vggt_frames``."""
+    fragmented pool must not be what stops it); deadline as ``vggt_frames`` (no budget of its
+    own unless ``VGGT_SEARCH_BUDGET_S`` sets one, so that later parts keep their time)."""
+    import os
+
     from benchmarks.vggt_frames import vggt_frames
 
     # torch 2.11 names it torch._C._accelerator_setAllocatorSettings; older ones only the other
@@ -334,7 +340,7 @@ def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = Non
         set_alloc(setting)
     except (AttributeError, RuntimeError) as exc:
         setting = f"default (setting expandable segments failed: {exc})"
-    end = _run_deadline(float("inf"), 90.0)
+    end = _run_deadline(float(os.environ.get("VGGT_SEARCH_BUDGET_S", "inf")), 90.0)
     try:
         res = vggt_frames(device, deadline_s=time.perf_counter() + (end - time.time()), counts=(12,),
                           on_result=on_result, search_from=VGGT_SEARCH_FROM, search_step=VGGT_SEARCH_STEP,
@@ -344,6 +350,28 @@ def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = Non
             set_alloc("expandable_segments:False")
     res["allocator"] = setting
     return res
+
+
+def wait_for_gsplat_build(end: float) -> tuple[float, dict | None]:
+    """Wait (until ``end``, a ``time.time()``) for ``GSPLAT_BUILD_MARKER``, the file
+    scripts/gpu_run.sh's background JIT build of gsplat writes when it ends: importing gsplat
+    while it builds would remove the build folder. Returns (seconds waited, the build's record;
+    None when no background build runs); RuntimeError when it failed or wrote nothing in time."""
+    import os
+
+    marker = os.environ.get("GSPLAT_BUILD_MARKER")
+    waited = time.perf_counter()
+    while marker and not Path(marker).exists() and time.time() < end:
+        time.sleep(1.0)
+    waited = time.perf_counter() - waited
+    if not marker:
+        return waited, None
+    if not Path(marker).exists():
+        raise RuntimeError(f"gsplat's background build wrote no {marker} before the deadline")
+    build = json.loads(Path(marker).read_text())
+    if "error" in build:
+        raise RuntimeError(f"gsplat's background build failed:\n{build['error']}")
+    return waited, build
 
 
 def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | None = None) -> dict:
@@ -363,18 +391,7 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
     if os.environ.get("AGREE_SEEDS") or os.environ.get("AGREE_RECIPES"):
         runs = parse_runs(os.environ.get("AGREE_SEEDS", "0-2"), os.environ.get("AGREE_RECIPES", "sparse,paper"))
     end = _run_deadline(float("inf"), 30.0)
-    marker = os.environ.get("GSPLAT_BUILD_MARKER")
-    waited = time.perf_counter()
-    while marker and not Path(marker).exists() and time.time() < end:
-        time.sleep(1.0)
-    waited = time.perf_counter() - waited
-    build = None
-    if marker:
-        if not Path(marker).exists():
-            raise RuntimeError(f"gsplat's background build wrote no {marker} before the deadline")
-        build = json.loads(Path(marker).read_text())
-        if "error" in build:
-            raise RuntimeError(f"gsplat's background build failed:\n{build['error']}")
+    waited, build = wait_for_gsplat_build(end)
     res = backend_agree(Path(cell), cell_name(cell), runs=runs, records=RECORDS / "runs", deadline=end, on_result=on_result)
     res["waited_for_build_s"], res["gsplat_build"] = waited, build
     return res
@@ -425,7 +442,12 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
     for name in parts:
         t0 = time.perf_counter()
         try:
+            waited = None
+            if name in GSPLAT_PARTS and name != "backend_agree":  # backend_agree waits itself
+                waited, _ = wait_for_gsplat_build(_run_deadline(float("inf"), 30.0))
             report[name] = fns[name]("cuda")
+            if waited:
+                report[name]["waited_for_build_s"] = waited
         except Exception:  # noqa: BLE001  (record and go on: each part is independent)
             report[name] = {"error": traceback.format_exc()[-3000:]}
         report[name]["part_s"] = time.perf_counter() - t0  # the whole part, setup and scoring included

@@ -11,10 +11,12 @@
 # gsplat_build, ~1.5 min once per machine, or beside the first parts with GSPLAT_BUILD_BG=1);
 # the JSON + Markdown table are saved after each part, so a run cut short keeps what it
 # measured. GPU_RUN_DEADLINE (a Unix time) keeps the VGGT parts and backend_agree from starting
-# work past it. For example, the open GPU measurements in one ~10-minute call:
+# work past it; VGGT_SEARCH_BUDGET_S caps vggt_search alone. The parts that import gsplat wait
+# for the background build. For example, the largest VGGT frame count and the sparse cell in
+# one ~9-minute call:
 #
-#   GSPLAT_BUILD_BG=1 AGREE_SEEDS=3-9 AGREE_RECIPES=sparse GPU_RUN_DEADLINE=$(($(date +%s) + 570)) \
-#       bash scripts/gpu_run.sh OUT vggt_search,backend_agree
+#   GSPLAT_BUILD_BG=1 VGGT_SEARCH_BUDGET_S=300 GPU_RUN_DEADLINE=$(($(date +%s) + 560)) \
+#       bash scripts/gpu_run.sh OUT vggt_search,cell_sparse
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUTDIR=${1:?usage: gpu_run.sh OUT_DIR [PARTS]}
@@ -32,9 +34,9 @@ CAP=$(python3 -c "import torch; p = torch.cuda.get_device_capability(); print(f'
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$CAP}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-# GSPLAT_BUILD_BG=1: gsplat's JIT build (CPU) runs beside the first parts (VGGT, GPU); the part
-# backend_agree waits for its marker (importing gsplat during the build would remove the build
-# folder), the parts that import gsplat in-process must not be asked for then
+# GSPLAT_BUILD_BG=1: gsplat's JIT build (CPU) runs beside the first parts (VGGT, GPU); the parts
+# that import gsplat wait for its marker (importing gsplat during the build would remove the
+# build folder)
 EXTRA=()
 if [ "${GSPLAT_BUILD_BG:-0}" = 1 ]; then
     export GSPLAT_BUILD_MARKER="$OUTDIR/gsplat_build.json"

@@ -114,6 +114,7 @@ def rasterize_gsplat(
     sh_degree: int | None,
     near_plane: float,
     depth: bool = True,
+    stats: bool = True,
 ) -> dict[str, Tensor]:
     """Render with gsplat; arguments, shapes and result keys as :func:`splat_train.rasterize`.
 
@@ -124,12 +125,14 @@ def rasterize_gsplat(
         background: [3]; sh_degree: None or 0..3; near_plane: camera-z cull distance.
         depth: False renders colour only (``render_mode="RGB"``): ``depth`` and
             ``depth_accum`` are then None.
+        stats: False skips the densification statistics: ``radii`` is None, ``visible`` is
+            gsplat's own mask, and ``means2d`` gets no gradient.
 
     Returns:
         ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), ``depth_accum``
         [H, W], ``means2d`` [N, 2] pixels (``.grad`` in pixels after backward), ``radii`` [N]
-        int32, ``visible`` [N] bool, ``depths`` [N], ``conics`` [N, 3], ``colors`` None
-        (gsplat does not return the evaluated colours).
+        int32 (None without ``stats``), ``visible`` [N] bool, ``depths`` [N], ``conics``
+        [N, 3], ``colors`` None (gsplat does not return the evaluated colours).
     """
     dt = means.dtype
     if cam_from_world.shape == (4, 4):  # the trainer's cameras (differentiable with pose refinement)
@@ -142,8 +145,9 @@ def rasterize_gsplat(
         backgrounds=background.to(dt)[None], render_mode="RGB+ED" if depth else "RGB",
     )
     m2d_gs = meta["means2d"]  # [1, N, 2] pixels
-    means2d = m2d_gs[0].detach().requires_grad_(m2d_gs.requires_grad)  # [N, 2]
-    if m2d_gs.requires_grad:
+    want_grad = stats and m2d_gs.requires_grad
+    means2d = m2d_gs[0].detach().requires_grad_(want_grad)  # [N, 2]
+    if want_grad:
         def _copy_grad(g: Tensor) -> None:  # accumulate like .retain_grad()
             means2d.grad = g[0].detach().clone() if means2d.grad is None else means2d.grad + g[0].detach()
 
@@ -151,7 +155,10 @@ def rasterize_gsplat(
     radii_axes = meta["radii"][0]  # [N, 2] per axis in gsplat 1.5 ([N] in older versions)
     if radii_axes.dim() == 1:
         radii_axes = radii_axes[:, None]
-    radii, visible = _radii_3dgs(meta["conics"][0], (radii_axes > 0).all(dim=-1))
+    visible = (radii_axes > 0).all(dim=-1)
+    radii = None
+    if stats:
+        radii, visible = _radii_3dgs(meta["conics"][0], visible)
     alpha = ra[0, ..., 0]
     z = rc[0, ..., 3] if depth else None
     return {

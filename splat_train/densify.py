@@ -242,6 +242,11 @@ class DensifyStrategy:
         return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device),
                 "max_radii": torch.zeros(n, device=device)}
 
+    def wants_stats(self, iteration: int) -> bool:
+        """Whether 1-based ``iteration``'s render statistics are still read (:meth:`update_state`):
+        only while densification is still to come; the trainer's render skips them after."""
+        return iteration < self.densify_until
+
     def update_state(self, state: dict[str, torch.Tensor], means2d_grad: torch.Tensor,
                      radii: torch.Tensor, visible: torch.Tensor, width: int, height: int,
                      iteration: int) -> None:
@@ -251,7 +256,7 @@ class DensifyStrategy:
             means2d_grad: [N, 2] d loss / d means2d in pixels.
             radii: [N] screen radius in pixels; visible: [N] bool.
         """
-        if iteration >= self.densify_until:
+        if not self.wants_stats(iteration):
             return
         if cpu_optim.densify_stats(state, means2d_grad.detach(), radii, visible, width, height):
             return  # the same accumulation in C on the kernel's threads (CPU float32)

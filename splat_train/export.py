@@ -45,7 +45,8 @@ def camera_tensors(cam: Camera, device: torch.device | str = "cpu") -> tuple[tor
 def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                   K: torch.Tensor, width: int, height: int, background: torch.Tensor,
                   backend: str = "auto",
-                  opacity_fn: Callable[[torch.Tensor], torch.Tensor] | None = None, depth: bool = True) -> dict:
+                  opacity_fn: Callable[[torch.Tensor], torch.Tensor] | None = None, depth: bool = True,
+                  stats: bool = True) -> dict:
     """Rasterize the trainable Gaussians (:mod:`splat_train.gaussians`) into one camera.
 
     Args:
@@ -55,6 +56,8 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
         opacity_fn: maps the [N] opacities (after the sigmoid) before rasterizing; training's
             Gaussian dropout (:mod:`splat_train.dropout`). None for every scored render.
         depth: whether the render's depth is needed (:func:`splat_train.rasterize`'s ``depth``).
+        stats: whether the densification statistics are read (:func:`splat_train.rasterize`'s
+            ``stats``).
 
     Returns:
         The :func:`splat_train.rasterize` dict (``rgb`` [H, W, 3], ``means2d`` [N, 2], ...).
@@ -67,7 +70,7 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
     # per iteration); other backends concatenate
     return rasterize(params["means"], quats, scales, opac, (params["sh_dc"], params["sh_rest"]),
                      cam_from_world, K, width, height, background=background, sh_degree=sh_degree,
-                     backend=backend, depth=depth)
+                     backend=backend, depth=depth, stats=stats)
 
 
 @torch.no_grad()

@@ -259,6 +259,10 @@ class MCMCStrategy:
         return {"relocated": torch.zeros((), dtype=torch.int64, device=device),
                 "added": torch.zeros((), dtype=torch.int64, device=device)}
 
+    def wants_stats(self, iteration: int) -> bool:
+        """False: MCMC reads no render statistics (the trainer's render skips them)."""
+        return False
+
     def update_state(self, state: dict[str, torch.Tensor], means2d_grad: torch.Tensor, radii: torch.Tensor,
                      visible: torch.Tensor, width: int, height: int, iteration: int) -> None:
         """Nothing to accumulate: MCMC needs no view-space gradient statistics."""

@@ -142,6 +142,7 @@ def rasterize(
     near_plane: float = NEAR_PLANE,
     kernel_camera_grad: bool = False,
     depth: bool = True,
+    stats: bool = True,
 ) -> dict[str, Tensor]:
     """Render Gaussians into one camera, differentiably (3DGS semantics, docs/reference.md section 3).
 
@@ -176,6 +177,11 @@ def rasterize(
         depth: False lets a backend skip the depth outputs: gsplat then blends colour only and
             returns ``depth`` and ``depth_accum`` as None (the other backends blend depth with
             the colour at no extra pass and return them anyway).
+        stats: False when nothing reads the densification statistics of this render
+            (``means2d.grad`` and the 3DGS ``radii``): gsplat then returns ``radii`` as None
+            and a ``means2d`` whose ``.grad`` stays None, and skips the ~20 small kernels per
+            render that produce them (the other backends produce them with the projection
+            at no extra cost and return them anyway).
 
     Returns:
         dict with
@@ -239,7 +245,7 @@ def rasterize(
 
         return _gsplat_backend.rasterize_gsplat(
             means, quats, scales, opacities, colors, cam_from_world, K, width, height,
-            background, sh_degree, near_plane, depth=depth,
+            background, sh_degree, near_plane, depth=depth, stats=stats,
         )
 
     if fused:

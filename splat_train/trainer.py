@@ -314,8 +314,9 @@ class Trainer:
         bg = uniform(3, self.gen, self.dev) if cfg.random_background else self.bg
         cam = self.train_views[idx].camera
         cam_from_world, K = self.view_camera(idx)
+        want_stats = self.strategy.wants_stats(it)  # densification statistics still read
         out = render_params(self.params, deg, cam_from_world, K, cam.width, cam.height, bg, self.backend,
-                            opacity_fn=opacity_map(self.parts, it), depth=self.need_depth)
+                            opacity_fn=opacity_map(self.parts, it), depth=self.need_depth, stats=want_stats)
         loss, stats = self.photometric(out["rgb"], self.targets[idx])  # stats: L1, SSIM, MSE
         for part in self.parts:
             term = part.loss(it, idx, out, self.params)
@@ -324,7 +325,7 @@ class Trainer:
         if self.sync_every == 1 and not torch.isfinite(loss.detach()):
             self._non_finite(float(loss.detach()), it, cam.name)  # before the step moves anything
         loss.backward()
-        if out["means2d"].grad is not None:
+        if want_stats and out["means2d"].grad is not None:
             # [N, 2] in pixels for every backend (the rasterize contract; the gsplat adapter too)
             self.strategy.update_state(self.state, out["means2d"].grad, out["radii"], out["visible"],
                                        cam.width, cam.height, it)

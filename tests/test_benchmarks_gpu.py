@@ -89,6 +89,40 @@ def test_gpu_report_saved_after_each_part(tmp_path, monkeypatch):
     assert "rasterizer_timing" not in rep and "VGGT fixtures on CUDA, float32, tf32 on" in md.read_text()
 
 
+def test_gsplat_parts_wait_for_the_background_build(tmp_path, monkeypatch):
+    """With gpu_run.sh's background JIT build (GSPLAT_BUILD_MARKER), a part that imports gsplat
+    starts only once the build's marker exists, and a failed build fails those parts with its
+    error instead of letting them import a half-built extension; VGGT parts do not wait."""
+    import threading
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "Fake GPU")
+    marker = tmp_path / "build.json"
+    monkeypatch.setenv("GSPLAT_BUILD_MARKER", str(marker))
+    seen = {}
+
+    def vggt(dev, on_result=None):
+        seen["vggt"] = marker.exists()
+        return {}
+
+    def cell(iterations, prepared=None, recipe="paper"):
+        seen["cell"] = marker.exists()
+        return {"ok": 1}
+
+    monkeypatch.setattr(gpu_check, "vggt_frames_part", vggt)
+    monkeypatch.setattr(gpu_check, "gpu_cell", cell)
+    timer = threading.Timer(1.5, lambda: marker.write_text(json.dumps({"load_or_build_s": 80.0})))
+    timer.start()
+    rep = gpu_check.run_gpu(parts=("vggt_frames", "cell_sparse"))
+    timer.join()
+    assert seen == {"vggt": False, "cell": True}
+    assert rep["cell_sparse"]["ok"] == 1 and rep["cell_sparse"]["waited_for_build_s"] > 1.0
+    marker.write_text(json.dumps({"error": "nvcc failed"}))
+    seen.clear()
+    rep = gpu_check.run_gpu(parts=("cell",))
+    assert "nvcc failed" in rep["cell"]["error"] and "cell" not in seen
+
+
 def test_cell_passes_device_and_rasterizer_to_training(tmp_path):
     res = bench_cell.run_cell(tmp_path, "synthetic", 3, bench_cell.QUICK_ITERATIONS, quick=True, vggt=False,
                               inprocess=True, device="cpu", rasterizer="torch")

@@ -180,6 +180,55 @@ def test_gsplat_means2d_grad_accumulates_like_retain_grad(fake_gsplat):
     torch.testing.assert_close(out["means2d"].grad, 2 * first)
 
 
+def test_gsplat_render_without_statistics_renders_and_differentiates_alike(fake_gsplat):
+    """stats=False (after growth has stopped, or under MCMC) skips the densification statistics
+    only: the same image and the same parameter gradients, no radii and no means2d gradient."""
+    got = {}
+    for stats in (True, False):
+        leaves, cw, K = make_scene(5, 3)
+        out = rasterize(*leaves.values(), cw, K, W, H, torch.tensor([0.1, 0.2, 0.3], dtype=D), sh_degree=3,
+                        backend="gsplat", stats=stats)
+        out["rgb"].square().sum().backward()
+        got[stats] = out, {k: v.grad for k, v in leaves.items()}
+    (with_out, with_grads), (without_out, without_grads) = got[True], got[False]
+    assert without_out["radii"] is None and without_out["means2d"].grad is None
+    assert with_out["radii"] is not None and with_out["means2d"].grad is not None
+    torch.testing.assert_close(without_out["rgb"], with_out["rgb"], **TOL)
+    assert torch.equal(without_out["visible"], with_out["visible"])  # no degenerate conic here
+    for k in with_grads:
+        torch.testing.assert_close(without_grads[k], with_grads[k], **TOL, msg=k)
+
+
+def test_gsplat_trainer_asks_for_statistics_only_while_growth_is_to_come(fake_gsplat, train_scene, tmp_path,
+                                                                        monkeypatch):
+    """The trainer renders with statistics up to the last densification and without them after
+    (the statistics then freeze); MCMC never asks for them."""
+    from splat_train import trainer as trainer_mod
+
+    asked = []
+    real = trainer_mod.render_params
+
+    def spy(*args, **kwargs):
+        asked.append(kwargs["stats"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_mod, "render_params", spy)
+    tr = _trainer(train_scene, tmp_path / "densify", rasterizer="gsplat", iterations=24, densify_until=12)
+    for _ in range(11):
+        tr.step()
+    count = tr.state["count"].clone()
+    assert count.sum() > 0
+    for _ in range(13):
+        tr.step()
+    assert asked == [True] * 11 + [False] * 13
+    assert torch.equal(tr.state["count"], count)
+    asked.clear()
+    tr = _trainer(train_scene, tmp_path / "mcmc", rasterizer="gsplat", recipe="mcmc", iterations=6)
+    for _ in range(6):
+        tr.step()
+    assert asked == [False] * 6
+
+
 def test_densify_statistic_same_units_for_gsplat_and_reference(fake_gsplat):
     """update_state turns pixel gradients into 3DGS's NDC units (x W/2, y H/2); the adapter's
     gradient must be in pixels with shape [N, 2] for the threshold to mean the same thing.
