@@ -255,10 +255,10 @@ def gsplat_build_marker(marker: str) -> int:
 
 
 PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
-         "profile", "step_ab", "cell", "native", "cell_sparse", "vggt_frames", "vggt_many", "backend_agree",
+         "profile", "profile_late", "step_ab", "cell", "native", "cell_sparse", "vggt_frames", "vggt_many", "backend_agree",
          "vggt_search")
 # the parts that import gsplat (they wait for a background build: scripts/gpu_run.sh)
-GSPLAT_PARTS = ("rasterizer_parity", "rasterizer_timing", "workflow_cell", "profile", "step_ab", "cell", "native",
+GSPLAT_PARTS = ("rasterizer_parity", "rasterizer_timing", "workflow_cell", "profile", "profile_late", "step_ab", "cell", "native",
                 "cell_sparse", "backend_agree")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
@@ -289,6 +289,16 @@ def step_profile(prepared: Path | None) -> dict:
     from benchmarks.profile_step import profile
 
     return profile(prepared)
+
+
+def late_step_profile(prepared: Path | None) -> dict:
+    """benchmarks/profile_step.py's late-run profile on the prepared cell: both recipes after
+    6,000 of 10,000 iterations, the densification statistics skipped and computed in turns."""
+    if prepared is None:
+        raise ValueError("the late step profile needs a prepared cell (--cell-prepared)")
+    from benchmarks.profile_step import late_profile
+
+    return late_profile(prepared)
 
 
 def step_ab(prepared: Path | None) -> dict:
@@ -422,6 +432,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
            "native": lambda _dev: native_cell(cell_iterations, cell_prepared),
            "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse"),
            "profile": lambda _dev: step_profile(cell_prepared),
+           "profile_late": lambda _dev: late_step_profile(cell_prepared),
            "step_ab": lambda _dev: step_ab(cell_prepared),
            "vggt_frames": lambda dev: vggt_frames_part(dev, on_result=_partial("vggt_frames")),
            "vggt_many": lambda dev: vggt_many_part(dev, on_result=_partial("vggt_many")),
@@ -569,6 +580,17 @@ def format_gpu_table(r: dict) -> str:
         ph = pr["phases"]["host_ms"]
         rows.append((f"step profile, {recipe}: host ms per phase",
                      ", ".join(f"{k} {_f(v, '.2f')}" for k, v in ph.items())))
+    for recipe, pl in r.get("profile_late", {}).items():
+        if not isinstance(pl, dict) or "median_ms" not in pl:
+            continue
+        m, fp = pl["median_ms"], pl["footprint"]
+        rows.append((f"late step, {recipe}, after {pl['warm_iterations']} it ({pl['gaussians']} Gaussians): ms per "
+                     "iteration, statistics skipped / computed; gsplat alone",
+                     f"{_f(m['stats_skipped'])} / {_f(m['stats_computed'])}; {_f(pl['rasterizer_only_ms'])}"))
+        if "torch_profiler" in pl:
+            rows.append((f"late step, {recipe}: device busy ms per iteration; tile intersections (per visible "
+                         "Gaussian)", f"{_f(pl['torch_profiler']['device_busy_ms_per_it'])}; "
+                                      f"{fp['tile_intersections']} ({_f(fp['tiles_per_visible'])})"))
     ab = r.get("step_ab", {})
     if "sparse" in ab:
         rows.append(("step A/B in one process (" + ", ".join(k for k in ab if k != "setup" and "error" not in k)

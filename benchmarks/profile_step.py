@@ -246,6 +246,67 @@ def recipe_ab(cell: Path, variants: dict[str, dict] | None = None, rounds: int =
     return out
 
 
+def _tile_footprint(tr) -> dict:
+    """The current model's tile intersections in the first training view (gsplat's own
+    opacity-aware radii): the rasterizer's work grows with them, not with the Gaussian count."""
+    from splat_train import _gsplat_backend
+    from splat_train.export import render_params
+
+    real, seen = _gsplat_backend._rasterization(), {}
+
+    def spy(*args, **kwargs):
+        rc, ra, meta = real(*args, **kwargs)
+        seen.update(meta)
+        return rc, ra, meta
+
+    cam = tr.train_views[0].camera
+    cw, K = tr.cams[0]
+    deg = tr.sched.sh_degree_at(max(tr.iteration, 1), tr.cfg.sh_degree)
+    with torch.no_grad(), mock.patch.object(_gsplat_backend, "_rasterization", lambda: spy):
+        render_params(tr.params, deg, cw, K, cam.width, cam.height, tr.bg, tr.backend, depth=False, stats=False)
+    visible = int((seen["radii"] > 0).all(-1).sum())
+    isects = int(seen["isect_ids"].numel())
+    return {"tile_intersections": isects, "gaussians": tr.num_gaussians, "visible": visible,
+            "tiles_per_visible": isects / max(visible, 1)}
+
+
+def late_profile(cell: Path, recipes: tuple[str, ...] = ("sparse", "paper"), warm: int = 6000, steps: int = 200,
+                 rounds: int = 3, profile_steps: int = 30) -> dict:
+    """Each recipe's step after ``warm`` iterations of the cell's 10,000 (past the sparse
+    recipe's growth, which stops at 5,000): ms per iteration with the densification statistics
+    skipped (what the trainer does once nothing reads them) and computed (as before), in turns
+    (``rounds`` blocks of ``steps``); then the phases, the rasterizer alone, the tile footprint
+    and the ``torch.profiler`` summary of that state."""
+    out = {}
+    trainers = {}
+    for recipe in recipes:
+        tr = cell_trainer(cell, recipe)
+        t0 = time.perf_counter()
+        iterate(tr, warm)
+        torch.cuda.synchronize()
+        warm_s = time.perf_counter() - t0
+        strategy = type(tr.strategy)
+        ab = {"stats_skipped": [], "stats_computed": []}
+        for _ in range(rounds):
+            ab["stats_skipped"].append(ms_per_step(tr, steps))
+            with mock.patch.object(strategy, "wants_stats", lambda self, it: True):
+                ab["stats_computed"].append(ms_per_step(tr, steps))
+        res = {"warm_iterations": warm, "warm_s": warm_s, "gaussians": tr.num_gaussians, "steps": steps,
+               "ms_per_step": ab, "median_ms": {k: sorted(v)[len(v) // 2] for k, v in ab.items()},
+               "stats_read_after_warm": bool(tr.strategy.wants_stats(tr.iteration + 1))}
+        res["phases"] = phase_times(tr, steps)
+        res["rasterizer_only_ms"] = rasterizer_only_ms(tr)
+        res["footprint"] = _tile_footprint(tr)
+        print(f"late profile {recipe}: {res['median_ms']} ms per iteration at {tr.num_gaussians} Gaussians; "
+              f"rasterizer alone {res['rasterizer_only_ms']:.2f} ms; {res['footprint']}", flush=True)
+        out[recipe], trainers[recipe] = res, tr
+    for recipe, tr in trainers.items():  # the profiler's hooks slow every later launch: last
+        out[recipe]["torch_profiler"] = torch_profile(tr, profile_steps)
+        out[recipe]["host_bound"] = (out[recipe]["median_ms"]["stats_skipped"]
+                                     > 1.2 * out[recipe]["torch_profiler"]["device_busy_ms_per_it"])
+    return out
+
+
 def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), warm: int = 1000, steps: int = 200,
             profile_steps: int = 30) -> dict:
     """The profile of each recipe (module docstring): every recipe's timings first, then the

@@ -241,6 +241,29 @@ def test_step_profile_parts_and_report(quick_bundle, monkeypatch):
     assert "| step A/B in one process (paper, sparse, sparse_no_dropout, sparse_no_opacity_reg)" in table
 
 
+def test_late_step_profile_times_statistics_off_and_on(quick_bundle, monkeypatch):
+    """The late-run profile's plumbing on the CPU, through gsplat's CPU stand-in: past the
+    sparse recipe's growth the trainer reads no statistics; both variants are timed in turns,
+    the tile footprint comes from gsplat's own intersections, and the table shows them."""
+    pytest.importorskip("gsplat")
+    import _fake_gsplat
+    from splat_train import _gsplat_backend
+
+    profile_step = _cpu_stand_ins(monkeypatch)
+    monkeypatch.setattr(_gsplat_backend, "_rasterization", lambda: _fake_gsplat.rasterization)
+    real = profile_step.cell_trainer
+    monkeypatch.setattr(profile_step, "cell_trainer",
+                        lambda cell, recipe, **o: real(cell, recipe, densify_until=3, rasterizer="gsplat", **o))
+    prof = profile_step.late_profile(quick_bundle, ("sparse",), warm=4, steps=2, rounds=2, profile_steps=1)
+    p = prof["sparse"]
+    assert p["stats_read_after_warm"] is False
+    assert len(p["ms_per_step"]["stats_skipped"]) == len(p["ms_per_step"]["stats_computed"]) == 2
+    fp = p["footprint"]
+    assert 0 < fp["visible"] <= fp["gaussians"] and fp["tile_intersections"] >= fp["visible"]
+    table = gpu_check.format_gpu_table({"profile_late": prof})
+    assert "late step, sparse, after 4 it" in table and "statistics skipped / computed" in table
+
+
 def test_gpu_scripts_refuse_a_folder_that_is_not_a_prepared_cell(tmp_path, monkeypatch, quick_bundle):
     """gsplat_native.py and profile_step.py say in one line what is missing (CUDA, or a cell
     made by bench_cell.py --prepare-only) and write their JSON only where --out says."""
