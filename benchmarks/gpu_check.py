@@ -293,7 +293,8 @@ def step_profile(prepared: Path | None) -> dict:
 
 def late_step_profile(prepared: Path | None) -> dict:
     """benchmarks/profile_step.py's late-run profile on the prepared cell: both recipes after
-    6,000 of 10,000 iterations, the densification statistics skipped and computed in turns."""
+    :data:`benchmarks.profile_step.WARM_LATE` of the 10,000 iterations (past ``sparse``'s
+    growth), the densification statistics skipped and computed in turns."""
     if prepared is None:
         raise ValueError("the late step profile needs a prepared cell (--cell-prepared)")
     from benchmarks.profile_step import late_profile

@@ -21,7 +21,14 @@ config at the cell's 10,000 iterations, no held-out views) is run ``warm`` itera
 A host time per iteration above the device's busy time means the step is bound by the host
 (Python and launch overhead), which is what this profile was made to show.
 
+``--late`` profiles the state late in the run instead (:func:`late_profile`): each recipe after
+``warm`` (:data:`WARM_LATE`) of the 10,000 iterations, past the ``sparse`` recipe's growth, timed
+with the densification statistics skipped (what the trainer does once nothing reads them) and
+computed, in turns; then the phases, gsplat alone, gsplat's tile intersections in one view and
+the ``torch.profiler`` summary.
+
     python benchmarks/profile_step.py --cell .gpu_cell --recipe sparse [--warm 1000 --steps 200]
+    python benchmarks/profile_step.py --cell .gpu_cell --late
 
 CUDA only (the CPU profile is ``benchmarks/profile_iteration.py``).
 """
@@ -45,6 +52,8 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.profile_iteration import PHASES, step_calls  # noqa: E402
 
 CELL_ITERATIONS = 10_000  # the paper's training length, which sets the recipes' schedules
+WARM = 1000  # iterations before the step is timed (the growing model)
+WARM_LATE = 6000  # the same for the late-run profile: past sparse's growth (to 5,000 of 10,000)
 
 
 def cell_trainer(cell: Path, recipe: str, device: str = "cuda", graphs: bool | None = None, **overrides):
@@ -188,7 +197,7 @@ def torch_profile(tr, n: int) -> dict:
             "top_host": top("self_cpu_time_total"), "top_device": top(dev_attr)}
 
 
-def profile_recipe(cell: Path, recipe: str, warm: int = 1000, steps: int = 200, profile_steps: int = 30) -> dict:
+def profile_recipe(cell: Path, recipe: str, warm: int = WARM, steps: int = 200, profile_steps: int = 30) -> dict:
     """The profile of ``recipe`` on ``cell`` (module docstring)."""
     return profile(cell, (recipe,), warm=warm, steps=steps, profile_steps=profile_steps)[recipe]
 
@@ -270,7 +279,7 @@ def _tile_footprint(tr) -> dict:
             "tiles_per_visible": isects / max(visible, 1)}
 
 
-def late_profile(cell: Path, recipes: tuple[str, ...] = ("sparse", "paper"), warm: int = 6000, steps: int = 200,
+def late_profile(cell: Path, recipes: tuple[str, ...] = ("sparse", "paper"), warm: int = WARM_LATE, steps: int = 200,
                  rounds: int = 3, profile_steps: int = 30) -> dict:
     """Each recipe's step after ``warm`` iterations of the cell's 10,000 (past the sparse
     recipe's growth, which stops at 5,000): ms per iteration with the densification statistics
@@ -307,7 +316,7 @@ def late_profile(cell: Path, recipes: tuple[str, ...] = ("sparse", "paper"), war
     return out
 
 
-def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), warm: int = 1000, steps: int = 200,
+def profile(cell: Path, recipes: tuple[str, ...] = ("paper", "sparse"), warm: int = WARM, steps: int = 200,
             profile_steps: int = 30) -> dict:
     """The profile of each recipe (module docstring): every recipe's timings first, then the
     ``torch.profiler`` runs (its hooks stay in the process and slow every later launch)."""
@@ -327,7 +336,9 @@ def main() -> int:
     p.add_argument("--cell", type=Path, required=True, help="folder of bench_cell.py --prepare-only")
     p.add_argument("--recipe", action="append", choices=RECIPE_NAMES,
                    help="recipe(s) to profile (default: paper and sparse)")
-    p.add_argument("--warm", type=int, default=1000, help="iterations run before timing")
+    p.add_argument("--late", action="store_true",
+                   help=f"profile late in the run: statistics skipped and computed, in turns (default --warm {WARM_LATE})")
+    p.add_argument("--warm", type=int, default=None, help=f"iterations run before timing (default {WARM}; {WARM_LATE} with --late)")
     p.add_argument("--steps", type=int, default=200, help="iterations timed")
     p.add_argument("--out", type=Path, default=None, help="JSON file to write")
     args = p.parse_args()
@@ -335,7 +346,12 @@ def main() -> int:
     if problem:
         print(problem, file=sys.stderr)
         return 2
-    emit(profile(args.cell, tuple(args.recipe or ("paper", "sparse")), warm=args.warm, steps=args.steps), args.out)
+    recipes = tuple(args.recipe or ("paper", "sparse"))
+    if args.late:
+        res = late_profile(args.cell, recipes, warm=WARM_LATE if args.warm is None else args.warm, steps=args.steps)
+    else:
+        res = profile(args.cell, recipes, warm=WARM if args.warm is None else args.warm, steps=args.steps)
+    emit(res, args.out)
     return 0
 
 
