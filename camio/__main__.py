@@ -20,6 +20,8 @@ log = logging.getLogger("camio")
 
 
 def _parser() -> argparse.ArgumentParser:
+    from camio.scene import FORMATS
+
     p = argparse.ArgumentParser(prog="python -m camio", description=plain(__doc__).split("\n")[0])
     add_log_flags(p)
     sub = p.add_subparsers(dest="command", required=True)
@@ -38,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
     c.add_argument("--src", required=True, type=Path, help="the downloaded scene folder (its format is detected)")
     c.add_argument("--out", required=True, type=Path, help="prepared scene folder to write (docs/contracts.md)")
-    c.add_argument("--format", default="auto", choices=("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder"),
+    c.add_argument("--format", default="auto", choices=FORMATS,
                    help="input layout (auto: detected from its camera files)")
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
     c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")

@@ -28,6 +28,13 @@ Layouts (what each reader expects; the conventions it converts):
   width, height. So ``cam_from_world = [R^T | -R^T C]`` (P = K [R^T | -R^T C], as openMVG reads
   it). Non-zero distortion (k1, k2) is undistorted with ``undistort=True``; a third value is refused.
 
+* **Middlebury multi-view** (``middlebury``; Seitz et al. CVPR 2006: temple, dino and their
+  rings): the images beside one ``*_par.txt`` whose lines are ``NAME.png k11 .. k33 r11 .. r33
+  t1 t2 t3``, the projection ``K [R | t]`` of that image (world -> OpenCV camera: R and t are
+  ``cam_from_world``), K at the image files' resolution, image origin top-left (COLMAP's
+  pixel coordinates). The dataset's first line is the number of images; a first line that is a
+  header of names instead is skipped too.
+
 Bare folders (``folder``) take only photographs: files whose names mark a depth, disparity,
 normal, mask, confidence or alpha map are left out (with a warning naming how many), as are
 single-channel 16-bit or float images; what remains must share one pixel type and one size
@@ -48,7 +55,7 @@ from camio.colmap import SparseModel, find_model_dir
 from camio.images import image_size, list_images
 
 __all__ = ["detect_layout", "camera_like_files", "split_photos", "decompose_projection",
-           "read_dtu", "read_mvsnet", "read_strecha", "DTU_FRAME", "source_camera_models"]
+           "read_dtu", "read_mvsnet", "read_strecha", "read_middlebury", "DTU_FRAME", "source_camera_models"]
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +66,7 @@ _ROLE = re.compile(r"(^|[_\-.])(depth|depths|disp|disparity|normal|normals|mask|
 _CAMERA_PATTERNS = ("*.camera", "*_cam.txt", "cam*.txt", "cameras*.npz", "cameras*.json", "transforms*.json",
                     "poses*.npy", "poses*.txt", "pose*.txt", "bundle*.out", "*.nvm", "*.sfm", "*.log",
                     "images.txt", "images.bin", "cameras.txt", "cameras.bin", "K.txt", "intrinsic*.txt",
-                    "calib*.txt", "*.xmp")
+                    "calib*.txt", "*.xmp", "*_par.txt")
 
 
 class SceneError(ValueError):
@@ -109,14 +116,24 @@ def _strecha_dir(root: Path) -> Path | None:
     return None
 
 
+def _middlebury_par(root: Path) -> Path | None:
+    """The one ``*_par.txt`` of a Middlebury scene folder (None when there is none); several
+    are refused (which one holds the cameras of these images is not for us to guess)."""
+    pars = sorted(root.glob("*_par.txt"))
+    if len(pars) > 1:
+        raise _scene_error(f"{root} holds {len(pars)} Middlebury camera files ({', '.join(p.name for p in pars)}): "
+                           "keep the one of these images")
+    return pars[0] if pars else None
+
+
 def detect_layout(root: Path) -> str:
     """The format of a scene folder from the camera files it holds.
 
     Order: ``transforms.json`` -> "transforms"; ``transforms_train.json`` (NeRF-synthetic) ->
     "transforms"; a COLMAP model (``.``, ``sparse/0``, ``sparse``, ``0``) -> "colmap";
     ``poses_bounds.npy`` -> "llff"; ``cameras.npz`` -> "dtu"; ``cams/*_cam.txt`` -> "mvsnet";
-    ``*.camera`` (in ``gt_dense_cameras/``, ``images/`` or the folder) -> "strecha"; else
-    "folder" when no camera-like file is present.
+    ``*.camera`` (in ``gt_dense_cameras/``, ``images/`` or the folder) -> "strecha";
+    ``*_par.txt`` -> "middlebury"; else "folder" when no camera-like file is present.
 
     Raises:
         SceneError: camera-like files that no adapter reads (named in the message).
@@ -136,6 +153,8 @@ def detect_layout(root: Path) -> str:
         return "mvsnet"
     if _strecha_dir(root) is not None:
         return "strecha"
+    if _middlebury_par(root) is not None:
+        return "middlebury"
     unknown = camera_like_files(root)
     if unknown:
         shown = ", ".join(str(p.relative_to(root)) for p in unknown[:5])
@@ -143,7 +162,7 @@ def detect_layout(root: Path) -> str:
             f"{root} holds {len(unknown)} file(s) that look like camera or pose files ({shown}"
             f"{', ...' if len(unknown) > 5 else ''}) in a layout no camio adapter reads (known: COLMAP "
             "sparse/0, LLFF poses_bounds.npy, transforms.json, DTU cameras.npz, MVSNet cams/*_cam.txt, "
-            "Strecha *.camera); convert them to COLMAP, or pass --format folder to ignore them")
+            "Strecha *.camera, Middlebury *_par.txt); convert them to COLMAP, or pass --format folder to ignore them")
     return "folder"
 
 
@@ -423,3 +442,60 @@ def read_strecha(root: Path, image_dir: Path, names: list[str]) -> SparseModel:
         raise _scene_error(f"{len(missing)} of {len(names)} image(s) in {image_dir} have no {cdir}/<name>.camera, "
                            f"e.g. {missing[:3]}")
     return SparseModel(cams, camera_models=models)
+
+
+# ----------------------------------------------------------------------------- Middlebury
+def read_middlebury_par(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Image name -> (K [3, 3], cam_from_world [3, 4]) from a Middlebury ``*_par.txt``."""
+    try:
+        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    except OSError as exc:
+        raise _scene_error(f"cannot read camera file {path}: {exc}") from exc
+    if lines and (len(lines[0]) == 1 or len(lines[0]) == 22 and not _is_number(lines[0][1])):
+        lines = lines[1:]  # the dataset's count line, or a header of names
+    cams = {}
+    for i, words in enumerate(lines, 1):
+        if len(words) != 22:
+            raise _scene_error(f"{path}: camera line {i} holds {len(words)} fields; a Middlebury line is "
+                               "'NAME k11 .. k33 r11 .. r33 t1 t2 t3' (22)")
+        try:
+            v = np.array(words[1:], np.float64)
+        except ValueError as exc:
+            raise _scene_error(f"{path}: camera line {i} ({words[0]}): {exc}") from exc
+        K, R, t = v[:9].reshape(3, 3), v[9:18].reshape(3, 3), v[18:21]
+        if not np.all(np.isfinite(v)) or np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+            raise _scene_error(f"{path}: camera line {i} ({words[0]}): R is not a rotation or values are not finite")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9 or np.any(K[2, :2] != 0):
+            raise _scene_error(f"{path}: camera line {i} ({words[0]}): K is not an intrinsic matrix "
+                               "(positive focal lengths, last row 0 0 1)")
+        if words[0] in cams:
+            raise _scene_error(f"{path}: image {words[0]} has two camera lines")
+        cams[words[0]] = (K, np.concatenate([R, t.reshape(3, 1)], 1))
+    return cams
+
+
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def read_middlebury(root: Path, image_dir: Path, names: list[str]) -> SparseModel:
+    """Cameras of a Middlebury scene (module docstring) for the images ``names``: K as the
+    calibration gives it, which is for the image files as the dataset ships them."""
+    par = _middlebury_par(root)
+    if par is None:
+        raise _scene_error(f"{root} holds no Middlebury *_par.txt")
+    table = read_middlebury_par(par)
+    missing = [n for n in names if n not in table]
+    if missing:
+        raise _scene_error(f"{len(missing)} of {len(names)} image(s) in {image_dir} have no line in {par}, "
+                           f"e.g. {missing[:3]}")
+    cams = []
+    for n in names:
+        K, cw = table[n]
+        w, h = image_size(image_dir / n)
+        cams.append(Camera(n, w, h, K, cw))
+    return SparseModel(cams)

@@ -12,7 +12,8 @@ Readers convert every input format to the project conventions (:mod:`camio`):
 * ``transforms.json`` (instant-ngp / nerfstudio): camera-to-world in OpenGL axes (x right,
   y up, z back); intrinsics ``fl_x``/``fl_y``/``cx``/``cy`` or ``camera_angle_x`` (and
   ``camera_angle_y``), global or per frame; pixel coordinates as in COLMAP.
-* DTU (IDR / MonoSDF ``cameras.npz``), MVSNet ``cams/*_cam.txt`` and Strecha ``*.camera``:
+* DTU (IDR / MonoSDF ``cameras.npz``), MVSNet ``cams/*_cam.txt``, Strecha ``*.camera`` and
+  Middlebury ``*_par.txt``:
   :mod:`camio.datasets`, which also holds the auto-detection and the bare-folder rules.
 * A bare image folder (no cameras): photographs only (:func:`camio.datasets.split_photos`).
 
@@ -35,15 +36,18 @@ import numpy as np
 from camio.cameras import Camera, invert_cam_from_world, opengl_to_opencv_c2w, scale_intrinsics
 from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelError, \
     find_model_dir, read_model
-from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_mvsnet, read_strecha, split_photos
+from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_middlebury, read_mvsnet, read_strecha, \
+    split_photos
 from camio.images import image_size, list_images, read_image
 
 __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_size", "read_llff_poses",
-           "llff_to_cam_from_world", "FORMATS", "UNDISTORTABLE_MODELS"]
+           "llff_to_cam_from_world", "FORMATS", "REFERENCE_FORMATS", "UNDISTORTABLE_MODELS"]
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "folder")
+FORMATS = ("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "middlebury", "folder")
+# the formats whose source carries reference cameras
+REFERENCE_FORMATS = tuple(f for f in FORMATS if f not in ("auto", "folder"))
 UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
@@ -239,6 +243,9 @@ def load_scene(
             scene = _load_colmap(path, image_dir, names, undistort, work_dir)
         elif fmt == "mvsnet":
             scene = Scene(image_dir, names, read_mvsnet(root, image_dir, names), "mvsnet", path,
+                          source_models=("PINHOLE",))
+        elif fmt == "middlebury":
+            scene = Scene(image_dir, names, read_middlebury(root, image_dir, names), "middlebury", path,
                           source_models=("PINHOLE",))
         elif fmt == "strecha":
             model = read_strecha(root, image_dir, names)

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from camio.cameras import Camera, invert_cam_from_world, look_at, rotmat_to_qvec
+from camio.cameras import Camera, invert_cam_from_world, look_at, project_points, rotmat_to_qvec
 from camio.colmap import UnsupportedCameraModelError, read_model
 from camio.datasets import decompose_projection
 from camio.images import read_image, write_image
@@ -417,3 +417,63 @@ def test_unknown_camera_files_refused(tmp_path):
     with pytest.raises(SceneError, match="2 file.*bundle.out.*--format folder"):
         load_scene(d)
     assert len(load_scene(d, format="folder").names) == 3
+
+
+# ----------------------------------------------------------------------------- Middlebury
+def _middlebury_par(path, cams, first_line="count"):
+    lines = [str(len(cams))] if first_line == "count" else (
+        ["imgname.png " + " ".join(f"k{i}" for i in range(21))] if first_line == "header" else [])
+    for c in cams:
+        lines.append(" ".join([c.name, *(repr(float(v)) for v in (*c.K.ravel(), *c.R.ravel(), *c.t))]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("first_line", ["count", "header", "none"])
+def test_middlebury_layout(tmp_path, first_line):
+    """templeSR0001.png ... beside templeSR_par.txt: 'NAME K(9) R(9) t(3)', P = K [R | t];
+    the dataset's count line (or a header of names) is skipped; the cameras round-trip and a
+    world point projects where K [R | t] puts it."""
+    cams = [Camera(f"templeSR{i + 1:04d}.png", c.width, c.height, c.K, c.cam_from_world)
+            for i, c in enumerate(_cameras())]
+    root = tmp_path / "templeSparseRing"
+    for i, c in enumerate(cams):
+        _img(root / c.name, seed=i)
+    _middlebury_par(root / "templeSR_par.txt", cams, first_line)
+    (root / "templeSR_ang.txt").write_text("0 0\n")  # the dataset's angles file: not a camera file
+    assert detect_format(root) == "middlebury"
+    s = load_scene(root)
+    assert s.source_format == "middlebury" and s.names == [c.name for c in cams]
+    _assert_roundtrip(cams, s.model.cameras)
+    X = np.array([0.1, -0.2, 0.3])
+    for c, g in zip(cams, s.model.cameras):
+        x = c.K @ (c.R @ X + c.t)
+        uv, _ = project_points(X[None], g.K, g.cam_from_world)
+        np.testing.assert_allclose(uv[0], x[:2] / x[2], rtol=1e-9)
+    r = _convert(root, tmp_path / "out", "--downsample", "2")
+    assert r.returncode == 0, r.stderr
+    assert "detected format middlebury: 6 images, 6 reference cameras (PINHOLE)" in r.stdout
+    _assert_roundtrip(cams, read_model(tmp_path / "out").cameras, scale=(0.5, 0.5))
+
+
+def test_middlebury_refuses_what_it_cannot_read(tmp_path):
+    cams = [Camera(f"v{i}.png", c.width, c.height, c.K, c.cam_from_world) for i, c in enumerate(_cameras(3))]
+    root = tmp_path / "dino"
+    for i, c in enumerate(cams):
+        _img(root / c.name, seed=i)
+    par = root / "dino_par.txt"
+    _middlebury_par(par, cams[:2])
+    with pytest.raises(SceneError, match=r"1 of 3 image\(s\).*no line in .*dino_par.txt"):
+        load_scene(root)
+    _middlebury_par(par, cams)
+    par.write_text(par.read_text().replace(cams[1].name + " ", cams[1].name + " 7 ", 1))
+    with pytest.raises(SceneError, match="camera line 2 holds 23 fields"):
+        load_scene(root)
+    bad = Camera(cams[1].name, W, H, cams[1].K, np.concatenate([2 * cams[1].R, cams[1].t[:, None]], 1))
+    _middlebury_par(par, [cams[0], bad, cams[2]])
+    with pytest.raises(SceneError, match="R is not a rotation"):
+        load_scene(root)
+    _middlebury_par(par, cams)
+    _middlebury_par(root / "dinoSR_par.txt", cams)
+    with pytest.raises(SceneError, match="2 Middlebury camera files"):
+        load_scene(root)

@@ -2,8 +2,7 @@
 distortion: asked of camio, the one place that reads dataset layouts), how it is prepared,
 its split and view counts, and which initialisers apply to it."""
 
-# Formats whose source carries reference cameras.
-_REFERENCE_FORMATS = ("colmap", "llff", "transforms", "dtu", "mvsnet", "strecha")
+from camio.scene import REFERENCE_FORMATS as _REFERENCE_FORMATS
 
 # ----------------------------------------------------------------------------- scenes
 
