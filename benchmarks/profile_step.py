@@ -63,12 +63,14 @@ def cell_trainer(cell: Path, recipe: str, device: str = "cuda", graphs: bool | N
     from benchmarks.gsplat_native import load_cell
     from splat_train.config import TrainConfig
     from splat_train.losses import TrainingLoss
-    from splat_train.trainer import Trainer
+    from splat_train.trainer import Trainer, seed_depth_prior
 
     train, _test, _cloud = load_cell(cell)
     cfg = TrainConfig(recipe=recipe, iterations=CELL_ITERATIONS, device=device, **overrides)
     out = tempfile.mkdtemp(prefix="profile_step_")
-    tr = Trainer(cfg, cell / "bridge" / "seed.ply", train, out, [], ckpt_dir=out)
+    seed = cell / "bridge" / "seed.ply"
+    # the depth prior beside the seed, as the training command finds it (sparse's depth term)
+    tr = Trainer(cfg, seed, train, out, [], ckpt_dir=out, depth_prior=seed_depth_prior(seed, cfg))
     tr.photometric = TrainingLoss(cfg.lambda_dssim, tr.dev, graphs=graphs)
     return tr
 
@@ -214,6 +216,7 @@ def _time_recipe(cell: Path, recipe: str, warm: int, steps: int):
         out[key] = {"ms_per_step": ms, "loss_graphed": tr.photometric.use_graphs,
                     "gaussians": tr.num_gaussians}
         print(f"profile {recipe} {key}: {ms:.2f} ms per iteration at {tr.num_gaussians} Gaussians", flush=True)
+    out["parts"] = [p.name for p in tr.parts]
     out["phases"] = phase_times(tr, steps)
     out["rasterizer_only_ms"] = rasterizer_only_ms(tr)
     out["ms_per_step"] = out["graphs_on"]["ms_per_step"]
@@ -223,7 +226,8 @@ def _time_recipe(cell: Path, recipe: str, warm: int, steps: int):
 #: the recipes and the sparse recipe without each of its per-iteration parts
 AB_VARIANTS = {"paper": {"recipe": "paper"}, "sparse": {"recipe": "sparse"},
                "sparse_no_dropout": {"recipe": "sparse", "dropout_rate": 0.0},
-               "sparse_no_opacity_reg": {"recipe": "sparse", "opacity_reg": 0.0}}
+               "sparse_no_opacity_reg": {"recipe": "sparse", "opacity_reg": 0.0},
+               "sparse_no_depth": {"recipe": "sparse", "depth_weight": 0.0}}
 
 
 def recipe_ab(cell: Path, variants: dict[str, dict] | None = None, rounds: int = 3, warm: int = 300,
@@ -301,6 +305,7 @@ def late_profile(cell: Path, recipes: tuple[str, ...] = ("sparse", "paper"), war
             with mock.patch.object(strategy, "wants_stats", lambda self, it: True):
                 ab["stats_computed"].append(ms_per_step(tr, steps))
         res = {"warm_iterations": warm, "warm_s": warm_s, "gaussians": tr.num_gaussians, "steps": steps,
+               "parts": [p.name for p in tr.parts],
                "ms_per_step": ab, "median_ms": {k: sorted(v)[len(v) // 2] for k, v in ab.items()},
                "stats_read_after_warm": bool(tr.strategy.wants_stats(tr.iteration + 1))}
         res["phases"] = phase_times(tr, steps)

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from camio.depth_prior import read_depth_prior
+from splat_train.losses import CUDA_GRAPHS, graphed_checked
 from splat_train.train_part import TrainPart
 
 __all__ = ["DepthPrior", "DepthPriorLoss", "ViewSamples", "load_depth_prior", "pearson_depth_loss",
@@ -156,23 +157,43 @@ class DepthPriorLoss(TrainPart):
         prior: the loaded prior (:func:`load_depth_prior`).
         view_names: image name of each training view, in the trainer's order.
         weight, ramp_fraction, iterations: as :func:`depth_weight_at`.
+        graphs: None follows :data:`splat_train.losses.CUDA_GRAPHS`; only a prior on a CUDA
+            device is ever graphed.
     """
 
     name = "depth_prior"
     needs_depth = True
 
     def __init__(self, prior: DepthPrior, view_names: list[str], weight: float, ramp_fraction: float,
-                 iterations: int) -> None:
+                 iterations: int, graphs: bool | None = None) -> None:
         self.prior, self.view_names = prior, list(view_names)
         self.weight, self.ramp_fraction, self.iterations = float(weight), float(ramp_fraction), int(iterations)
+        cuda = any(v.z.is_cuda for v in prior.views.values())
+        self.use_graphs = (CUDA_GRAPHS if graphs is None else bool(graphs)) and cuda
+        self._graphed: dict[str, object] = {}  # view name -> graphed ViewSamples.loss (None: op by op)
 
     def loss(self, iteration: int, view: int, render: dict[str, Tensor], params: dict[str, Tensor]) -> Tensor | None:
-        """``w(it) x`` :meth:`ViewSamples.loss` of ``render["depth"]`` [H, W] (camera z), or None."""
-        samples = self.prior.views.get(self.view_names[view])
+        """``w(it) x`` :meth:`ViewSamples.loss` of ``render["depth"]`` [H, W] (camera z), or None.
+
+        On a CUDA device the view's term runs as one CUDA graph (its forward and its backward
+        each one replay instead of ~25 and ~50 kernel launches: host time that a small model's
+        step is made of), built and checked against the op-by-op term at the view's first call
+        (:func:`splat_train.losses.graphed_checked`); op by op where that fails."""
+        name = self.view_names[view]
+        samples = self.prior.views.get(name)
         w = depth_weight_at(iteration, self.iterations, self.weight, self.ramp_fraction)
         if samples is None or w <= 0:
             return None
-        return w * samples.loss(render["depth"])
+        depth = render["depth"]
+        if not (self.use_graphs and depth.requires_grad):
+            return w * samples.loss(depth)
+        if name not in self._graphed:
+            self._graphed[name] = graphed_checked(samples.loss, (torch.rand_like(depth).requires_grad_(True),),
+                                                  (depth,), f"depth prior term of {name}")
+            if self._graphed[name] is not None:
+                log.info("depth prior term of %s: one CUDA graph", name)
+        fn = self._graphed[name]
+        return w * (fn(depth) if fn is not None else samples.loss(depth))
 
     def summary(self) -> dict:
         """``depth_prior``: the file, its usable samples and the views that have them."""

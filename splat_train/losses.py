@@ -21,12 +21,13 @@ from splat_train.cpu import ssim as cpu_ssim
 from splat_train.config import TrainConfig
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "photometric_terms", "TrainingLoss",
-           "gaussian_regularisers", "gaussian_window", "gaussian_window_1d", "CUDA_GRAPHS"]
+           "gaussian_regularisers", "gaussian_window", "gaussian_window_1d", "graphed_checked", "CUDA_GRAPHS"]
 
 log = logging.getLogger(__name__)
 
-#: Whether :class:`TrainingLoss` runs the loss as a CUDA graph on CUDA devices (environment
-#: ``SPLAT_TRAIN_CUDA_GRAPHS=0`` switches it off: the same loss, launched op by op).
+#: Whether the training losses run as CUDA graphs on CUDA devices (:class:`TrainingLoss`, the
+#: depth prior's term; environment ``SPLAT_TRAIN_CUDA_GRAPHS=0`` switches them off: the same
+#: losses, launched op by op).
 CUDA_GRAPHS = os.environ.get("SPLAT_TRAIN_CUDA_GRAPHS", "1") != "0"
 
 
@@ -190,28 +191,50 @@ class TrainingLoss:
     def _build(self, render: torch.Tensor, target: torch.Tensor):
         """The graphed loss for this shape, checked against :meth:`eager`; None on failure (graphs
         are then off for the run)."""
-        try:
-            sample = (torch.rand_like(render).requires_grad_(True), torch.rand_like(target))
-            fn = torch.cuda.make_graphed_callables(self.eager, sample)
-            probe = render.detach().clone().requires_grad_(True)
-            ref = probe.detach().clone().requires_grad_(True)
-            loss_g, stats_g = fn(probe, target)
-            loss_e, stats_e = self.eager(ref, target)
-            loss_g.backward()
-            loss_e.backward()
-            same = (torch.allclose(loss_g, loss_e, rtol=1e-5, atol=1e-7)
-                    and torch.allclose(stats_g, stats_e, rtol=1e-5, atol=1e-7)
-                    and torch.allclose(probe.grad, ref.grad, rtol=1e-4, atol=1e-9))
-            if not same:
-                raise RuntimeError(f"graphed loss differs from the op-by-op loss (loss {float(loss_g)} vs "
-                                   f"{float(loss_e)}, max gradient difference "
-                                   f"{float((probe.grad - ref.grad).abs().max()):.3g})")
-        except Exception as exc:  # noqa: BLE001  (any failure: the op-by-op loss is always right)
-            log.warning("training loss as a CUDA graph unavailable (%s); running it op by op", exc)
+        fn = graphed_checked(self.eager, (torch.rand_like(render).requires_grad_(True), torch.rand_like(target)),
+                             (render, target), "training loss")
+        if fn is None:
             self.use_graphs = False
             return None
         log.info("training loss: one CUDA graph for %s images", "x".join(map(str, render.shape)))
         return fn
+
+
+def graphed_checked(fn, sample: tuple[torch.Tensor, ...], probe: tuple[torch.Tensor, ...], what: str):
+    """``fn`` as a CUDA graph (``torch.cuda.make_graphed_callables`` on ``sample``: the forward
+    and the backward pass each one replay), checked against ``fn`` op by op on ``probe``: every
+    output (relative 1e-5) and the gradient of the first argument (relative 1e-4).
+
+    Args:
+        fn: a function of tensors of fixed shapes (its first argument differentiable) returning
+            a tensor or a tuple of tensors, the first one differentiable.
+        sample: arguments of the shapes, dtypes and devices it will be called with (the first
+            requires grad), used to capture it.
+        probe: real arguments to compare on (detached copies are used).
+        what: its name in the warning.
+
+    Returns:
+        The graphed callable, or None on a mismatch or any error while building (a warning says
+        which; the caller stays op by op).
+    """
+    try:
+        graphed = torch.cuda.make_graphed_callables(fn, sample)
+        first = probe[0].detach().clone().requires_grad_(True)
+        ref = probe[0].detach().clone().requires_grad_(True)
+        out_g, out_e = graphed(first, *probe[1:]), fn(ref, *probe[1:])
+        out_g, out_e = (out_g, out_e) if isinstance(out_g, tuple) else ((out_g,), (out_e,))
+        out_g[0].backward()
+        out_e[0].backward()
+        same = (all(torch.allclose(g, e, rtol=1e-5, atol=1e-7) for g, e in zip(out_g, out_e))
+                and torch.allclose(first.grad, ref.grad, rtol=1e-4, atol=1e-9))
+        if not same:
+            raise RuntimeError(f"graphed result differs from the op-by-op one (first output {float(out_g[0])} vs "
+                               f"{float(out_e[0])}, max gradient difference "
+                               f"{float((first.grad - ref.grad).abs().max()):.3g})")
+    except Exception as exc:  # noqa: BLE001  (any failure: the op-by-op function is always right)
+        log.warning("%s as a CUDA graph unavailable (%s); running it op by op", what, exc)
+        return None
+    return graphed
 
 
 def gaussian_regularisers(opacity_logits: torch.Tensor, log_scales: torch.Tensor, opacity_reg: float,

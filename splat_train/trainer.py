@@ -73,7 +73,7 @@ from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
 
-__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest"]
+__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest", "seed_depth_prior"]
 
 log = logging.getLogger(__name__)
 
@@ -480,6 +480,16 @@ class Trainer:
         return TrainResult(out, summary)
 
 
+def seed_depth_prior(seed: str | Path, cfg: TrainConfig, depth_prior: str | Path | None = None) -> Path | None:
+    """The depth prior a run of ``cfg`` on ``seed`` uses: ``depth_prior`` when given, else the
+    Bridge's file beside the seed when there is one; None when ``cfg`` has no depth term."""
+    if cfg.depth_weight <= 0:
+        return None
+    if depth_prior is None and (Path(seed).parent / DEPTH_PRIOR_FILE).is_file():
+        return Path(seed).parent / DEPTH_PRIOR_FILE
+    return None if depth_prior is None else Path(depth_prior)
+
+
 def _is_digest_folder(path: Path) -> bool:
     """A checkpoint folder this trainer wrote under a resume dir: 16 hex digits holding only
     ``ckpt/`` (anything else there is not the trainer's and is never deleted)."""
@@ -532,10 +542,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
              len(train_views), len(test_views))
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    if depth_prior is None and (Path(seed).parent / DEPTH_PRIOR_FILE).is_file():
-        depth_prior = Path(seed).parent / DEPTH_PRIOR_FILE
-    if cfg.depth_weight <= 0:
-        depth_prior = None
+    depth_prior = seed_depth_prior(seed, cfg, depth_prior)
     digest = inputs_digest(seed, train_views, cfg, depth_prior)
     if resume_dir is None:
         return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior).run()

@@ -238,7 +238,7 @@ def test_step_profile_parts_and_report(quick_bundle, monkeypatch):
     assert ab["sparse_no_dropout"]["config"] == {"recipe": "sparse", "dropout_rate": 0.0}
     table = gpu_check.format_gpu_table({"profile": prof, "step_ab": ab})
     assert "step profile, sparse: host ms per phase | render" in table
-    assert "| step A/B in one process (paper, sparse, sparse_no_dropout, sparse_no_opacity_reg)" in table
+    assert "| step A/B in one process (paper, sparse, sparse_no_dropout, sparse_no_opacity_reg, sparse_no_depth)" in table
 
 
 def test_late_step_profile_times_statistics_off_and_on(quick_bundle, monkeypatch):
@@ -257,6 +257,8 @@ def test_late_step_profile_times_statistics_off_and_on(quick_bundle, monkeypatch
     prof = profile_step.late_profile(quick_bundle, ("sparse",), warm=4, steps=2, rounds=2, profile_steps=1)
     p = prof["sparse"]
     assert p["stats_read_after_warm"] is False
+    # the Bridge's depth prior beside the seed is used, as the training command uses it
+    assert (quick_bundle / "bridge" / "depth_prior.npz").is_file() and "depth_prior" in p["parts"]
     assert len(p["ms_per_step"]["stats_skipped"]) == len(p["ms_per_step"]["stats_computed"]) == 2
     fp = p["footprint"]
     assert 0 < fp["visible"] <= fp["gaussians"] and fp["tile_intersections"] >= fp["visible"]

@@ -212,3 +212,34 @@ def test_training_loss_is_the_photometric_loss_and_its_statistics():
     loss.backward()
     ref.backward()
     assert torch.equal(r1.grad, r2.grad)
+
+
+def test_training_loss_graph_is_built_once_per_shape_and_checked(monkeypatch, caplog):
+    """The CUDA-graph path of the trainer's loss, with torch.cuda.make_graphed_callables stood
+    in for on the CPU: one capture per image shape, the op-by-op loss and statistics; a graph
+    that disagrees with them switches graphs off for the run with a warning."""
+    from splat_train.losses import TrainingLoss
+
+    captured = []
+
+    def make_graphed(fn, sample):
+        captured.append(tuple(a.shape for a in sample))
+        return lambda *args: fn(*args)
+
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", make_graphed)
+    fn, ref = TrainingLoss(0.2, torch.device("cpu")), TrainingLoss(0.2, torch.device("cpu"), graphs=False)
+    fn.use_graphs = True
+    g = torch.Generator().manual_seed(0)
+    for shape in ((24, 32, 3), (24, 32, 3), (12, 16, 3)):
+        target = torch.rand(*shape, generator=g, dtype=torch.float64)
+        render = (target + 0.1 * torch.randn(*shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+        got, want = fn(render.clone().requires_grad_(True), target), ref(render.clone().requires_grad_(True), target)
+        assert got[0].item() == want[0].item() and torch.equal(got[1], want[1])
+    assert captured == [((24, 32, 3), (24, 32, 3)), ((12, 16, 3), (12, 16, 3))]
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", lambda f, sample: lambda *a: (f(*a)[0] * 2, f(*a)[1]))
+    bad = TrainingLoss(0.2, torch.device("cpu"))
+    bad.use_graphs = True
+    with caplog.at_level("WARNING"):
+        loss, _ = bad(render.clone().requires_grad_(True), target)
+    assert "training loss as a CUDA graph unavailable" in caplog.text and not bad.use_graphs
+    assert loss.item() == ref(render.clone().requires_grad_(True), target)[0].item()

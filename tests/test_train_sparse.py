@@ -237,6 +237,55 @@ def test_depth_prior_file_round_trip_and_resampling(tmp_path):
         read_depth_prior(tmp_path / "bad.npz")
 
 
+def _prior_two_views(tmp_path):
+    g = np.random.default_rng(0)
+    xy = np.c_[g.uniform(0, 40, 60), g.uniform(0, 30, 60)]
+    s = DepthSamples(["a.png", "b.png"], [[40, 30], [40, 30]], [0] * 30 + [1] * 30, xy, g.uniform(1, 3, 60),
+                     g.uniform(0.2, 1, 60), "dense")
+    return load_depth_prior(write_depth_prior(tmp_path / DEPTH_PRIOR_FILE, s), {"a.png": (40, 30), "b.png": (40, 30)})
+
+
+def test_depth_term_as_a_graph_per_view_is_the_op_by_op_term(tmp_path, monkeypatch, caplog):
+    """On CUDA the depth term runs as one graph per view (splat_train.losses.graphed_checked);
+    here torch.cuda.make_graphed_callables is stood in for by a function that records its
+    capture and runs the term: built once per view at its first call, the same value and
+    gradient as the op-by-op term (float64); a graph that disagrees with the op-by-op term is
+    dropped with a warning and that view stays op by op."""
+    from splat_train.depth_prior import DepthPriorLoss
+
+    prior = _prior_two_views(tmp_path)
+    captured = []
+
+    def make_graphed(fn, sample):
+        captured.append(tuple(a.shape for a in sample))
+        return lambda *args: fn(*args)
+
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", make_graphed)
+    graphed = DepthPriorLoss(prior, ["a.png", "b.png"], 0.05, 0.1, 100, graphs=True)
+    assert not graphed.use_graphs  # a prior on the CPU is never graphed...
+    graphed.use_graphs = True  # ...but the same path runs here with the stand-in
+    eager = DepthPriorLoss(prior, ["a.png", "b.png"], 0.05, 0.1, 100, graphs=False)
+    g = torch.Generator().manual_seed(1)
+    for it, view in ((20, 0), (30, 0), (40, 1), (50, 1)):
+        depth = 1 + torch.rand(30, 40, generator=g, dtype=torch.float64)
+        d1, d2 = depth.clone().requires_grad_(True), depth.clone().requires_grad_(True)
+        got = graphed.loss(it, view, {"depth": d1}, {})
+        ref = eager.loss(it, view, {"depth": d2}, {})
+        got.backward()
+        ref.backward()
+        assert got.item() == ref.item() and torch.equal(d1.grad, d2.grad)
+    assert captured == [((30, 40),), ((30, 40),)]  # one capture per view, at its first call
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", lambda fn, sample: lambda *a: fn(*a) * 1.01)
+    wrong = DepthPriorLoss(prior, ["a.png", "b.png"], 0.05, 0.1, 100, graphs=True)
+    wrong.use_graphs = True
+    depth = 1 + torch.rand(30, 40, generator=g, dtype=torch.float64)
+    with caplog.at_level("WARNING"):
+        got = wrong.loss(50, 0, {"depth": depth.clone().requires_grad_(True)}, {})
+    assert "depth prior term of a.png as a CUDA graph unavailable" in caplog.text
+    assert wrong._graphed == {"a.png": None}
+    assert got.item() == eager.loss(50, 0, {"depth": depth.clone().requires_grad_(True)}, {}).item()
+
+
 # ---------------------------------------------------------------- growth cap
 def test_cap_keeps_the_best_candidates():
     grads = torch.tensor([0.1, 0.9, 0.5, 0.7, 0.2, 0.8])
