@@ -48,16 +48,17 @@ if variant == "visibility":
     import splat_train.trainer as T
     _render = T.render_params
     def render_params(params, sh_degree, cam_from_world, K, width, height, background, backend="auto",
-                      opacity_fn=None, depth=True):
+                      opacity_fn=None, **kwargs):
         seen = {}
         def capture(op):
             out = opacity_fn(op) if opacity_fn is not None else op
             seen["op"] = out.detach()
             return out
         out = _render(params, sh_degree, cam_from_world, K, width, height, background, backend,
-                      opacity_fn=capture, depth=depth)
+                      opacity_fn=capture, **kwargs)
         out["visible"] = out["visible"] & (seen["op"] >= 1.0 / 255.0)
-        out["radii"] = out["radii"] * out["visible"].to(out["radii"].dtype)
+        if out["radii"] is not None:
+            out["radii"] = out["radii"] * out["visible"].to(out["radii"].dtype)
         return out
     T.render_params = render_params
 elif variant == "clamp999+op":
