@@ -371,12 +371,12 @@ def wait_for_gsplat_build(end: float) -> tuple[float, dict | None]:
     import os
 
     marker = os.environ.get("GSPLAT_BUILD_MARKER")
+    if not marker:
+        return 0.0, None
     waited = time.perf_counter()
-    while marker and not Path(marker).exists() and time.time() < end:
+    while not Path(marker).exists() and time.time() < end:
         time.sleep(1.0)
     waited = time.perf_counter() - waited
-    if not marker:
-        return waited, None
     if not Path(marker).exists():
         raise RuntimeError(f"gsplat's background build wrote no {marker} before the deadline")
     build = json.loads(Path(marker).read_text())
@@ -388,9 +388,7 @@ def wait_for_gsplat_build(end: float) -> tuple[float, dict | None]:
 def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | None = None) -> dict:
     """benchmarks/backend_agree.py on the carried grid cell (``--gpu-agree-cell``): gsplat on
     CUDA against the grid's CPU records, the runs of :data:`benchmarks.backend_agree.RUNS` or of
-    ``AGREE_SEEDS`` ("0-14") and ``AGREE_RECIPES`` ("sparse,paper"). Waits first for
-    ``GSPLAT_BUILD_MARKER`` (a file scripts/gpu_run.sh writes when its background JIT build of
-    gsplat ends: importing gsplat while it builds would remove the build folder)."""
+    ``AGREE_SEEDS`` ("0-14") and ``AGREE_RECIPES`` ("sparse,paper")."""
     import os
 
     from benchmarks.backend_agree import RUNS, backend_agree, cell_name, parse_runs
@@ -402,10 +400,8 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
     if os.environ.get("AGREE_SEEDS") or os.environ.get("AGREE_RECIPES"):
         runs = parse_runs(os.environ.get("AGREE_SEEDS", "0-2"), os.environ.get("AGREE_RECIPES", "sparse,paper"))
     end = _run_deadline(float("inf"), 30.0)
-    waited, build = wait_for_gsplat_build(end)
-    res = backend_agree(Path(cell), cell_name(cell), runs=runs, records=RECORDS / "runs", deadline=end, on_result=on_result)
-    res["waited_for_build_s"], res["gsplat_build"] = waited, build
-    return res
+    return backend_agree(Path(cell), cell_name(cell), runs=runs, records=RECORDS / "runs", deadline=end,
+                         on_result=on_result)
 
 
 def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PARTS,
@@ -454,11 +450,13 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
     for name in parts:
         t0 = time.perf_counter()
         try:
-            waited = None
-            if name in GSPLAT_PARTS and name != "backend_agree":  # backend_agree waits itself
-                waited, _ = wait_for_gsplat_build(_run_deadline(float("inf"), 30.0))
+            build = None
+            if name in GSPLAT_PARTS:
+                waited, build = wait_for_gsplat_build(_run_deadline(float("inf"), 30.0))
+                if build is not None:
+                    report["gsplat_build_background"] = build
             report[name] = fns[name]("cuda")
-            if waited:
+            if build is not None:
                 report[name]["waited_for_build_s"] = waited
         except Exception:  # noqa: BLE001  (record and go on: each part is independent)
             report[name] = {"error": traceback.format_exc()[-3000:]}

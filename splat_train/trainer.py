@@ -485,9 +485,10 @@ def seed_depth_prior(seed: str | Path, cfg: TrainConfig, depth_prior: str | Path
     Bridge's file beside the seed when there is one; None when ``cfg`` has no depth term."""
     if cfg.depth_weight <= 0:
         return None
-    if depth_prior is None and (Path(seed).parent / DEPTH_PRIOR_FILE).is_file():
-        return Path(seed).parent / DEPTH_PRIOR_FILE
-    return None if depth_prior is None else Path(depth_prior)
+    if depth_prior is not None:
+        return Path(depth_prior)
+    beside = Path(seed).parent / DEPTH_PRIOR_FILE
+    return beside if beside.is_file() else None
 
 
 def _is_digest_folder(path: Path) -> bool:

@@ -117,6 +117,7 @@ def test_gsplat_parts_wait_for_the_background_build(tmp_path, monkeypatch):
     timer.join()
     assert seen == {"vggt": False, "cell": True}
     assert rep["cell_sparse"]["ok"] == 1 and rep["cell_sparse"]["waited_for_build_s"] > 1.0
+    assert rep["gsplat_build_background"] == {"load_or_build_s": 80.0} and "waited_for_build_s" not in rep["vggt_frames"]
     marker.write_text(json.dumps({"error": "nvcc failed"}))
     seen.clear()
     rep = gpu_check.run_gpu(parts=("cell",))
