@@ -30,7 +30,7 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
 
 from camio.ply import SH_DEGREE
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
-                                 STRATEGIES, VALUE_KEYS, recipe_defaults)
+                                 STRATEGIES, SEED_OVER_CAP, VALUE_KEYS, recipe_defaults)
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
@@ -113,6 +113,10 @@ class TrainConfig:
             densify_* schedule as its refine schedule and prune_opacity as its dead
             threshold); None: the recipe's (``mcmc`` for the ``mcmc`` recipe, ``densify`` in
             the others).
+        seed_over_cap: what a run does with a seed larger than its cap (:data:`SEED_OVER_CAP`):
+            "cap" holds the cap (the prune shrinks the model towards it), "keep" raises the cap
+            to the seed's size, "relocate" raises it and grows with the mcmc strategy; a seed
+            within the cap trains the same under all three; None: the recipe's.
         noise_lr: with the mcmc strategy, the position noise per unit of position rate
             (gsplat's 5e5).
         opacity_reg, scale_reg: weights of mean(opacity) and mean(scale) added to the loss
@@ -190,6 +194,7 @@ class TrainConfig:
     max_gaussians: int | None = None
     gaussians_per_pixel: float | None = None
     strategy: str | None = None
+    seed_over_cap: str | None = None
     noise_lr: float = 5e5
     opacity_reg: float | None = None
     scale_reg: float | None = None
@@ -243,6 +248,8 @@ class TrainConfig:
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
+        if self.seed_over_cap not in SEED_OVER_CAP:
+            raise ValueError(f"seed_over_cap must be one of {list(SEED_OVER_CAP)}, got {self.seed_over_cap!r}")
         if not (self.opacity_reg >= 0.0 and self.scale_reg >= 0.0 and self.noise_lr >= 0.0):
             raise ValueError(f"opacity_reg, scale_reg and noise_lr must be >= 0, got {self.opacity_reg}, "
                              f"{self.scale_reg} and {self.noise_lr}")
@@ -309,13 +316,23 @@ class TrainConfig:
             values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
         return Schedule(**values, source=source)
 
-    def max_gaussians_for(self, train_pixels: int) -> int | None:
+    def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
         """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views):
-        the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels; None: no cap."""
+        the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels, raised to
+        ``seed_size`` (the seed's Gaussians) unless ``seed_over_cap`` is "cap"; None: no cap."""
         caps = [c for c in (self.max_gaussians,
                             None if not self.gaussians_per_pixel
                             else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
-        return min(caps) if caps else None
+        if not caps:
+            return None
+        return min(caps) if self.seed_over_cap == "cap" else max(min(caps), int(seed_size))
+
+    def strategy_for(self, train_pixels: int, seed_size: int) -> str:
+        """The growth strategy of a run: ``strategy``, or "mcmc" where ``seed_over_cap`` is
+        "relocate" and the seed is larger than the cap that holds without it."""
+        cap = dataclasses.replace(self, seed_over_cap="cap").max_gaussians_for(train_pixels)
+        over = cap is not None and seed_size > cap
+        return "mcmc" if self.seed_over_cap == "relocate" and over else self.strategy
 
 
 @dataclass(frozen=True)

@@ -88,7 +88,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES",
+__all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES", "SEED_OVER_CAP",
            "MIN_DENSIFY_EVERY", "recipe_defaults"]
 
 DEFAULT_RECIPE = "sparse"
@@ -106,7 +106,7 @@ PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.
              "scale_reg": 0.0}
 # Values a recipe sets (a config value wins); every recipe gives each one: the densification
 # thresholds, and how the model grows (``strategy``).
-VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy")
+VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap")
 # 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
 GRAD_THRESHOLD_3DGS = 2e-4
 # gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
@@ -114,6 +114,12 @@ OPACITY_REG_GSPLAT = 0.01
 # The growth strategies: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
 # (relocation under a cap, splat_train.mcmc).
 STRATEGIES = ("densify", "mcmc")
+# What a run does with a seed larger than its growth cap (a dense initialiser's point map, or
+# 3DGS's random initialisation where the views triangulate nothing): "cap" holds the cap, so
+# the prune shrinks the model towards it and growth never refills past it; "keep" raises the
+# cap to the seed's size; "relocate" raises it and grows by relocation (the mcmc strategy)
+# instead of clone / split / prune. Nothing changes for a seed within the cap.
+SEED_OVER_CAP = ("cap", "keep", "relocate")
 
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {
@@ -130,6 +136,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # off: the official code never applies it (see the module docstring)
         "prune_screen_size": 0.0,
         "strategy": "densify",
+        "seed_over_cap": "cap",  # no cap
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
     },
@@ -146,6 +153,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "densify_grad_threshold": 5e-4,
         "prune_screen_size": 0.0,
         "strategy": "densify",
+        "seed_over_cap": "cap",  # no cap
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
     },
@@ -181,6 +189,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
         "strategy": "densify",
+        "seed_over_cap": "cap",
         # chosen on the tuning scenes (docs/sparse-recipe.md "Third tuning round")
         "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.0,
@@ -201,6 +210,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
         "gaussians_per_pixel": 0.175,
         "strategy": "mcmc",
+        # gsplat's MCMCStrategy never removes a Gaussian: a seed above the cap keeps its size
+        "seed_over_cap": "keep",
         # not read by the mcmc strategy (no clone / split / size prune)
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,

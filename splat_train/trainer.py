@@ -149,11 +149,6 @@ class Trainer:
         self.digest = digest or inputs_digest(seed_ply, train_views, cfg, self.depth_prior_path)
         self.sched = cfg.schedule()
         train_pixels = sum(v.camera.width * v.camera.height for v in train_views)
-        self.max_gaussians = cfg.max_gaussians_for(train_pixels)
-        log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels); dropout %g; "
-                 "depth weight %g", cfg.recipe, cfg.strategy,
-                 {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
-                 self.max_gaussians or "none", train_pixels, cfg.dropout_rate, cfg.depth_weight)
         self.dev = _device(cfg.device)
         if self.dev.type == "cuda":  # train.json's peak_cuda_mb is this run's, not the process's
             torch.cuda.reset_peak_memory_stats(self.dev)
@@ -169,8 +164,6 @@ class Trainer:
         for v in [*self.train_views, *self.test_views]:  # once here: rasterize checks CPU tensors only
             if float(v.camera.K[0, 1]) != 0.0:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
-        strategy_cls = MCMCStrategy if cfg.strategy == "mcmc" else DensifyStrategy
-        self.strategy = strategy_cls.from_config(cfg, self.max_gaussians)
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
@@ -182,6 +175,16 @@ class Trainer:
         if len(cloud) == 0:
             raise ValueError(f"seed {seed_ply} holds 0 Gaussians: nothing can be trained or densified; "
                              "check the Bridge output (bridge.json counts) or its filters")
+        # the cap and the strategy: a seed over the cap may raise it (cfg.seed_over_cap)
+        self.max_gaussians = cfg.max_gaussians_for(train_pixels, len(cloud))
+        self.strategy_name = cfg.strategy_for(train_pixels, len(cloud))
+        log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels, seed %d, "
+                 "seed over the cap: %s); dropout %g; depth weight %g", cfg.recipe, self.strategy_name,
+                 {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
+                 self.max_gaussians or "none", train_pixels, len(cloud), cfg.seed_over_cap, cfg.dropout_rate,
+                 cfg.depth_weight)
+        strategy_cls = MCMCStrategy if self.strategy_name == "mcmc" else DensifyStrategy
+        self.strategy = strategy_cls.from_config(cfg, self.max_gaussians)
         self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
@@ -462,9 +465,9 @@ class Trainer:
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
             "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
-            "recipe": cfg.recipe, "max_gaussians": self.max_gaussians,
+            "recipe": cfg.recipe, "max_gaussians": self.max_gaussians, "strategy": self.strategy_name,
             # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
-            "strategy_totals": ({k: int(v) for k, v in self.state.items()} if cfg.strategy == "mcmc" else {}),
+            "strategy_totals": ({k: int(v) for k, v in self.state.items()} if self.strategy_name == "mcmc" else {}),
             "depth_prior": None,  # the depth part's entry below when it runs
             "config": cfg.to_dict(),
             "test_curve": self.log.test_curve(),

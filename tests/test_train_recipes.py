@@ -33,6 +33,35 @@ def test_every_recipe_gives_every_value_key_and_the_config_takes_it():
     assert TrainConfig(recipe="dropgaussian", densify_grad_threshold=1e-4).densify_grad_threshold == 1e-4
 
 
+def test_a_seed_within_the_cap_trains_the_same_under_every_seed_over_cap_rule():
+    """The sixth tuning round's variants (docs/sparse-recipe.md) change a run only where the
+    seed is larger than the cap: within it, the cap and the strategy are sparse's."""
+    pixels = 3 * 200 * 200  # the cap: 0.1 x 120,000 = 12,000
+    for seed in (0, 1, 11_999, 12_000):
+        runs = {rule: TrainConfig(recipe="sparse", iterations=3000, seed_over_cap=rule)
+                for rule in ("cap", "keep", "relocate")}
+        assert {(c.max_gaussians_for(pixels, seed), c.strategy_for(pixels, seed)) for c in runs.values()} \
+            == {(12_000, "densify")}, seed
+
+
+def test_a_seed_over_the_cap_is_held_kept_or_relocated():
+    pixels, seed = 3 * 200 * 200, 30_000  # 3DGS's random seed of 0.25 per pixel, over sparse's 0.1
+    cfg = TrainConfig(recipe="sparse", iterations=3000)
+    assert cfg.seed_over_cap == "cap"
+    assert (cfg.max_gaussians_for(pixels, seed), cfg.strategy_for(pixels, seed)) == (12_000, "densify")
+    keep = cfg.replace(seed_over_cap="keep")
+    assert (keep.max_gaussians_for(pixels, seed), keep.strategy_for(pixels, seed)) == (seed, "densify")
+    reloc = cfg.replace(seed_over_cap="relocate")
+    assert (reloc.max_gaussians_for(pixels, seed), reloc.strategy_for(pixels, seed)) == (seed, "mcmc")
+    # no cap at all: nothing to raise
+    paper = TrainConfig(recipe="paper", iterations=3000, seed_over_cap="keep")
+    assert paper.max_gaussians_for(pixels, seed) is None and paper.strategy_for(pixels, seed) == "densify"
+    # mcmc never removes: its cap is at least the seed
+    assert TrainConfig(recipe="mcmc", iterations=3000).max_gaussians_for(pixels, 30_000) == 30_000
+    with pytest.raises(ValueError, match="seed_over_cap must be one of"):
+        TrainConfig(recipe="sparse", seed_over_cap="grow")
+
+
 def test_dropgaussian_is_its_release_llff_setting():
     """DropGaussian's LLFF training: 10k iterations, densify 500-10k every 100 at gradient
     threshold 5e-4, opacity reset every 3,000, dropout ramped to 0.2; no cap, no depth term."""
