@@ -322,6 +322,25 @@ def test_a_binding_cap_does_not_collapse_the_model(tmp_path):
     assert df["loss"].iloc[-10:].mean() <= 1.05 * df["loss"].iloc[40:60].mean()
 
 
+def test_a_seed_over_the_cap_is_kept_or_relocated_through_the_trainer(tmp_path):
+    """A 60-Gaussian seed under a cap of 30 (the sixth tuning round, docs/sparse-recipe.md):
+    "cap" trains to the cap of 30, "keep" to a cap of 60, "relocate" to 60 with the mcmc
+    strategy, which keeps the seed's count while it moves dead Gaussians."""
+    scene = write_scene(tmp_path / "s", n_views=3)
+    out = {}
+    for rule in ("cap", "keep", "relocate"):
+        cfg = TrainConfig(recipe="sparse", iterations=60, densify_from=5, densify_until=60, densify_every=5,
+                          densify_grad_threshold=1e-7, max_gaussians=30, seed_over_cap=rule, depth_weight=0.0,
+                          sh_degree=0, eval_every=0, checkpoint_every=10**6, device="cpu")
+        train(scene["seed"], scene["cameras"], scene["images"], tmp_path / rule, cfg)
+        summary = json.loads((tmp_path / rule / "train.json").read_text())
+        n = pq.read_table(tmp_path / rule / "log.parquet").to_pandas()["num_gaussians"].to_numpy()
+        out[rule] = (summary["max_gaussians"], summary["strategy"], int(n.max()), int(n[-1]))
+    assert out["cap"][:2] == (30, "densify")
+    assert out["keep"][:2] == (60, "densify") and out["keep"][2] <= 60
+    assert out["relocate"][:2] == (60, "mcmc") and out["relocate"][2:] == (60, 60)
+
+
 # ---------------------------------------------------------------- the chain: Bridge -> trainer
 def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
     """Through the CLIs: the Bridge writes depth_prior.npz for a COLMAP-style model with tracks;
