@@ -260,3 +260,24 @@ def test_backend_comparison_against_every_record_of_the_recipe(tmp_path):
     a = res["by_recipe"]["sparse"]["all_records"]
     diff, hw, _df = welch_interval([20.5, 20.9], list(cpu.values()))
     assert a["seeds"] == 4 and a["psnr_diff"] == pytest.approx(diff) and a["psnr_diff_hw95"] == pytest.approx(hw)
+
+
+def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now():
+    """A record whose kept values differ from its recipe's stops `run` (exit 2, "made with other
+    values"): the shipped records of the four recipes must stay current when a recipe gains a
+    key, or rerunning the README's grid fails on them. Records from before values were recorded
+    (the first tuning round's) say so and are left out."""
+    from benchmarks.sparse_views.runs import resolved_values, stale_keys
+    from splat_train.recipes import RECIPE_NAMES
+
+    records = sorted((protocol.REPO / "benchmarks" / "records" / "sparse_views" / "runs").glob("*.json"))
+    checked = 0
+    for path in records:
+        rec = json.loads(path.read_text())
+        if rec["recipe"] not in RECIPE_NAMES or rec.get("values") is None:
+            continue
+        overrides = {k: v for k, v in (rec.get("config") or {}).items() if k not in ("recipe", "background")}
+        want = resolved_values(rec["recipe"], overrides, rec["iterations"])
+        assert stale_keys(rec["values"], want) == [], path.name
+        checked += 1
+    assert checked >= 500
