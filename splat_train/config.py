@@ -320,19 +320,25 @@ class TrainConfig:
         """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views):
         the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels, raised to
         ``seed_size`` (the seed's Gaussians) unless ``seed_over_cap`` is "cap"; None: no cap."""
-        caps = [c for c in (self.max_gaussians,
-                            None if not self.gaussians_per_pixel
-                            else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
-        if not caps:
-            return None
-        return min(caps) if self.seed_over_cap == "cap" else max(min(caps), int(seed_size))
+        cap = self._set_cap(train_pixels)
+        if cap is None or self.seed_over_cap == "cap":
+            return cap
+        return max(cap, int(seed_size))
 
     def strategy_for(self, train_pixels: int, seed_size: int) -> str:
         """The growth strategy of a run: ``strategy``, or "mcmc" where ``seed_over_cap`` is
         "relocate" and the seed is larger than the cap that holds without it."""
-        cap = dataclasses.replace(self, seed_over_cap="cap").max_gaussians_for(train_pixels)
+        cap = self._set_cap(train_pixels)
         over = cap is not None and seed_size > cap
         return "mcmc" if self.seed_over_cap == "relocate" and over else self.strategy
+
+    def _set_cap(self, train_pixels: int) -> int | None:
+        """The cap the config sets, before any seed raises it: the smaller of ``max_gaussians``
+        and ``gaussians_per_pixel`` x ``train_pixels``; None: no cap."""
+        caps = [c for c in (self.max_gaussians,
+                            None if not self.gaussians_per_pixel
+                            else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
+        return min(caps) if caps else None
 
 
 @dataclass(frozen=True)
