@@ -129,6 +129,8 @@ class TrainConfig:
         depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
         depth_use_confidence: weight the prior's samples by the initialiser's confidence
             (False: every sample weighs 1; for measuring what the confidence adds).
+        depth_min_samples: a training view whose prior has fewer usable samples than this gets
+            no depth term (a correlation over a handful of samples constrains nothing reliably).
         pose_refine: learn small se(3) corrections of the training cameras (off by default;
             the first camera and the scale stay fixed, :mod:`splat_train.pose`).
         lr_pose: Adam rate of the pose corrections (rotation in radians, translation in units
@@ -202,6 +204,7 @@ class TrainConfig:
     depth_weight: float | None = None
     depth_ramp_fraction: float | None = None
     depth_use_confidence: bool = True
+    depth_min_samples: int = 16
     pose_refine: bool = False
     # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
     # 1e-3 from iteration 1 walked the cameras away on fern (ATE 1.5 -> 30 % of the radius) while
@@ -246,6 +249,8 @@ class TrainConfig:
         if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
             raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")
+        if not (isinstance(self.depth_min_samples, int) and self.depth_min_samples >= 2):
+            raise ValueError(f"depth_min_samples must be an integer >= 2, got {self.depth_min_samples!r}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
         if self.seed_over_cap not in SEED_OVER_CAP:

@@ -104,7 +104,7 @@ class DepthPrior:
 
 
 def load_depth_prior(path: str | Path, sizes: dict[str, tuple[int, int]], device: torch.device | str = "cpu",
-                     use_confidence: bool = True, min_samples: int = 16) -> DepthPrior:
+                     use_confidence: bool = True, min_samples: int = 2) -> DepthPrior:
     """Read ``depth_prior.npz`` (:mod:`camio.depth_prior`) for the training views.
 
     Args:
@@ -116,7 +116,8 @@ def load_depth_prior(path: str | Path, sizes: dict[str, tuple[int, int]], device
         use_confidence: weight the samples by the file's ``weight`` (the initialiser's
             confidence); False weighs every usable sample 1 (the ablation of the confidence).
         min_samples: a view with fewer usable samples (finite, positive depth and weight,
-            inside the image) gets no depth term.
+            inside the image) gets no depth term (a training run passes its config's
+            ``depth_min_samples``; 2, the fewest a correlation is defined on, by default).
 
     Returns:
         :class:`DepthPrior` with the views of ``sizes`` that have samples.

@@ -71,7 +71,8 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
         parts.append(GaussianDropout(cfg.dropout_rate, cfg.iterations, generator))
     if depth_prior is not None and cfg.depth_weight > 0:
         prior = load_depth_prior(depth_prior, {v.name: (v.camera.width, v.camera.height) for v in views},
-                                 cameras[0].device, use_confidence=cfg.depth_use_confidence)
+                                 cameras[0].device, use_confidence=cfg.depth_use_confidence,
+                                 min_samples=cfg.depth_min_samples)
         log.info("depth prior %s: %d samples in %d of %d training views", depth_prior, prior.num_samples,
                  len(prior.views), len(views))
         parts.append(DepthPriorLoss(prior, names, cfg.depth_weight, cfg.depth_ramp_fraction, cfg.iterations))

@@ -79,6 +79,24 @@ def test_each_recipe_runs_its_parts(scene):
     assert _names(TrainConfig(**ALL_ON), scene) == ["dropout", "depth_prior", "regularisers", "pose"]
 
 
+def test_depth_term_acts_only_in_views_with_enough_prior_samples(scene):
+    """``depth_min_samples``: the prior of each view here has 60 samples; a threshold above that
+    leaves every view without a depth term, one at or below it keeps all three; below 2 (where
+    a correlation is undefined) the config is refused."""
+    views = load_views(scene["cameras"], scene["images"])
+
+    def prior_views(**kw):
+        parts = recipe_parts(TrainConfig(recipe="sparse", **kw), views, [torch.eye(4) for _ in views],
+                             torch.Generator(), scene["seed"].parent / DEPTH_PRIOR_FILE)
+        return sorted(next(p for p in parts if p.name == "depth_prior").prior.views)
+
+    assert prior_views() == sorted(v.name for v in views)  # the default, 16
+    assert prior_views(depth_min_samples=60) == sorted(v.name for v in views)
+    assert prior_views(depth_min_samples=61) == []
+    with pytest.raises(ValueError, match="depth_min_samples"):
+        TrainConfig(recipe="sparse", depth_min_samples=1)
+
+
 def _reference_run(cfg, scene, out):
     """The iteration written out by hand (no parts), on a trainer whose parts list is emptied:
     view, random background, pose-corrected camera, dropped opacities, photometric loss + depth term
