@@ -330,6 +330,10 @@ def _load_colmap(path: Path, image_dir: Path, names: list[str], undistort: bool,
 
 
 # ---------------------------------------------------------------------------------------- LLFF
+# NeX's intrinsics file beside a [N, 14] poses_bounds.npy (read_llff_poses)
+NEX_INTRINSICS = "hwf_cxcy.npy"
+
+
 def llff_to_cam_from_world(poses: np.ndarray) -> np.ndarray:
     """LLFF camera-to-world [N, 3, 4|5] ([down, right, back] axes) -> cam_from_world [N, 3, 4].
 
@@ -343,26 +347,44 @@ def llff_to_cam_from_world(poses: np.ndarray) -> np.ndarray:
 def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = None) -> SparseModel:
     """Cameras from ``poses_bounds.npy`` for the sorted ``names``.
 
-    Each row's (H, W, focal) give K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]] at W x H (LLFF's
-    principal point is the image centre); :func:`load_scene` rescales it to the image files.
+    LLFF's rows [N, 17] hold a 3x5 matrix per image, the camera-to-world pose in its [down,
+    right, back] axes beside (H, W, focal), then the two depth bounds: K = [[f, 0, W/2], [0, f,
+    H/2], [0, 0, 1]] at W x H (LLFF's principal point is the image centre). NeX's layout (its
+    Shiny dataset, Wizadwongsa et al. CVPR 2021) keeps rows [N, 14], the 3x4 pose in the same
+    axes and the bounds, and one ``hwf_cxcy.npy`` beside the file, (H, W, fx, fy, cx, cy) shared
+    by every image. :func:`load_scene` rescales K to the image files.
     """
     npy = Path(npy)
     if not npy.is_file():
         raise SceneError(f"no LLFF poses file {npy}")
     arr = np.load(npy)
-    if arr.ndim != 2 or arr.shape[1] not in (15, 17):
-        raise SceneError(f"{npy}: expected an [N, 17] poses_bounds array, got shape {arr.shape}")
+    if arr.ndim != 2 or arr.shape[1] not in (14, 15, 17):
+        raise SceneError(f"{npy}: expected an [N, 17] poses_bounds array (or NeX's [N, 14]), got shape {arr.shape}")
     if len(arr) != len(names):
         raise SceneError(f"{npy} holds {len(arr)} poses but {image_dir or 'the image folder'} has "
                          f"{len(names)} images; LLFF poses follow the sorted image names one to one")
-    poses = arr[:, :15].reshape(-1, 3, 5)
+    if arr.shape[1] == 14:
+        poses = arr[:, :12].reshape(-1, 3, 4)
+        h, w, fx, fy, cx, cy = _nex_intrinsics(npy.parent / NEX_INTRINSICS, npy)
+        intrinsics = [(h, w, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]))] * len(arr)
+    else:
+        poses = arr[:, :15].reshape(-1, 3, 5)
+        intrinsics = [(h, w, np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])) for h, w, f in poses[:, :, 4]]
     cfw = llff_to_cam_from_world(poses)
-    cams = []
-    for name, p, m in zip(sorted(names), poses, cfw):
-        h, w, f = p[:, 4]
-        K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
-        cams.append(Camera(name, int(round(w)), int(round(h)), K, m))
-    return SparseModel(cams)
+    return SparseModel([Camera(name, int(round(w)), int(round(h)), K, m)
+                        for name, (h, w, K), m in zip(sorted(names), intrinsics, cfw)])
+
+
+def _nex_intrinsics(path: Path, npy: Path) -> tuple[float, ...]:
+    """(H, W, fx, fy, cx, cy) from NeX's ``hwf_cxcy.npy`` (6 numbers)."""
+    if not path.is_file():
+        raise SceneError(f"{npy}: rows of 14 are NeX's layout, whose intrinsics are in {path.name} beside it; "
+                         f"there is no {path}")
+    v = np.load(path).astype(np.float64).reshape(-1)
+    if v.size != 6 or not np.all(np.isfinite(v)) or v[:4].min() <= 0:
+        raise SceneError(f"{path}: expected 6 finite numbers H, W, fx, fy, cx, cy (H, W, fx, fy > 0), got "
+                         f"{v.size} values {v.tolist()[:6]}")
+    return tuple(float(x) for x in v)
 
 
 # ---------------------------------------------------------------------------------- transforms

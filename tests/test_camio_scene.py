@@ -78,6 +78,39 @@ def test_llff_poses_bounds_rescaled_to_images(synth, ref, tmp_path):
         load_scene(root, images_subdir="images_4")
 
 
+def test_nex_layout_rows_of_14_with_shared_intrinsics(synth, ref, tmp_path):
+    """NeX's layout (its Shiny dataset; NeX-format copies of LLFF scenes): poses_bounds rows of
+    14 (the 3x4 pose in LLFF's axes, then the bounds) and hwf_cxcy.npy (H, W, fx, fy, cx, cy)
+    beside it. The cameras are the reference's with the file's principal point, off the image
+    centre here: every projection moves by exactly that offset. Without hwf_cxcy.npy, or with a
+    malformed one, a clear error."""
+    root = tmp_path / "nex"
+    shutil.copytree(synth / "images", root / "images")
+    rows = _llff_rows(ref, 1.0)
+    np.save(root / "poses_bounds.npy", np.c_[rows[:, :15].reshape(-1, 3, 5)[:, :, :4].reshape(-1, 12), rows[:, 15:]])
+    c = ref.cameras[0]
+    assert all(np.array_equal(o.K, c.K) for o in ref.cameras)
+    dx, dy = 1.5, -2.25
+    np.save(root / "hwf_cxcy.npy", np.array([[c.height], [c.width], [c.K[0, 0]], [c.K[1, 1]], [c.K[0, 2] + dx],
+                                              [c.K[1, 2] + dy]]))
+    assert detect_format(root) == "llff"
+    s = load_scene(root)
+    assert s.source_format == "llff" and s.names == ref.names
+    pts = _world_points(ref)
+    for a, b in zip(ref.cameras, s.model.cameras):
+        np.testing.assert_allclose(b.cam_from_world, a.cam_from_world, atol=1e-12)
+        ua, za = project_points(pts, a.K, a.cam_from_world)
+        ub, zb = project_points(pts, b.K, b.cam_from_world)
+        np.testing.assert_allclose(ub, ua + [dx, dy], atol=1e-9)
+        np.testing.assert_allclose(zb, za, rtol=1e-12)
+    np.save(root / "hwf_cxcy.npy", np.array([c.height, c.width, c.K[0, 0], c.K[0, 2], c.K[1, 2]]))
+    with pytest.raises(SceneError, match="6 finite numbers"):
+        load_scene(root)
+    (root / "hwf_cxcy.npy").unlink()
+    with pytest.raises(SceneError, match="hwf_cxcy.npy"):
+        load_scene(root)
+
+
 def _transforms(ref, per_frame=False, angle=False, ext=True, scale=1.0):
     frames = []
     for c in ref.cameras:
