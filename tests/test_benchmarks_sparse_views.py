@@ -25,6 +25,8 @@ def test_shipped_protocol_keeps_tuning_and_evaluation_apart():
     assert roles["llff__fern"] == "tuning" and roles["synthetic"] == "tuning"
     ev = [s for s in scenes if s.role == "evaluation"]
     assert len({s.name for s in scenes}) == len(scenes)
+    # the benchmark's own bar: at least four evaluation scenes, of at least two kinds
+    assert len(ev) >= 4 and len({s.kind for s in ev}) >= 2, [(s.name, s.kind) for s in ev]
     for s in ev:  # every evaluation scene names where it comes from
         assert s.source, s.name
 
