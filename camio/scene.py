@@ -366,7 +366,7 @@ def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = 
     if arr.shape[1] == 14:
         poses = arr[:, :12].reshape(-1, 3, 4)
         h, w, fx, fy, cx, cy = _nex_intrinsics(npy.parent / NEX_INTRINSICS, npy)
-        intrinsics = [(h, w, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]))] * len(arr)
+        intrinsics = [(h, w, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])) for _ in range(len(arr))]
     else:
         poses = arr[:, :15].reshape(-1, 3, 5)
         intrinsics = [(h, w, np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])) for h, w, f in poses[:, :, 4]]
