@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 __all__ = ["ITERATIONS", "RUNS", "attach_records", "backend_agree", "cell_name", "cell_paths", "curve_end", "pack_cell",
-           "parse_runs", "split_cell_name"]
+           "parse_runs", "parse_seeds", "split_cell_name"]
 
 # the issue's measure: final held-out PSNR within 0.3 dB at 3,000 iterations
 ITERATIONS = 3000
@@ -37,17 +37,23 @@ def parse_runs(seeds: str, recipes: str = "sparse,paper") -> tuple[tuple[str, in
     list of ``recipes`` (the GPU check reads them from ``AGREE_SEEDS`` / ``AGREE_RECIPES``)."""
     from splat_train.recipes import RECIPE_NAMES
 
-    out = []
-    for part in filter(None, (x.strip() for x in seeds.split(","))):
-        lo, _, hi = part.partition("-")
-        if not lo.isdigit() or (hi and not hi.isdigit()) or (hi and int(hi) < int(lo)):
-            raise ValueError(f"seeds are N, N-M or a comma list of them, got {seeds!r}")
-        out += range(int(lo), int(hi or lo) + 1)
+    out = parse_seeds(seeds)
     names = [r.strip() for r in recipes.split(",") if r.strip()]
     bad = [r for r in names if r not in RECIPE_NAMES]
     if bad or not names or not out:
         raise ValueError(f"recipes from {list(RECIPE_NAMES)} and at least one seed, got {recipes!r} / {seeds!r}")
-    return tuple((r, seed) for seed in dict.fromkeys(out) for r in names)
+    return tuple((r, seed) for seed in out for r in names)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from "0-14", "0,1,2" or a mix of them, in order, each once."""
+    out: list[int] = []
+    for part in filter(None, (x.strip() for x in text.split(","))):
+        lo, _, hi = part.partition("-")
+        if not lo.isdigit() or (hi and not hi.isdigit()) or (hi and int(hi) < int(lo)):
+            raise ValueError(f"seeds are N, N-M or a comma list of them, got {text!r}")
+        out += range(int(lo), int(hi or lo) + 1)
+    return list(dict.fromkeys(out))
 
 
 def cell_paths(cell: Path) -> dict[str, Path]:

@@ -14,6 +14,8 @@ measures): ``vggt_fixtures`` (the official fixtures, float64 / float32, TF32 off
 (VGGT-1B, random weights), ``gsplat_build``, ``rasterizer_parity`` and ``rasterizer_timing``,
 ``cell`` and ``cell_sparse`` (benchmarks/bench_cell.py's fern n = 3 cell, 10,000 iterations on
 gsplat, ``paper`` and ``sparse`` recipes), ``native`` (the same cell, benchmarks/gsplat_native.py),
+``loop_gap`` (``paper`` and gsplat's own loop on the same cell over many seeds, several runs at a
+time: benchmarks/loop_gap.py),
 ``profile`` and ``step_ab`` (benchmarks/profile_step.py), ``vggt_frames``, ``vggt_many`` and
 ``vggt_search`` (benchmarks/vggt_frames.py: 12-200 frames, 1,000 frames, the largest count),
 ``backend_agree`` (benchmarks/backend_agree.py, on a packed grid cell: ``--gpu-agree-cell``).
@@ -255,11 +257,11 @@ def gsplat_build_marker(marker: str) -> int:
 
 
 PARTS = ("vggt_fixtures", "vggt_chunked", "vggt_cli", "vggt_speed", "gsplat_build", "rasterizer_parity", "rasterizer_timing", "workflow_cell",
-         "profile", "profile_late", "step_ab", "cell", "native", "cell_sparse", "vggt_frames", "vggt_many", "backend_agree",
-         "vggt_search")
+         "profile", "profile_late", "step_ab", "cell", "native", "cell_sparse", "loop_gap", "vggt_frames", "vggt_many",
+         "backend_agree", "vggt_search")
 # the parts that import gsplat (they wait for a background build: scripts/gpu_run.sh)
 GSPLAT_PARTS = ("rasterizer_parity", "rasterizer_timing", "workflow_cell", "profile", "profile_late", "step_ab", "cell", "native",
-                "cell_sparse", "backend_agree")
+                "cell_sparse", "loop_gap", "backend_agree")
 # seconds the vggt_frames part may take (it stops starting new forwards past its deadline)
 VGGT_FRAMES_BUDGET_S = 240.0
 # vggt_many: the upstream model's frame count on 80 GB, run for real after a 12-frame warm-up
@@ -385,6 +387,22 @@ def wait_for_gsplat_build(end: float) -> tuple[float, dict | None]:
     return waited, build
 
 
+def loop_gap_part(prepared: Path | None, iterations: int, on_result: Callable[[dict], None] | None = None) -> dict:
+    """benchmarks/loop_gap.py on the prepared cell: ``paper`` and gsplat's own loop over the seeds
+    of ``LOOP_GAP_SEEDS`` (default :data:`benchmarks.loop_gap.SEEDS`), ``LOOP_GAP_JOBS`` runs at a
+    time; no run starts that would end past ``GPU_RUN_DEADLINE`` (less 30 s)."""
+    import os
+
+    from benchmarks.backend_agree import parse_seeds
+    from benchmarks.loop_gap import JOBS, SEEDS, loop_gap
+
+    if prepared is None:
+        raise ValueError("the loop comparison needs a prepared cell (--cell-prepared)")
+    seeds = parse_seeds(os.environ.get("LOOP_GAP_SEEDS", SEEDS))
+    jobs = int(os.environ.get("LOOP_GAP_JOBS", JOBS))
+    return loop_gap(prepared, seeds, iterations, jobs, deadline=_run_deadline(float("inf"), 30.0), on_result=on_result)
+
+
 def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | None = None) -> dict:
     """benchmarks/backend_agree.py on the carried grid cell (``--gpu-agree-cell``): gsplat on
     CUDA against the grid's CPU records, the runs of :data:`benchmarks.backend_agree.RUNS` or of
@@ -428,6 +446,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
            "cell": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared),
            "native": lambda _dev: native_cell(cell_iterations, cell_prepared),
            "cell_sparse": lambda _dev: gpu_cell(cell_iterations, prepared=cell_prepared, recipe="sparse"),
+           "loop_gap": lambda _dev: loop_gap_part(cell_prepared, cell_iterations, on_result=_partial("loop_gap")),
            "profile": lambda _dev: step_profile(cell_prepared),
            "profile_late": lambda _dev: late_step_profile(cell_prepared),
            "step_ab": lambda _dev: step_ab(cell_prepared),
@@ -606,6 +625,16 @@ def format_gpu_table(r: dict) -> str:
                      f"{nat['final_gaussians']}, {_f(nat['test_psnr'], '.2f')}, {_f(nat['peak_cuda_mb'], '.0f')}"))
         if "train" in c and c["train"].get("wall_s"):
             rows.append(("ours / gsplat-native training time", _f(c["train"]["wall_s"] / nat["wall_s"], ".2f")))
+    gap = r.get("loop_gap", {}).get("summary", {})
+    if "ours" in gap or "native" in gap:
+        rows.append((f"`paper` and gsplat's own loop over seeds, {r['loop_gap']['iterations']} it, "
+                     f"{r['loop_gap']['jobs']} runs at a time: held-out PSNR mean (sd, seeds)",
+                     "; ".join(f"{k} {_f(v['psnr'], '.2f')} ({_f(v['psnr_sd'], '.2f')}, {len(v['seeds'])})"
+                               for k, v in gap.items() if k in ("ours", "native"))))
+        d = gap.get("ours_minus_native")
+        if d:
+            rows.append(("ours - gsplat's own loop, held-out PSNR (Welch 95 %)",
+                         f"{d['psnr']:+.2f} ± {_f(d['hw95'], '.2f')} dB"))
     cs = r.get("cell_sparse", {})
     if "train" in cs:
         rows += _cell_rows(cs, "cell, sparse")
