@@ -14,7 +14,7 @@ import pytest
 from benchmarks.backend_agree import backend_agree
 from benchmarks.sparse_views import protocol
 from benchmarks.sparse_views.runs import RECORD_KEYS
-from benchmarks.sparse_views.summary import write_summary
+from benchmarks.sparse_views.summary import spread, write_summary
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -91,6 +91,24 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     text = doc.read_text()
     assert "## The same measures at n = 6, 1000 iterations" in text
     assert "## Evaluation scenes" in text and "## Tuning scenes" in text and "not met" in text
+    assert "highest mean PSNR of the recipes: 2 of 2" in text and t["spread"]["sparse_best_scenes"] == ["a", "b"]
+    assert "the lead with one scene left out: +1.00 dB" in text
+
+
+def test_spread_of_the_lead_by_kind_best_scene_and_leave_one_out():
+    psnr = {"sparse": {"a": 20.0, "b": 10.0, "c": 15.0}, "mcmc": {"a": 19.0, "b": 12.0, "c": 14.0},
+            "paper": {"a": 18.0, "b": 11.0, "c": 14.5}}
+    per = {rc: {sc: {"psnr": {"mean": v}} for sc, v in d.items()} for rc, d in psnr.items()}
+    sp = spread(per, ["a", "b", "c"], {"a": "forward-facing", "b": "object-centric", "c": "forward-facing"})
+    ff = sp["by_kind"]["forward-facing"]
+    assert ff["scenes"] == ["a", "c"] and ff["mean_final_psnr"]["sparse"] == pytest.approx(17.5)
+    assert ff["psnr_lead_over_best_other"] == pytest.approx(17.5 - 16.5)  # mcmc 16.5, paper 16.25
+    assert sp["by_kind"]["object-centric"]["psnr_lead_over_best_other"] == pytest.approx(-2.0)
+    assert sp["sparse_best_scenes"] == ["a", "c"]
+    # leads without a: 12.5 - 13.0 = -0.5; without b: 17.5 - 16.5 = +1.0; without c: 15 - 15.5 = -0.5
+    lo = sp["lead_leave_one_out"]
+    assert lo["max"] == pytest.approx(1.0) and lo["max_without"] == "b"
+    assert lo["min"] == pytest.approx(-0.5) and lo["min_without"] in ("a", "c")
 
 
 def test_run_skips_a_scene_whose_data_is_absent(tmp_path):

@@ -4,7 +4,8 @@ Per (scene, n, recipe, iterations): mean and 95 % t half-width over seeds
 (:func:`evaluation.study.stats.t_interval`) of the final PSNR, SSIM, LPIPS-Alex, LPIPS-VGG,
 Gaussian count and training seconds. Per evaluation scene, ``sparse`` against every other
 recipe paired by seed. The verdicts of the benchmark's targets are computed here from the
-same numbers, never written by hand.
+same numbers, never written by hand, with how the lead is spread over the scenes (by kind,
+where ``sparse`` is best, each scene left out in turn).
 """
 
 from __future__ import annotations
@@ -82,11 +83,44 @@ def paired(rows: list[dict], role: str = "evaluation") -> list[dict]:
     return out
 
 
+def _lead(mean_psnr: dict[str, float]) -> float | None:
+    """``sparse``'s mean PSNR minus the best other recipe's (None without both)."""
+    others = [m for rc, m in mean_psnr.items() if rc != OURS]
+    return mean_psnr[OURS] - max(others) if OURS in mean_psnr and others else None
+
+
+def spread(per: dict[str, dict[str, dict]], scenes: list[str], kinds: dict[str, str]) -> dict:
+    """How the lead over the best other recipe is spread over the scenes. ``per``: recipe ->
+    scene -> aggregate row (every recipe on every one of ``scenes``); ``kinds``: scene -> kind.
+
+    Returns ``by_kind`` (per kind: its scenes, each recipe's mean final PSNR over them, the lead
+    there), ``sparse_best_scenes`` (where ``sparse``'s mean is the highest of the recipes) and,
+    from two scenes on, ``lead_leave_one_out`` (the lead over the other scenes with each one left
+    out: its lowest and highest, and which scene was out)."""
+    def means(sc):
+        return {rc: sum(v[s]["psnr"]["mean"] for s in sc) / len(sc) for rc, v in per.items()}
+
+    out: dict = {"by_kind": {}, "sparse_best_scenes": []}
+    for kind in sorted({kinds.get(s) or "unknown" for s in scenes}):
+        sc = [s for s in scenes if (kinds.get(s) or "unknown") == kind]
+        m = means(sc)
+        out["by_kind"][kind] = {"scenes": sc, "mean_final_psnr": m, "psnr_lead_over_best_other": _lead(m)}
+    if OURS in per:
+        out["sparse_best_scenes"] = [s for s in scenes if all(per[OURS][s]["psnr"]["mean"] >= v[s]["psnr"]["mean"]
+                                                               for v in per.values())]
+    if OURS in per and len(per) > 1 and len(scenes) > 1:
+        loo = sorted((_lead(means([x for x in scenes if x != s])), s) for s in scenes)
+        out["lead_leave_one_out"] = {"min": loo[0][0], "min_without": loo[0][1],
+                                     "max": loo[-1][0], "max_without": loo[-1][1]}
+    return out
+
+
 def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARGET_N,
-             iterations: int | None = None) -> dict:
+             iterations: int | None = None, kinds: dict[str, str] | None = None) -> dict:
     """The targets, computed on the evaluation scenes at ``n`` views and ``iterations`` (None:
     the most iterations any evaluation run has at ``n``); the targets are stated at
-    :data:`TARGET_N`, other view counts get the same measures. None where data is missing."""
+    :data:`TARGET_N`, other view counts get the same measures. None where data is missing.
+    ``kinds`` (scene -> kind, from the protocol) groups :func:`spread`'s means."""
     if iterations is None:
         iterations = max((r["iterations"] for r in rows if r["role"] == "evaluation" and r["n"] == n), default=0)
     ev = [a for a in agg if a["role"] == "evaluation" and a["n"] == n and a["iterations"] == iterations]
@@ -110,9 +144,9 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
     full = {rc: v for rc, v in per.items() if set(v) == set(scenes)}
     mean_psnr = {rc: sum(v[s]["psnr"]["mean"] for s in scenes) / len(scenes) for rc, v in full.items()}
     out["mean_final_psnr"] = mean_psnr
+    out["spread"] = spread(full, scenes, kinds or {})
     if OURS in mean_psnr:
-        others = [m for rc, m in mean_psnr.items() if rc != OURS]
-        out["psnr_lead_over_best_other"] = mean_psnr[OURS] - max(others) if others else None
+        out["psnr_lead_over_best_other"] = _lead(mean_psnr)
         out["psnr_lead_ok"] = (out["psnr_lead_over_best_other"] or 0) >= 0.5
         vp = [p for p in pairs if p["n"] == n and p["iterations"] == iterations and p["against"] == BASE
               and p["scene"] in scenes]
@@ -191,6 +225,21 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
         if "psnr_lead_over_best_other" in v and v["psnr_lead_over_best_other"] is not None:
             lines.append(f"- `sparse` − best other recipe: {v['psnr_lead_over_best_other']:+.2f} dB "
                          f"(target ≥ +0.5: {'met' if v['psnr_lead_ok'] else 'not met'})")
+        sp = v.get("spread", {})
+        if len(sp.get("by_kind", {})) > 1:
+            lines.append("- by kind of scene: " + "; ".join(
+                f"{kind} ({len(k['scenes'])}): " + ", ".join(f"{rc} {x:.2f}" for rc, x in k["mean_final_psnr"].items())
+                + ("" if k["psnr_lead_over_best_other"] is None else f", `sparse` − best other {k['psnr_lead_over_best_other']:+.2f} dB")
+                for kind, k in sp["by_kind"].items()))
+        if OURS in v["mean_final_psnr"]:
+            rest = [s for s in v["evaluation_scenes"] if s not in sp.get("sparse_best_scenes", [])]
+            lines.append(f"- scenes where `sparse` has the highest mean PSNR of the recipes: "
+                         f"{len(sp.get('sparse_best_scenes', []))} of {len(v['evaluation_scenes'])}"
+                         + (f" (not on {', '.join(rest)})" if rest else ""))
+        if sp.get("lead_leave_one_out"):
+            lo = sp["lead_leave_one_out"]
+            lines.append(f"- the lead with one scene left out: {lo['min']:+.2f} dB (without {lo['min_without']}) "
+                         f"to {lo['max']:+.2f} dB (without {lo['max_without']})")
         for net in ("lpips_alex", "lpips_vgg"):
             if f"{net}_minus_paper" in v:
                 lines.append(f"- {HEAD[net]} `sparse` − `paper`, paired over scenes and seeds: "
@@ -210,8 +259,9 @@ def write_summary(records: Path, doc: Path, scenes) -> dict:
     rows = load_records(records)
     agg, pairs = aggregate(rows), paired(rows)
     # the targets at n = TARGET_N and the most iterations run there; every (n, iterations) measured
-    verdict = verdicts(rows, agg, pairs)
-    by_n = {(n, its): verdicts(rows, agg, pairs, n, its)
+    kinds = {s.name: s.kind for s in scenes}
+    verdict = verdicts(rows, agg, pairs, kinds=kinds)
+    by_n = {(n, its): verdicts(rows, agg, pairs, n, its, kinds=kinds)
             for n, its in sorted({(r["n"], r["iterations"]) for r in rows if r["role"] == "evaluation"})}
     summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
                "aggregate": agg, "paired": pairs, "targets": verdict,
