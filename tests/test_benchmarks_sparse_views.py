@@ -121,6 +121,37 @@ def test_run_skips_a_scene_whose_data_is_absent(tmp_path):
     assert out.returncode == 0 and "SKIP far" in out.stdout and "0 runs to do" in out.stdout
 
 
+def test_a_run_another_process_holds_is_skipped(tmp_path):
+    """Two ``run`` commands over overlapping grids: a run whose lock another process holds is
+    skipped, with no record; the lock is the system's (``flock``), gone with its holder."""
+    from benchmarks.sparse_views.runs import run_lock
+
+    f = tmp_path / "p.yaml"
+    f.write_text("scenes:\n- {name: tiny, role: tuning, kind: synthetic, views: [3],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}', --views, '16', --width, '128']}\n")
+    lock = tmp_path / "w" / "tiny_n3" / "runs" / "tiny_n3_paper_s0_i20.lock"
+    with run_lock(lock) as mine:
+        assert mine
+        out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+                              str(tmp_path / "rec"), "run", "--role", "tuning", "--recipes", "paper", "--seeds", "0",
+                              "--iterations", "20", "--work", str(tmp_path / "w")], cwd=REPO, capture_output=True,
+                             text=True)
+        assert out.returncode == 0 and "running in another process" in out.stdout, out.stdout + out.stderr
+        assert not list((tmp_path / "rec" / "runs").glob("*.json"))
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; fh = open(sys.argv[1], 'a'); "
+                               "fcntl.flock(fh, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)", str(lock)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with run_lock(lock) as mine:
+            assert not mine
+    finally:
+        holder.kill()
+        holder.wait()
+    with run_lock(lock) as mine:  # its holder killed: free again
+        assert mine
+
+
 def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     """``run`` on a small generated scene: the cell is prepared by the stage commands, one run
     trained and scored, and its record holds the table's keys; a second ``run`` finds the record

@@ -36,7 +36,8 @@ def _variant(text: str) -> tuple[str, dict]:
 
 def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import prepare
-    from benchmarks.sparse_views.runs import record, resolved_values, run_name, stale_keys, train_and_score
+    from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
+    from camio.atomic import atomic_path
 
     scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
               and (not args.scenes or s.name in args.scenes)]
@@ -85,13 +86,22 @@ def cmd_run(args) -> int:
         if s.background is not None:  # the scene's own (scenes.yaml), the same for every recipe
             bg = {"background": list(s.background)}
             overrides, cfg = {**overrides, **bg}, {**cfg, **bg}
-        cell = prepare(args.work / f"{s.name}_n{n}", s, n)
         out = args.work / f"{s.name}_n{n}" / "runs" / run_name(s.name, n, name, seed, args.iterations)
-        res = train_and_score(cell, out, recipe, seed, args.iterations, args.eval_every or max(1, args.iterations // 10),
-                              overrides, args.kernel_threads)
-        rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
-        rec["load_avg"] = os.getloadavg()
-        rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+        lock = out.with_name(out.name + ".lock")
+        with run_lock(lock) as mine:
+            # another run command over an overlapping grid: never the same run twice at once
+            if not mine or rec_path.is_file():
+                print(f"[{i}/{len(todo)}] {s.name} n={n} {name} seed {seed}: "
+                      + ("recorded meanwhile" if mine else f"running in another process ({lock})") + ", skipped",
+                      flush=True)
+                continue
+            cell = prepare(args.work / f"{s.name}_n{n}", s, n)
+            res = train_and_score(cell, out, recipe, seed, args.iterations,
+                                  args.eval_every or max(1, args.iterations // 10), overrides, args.kernel_threads)
+            rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
+            rec["load_avg"] = os.getloadavg()
+            with atomic_path(rec_path) as tmp:  # a record is whole or absent
+                tmp.write_text(json.dumps(rec, indent=1) + "\n")
         print(f"[{i}/{len(todo)} {time.perf_counter() - t0:6.0f} s] {s.name} n={n} {name} seed {seed}: "
               f"PSNR {rec['psnr']:.2f} SSIM {rec['ssim']:.3f} LPIPS-alex {rec['lpips_alex']:.3f} "
               f"vgg {rec['lpips_vgg']:.3f}, {rec['gaussians']} Gaussians, {rec['train_s']:.0f} s", flush=True)

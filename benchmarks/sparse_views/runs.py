@@ -15,11 +15,34 @@ recipe gives now stops the run with :class:`StaleRun`, naming the keys and the p
 
 from __future__ import annotations
 
+import fcntl
 import json
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
+
+@contextmanager
+def run_lock(lock: Path) -> Iterator[bool]:
+    """Hold the lock of one run while the block runs, so that two ``run`` commands over
+    overlapping grids never train the same run at once: yields False, holding nothing, when
+    another process holds it. An advisory lock on an open file (``flock``): the system drops it
+    when its process ends, however it ends, so a killed run never blocks the next command."""
+    lock = Path(lock)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
 
 class StaleRun(ValueError):
     """A kept model or record was made with other recipe values than the recipe gives now."""
