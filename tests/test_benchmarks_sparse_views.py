@@ -95,6 +95,24 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     assert "the lead with one scene left out: +1.00 dB" in text
 
 
+def test_users_own_evaluation_scene_needs_no_public_source(tmp_path):
+    """A scenes file for one's own captures: name, role, kind, views and where the data is;
+    ``source`` and ``licence`` belong to scenes fetched from public repositories."""
+    f = tmp_path / "mine.yaml"
+    f.write_text("scenes:\n- {name: desk, role: evaluation, kind: forward-facing, views: [3],\n"
+                 "   local: /nonexistent/desk, convert: [--format, llff]}\n")
+    (scene,) = protocol.load(f)
+    assert scene.role == "evaluation" and scene.convert == ("--format", "llff") and not scene.available
+    assert protocol.load(f, data=tmp_path)[0].path == tmp_path / "desk"
+    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+                          str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w")],
+                         cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0 and "SKIP desk" in out.stdout, out.stdout + out.stderr
+    f.write_text(f.read_text().replace("kind: forward-facing, ", ""))  # the tables group by kind
+    with pytest.raises(ValueError, match="'kind' missing"):
+        protocol.load(f)
+
+
 def test_spread_of_the_lead_by_kind_best_scene_and_leave_one_out():
     psnr = {"sparse": {"a": 20.0, "b": 10.0, "c": 15.0}, "mcmc": {"a": 19.0, "b": 12.0, "c": 14.0},
             "paper": {"a": 18.0, "b": 11.0, "c": 14.5}}

@@ -38,6 +38,8 @@ def test_scene_list_keeps_tuning_apart_and_each_evaluation_scene_converts_with_c
     assert len({s["kind"] for s in evaluation}) >= 2
     assert {"middlebury__templeSparseRing", "blender__chair", "middlebury__dinoSparseRing",
             "strecha__castle-P19"} <= {s["name"] for s in evaluation}
+    for s in evaluation:  # the shipped list's evaluation scenes are public: where, at which commit, licence
+        assert set(s["source"]) == {"repo", "commit", "path"} and s["licence"], s["name"]
     for s in [*evaluation, *(s for s in scenes if "source" in s)]:
         assert 3 in s["views"]
         # the stored arguments are ones camio convert accepts, and leave --src/--out/--n to the script
@@ -120,6 +122,8 @@ def test_fetch_takes_the_pinned_commit_and_only_the_scene_path(tmp_path, scene_p
     (lambda t: t.replace("path: data/s", "path: ../up"), [], "inside the repo"),
     (lambda t: t.replace("views: [3]", "views: [3]\n    background: [1, 1]"), [], "background"),
     (lambda t: t.replace("views: [3]", "views: [3]\n    background: [0, 2, 0]"), [], "background"),
+    (lambda t: t.replace("    licence:", "    licenced:"), [], "'licence' missing"),
+    (lambda t: t.replace("    kind:", "    kinds:"), [], "'kind' missing"),
     (lambda t: t, ["--scenes", "nope"], "unknown scene"),
     (lambda t: t + "  - [", [], "not valid YAML"),
 ])

@@ -44,9 +44,10 @@ def _need(cond: bool, msg: str) -> None:
 
 def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
     """The scenes of a scenes.yaml, checked: unique names, a known role, views a list of
-    positive ints, an optional ``background`` of three numbers in [0, 1]; an evaluation scene
-    also needs ``source`` (repo owner/name, a 40-hex commit, a path), ``licence``, ``kind``,
-    ``local`` and ``convert`` (a list of strings)."""
+    positive ints, an optional ``background`` of three numbers in [0, 1], an optional
+    ``convert`` (a list of strings); an evaluation scene also needs ``kind``. A scene with a
+    ``source`` (repo owner/name, a 40-hex commit, a path) also needs ``licence`` and ``local``;
+    one without is the user's own data, found at ``local`` or under ``--data``."""
     import yaml
 
     path = Path(path)
@@ -75,7 +76,12 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         _need(bg is None or isinstance(bg, list) and len(bg) == 3
               and all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in bg),
               f"{where}: 'background' must be three numbers in [0, 1] (RGB)")
-        if s["role"] != "evaluation" and "source" not in s:
+        conv = s.get("convert", [])
+        _need(isinstance(conv, list) and all(isinstance(a, str) for a in conv),
+              f"{where}: 'convert' must be a list of strings (camio convert arguments)")
+        if s["role"] == "evaluation":
+            _need(isinstance(s.get("kind"), str) and bool(s["kind"].strip()), f"{where}: 'kind' missing")
+        if "source" not in s:  # generated, or the user's own data (local / --data)
             continue
         for key in ("kind", "licence", "local"):
             _need(isinstance(s.get(key), str) and bool(s[key].strip()), f"{where}: '{key}' missing")
@@ -87,9 +93,6 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         p = src.get("path")
         _need(isinstance(p, str) and bool(p) and not p.startswith("/") and ".." not in Path(p).parts,
               f"{where}: source.path must be a path inside the repo ('.' for all of it)")
-        conv = s.get("convert")
-        _need(isinstance(conv, list) and all(isinstance(a, str) for a in conv),
-              f"{where}: 'convert' must be a list of strings (camio convert arguments)")
     return doc["scenes"]
 
 
@@ -122,7 +125,7 @@ def convert_command(scene: dict, dest: Path) -> list[str]:
     """``python -m camio convert`` for the fetched scene, into DEST/NAME_conv."""
     name = scene["name"]
     return [sys.executable, "-m", "camio", "convert", "--src", str(dest / name), "--out", str(dest / f"{name}_conv"),
-            *scene["convert"], "--n", *map(str, scene["views"])]
+            *scene.get("convert", []), "--n", *map(str, scene["views"])]
 
 
 def _run(cmd: list[str], cwd: Path | None = None) -> None:
