@@ -398,7 +398,7 @@ def loop_gap_part(prepared: Path | None, iterations: int, on_result: Callable[[d
 
     if prepared is None:
         raise ValueError("the loop comparison needs a prepared cell (--cell-prepared)")
-    seeds = parse_seeds(os.environ.get("LOOP_GAP_SEEDS", SEEDS))
+    seeds = parse_seeds(os.environ["LOOP_GAP_SEEDS"]) if os.environ.get("LOOP_GAP_SEEDS") else list(SEEDS)
     jobs = int(os.environ.get("LOOP_GAP_JOBS", JOBS))
     return loop_gap(prepared, seeds, iterations, jobs, deadline=_run_deadline(float("inf"), 30.0), on_result=on_result)
 

@@ -1,7 +1,7 @@
 """Does ``paper`` train as gsplat's own loop does? Both loops on one prepared cell over many
 seeds, several runs at a time on one GPU.
 
-    python -m benchmarks.loop_gap --cell .gpu_cell [--seeds 0-7] [--jobs 8] [--iterations 10000] [--out X.json]
+    python -m benchmarks.loop_gap --cell .gpu_cell [--seeds 0 1 ...] [--jobs 8] [--iterations 10000] [--out X.json]
 
 Per seed, one run of each loop, each in a process of its own (:func:`commands`):
 
@@ -37,7 +37,7 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 LOOPS = ("ours", "native")
 ITERATIONS = 10_000  # the cell where the two loops differed: the paper's length
-SEEDS, JOBS = "0-7", 8
+SEEDS, JOBS = tuple(range(8)), 8
 RUN_S_GUESS = 300.0  # a run's seconds before one has finished (then: the longest seen)
 
 
@@ -152,12 +152,11 @@ def loop_gap(cell: Path, seeds: list[int], iterations: int = ITERATIONS, jobs: i
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.backend_agree import parse_seeds
     from runtime.cliargs import plain
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.loop_gap", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--cell", type=Path, required=True, help="folder of bench_cell.py --prepare-only")
-    p.add_argument("--seeds", default=SEEDS, help="N, N-M or a comma list (default %(default)s)")
+    p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS), help="seeds, each run by both loops (default: 0 to 7)")
     p.add_argument("--jobs", type=int, default=JOBS, help="runs at a time (default %(default)s)")
     p.add_argument("--iterations", type=int, default=ITERATIONS)
     p.add_argument("--device", default="cuda", help="the trainer's device (default %(default)s)")
@@ -165,9 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="JSON file to write")
     args = p.parse_args(argv)
     try:
-        seeds = parse_seeds(args.seeds)
-        if args.jobs < 1 or args.iterations < 1 or not seeds:
-            raise ValueError("--jobs and --iterations must be positive and --seeds not empty")
+        seeds = list(dict.fromkeys(args.seeds))
+        if args.jobs < 1 or args.iterations < 1 or min(seeds) < 0:
+            raise ValueError("--jobs and --iterations must be positive and --seeds at least 0")
         if not (args.cell / "prepared.json").is_file():
             raise ValueError(f"{args.cell} is not a prepared cell (make one with: "
                              "python benchmarks/bench_cell.py --prepare-only DIR)")

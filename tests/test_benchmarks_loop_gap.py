@@ -86,8 +86,8 @@ def test_cli_refuses_a_folder_that_is_not_a_prepared_cell(tmp_path, capsys):
     assert loop_gap.main(["--cell", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is not a prepared cell" in err[0]
-    assert loop_gap.main(["--cell", str(tmp_path), "--seeds", "3-1"]) == 2
-    assert "seeds are N, N-M" in capsys.readouterr().err
+    assert loop_gap.main(["--cell", str(tmp_path), "--jobs", "0"]) == 2
+    assert "--jobs and --iterations must be positive" in capsys.readouterr().err
 
 
 def test_gpu_check_lists_the_part():
