@@ -24,6 +24,7 @@ from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
 
+
 @contextmanager
 def run_lock(lock: Path) -> Iterator[bool]:
     """Hold the lock of one run while the block runs, so that two ``run`` commands over
