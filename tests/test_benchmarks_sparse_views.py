@@ -31,6 +31,18 @@ def test_shipped_protocol_keeps_tuning_and_evaluation_apart():
         assert s.source, s.name
 
 
+def test_reserve_scenes_are_listed_but_never_run():
+    """Scenes held back for the evaluation after the next change of values: public like the
+    evaluation scenes, with no run record, and ``run`` refuses their role."""
+    reserve = [s for s in protocol.load() if s.role == "reserve"]
+    assert reserve and all(s.kind and s.source.get("repo") and s.source.get("licence") for s in reserve)
+    runs = REPO / "benchmarks" / "records" / "sparse_views" / "runs"
+    assert not [p.name for s in reserve for p in runs.glob(f"{s.name}_n*.json")]
+    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "run", "--role", "reserve", "--work", "w"],
+                         cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 2 and "invalid choice: 'reserve'" in out.stderr
+
+
 def test_protocol_resolves_data_folders(tmp_path, monkeypatch):
     """--data DIR (or $SPARSE_VIEWS_DATA) puts every real scene at DIR/<name>, as fetch_scenes.py
     leaves them; a generated scene has no folder and is always available."""

@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--records", type=Path, default=RECORDS, help="records folder (default %(default)s)")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="train and score the runs of one role that have no record")
-    r.add_argument("--role", choices=protocol.ROLES, required=True)
+    r.add_argument("--role", choices=protocol.RUN_ROLES, required=True,
+                   help="the scenes to run (reserve scenes are never run: they wait for the next change of values)")
     r.add_argument("--scenes", nargs="*", default=None, help="only these scenes (default: every one of the role)")
     r.add_argument("--n", nargs="*", type=int, default=None, help="only these view counts")
     r.add_argument("--recipes", nargs="+", default=list(DEFAULT_RECIPES),

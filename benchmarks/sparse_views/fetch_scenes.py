@@ -27,7 +27,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 SCENES_YAML = Path(__file__).resolve().with_name("scenes.yaml")
 GIT_BASE = "https://github.com/"
-ROLES = ("tuning", "evaluation")
+# tuning: values may be chosen on it; evaluation: it only measures; reserve: unseen, held back
+# (never run) for the evaluation after the next change of values
+ROLES = ("tuning", "evaluation", "reserve")
+RUN_ROLES = ("tuning", "evaluation")
 _COMMIT = re.compile(r"^[0-9a-f]{40}$")
 _REPO = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -45,7 +48,7 @@ def _need(cond: bool, msg: str) -> None:
 def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
     """The scenes of a scenes.yaml, checked: unique names, a known role, views a list of
     positive ints, an optional ``background`` of three numbers in [0, 1], an optional
-    ``convert`` (a list of strings); an evaluation scene also needs ``kind``. A scene with a
+    ``convert`` (a list of strings); an evaluation or reserve scene also needs ``kind``. A scene with a
     ``source`` (repo owner/name, a 40-hex commit, a path) also needs ``licence`` and ``local``;
     one without is the user's own data, found at ``local`` or under ``--data``."""
     import yaml
@@ -79,7 +82,7 @@ def load_scenes(path: str | Path = SCENES_YAML) -> list[dict]:
         conv = s.get("convert", [])
         _need(isinstance(conv, list) and all(isinstance(a, str) for a in conv),
               f"{where}: 'convert' must be a list of strings (camio convert arguments)")
-        if s["role"] == "evaluation":
+        if s["role"] != "tuning":
             _need(isinstance(s.get("kind"), str) and bool(s["kind"].strip()), f"{where}: 'kind' missing")
         if "source" not in s:  # generated, or the user's own data (local / --data)
             continue

@@ -12,13 +12,13 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.sparse_views.fetch_scenes import ROLES, SCENES_YAML, load_scenes
+from benchmarks.sparse_views.fetch_scenes import ROLES, RUN_ROLES, SCENES_YAML, load_scenes
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 PROTOCOL = SCENES_YAML
 DATA_ENV = "SPARSE_VIEWS_DATA"
-__all__ = ["Scene", "load", "PROTOCOL", "ROLES", "DATA_ENV", "REPO"]
+__all__ = ["Scene", "load", "PROTOCOL", "ROLES", "RUN_ROLES", "DATA_ENV", "REPO"]
 
 
 @dataclass(frozen=True)
