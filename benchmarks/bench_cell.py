@@ -323,6 +323,23 @@ def prepare_bundle(dest: Path, scene_kind: str = "auto", n: int = 3, quick: bool
     return dest
 
 
+def cell_train_args(cell: Path, state: dict, out: Path, iterations: int, seed: int, threads: int | None = None,
+                    device: str | None = None, rasterizer: str | None = None, recipe: str | None = None) -> list[str]:
+    """``python -m splat_train``'s arguments for the cell in ``cell`` (its :data:`PREPARED_FILE`
+    ``state``): the Bridge's seed and cameras, the training images, the aligned held-out views;
+    the model into ``out``. An option left None is the trainer's default."""
+    bridge = cell / "bridge"
+    args = ["--seed-ply", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
+            "--images", str(cell / state["scene"] / "images"), "--image-list", str(cell / state["train_txt"]),
+            "--out", str(out), "--iterations", str(iterations), "--seed", str(seed),
+            "--test-cameras", str(cell / "align" / "sparse" / "0"), "--test-images", str(cell / state["test_dir"])]
+    for flag, value in (("--threads", threads), ("--device", device), ("--rasterizer", rasterizer),
+                        ("--recipe", recipe)):
+        if value:
+            args += [flag, str(value)]
+    return args
+
+
 def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool, threads: int | None, vggt: bool,
               vggt_dtype: str, vggt_size: int, inprocess: bool, device: str | None = None,
               rasterizer: str | None = None, prepared: Path | None = None, recipe: str | None = None) -> dict:
@@ -338,19 +355,8 @@ def _run_cell(work: Path, scene_kind: str, n: int, iterations: int, quick: bool,
         shutil.copytree(prepared, work, dirs_exist_ok=True)
     n, used, inits, desc = state["n"], state["used"], state["inits"], state["desc"]
     scene, train_txt, test_dir = work / state["scene"], work / state["train_txt"], work / state["test_dir"]
-    bridge = work / "bridge"
-    train_args = ["--seed-ply", str(bridge / "seed.ply"), "--cameras", str(bridge / "sparse" / "0"),
-                  "--images", str(scene / "images"), "--image-list", str(train_txt), "--out", str(work / "train"),
-                  "--iterations", str(iterations), "--seed", "0",
-                  "--test-cameras", str(work / "align" / "sparse" / "0"), "--test-images", str(test_dir)]
-    if threads:
-        train_args += ["--threads", str(threads)]
-    if device:
-        train_args += ["--device", device]
-    if rasterizer:
-        train_args += ["--rasterizer", rasterizer]
-    if recipe:
-        train_args += ["--recipe", recipe]
+    train_args = cell_train_args(work, state, work / "train", iterations, 0, threads=threads, device=device,
+                                 rasterizer=rasterizer, recipe=recipe)
     stage("train", "splat_train", train_args)
     summary = json.loads((work / "train" / "train.json").read_text())
     stage("render", "splat_train", ["render", "--model", str(work / "train" / "model.ply"),

@@ -45,14 +45,14 @@ def commands(cell: Path, seed: int, iterations: int, out: Path, device: str = "c
              rasterizer: str = "gsplat") -> dict[str, tuple[list[str], Path]]:
     """Per loop, the command line of one run on the prepared ``cell`` and the JSON it leaves
     in ``out`` (``train.json`` of the trainer; the native loop's result)."""
-    state = json.loads((Path(cell) / "prepared.json").read_text())
+    from benchmarks.bench_cell import PREPARED_FILE, cell_train_args
+
+    cell = Path(cell)
+    state = json.loads((cell / PREPARED_FILE).read_text())
     ours_out = out / f"ours_s{seed}"
-    ours = [sys.executable, "-m", "splat_train", "--seed-ply", str(cell / "bridge" / "seed.ply"),
-            "--cameras", str(cell / "bridge" / "sparse" / "0"), "--images", str(cell / state["scene"] / "images"),
-            "--image-list", str(cell / state["train_txt"]), "--out", str(ours_out), "--iterations", str(iterations),
-            "--seed", str(seed), "--recipe", "paper", "--device", device, "--rasterizer", rasterizer,
-            "--test-cameras", str(cell / "align" / "sparse" / "0"), "--test-images", str(cell / state["test_dir"]),
-            "--eval-every", str(iterations), "--threads", "1"]
+    ours = [sys.executable, "-m", "splat_train",
+            *cell_train_args(cell, state, ours_out, iterations, seed, threads=1, device=device, rasterizer=rasterizer,
+                             recipe="paper"), "--eval-every", str(iterations)]
     native_json = out / f"native_s{seed}.json"
     native = [sys.executable, str(ROOT / "benchmarks" / "gsplat_native.py"), "--cell", str(cell),
               "--iterations", str(iterations), "--seed", str(seed), "--out", str(native_json)]
@@ -90,6 +90,15 @@ def summarise(runs: list[dict]) -> dict:
     return out
 
 
+def check_cell(cell: Path) -> None:
+    """ValueError naming the problem when ``cell`` is not a folder of ``bench_cell.py --prepare-only``."""
+    from benchmarks.bench_cell import PREPARED_FILE
+
+    if not (Path(cell) / PREPARED_FILE).is_file():
+        raise ValueError(f"{cell} is not a prepared cell (make one with: "
+                         "python benchmarks/bench_cell.py --prepare-only DIR)")
+
+
 def loop_gap(cell: Path, seeds: list[int], iterations: int = ITERATIONS, jobs: int = JOBS, device: str = "cuda",
              rasterizer: str = "gsplat", deadline: float | None = None, loops: tuple[str, ...] = LOOPS,
              on_result: Callable[[dict], None] | None = None) -> dict:
@@ -108,9 +117,7 @@ def loop_gap(cell: Path, seeds: list[int], iterations: int = ITERATIONS, jobs: i
         ``summary`` (:func:`summarise`); ``stopped_at_deadline``; ``wall_s``.
     """
     cell = Path(cell)
-    if not (cell / "prepared.json").is_file():
-        raise FileNotFoundError(f"{cell} is not a prepared cell (make one with: "
-                                "python benchmarks/bench_cell.py --prepare-only DIR)")
+    check_cell(cell)
     res = {"cell": str(cell), "iterations": iterations, "jobs": jobs, "device": device, "rasterizer": rasterizer,
            "runs": [], "summary": {}, "stopped_at_deadline": False}
     queue = [(loop, seed) for seed in seeds for loop in loops]
@@ -167,9 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds = list(dict.fromkeys(args.seeds))
         if args.jobs < 1 or args.iterations < 1 or min(seeds) < 0:
             raise ValueError("--jobs and --iterations must be positive and --seeds at least 0")
-        if not (args.cell / "prepared.json").is_file():
-            raise ValueError(f"{args.cell} is not a prepared cell (make one with: "
-                             "python benchmarks/bench_cell.py --prepare-only DIR)")
+        check_cell(args.cell)
     except ValueError as exc:
         print(f"loop_gap: {exc}", file=sys.stderr)
         return 2

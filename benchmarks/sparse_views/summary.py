@@ -84,6 +84,12 @@ def paired(rows: list[dict], role: str = "evaluation") -> list[dict]:
     return out
 
 
+def _mean_psnr(per: dict[str, dict[str, dict]], scenes: list[str]) -> dict[str, float]:
+    """Each recipe's mean over ``scenes`` of its per-scene mean final PSNR (``per``: recipe ->
+    scene -> aggregate row)."""
+    return {rc: sum(v[s]["psnr"]["mean"] for s in scenes) / len(scenes) for rc, v in per.items()}
+
+
 def _lead(mean_psnr: dict[str, float]) -> float | None:
     """``sparse``'s mean PSNR minus the best other recipe's (None without both)."""
     others = [m for rc, m in mean_psnr.items() if rc != OURS]
@@ -98,19 +104,16 @@ def spread(per: dict[str, dict[str, dict]], scenes: list[str], kinds: dict[str, 
     there), ``sparse_best_scenes`` (where ``sparse``'s mean is the highest of the recipes) and,
     from two scenes on, ``lead_leave_one_out`` (the lead over the other scenes with each one left
     out: its lowest and highest, and which scene was out)."""
-    def means(sc):
-        return {rc: sum(v[s]["psnr"]["mean"] for s in sc) / len(sc) for rc, v in per.items()}
-
     out: dict = {"by_kind": {}, "sparse_best_scenes": []}
     for kind in sorted({kinds.get(s) or "unknown" for s in scenes}):
         sc = [s for s in scenes if (kinds.get(s) or "unknown") == kind]
-        m = means(sc)
+        m = _mean_psnr(per, sc)
         out["by_kind"][kind] = {"scenes": sc, "mean_final_psnr": m, "psnr_lead_over_best_other": _lead(m)}
     if OURS in per:
         out["sparse_best_scenes"] = [s for s in scenes if all(per[OURS][s]["psnr"]["mean"] >= v[s]["psnr"]["mean"]
                                                                for v in per.values())]
     if OURS in per and len(per) > 1 and len(scenes) > 1:
-        loo = sorted((_lead(means([x for x in scenes if x != s])), s) for s in scenes)
+        loo = sorted((_lead(_mean_psnr(per, [x for x in scenes if x != s])), s) for s in scenes)
         out["lead_leave_one_out"] = {"min": loo[0][0], "min_without": loo[0][1],
                                      "max": loo[-1][0], "max_without": loo[-1][1]}
     return out
@@ -143,7 +146,7 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
     for a in ev:
         per[a["recipe"]][a["scene"]] = a
     full = {rc: v for rc, v in per.items() if set(v) == set(scenes)}
-    mean_psnr = {rc: sum(v[s]["psnr"]["mean"] for s in scenes) / len(scenes) for rc, v in full.items()}
+    mean_psnr = _mean_psnr(full, scenes)
     out["mean_final_psnr"] = mean_psnr
     out["spread"] = spread(full, scenes, kinds or {})
     if OURS in mean_psnr:
