@@ -175,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.jobs < 1 or args.iterations < 1 or min(seeds) < 0:
             raise ValueError("--jobs and --iterations must be positive and --seeds at least 0")
         check_cell(args.cell)
+        if args.out is not None:  # a file of its own: never an input, never a file another command wrote
+            from camio.outdir import prepare_out
+
+            prepare_out(args.out, {"--cell": args.cell}, "benchmarks.loop_gap", folder=False)
     except ValueError as exc:
         print(f"loop_gap: {exc}", file=sys.stderr)
         return 2

@@ -90,5 +90,19 @@ def test_cli_refuses_a_folder_that_is_not_a_prepared_cell(tmp_path, capsys):
     assert "--jobs and --iterations must be positive" in capsys.readouterr().err
 
 
+def test_cli_never_writes_over_an_input_or_a_file_it_did_not_write(cell, tmp_path, capsys):
+    prepared = cell / "prepared.json"
+    before = prepared.read_bytes()
+    for out in (prepared, cell / "bridge" / "result.json"):
+        assert loop_gap.main(["--cell", str(cell), "--out", str(out), "--seeds", "0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--out" in err[0], err
+    foreign = tmp_path / "notes.json"
+    foreign.write_text("{}")
+    assert loop_gap.main(["--cell", str(cell), "--out", str(foreign), "--seeds", "0"]) == 2
+    assert "never replaces a file it did not write" in capsys.readouterr().err
+    assert prepared.read_bytes() == before and foreign.read_text() == "{}"
+
+
 def test_gpu_check_lists_the_part():
     assert "loop_gap" in gpu_check.PARTS and "loop_gap" in gpu_check.GSPLAT_PARTS  # it waits for gsplat's build
