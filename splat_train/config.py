@@ -29,7 +29,7 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
            "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
 
 from camio.ply import SH_DEGREE
-from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
+from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  STRATEGIES, SEED_OVER_CAP, VALUE_KEYS, recipe_defaults)
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
@@ -121,8 +121,9 @@ class TrainConfig:
             (gsplat's 5e5).
         opacity_reg, scale_reg: weights of mean(opacity) and mean(scale) added to the loss
             (0 = off; None: the recipe's, 0.01 each in ``mcmc``, off elsewhere).
-        dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's):
-            :mod:`splat_train.dropout`.
+        dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's), ramped in
+            linearly over ``dropout_ramp_fraction`` of the run: :mod:`splat_train.dropout`.
+        dropout_ramp_fraction: see ``dropout_rate`` (None: the recipe's; 1 in every recipe).
         depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
             ramped in linearly over ``depth_ramp_fraction`` of the run; acts only when the
             seed comes with a depth prior (:mod:`splat_train.depth_prior`).
@@ -201,6 +202,7 @@ class TrainConfig:
     opacity_reg: float | None = None
     scale_reg: float | None = None
     dropout_rate: float | None = None
+    dropout_ramp_fraction: float | None = None
     depth_weight: float | None = None
     depth_ramp_fraction: float | None = None
     depth_use_confidence: bool = True
@@ -235,7 +237,7 @@ class TrainConfig:
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         preset = recipe_defaults(self.recipe)
-        for key in (*PART_KEYS, "depth_ramp_fraction", *VALUE_KEYS):
+        for key in (*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS):
             if getattr(self, key) is None:
                 setattr(self, key, preset[key])
         for key in SCHEDULE_KEYS:
@@ -244,8 +246,9 @@ class TrainConfig:
             least = 0 if key in ("densify_from", "densify_until", "opacity_reset_every") else 1
             if v is not None and (int(v) != v or v < least):
                 raise ValueError(f"{key} must be an iteration count >= {least}, got {v}")
-        if not 0.0 <= self.dropout_rate < 1.0:
-            raise ValueError(f"dropout_rate must be in [0, 1), got {self.dropout_rate}")
+        if not (0.0 <= self.dropout_rate < 1.0 and 0.0 <= self.dropout_ramp_fraction <= 1.0):
+            raise ValueError(f"dropout_rate must be in [0, 1) and dropout_ramp_fraction in [0, 1], got "
+                             f"{self.dropout_rate} and {self.dropout_ramp_fraction}")
         if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
             raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")

@@ -2,7 +2,8 @@
 
 At each training iteration every Gaussian's opacity is zeroed with probability p and the
 survivors' opacity is divided by 1 - p, so that the expected opacity of each Gaussian is
-unchanged; p ramps linearly from 0 to the final rate over the run (:func:`dropout_rate_at`).
+unchanged; p ramps linearly from 0 to the final rate over the run, or over its first part
+(:func:`dropout_rate_at`).
 The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
 anything: only the training render of :meth:`splat_train.trainer.Trainer.step` goes through
 :class:`GaussianDropout`, the training part (:mod:`splat_train.train_part`) that applies
@@ -25,11 +26,14 @@ from splat_train.train_part import OpacityFn, TrainPart
 __all__ = ["dropout_rate_at", "gaussian_dropout", "GaussianDropout"]
 
 
-def dropout_rate_at(iteration: int, iterations: int, final_rate: float) -> float:
-    """DropGaussian's rate at 1-based ``iteration`` of ``iterations``: final_rate x it / iterations."""
+def dropout_rate_at(iteration: int, iterations: int, final_rate: float, ramp_fraction: float = 1.0) -> float:
+    """DropGaussian's rate at 1-based ``iteration`` of ``iterations``: final_rate x it / (ramp_fraction x
+    iterations), at most final_rate. ``ramp_fraction`` 1 is DropGaussian's ramp over the whole run,
+    0 the final rate from the first iteration."""
     if final_rate <= 0.0:
         return 0.0
-    return float(final_rate) * min(1.0, iteration / float(iterations))
+    ramp = ramp_fraction * float(iterations)
+    return float(final_rate) * (1.0 if ramp <= 0.0 else min(1.0, iteration / ramp))
 
 
 def gaussian_dropout(opacities: Tensor, rate: float, generator: torch.Generator | None = None) -> Tensor:
@@ -63,20 +67,23 @@ class GaussianDropout(TrainPart):
     :func:`gaussian_dropout` at the rate :func:`dropout_rate_at` gives for the iteration.
 
     Args:
-        final_rate: the rate reached at the last iteration (> 0).
+        final_rate: the rate reached at the end of the ramp (> 0).
         iterations: the run's length.
         generator: the trainer's CPU generator (checkpointed by the trainer).
+        ramp_fraction: the fraction of the run over which the rate ramps up from 0 (1: all of it).
     """
 
     name = "dropout"
 
-    def __init__(self, final_rate: float, iterations: int, generator: torch.Generator) -> None:
+    def __init__(self, final_rate: float, iterations: int, generator: torch.Generator,
+                 ramp_fraction: float = 1.0) -> None:
         self.final_rate, self.iterations, self.generator = float(final_rate), int(iterations), generator
+        self.ramp_fraction = float(ramp_fraction)
 
     def opacity_fn(self, iteration: int) -> OpacityFn | None:
         """[N] opacities -> :func:`gaussian_dropout` at this iteration's rate (None at rate 0);
         each call of the map draws one mask from the generator."""
-        rate = dropout_rate_at(iteration, self.iterations, self.final_rate)
+        rate = dropout_rate_at(iteration, self.iterations, self.final_rate, self.ramp_fraction)
         if rate <= 0:
             return None
         return lambda opacities: gaussian_dropout(opacities, rate, self.generator)

@@ -68,7 +68,7 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
     parts: list[TrainPart] = []
     names = [v.name for v in views]
     if cfg.dropout_rate > 0:
-        parts.append(GaussianDropout(cfg.dropout_rate, cfg.iterations, generator))
+        parts.append(GaussianDropout(cfg.dropout_rate, cfg.iterations, generator, cfg.dropout_ramp_fraction))
     if depth_prior is not None and cfg.depth_weight > 0:
         prior = load_depth_prior(depth_prior, {v.name: (v.camera.width, v.camera.height) for v in views},
                                  cameras[0].device, use_confidence=cfg.depth_use_confidence,

@@ -109,6 +109,8 @@ SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_rese
 # The regularisation parts and their "off" values.
 PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
              "scale_reg": 0.0}
+# The fractions of the run over which a part's weight or rate ramps in from 0 (1: all of it).
+RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction")
 # Values a recipe sets (a config value wins); every recipe gives each one: the densification
 # thresholds, and how the model grows (``strategy``).
 VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap")
@@ -134,6 +136,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "opacity_reset_every_fraction": 0.3,
         "sh_increase_every_fraction": 0.1,
         "dropout_rate": 0.0,
+        "dropout_ramp_fraction": 1.0,
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
         "gaussians_per_pixel": 0.0,
@@ -152,6 +155,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "opacity_reset_every_fraction": 0.3,
         "sh_increase_every_fraction": 0.1,
         "dropout_rate": 0.2,
+        "dropout_ramp_fraction": 1.0,  # DropGaussian's ramp, over the whole run
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
         "gaussians_per_pixel": 0.0,
@@ -182,6 +186,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "sh_increase_every_fraction": 0.1,
         # DropGaussian's final rate (docs/field.md)
         "dropout_rate": 0.2,
+        "dropout_ramp_fraction": 1.0,  # DropGaussian's ramp, over the whole run
         # FSGS's Pearson depth weight (docs/field.md), reached after 10 % of the run; 0.1 lost
         # 0.06 dB over twelve scenes (docs/sparse-recipe.md "Eighth tuning round")
         "depth_weight": 0.05,
@@ -212,6 +217,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "opacity_reset_every_fraction": None,
         "sh_increase_every_fraction": 1000 / 30000,
         "dropout_rate": 0.0,
+        "dropout_ramp_fraction": 1.0,
         "depth_weight": 0.0,
         "depth_ramp_fraction": 0.0,
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring

@@ -179,10 +179,11 @@ class Trainer:
         self.max_gaussians = cfg.max_gaussians_for(train_pixels, len(cloud))
         self.strategy_name = cfg.strategy_for(train_pixels, len(cloud))
         log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels, seed %d, "
-                 "seed over the cap: %s); dropout %g; depth weight %g", cfg.recipe, self.strategy_name,
+                 "seed over the cap: %s); dropout %g (ramped in over %g of the run); depth weight %g",
+                 cfg.recipe, self.strategy_name,
                  {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
                  self.max_gaussians or "none", train_pixels, len(cloud), cfg.seed_over_cap, cfg.dropout_rate,
-                 cfg.depth_weight)
+                 cfg.dropout_ramp_fraction, cfg.depth_weight)
         strategy_cls = MCMCStrategy if self.strategy_name == "mcmc" else DensifyStrategy
         self.strategy = strategy_cls.from_config(cfg, self.max_gaussians)
         self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)

@@ -362,3 +362,12 @@ def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now()
         assert stale_keys(rec["values"], want) == [], path.name
         checked += 1
     assert checked >= 500
+
+
+def test_a_key_older_records_predate_counts_at_the_value_their_runs_had():
+    from benchmarks.sparse_views.runs import stale_keys
+
+    want = {"dropout_rate": 0.2, "dropout_ramp_fraction": 1.0}
+    assert stale_keys({"dropout_rate": 0.2}, want) == []  # made before the ramp was a key: ramp 1
+    assert stale_keys({"dropout_rate": 0.2}, {**want, "dropout_ramp_fraction": 0.3}) == ["dropout_ramp_fraction"]
+    assert stale_keys({"dropout_rate": 0.2}, {**want, "depth_weight": 0.05}) == ["depth_weight"]

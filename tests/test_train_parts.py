@@ -52,7 +52,8 @@ def scene(tmp_path_factory):
 
 
 ALL_ON = dict(recipe="sparse", iterations=30, densify_from=4, densify_every=8, densify_until=25,
-              densify_grad_threshold=1e-6, dropout_rate=0.3, depth_weight=0.5, depth_ramp_fraction=0.2,
+              densify_grad_threshold=1e-6, dropout_rate=0.3, dropout_ramp_fraction=0.5, depth_weight=0.5,
+              depth_ramp_fraction=0.2,
               opacity_reg=0.01, scale_reg=0.01, pose_refine=True, pose_refine_focal=True, pose_refine_from=5,
               pose_warmup=5, lr_pose=3e-3, lr_focal=1e-3, random_background=True, eval_every=0,
               checkpoint_every=10**6, device="cpu")
@@ -122,7 +123,7 @@ def _reference_run(cfg, scene, out):
         cw, K = tr.cams[idx]
         if it >= cfg.pose_refine_from:
             cw, K = pose(idx, cw), pose.intrinsics(idx, K)
-        rate = dropout_rate_at(it, cfg.iterations, cfg.dropout_rate)
+        rate = dropout_rate_at(it, cfg.iterations, cfg.dropout_rate, cfg.dropout_ramp_fraction)
         out_ = render_params(tr.params, tr.sched.sh_degree_at(it, cfg.sh_degree), cw, K, cam.width, cam.height,
                              bg, tr.backend, opacity_fn=lambda o: gaussian_dropout(o, rate, tr.gen))
         loss = photometric_loss(out_["rgb"], tr.targets[idx], cfg.lambda_dssim)[0]

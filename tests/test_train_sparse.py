@@ -102,6 +102,17 @@ def test_dropout_ramp_and_identity_at_zero():
     assert gaussian_dropout(o, 0.0) is o
 
 
+def test_dropout_ramp_over_a_fraction_of_the_run_then_holds():
+    # ramped over the first 30 % of 3,000 iterations: half the rate at 450, the full rate from 900 on
+    assert dropout_rate_at(450, 3000, 0.2, 0.3) == pytest.approx(0.1, abs=1e-15)
+    assert dropout_rate_at(900, 3000, 0.2, 0.3) == 0.2 and dropout_rate_at(3000, 3000, 0.2, 0.3) == 0.2
+    assert dropout_rate_at(1, 3000, 0.2, 0.0) == 0.2  # no ramp: the final rate from the start
+    assert dropout_rate_at(450, 3000, 0.2) == dropout_rate_at(450, 3000, 0.2, 1.0)  # DropGaussian's ramp
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="dropout_ramp_fraction"):
+            TrainConfig(recipe="sparse", dropout_ramp_fraction=bad, device="cpu")
+
+
 def test_dropout_compensates_expected_opacity():
     """E[dropped opacity] = opacity: the mean over 4000 draws is within 4.5 binomial standard
     errors of it (fixed generator seed: the outcome is the same on every run)."""

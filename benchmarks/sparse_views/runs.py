@@ -53,21 +53,28 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
     """What a run of ``recipe`` with config ``overrides`` resolves to: the recipe-set values
     (regularisation parts, densification thresholds, strategy) and the schedule in iterations."""
     from splat_train.config import load_config
-    from splat_train.recipes import PART_KEYS, VALUE_KEYS
+    from splat_train.recipes import PART_KEYS, RAMP_KEYS, VALUE_KEYS
 
     cfg = load_config({"recipe": recipe, **overrides}, iterations=iterations, device="cpu")
-    out = {k: getattr(cfg, k) for k in (*PART_KEYS, "depth_ramp_fraction", *VALUE_KEYS)}
+    out = {k: getattr(cfg, k) for k in (*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS)}
     sched = cfg.schedule().to_dict()
     sched.pop("source", None)
     return {**out, **sched}
 
 
+# Values that became keys after records were made, with the value every run had before: a
+# record without the key ran with it.
+IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0}
+
+
 def stale_keys(found: dict, want: dict) -> list[str]:
-    """The keys of ``want`` whose value in ``found`` differs (numbers compared as floats)."""
+    """The keys of ``want`` whose value in ``found`` differs (numbers compared as floats; a key
+    of :data:`IMPLIED_VALUES` that ``found`` predates counts at its implied value)."""
     def same(a, b) -> bool:
         if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
             return float(a) == float(b)
         return a == b
+    found = {**IMPLIED_VALUES, **found}
     return sorted(k for k, v in want.items() if k not in found or not same(found[k], v))
 
 
