@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import tempfile
 import time
@@ -235,8 +236,6 @@ def gsplat_build(device: str) -> dict:
 
     if _C is None:
         raise RuntimeError("gsplat's CUDA extension did not load (no CUDA toolkit found?)")
-    import os
-
     return {"load_or_build_s": time.perf_counter() - t0, "arch_list": os.environ.get("TORCH_CUDA_ARCH_LIST"),
             "max_jobs": os.environ.get("MAX_JOBS")}
 
@@ -276,8 +275,6 @@ VGGT_SEARCH_FROM, VGGT_SEARCH_STEP, VGGT_SEARCH_RESOLUTION = 3500, 250, 50
 def _run_deadline(budget_s: float, reserve_s: float) -> float:
     """A ``time.time()`` deadline: ``budget_s`` from now, and no later than ``GPU_RUN_DEADLINE``
     (a Unix time, when set: the end of a lent machine's time) less ``reserve_s``."""
-    import os
-
     end = time.time() + budget_s
     if os.environ.get("GPU_RUN_DEADLINE"):
         end = min(end, float(os.environ["GPU_RUN_DEADLINE"]) - reserve_s)
@@ -318,8 +315,6 @@ def vggt_frames_part(device: str, on_result: Callable[[dict], None] | None = Non
     """benchmarks/vggt_frames.py within :data:`VGGT_FRAMES_BUDGET_S` (environment
     ``VGGT_FRAMES_BUDGET_S`` overrides it), and no later than ``GPU_RUN_DEADLINE`` (a Unix time,
     when set: the end of a lent machine's time) less a minute for a forward already started."""
-    import os
-
     from benchmarks.vggt_frames import vggt_frames
 
     end = _run_deadline(float(os.environ.get("VGGT_FRAMES_BUDGET_S", VGGT_FRAMES_BUDGET_S)), 60.0)
@@ -342,8 +337,6 @@ def vggt_search_part(device: str, on_result: Callable[[dict], None] | None = Non
     with the caching allocator's expandable segments on (the search's tensors are GB each: a
     fragmented pool must not be what stops it); deadline as ``vggt_frames`` (no budget of its
     own unless ``VGGT_SEARCH_BUDGET_S`` sets one, so that later parts keep their time)."""
-    import os
-
     from benchmarks.vggt_frames import vggt_frames
 
     # torch 2.11 names it torch._C._accelerator_setAllocatorSettings; older ones only the other
@@ -370,8 +363,6 @@ def wait_for_gsplat_build(end: float) -> tuple[float, dict | None]:
     scripts/gpu_run.sh's background JIT build of gsplat writes when it ends: importing gsplat
     while it builds would remove the build folder. Returns (seconds waited, the build's record;
     None when no background build runs); RuntimeError when it failed or wrote nothing in time."""
-    import os
-
     marker = os.environ.get("GSPLAT_BUILD_MARKER")
     if not marker:
         return 0.0, None
@@ -391,8 +382,6 @@ def loop_gap_part(prepared: Path | None, iterations: int, on_result: Callable[[d
     """benchmarks/loop_gap.py on the prepared cell: ``paper`` and gsplat's own loop over the seeds
     of ``LOOP_GAP_SEEDS`` (default :data:`benchmarks.loop_gap.SEEDS`), ``LOOP_GAP_JOBS`` runs at a
     time; no run starts that would end past ``GPU_RUN_DEADLINE`` (less 30 s)."""
-    import os
-
     from benchmarks.backend_agree import parse_seeds
     from benchmarks.loop_gap import JOBS, SEEDS, loop_gap
 
@@ -407,8 +396,6 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
     """benchmarks/backend_agree.py on the carried grid cell (``--gpu-agree-cell``): gsplat on
     CUDA against the grid's CPU records, the runs of :data:`benchmarks.backend_agree.RUNS` or of
     ``AGREE_SEEDS`` ("0-14") and ``AGREE_RECIPES`` ("sparse,paper")."""
-    import os
-
     from benchmarks.backend_agree import RUNS, backend_agree, cell_name, parse_runs
     from benchmarks.sparse_views.__main__ import RECORDS
 
