@@ -127,13 +127,14 @@ def loop_gap(cell: Path, seeds: list[int], iterations: int = ITERATIONS, jobs: i
     running: dict = {}
     with tempfile.TemporaryDirectory(prefix="loop_gap_") as tmp:
         out = Path(tmp)
+        plans = {seed: commands(cell, seed, iterations, out, device, rasterizer) for seed in seeds}
         while queue or running:
             while queue and len(running) < jobs:
                 if deadline is not None and time.time() + longest > deadline:
                     res["stopped_at_deadline"], queue = True, []
                     break
                 loop, seed = queue.pop(0)
-                argv, result = commands(cell, seed, iterations, out, device, rasterizer)[loop]
+                argv, result = plans[seed][loop]
                 log = out / f"{loop}_s{seed}.log"
                 with open(log, "w") as fh:
                     proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=fh, stderr=subprocess.STDOUT)
