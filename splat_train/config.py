@@ -128,6 +128,14 @@ class TrainConfig:
             ramped in linearly over ``depth_ramp_fraction`` of the run; acts only when the
             seed comes with a depth prior (:mod:`splat_train.depth_prior`).
         depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
+        binocular_weight: weight of the binocular stereo consistency term (0 = off; None: the
+            recipe's, off in every recipe): from ``binocular_from_fraction`` of the run on, each
+            training view is rendered again from a camera shifted sideways and warped back with
+            the rendered depth (:mod:`splat_train.binocular`); one more render per iteration.
+        binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, 2/3 as in
+            Binocular3DGS's release).
+        binocular_shift: the largest sideways shift, as a fraction of the view's median rendered
+            depth.
         depth_use_confidence: weight the prior's samples by the initialiser's confidence
             (False: every sample weighs 1; for measuring what the confidence adds).
         depth_min_samples: a training view whose prior has fewer usable samples than this gets
@@ -206,6 +214,11 @@ class TrainConfig:
     depth_weight: float | None = None
     depth_ramp_fraction: float | None = None
     depth_use_confidence: bool = True
+    binocular_weight: float | None = None
+    binocular_from_fraction: float | None = None
+    # Binocular3DGS's shift of up to 0.4 scene units on LLFF is 1.0-1.4 % of the median point
+    # depth of fern, horns and trex in their COLMAP frames (splat_train/binocular.py)
+    binocular_shift: float = 0.012
     depth_min_samples: int = 16
     pose_refine: bool = False
     # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
@@ -252,6 +265,11 @@ class TrainConfig:
         if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
             raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
                              f"{self.depth_weight} and {self.depth_ramp_fraction}")
+        if not (self.binocular_weight >= 0.0 and 0.0 <= self.binocular_from_fraction <= 1.0
+                and self.binocular_shift > 0.0):
+            raise ValueError(f"binocular_weight must be >= 0, binocular_from_fraction in [0, 1] and binocular_shift "
+                             f"> 0, got {self.binocular_weight}, {self.binocular_from_fraction} and "
+                             f"{self.binocular_shift}")
         if not (isinstance(self.depth_min_samples, int) and self.depth_min_samples >= 2):
             raise ValueError(f"depth_min_samples must be an integer >= 2, got {self.depth_min_samples!r}")
         if self.strategy not in STRATEGIES:

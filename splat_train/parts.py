@@ -9,7 +9,8 @@ the order the trainer runs their hooks:
 2. :class:`splat_train.depth_prior.DepthPriorLoss` when ``depth_weight`` > 0 and the seed
    comes with a depth prior;
 3. :class:`GaussianRegularisers` when ``opacity_reg`` or ``scale_reg`` > 0 (``mcmc``);
-4. :class:`splat_train.pose.PoseRefinement` with ``pose_refine``.
+4. :class:`splat_train.binocular.BinocularConsistency` when ``binocular_weight`` > 0;
+5. :class:`splat_train.pose.PoseRefinement` with ``pose_refine``.
 
 The loss terms are added to the photometric loss in this order.
 """
@@ -23,13 +24,14 @@ import torch
 from torch import Tensor
 
 from camio.depth_prior import DEPTH_PRIOR_FILE
+from splat_train.binocular import BinocularConsistency
 from splat_train.config import TrainConfig
 from splat_train.data import View
 from splat_train.depth_prior import DepthPriorLoss, load_depth_prior
 from splat_train.dropout import GaussianDropout
 from splat_train.losses import gaussian_regularisers
 from splat_train.pose import PoseRefinement
-from splat_train.train_part import OpacityFn, TrainPart
+from splat_train.train_part import OpacityFn, TrainPart, ViewRenderer
 
 __all__ = ["GaussianRegularisers", "opacity_map", "recipe_parts"]
 
@@ -51,7 +53,8 @@ class GaussianRegularisers(TrainPart):
 
 
 def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], generator: torch.Generator,
-                 depth_prior: str | Path | None = None) -> list[TrainPart]:
+                 depth_prior: str | Path | None = None, targets: list[Tensor] | None = None,
+                 renderer: ViewRenderer | None = None) -> list[TrainPart]:
     """The training parts of ``cfg`` (module docstring), in the order the trainer runs them.
 
     Args:
@@ -61,6 +64,8 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
             device.
         generator: the trainer's CPU generator (dropout's masks).
         depth_prior: the seed's ``depth_prior.npz``, or None (then no depth term).
+        targets: [H, W, 3] training image of each view on the training device, and
+        renderer: the trainer; both needed with ``binocular_weight`` > 0.
 
     Returns:
         The parts that act in this run (an empty list: plain 3DGS).
@@ -80,6 +85,12 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
         log.info("depth term off: the seed has no depth prior (%s beside it)", DEPTH_PRIOR_FILE)
     if cfg.opacity_reg > 0 or cfg.scale_reg > 0:
         parts.append(GaussianRegularisers(cfg.opacity_reg, cfg.scale_reg))
+    if cfg.binocular_weight > 0:
+        if targets is None or renderer is None:
+            raise ValueError("binocular_weight > 0 needs the training images and a renderer")
+        start = round(cfg.binocular_from_fraction * cfg.iterations)
+        parts.append(BinocularConsistency(cfg.binocular_weight, cfg.binocular_shift, start, targets, generator,
+                                          renderer))
     if cfg.pose_refine:
         parts.append(PoseRefinement(cameras, names, cfg.pose_refine_focal, cfg.lr_pose, cfg.lr_focal,
                                     cfg.pose_refine_from, cfg.pose_warmup))

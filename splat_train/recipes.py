@@ -108,9 +108,12 @@ MIN_DENSIFY_EVERY = 20
 SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
 # The regularisation parts and their "off" values.
 PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
-             "scale_reg": 0.0}
-# The fractions of the run over which a part's weight or rate ramps in from 0 (1: all of it).
-RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction")
+             "scale_reg": 0.0, "binocular_weight": 0.0}
+# Fractions of the run that say when a part acts: over which share a weight or rate ramps in
+# from 0 (1: all of it), or after which share a term starts (binocular_from_fraction).
+RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction", "binocular_from_fraction")
+# Binocular3DGS's release turns its consistency term on after 20,000 of 30,000 iterations
+BINOCULAR_FROM_FRACTION = 20000 / 30000
 # Values a recipe sets (a config value wins); every recipe gives each one: the densification
 # thresholds, and how the model grows (``strategy``).
 VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap")
@@ -147,6 +150,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         "seed_over_cap": "cap",  # no cap
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
+        # binocular stereo consistency (splat_train/binocular.py): off
+        "binocular_weight": 0.0,
+        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
     },
     "dropgaussian": {
         "densify_from_fraction": 0.05,
@@ -165,6 +171,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         "seed_over_cap": "cap",  # no cap
         "opacity_reg": 0.0,
         "scale_reg": 0.0,
+        # binocular stereo consistency (splat_train/binocular.py): off
+        "binocular_weight": 0.0,
+        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
     },
     "sparse": {
         "densify_from_fraction": 0.05,
@@ -205,6 +214,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         # chosen on the tuning scenes (docs/sparse-recipe.md "Third tuning round")
         "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.0,
+        # binocular stereo consistency (splat_train/binocular.py): off
+        "binocular_weight": 0.0,
+        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
     },
     "mcmc": {
         # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
@@ -231,6 +243,9 @@ RECIPES: dict[str, dict[str, Any]] = {
         # simple_trainer's mcmc preset
         "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.01,
+        # binocular stereo consistency (splat_train/binocular.py): off
+        "binocular_weight": 0.0,
+        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
     },
 }
 RECIPE_NAMES = tuple(RECIPES)

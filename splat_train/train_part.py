@@ -26,14 +26,25 @@ when it is made: its state is in every checkpoint.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 from torch import Tensor
 
-__all__ = ["TrainPart", "OpacityFn"]
+__all__ = ["TrainPart", "OpacityFn", "ViewRenderer"]
 
 # [N] opacities in [0, 1] -> [N] opacities (differentiable)
 OpacityFn = Callable[[Tensor], Tensor]
+
+
+class ViewRenderer(Protocol):
+    """What a part that renders a view of its own (binocular consistency) may ask of the trainer."""
+
+    def view_camera(self, view: int) -> tuple[Tensor, Tensor]:
+        """([4, 4] cam_from_world, [3, 3] K) that training view ``view`` is rendered with now."""
+
+    def render_rgb(self, cam_from_world: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+        """[H, W, 3] differentiable render of the current model into a camera, at the current
+        iteration's SH degree and background, without the opacity map of :meth:`TrainPart.opacity_fn`."""
 
 
 class TrainPart:

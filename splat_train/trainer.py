@@ -190,7 +190,9 @@ class Trainer:
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
         self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
-        self.parts = recipe_parts(cfg, train_views, [c[0] for c in self.cams], self.gen, self.depth_prior_path)
+        self.render_state: tuple[int, torch.Tensor] = (0, self.bg)  # this iteration's SH degree, background
+        self.parts = recipe_parts(cfg, train_views, [c[0] for c in self.cams], self.gen, self.depth_prior_path,
+                                  targets=self.targets, renderer=self)
         log.info("training parts: %s", ", ".join(p.name for p in self.parts) or "none")
         self.need_depth = any(p.needs_depth for p in self.parts)  # else gsplat renders colour only
         self.stack: list[int] = []
@@ -299,6 +301,14 @@ class Trainer:
         with torch.no_grad():
             return [self.view_camera(i)[1].detach() for i in range(len(self.train_views))]
 
+    def render_rgb(self, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+        """[H, W, 3] differentiable render of the model into a camera ([4, 4] cam_from_world, [3, 3]
+        K in pixels) at this iteration's SH degree and background, without dropout and without
+        densification statistics (:class:`splat_train.train_part.ViewRenderer`)."""
+        deg, bg = self.render_state
+        return render_params(self.params, deg, cam_from_world, K, width, height, bg, self.backend,
+                             depth=False, stats=False)["rgb"]
+
     def step(self) -> torch.Tensor:
         """One optimisation iteration (``self.iteration`` is advanced first).
 
@@ -316,6 +326,7 @@ class Trainer:
         deg = self.sched.sh_degree_at(it, cfg.sh_degree)
         idx = self.last_view = self.next_view()
         bg = uniform(3, self.gen, self.dev) if cfg.random_background else self.bg
+        self.render_state = (deg, bg)
         cam = self.train_views[idx].camera
         cam_from_world, K = self.view_camera(idx)
         want_stats = self.strategy.wants_stats(it)  # densification statistics still read

@@ -23,6 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
+from splat_train.recipes import BINOCULAR_FROM_FRACTION
 
 
 @contextmanager
@@ -64,7 +65,8 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
 
 # Values that became keys after records were made, with the value every run had before: a
 # record without the key ran with it.
-IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0}
+IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
+                  "binocular_from_fraction": BINOCULAR_FROM_FRACTION}
 
 
 def stale_keys(found: dict, want: dict) -> list[str]:

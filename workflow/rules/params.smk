@@ -221,6 +221,7 @@ def train_recipe_args(wildcards):
     keys = (
         "dropout_rate",
         "depth_weight",
+        "binocular_weight",
         "gaussians_per_pixel",
         "depth_use_confidence",
     )
