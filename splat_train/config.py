@@ -129,7 +129,7 @@ class TrainConfig:
             seed comes with a depth prior (:mod:`splat_train.depth_prior`).
         depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
         binocular_weight: weight of the binocular stereo consistency term (0 = off; None: the
-            recipe's, off in every recipe): from ``binocular_from_fraction`` of the run on, each
+            recipe's, 1 in ``sparse``, off in the others): from ``binocular_from_fraction`` of the run on, each
             training view is rendered again from a camera shifted sideways and warped back with
             the rendered depth (:mod:`splat_train.binocular`); one more render per iteration.
         binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, 2/3 as in

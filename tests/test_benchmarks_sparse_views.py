@@ -32,10 +32,11 @@ def test_shipped_protocol_keeps_tuning_and_evaluation_apart():
 
 
 def test_reserve_scenes_are_listed_but_never_run():
-    """Scenes held back for the evaluation after the next change of values: public like the
-    evaluation scenes, with no run record, and ``run`` refuses their role."""
+    """Scenes held back for the evaluation after the next change of values (none between the
+    change that makes them the evaluation and the next scenes found): public like the evaluation
+    scenes, with no run record, and ``run`` refuses their role."""
     reserve = [s for s in protocol.load() if s.role == "reserve"]
-    assert reserve and all(s.kind and s.source.get("repo") and s.source.get("licence") for s in reserve)
+    assert all(s.kind and s.source.get("repo") and s.source.get("licence") for s in reserve)
     runs = REPO / "benchmarks" / "records" / "sparse_views" / "runs"
     assert not [p.name for s in reserve for p in runs.glob(f"{s.name}_n*.json")]
     out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "run", "--role", "reserve", "--work", "w"],

@@ -118,10 +118,11 @@ def test_bad_binocular_values_are_refused(bad):
         TrainConfig(**bad)
 
 
-def test_every_recipe_leaves_the_term_off():
+def test_sparse_has_the_term_from_two_thirds_of_the_run_and_the_field_recipes_do_not():
     for recipe in ("paper", "dropgaussian", "sparse", "mcmc"):
         cfg = TrainConfig(recipe=recipe)
-        assert cfg.binocular_weight == 0.0 and cfg.binocular_from_fraction == pytest.approx(2 / 3)
+        assert cfg.binocular_weight == (1.0 if recipe == "sparse" else 0.0), recipe
+        assert cfg.binocular_from_fraction == pytest.approx(2 / 3)
 
 
 def test_a_run_with_the_term_adds_it_from_its_start(tmp_path):
