@@ -169,11 +169,15 @@ class BinocularConsistency(TrainPart):
         if iteration <= self.start or self.weight <= 0:
             return None
         depth, alpha = render["depth"], render["alpha"]
-        surface = depth.detach()[alpha.detach() > 0.5]
-        if surface.numel() < MIN_SURFACE_PIXELS:
+        surface = alpha.detach() > 0.5
+        # on the CPU the count costs nothing; on a GPU reading it would wait for the device, so
+        # there a view that renders (almost) nothing gets the term with no shift (its median
+        # is 0): the warp is the identity and the term an L1 of its own undropped render
+        if depth.device.type == "cpu" and int(surface.sum()) < MIN_SURFACE_PIXELS:
             return None
+        median = torch.nan_to_num(torch.nanmedian(torch.where(surface, depth.detach(), torch.nan)), nan=0.0)
         u = uniform(1, self.gen, depth.device, depth.dtype)[0]
-        shift = (2.0 * u - 1.0) * self.max_shift * surface.median()
+        shift = (2.0 * u - 1.0) * self.max_shift * median
         cam_from_world, K = self.renderer.view_camera(view)
         h, w = depth.shape
         shifted = self.renderer.render_rgb(shifted_camera(cam_from_world.detach(), shift), K.detach(), w, h)
