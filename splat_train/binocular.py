@@ -36,8 +36,6 @@ __all__ = ["SMOOTH_WEIGHT", "EDGE_SCALE", "shifted_camera", "warp_from_shifted",
 SMOOTH_WEIGHT = 0.05
 # its edge scale: the smoothness weighs a disparity step by exp(-EDGE_SCALE |image step|)
 EDGE_SCALE = 0.33
-# the fewest rendered pixels (alpha > 0.5) a view needs for a median depth; fewer: no term
-MIN_SURFACE_PIXELS = 16
 
 
 def shifted_camera(cam_from_world: Tensor, shift: Tensor | float) -> Tensor:
@@ -165,16 +163,14 @@ class BinocularConsistency(TrainPart):
 
     def loss(self, iteration: int, view: int, render: dict[str, Tensor], params: dict[str, Tensor]) -> Tensor | None:
         """The weighted term of training view ``view`` (``render``: its ``depth`` [H, W] and
-        ``alpha`` [H, W]), or None before ``start`` or where the view renders too little."""
+        ``alpha`` [H, W]), or None before ``start``."""
         if iteration <= self.start or self.weight <= 0:
             return None
         depth, alpha = render["depth"], render["alpha"]
+        # nothing read back to the host (on a GPU a read waits for the device): a view that
+        # renders no pixel of alpha > 0.5 has median 0, so no shift, the warp is the identity
+        # and the term is the L1 of the view's own render without dropout
         surface = alpha.detach() > 0.5
-        # on the CPU the count costs nothing; on a GPU reading it would wait for the device, so
-        # there a view that renders (almost) nothing gets the term with no shift (its median
-        # is 0): the warp is the identity and the term an L1 of its own undropped render
-        if depth.device.type == "cpu" and int(surface.sum()) < MIN_SURFACE_PIXELS:
-            return None
         median = torch.nan_to_num(torch.nanmedian(torch.where(surface, depth.detach(), torch.nan)), nan=0.0)
         u = uniform(1, self.gen, depth.device, depth.dtype)[0]
         shift = (2.0 * u - 1.0) * self.max_shift * median

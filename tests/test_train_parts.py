@@ -137,8 +137,8 @@ def _reference_run(cfg, scene, out):
         loss = loss + depth
         loss = loss + gaussian_regularisers(tr.params["opacity"], tr.params["scales"], cfg.opacity_reg,
                                             cfg.scale_reg)
-        surface = out_["depth"].detach()[out_["alpha"].detach() > 0.5]
-        if it > round(cfg.binocular_from_fraction * cfg.iterations) and surface.numel() >= 16:
+        if it > round(cfg.binocular_from_fraction * cfg.iterations):
+            surface = out_["depth"].detach()[out_["alpha"].detach() > 0.5]
             shift = (2.0 * torch.rand(1, generator=tr.gen)[0] - 1.0) * cfg.binocular_shift * surface.median()
             shifted = render_params(tr.params, tr.sched.sh_degree_at(it, cfg.sh_degree), shifted_camera(cw.detach(), shift),
                                     K.detach(), cam.width, cam.height, bg, tr.backend, depth=False, stats=False)["rgb"]
