@@ -144,9 +144,10 @@ class BinocularConsistency(TrainPart):
     dropout (as in Binocular3DGS, which has none) and reads no densification statistics.
 
     Args:
-        weight: the term's weight (Binocular3DGS's 1).
+        weight: the term's weight (Binocular3DGS's 1; > 0).
         max_shift: the largest shift as a fraction of the view's median depth.
         start: the first iteration with the term is ``start + 1``.
+        iterations: the run's length (the term acts in ``iterations - start`` of them).
         targets: [H, W, 3] training image of each view, on the training device.
         generator: the trainer's CPU generator (the shifts).
         renderer: the trainer (:class:`splat_train.train_part.ViewRenderer`).
@@ -155,16 +156,16 @@ class BinocularConsistency(TrainPart):
     name = "binocular"
     needs_depth = True
 
-    def __init__(self, weight: float, max_shift: float, start: int, targets: list[Tensor],
+    def __init__(self, weight: float, max_shift: float, start: int, iterations: int, targets: list[Tensor],
                  generator: torch.Generator, renderer: ViewRenderer) -> None:
-        self.weight, self.max_shift, self.start = float(weight), float(max_shift), int(start)
+        self.weight, self.max_shift = float(weight), float(max_shift)
+        self.start, self.iterations = int(start), int(iterations)
         self.targets, self.gen, self.renderer = targets, generator, renderer
-        self.terms = 0
 
     def loss(self, iteration: int, view: int, render: dict[str, Tensor], params: dict[str, Tensor]) -> Tensor | None:
         """The weighted term of training view ``view`` (``render``: its ``depth`` [H, W] and
         ``alpha`` [H, W]), or None before ``start``."""
-        if iteration <= self.start or self.weight <= 0:
+        if iteration <= self.start:
             return None
         depth, alpha = render["depth"], render["alpha"]
         # nothing read back to the host (on a GPU a read waits for the device): a view that
@@ -177,16 +178,9 @@ class BinocularConsistency(TrainPart):
         cam_from_world, K = self.renderer.view_camera(view)
         h, w = depth.shape
         shifted = self.renderer.render_rgb(shifted_camera(cam_from_world.detach(), shift), K.detach(), w, h)
-        self.terms += 1
         return self.weight * binocular_consistency_loss(self.targets[view], depth, shifted, K[0, 0].detach(), shift)
 
-    def state_dict(self) -> dict:
-        return {"terms": torch.tensor(self.terms)}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.terms = int(state["terms"])
-
     def summary(self) -> dict:
-        """``binocular``: how many iterations added the term, its weight and largest shift."""
-        return {"binocular": {"terms": self.terms, "weight": self.weight, "max_shift": self.max_shift,
-                              "from_iteration": self.start + 1}}
+        """``binocular``: how many iterations of the run add the term, its weight and largest shift."""
+        return {"binocular": {"terms": max(0, self.iterations - self.start), "weight": self.weight,
+                              "max_shift": self.max_shift, "from_iteration": self.start + 1}}

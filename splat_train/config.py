@@ -129,9 +129,10 @@ class TrainConfig:
             seed comes with a depth prior (:mod:`splat_train.depth_prior`).
         depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
         binocular_weight: weight of the binocular stereo consistency term (0 = off; None: the
-            recipe's, 1 in ``sparse``, off in the others): from ``binocular_from_fraction`` of the run on, each
-            training view is rendered again from a camera shifted sideways and warped back with
-            the rendered depth (:mod:`splat_train.binocular`); one more render per iteration.
+            recipe's, 1 in ``sparse``, off in the others): from ``binocular_from_fraction`` of
+            the run on, each training view is rendered again from a camera shifted sideways and
+            warped back with the rendered depth (:mod:`splat_train.binocular`); one more render
+            per iteration.
         binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, 2/3 as in
             Binocular3DGS's release).
         binocular_shift: the largest sideways shift, as a fraction of the view's median rendered

@@ -89,8 +89,8 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
         if targets is None or renderer is None:
             raise ValueError("binocular_weight > 0 needs the training images and a renderer")
         start = round(cfg.binocular_from_fraction * cfg.iterations)
-        parts.append(BinocularConsistency(cfg.binocular_weight, cfg.binocular_shift, start, targets, generator,
-                                          renderer))
+        parts.append(BinocularConsistency(cfg.binocular_weight, cfg.binocular_shift, start, cfg.iterations, targets,
+                                          generator, renderer))
     if cfg.pose_refine:
         parts.append(PoseRefinement(cameras, names, cfg.pose_refine_focal, cfg.lr_pose, cfg.lr_focal,
                                     cfg.pose_refine_from, cfg.pose_warmup))

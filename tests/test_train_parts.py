@@ -91,8 +91,8 @@ def test_depth_term_acts_only_in_views_with_enough_prior_samples(scene):
     views = load_views(scene["cameras"], scene["images"])
 
     def prior_views(**kw):
-        parts = recipe_parts(TrainConfig(recipe="sparse", binocular_weight=0.0, **kw), views, [torch.eye(4) for _ in views],
-                             torch.Generator(), scene["seed"].parent / DEPTH_PRIOR_FILE)
+        parts = recipe_parts(TrainConfig(recipe="sparse", binocular_weight=0.0, **kw), views,
+                             [torch.eye(4) for _ in views], torch.Generator(), scene["seed"].parent / DEPTH_PRIOR_FILE)
         return sorted(next(p for p in parts if p.name == "depth_prior").prior.views)
 
     assert prior_views() == sorted(v.name for v in views)  # the default, 16
@@ -140,8 +140,9 @@ def _reference_run(cfg, scene, out):
         if it > round(cfg.binocular_from_fraction * cfg.iterations):
             surface = out_["depth"].detach()[out_["alpha"].detach() > 0.5]
             shift = (2.0 * torch.rand(1, generator=tr.gen)[0] - 1.0) * cfg.binocular_shift * surface.median()
-            shifted = render_params(tr.params, tr.sched.sh_degree_at(it, cfg.sh_degree), shifted_camera(cw.detach(), shift),
-                                    K.detach(), cam.width, cam.height, bg, tr.backend, depth=False, stats=False)["rgb"]
+            shifted = render_params(tr.params, tr.sched.sh_degree_at(it, cfg.sh_degree),
+                                    shifted_camera(cw.detach(), shift), K.detach(), cam.width, cam.height, bg,
+                                    tr.backend, depth=False, stats=False)["rgb"]
             loss = loss + cfg.binocular_weight * binocular_consistency_loss(tr.targets[idx], out_["depth"], shifted,
                                                                             K[0, 0].detach(), shift)
             binocular_terms.append(it)
@@ -182,11 +183,10 @@ def test_a_run_through_the_parts_is_the_hand_written_loop_bit_for_bit(scene, tmp
 def test_a_checkpoint_from_before_the_parts_resumes_exactly(scene, tmp_path):
     """Checkpoints written before the training parts held the pose corrections under "pose"
     (no "parts"): such a checkpoint resumes, and ends with the uninterrupted run's model."""
-    # binocular consistency came after such checkpoints: its count of terms is state, so off here
-    cfg = TrainConfig(**{**ALL_ON, "iterations": 20, "checkpoint_every": 10, "binocular_weight": 0.0})
+    cfg = TrainConfig(**{**ALL_ON, "iterations": 20, "checkpoint_every": 10})
     full = train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "full", cfg)
     ck = torch.load(tmp_path / "full" / "ckpt" / "ckpt_0000010.pt", weights_only=True)
-    assert set(ck["parts"]) == {"pose"}  # dropout, depth prior and regularisers hold no state
+    assert set(ck["parts"]) == {"pose"}  # dropout, depth prior, regularisers and binocular hold no state
     ck["pose"] = ck.pop("parts")["pose"]
     (tmp_path / "old" / "ckpt").mkdir(parents=True)
     torch.save(ck, tmp_path / "old" / "ckpt" / "ckpt_0000010.pt")
