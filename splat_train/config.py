@@ -137,6 +137,10 @@ class TrainConfig:
             Binocular3DGS's release).
         binocular_shift: the largest sideways shift, as a fraction of the view's median rendered
             depth.
+        opacity_decay: the factor every opacity is multiplied by after each iteration from the
+            densification start on (1 = off; None: the recipe's): Binocular3DGS's opacity decay
+            (:mod:`splat_train.opacity_decay`), 0.995 in its release, which densifies to the end
+            of the run while it acts.
         depth_use_confidence: weight the prior's samples by the initialiser's confidence
             (False: every sample weighs 1; for measuring what the confidence adds).
         depth_min_samples: a training view whose prior has fewer usable samples than this gets
@@ -220,6 +224,7 @@ class TrainConfig:
     # Binocular3DGS's shift of up to 0.4 scene units on LLFF is 1.0-1.4 % of the median point
     # depth of fern, horns and trex in their COLMAP frames (splat_train/binocular.py)
     binocular_shift: float = 0.012
+    opacity_decay: float | None = None
     depth_min_samples: int = 16
     pose_refine: bool = False
     # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
@@ -271,6 +276,8 @@ class TrainConfig:
             raise ValueError(f"binocular_weight must be >= 0, binocular_from_fraction in [0, 1] and binocular_shift "
                              f"> 0, got {self.binocular_weight}, {self.binocular_from_fraction} and "
                              f"{self.binocular_shift}")
+        if not 0.0 < self.opacity_decay <= 1.0:
+            raise ValueError(f"opacity_decay must be in (0, 1] (1: off), got {self.opacity_decay}")
         if not (isinstance(self.depth_min_samples, int) and self.depth_min_samples >= 2):
             raise ValueError(f"depth_min_samples must be an integer >= 2, got {self.depth_min_samples!r}")
         if self.strategy not in STRATEGIES:

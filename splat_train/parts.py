@@ -10,7 +10,8 @@ the order the trainer runs their hooks:
    comes with a depth prior;
 3. :class:`GaussianRegularisers` when ``opacity_reg`` or ``scale_reg`` > 0 (``mcmc``);
 4. :class:`splat_train.binocular.BinocularConsistency` when ``binocular_weight`` > 0;
-5. :class:`splat_train.pose.PoseRefinement` with ``pose_refine``.
+5. :class:`splat_train.opacity_decay.OpacityDecay` when ``opacity_decay`` < 1;
+6. :class:`splat_train.pose.PoseRefinement` with ``pose_refine``.
 
 The loss terms are added to the photometric loss in this order.
 """
@@ -30,6 +31,7 @@ from splat_train.data import View
 from splat_train.depth_prior import DepthPriorLoss, load_depth_prior
 from splat_train.dropout import GaussianDropout
 from splat_train.losses import gaussian_regularisers
+from splat_train.opacity_decay import OpacityDecay
 from splat_train.pose import PoseRefinement
 from splat_train.train_part import OpacityFn, TrainPart, ViewRenderer
 
@@ -91,6 +93,8 @@ def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], gen
         start = round(cfg.binocular_from_fraction * cfg.iterations)
         parts.append(BinocularConsistency(cfg.binocular_weight, cfg.binocular_shift, start, cfg.iterations, targets,
                                           generator, renderer))
+    if cfg.opacity_decay < 1.0:
+        parts.append(OpacityDecay(cfg.opacity_decay, cfg.schedule().densify_from, cfg.iterations))
     if cfg.pose_refine:
         parts.append(PoseRefinement(cameras, names, cfg.pose_refine_focal, cfg.lr_pose, cfg.lr_focal,
                                     cfg.pose_refine_from, cfg.pose_warmup))

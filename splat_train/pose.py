@@ -216,7 +216,7 @@ class PoseRefinement(TrainPart):
             return cam_from_world, K
         return self.corrections(view, cam_from_world), self.corrections.intrinsics(view, K)
 
-    def after_step(self, iteration: int) -> None:
+    def after_step(self, iteration: int, params: dict[str, torch.Tensor]) -> None:
         """Adam step of the corrections at the ramped rates, then the scale gauge (no host read)."""
         f = pose_lr_factor(iteration, self.refine_from, self.warmup)
         for g in self.optimizer.param_groups:

@@ -58,6 +58,9 @@ printed by the trainer).
       fade, and the 3DGS prune (opacity below 0.005) removes them, which frees the cap for
       Gaussians the views do need.
 
+    Binocular3DGS's other part, opacity decay (:mod:`splat_train.opacity_decay`, key
+    ``opacity_decay``), is off in every recipe.
+
     A seed larger than the cap (3DGS's random initialisation, 0.25 per training pixel, where
     three views triangulate nothing) shrinks towards the cap (``seed_over_cap`` "cap"): raising
     the cap to the seed, or relocating it as ``mcmc`` does, lost 0.71 and 0.41 dB on the six
@@ -113,7 +116,7 @@ MIN_DENSIFY_EVERY = 20
 SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
 # The regularisation parts and their "off" values.
 PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
-             "scale_reg": 0.0, "binocular_weight": 0.0}
+             "scale_reg": 0.0, "binocular_weight": 0.0, "opacity_decay": 1.0}
 # Fractions of the run that say when a part acts: over which share a weight or rate ramps in
 # from 0 (1: all of it), or after which share a term starts (binocular_from_fraction).
 RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction", "binocular_from_fraction")
@@ -158,6 +161,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # binocular stereo consistency (splat_train/binocular.py): off
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
+        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
     },
     "dropgaussian": {
         "densify_from_fraction": 0.05,
@@ -179,6 +183,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # binocular stereo consistency (splat_train/binocular.py): off
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
+        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
     },
     "sparse": {
         "densify_from_fraction": 0.05,
@@ -224,6 +229,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # fourteen cells, 3 seeds, +0.06 dB and lower LPIPS-Alex and VGG than without it)
         "binocular_weight": 1.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
+        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
     },
     "mcmc": {
         # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
@@ -253,6 +259,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # binocular stereo consistency (splat_train/binocular.py): off
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
+        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
     },
 }
 RECIPE_NAMES = tuple(RECIPES)

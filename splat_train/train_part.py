@@ -16,7 +16,8 @@ One iteration ``it`` (1-based) of training view ``view`` (index into the trainin
 3. :meth:`TrainPart.loss`: a term added to the photometric loss (depth prior, the opacity and
    scale regularisers), in the parts' order;
 4. backward, the Gaussians' Adam step;
-5. :meth:`TrainPart.after_step`: the part's own optimiser step (pose corrections);
+5. :meth:`TrainPart.after_step`: the part's own optimiser step (pose corrections), or a change
+   of the Gaussians in place (opacity decay);
 
 and, outside the iteration, :meth:`TrainPart.state_dict` / :meth:`TrainPart.load_state_dict`
 (the checkpoint, so that a resumed run continues bit for bit) and :meth:`TrainPart.summary`
@@ -95,8 +96,9 @@ class TrainPart:
         """
         return None
 
-    def after_step(self, iteration: int) -> None:
-        """Called after the Gaussians' Adam step of ``iteration`` (their gradients cleared)."""
+    def after_step(self, iteration: int, params: dict[str, Tensor]) -> None:
+        """Called after the Gaussians' Adam step of ``iteration`` (their gradients cleared);
+        ``params``: the trainable Gaussians, which the part may change in place (opacity decay)."""
 
     def state_dict(self) -> dict[str, Any] | None:
         """Plain tensors and dicts to checkpoint (``torch.load(weights_only=True)``), or None

@@ -347,7 +347,7 @@ class Trainer:
         adam_step(self.optimizer)  # fused kernel on a GPU, the C++ kernel's threads on the CPU
         self.optimizer.zero_grad(set_to_none=True)
         for part in self.parts:
-            part.after_step(it)
+            part.after_step(it, self.params)
         return torch.cat([loss.detach().reshape(1), stats])
 
     def _non_finite(self, loss: float, it: int, view: str) -> NoReturn:

@@ -24,6 +24,7 @@ from splat_train.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import render_params
 from splat_train.gaussians import position_lr
 from splat_train.losses import gaussian_regularisers, photometric_loss
+from splat_train.opacity_decay import opacity_decay
 from splat_train.parts import recipe_parts
 from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.trainer import Trainer, train
@@ -55,7 +56,7 @@ def scene(tmp_path_factory):
 ALL_ON = dict(recipe="sparse", iterations=30, densify_from=4, densify_every=8, densify_until=25,
               densify_grad_threshold=1e-6, dropout_rate=0.3, dropout_ramp_fraction=0.5, depth_weight=0.5,
               depth_ramp_fraction=0.2,
-              opacity_reg=0.01, scale_reg=0.01, pose_refine=True, pose_refine_focal=True, pose_refine_from=5,
+              opacity_reg=0.01, scale_reg=0.01, opacity_decay=0.98, pose_refine=True, pose_refine_focal=True, pose_refine_from=5,
               pose_warmup=5, lr_pose=3e-3, lr_focal=1e-3, random_background=True, eval_every=0,
               checkpoint_every=10**6, device="cpu")
 
@@ -81,7 +82,8 @@ def test_each_recipe_runs_its_parts(scene):
         ["dropout", "depth_prior"]
     assert _names(TrainConfig(recipe="mcmc"), scene) == ["regularisers"]
     assert _names(TrainConfig(recipe="paper", pose_refine=True), scene) == ["pose"]
-    assert _names(TrainConfig(**ALL_ON), scene) == ["dropout", "depth_prior", "regularisers", "binocular", "pose"]
+    assert _names(TrainConfig(**ALL_ON), scene) == ["dropout", "depth_prior", "regularisers", "binocular", "opacity_decay",
+                                                   "pose"]
 
 
 def test_depth_term_acts_only_in_views_with_enough_prior_samples(scene):
@@ -151,6 +153,9 @@ def _reference_run(cfg, scene, out):
                                  cam.height, it)
         adam_step(tr.optimizer)
         tr.optimizer.zero_grad(set_to_none=True)
+        if it > tr.sched.densify_from:
+            with torch.no_grad():
+                tr.params["opacity"].copy_(opacity_decay(tr.params["opacity"], cfg.opacity_decay))
         f = pose_lr_factor(it, cfg.pose_refine_from, cfg.pose_warmup)
         for g in pose_opt.param_groups:
             g["lr"] = f * (cfg.lr_pose if g["name"] == "pose" else cfg.lr_focal)
@@ -162,14 +167,15 @@ def _reference_run(cfg, scene, out):
 
 
 def test_a_run_through_the_parts_is_the_hand_written_loop_bit_for_bit(scene, tmp_path):
-    """All five parts on (random background too, so that every draw of the shared generator
+    """All six parts on (random background too, so that every draw of the shared generator
     is in play): the trainer's run and the hand-written loop end with identical Gaussians,
     pose and focal corrections, and every part acted."""
     cfg = TrainConfig(**ALL_ON)
     ref, ref_pose, depth_terms, binocular_terms = _reference_run(cfg, scene, tmp_path / "ref")
     tr = Trainer(cfg, scene["seed"], load_views(scene["cameras"], scene["images"]), tmp_path / "parts",
                  depth_prior=scene["seed"].parent / DEPTH_PRIOR_FILE)
-    assert [p.name for p in tr.parts] == ["dropout", "depth_prior", "regularisers", "binocular", "pose"]
+    assert [p.name for p in tr.parts] == ["dropout", "depth_prior", "regularisers", "binocular", "opacity_decay",
+                                                   "pose"]
     res = tr.run()
     # every part acted: the model grew under dropout, the depth term was on, the cameras moved
     assert ref.num_gaussians > 60 and min(depth_terms[6:]) > 0 and binocular_terms
@@ -186,7 +192,7 @@ def test_a_checkpoint_from_before_the_parts_resumes_exactly(scene, tmp_path):
     cfg = TrainConfig(**{**ALL_ON, "iterations": 20, "checkpoint_every": 10})
     full = train(scene["seed"], scene["cameras"], scene["images"], tmp_path / "full", cfg)
     ck = torch.load(tmp_path / "full" / "ckpt" / "ckpt_0000010.pt", weights_only=True)
-    assert set(ck["parts"]) == {"pose"}  # dropout, depth prior, regularisers and binocular hold no state
+    assert set(ck["parts"]) == {"pose"}  # dropout, depth prior, regularisers, binocular and decay hold no state
     ck["pose"] = ck.pop("parts")["pose"]
     (tmp_path / "old" / "ckpt").mkdir(parents=True)
     torch.save(ck, tmp_path / "old" / "ckpt" / "ckpt_0000010.pt")

@@ -66,7 +66,7 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
 # Values that became keys after records were made, with the value every run had before: a
 # record without the key ran with it.
 IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
-                  "binocular_from_fraction": BINOCULAR_FROM_FRACTION}
+                  "binocular_from_fraction": BINOCULAR_FROM_FRACTION, "opacity_decay": 1.0}
 
 
 def stale_keys(found: dict, want: dict) -> list[str]:

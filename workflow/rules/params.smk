@@ -222,6 +222,7 @@ def train_recipe_args(wildcards):
         "dropout_rate",
         "depth_weight",
         "binocular_weight",
+        "opacity_decay",
         "gaussians_per_pixel",
         "depth_use_confidence",
     )
