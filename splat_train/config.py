@@ -339,10 +339,6 @@ class TrainConfig:
                 frac = preset[f"{key}_fraction"]
                 values[key] = max(1, int(round(frac * n)))
                 source[key] = f"recipe {self.recipe}: {frac:g} x {n}"
-                least = preset.get(f"{key}_at_least")  # an iteration floor of the fraction (sparse's growth)
-                if least is not None and values[key] < min(n, least):
-                    values[key] = min(n, int(least))
-                    source[key] += f", at least {least}"
         if source["densify_every"] != "set" and "densify_every" not in preset:
             values["densify_every"] = max(values["densify_every"], MIN_DENSIFY_EVERY)
         if source["opacity_reset_every"] != "set" and values["opacity_reset_every"] > 0:

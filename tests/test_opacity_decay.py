@@ -64,13 +64,15 @@ def test_bad_factors_are_refused(bad):
         OpacityDecay(bad, 0, 10)
 
 
-def test_the_part_is_listed_only_with_a_factor_below_one(tmp_path):
+def test_sparse_decays_at_the_release_factor_and_the_field_recipes_do_not(tmp_path):
     sc = write_scene(tmp_path / "s", n_views=2)
     views = load_views(sc["cameras"], sc["images"])
     cams = [torch.eye(4) for _ in views]
     names = lambda cfg: [type(p).__name__ for p in recipe_parts(cfg, views, cams, torch.Generator())]  # noqa: E731
     for recipe in ("paper", "dropgaussian", "sparse", "mcmc"):
-        assert "OpacityDecay" not in names(TrainConfig(recipe=recipe, binocular_weight=0.0)), recipe
+        listed = "OpacityDecay" in names(TrainConfig(recipe=recipe, binocular_weight=0.0))
+        assert listed == (recipe == "sparse"), recipe
+    assert "OpacityDecay" not in names(TrainConfig(recipe="sparse", binocular_weight=0.0, opacity_decay=1.0))
     cfg = TrainConfig(recipe="paper", opacity_decay=0.995, iterations=1000)
     parts = [p for p in recipe_parts(cfg, views, cams, torch.Generator()) if isinstance(p, OpacityDecay)]
     assert len(parts) == 1 and parts[0].start == cfg.schedule().densify_from == 50

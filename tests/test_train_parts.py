@@ -72,13 +72,16 @@ def _names(cfg, scene, prior=True):
 
 def test_each_recipe_runs_its_parts(scene):
     """paper is plain 3DGS; dropgaussian drops Gaussians; sparse drops, adds the depth prior
-    (when the seed has one), the opacity regulariser and binocular consistency; mcmc adds the
+    (when the seed has one), the opacity regulariser, binocular consistency and the opacity
+    decay; mcmc adds the
     opacity and scale regularisers; pose refinement is a part of any recipe, run last."""
     assert _names(TrainConfig(recipe="paper"), scene) == []
     assert _names(TrainConfig(recipe="dropgaussian"), scene) == ["dropout"]
-    assert _names(TrainConfig(recipe="sparse"), scene) == ["dropout", "depth_prior", "regularisers", "binocular"]
-    assert _names(TrainConfig(recipe="sparse"), scene, prior=False) == ["dropout", "regularisers", "binocular"]
-    assert _names(TrainConfig(recipe="sparse", opacity_reg=0.0, binocular_weight=0.0), scene) == \
+    assert _names(TrainConfig(recipe="sparse"), scene) == ["dropout", "depth_prior", "regularisers", "binocular",
+                                                           "opacity_decay"]
+    assert _names(TrainConfig(recipe="sparse"), scene, prior=False) == ["dropout", "regularisers", "binocular",
+                                                                        "opacity_decay"]
+    assert _names(TrainConfig(recipe="sparse", opacity_reg=0.0, binocular_weight=0.0, opacity_decay=1.0), scene) == \
         ["dropout", "depth_prior"]
     assert _names(TrainConfig(recipe="mcmc"), scene) == ["regularisers"]
     assert _names(TrainConfig(recipe="paper", pose_refine=True), scene) == ["pose"]

@@ -44,19 +44,19 @@ def test_paper_recipe_keeps_the_seed_schedule(iterations, expected):
 
 
 @pytest.mark.parametrize("iterations, expected", [
-    (10000, (500, 5000, 100, 0)),  # half the run, as 3DGS (15,000 of 30,000)
-    (3000, (150, 1500, 100, 0)),
-    (1500, (75, 1000, 100, 0)),  # growth lasts at least 1,000 iterations
+    (10000, (500, 10000, 100, 0)),  # to the end, as Binocular3DGS while its opacity decay acts
+    (3000, (150, 3000, 100, 0)),
     (1000, (50, 1000, 100, 0)),  # the field's period at any length, never 1 % of the run
-    (300, (15, 300, 100, 0)),  # never beyond the run
+    (300, (15, 300, 100, 0)),
 ])
-def test_sparse_recipe_grows_every_100_to_half_the_run_for_at_least_1000_under_its_cap(iterations, expected):
+def test_sparse_recipe_grows_every_100_to_the_end_of_the_run_under_its_cap(iterations, expected):
     cfg = TrainConfig(recipe="sparse", iterations=iterations)
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == expected
     # a value the user sets is used as written, floor or not
     assert TrainConfig(recipe="sparse", iterations=iterations, densify_until=100).schedule().densify_until == 100
     assert s.source["opacity_reset_every"] == "recipe sparse: never"
+    assert cfg.opacity_decay == 0.995 and TrainConfig(recipe="paper").opacity_decay == 1.0
     assert cfg.max_gaussians_for(571_000) == 57_100  # 0.1 per training pixel
     assert TrainConfig(recipe="sparse", iterations=10000, max_gaussians=1000).max_gaussians_for(571_000) == 1000
     assert TrainConfig(recipe="sparse", iterations=10000, gaussians_per_pixel=0).max_gaussians_for(571_000) is None

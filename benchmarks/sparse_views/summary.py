@@ -194,9 +194,9 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "over seeds). Recipe values were chosen on the tuning scenes only (docs/sparse-recipe.md says which",
              "runs chose each); a `sparse-*` row of the tuning scenes is a variant of `sparse` tried there",
              "(`sparse-r2`: `sparse` before the opacity regulariser; `sparse-r3`: before growth stopped at half",
-             "the run; `sparse-r10`: before binocular consistency). On a scene with a `background` in",
-             "scenes.yaml (NeRF's synthetic scenes: white) every recipe trains and renders against it; the",
-             "others, against black.", ""]
+             "the run; `sparse-r10`: before binocular consistency; `sparse-r11`: before the opacity decay and",
+             "growth to the end of the run). On a scene with a `background` in scenes.yaml (NeRF's synthetic",
+             "scenes: white) every recipe trains and renders against it; the others, against black.", ""]
     for role in ("evaluation", "tuning"):
         rs = [a for a in agg if a["role"] == role]
         if not rs:
