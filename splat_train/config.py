@@ -133,8 +133,8 @@ class TrainConfig:
             the run on, each training view is rendered again from a camera shifted sideways and
             warped back with the rendered depth (:mod:`splat_train.binocular`); one more render
             per iteration.
-        binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, 2/3 as in
-            Binocular3DGS's release).
+        binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, the
+            densification start in ``sparse``, 2/3 as in Binocular3DGS's release in the others).
         binocular_shift: the largest sideways shift, as a fraction of the view's median rendered
             depth.
         opacity_decay: the factor every opacity is multiplied by after each iteration from the

@@ -118,11 +118,12 @@ def test_bad_binocular_values_are_refused(bad):
         TrainConfig(**bad)
 
 
-def test_sparse_has_the_term_from_two_thirds_of_the_run_and_the_field_recipes_do_not():
+def test_sparse_has_the_term_from_its_densification_start_and_the_field_recipes_do_not():
     for recipe in ("paper", "dropgaussian", "sparse", "mcmc"):
-        cfg = TrainConfig(recipe=recipe)
+        cfg = TrainConfig(recipe=recipe, iterations=3000)
         assert cfg.binocular_weight == (1.0 if recipe == "sparse" else 0.0), recipe
-        assert cfg.binocular_from_fraction == pytest.approx(2 / 3)
+        start = round(cfg.binocular_from_fraction * cfg.iterations)
+        assert start == (cfg.schedule().densify_from if recipe == "sparse" else 2000), recipe
 
 
 def test_a_run_with_the_term_adds_it_from_its_start(tmp_path):

@@ -47,6 +47,6 @@ def test_train_from_bridge_ply_on_fern(tmp_path):
     assert s["num_train_views"] == 3 and s["num_test_views"] == len(split["test"])
     assert np.isfinite(s["train_psnr"]) and np.isfinite(s["test_psnr"]) and s["test_psnr"] > 12  # measured 15.3 dB
     df = pq.read_table(out / "log.parquet").to_pandas()
-    # the photometric L1 (the total adds binocular consistency from 2/3 of the run on)
+    # the photometric L1 (the total adds binocular consistency from the densification start on)
     assert df["l1"].iloc[-5:].mean() < df["l1"].iloc[:5].mean()
     assert len(list((out / "renders").iterdir())) == len(split["test"])

@@ -195,7 +195,8 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "runs chose each); a `sparse-*` row of the tuning scenes is a variant of `sparse` tried there",
              "(`sparse-r2`: `sparse` before the opacity regulariser; `sparse-r3`: before growth stopped at half",
              "the run; `sparse-r10`: before binocular consistency; `sparse-r11`: before the opacity decay and",
-             "growth to the end of the run). On a scene with a `background` in scenes.yaml (NeRF's synthetic",
+             "growth to the end of the run; `sparse-r12`: binocular consistency from 2/3 of the run, not from",
+             "the densification start). On a scene with a `background` in scenes.yaml (NeRF's synthetic",
              "scenes: white) every recipe trains and renders against it; the others, against black.", ""]
     for role in ("evaluation", "tuning"):
         rs = [a for a in agg if a["role"] == role]
