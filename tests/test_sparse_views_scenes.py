@@ -41,7 +41,8 @@ def test_scene_list_keeps_tuning_apart_and_each_evaluation_scene_converts_with_c
     # real capture that is not of a site the recipe was tuned on
     assert len(evaluation) >= 4
     assert len({s["kind"] for s in evaluation}) >= 2
-    assert {s["name"] for s in evaluation} == {"dtu__scan65", "own__cokecan", "own__gumjar", "own__stitch", "own__sargos"}
+    assert {s["name"] for s in evaluation} == {"dtu__scan65", "own__cokecan", "own__gumjar", "own__stitch", "own__sargos",
+                                                 "ibrnet__qq11", "nags__bench", "in2n__bear", "mipnerf360__garden"}
     for s in evaluation:  # the shipped list's evaluation scenes are public: where, at which commit, licence
         assert set(s["source"]) == {"repo", "commit", "path"} and s["licence"], s["name"]
     for s in [*evaluation, *(s for s in scenes if "source" in s)]:
