@@ -10,6 +10,7 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -25,34 +26,64 @@ def _umask() -> int:
     return mask
 
 
+# the signals a stage turns into an exception (camio.outdir: SIGTERM, SIGHUP; SIGINT is Python's
+# KeyboardInterrupt); held back while a temporary name is made, so that none lands between the
+# file's creation and the ``try`` that removes it
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+
+
+def _hold_stop_signals() -> set | None:
+    """Block the stop signals in this thread; returns the mask to restore (None where the
+    platform has no ``pthread_sigmask``)."""
+    if not hasattr(signal, "pthread_sigmask"):
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+
+
+def _release(held: set | None) -> None:
+    """Restore the mask :func:`_hold_stop_signals` returned; a stop that came meanwhile is
+    raised here, by its handler."""
+    if held is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
 
-    The temporary name keeps the suffix so that writers that dispatch on it still work.
+    The temporary name keeps the suffix so that writers that dispatch on it still work. A stop
+    signal at any point, its creation included, leaves no temporary file.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; outputs follow the umask
+    held, tmp_path = _hold_stop_signals(), None
     try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+        tmp_path = Path(tmp)
+        os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; outputs follow the umask
+        _release(held)  # inside the try: a stop that came while the name was made removes it
+        held = None
         yield tmp_path
         os.replace(tmp_path, path)
     finally:
-        if tmp_path.exists():
+        _release(held)
+        if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()
 
 
 @contextlib.contextmanager
 def atomic_dir(path: str | Path) -> Iterator[Path]:
-    """Yield a fresh temporary folder beside ``path``; on success it replaces ``path``."""
+    """Yield a fresh temporary folder beside ``path``; on success it replaces ``path``. A stop
+    signal at any point, the folder's creation included, leaves no temporary folder."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-    os.chmod(tmp, 0o777 & ~_umask())
+    held, tmp = _hold_stop_signals(), None
     try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+        os.chmod(tmp, 0o777 & ~_umask())
+        _release(held)  # inside the try: a stop that came while the folder was made removes it
+        held = None
         yield tmp
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
@@ -62,7 +93,8 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         else:
             os.replace(tmp, path)
     finally:
-        if tmp.exists():
+        _release(held)
+        if tmp is not None and tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
 
 

@@ -70,3 +70,37 @@ def test_atomic_outputs_follow_umask(tmp_path):
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
     assert stat.S_IMODE((tmp_path / "d").stat().st_mode) == 0o755
+
+
+class _Stop(BaseException):
+    pass
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "pthread_sigmask"), reason="no pthread_sigmask here")
+@pytest.mark.parametrize("writer, maker", [(atomic_dir, "mkdtemp"), (atomic_path, "mkstemp")])
+def test_a_stop_signal_while_the_temporary_name_is_made_leaves_nothing(tmp_path, monkeypatch, writer, maker):
+    """A SIGTERM that lands right after the temporary file or folder exists, before the writer's
+    ``try`` (where a loaded machine can deschedule a stage), still leaves nothing behind."""
+    import os
+    import signal
+    import tempfile
+
+    made = getattr(tempfile, maker)
+
+    def make_then_stop(*args, **kwargs):
+        out = made(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)  # delivered at once unless the writer holds it back
+        return out
+
+    def raise_stop(signum, frame):
+        raise _Stop
+
+    previous = signal.signal(signal.SIGTERM, raise_stop)
+    monkeypatch.setattr(tempfile, maker, make_then_stop)
+    try:
+        with pytest.raises(_Stop):
+            with writer(tmp_path / "out") as tmp:
+                (tmp / "a.txt" if tmp.is_dir() else tmp).write_text("never")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert list(tmp_path.iterdir()) == []
