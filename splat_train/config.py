@@ -30,7 +30,8 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
 
 from camio.ply import SH_DEGREE
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
-                                 STRATEGIES, SEED_OVER_CAP, VALUE_KEYS, recipe_defaults)
+                                 STRATEGIES, SEED_OVER_CAP, MCMC_GROWTH, VALUE_KEYS,
+                                 recipe_defaults)
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
@@ -117,6 +118,10 @@ class TrainConfig:
             "cap" holds the cap (the prune shrinks the model towards it), "keep" raises the cap
             to the seed's size, "relocate" raises it and grows with the mcmc strategy; a seed
             within the cap trains the same under all three; None: the recipe's.
+        mcmc_growth: with the mcmc strategy, how the count grows (:data:`MCMC_GROWTH`): "gsplat",
+            5 % per refine step up to the cap; "reach_cap", the same unless that cannot reach
+            the cap within the refine window, then the geometric path from the seed's size to
+            the cap (:func:`splat_train.mcmc.growth_target`); None: the recipe's.
         noise_lr: with the mcmc strategy, the position noise per unit of position rate
             (gsplat's 5e5).
         opacity_reg, scale_reg: weights of mean(opacity) and mean(scale) added to the loss
@@ -211,6 +216,7 @@ class TrainConfig:
     gaussians_per_pixel: float | None = None
     strategy: str | None = None
     seed_over_cap: str | None = None
+    mcmc_growth: str | None = None
     noise_lr: float = 5e5
     opacity_reg: float | None = None
     scale_reg: float | None = None
@@ -284,6 +290,8 @@ class TrainConfig:
             raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
         if self.seed_over_cap not in SEED_OVER_CAP:
             raise ValueError(f"seed_over_cap must be one of {list(SEED_OVER_CAP)}, got {self.seed_over_cap!r}")
+        if self.mcmc_growth not in MCMC_GROWTH:
+            raise ValueError(f"mcmc_growth must be one of {list(MCMC_GROWTH)}, got {self.mcmc_growth!r}")
         if not (self.opacity_reg >= 0.0 and self.scale_reg >= 0.0 and self.noise_lr >= 0.0):
             raise ValueError(f"opacity_reg, scale_reg and noise_lr must be >= 0, got {self.opacity_reg}, "
                              f"{self.scale_reg} and {self.noise_lr}")

@@ -10,7 +10,9 @@ refine iteration:
 1. *relocate*: every dead Gaussian (opacity <= ``min_opacity``) is moved onto a live one drawn
    with probability proportional to opacity; the drawn source and its copies share the
    source's opacity and footprint (:func:`relocation_opacity_scale`);
-2. *add*: 5 % more Gaussians (never beyond the cap), drawn and split the same way;
+2. *add*: 5 % more Gaussians (never beyond the cap), drawn and split the same way; with
+   ``reach_cap``, more where 5 % per step cannot reach the cap within the refine window
+   (:func:`growth_target`);
 
 and after every optimiser step the centres take a random step shaped by each Gaussian's
 covariance and gated to the nearly transparent ones (:func:`inject_noise`), the "SGLD" noise of
@@ -37,7 +39,7 @@ import torch
 
 from splat_train.densify import Params, quat_to_rotmat, update_params
 
-__all__ = ["MCMCStrategy", "relocation_opacity_scale", "relocate", "sample_add", "inject_noise",
+__all__ = ["MCMCStrategy", "growth_target", "refine_steps", "relocation_opacity_scale", "relocate", "sample_add", "inject_noise",
            "GROWTH", "MAX_COPIES", "NOISE_K", "NOISE_T"]
 
 log = logging.getLogger(__name__)
@@ -213,6 +215,39 @@ def inject_noise(params: Params, noise_scale: float, generator: torch.Generator 
         means.add_(torch.einsum("nij,nj->ni", rot, var * local))
 
 
+def refine_steps(refine_from: int, refine_until: int, refine_every: int, iteration: int) -> int:
+    """How many refine iterations (multiples of ``refine_every`` strictly between
+    ``refine_from`` and ``refine_until``) are at or before 1-based ``iteration``."""
+    last = min(iteration, refine_until - 1)
+    if last <= refine_from:
+        return 0
+    return max(0, last // refine_every - refine_from // refine_every)
+
+
+def growth_target(n: int, step: int, steps: int, seed: int | None, cap: int, growth: float = GROWTH) -> int:
+    """The Gaussian count after the add of refine step ``step`` (1-based) of ``steps``.
+
+    gsplat's rule is min(cap, int((1 + growth) n)). Given the seed's size, where that rule
+    cannot take the seed to the cap within the window (seed (1 + growth)^steps < cap; under 20
+    Gaussians it never grows at all), the count is at least the geometric path from the seed to
+    the cap, ceil(seed (cap / seed)^(step / steps)), which reaches the cap at the last step.
+
+    Args:
+        n: the count before the add (after relocation; relocation keeps it).
+        step, steps: this refine step's index and the window's number of refine steps.
+        seed: the seed's count (None: gsplat's rule alone).
+        cap: the most Gaussians additions may reach.
+
+    Returns:
+        the target count (n or more, unless n is already over the cap: then n).
+    """
+    target = int((1.0 + growth) * n)
+    if seed is not None and 0 < seed < cap and steps > 0 and seed * (1.0 + growth) ** steps < cap:
+        path = math.ceil(seed * (cap / seed) ** (min(step, steps) / steps) - 1e-9)
+        target = max(target, path)
+    return max(n, min(cap, target))
+
+
 @dataclass
 class MCMCStrategy:
     """The MCMC refine schedule and cap, with the interface of
@@ -228,6 +263,8 @@ class MCMCStrategy:
         min_opacity: a Gaussian at or below this opacity is dead (the config's prune_opacity).
         noise_lr: noise scale per unit of position learning rate (gsplat's 5e5).
         growth: new Gaussians per refine step as a fraction of the count (:data:`GROWTH`).
+        seed_size: the seed's count, for :func:`growth_target`'s path to the cap (None:
+            gsplat's 5 % alone, the config's ``mcmc_growth`` "gsplat").
     """
 
     refine_from: int
@@ -237,18 +274,22 @@ class MCMCStrategy:
     min_opacity: float
     noise_lr: float
     growth: float = GROWTH
+    seed_size: int | None = None
 
     @classmethod
-    def from_config(cls, cfg, max_gaussians: int | None = None, **overrides) -> "MCMCStrategy":
+    def from_config(cls, cfg, max_gaussians: int | None = None, seed_size: int | None = None,
+                    **overrides) -> "MCMCStrategy":
         """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its resolved
-        schedule), capped at ``max_gaussians`` (required: MCMC grows to its cap)."""
+        schedule), capped at ``max_gaussians`` (required: MCMC grows to its cap); ``seed_size``
+        (the seed's count) is kept where ``cfg.mcmc_growth`` is "reach_cap"."""
         if max_gaussians is None:
             raise ValueError("the mcmc strategy needs a cap on the Gaussian count: set gaussians_per_pixel > 0 "
                              "or max_gaussians")
         sched = cfg.schedule()
         fields = dict(refine_from=sched.densify_from, refine_until=sched.densify_until,
                       refine_every=sched.densify_every, cap=int(max_gaussians), min_opacity=cfg.prune_opacity,
-                      noise_lr=cfg.noise_lr)
+                      noise_lr=cfg.noise_lr,
+                      seed_size=seed_size if cfg.mcmc_growth == "reach_cap" else None)
         fields.update(overrides)
         return cls(**fields)
 
@@ -280,7 +321,9 @@ class MCMCStrategy:
                 dead = torch.sigmoid(params["opacity"].detach()) <= self.min_opacity
                 out["relocated"] = relocate(params, optimizer, dead, self.min_opacity, generator)
                 n = params["means"].shape[0]
-                n_new = max(0, min(self.cap, int((1.0 + self.growth) * n)) - n)
+                steps = refine_steps(self.refine_from, self.refine_until, self.refine_every, self.refine_until)
+                step = refine_steps(self.refine_from, self.refine_until, self.refine_every, iteration)
+                n_new = growth_target(n, step, steps, self.seed_size, self.cap, self.growth) - n
                 out["added"] = sample_add(params, optimizer, n_new, self.min_opacity, generator)
             state["relocated"] += out["relocated"]
             state["added"] += out["added"]

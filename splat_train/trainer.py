@@ -176,6 +176,7 @@ class Trainer:
             raise ValueError(f"seed {seed_ply} holds 0 Gaussians: nothing can be trained or densified; "
                              "check the Bridge output (bridge.json counts) or its filters")
         # the cap and the strategy: a seed over the cap may raise it (cfg.seed_over_cap)
+        self.seed_gaussians = len(cloud)
         self.max_gaussians = cfg.max_gaussians_for(train_pixels, len(cloud))
         self.strategy_name = cfg.strategy_for(train_pixels, len(cloud))
         log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels, seed %d, "
@@ -184,8 +185,8 @@ class Trainer:
                  {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
                  self.max_gaussians or "none", train_pixels, len(cloud), cfg.seed_over_cap, cfg.dropout_rate,
                  cfg.dropout_ramp_fraction, cfg.depth_weight)
-        strategy_cls = MCMCStrategy if self.strategy_name == "mcmc" else DensifyStrategy
-        self.strategy = strategy_cls.from_config(cfg, self.max_gaussians)
+        self.strategy = (MCMCStrategy.from_config(cfg, self.max_gaussians, seed_size=len(cloud))
+                         if self.strategy_name == "mcmc" else DensifyStrategy.from_config(cfg, self.max_gaussians))
         self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
@@ -477,7 +478,8 @@ class Trainer:
             "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if self.dev.type == "cuda" else None),
             "device": str(self.dev), "rasterizer": self.backend, "torch_threads": torch.get_num_threads(),
             "resumed_from": self.resumed_from, "inputs_sha256": self.digest, "schedule": self.sched.to_dict(),
-            "recipe": cfg.recipe, "max_gaussians": self.max_gaussians, "strategy": self.strategy_name,
+            "recipe": cfg.recipe, "seed_gaussians": self.seed_gaussians, "max_gaussians": self.max_gaussians,
+            "strategy": self.strategy_name,
             # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
             "strategy_totals": ({k: int(v) for k, v in self.state.items()} if self.strategy_name == "mcmc" else {}),
             "depth_prior": None,  # the depth part's entry below when it runs

@@ -72,6 +72,8 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
                              gaussians=70_000 if scene == "b" else 5_000))
         recs.append(_rec("t", "tuning", "sparse", 0, 25.0, 0.1))
     recs.append(_rec("c", "evaluation", "paper", 0, 30.0, 0.1))  # a scene the grid has not finished
+    # an earlier version kept beside the recipes, on one scene: in the table, not in the targets
+    recs.append(_rec("a", "evaluation", "mcmc-r13", 0, 25.0, 0.1))
     # n = 6 runs count in their own measures, never in the n = 3 targets
     recs += [dict(_rec("a", "evaluation", rc, 0, p, 0.2, gaussians=g), n=6)
              for rc, p, g in (("paper", 21.0, 9_000), ("sparse", 20.0, 99_000))]
@@ -102,6 +104,7 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     assert six["evaluation_scenes"] == ["a"] and six["psnr_lead_over_best_other"] == pytest.approx(-1.0)
     assert six["max_gaussians_ours"] == 99_000
     text = doc.read_text()
+    assert "| a | " in text and " | mcmc-r13 | 1 | 25.00" in text
     assert "## The same measures at n = 6, 1000 iterations" in text
     assert "## Evaluation scenes" in text and "## Tuning scenes" in text and "not met" in text
     assert "highest mean PSNR of the recipes: 2 of 2" in text and t["spread"]["sparse_best_scenes"] == ["a", "b"]

@@ -16,14 +16,15 @@ import pytest
 import torch
 
 from _train_scene import kill_at_loss_call, write_scene
-from camio.ply import read_gaussian_ply
+from camio.ply import GaussianCloud, read_gaussian_ply, write_gaussian_ply
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
 from splat_train.densify import quat_to_rotmat
 from splat_train.export import render_params
 from splat_train.gaussians import make_optimizer
 from splat_train.losses import gaussian_regularisers, photometric_loss
-from splat_train.mcmc import MAX_COPIES, MCMCStrategy, inject_noise, relocate, relocation_opacity_scale
+from splat_train.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
+                              relocation_opacity_scale)
 from splat_train.recipes import RECIPES
 from splat_train.trainer import train
 
@@ -155,6 +156,36 @@ def test_a_refine_step_relocates_then_grows_5_percent_to_the_cap():
     assert all(torch.isfinite(p).all() for p in params.values())
 
 
+def test_refine_steps_count_the_refine_iterations_of_the_window():
+    its = [it for it in range(1, 3001) if 50 < it < 2500 and it % 20 == 0]  # the step() test
+    assert refine_steps(50, 2500, 20, 3000) == len(its) == 122
+    for it in (1, 50, 60, 61, 1000, 2499, 2500, 2999):
+        assert refine_steps(50, 2500, 20, it) == sum(1 for i in its if i <= it), it
+    assert refine_steps(100, 100, 20, 500) == 0
+
+
+def test_growth_is_gsplats_5_percent_unless_the_seed_cannot_reach_the_cap():
+    # a seed that 5 % per step takes to the cap: gsplat's int(1.05 N) exactly, whatever the seed
+    for n in (40, 1000, 5000):
+        assert growth_target(n, 3, 100, 1000, 100_000) == int(1.05 * n)
+        assert growth_target(n, 3, 100, None, 100_000) == int(1.05 * n)
+    # a 13-Gaussian seed: gsplat's rule never grows it (int(1.05 x 13) = 13) ...
+    assert growth_target(13, 1, 122, None, 37_000) == 13
+    # ... the path to the cap does, at least as fast as 5 %, and ends on the cap at the last step
+    n, counts = 13, []
+    for step in range(1, 123):
+        nxt = growth_target(n, step, 122, 13, 37_000)
+        assert int(1.05 * n) <= nxt <= 37_000 and nxt > n
+        n = nxt
+        counts.append(n)
+    assert counts[-1] == 37_000 and counts[0] == 14
+    rate = (37_000 / 13) ** (1 / 122)  # the geometric path: the middle step is at sqrt(13 x cap)
+    assert abs(counts[60] / (13 * rate ** 61) - 1) < 1e-3
+    # a seed at or over the cap, or past the cap already: nothing added
+    assert growth_target(50_000, 5, 122, 50_000, 37_000) == 50_000
+    assert growth_target(37_000, 5, 122, 13, 37_000) == 37_000
+
+
 def test_noise_is_covariance_shaped_and_gated_to_transparent_gaussians():
     n = 3
     params = {"means": torch.zeros(n, 3, dtype=D), "opacity": torch.logit(torch.tensor([0.001, 0.5, 0.99], dtype=D)),
@@ -204,6 +235,7 @@ def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
     assert r["strategy"] == "mcmc" and r["opacity_reg"] == r["scale_reg"] == 0.01
     assert r["densify_every_fraction"] == 100 / 30000 and r["opacity_reset_every_fraction"] is None
     assert r["dropout_rate"] == r["depth_weight"] == 0.0 and r["gaussians_per_pixel"] == 0.175
+    assert r["mcmc_growth"] == "reach_cap" and TrainConfig(recipe="sparse").mcmc_growth == "gsplat"
     cfg = TrainConfig(recipe="mcmc", iterations=30000)
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every, s.sh_increase_every) == (
@@ -249,6 +281,35 @@ def test_cli_mcmc_with_a_binding_cap_grows_to_it_and_stays(scene, tmp_path):
     assert tj["strategy_totals"]["added"] == 30 and tj["num_gaussians"] == 90 and tj["test_psnr"] > 15
     cloud = read_gaussian_ply(out / "model.ply")
     assert len(cloud) == 90 and np.isfinite(cloud.means).all()
+
+
+@pytest.mark.parametrize("growth", ["reach_cap", "gsplat"])
+def test_cli_mcmc_from_a_13_gaussian_seed_reaches_its_cap(scene, tmp_path, growth):
+    """python -m splat_train --recipe mcmc on a seed of 13 Gaussians (what three views
+    triangulate on some scenes), cap 90: the recipe's growth reaches the cap by the end of the
+    refine window and keeps it; gsplat's 5 % never grows the seed (int(1.05 x 13) = 13)."""
+    full = read_gaussian_ply(scene["seed"])
+    small = tmp_path / "seed13.ply"
+    write_gaussian_ply(small, GaussianCloud(full.means[:13], full.sh_dc[:13], full.sh_rest[:13],
+                                            full.opacity_logit[:13], full.log_scales[:13], full.quats[:13]))
+    over = {"max_gaussians": 90, "densify_every": 4, "sh_degree": 0, "eval_every": 50, "device": "cpu",
+            "checkpoint_every": 1000, **({"mcmc_growth": growth} if growth == "gsplat" else {})}
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "splat_train", "--seed-ply", str(small), "--cameras", str(scene["cameras"]),
+           "--images", str(scene["images"]), "--out", str(out), "--iterations", "100", "--recipe", "mcmc",
+           "--config", json.dumps(over), "-q"]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    n = pq.read_table(out / "log.parquet").to_pandas()["num_gaussians"].to_numpy()
+    tj = json.loads((out / "train.json").read_text())
+    assert tj["seed_gaussians"] == 13 and tj["config"]["mcmc_growth"] == growth
+    assert (np.diff(n) >= 0).all() and n[0] == 13
+    if growth == "gsplat":
+        assert (n == 13).all() and tj["strategy_totals"]["added"] == 0
+    else:  # refine steps at 4, 8, ..., 80 (the window ends at 25000/30000 of the run)
+        assert n[79] == 90 and n[78] < 90 and (n[79:] == 90).all()
+        assert tj["num_gaussians"] == 90 and tj["strategy_totals"]["added"] == 77
+    assert np.isfinite(read_gaussian_ply(out / "model.ply").means).all()
 
 
 def test_cli_refuses_mcmc_without_a_cap_in_one_line(scene, tmp_path):

@@ -66,7 +66,8 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
 # Values that became keys after records were made, with the value every run had before: a
 # record without the key ran with it.
 IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
-                  "binocular_from_fraction": BINOCULAR_FROM_FRACTION, "opacity_decay": 1.0}
+                  "binocular_from_fraction": BINOCULAR_FROM_FRACTION, "opacity_decay": 1.0,
+                  "mcmc_growth": "gsplat"}
 
 
 def stale_keys(found: dict, want: dict) -> list[str]:
@@ -159,6 +160,7 @@ def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, re
         "psnr": mean.get("psnr"), "ssim": mean.get("ssim"), "lpips_alex": mean.get("lpips_alex"),
         "lpips_vgg": mean.get("lpips_vgg"), "gaussians": tj["num_gaussians"], "train_s": tj["wall_time_s"],
         "backend": tj.get("rasterizer"),
+        "seed_gaussians": tj.get("seed_gaussians"), "max_gaussians": tj.get("max_gaussians"),
         "best_psnr": c.get("best_test_psnr"), "best_iteration": c.get("best_iteration"),
         "curve": {"iterations": c.get("iterations"), "psnr": c.get("test_psnr")},
         "config": {"recipe": recipe, **(config or {})}, "schedule": tj.get("schedule"),
