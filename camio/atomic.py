@@ -13,7 +13,7 @@ import shutil
 import signal
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -48,6 +48,44 @@ def _release(held: set | None) -> None:
 
 
 @contextlib.contextmanager
+def _temporary(make: Callable[[], Path], remove: Callable[[Path], None]) -> Iterator[Path]:
+    """Yield the temporary ``make()`` creates, made with the stop signals held and released
+    inside the ``try``: a stop that came while it was made, or at any point after, ends in
+    ``remove(tmp)`` unless the block moved it away."""
+    held, tmp = _hold_stop_signals(), None
+    try:
+        tmp = make()
+        _release(held)
+        held = None
+        yield tmp
+    finally:
+        _release(held)
+        if tmp is not None and tmp.exists():
+            remove(tmp)
+
+
+def _temp_file(path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs follow the umask
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return Path(tmp)
+
+
+def _temp_dir(path: Path) -> Path:
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())
+    except BaseException:
+        tmp.rmdir()
+        raise
+    return tmp
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
 
@@ -56,20 +94,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    held, tmp_path = _hold_stop_signals(), None
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-        os.close(fd)
-        tmp_path = Path(tmp)
-        os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; outputs follow the umask
-        _release(held)  # inside the try: a stop that came while the name was made removes it
-        held = None
-        yield tmp_path
-        os.replace(tmp_path, path)
-    finally:
-        _release(held)
-        if tmp_path is not None and tmp_path.exists():
-            tmp_path.unlink()
+    with _temporary(lambda: _temp_file(path), Path.unlink) as tmp:
+        yield tmp
+        os.replace(tmp, path)
 
 
 @contextlib.contextmanager
@@ -78,12 +105,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     signal at any point, the folder's creation included, leaves no temporary folder."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    held, tmp = _hold_stop_signals(), None
-    try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-        os.chmod(tmp, 0o777 & ~_umask())
-        _release(held)  # inside the try: a stop that came while the folder was made removes it
-        held = None
+    with _temporary(lambda: _temp_dir(path), lambda t: shutil.rmtree(t, ignore_errors=True)) as tmp:
         yield tmp
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
@@ -92,10 +114,6 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
-    finally:
-        _release(held)
-        if tmp is not None and tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _jsonable(obj: Any) -> Any:
