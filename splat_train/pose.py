@@ -148,19 +148,21 @@ class PoseCorrections(torch.nn.Module):
         Returns:
             [] the scale applied (1 = no drift), on the cameras' device.
         """
-        given = torch.stack(cam_from_world)  # [C, 4, 4]
+        given = torch.stack(cam_from_world).double()  # [C, 4, 4]; float64 for the gauge's sums
         corr = torch.stack([self.correction(i, given.dtype) for i in range(len(given))])
         refined = corr @ given
         R, t = refined[:, :3, :3], refined[:, :3, 3]
         centers = -(R.transpose(1, 2) @ t[..., None])[..., 0]  # [C, 3] world
         ref_centers = -(given[:, :3, :3].transpose(1, 2) @ given[:, :3, 3:])[..., 0]
         s = scale_gauge_factor(centers, ref_centers)
-        new_centers = centers[:1] + s * (centers - centers[:1])
-        new_t = -(R @ new_centers[..., None])[..., 0]  # t' = -R' C'
-        # refined t = exp(omega) t_given + v, so v = t' - exp(omega) t_given
-        v = new_t - (corr[:, :3, :3] @ given[:, :3, 3:])[..., 0]
+        # C' = C_0 + s (C - C_0), so t' = -R C' = t - (s - 1) R (C - C_0), and v (refined t =
+        # exp(omega) t_given + v) moves by the same step. Written as a step, not as t' = -R C'
+        # from scratch: the rotations are orthonormal only to float32 precision, and R R^T t
+        # would move every camera by ~1e-7 of its translation per call even at s = 1.
+        step = -(R @ ((s - 1.0) * (centers - centers[:1]))[..., None])[..., 0]  # [C, 3]
+        v = corr[:, :3, 3] + step
         self.delta[:, 3:] = (v * self.free / self.trans_scale).to(self.delta.dtype)
-        return s
+        return s.to(cam_from_world[0].dtype)
 
 
 def pose_lr_factor(iteration: int, start: int, warmup: int) -> float:
