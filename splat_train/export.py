@@ -78,13 +78,15 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
                  background: torch.Tensor, out_dir: str | Path | None = None,
                  cam_override: list[torch.Tensor] | None = None, desc: str = "render",
                  K_override: list[torch.Tensor] | None = None, backend: str = "auto",
-                 on_render: Callable[[str, torch.Tensor, torch.Tensor], None] | None = None) -> dict[str, float]:
+                 on_render: Callable[[str, torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None
+                 ) -> dict[str, float]:
     """Render every view; write PNGs into ``out_dir`` (if given); PSNR where a view has an image.
 
     Args:
-        on_render: called as ``on_render(name, rgb, target)`` for every view with an image
-            (``rgb`` the render clamped to [0, 1] and ``target`` the image, both [H, W, 3] on
-            the model's device), e.g. :class:`splat_train.heldout.HeldoutScorer`.
+        on_render: called as ``on_render(name, rgb, target, alpha)`` for every view with an
+            image (``rgb`` the render clamped to [0, 1] and ``target`` the image, both [H, W, 3],
+            and ``alpha`` [H, W] the render's accumulated opacity, on the model's device), e.g.
+            :class:`splat_train.heldout.HeldoutScorer`.
         cam_override: optional [4, 4] cam_from_world per view (refined poses).
         K_override: optional [3, 3] intrinsics per view in its image pixels (refined focal).
         backend: :func:`splat_train.rasterize` backend.
@@ -106,7 +108,7 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
             target = torch.as_tensor(v.image, device=dev)
             scores[v.name] = psnr(rgb, target)
             if on_render is not None:
-                on_render(v.name, rgb, target)
+                on_render(v.name, rgb, target, out["alpha"])
         if out_dir is not None:
             write_image(Path(out_dir) / render_name(v.name), rgb.cpu().numpy())
     return scores

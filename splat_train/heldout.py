@@ -9,7 +9,12 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
   :func:`imgmetrics.psnr_ssim.ssim` also calls), computed in float32;
 * LPIPS: LPIPS v0.1 with the AlexNet backbone and the weights ``python -m evaluation images``
   uses (:func:`imgmetrics.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
-  NaN (null in log.parquet) when it is off or the weights are absent, never 0.
+  NaN (null in log.parquet) when it is off or the weights are absent, never 0;
+* coverage: the share of the view's pixels the model covers, accumulated opacity (the
+  render's ``alpha``, [H, W]) at least :data:`COVERED_ALPHA`; and the PSNR over those pixels
+  alone (NaN where none is covered). From a few views a held-out view also sees what no
+  training view saw, where the render is the background: the two tell that part of the error
+  (too little covered) from the error where the model is (:func:`coverage_split`).
 
 The means over the test views are the ``test_*`` columns of ``log.parquet``
 (:mod:`splat_train.runlog`). They differ from the final ``metrics.json`` only by the 8-bit
@@ -29,12 +34,35 @@ import torch
 from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
-__all__ = ["HeldoutScorer", "LPIPS_NET"]
+__all__ = ["HeldoutScorer", "LPIPS_NET", "COVERED_ALPHA", "MEASURES", "coverage_split"]
 
 log = logging.getLogger(__name__)
 
 #: the LPIPS backbone along the run (the evaluation's default network for the study tables)
 LPIPS_NET = "alex"
+#: a held-out pixel counts as covered by the model where its accumulated opacity reaches this
+COVERED_ALPHA = 0.5
+#: the keys of :meth:`HeldoutScorer.means`
+MEASURES = ("psnr", "ssim", "lpips", "coverage", "psnr_covered")
+
+
+def coverage_split(rgb: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor) -> tuple[float, float]:
+    """(coverage, PSNR over the covered pixels) of one render.
+
+    Args:
+        rgb, target: [H, W, 3] in [0, 1].
+        alpha: [H, W] accumulated opacity of the render (1 - final transmittance).
+
+    Returns:
+        The share of pixels with ``alpha`` >= :data:`COVERED_ALPHA`, and the PSNR (dB, float64
+        MSE over those pixels' channels) of ``rgb`` against ``target`` there: NaN when no pixel
+        is covered, inf when they match exactly.
+    """
+    covered = alpha.detach() >= COVERED_ALPHA
+    share = float(covered.double().mean())
+    if not bool(covered.any()):
+        return share, math.nan
+    return share, psnr(rgb[covered], target[covered])
 
 
 class HeldoutScorer:
@@ -63,9 +91,13 @@ class HeldoutScorer:
         self.per_view = {}
 
     @torch.no_grad()
-    def __call__(self, name: str, rgb: torch.Tensor, target: torch.Tensor) -> None:
-        """Score one view: ``rgb`` and ``target`` are [H, W, 3] in [0, 1] on one device."""
-        rec = {"psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target)), "lpips": math.nan}
+    def __call__(self, name: str, rgb: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor | None = None) -> None:
+        """Score one view: ``rgb`` and ``target`` are [H, W, 3] in [0, 1] on one device,
+        ``alpha`` [H, W] the render's accumulated opacity (None: coverage NaN)."""
+        rec = {"psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target)), "lpips": math.nan,
+               "coverage": math.nan, "psnr_covered": math.nan}
+        if alpha is not None:
+            rec["coverage"], rec["psnr_covered"] = coverage_split(rgb, target, alpha)
         if self.model is not None:
             try:
                 rec["lpips"] = float(lpips_distance(self.model, rgb.permute(2, 0, 1), target.permute(2, 0, 1))[0])
@@ -78,5 +110,9 @@ class HeldoutScorer:
     def means(self) -> dict[str, float]:
         """Mean of each measure over the views scored since :meth:`reset` (NaN without views)."""
         if not self.per_view:
-            return {"psnr": math.nan, "ssim": math.nan, "lpips": math.nan}
-        return {k: float(np.mean([r[k] for r in self.per_view.values()])) for k in ("psnr", "ssim", "lpips")}
+            return {k: math.nan for k in MEASURES}
+        out = {k: float(np.mean([r[k] for r in self.per_view.values()])) for k in ("psnr", "ssim", "lpips", "coverage")}
+        # the covered PSNR over the views that cover any pixel
+        covered = [r["psnr_covered"] for r in self.per_view.values() if not math.isnan(r["psnr_covered"])]
+        out["psnr_covered"] = float(np.mean(covered)) if covered else math.nan
+        return out

@@ -8,7 +8,10 @@ checkpoint rows, and between them the host's time so far), ``loss``, ``l1``,
 ``num_gaussians`` (int64, after that iteration's densification), and the held-out means over
 the test views at evaluation iterations (null elsewhere): ``test_psnr`` (dB), ``test_ssim``
 (3DGS SSIM, :func:`splat_train.losses.ssim`) and ``test_lpips`` (LPIPS v0.1, AlexNet; null
-also when LPIPS along the run is off, ``TrainConfig.eval_lpips``, or its weights are absent).
+also when LPIPS along the run is off, ``TrainConfig.eval_lpips``, or its weights are absent),
+and two diagnostics of where the held-out error is (:mod:`splat_train.heldout`):
+``test_coverage`` (the share of held-out pixels the model covers, accumulated opacity >= 0.5)
+and ``test_psnr_covered`` (PSNR over those pixels; null where a view covers none).
 They are computed on the float renders clamped to [0, 1], not on the 8-bit PNGs that
 ``python -m evaluation images`` scores at the end. The (wall_time_s, test_*) pairs are the
 error-against-run-time record.
@@ -24,14 +27,16 @@ import torch
 
 from camio.atomic import atomic_path
 
-__all__ = ["RunLog", "LOG_COLUMNS", "TEST_MEASURES"]
+__all__ = ["RunLog", "LOG_COLUMNS", "TEST_MEASURES", "TEST_DIAGNOSTICS"]
 
 #: held-out measures: (column, higher is better); null except at evaluation iterations
 TEST_MEASURES = (("test_psnr", True), ("test_ssim", True), ("test_lpips", False))
+#: held-out diagnostics, no best or worst: the covered share and the PSNR where covered
+TEST_DIAGNOSTICS = ("test_coverage", "test_psnr_covered")
 LOG_COLUMNS = ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians",
-               *(c for c, _ in TEST_MEASURES))
+               *(c for c, _ in TEST_MEASURES), *TEST_DIAGNOSTICS)
 _INT_COLUMNS = ("iteration", "num_gaussians")
-_TEST_COLUMNS = tuple(c for c, _ in TEST_MEASURES)
+_TEST_COLUMNS = (*(c for c, _ in TEST_MEASURES), *TEST_DIAGNOSTICS)
 
 
 class RunLog:
@@ -54,8 +59,9 @@ class RunLog:
 
     def test_curve(self) -> dict[str, Any]:
         """The held-out curves over the evaluation rows (those with a finite ``test_psnr``):
-        ``iterations``, ``wall_time_s``, ``test_psnr``, ``test_ssim``, ``test_lpips`` (lists of
-        one length; None where a value is null, e.g. LPIPS off) and, per measure, the best
+        ``iterations``, ``wall_time_s``, ``test_psnr``, ``test_ssim``, ``test_lpips``,
+        ``test_coverage``, ``test_psnr_covered`` (lists of one length; None where a value is
+        null, e.g. LPIPS off) and, per measure (not the two diagnostics), the best
         (highest PSNR / SSIM, lowest LPIPS) and the last: ``best_iteration`` /
         ``best_test_psnr`` (PSNR), ``best_ssim_iteration`` / ``best_test_ssim``,
         ``best_lpips_iteration`` / ``best_test_lpips``, ``last_iteration``, ``last_test_psnr``,
@@ -65,7 +71,7 @@ class RunLog:
         col = lambda c: [self.rows[c][k] if np.isfinite(self.rows[c][k]) else None for k in rows]  # noqa: E731
         out: dict[str, Any] = {"iterations": [int(self.rows["iteration"][k]) for k in rows],
                                "wall_time_s": col("wall_time_s")}
-        for c, higher in TEST_MEASURES:
+        for c in _TEST_COLUMNS:
             out[c] = col(c)
         for c, higher in TEST_MEASURES:
             pairs = [(i, v) for i, v in zip(out["iterations"], out[c]) if v is not None]
@@ -74,7 +80,7 @@ class RunLog:
             out["best_iteration" if short == "psnr" else f"best_{short}_iteration"] = best[0]
             out[f"best_{c}"] = best[1]
         out["last_iteration"] = out["iterations"][-1] if rows else None
-        for c, _ in TEST_MEASURES:
+        for c in _TEST_COLUMNS:
             out[f"last_{c}"] = out[c][-1] if rows else None
         return out
 

@@ -63,7 +63,7 @@ from splat_train.densify import DensifyStrategy
 from splat_train.depth_prior import DepthPrior, DepthPriorLoss
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
-from splat_train.heldout import LPIPS_NET, HeldoutScorer
+from splat_train.heldout import LPIPS_NET, MEASURES as HELDOUT_MEASURES, HeldoutScorer
 from splat_train.losses import TrainingLoss
 from splat_train.mcmc import MCMCStrategy
 from splat_train.parts import opacity_map, recipe_parts
@@ -390,10 +390,11 @@ class Trainer:
         return float(np.mean(list(scores.values()))) if scores else float("nan")
 
     def evaluate_heldout(self) -> dict[str, float]:
-        """Mean held-out PSNR, SSIM and LPIPS (NaN when off or absent) over the test views:
-        the ``test_*`` columns of log.parquet (:mod:`splat_train.heldout`)."""
+        """Mean held-out PSNR, SSIM, LPIPS (NaN when off or absent), coverage and PSNR where
+        covered over the test views: the ``test_*`` columns of log.parquet
+        (:mod:`splat_train.heldout`)."""
         if self.scorer is None:
-            return {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
+            return {k: float("nan") for k in HELDOUT_MEASURES}
         self.scorer.reset()
         self.evaluate(self.test_views, scorer=self.scorer)
         return self.scorer.means()
@@ -418,7 +419,7 @@ class Trainer:
                 self._sync()  # this iteration's queued GPU work is training time, not evaluation
             # a kernel's one-time build (first use in this process) is not training time
             self.wall += time.perf_counter() - t0 - (build_seconds() - b0)
-            held = {"psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan")}
+            held = {k: float("nan") for k in HELDOUT_MEASURES}
             if evaluate:
                 te = time.perf_counter()
                 held = self.evaluate_heldout()
@@ -431,6 +432,7 @@ class Trainer:
             self.wall += time.perf_counter() - t0
             self.pending.append(dict(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
                                      test_psnr=test_psnr, test_ssim=held["ssim"], test_lpips=held["lpips"],
+                                     test_coverage=held["coverage"], test_psnr_covered=held["psnr_covered"],
                                      view=self.train_views[self.last_view].name, scalars=scalars))
             saving = it % cfg.checkpoint_every == 0 or it == cfg.iterations
             if it % self.sync_every == 0 or it % every_log == 0 or saving or evaluate:

@@ -287,7 +287,7 @@ def test_heldout_ssim_and_lpips_along_the_run_agree_with_the_evaluation_metrics(
 
     renders = {}
     deg = tr.sched.sh_degree_at(tr.iteration, cfg.sh_degree)
-    render_views(tr.params, deg, tests, tr.bg, on_render=lambda n, rgb, gt: renders.update({n: (rgb, gt)}))
+    render_views(tr.params, deg, tests, tr.bg, on_render=lambda n, rgb, gt, alpha: renders.update({n: (rgb, gt)}))
     model = load_lpips("alex", weights)
     ssim64 = [float(eval_ssim(rgb.double().permute(2, 0, 1), gt.double().permute(2, 0, 1))[0])
               for rgb, gt in renders.values()]
