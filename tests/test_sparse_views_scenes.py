@@ -43,7 +43,12 @@ def test_scene_list_keeps_tuning_apart_and_each_evaluation_scene_converts_with_c
     assert len({s["kind"] for s in evaluation}) >= 2
     assert {s["name"] for s in evaluation} == {"dtu__scan65", "own__cokecan", "own__gumjar", "own__stitch", "own__sargos",
                                                  "ibrnet__qq11", "nags__bench", "in2n__bear", "mipnerf360__garden"}
-    for s in evaluation:  # the shipped list's evaluation scenes are public: where, at which commit, licence
+    # the unseen scenes for the evaluation after the next change of a value: listed, never run
+    reserve = [s for s in scenes if s["role"] == "reserve"]
+    assert {s["name"] for s in reserve} == {"own__rails", "own__dragonstatue", "own__artcar", "own__plushray",
+                                              "own__copier"}
+    assert len({s["kind"] for s in reserve}) >= 2
+    for s in [*evaluation, *reserve]:  # the shipped list's unseen scenes are public: where, at which commit, licence
         assert set(s["source"]) == {"repo", "commit", "path"} and s["licence"], s["name"]
     for s in [*evaluation, *(s for s in scenes if "source" in s)]:
         assert 3 in s["views"]
