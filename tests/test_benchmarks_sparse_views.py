@@ -252,21 +252,13 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     assert "Traceback" not in stale.stderr and not rec_path.exists()
 
 
-def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, monkeypatch):
-    """A scene whose images are composited on white (scenes.yaml ``background: [1, 1, 1]``, as
-    NeRF-synthetic's) trains and renders every recipe against white; others stay black."""
-    from benchmarks.sparse_views import __main__ as cli
+def _stand_in_stages(monkeypatch, calls, prepare):
+    """The grid's stage commands replaced: each is recorded in ``calls`` and leaves what the
+    next step reads (train.json with the config it got, a metrics file); ``prepare`` stands for
+    the cell's preparation, and every recipe resolves no values."""
     from benchmarks.sparse_views import cells, runs
 
-    f = tmp_path / "p.yaml"
-    f.write_text("scenes:\n- {name: white, role: tuning, kind: synthetic, views: [3], background: [1, 1, 1],\n"
-                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n"
-                 "- {name: black, role: tuning, kind: synthetic, views: [3],\n"
-                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n")
-    assert [s.background for s in protocol.load(f)] == [(1.0, 1.0, 1.0), None]  # None: the trainer's black
-    calls = []
-
-    def fake_stage(args, log):  # record the command and leave what the next step reads
+    def stage(args, log):
         calls.append(args)
         if args[:2] == ["-m", "splat_train"] and args[2] != "render":
             out = Path(args[args.index("--out") + 1])
@@ -277,15 +269,31 @@ def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, 
             Path(args[args.index("--out") + 1]).write_text(json.dumps({"psnr": 20.0, "ssim": 0.5, "lpips_alex": 0.3,
                                                                        "lpips_vgg": 0.4}))
 
+    monkeypatch.setattr(runs, "sh", stage)
+    monkeypatch.setattr(runs, "resolved_values", lambda *a: {})
+    monkeypatch.setattr(cells, "prepare", prepare)
+
+
+def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, monkeypatch):
+    """A scene whose images are composited on white (scenes.yaml ``background: [1, 1, 1]``, as
+    NeRF-synthetic's) trains and renders every recipe against white; others stay black."""
+    from benchmarks.sparse_views import __main__ as cli
+
+    f = tmp_path / "p.yaml"
+    f.write_text("scenes:\n- {name: white, role: tuning, kind: synthetic, views: [3], background: [1, 1, 1],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n"
+                 "- {name: black, role: tuning, kind: synthetic, views: [3],\n"
+                 "   generate: [python, -m, camio, synth, --out, '{out}']}\n")
+    assert [s.background for s in protocol.load(f)] == [(1.0, 1.0, 1.0), None]  # None: the trainer's black
+    calls = []
+
     def fake_cell(work, scene, n):
         work.mkdir(parents=True, exist_ok=True)
         (work / "test.txt").write_text("")
         return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
                                                                        "test": work / "test.txt"}
 
-    monkeypatch.setattr(runs, "sh", fake_stage)
-    monkeypatch.setattr(runs, "resolved_values", lambda *a: {})
-    monkeypatch.setattr(cells, "prepare", fake_cell)
+    _stand_in_stages(monkeypatch, calls, fake_cell)
     assert cli.main(["--protocol", str(f), "--records", str(tmp_path / "rec"), "run", "--role", "tuning",
                      "--recipes", "paper", "--seeds", "0", "--iterations", "20", "--work", str(tmp_path / "w")]) == 0
     train = [c for c in calls if c[:2] == ["-m", "splat_train"] and c[2] != "render"]
@@ -302,7 +310,7 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
     training images (pixels pooled, float64), recorded with the run; a scene's own background
     stands instead."""
     from benchmarks.sparse_views import __main__ as cli
-    from benchmarks.sparse_views import cells, runs
+    from benchmarks.sparse_views import cells
     from camio.images import write_image
 
     f = tmp_path / "p.yaml"
@@ -314,17 +322,6 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
     images = [rng.random((4, 6, 3)), rng.random((2, 5, 3))]  # two sizes: pixels pooled, not image means
     calls = []
 
-    def fake_stage(args, log):
-        calls.append(args)
-        if args[:2] == ["-m", "splat_train"] and args[2] != "render":
-            out = Path(args[args.index("--out") + 1])
-            out.mkdir(parents=True, exist_ok=True)
-            (out / "train.json").write_text(json.dumps({"config": json.loads(args[args.index("--config") + 1]),
-                                                        "num_gaussians": 1, "wall_time_s": 1.0}))
-        if args[:3] == ["-m", "evaluation", "images"]:
-            Path(args[args.index("--out") + 1]).write_text(json.dumps({"psnr": 20.0, "ssim": 0.5, "lpips_alex": 0.3,
-                                                                       "lpips_vgg": 0.4}))
-
     def fake_cell(work, scene, n):
         (work / "scene" / "images").mkdir(parents=True, exist_ok=True)
         names = [f"{k}.png" for k in range(len(images))]
@@ -335,9 +332,7 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
         return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
                                                                        "test": work / "test.txt"}
 
-    monkeypatch.setattr(runs, "sh", fake_stage)
-    monkeypatch.setattr(runs, "resolved_values", lambda *a: {})
-    monkeypatch.setattr(cells, "prepare", fake_cell)
+    _stand_in_stages(monkeypatch, calls, fake_cell)
     assert cli.main(["--protocol", str(f), "--records", str(tmp_path / "rec"), "run", "--role", "tuning",
                      "--recipes", 'paper-bgmean={"recipe": "paper", "background": "mean"}', "--seeds", "0",
                      "--iterations", "20", "--work", str(tmp_path / "w")]) == 0

@@ -1,5 +1,5 @@
 """Held-out coverage along the run (splat_train.heldout): the share of a held-out view the model
-covers and the PSNR there, in log.parquet and train.json, and the older checkpoints without them."""
+covers and the PSNR there, in log.parquet and train.json (an older checkpoint's log: tests/test_train_trainer.py)."""
 
 import math
 
@@ -11,7 +11,7 @@ import torch
 from _train_scene import write_scene
 from splat_train.config import TrainConfig
 from splat_train.heldout import COVERED_ALPHA, HeldoutScorer, coverage_split
-from splat_train.runlog import LOG_COLUMNS, TEST_DIAGNOSTICS, RunLog
+from splat_train.runlog import LOG_COLUMNS, TEST_DIAGNOSTICS
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -104,17 +104,3 @@ def test_the_trainer_logs_the_coverage_of_its_final_model(scene, tmp_path):
     assert c["test_coverage"][-1] == c["last_test_coverage"] == pytest.approx(df.loc[24, "test_coverage"])
     assert len(c["test_psnr_covered"]) == len(c["iterations"]) == 2
     assert "best_test_coverage" not in c  # a diagnostic, not a measure with a best
-
-
-def test_runlog_resumes_a_checkpoint_from_before_the_coverage_columns():
-    old = {c: torch.tensor([1.0, 2.0], dtype=torch.float64)
-           for c in ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians")}
-    old["test_psnr"] = torch.tensor([float("nan"), 20.0], dtype=torch.float64)
-    old["test_ssim"] = torch.tensor([float("nan"), 0.5], dtype=torch.float64)
-    log = RunLog()
-    log.load_state_dict(old)
-    log.append(iteration=3, wall_time_s=0.0, loss=0.0, l1=0.0, ssim=0.0, train_psnr=0.0, num_gaussians=1,
-               test_psnr=21.0, test_coverage=0.75, test_psnr_covered=23.0)
-    c = log.test_curve()
-    assert c["test_coverage"] == [None, 0.75] and c["test_psnr_covered"] == [None, 23.0]
-    assert c["last_test_psnr_covered"] == 23.0

@@ -322,8 +322,9 @@ def test_heldout_lpips_on_images_too_small_for_alexnet_is_null_not_an_error(scen
     assert res.summary["test_curve"]["test_lpips"] == [None]
 
 
-def test_runlog_resumes_a_checkpoint_from_before_the_heldout_ssim_lpips_columns():
-    """A checkpoint's log written before test_ssim / test_lpips existed loads with them null."""
+def test_runlog_resumes_a_checkpoint_from_before_the_heldout_columns():
+    """A checkpoint's log written before test_ssim / test_lpips (and test_coverage /
+    test_psnr_covered) existed loads with them null."""
     from splat_train.runlog import RunLog
 
     old = {c: torch.tensor([1.0, 2.0], dtype=torch.float64)
@@ -332,9 +333,11 @@ def test_runlog_resumes_a_checkpoint_from_before_the_heldout_ssim_lpips_columns(
     log = RunLog()
     log.load_state_dict(old)
     log.append(iteration=3, wall_time_s=0.0, loss=0.0, l1=0.0, ssim=0.0, train_psnr=0.0, num_gaussians=1,
-               test_psnr=21.0, test_ssim=0.5, test_lpips=0.4)
+               test_psnr=21.0, test_ssim=0.5, test_lpips=0.4, test_coverage=0.75, test_psnr_covered=23.0)
     c = log.test_curve()
     assert c["iterations"] == [2, 3] and c["test_ssim"] == [None, 0.5] and c["test_lpips"] == [None, 0.4]
+    assert c["test_coverage"] == [None, 0.75] and c["test_psnr_covered"] == [None, 23.0]
+    assert c["last_test_psnr_covered"] == 23.0 and "best_test_coverage" not in c
     assert (c["best_ssim_iteration"], c["best_lpips_iteration"], c["best_iteration"]) == (3, 3, 3)
 
 
