@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
-           "RESUME_FREE_KEYS", "POSE_KEYS", "load_config"]
+           "RESUME_FREE_KEYS", "POSE_KEYS", "BACKGROUND_MEAN", "load_config"]
 
 from camio.ply import SH_DEGREE
 from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
@@ -39,6 +39,8 @@ DEFAULT_ITERATIONS = 1000
 # The paper's budget ("10K iterations", docs/reference.md section 3): the default on a GPU, and the
 # run length the seed code's schedule was written for.
 PAPER_ITERATIONS = 10000
+# The config's ``background`` that asks for the mean colour of the training images
+BACKGROUND_MEAN = "mean"
 
 
 def resolve_device(device: str) -> str:
@@ -85,7 +87,12 @@ class TrainConfig:
         lr_sh_dc, lr_sh_rest, lr_opacity, lr_scaling, lr_rotation: constant rates.
         adam_eps: Adam epsilon (3DGS uses 1e-15).
         lambda_dssim: weight of (1 - SSIM) in the loss (1 - w) L1 + w (1 - SSIM).
-        background: RGB in [0, 1] behind the Gaussians.
+        background: RGB in [0, 1] behind the Gaussians, or "mean" (:data:`BACKGROUND_MEAN`):
+            the mean colour of the training images, pooled over their pixels (an RGBA image
+            composited on black for it), resolved once by :func:`splat_train.trainer.train`,
+            which also composites RGBA images on it; train.json's config has the colour. From
+            a few views a held-out view also sees what no training view did, where the render
+            is this colour (docs/sparse-recipe.md, "Where the held-out error is").
         random_background: draw a uniform random background every iteration instead.
         densify_from, densify_until, densify_every: densification window and period
             (iterations of this run; None: the recipe's fraction of the run).
@@ -200,7 +207,7 @@ class TrainConfig:
     lr_rotation: float = 1e-3
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2
-    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    background: list[float] | str = field(default_factory=lambda: [0.0, 0.0, 0.0])
     random_background: bool = False
     densify_from: int | None = None
     densify_until: int | None = None
@@ -303,9 +310,15 @@ class TrainConfig:
             raise ValueError(f"max_gaussians must be >= 1 (or null: no cap), got {self.max_gaussians}")
         if not 0 <= self.sh_degree <= SH_DEGREE:
             raise ValueError(f"sh_degree must be 0..{SH_DEGREE}, got {self.sh_degree}")
-        if len(self.background) != 3:
-            raise ValueError(f"background must be 3 numbers (RGB in [0, 1]), got {self.background}")
-        self.background = [float(x) for x in self.background]
+        if isinstance(self.background, str):
+            if self.background != BACKGROUND_MEAN:
+                raise ValueError(f"background must be 3 numbers (RGB in [0, 1]) or {BACKGROUND_MEAN!r}, "
+                                 f"got {self.background!r}")
+        elif len(self.background) != 3:
+            raise ValueError(f"background must be 3 numbers (RGB in [0, 1]) or {BACKGROUND_MEAN!r}, "
+                             f"got {self.background}")
+        else:
+            self.background = [float(x) for x in self.background]
         if int(self.downsample) != self.downsample or self.downsample < 1:
             raise ValueError(f"downsample must be a positive integer, got {self.downsample}")
         if self.checkpoint_every < 1:

@@ -168,3 +168,17 @@ def scene_extent(cameras: list[Camera], points: np.ndarray | None = None) -> flo
         if len(p):
             radius = max(radius, 1.1 * float(np.median(np.linalg.norm(p - centre, axis=1))))
     return radius if radius > 1e-9 else 1.0
+
+
+def mean_colour(views: list[View]) -> list[float]:
+    """The mean RGB of the views' images, pooled over all their pixels in float64: the constant
+    that predicts an unseen pixel best in squared error from these images alone (the config's
+    ``background`` "mean"). Views without pixels are refused."""
+    if not views or any(v.image is None for v in views):
+        raise ValueError("the mean colour needs the training images' pixels")
+    total, count = np.zeros(3), 0
+    for v in views:
+        img = np.asarray(v.image, dtype=np.float64).reshape(-1, 3)
+        total += img.sum(0)
+        count += len(img)
+    return [float(c) for c in total / count]

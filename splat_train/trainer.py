@@ -42,7 +42,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -56,9 +56,9 @@ from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
-from splat_train.config import POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
+from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
 from splat_train.cpu import raster as cpu_raster
-from splat_train.data import View, load_views, read_name_list, scene_extent
+from splat_train.data import View, load_views, mean_colour, read_name_list, scene_extent
 from splat_train.densify import DensifyStrategy
 from splat_train.depth_prior import DepthPrior, DepthPriorLoss
 from splat_train.export import camera_tensors, render_params, render_views
@@ -166,6 +166,9 @@ class Trainer:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
+        if cfg.background == BACKGROUND_MEAN:
+            raise ValueError("background 'mean' is resolved from the training images before the Trainer is made "
+                             "(splat_train.trainer.train does; or pass splat_train.data.mean_colour(views))")
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
         self.photometric = TrainingLoss(cfg.lambda_dssim, self.dev)  # a CUDA graph on CUDA
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
@@ -554,8 +557,11 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)
-    bg = tuple(cfg.background)
     t0 = time.perf_counter()
+    if cfg.background == BACKGROUND_MEAN:  # RGBA images composited on black for the mean, then on it
+        cfg = replace(cfg, background=mean_colour(load_views(cameras, images, names, cfg.downsample, (0.0, 0.0, 0.0))))
+        log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *cfg.background)
+    bg = tuple(cfg.background)
     train_views = load_views(cameras, images, names, cfg.downsample, bg)
     test_views = (load_views(test_cameras, test_images, test_names, cfg.downsample, bg)
                   if test_cameras is not None else [])

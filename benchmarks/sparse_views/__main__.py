@@ -35,7 +35,7 @@ def _variant(text: str) -> tuple[str, dict]:
 
 
 def cmd_run(args) -> int:
-    from benchmarks.sparse_views.cells import BACKGROUND_MEAN, mean_colour, prepare
+    from benchmarks.sparse_views.cells import prepare
     from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
     from camio.atomic import atomic_path
 
@@ -45,9 +45,7 @@ def cmd_run(args) -> int:
     plans = []
     for name, cfg in (_variant(v) for v in args.recipes):
         recipe, overrides = cfg.get("recipe", name), {k: v for k, v in cfg.items() if k != "recipe"}
-        # "background": "mean" is the cell's own, resolved once the cell is prepared
-        known = {k: v for k, v in overrides.items() if not (k == "background" and v == BACKGROUND_MEAN)}
-        plans.append((name, cfg, recipe, overrides, resolved_values(recipe, known, args.iterations)))
+        plans.append((name, cfg, recipe, overrides, resolved_values(recipe, overrides, args.iterations)))
     runs_dir = args.records / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     todo = []
@@ -98,13 +96,11 @@ def cmd_run(args) -> int:
                       flush=True)
                 continue
             cell = prepare(args.work / f"{s.name}_n{n}", s, n)
-            if overrides.get("background") == BACKGROUND_MEAN:  # the training views' mean colour
-                overrides = {**overrides, "background": mean_colour(cell)}
             res = train_and_score(cell, out, recipe, seed, args.iterations,
                                   args.eval_every or max(1, args.iterations // 10), overrides, args.kernel_threads)
             rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
-            if "background" in overrides:  # the colour it trained and rendered against
-                rec["background"] = overrides["background"]
+            if "background" in overrides:  # the colour it trained and rendered against ("mean" resolved)
+                rec["background"] = res["background"]
             rec["load_avg"] = os.getloadavg()
             with atomic_path(rec_path) as tmp:  # a record is whole or absent
                 tmp.write_text(json.dumps(rec, indent=1) + "\n")
@@ -145,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--recipes", nargs="+", default=list(DEFAULT_RECIPES),
                    help="recipes, or tuning variants NAME='{\"recipe\": ..., key: value}' (default %(default)s); "
                         "a variant's \"background\": \"mean\" trains and renders against the mean colour of "
-                        "the cell's training images (a scene's own background in scenes.yaml stands instead)")
+                        "the cell's training images (the trainer's; a scene's own background in scenes.yaml "
+                        "stands instead)")
     r.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     r.add_argument("--iterations", type=int, default=1000)
     r.add_argument("--eval-every", type=int, default=None, help="held-out curve period (default iterations / 10)")

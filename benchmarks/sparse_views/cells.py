@@ -84,26 +84,3 @@ def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path)
             str(scene / "images"), "--out", str(align)], log)
     return {"bridge": bridge, "align": align}
 
-
-#: a variant's ``background`` that asks for the cell's own (:func:`mean_colour`)
-BACKGROUND_MEAN = "mean"
-
-
-def mean_colour(cell: dict[str, Path]) -> list[float]:
-    """The mean RGB in [0, 1] of the cell's training images (pixels of all of them pooled, an
-    alpha channel composited on black, as the trainer reads them without a background): the
-    constant that predicts an unseen pixel best in squared error from the training views alone,
-    for a variant that trains and renders against it (``"background": "mean"``)."""
-    import numpy as np
-
-    from camio.images import read_image
-
-    names = cell["train"].read_text().split()
-    if not names:
-        raise ValueError(f"{cell['train']}: no training image to take the mean colour of")
-    sums, count = np.zeros(3), 0
-    for name in names:
-        img = read_image(cell["scene"] / "images" / name, background=(0.0, 0.0, 0.0)).reshape(-1, 3)
-        sums += img.sum(0, dtype=np.float64)
-        count += len(img)
-    return [round(float(c), 6) for c in sums / count]

@@ -113,10 +113,12 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
                     extra_args: tuple[str, ...] = (), score: bool = True) -> dict:
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
     exists, then score the final model unless its metrics.json exists; return the measures.
-    The held-out renders use the config's ``background`` too (the renderer's own without one).
-    ``extra_args``: more ``python -m splat_train`` arguments (the GPU check's ``--device cuda
-    --rasterizer gsplat``); ``score=False``: training only (``metrics`` None; the held-out
-    curve in train.json still has the final iteration's PSNR and SSIM)."""
+    The held-out renders use the background the run trained against too (the config's, "mean"
+    as train.json's config resolved it; the renderer's own without one), returned as
+    ``background`` (None without one). ``extra_args``: more ``python -m splat_train`` arguments
+    (the GPU check's ``--device cuda --rasterizer gsplat``); ``score=False``: training only
+    (``metrics`` None; the held-out curve in train.json still has the final iteration's PSNR
+    and SSIM)."""
     logf = out.parent / f"{out.name}.log"
     want = resolved_values(recipe, config or {}, iterations)
     if (out / "train.json").is_file():
@@ -127,12 +129,15 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
     else:
         sh(["-m", "splat_train", *train_args(cell, out, recipe, seed, iterations, eval_every, config, kernel_threads),
             *extra_args], logf)
+    tj = json.loads((out / "train.json").read_text())
+    bg = (config or {}).get("background")
+    if bg is not None:  # what it trained against: "mean" is the trainer's to resolve
+        bg = tj.get("config", {}).get("background", bg)
     if not score:
-        return {"train": json.loads((out / "train.json").read_text()), "metrics": None, "values": want}
+        return {"train": tj, "metrics": None, "values": want, "background": bg}
     metrics = out / "final" / "metrics.json"
     if not metrics.is_file():
         renders, gt = out / "final" / "renders", out / "final" / "gt"
-        bg = (config or {}).get("background")
         sh(["-m", "splat_train", "render", "--model", str(out / "model.ply"), "--cameras",
             str(cell["align"] / "sparse" / "0"), "--images", str(cell["scene"] / "images"), "--image-list",
             str(cell["test"]), "--out", str(renders), "-q",
@@ -144,9 +149,8 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
                 link.symlink_to((cell["scene"] / "images" / name).resolve())
         sh(["-m", "evaluation", "images", "--pred", str(renders), "--gt", str(gt), "--out", str(metrics),
             "--lpips-nets", "alex", "vgg"], logf)
-    tj = json.loads((out / "train.json").read_text())
     m = json.loads(metrics.read_text())
-    return {"train": tj, "metrics": m, "values": want}
+    return {"train": tj, "metrics": m, "values": want, "background": bg}
 
 
 def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, result: dict,
