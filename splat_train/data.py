@@ -173,7 +173,8 @@ def scene_extent(cameras: list[Camera], points: np.ndarray | None = None) -> flo
 def mean_colour(views: list[View]) -> list[float]:
     """The mean RGB of the views' images, pooled over all their pixels in float64: the constant
     that predicts an unseen pixel best in squared error from these images alone (the config's
-    ``background`` "mean"). Views without pixels are refused."""
+    ``background`` "mean"), rounded to 1e-6 (below a 16-bit image's step) so that train.json
+    reads it back exactly. Views without pixels are refused."""
     if not views or any(v.image is None for v in views):
         raise ValueError("the mean colour needs the training images' pixels")
     total, count = np.zeros(3), 0
@@ -181,4 +182,4 @@ def mean_colour(views: list[View]) -> list[float]:
         img = np.asarray(v.image, dtype=np.float64).reshape(-1, 3)
         total += img.sum(0)
         count += len(img)
-    return [float(c) for c in total / count]
+    return [round(float(c), 6) for c in total / count]
