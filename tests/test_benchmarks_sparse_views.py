@@ -256,6 +256,14 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
 MEAN_STAND_IN = [0.25, 0.5, 0.75]
 
 
+def _empty_cell(work, scene, n):
+    """A stand-in for the cell's preparation: its folders, no test views."""
+    work.mkdir(parents=True, exist_ok=True)
+    (work / "test.txt").write_text("")
+    return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
+                                                                   "test": work / "test.txt"}
+
+
 def _stand_in_stages(monkeypatch, calls, prepare):
     """The grid's stage commands replaced: each is recorded in ``calls`` and leaves what the
     next step reads (train.json with the config it got, "mean" resolved to
@@ -294,13 +302,7 @@ def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, 
     assert [s.background for s in protocol.load(f)] == [(1.0, 1.0, 1.0), None]  # None: the trainer's black
     calls = []
 
-    def fake_cell(work, scene, n):
-        work.mkdir(parents=True, exist_ok=True)
-        (work / "test.txt").write_text("")
-        return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
-                                                                       "test": work / "test.txt"}
-
-    _stand_in_stages(monkeypatch, calls, fake_cell)
+    _stand_in_stages(monkeypatch, calls, _empty_cell)
     assert cli.main(["--protocol", str(f), "--records", str(tmp_path / "rec"), "run", "--role", "tuning",
                      "--recipes", "paper", "--seeds", "0", "--iterations", "20", "--work", str(tmp_path / "w")]) == 0
     train = [c for c in calls if c[:2] == ["-m", "splat_train"] and c[2] != "render"]
@@ -325,13 +327,7 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
                  "   generate: [python, -m, camio, synth, --out, '{out}']}\n")
     calls = []
 
-    def fake_cell(work, scene, n):
-        work.mkdir(parents=True, exist_ok=True)
-        (work / "test.txt").write_text("")
-        return {k: work / k for k in ("scene", "bridge", "align")} | {"train": work / "train.txt",
-                                                                       "test": work / "test.txt"}
-
-    _stand_in_stages(monkeypatch, calls, fake_cell)
+    _stand_in_stages(monkeypatch, calls, _empty_cell)
     assert cli.main(["--protocol", str(f), "--records", str(tmp_path / "rec"), "run", "--role", "tuning",
                      "--recipes", 'paper-bgmean={"recipe": "paper", "background": "mean"}', "--seeds", "0",
                      "--iterations", "20", "--work", str(tmp_path / "w")]) == 0
