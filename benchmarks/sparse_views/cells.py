@@ -83,4 +83,3 @@ def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path)
             str(scene / "sparse" / "0"), "--train-names", str(scene / "split.json"), "--n", str(n), "--images",
             str(scene / "images"), "--out", str(align)], log)
     return {"bridge": bridge, "align": align}
-
