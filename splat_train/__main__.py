@@ -108,7 +108,9 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, help="render every camera at this width (with --height)")
     p.add_argument("--height", type=int, help="render every camera at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
-    p.add_argument("--background", default="0,0,0", help="background RGB in [0,1], e.g. 1,1,1")
+    p.add_argument("--background", default=None,
+                   help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
+                        "from the train.json beside it; black without one)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to render")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -182,8 +184,8 @@ def _main(argv: list[str] | None = None) -> int:
         from splat_train.export import render_model
 
         try:
-            bg = tuple(float(x) for x in args.background.split(","))
-            if len(bg) != 3:
+            bg = None if args.background is None else tuple(float(x) for x in args.background.split(","))
+            if bg is not None and len(bg) != 3:
                 raise ValueError
         except ValueError:
             log.error("--background must be three numbers like 0,0,0, got %r", args.background)

@@ -29,7 +29,7 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
            "RESUME_FREE_KEYS", "POSE_KEYS", "BACKGROUND_MEAN", "load_config"]
 
 from camio.ply import SH_DEGREE
-from splat_train.recipes import (DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
+from splat_train.recipes import (BACKGROUND_MEAN, DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  STRATEGIES, SEED_OVER_CAP, MCMC_GROWTH, VALUE_KEYS,
                                  recipe_defaults)
 
@@ -39,8 +39,6 @@ DEFAULT_ITERATIONS = 1000
 # The paper's budget ("10K iterations", docs/reference.md section 3): the default on a GPU, and the
 # run length the seed code's schedule was written for.
 PAPER_ITERATIONS = 10000
-# The config's ``background`` that asks for the mean colour of the training images
-BACKGROUND_MEAN = "mean"
 
 
 def resolve_device(device: str) -> str:
@@ -90,7 +88,8 @@ class TrainConfig:
         background: RGB in [0, 1] behind the Gaussians, or "mean" (:data:`BACKGROUND_MEAN`):
             the mean colour of the training images, pooled over their pixels (an RGBA image
             composited on black for it), resolved once by :func:`splat_train.trainer.train`,
-            which also composites RGBA images on it; train.json's config has the colour. From
+            which also composites RGBA images on it; train.json's config has the colour and
+            its ``background_from`` says which was asked. None: the recipe's (black). From
             a few views a held-out view also sees what no training view did, where the render
             is this colour (docs/sparse-recipe.md, "Where the held-out error is").
         random_background: draw a uniform random background every iteration instead.
@@ -207,7 +206,7 @@ class TrainConfig:
     lr_rotation: float = 1e-3
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2
-    background: list[float] | str = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    background: list[float] | str | None = None
     random_background: bool = False
     densify_from: int | None = None
     densify_until: int | None = None

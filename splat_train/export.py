@@ -7,6 +7,7 @@ its suffix replaced by ``.png`` (sub-folders kept), e.g. ``IMG_0001.JPG -> IMG_0
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -23,10 +24,31 @@ from splat_train.data import View, load_views, read_name_list
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import psnr
 from splat_train.rasterize import rasterize
+from splat_train.recipes import BACKGROUND_BLACK
 
-__all__ = ["render_params", "render_views", "render_model", "render_name"]
+__all__ = ["render_params", "render_views", "render_model", "render_name", "model_background"]
 
 log = logging.getLogger(__name__)
+
+
+def model_background(model: str | Path) -> tuple[tuple[float, float, float], str]:
+    """The colour a trained model was trained against, to render it against: the config
+    ``background`` of the ``train.json`` beside ``model`` (RGB in [0, 1]; the trainer keeps the
+    resolved colour there, a recipe's "mean" included), and where it came from (that file's path).
+    Without a readable train.json, or one without the colour (a model from another trainer):
+    black (:data:`splat_train.recipes.BACKGROUND_BLACK`) and "default"."""
+    tj = Path(model).with_name("train.json")
+    try:
+        bg = json.loads(tj.read_text()).get("config", {}).get("background")
+    except (OSError, ValueError, AttributeError):
+        bg = None
+    if isinstance(bg, list) and len(bg) == 3 and all(isinstance(x, (int, float)) for x in bg):
+        rgb, source = (float(bg[0]), float(bg[1]), float(bg[2])), str(tj)
+    else:
+        rgb, source = BACKGROUND_BLACK, "default"
+    log.info("background (%.4f, %.4f, %.4f): %s", *rgb,
+             "black, no train.json with one beside the model" if source == "default" else f"the training's, {source}")
+    return rgb, source
 
 
 def render_name(image_name: str) -> str:
@@ -116,19 +138,24 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
 
 def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
                  images: str | Path | None = None, width: int | None = None, height: int | None = None,
-                 names: str | Path | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 names: str | Path | None = None, background: tuple[float, float, float] | None = None,
                  device: str = "cpu") -> dict[str, float]:
     """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs.
 
     Image sizes: the camera sizes; or those of the same-named files in ``images`` (K rescaled;
     the PSNR against them is returned); or ``width`` x ``height`` for every camera.
+    ``background``: RGB in [0, 1] behind the Gaussians; None: the one the model was trained
+    against (:func:`model_background`).
 
     Returns:
         image name -> PSNR (empty without ``images``).
     """
     t0 = time.perf_counter()
+    if background is None:
+        background = model_background(model)[0]
     name_list = read_name_list(names) if names is not None else None
-    views = load_views(cameras, images, name_list, read_pixels=images is not None)
+    # an RGBA image is scored on the colour the render is drawn on
+    views = load_views(cameras, images, name_list, background=tuple(background), read_pixels=images is not None)
     if (width is None) != (height is None):
         raise ValueError("give both --width and --height, or neither")
     if width is not None:

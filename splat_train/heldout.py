@@ -34,7 +34,7 @@ import torch
 from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
-__all__ = ["HeldoutScorer", "LPIPS_NET", "COVERED_ALPHA", "MEASURES", "coverage_split"]
+__all__ = ["HeldoutScorer", "LPIPS_NET", "COVERED_ALPHA", "MEASURES", "coverage_split", "unmeasured"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,11 @@ LPIPS_NET = "alex"
 COVERED_ALPHA = 0.5
 #: the keys of :meth:`HeldoutScorer.means`
 MEASURES = ("psnr", "ssim", "lpips", "coverage", "psnr_covered")
+
+
+def unmeasured() -> dict[str, float]:
+    """Every measure NaN: an iteration or run with no held-out score."""
+    return {k: math.nan for k in MEASURES}
 
 
 def coverage_split(rgb: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor) -> tuple[float, float]:
@@ -110,7 +115,7 @@ class HeldoutScorer:
     def means(self) -> dict[str, float]:
         """Mean of each measure over the views scored since :meth:`reset` (NaN without views)."""
         if not self.per_view:
-            return {k: math.nan for k in MEASURES}
+            return unmeasured()
         out = {k: float(np.mean([r[k] for r in self.per_view.values()])) for k in ("psnr", "ssim", "lpips", "coverage")}
         # the covered PSNR over the views that cover any pixel
         covered = [r["psnr_covered"] for r in self.per_view.values() if not math.isnan(r["psnr_covered"])]

@@ -115,7 +115,7 @@ from __future__ import annotations
 from typing import Any
 
 __all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES", "SEED_OVER_CAP", "MCMC_GROWTH",
-           "MIN_DENSIFY_EVERY", "recipe_defaults"]
+           "MIN_DENSIFY_EVERY", "BACKGROUND_BLACK", "BACKGROUND_MEAN", "recipe_defaults"]
 
 DEFAULT_RECIPE = "sparse"
 
@@ -140,7 +140,12 @@ BINOCULAR_FROM_FRACTION = 20000 / 30000
 OPACITY_DECAY_BINOCULAR = 0.995
 # Values a recipe sets (a config value wins); every recipe gives each one: the densification
 # thresholds, and how the model grows (``strategy``).
-VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap", "mcmc_growth")
+VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap", "mcmc_growth", "background")
+# The colour behind the Gaussians (``background``): RGB in [0, 1], or BACKGROUND_MEAN, the mean
+# colour of the training images (splat_train.data.mean_colour, resolved once per run by
+# splat_train.trainer.train). Black is 3DGS's default and every recipe's.
+BACKGROUND_BLACK = (0.0, 0.0, 0.0)
+BACKGROUND_MEAN = "mean"
 # 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
 GRAD_THRESHOLD_3DGS = 2e-4
 # gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
@@ -185,6 +190,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
         "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
+        "background": BACKGROUND_BLACK,
     },
     "dropgaussian": {
         "densify_from_fraction": DENSIFY_FROM_3DGS,
@@ -208,6 +214,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
         "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
+        "background": BACKGROUND_BLACK,
     },
     "sparse": {
         "densify_from_fraction": DENSIFY_FROM_3DGS,
@@ -253,6 +260,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         # Binocular3DGS's opacity decay (splat_train/opacity_decay.py) at its release's factor,
         # chosen on the tuning scenes (docs/sparse-recipe.md "Twelfth tuning round")
         "opacity_decay": OPACITY_DECAY_BINOCULAR,
+        "background": BACKGROUND_BLACK,
     },
     "mcmc": {
         # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
@@ -287,6 +295,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         "binocular_weight": 0.0,
         "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
         "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
+        "background": BACKGROUND_BLACK,
     },
 }
 RECIPE_NAMES = tuple(RECIPES)

@@ -60,11 +60,12 @@ from camio.colmap import write_text_model
 from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
-from splat_train.export import camera_tensors, render_name, render_params
+from splat_train.export import camera_tensors, model_background, render_name, render_params
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
 from splat_train.pose import so3_exp
 from splat_train.rasterize import rasterize, resolve_backend
+from splat_train.recipes import BACKGROUND_BLACK
 
 __all__ = ["DEFAULT_STEPS", "DEFAULT_PATIENCE", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME",
            "se3_correction", "scene_depth", "pose_change", "refine_test_pose", "run_testpose"]
@@ -81,7 +82,6 @@ DEFAULT_LR = 1e-3
 FINAL_LR_FRACTION = 0.01
 #: The protocol's name in every file, table and page.
 PROTOCOL_NAME = "test-pose"
-_BACKGROUND = (0.0, 0.0, 0.0)  # the render stage's default background
 
 
 def testpose_lr(step: int, steps: int, lr: float = DEFAULT_LR) -> float:
@@ -134,7 +134,8 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
 def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_world: torch.Tensor,
                      K: torch.Tensor, target: torch.Tensor, steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR,
                      backend: str = "auto", lambda_dssim: float | None = None,
-                     patience: int = DEFAULT_PATIENCE) -> dict:
+                     patience: int = DEFAULT_PATIENCE,
+                     background: tuple[float, float, float] = BACKGROUND_BLACK) -> dict:
     """Optimise one camera's pose against its image with the Gaussians frozen (module docstring).
 
     Args:
@@ -147,6 +148,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
         lambda_dssim: SSIM weight of the loss (training's default when None).
         patience: stop once this many steps in a row have not lowered the lowest loss seen (the
             rate schedule stays the one of ``steps``); 0 (the default): every step is run.
+        background: RGB in [0, 1] behind the Gaussians (the one the model was trained against).
 
     Returns:
         ``cam_from_world`` [4, 4] the pose kept (detached), ``loss_start``, ``loss_end`` (of the pose
@@ -170,7 +172,7 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     scale = scene_depth(frozen["means"], cw0)
     delta = torch.zeros(6, dtype=cw0.dtype, device=cw0.device, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
-    bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=cw0.device)
+    bg = torch.tensor(background, dtype=torch.float32, device=cw0.device)
     best = (math.inf, cw0, 0, delta.detach().clone())
     loss_start = None
     steps_run = 0
@@ -203,7 +205,8 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
                  steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
                  backend: str = "auto", names: str | Path | None = None,
                  patience: int = DEFAULT_PATIENCE) -> dict:
-    """The test-pose protocol on a camera folder: refined cameras, renders and a record.
+    """The test-pose protocol on a camera folder: refined cameras, renders and a record, against
+    the background the model was trained against (:func:`splat_train.export.model_background`).
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
     image sizes), ``out_dir/renders/<stem>.png`` and ``out_dir/testpose.json`` (docs/contracts.md).
@@ -213,7 +216,8 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     """
     t0 = time.perf_counter()
     name_list = read_name_list(names) if names is not None else None
-    views: list[View] = load_views(cameras, images, name_list)
+    background = model_background(model)[0]
+    views: list[View] = load_views(cameras, images, name_list, background=background)
     cloud = read_gaussian_ply(model)
     params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)
     for p in params.values():
@@ -222,11 +226,12 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     out = Path(out_dir)
     refined: list[Camera] = []
     per_view = {}
-    bg = torch.tensor(_BACKGROUND, dtype=torch.float32, device=device)
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
     for v in views:
         cw, K = camera_tensors(v.camera, device)
         target = torch.as_tensor(v.image, device=device)
-        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran, patience=patience)
+        res = refine_test_pose(params, cloud.sh_degree, cw, K, target, steps, lr, ran, patience=patience,
+                               background=background)
         with torch.no_grad():
             before = render_params(params, cloud.sh_degree, cw, K, v.camera.width, v.camera.height, bg, ran)
             after = render_params(params, cloud.sh_degree, res["cam_from_world"], K, v.camera.width,

@@ -63,7 +63,7 @@ from splat_train.densify import DensifyStrategy
 from splat_train.depth_prior import DepthPrior, DepthPriorLoss
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
-from splat_train.heldout import LPIPS_NET, MEASURES as HELDOUT_MEASURES, HeldoutScorer
+from splat_train.heldout import LPIPS_NET, HeldoutScorer, unmeasured
 from splat_train.losses import TrainingLoss
 from splat_train.mcmc import MCMCStrategy
 from splat_train.parts import opacity_map, recipe_parts
@@ -140,7 +140,8 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
                  test_views: list[View] | None = None, ckpt_dir: str | Path | None = None,
-                 digest: str | None = None, depth_prior: str | Path | None = None) -> None:
+                 digest: str | None = None, depth_prior: str | Path | None = None,
+                 background_from: str = "set") -> None:
         if not train_views:
             raise ValueError("no training views")
         self.cfg, self.out = cfg, Path(out_dir)
@@ -170,6 +171,7 @@ class Trainer:
             raise ValueError("background 'mean' is resolved from the training images before the Trainer is made "
                              "(splat_train.trainer.train does; or pass splat_train.data.mean_colour(views))")
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
+        self.background_from = background_from  # "set", or "mean" (train() resolved it to cfg.background)
         self.photometric = TrainingLoss(cfg.lambda_dssim, self.dev)  # a CUDA graph on CUDA
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         cloud = read_gaussian_ply(seed_ply)
@@ -397,7 +399,7 @@ class Trainer:
         covered over the test views: the ``test_*`` columns of log.parquet
         (:mod:`splat_train.heldout`)."""
         if self.scorer is None:
-            return {k: float("nan") for k in HELDOUT_MEASURES}
+            return unmeasured()
         self.scorer.reset()
         self.evaluate(self.test_views, scorer=self.scorer)
         return self.scorer.means()
@@ -422,7 +424,7 @@ class Trainer:
                 self._sync()  # this iteration's queued GPU work is training time, not evaluation
             # a kernel's one-time build (first use in this process) is not training time
             self.wall += time.perf_counter() - t0 - (build_seconds() - b0)
-            held = {k: float("nan") for k in HELDOUT_MEASURES}
+            held = unmeasured()
             if evaluate:
                 te = time.perf_counter()
                 held = self.evaluate_heldout()
@@ -488,7 +490,7 @@ class Trainer:
             # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
             "strategy_totals": ({k: int(v) for k, v in self.state.items()} if self.strategy_name == "mcmc" else {}),
             "depth_prior": None,  # the depth part's entry below when it runs
-            "config": cfg.to_dict(),
+            "config": cfg.to_dict(), "background_from": self.background_from,
             "test_curve": self.log.test_curve(),
             "heldout_lpips": {"enabled": bool(cfg.eval_lpips), "net": LPIPS_NET,
                               "weights": None if self.scorer is None else self.scorer.weights},
@@ -558,6 +560,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)
     t0 = time.perf_counter()
+    background_from = BACKGROUND_MEAN if cfg.background == BACKGROUND_MEAN else "set"
     if cfg.background == BACKGROUND_MEAN:  # RGBA images composited on black for the mean, then on it
         cfg = replace(cfg, background=mean_colour(load_views(cameras, images, names, cfg.downsample, (0.0, 0.0, 0.0))))
         log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *cfg.background)
@@ -571,14 +574,15 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     depth_prior = seed_depth_prior(seed, cfg, depth_prior)
     digest = inputs_digest(seed, train_views, cfg, depth_prior)
     if resume_dir is None:
-        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior).run()
+        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior,
+                       background_from=background_from).run()
     resume_dir = Path(resume_dir)
     own = resume_dir / digest[:16]
     for stale in (p for p in resume_dir.iterdir() if p != own and _is_digest_folder(p)) if resume_dir.is_dir() else ():
         log.info("removing %s: checkpoints of other inputs or config", stale)
         shutil.rmtree(stale)
     result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest,
-                     depth_prior=depth_prior).run()
+                     depth_prior=depth_prior, background_from=background_from).run()
     shutil.rmtree(own, ignore_errors=True)
     try:
         resume_dir.rmdir()

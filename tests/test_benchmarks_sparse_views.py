@@ -404,7 +404,7 @@ def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now()
         rec = json.loads(path.read_text())
         if rec["recipe"] not in RECIPE_NAMES or rec.get("values") is None:
             continue
-        overrides = {k: v for k, v in (rec.get("config") or {}).items() if k not in ("recipe", "background")}
+        overrides = {k: v for k, v in (rec.get("config") or {}).items() if k != "recipe"}
         want = resolved_values(rec["recipe"], overrides, rec["iterations"])
         assert stale_keys(rec["values"], want) == [], path.name
         checked += 1
@@ -418,3 +418,20 @@ def test_a_key_older_records_predate_counts_at_the_value_their_runs_had():
     assert stale_keys({"dropout_rate": 0.2}, want) == []  # made before the ramp was a key: ramp 1
     assert stale_keys({"dropout_rate": 0.2}, {**want, "dropout_ramp_fraction": 0.3}) == ["dropout_ramp_fraction"]
     assert stale_keys({"dropout_rate": 0.2}, {**want, "depth_weight": 0.05}) == ["depth_weight"]
+
+
+def test_a_run_against_the_mean_colour_is_told_apart_from_one_against_a_colour():
+    """The recipe's background is a value like the others: a kept run trained against black
+    is stale for a recipe or variant that asks for the mean colour (and the other way round),
+    while train.json keeps the resolved colour and, in ``background_from``, that it was the mean."""
+    from benchmarks.sparse_views.runs import resolved_values, stale_keys, train_values
+
+    black, mean = resolved_values("sparse", {}, 300), resolved_values("sparse", {"background": "mean"}, 300)
+    assert black["background"] == [0.0, 0.0, 0.0] and mean["background"] == "mean"
+    tj = {"config": {**black, "background": [0.4, 0.5, 0.6]}, "background_from": "mean"}
+    assert stale_keys(train_values(tj), mean) == []
+    assert stale_keys(train_values(tj), black) == ["background"]
+    assert stale_keys(train_values({"config": black}), mean) == ["background"]
+    # a record from before the key ran on black
+    assert stale_keys({k: v for k, v in black.items() if k != "background"}, black) == []
+    assert stale_keys({k: v for k, v in black.items() if k != "background"}, mean) == ["background"]

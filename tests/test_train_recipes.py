@@ -28,7 +28,8 @@ def test_every_recipe_gives_every_value_key_and_the_config_takes_it():
         cfg = TrainConfig(recipe=name, iterations=1000)
         for key in VALUE_KEYS:
             assert key in preset, (name, key)
-            assert getattr(cfg, key) == preset[key]
+            # a colour (background) is kept as a list of floats
+            assert getattr(cfg, key) == (list(preset[key]) if isinstance(preset[key], tuple) else preset[key])
     # a value the user sets wins over the recipe's
     assert TrainConfig(recipe="dropgaussian", densify_grad_threshold=1e-4).densify_grad_threshold == 1e-4
 

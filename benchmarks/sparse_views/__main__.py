@@ -63,9 +63,15 @@ def cmd_run(args) -> int:
             print(f"SKIP {s.name}: {s.path} is not here (benchmarks/sparse_views/fetch_scenes.py fetches it)",
                   flush=True)
             continue
+        # the scene's own background (scenes.yaml), the same for every recipe; it also stands
+        # for a variant's "mean"
+        bg = {} if s.background is None else {"background": list(s.background)}
+        scene_plans = [(name, {**cfg, **bg}, recipe, {**overrides, **bg},
+                        resolved_values(recipe, {**overrides, **bg}, args.iterations) if bg else want)
+                       for name, cfg, recipe, overrides, want in plans]
         for n in s.views if args.n is None else [n for n in args.n if n in s.views]:
             for seed in args.seeds:  # seed-major: an interrupted grid holds whole seeds
-                for name, cfg, recipe, overrides, want in plans:
+                for name, cfg, recipe, overrides, want in scene_plans:
                     rec_path = runs_dir / f"{run_name(s.name, n, name, seed, args.iterations)}.json"
                     index += 1  # the run's place in the requested grid, recorded or not
                     if shard is not None and index % shard[1] != shard[0]:
@@ -83,9 +89,6 @@ def cmd_run(args) -> int:
     print(f"{len(todo)} runs to do ({args.role}, {args.iterations} iterations)", flush=True)
     t0 = time.perf_counter()
     for i, (s, n, seed, name, cfg, recipe, overrides, rec_path) in enumerate(todo, 1):
-        if s.background is not None:  # the scene's own (scenes.yaml), the same for every recipe; it
-            bg = {"background": list(s.background)}  # also stands for a variant's "mean"
-            overrides, cfg = {**overrides, **bg}, {**cfg, **bg}
         out = args.work / f"{s.name}_n{n}" / "runs" / run_name(s.name, n, name, seed, args.iterations)
         lock = out.with_name(out.name + ".lock")
         with run_lock(lock) as mine:

@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
-from splat_train.recipes import BINOCULAR_FROM_FRACTION
+from splat_train.recipes import BACKGROUND_BLACK, BINOCULAR_FROM_FRACTION
 
 
 @contextmanager
@@ -67,7 +67,7 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
 # record without the key ran with it.
 IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
                   "binocular_from_fraction": BINOCULAR_FROM_FRACTION, "opacity_decay": 1.0,
-                  "mcmc_growth": "gsplat"}
+                  "mcmc_growth": "gsplat", "background": list(BACKGROUND_BLACK)}
 
 
 def stale_keys(found: dict, want: dict) -> list[str]:
@@ -82,8 +82,13 @@ def stale_keys(found: dict, want: dict) -> list[str]:
 
 
 def train_values(tj: dict) -> dict:
-    """The values a finished run resolved, read from its train.json (config + schedule)."""
-    return {**(tj.get("config") or {}), **(tj.get("schedule") or {})}
+    """The values a finished run resolved, read from its train.json (config + schedule); its
+    ``background`` as asked: "mean" where the trainer resolved the training images' mean colour
+    (train.json's ``background_from``; a run that predates the key counts as the colour set)."""
+    out = {**(tj.get("config") or {}), **(tj.get("schedule") or {})}
+    if tj.get("background_from") == "mean":
+        out["background"] = "mean"
+    return out
 
 
 RECORD_KEYS = ("scene", "role", "n", "recipe", "seed", "iterations", "psnr", "ssim", "lpips_alex", "lpips_vgg",
