@@ -202,8 +202,11 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "growth to the end of the run; `sparse-r12`: binocular consistency from 2/3 of the run, not from",
              "the densification start). `mcmc-r13` is `mcmc` before its growth rule (5 % per refine step",
              "alone, which leaves a seed of a few triangulated points far below its cap; kept beside the",
-             "rerun, outside the targets). On a scene with a `background` in scenes.yaml (NeRF's synthetic",
-             "scenes: white) every recipe trains and renders against it; the others, against black.", ""]
+             "rerun, outside the targets). `sparse-bgmean` and `paper-bgmean` train and render against the",
+             "training images' mean colour instead of black (the fourteenth round's value, run on the",
+             "evaluation scenes beside the recipes as they are, outside the targets). On a scene with a",
+             "`background` in scenes.yaml (NeRF's synthetic scenes: white) every recipe trains and renders",
+             "against it; the others, against black.", ""]
     for role in ("evaluation", "tuning"):
         rs = [a for a in agg if a["role"] == role]
         if not rs:
