@@ -69,6 +69,7 @@ from splat_train.mcmc import MCMCStrategy
 from splat_train.parts import opacity_map, recipe_parts
 from splat_train.pose import PoseCorrections, PoseRefinement
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
+from splat_train.recipes import BACKGROUND_BLACK
 from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
@@ -560,9 +561,10 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)
     t0 = time.perf_counter()
-    background_from = BACKGROUND_MEAN if cfg.background == BACKGROUND_MEAN else "set"
+    background_from = "set"
     if cfg.background == BACKGROUND_MEAN:  # RGBA images composited on black for the mean, then on it
-        cfg = replace(cfg, background=mean_colour(load_views(cameras, images, names, cfg.downsample, (0.0, 0.0, 0.0))))
+        background_from = BACKGROUND_MEAN
+        cfg = replace(cfg, background=mean_colour(load_views(cameras, images, names, cfg.downsample, BACKGROUND_BLACK)))
         log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *cfg.background)
     bg = tuple(cfg.background)
     train_views = load_views(cameras, images, names, cfg.downsample, bg)

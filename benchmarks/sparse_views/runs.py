@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
-from splat_train.recipes import BACKGROUND_BLACK, BINOCULAR_FROM_FRACTION
+from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, BINOCULAR_FROM_FRACTION
 
 
 @contextmanager
@@ -86,8 +86,8 @@ def train_values(tj: dict) -> dict:
     ``background`` as asked: "mean" where the trainer resolved the training images' mean colour
     (train.json's ``background_from``; a run that predates the key counts as the colour set)."""
     out = {**(tj.get("config") or {}), **(tj.get("schedule") or {})}
-    if tj.get("background_from") == "mean":
-        out["background"] = "mean"
+    if tj.get("background_from") == BACKGROUND_MEAN:
+        out["background"] = BACKGROUND_MEAN
     return out
 
 
