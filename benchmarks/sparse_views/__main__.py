@@ -2,6 +2,7 @@
 
     run      train every (scene, n, recipe, seed) of one role that has no record yet
     summary  records -> summary.json and the docs table (no training)
+    relabel  rename a recipe's or variant's records when a recipe's value lands
     list     the protocol's scenes, their role and whether their data is here
 """
 
@@ -120,6 +121,16 @@ def cmd_summary(args) -> int:
     return 0
 
 
+def cmd_relabel(args) -> int:
+    from benchmarks.sparse_views.relabel import relabel
+
+    moved = relabel(args.records / "runs", args.old, args.new, protocol.load(args.protocol, args.data),
+                    args.stale_only, args.work)
+    print(f"{len(moved)} records of {args.old!r} are now {args.new!r}"
+          + (f" (and their run folders under {args.work})" if args.work else ""))
+    return 0
+
+
 def cmd_list(args) -> int:
     for s in protocol.load(args.protocol, args.data):
         where = "generated" if s.path is None else (str(s.path) if s.available else f"missing: {s.path}")
@@ -158,9 +169,17 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("summary", help="rebuild summary.json and the docs table from the records")
     s.add_argument("--doc", type=Path, default=DOC, help="markdown table to write (default %(default)s)")
     sub.add_parser("list", help="the protocol's scenes")
+    rl = sub.add_parser("relabel", help="rename the records of OLD to NEW (a value landed: the recipe's old "
+                                        "runs become a variant, the candidate's the recipe's)")
+    rl.add_argument("old", help="the records' name now (a recipe or a variant)")
+    rl.add_argument("new", help="their new name; a recipe name only for records trained with what it gives now")
+    rl.add_argument("--stale-only", action="store_true",
+                    help="move only the records that OLD (a recipe) no longer resolves to")
+    rl.add_argument("--work", type=Path, default=None, help="the run command's --work: rename the run folders too")
     args = p.parse_args(argv)
     try:
-        return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list}[args.command](args)
+        return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
+                "relabel": cmd_relabel}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
         return 2

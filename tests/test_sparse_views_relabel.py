@@ -1,0 +1,101 @@
+"""``python -m benchmarks.sparse_views relabel``: when a value lands, the recipe's old records
+become a variant and the candidate's the recipe's, each checked against the recipe as it is
+then, so that no record carries a name whose values it was not trained with."""
+
+import json
+
+import pytest
+
+from benchmarks.sparse_views.__main__ import main
+from benchmarks.sparse_views.runs import resolved_values, run_name
+from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, RECIPES
+
+ITS = 300
+
+
+def _write(runs, scene, name, cfg, values, psnr):
+    rec = {"scene": scene, "role": "tuning", "n": 3, "recipe": name, "seed": 0, "iterations": ITS, "psnr": psnr,
+           "ssim": 0.5, "lpips_alex": 0.4, "lpips_vgg": 0.5, "gaussians": 100, "train_s": 1.0, "backend": "cpu",
+           "config": cfg, "values": values}
+    path = runs / f"{run_name(scene, 3, name, 0, ITS)}.json"
+    path.write_text(json.dumps(rec, indent=1) + "\n")
+    return path
+
+
+@pytest.fixture
+def records(tmp_path, monkeypatch):
+    """fern (black behind its runs) and the milk carton (white, its scenes.yaml background):
+    `sparse` and the candidate `sparse-bgmean` on each, as the grid writes them while `sparse`
+    trains against black."""
+    monkeypatch.setitem(RECIPES["sparse"], "background", BACKGROUND_BLACK)
+    runs = tmp_path / "records" / "runs"
+    runs.mkdir(parents=True)
+    mean = {"recipe": "sparse", "background": BACKGROUND_MEAN}
+    white = {"background": [1.0, 1.0, 1.0]}
+    _write(runs, "llff__fern", "sparse", {"recipe": "sparse"}, resolved_values("sparse", {}, ITS), 15.0)
+    _write(runs, "llff__fern", "sparse-bgmean", mean, resolved_values("sparse", {"background": "mean"}, ITS), 16.0)
+    _write(runs, "own__milk", "sparse", {"recipe": "sparse", **white}, resolved_values("sparse", white, ITS), 17.0)
+    _write(runs, "own__milk", "sparse-bgmean", {**mean, **white}, resolved_values("sparse", white, ITS), 17.0)
+    return tmp_path / "records"
+
+
+def _names(records):
+    return sorted(p.name for p in (records / "runs").glob("*.json"))
+
+
+def _cli(records, *args):
+    return main(["--records", str(records), "relabel", *args])
+
+
+def test_a_candidate_is_refused_the_recipe_name_before_the_recipe_takes_its_value(records, capsys):
+    before = _names(records)
+    (records / "runs" / f"{run_name('llff__fern', 3, 'sparse', 0, ITS)}.json").unlink()  # its name free
+    before.remove(f"{run_name('llff__fern', 3, 'sparse', 0, ITS)}.json")
+    assert _cli(records, "sparse-bgmean", "sparse") == 2  # sparse trains against black here
+    assert "were not trained with what recipe 'sparse' gives now" in capsys.readouterr().err
+    assert _names(records) == before
+    assert _cli(records, "sparse", "sparse-r13", "--stale-only") == 0  # sparse's own records are current
+    assert "0 records" in capsys.readouterr().out and _names(records) == before
+
+
+def test_landing_a_value_moves_the_stale_records_aside_and_the_candidate_in(records, monkeypatch, tmp_path, capsys):
+    work = tmp_path / "work"
+    for scene in ("llff__fern", "own__milk"):
+        for name in ("sparse", "sparse-bgmean"):
+            folder = work / f"{scene}_n3" / "runs" / run_name(scene, 3, name, 0, ITS)
+            folder.mkdir(parents=True)
+            (folder / "train.json").write_text(json.dumps({"name": name}))
+    monkeypatch.setitem(RECIPES["sparse"], "background", BACKGROUND_MEAN)  # the value lands
+    # the candidate cannot take the name while fern's old record holds it
+    assert _cli(records, "sparse-bgmean", "sparse", "--work", str(work)) == 2
+    assert "exists already" in capsys.readouterr().err
+    assert _cli(records, "sparse", "sparse-r13", "--stale-only", "--work", str(work)) == 0
+    assert "1 records of 'sparse' are now 'sparse-r13'" in capsys.readouterr().out
+    # the milk carton's white still is what sparse gives there: its record keeps the name
+    assert (records / "runs" / f"{run_name('own__milk', 3, 'sparse', 0, ITS)}.json").is_file()
+    assert _cli(records, "sparse-bgmean", "sparse", "--work", str(work)) == 2  # the milk's name is taken
+    (records / "runs" / f"{run_name('own__milk', 3, 'sparse-bgmean', 0, ITS)}.json").unlink()
+    assert _cli(records, "sparse-bgmean", "sparse", "--work", str(work)) == 0
+    runs = records / "runs"
+    old = json.loads((runs / f"{run_name('llff__fern', 3, 'sparse-r13', 0, ITS)}.json").read_text())
+    new = json.loads((runs / f"{run_name('llff__fern', 3, 'sparse', 0, ITS)}.json").read_text())
+    assert (old["recipe"], old["psnr"], old["config"]) == ("sparse-r13", 15.0, {"recipe": "sparse"})
+    assert (new["recipe"], new["psnr"], new["config"]) == ("sparse", 16.0, {"recipe": "sparse"})
+    assert new["values"]["background"] == BACKGROUND_MEAN
+    assert _names(records) == sorted(f"{run_name(s, 3, r, 0, ITS)}.json" for s, r in
+                                     [("llff__fern", "sparse"), ("llff__fern", "sparse-r13"), ("own__milk", "sparse")])
+    cell = work / "llff__fern_n3" / "runs"
+    assert json.loads((cell / run_name("llff__fern", 3, "sparse-r13", 0, ITS) / "train.json").read_text()) == \
+        {"name": "sparse"}
+    assert json.loads((cell / run_name("llff__fern", 3, "sparse", 0, ITS) / "train.json").read_text()) == \
+        {"name": "sparse-bgmean"}
+
+
+def test_bad_requests_say_why_and_move_nothing(records, capsys):
+    before = _names(records)
+    assert _cli(records, "sparse-nothing", "sparse-r13") == 2
+    assert "no record" in capsys.readouterr().err
+    assert _cli(records, "sparse-bgmean", "sparse-r13", "--stale-only") == 2
+    assert "not a recipe" in capsys.readouterr().err
+    assert _cli(records, "sparse", "sparse") == 2
+    assert _names(records) == before
