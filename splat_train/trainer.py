@@ -111,7 +111,10 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
     """SHA-256 (hex) of what decides a run's result: the seed PLY's bytes (and the depth
     prior's, when one is used), each training view's name, camera (size, K, cam_from_world)
     and decoded pixels, and the config without the keys that may change on resume
-    (:data:`RESUME_FREE_KEYS`)."""
+    (:data:`RESUME_FREE_KEYS`), its ``background`` "mean" resolved from the views as the
+    Trainer resolves it."""
+    if cfg.background == BACKGROUND_MEAN:
+        cfg = replace(cfg, background=mean_colour(train_views))
     h = hashlib.sha256()
     h.update(Path(seed_ply).read_bytes())
     if depth_prior is not None:
@@ -145,6 +148,8 @@ class Trainer:
                  background_from: str = "set") -> None:
         if not train_views:
             raise ValueError("no training views")
+        if cfg.background == BACKGROUND_MEAN:  # the views' own mean: train() composites RGBA images on it
+            cfg, background_from = replace(cfg, background=mean_colour(train_views)), BACKGROUND_MEAN
         self.cfg, self.out = cfg, Path(out_dir)
         self.ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else self.out  # holds ckpt/
         self.depth_prior_path = Path(depth_prior) if depth_prior is not None and cfg.depth_weight > 0 else None
@@ -168,11 +173,8 @@ class Trainer:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
-        if cfg.background == BACKGROUND_MEAN:
-            raise ValueError("background 'mean' is resolved from the training images before the Trainer is made "
-                             "(splat_train.trainer.train does; or pass splat_train.data.mean_colour(views))")
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
-        self.background_from = background_from  # "set", or "mean" (train() resolved it to cfg.background)
+        self.background_from = background_from  # "set", or "mean" (resolved to cfg.background)
         self.photometric = TrainingLoss(cfg.lambda_dssim, self.dev)  # a CUDA graph on CUDA
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         cloud = read_gaussian_ply(seed_ply)

@@ -266,8 +266,8 @@ def _empty_cell(work, scene, n):
 
 def _stand_in_stages(monkeypatch, calls, prepare):
     """The grid's stage commands replaced: each is recorded in ``calls`` and leaves what the
-    next step reads (train.json with the config it got, "mean" resolved to
-    :data:`MEAN_STAND_IN`, a metrics file); ``prepare`` stands for the cell's preparation, and
+    next step reads (train.json with the config it got, its background black unless given, "mean"
+    resolved to :data:`MEAN_STAND_IN`, a metrics file); ``prepare`` stands for the cell's preparation, and
     every recipe resolves no values."""
     from benchmarks.sparse_views import cells, runs
 
@@ -276,7 +276,7 @@ def _stand_in_stages(monkeypatch, calls, prepare):
         if args[:2] == ["-m", "splat_train"] and args[2] != "render":
             out = Path(args[args.index("--out") + 1])
             out.mkdir(parents=True, exist_ok=True)
-            cfg = json.loads(args[args.index("--config") + 1])
+            cfg = {"background": [0.0, 0.0, 0.0], **json.loads(args[args.index("--config") + 1])}  # paper's black
             if cfg.get("background") == "mean":  # the trainer resolves it and keeps the colour
                 cfg["background"] = MEAN_STAND_IN
             (out / "train.json").write_text(json.dumps({"config": cfg, "num_gaussians": 1, "wall_time_s": 1.0}))
@@ -312,6 +312,10 @@ def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, 
     assert [c[c.index("--background") + 1] if "--background" in c else None for c in render] == ["1.0,1.0,1.0", None]
     rec = json.loads((tmp_path / "rec" / "runs" / "white_n3_paper_s0_i20.json").read_text())
     assert rec["config"] == {"recipe": "paper", "background": [1.0, 1.0, 1.0]}
+    # every record keeps the colour its run trained and rendered against
+    assert rec["background"] == [1.0, 1.0, 1.0]
+    rec = json.loads((tmp_path / "rec" / "runs" / "black_n3_paper_s0_i20.json").read_text())
+    assert rec["config"] == {"recipe": "paper"} and rec["background"] == [0.0, 0.0, 0.0]
 
 
 def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch):

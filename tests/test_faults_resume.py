@@ -207,7 +207,7 @@ def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
     scene = write_scene(tmp_path / "scene", n_views=3)
     cfg = load_config(None, iterations=6, downsample=None, seed=0, checkpoint_every=3, eval_every=None,
                       pose_refine=None, device="cpu", num_threads=1)
-    views = load_views(scene["cameras"], scene["images"], None, cfg.downsample, tuple(cfg.background))
+    views = load_views(scene["cameras"], scene["images"], None, cfg.downsample, (0.0, 0.0, 0.0))  # opaque images
     digest = inputs_digest(scene["seed"], views, cfg)
     assert digest == inputs_digest(scene["seed"], views, cfg)
     assert digest != inputs_digest(scene["seed"], views, load_config(None, iterations=7, device="cpu"))

@@ -10,7 +10,7 @@ from _train_scene import write_scene
 from camio.images import read_image, write_image
 from splat_train.config import BACKGROUND_MEAN, TrainConfig
 from splat_train.data import load_views, mean_colour
-from splat_train.trainer import Trainer, train
+from splat_train.trainer import Trainer, inputs_digest, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -53,15 +53,18 @@ def test_mean_background_of_rgba_images_is_taken_on_black(tmp_path):
     assert not np.allclose(got, _pooled_mean(scene["images"], names, (1.0, 1.0, 1.0)), atol=1e-3)
 
 
-def test_mean_colour_needs_pixels_and_the_trainer_a_resolved_colour(tmp_path):
+def test_mean_colour_needs_pixels_and_the_trainer_resolves_it_from_its_views(tmp_path):
     scene = write_scene(tmp_path / "scene", n_views=2)
     with pytest.raises(ValueError, match="pixels"):
         mean_colour(load_views(scene["cameras"], scene["images"], read_pixels=False))
     with pytest.raises(ValueError, match="pixels"):
         mean_colour([])
-    views = load_views(scene["cameras"], scene["images"])
-    with pytest.raises(ValueError, match="resolved from the training images"):
-        Trainer(TrainConfig(**SHORT, background=BACKGROUND_MEAN), scene["seed"], views, tmp_path / "run")
+    views = load_views(scene["cameras"], scene["images"])  # the Trainer takes the mean of the views it is given
+    tr = Trainer(TrainConfig(**SHORT, background=BACKGROUND_MEAN), scene["seed"], views, tmp_path / "run")
+    assert tr.cfg.background == mean_colour(views) and tr.background_from == BACKGROUND_MEAN
+    assert tr.bg.tolist() == pytest.approx(mean_colour(views), abs=1e-7)
+    assert inputs_digest(scene["seed"], views, tr.cfg) == \
+        inputs_digest(scene["seed"], views, TrainConfig(**SHORT, background=BACKGROUND_MEAN))
 
 
 @pytest.mark.parametrize("bad", ["grey", [0.5, 0.5], "0,0,0"])

@@ -103,8 +103,7 @@ def cmd_run(args) -> int:
             res = train_and_score(cell, out, recipe, seed, args.iterations,
                                   args.eval_every or max(1, args.iterations // 10), overrides, args.kernel_threads)
             rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
-            if "background" in overrides:  # the colour it trained and rendered against ("mean" resolved)
-                rec["background"] = res["background"]
+            rec["background"] = res["background"]  # the colour it trained and rendered against ("mean" resolved)
             rec["load_avg"] = os.getloadavg()
             with atomic_path(rec_path) as tmp:  # a record is whole or absent
                 tmp.write_text(json.dumps(rec, indent=1) + "\n")

@@ -118,9 +118,10 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
                     extra_args: tuple[str, ...] = (), score: bool = True) -> dict:
     """Train ``recipe`` (plus ``config`` overrides) on ``cell`` into ``out`` unless its train.json
     exists, then score the final model unless its metrics.json exists; return the measures.
-    The held-out renders use the background the run trained against too (the config's, "mean"
-    as train.json's config resolved it; the renderer's own without one), returned as
-    ``background`` (None without one). ``extra_args``: more ``python -m splat_train`` arguments
+    The held-out renders use the background the run trained against too (a colour the config
+    sets, "mean" as train.json's config resolved it, explicitly; else the renderer's default,
+    the model's train.json colour), returned as ``background`` (train.json's; None where it
+    keeps none). ``extra_args``: more ``python -m splat_train`` arguments
     (the GPU check's ``--device cuda --rasterizer gsplat``); ``score=False``: training only
     (``metrics`` None; the held-out curve in train.json still has the final iteration's PSNR
     and SSIM)."""
@@ -135,11 +136,11 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
         sh(["-m", "splat_train", *train_args(cell, out, recipe, seed, iterations, eval_every, config, kernel_threads),
             *extra_args], logf)
     tj = json.loads((out / "train.json").read_text())
-    bg = (config or {}).get("background")
-    if bg is not None:  # what it trained against: "mean" is the trainer's to resolve
-        bg = tj.get("config", {}).get("background", bg)
+    trained = tj.get("config", {}).get("background")  # the colour it trained against ("mean" resolved)
+    # the renders: a set colour explicitly, else the renderer's default, the model's train.json colour
+    bg = None if (config or {}).get("background") is None else trained
     if not score:
-        return {"train": tj, "metrics": None, "values": want, "background": bg}
+        return {"train": tj, "metrics": None, "values": want, "background": trained}
     metrics = out / "final" / "metrics.json"
     if not metrics.is_file():
         renders, gt = out / "final" / "renders", out / "final" / "gt"
@@ -155,7 +156,7 @@ def train_and_score(cell: dict[str, Path], out: Path, recipe: str, seed: int, it
         sh(["-m", "evaluation", "images", "--pred", str(renders), "--gt", str(gt), "--out", str(metrics),
             "--lpips-nets", "alex", "vgg"], logf)
     m = json.loads(metrics.read_text())
-    return {"train": tj, "metrics": m, "values": want, "background": bg}
+    return {"train": tj, "metrics": m, "values": want, "background": trained}
 
 
 def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, result: dict,
