@@ -106,6 +106,12 @@ class TrainResult:
         return self.out_dir / "model.ply"
 
 
+def resolve_mean_background(cfg: TrainConfig, views: list[View]) -> TrainConfig:
+    """``cfg`` with its ``background`` "mean" replaced by the views' mean colour
+    (:func:`splat_train.data.mean_colour`); any other config as it is."""
+    return replace(cfg, background=mean_colour(views)) if cfg.background == BACKGROUND_MEAN else cfg
+
+
 def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfig,
                   depth_prior: str | Path | None = None) -> str:
     """SHA-256 (hex) of what decides a run's result: the seed PLY's bytes (and the depth
@@ -113,8 +119,7 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
     and decoded pixels, and the config without the keys that may change on resume
     (:data:`RESUME_FREE_KEYS`), its ``background`` "mean" resolved from the views as the
     Trainer resolves it."""
-    if cfg.background == BACKGROUND_MEAN:
-        cfg = replace(cfg, background=mean_colour(train_views))
+    cfg = resolve_mean_background(cfg, train_views)
     h = hashlib.sha256()
     h.update(Path(seed_ply).read_bytes())
     if depth_prior is not None:
@@ -149,7 +154,7 @@ class Trainer:
         if not train_views:
             raise ValueError("no training views")
         if cfg.background == BACKGROUND_MEAN:  # the views' own mean: train() composites RGBA images on it
-            cfg, background_from = replace(cfg, background=mean_colour(train_views)), BACKGROUND_MEAN
+            cfg, background_from = resolve_mean_background(cfg, train_views), BACKGROUND_MEAN
         self.cfg, self.out = cfg, Path(out_dir)
         self.ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else self.out  # holds ckpt/
         self.depth_prior_path = Path(depth_prior) if depth_prior is not None and cfg.depth_weight > 0 else None
@@ -566,7 +571,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     background_from = "set"
     if cfg.background == BACKGROUND_MEAN:  # RGBA images composited on black for the mean, then on it
         background_from = BACKGROUND_MEAN
-        cfg = replace(cfg, background=mean_colour(load_views(cameras, images, names, cfg.downsample, BACKGROUND_BLACK)))
+        cfg = resolve_mean_background(cfg, load_views(cameras, images, names, cfg.downsample, BACKGROUND_BLACK))
         log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *cfg.background)
     bg = tuple(cfg.background)
     train_views = load_views(cameras, images, names, cfg.downsample, bg)
