@@ -65,6 +65,9 @@ def test_landing_a_value_moves_the_stale_records_aside_and_the_candidate_in(reco
             folder = work / f"{scene}_n3" / "runs" / run_name(scene, 3, name, 0, ITS)
             folder.mkdir(parents=True)
             (folder / "train.json").write_text(json.dumps({"name": name}))
+    white = {"background": [1.0, 1.0, 1.0]}  # a white scene with the candidate's run alone
+    _write(records / "runs", "blender__lego", "sparse-bgmean", {"recipe": "sparse", **white},
+           resolved_values("sparse", white, ITS), 18.0)
     monkeypatch.setitem(RECIPES["sparse"], "background", BACKGROUND_MEAN)  # the value lands
     # the candidate cannot take the name while fern's old record holds it
     assert _cli(records, "sparse-bgmean", "sparse", "--work", str(work)) == 2
@@ -82,8 +85,12 @@ def test_landing_a_value_moves_the_stale_records_aside_and_the_candidate_in(reco
     assert (old["recipe"], old["psnr"], old["config"]) == ("sparse-r13", 15.0, {"recipe": "sparse"})
     assert (new["recipe"], new["psnr"], new["config"]) == ("sparse", 16.0, {"recipe": "sparse"})
     assert new["values"]["background"] == BACKGROUND_MEAN
+    # its config as a run of sparse writes it there, with the scene's own colour
+    lego = json.loads((runs / f"{run_name('blender__lego', 3, 'sparse', 0, ITS)}.json").read_text())
+    assert (lego["recipe"], lego["config"]) == ("sparse", {"recipe": "sparse", "background": [1.0, 1.0, 1.0]})
     assert _names(records) == sorted(f"{run_name(s, 3, r, 0, ITS)}.json" for s, r in
-                                     [("llff__fern", "sparse"), ("llff__fern", "sparse-r13"), ("own__milk", "sparse")])
+                                     [("llff__fern", "sparse"), ("llff__fern", "sparse-r13"), ("own__milk", "sparse"),
+                                      ("blender__lego", "sparse")])
     cell = work / "llff__fern_n3" / "runs"
     assert json.loads((cell / run_name("llff__fern", 3, "sparse-r13", 0, ITS) / "train.json").read_text()) == \
         {"name": "sparse"}

@@ -9,7 +9,8 @@ own background from scenes.yaml), so that a record never carries a name whose va
 was not trained with:
 
 - to a recipe name: every record moved must resolve to what the recipe gives now, or nothing
-  moves; its ``config`` becomes ``{"recipe": NAME}``, as a run of the recipe writes it;
+  moves; its ``config`` becomes what a run of the recipe writes: ``{"recipe": NAME}``, with the
+  scene's own ``background`` where scenes.yaml gives one;
 - ``stale_only``: only the records that the recipe no longer matches move (a scene whose own
   background stood in for the changed value keeps its records under the recipe's name).
 
@@ -78,23 +79,22 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
     for path, rec in found:
         a = run_name(rec["scene"], rec["n"], old, rec["seed"], rec["iterations"])
         b = run_name(rec["scene"], rec["n"], new, rec["seed"], rec["iterations"])
-        target = path.with_name(f"{b}.json")
-        folders = None
+        target, folders = path.with_name(f"{b}.json"), None
         if work is not None:
             cell = Path(work) / f"{rec['scene']}_n{rec['n']}" / "runs"
             folders = (cell / a, cell / b)
-        taken = [str(t) for t in (target, *(folders[1:] if folders else ())) if t.exists()]
-        if taken:
-            raise ValueError(f"relabel: {taken[0]} exists already; nothing moved")
+        for taken in (target, folders[1]) if folders else (target,):
+            if taken.exists():
+                raise ValueError(f"relabel: {taken} exists already; nothing moved")
         moves.append((path, rec, target, folders))
     for path, rec, target, folders in moves:
         rec = {**rec, "recipe": new}
-        if new in RECIPE_NAMES:
-            rec["config"] = {"recipe": new}
+        if new in RECIPE_NAMES:  # as cmd_run writes a run of the recipe on this scene
+            bg = backgrounds.get(rec["scene"])
+            rec["config"] = {"recipe": new, **({} if bg is None else {"background": list(bg)})}
         with atomic_path(target) as tmp:
             tmp.write_text(json.dumps(rec, indent=1) + "\n")
         path.unlink()
         if folders is not None and folders[0].is_dir():
             folders[0].rename(folders[1])
     return [(m[0], m[2]) for m in moves]
-
