@@ -430,7 +430,9 @@ def test_a_run_against_the_mean_colour_is_told_apart_from_one_against_a_colour()
     while train.json keeps the resolved colour and, in ``background_from``, that it was the mean."""
     from benchmarks.sparse_views.runs import resolved_values, stale_keys, train_values
 
-    black, mean = resolved_values("sparse", {}, 300), resolved_values("sparse", {"background": "mean"}, 300)
+    black, mean = resolved_values("paper", {}, 300), resolved_values("paper", {"background": "mean"}, 300)
+    assert resolved_values("sparse", {}, 300)["background"] == "mean"
+    assert resolved_values("sparse", {"background": [0, 0, 0]}, 300)["background"] == [0.0, 0.0, 0.0]
     assert black["background"] == [0.0, 0.0, 0.0] and mean["background"] == "mean"
     tj = {"config": {**black, "background": [0.4, 0.5, 0.6]}, "background_from": "mean"}
     assert stale_keys(train_values(tj), mean) == []

@@ -200,13 +200,14 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "(`sparse-r2`: `sparse` before the opacity regulariser; `sparse-r3`: before growth stopped at half",
              "the run; `sparse-r10`: before binocular consistency; `sparse-r11`: before the opacity decay and",
              "growth to the end of the run; `sparse-r12`: binocular consistency from 2/3 of the run, not from",
-             "the densification start). `mcmc-r13` is `mcmc` before its growth rule (5 % per refine step",
+             "the densification start; `sparse-r13`: against black, before the training images' mean colour",
+             "behind the model). `mcmc-r13` is `mcmc` before its growth rule (5 % per refine step",
              "alone, which leaves a seed of a few triangulated points far below its cap; kept beside the",
-             "rerun, outside the targets). `sparse-bgmean` and `paper-bgmean` train and render against the",
-             "training images' mean colour instead of black (the fourteenth round's value, run on the",
-             "evaluation scenes beside the recipes as they are, outside the targets). On a scene with a",
-             "`background` in scenes.yaml (NeRF's synthetic scenes: white) every recipe trains and renders",
-             "against it; the others, against black.", ""]
+             "rerun, outside the targets). `paper-bgmean` is `paper` against the training images' mean colour",
+             "instead of black (`sparse`'s colour since the fourteenth round), so that the lead is also read at",
+             "equal background; outside the targets. On a scene with a `background` in scenes.yaml (NeRF's",
+             "synthetic scenes: white) every recipe trains and renders against it; on the others `sparse`",
+             "trains against the mean colour and the field's recipes against black.", ""]
     for role in ("evaluation", "tuning"):
         rs = [a for a in agg if a["role"] == role]
         if not rs:
