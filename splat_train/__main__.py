@@ -181,14 +181,12 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "render":
         args = _render_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        from splat_train.export import render_model
+        from splat_train.export import parse_background, render_model
 
         try:
-            bg = None if args.background is None else tuple(float(x) for x in args.background.split(","))
-            if bg is not None and len(bg) != 3:
-                raise ValueError
-        except ValueError:
-            log.error("--background must be three numbers like 0,0,0, got %r", args.background)
+            bg = None if args.background is None else parse_background(args.background)
+        except ValueError as e:
+            log.error("%s", e)
             return 2
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")

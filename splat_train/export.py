@@ -26,7 +26,7 @@ from splat_train.losses import psnr
 from splat_train.rasterize import rasterize
 from splat_train.recipes import BACKGROUND_BLACK
 
-__all__ = ["render_params", "render_views", "render_model", "render_name", "model_background"]
+__all__ = ["render_params", "render_views", "render_model", "render_name", "model_background", "parse_background"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,19 @@ def model_background(model: str | Path) -> tuple[tuple[float, float, float], str
     log.info("background (%.4f, %.4f, %.4f): %s", *rgb,
              "black, no train.json with one beside the model" if source == "default" else f"the training's, {source}")
     return rgb, source
+
+
+def parse_background(text: str) -> tuple[float, float, float]:
+    """A ``--background`` value, ``R,G,B`` in [0, 1] (``1,1,1`` is white), as three floats; the
+    same for every command that draws a model (``render``, ``view``). ValueError naming what is
+    wrong otherwise."""
+    try:
+        rgb = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= x <= 1.0 for x in rgb):  # NaN fails the range test too
+        raise ValueError(f"--background must be three numbers in [0, 1] like 0,0,0, got {text!r}")
+    return rgb
 
 
 def render_name(image_name: str) -> str:

@@ -95,3 +95,15 @@ def test_a_model_without_its_train_json_is_drawn_on_black(trained, tmp_path):
     black = _render(paths, out / "model.ply", tmp_path / "b", "--background", "0,0,0")
     for name in default:
         assert np.array_equal(default[name], black[name]), name
+
+
+@pytest.mark.parametrize("bad", ["1,1", "0,0,0,0", "white", "0,0,1.5", "nan,0,0"])
+def test_render_refuses_a_background_it_cannot_draw(trained, tmp_path, capsys, bad):
+    """A malformed or out-of-range ``--background`` is one error line and exit 2, nothing written."""
+    paths, out = trained
+    dest = tmp_path / "r"
+    assert main(["render", "--model", str(out / "model.ply"), "--cameras", str(paths["test_cameras"]),
+                 "--images", str(paths["test_images"]), "--out", str(dest), "--background", bad]) == 2
+    err = capsys.readouterr().err
+    assert "--background must be three numbers in [0, 1]" in err and repr(bad) in err, err
+    assert not dest.exists()

@@ -1,10 +1,12 @@
 """The viewer in a real browser: headless Chromium with software WebGL (SwiftShader) opens a
 small model at a training camera (off-centre principal point, SH degree 3 colour in every band,
-base colours above 1) and its screenshot matches ``python -m splat_train render`` of that camera; with the
-seed toggled on, the same camera shows the seed instead."""
+base colours above 1, trained against a colour other than black) and its screenshot matches
+``python -m splat_train render`` of that camera, the colour showing through where the model is
+transparent; with the seed toggled on, the same camera shows the seed instead."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -15,12 +17,13 @@ import pytest
 
 from _view_scene import write_view_scene
 from camio.images import read_image
-from splat_train.view import server
+from splat_train.view import cli, server
 from splat_train.view.headless import Chromium, find_chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 MIN_PSNR = 45.0  # measured 58 dB (SwiftShader); 37 dB without the SH re-encoding of shfix.js
 W, H = 160, 120
+BACKGROUND = (0.2, 0.45, 0.7)  # what the model was trained against (its train.json)
 
 
 def _skip_reason() -> str | None:
@@ -37,6 +40,7 @@ def _skip_reason() -> str | None:
 @pytest.mark.skipif(_skip_reason() is not None, reason=_skip_reason() or "")
 def test_browser_matches_render_at_a_training_camera(tmp_path):
     files = write_view_scene(tmp_path / "scene", n=400, width=W, height=H)
+    (files["model"].parent / "train.json").write_text(json.dumps({"config": {"background": list(BACKGROUND)}}))
     name = "view01.png"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     subprocess.run([sys.executable, "-m", "splat_train", "render", "--model", str(files["model"]),
@@ -45,7 +49,8 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
     ref = read_image(tmp_path / "renders" / name)[..., :3].astype(np.float64)
 
     cams = server.cameras_json(files["cameras"], files["test_cameras"])
-    srv = server.make_server(server.build_routes(files["model"], files["seed"], cams), port=0)
+    background = cli.view_background(str(files["model"]), None)[0]  # as `python -m splat_train view` does
+    srv = server.make_server(server.build_routes(files["model"], files["seed"], cams, background), port=0)
     server.serve_in_thread(srv)
     try:
         with Chromium(W, H) as browser:
@@ -64,6 +69,9 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
         srv.server_close()
     assert shot.shape == ref.shape
     assert ref.mean() > 0.05  # the model is in view
+    # where no Gaussian reaches (a corner), both show the training colour
+    np.testing.assert_allclose(ref[0, 0], BACKGROUND, atol=2 / 255)
+    np.testing.assert_allclose(shot[0, 0], BACKGROUND, atol=2 / 255)
     psnr = 10 * np.log10(1.0 / np.mean((shot - ref) ** 2))
     print(f"browser vs render at {name}: PSNR {psnr:.2f} dB")
     assert psnr >= MIN_PSNR, psnr

@@ -63,7 +63,7 @@ def test_serves_the_view(view):
     assert (c0["width"], c0["height"]) == (32, 24)
     assert c0["K"][0][2] != 16.0 and c0["K"][1][2] != 12.0  # the off-centre principal point travels
     assert np.asarray(c0["cam_from_world"]).shape == (3, 4)
-    assert json.loads(_get(view["port"], "/view.json")[1]) == {"seed": True}
+    assert json.loads(_get(view["port"], "/view.json")[1]) == {"seed": True, "background": [0.0, 0.0, 0.0]}
 
 
 @pytest.mark.parametrize("name", ["viewer.js", "shfix.js", "index.html"])
@@ -129,6 +129,8 @@ def test_cli_serves_until_stopped(tmp_path):
     except server.ViewerNotInstalled as e:
         pytest.skip(str(e))
     files = write_view_scene(tmp_path / "scene", n=10, width=32, height=24)
+    # the trainer's record beside the model: the view clears to the colour it trained against
+    (files["model"].parent / "train.json").write_text(json.dumps({"config": {"background": [0.25, 0.5, 0.75]}}))
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "splat_train", "view", "--model", str(files["model"]),
                              "--cameras", str(files["cameras"]), "--port", "0", "--no-browser"],
@@ -138,8 +140,31 @@ def test_cli_serves_until_stopped(tmp_path):
         assert "http://127.0.0.1:" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
         port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
         assert _get(port, "/model.ply")[1] == files["model"].read_bytes()
-        assert json.loads(_get(port, "/view.json")[1]) == {"seed": False}
+        assert "on background 0.25,0.5,0.75 (" in line and "train.json" in line, line
+        assert json.loads(_get(port, "/view.json")[1]) == {"seed": False, "background": [0.25, 0.5, 0.75]}
         assert _get(port, "/seed.ply")[0] == 404
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+def test_background_is_the_models_unless_told(tmp_path, capsys):
+    """The view clears to the train.json's colour, black without one; ``--background`` wins, in
+    ``render``'s spelling, and a malformed one is one line and exit 2."""
+    files = write_view_scene(tmp_path / "scene", n=10, width=32, height=24)
+    model = str(files["model"])
+    assert cli.view_background(model, None) == ((0.0, 0.0, 0.0), "default")
+    tj = files["model"].parent / "train.json"
+    tj.write_text(json.dumps({"config": {"background": [1, 1, 1]}}))
+    assert cli.view_background(model, None) == ((1.0, 1.0, 1.0), str(tj))
+    assert cli.view_background(model, "0.5,0,1") == ((0.5, 0.0, 1.0), "--background")
+    for bad in ("1,1", "0,0,0,0", "a,b,c", "0,0,1.5", "nan,0,0", "-0.1,0,0"):
+        with pytest.raises(ValueError, match="three numbers in"):
+            cli.view_background(model, bad)
+    try:
+        server.check_installed()
+    except server.ViewerNotInstalled as e:
+        pytest.skip(str(e))
+    assert cli.main(["--model", model, "--background", "2,0,0", "--no-browser", "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--background must be three numbers in [0, 1]" in err and "'2,0,0'" in err

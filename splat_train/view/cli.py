@@ -24,6 +24,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
     p.add_argument("--seed-ply", dest="seed_ply", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
+    p.add_argument("--background", default=None,
+                   help="colour behind the Gaussians, RGB in [0,1], e.g. 1,1,1 (default: the one the model was "
+                        "trained against, from the train.json beside it; black without one)")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
@@ -37,6 +40,16 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 def _stop(signum, frame):
     raise KeyboardInterrupt
+
+
+def view_background(model: str, flag: str | None) -> tuple[tuple[float, float, float], str]:
+    """The colour the view clears to and where it came from: ``--background`` (``flag``,
+    ``R,G,B`` in [0, 1]) when given, else the one the model was trained against
+    (:func:`splat_train.export.model_background`: its train.json's path, or "default" for black).
+    ValueError for a malformed flag."""
+    from splat_train.export import model_background, parse_background
+
+    return model_background(model) if flag is None else (parse_background(flag), "--background")
 
 
 def main(argv: list[str]) -> int:
@@ -76,12 +89,17 @@ def main(argv: list[str]) -> int:
             print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
             return 2
     try:
+        background, bg_from = view_background(args.model, args.background)
+    except ValueError as e:
+        print(f"python -m splat_train view: error: {e}", file=sys.stderr)
+        return 2
+    try:
         blob = cameras_json(args.cameras, args.test_cameras)
     except (OSError, ValueError) as e:
         print(f"python -m splat_train view: error: cannot read the cameras: {e}", file=sys.stderr)
         return 2
     try:
-        srv = make_server(build_routes(args.model, args.seed_ply, blob), args.host, args.port)
+        srv = make_server(build_routes(args.model, args.seed_ply, blob, background), args.host, args.port)
     except OSError as e:  # in use, no permission, an address this machine does not have
         if e.errno == errno.EADDRINUSE:
             print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "
@@ -95,7 +113,10 @@ def main(argv: list[str]) -> int:
               "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"
-    print(f"[view] serving {args.model} at {url} (Ctrl-C stops)", flush=True)
+    bg_text = ",".join(f"{x:g}" for x in background)
+    print(f"[view] serving {args.model} at {url} on background {bg_text} "
+          f"({'black: no train.json with one beside the model' if bg_from == 'default' else bg_from}; Ctrl-C stops)",
+          flush=True)
     # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM. SIGINT
     # too: a process started in the background by a non-interactive shell (`cmd &`) inherits
     # SIGINT ignored, and Python then installs no Ctrl-C handler of its own

@@ -72,16 +72,19 @@ def cameras_json(cameras: str | Path | None = None, test_cameras: str | Path | N
     return json.dumps({"cameras": recs}).encode()
 
 
-def build_routes(model: str | Path, seed: str | Path | None = None, cameras_blob: bytes | None = None
-                 ) -> dict[str, Path | bytes]:
-    """The complete table of what the server answers: URL path -> file or bytes."""
+def build_routes(model: str | Path, seed: str | Path | None = None, cameras_blob: bytes | None = None,
+                 background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Path | bytes]:
+    """The complete table of what the server answers: URL path -> file or bytes. ``background``:
+    RGB in [0, 1] the page clears to, behind the Gaussians (the colour the model was trained
+    against: a model trained against a colour is transparent where that colour was)."""
     routes: dict[str, Path | bytes] = {url: STATIC_DIR / rel for url, rel in STATIC_FILES.items()}
     routes.update({url: NODE_MODULES / rel for url, rel in VENDOR_FILES.items()})
     routes["/model.ply"] = Path(model).resolve()
     if seed is not None:
         routes["/seed.ply"] = Path(seed).resolve()
     routes["/cameras.json"] = cameras_blob if cameras_blob is not None else b'{"cameras": []}'
-    routes["/view.json"] = json.dumps({"seed": seed is not None}).encode()
+    routes["/view.json"] = json.dumps({"seed": seed is not None,
+                                       "background": [float(x) for x in background]}).encode()
     return routes
 
 

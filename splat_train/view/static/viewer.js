@@ -191,6 +191,9 @@ async function main() {
   const [camsResp, viewResp] = await Promise.all([fetch("/cameras.json"), fetch("/view.json")]);
   cameras = (await camsResp.json()).cameras;
   const view = await viewResp.json();
+  // the colour the model was trained against, as the trainer composites it (no sRGB conversion)
+  const bg = view.background;
+  renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.LinearSRGBColorSpace), 1);
   if (view.seed) document.getElementById("seedrow").classList.remove("hidden");
   for (const r of cameras) {
     const opt = document.createElement("option");
