@@ -26,7 +26,7 @@ from splat_train.losses import psnr
 from splat_train.rasterize import rasterize
 from splat_train.recipes import BACKGROUND_BLACK
 
-__all__ = ["render_params", "render_views", "render_model", "render_name", "model_background", "parse_background"]
+__all__ = ["render_params", "render_views", "render_model", "render_name", "model_background", "background_note", "parse_background"]
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +46,14 @@ def model_background(model: str | Path) -> tuple[tuple[float, float, float], str
         rgb, source = (float(bg[0]), float(bg[1]), float(bg[2])), str(tj)
     else:
         rgb, source = BACKGROUND_BLACK, "default"
-    log.info("background (%.4f, %.4f, %.4f): %s", *rgb,
-             "black, no train.json with one beside the model" if source == "default" else f"the training's, {source}")
     return rgb, source
+
+
+def background_note(rgb: tuple[float, float, float], source: str) -> str:
+    """One line on the colour a model is drawn on and where it came from (``source`` as
+    :func:`model_background` or a ``--background`` flag gives it), the same in every command's log."""
+    where = "black: no train.json with one beside the model" if source == "default" else source
+    return f"background {','.join(f'{x:g}' for x in rgb)} ({where})"
 
 
 def parse_background(text: str) -> tuple[float, float, float]:
@@ -165,7 +170,8 @@ def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
     """
     t0 = time.perf_counter()
     if background is None:
-        background = model_background(model)[0]
+        background, source = model_background(model)
+        log.info("%s", background_note(background, source))
     name_list = read_name_list(names) if names is not None else None
     # an RGBA image is scored on the colour the render is drawn on
     views = load_views(cameras, images, name_list, background=tuple(background), read_pixels=images is not None)

@@ -60,7 +60,7 @@ from camio.colmap import write_text_model
 from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
-from splat_train.export import camera_tensors, model_background, render_name, render_params
+from splat_train.export import background_note, camera_tensors, model_background, render_name, render_params
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
 from splat_train.pose import so3_exp
@@ -216,7 +216,8 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     """
     t0 = time.perf_counter()
     name_list = read_name_list(names) if names is not None else None
-    background = model_background(model)[0]
+    background, source = model_background(model)
+    log.info("%s", background_note(background, source))
     views: list[View] = load_views(cameras, images, name_list, background=background)
     cloud = read_gaussian_ply(model)
     params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)

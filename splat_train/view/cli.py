@@ -76,6 +76,7 @@ def main(argv: list[str]) -> int:
               file=sys.stderr)
         return 2
     from camio.ply import PlyFormatError, read_gaussian_ply
+    from splat_train.export import background_note
 
     for label, path in (("--model", args.model), ("--seed-ply", args.seed_ply)):
         if path is None:
@@ -113,9 +114,7 @@ def main(argv: list[str]) -> int:
               "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"
-    bg_text = ",".join(f"{x:g}" for x in background)
-    print(f"[view] serving {args.model} at {url} on background {bg_text} "
-          f"({'black: no train.json with one beside the model' if bg_from == 'default' else bg_from}; Ctrl-C stops)",
+    print(f"[view] serving {args.model} at {url} on {background_note(background, bg_from)}; Ctrl-C stops",
           flush=True)
     # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM. SIGINT
     # too: a process started in the background by a non-interactive shell (`cmd &`) inherits
