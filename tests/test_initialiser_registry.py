@@ -121,7 +121,7 @@ def test_a_studied_initialiser_takes_the_noise_flags(name):
 def test_the_bridge_reads_each_initialiser_by_its_output():
     assert set(registry.from_predictions()) | set(registry.from_colmap_model()) == set(registry.NAMES)
     assert not set(registry.from_predictions()) & set(registry.from_colmap_model())
-    assert set(registry.from_predictions()) == {"vggt", "oracle", "vggt_ba", "oracle_ba"}
+    assert set(registry.from_predictions()) == {"vggt", "oracle", "mvs", "vggt_ba", "oracle_ba"}
     bridge_smk = (REPO / "workflow" / "rules" / "bridge.smk").read_text()
     assert "init=INIT_FROM_PREDICTIONS" in bridge_smk and "init=INIT_FROM_COLMAP_MODEL" in bridge_smk
     assert "base=BA_FROM_PREDICTIONS" in INIT_SMK and "base=BA_FROM_COLMAP_MODEL" in INIT_SMK

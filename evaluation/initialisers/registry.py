@@ -93,6 +93,8 @@ _ORACLE = Initialiser("oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS
                       True, frozenset({"gt_geometry"}), own_rule=True, study=True)
 _POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.json", False,
                      frozenset({"reference"}), own_rule=True, study=True)
+_MVS = Initialiser("mvs", "evaluation.initialisers.mvs", (*_PREDICTIONS, "status.json"), "status.json", True,
+                   frozenset({"reference"}), own_rule=True)
 
 #: every initialiser, by name, in the order tables list them
 INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
@@ -100,6 +102,7 @@ INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False, own_rule=True),
     _ORACLE,
     _POSED,
+    _MVS,
     _ba(_VGGT),
     _ba(_ORACLE),
     _ba(_POSED),

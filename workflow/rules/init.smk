@@ -1,6 +1,6 @@
 # Initialisers (VGGT, the COLMAP baseline, the noisy ground-truth oracle, the ground-truth-pose
-# initialiser on posed scenes, random points for the reference cameras, and any registered one
-# without a rule of its own), their bundle-adjusted variants (*_ba) and pose accuracy.
+# initialiser on posed scenes, dense multi-view stereo from the reference cameras, random points
+# for the reference cameras, and any registered one without a rule of its own), their bundle-adjusted variants (*_ba) and pose accuracy.
 
 
 rule vggt_init:
@@ -129,6 +129,33 @@ rule posed_init:
         args=posed_args,
     shell:
         "python -m evaluation.initialisers.posed --scene {input.scene} --image-list {input.image_list} "
+        "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+
+
+rule mvs_init:
+    input:
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        predictions=temp(f"{SCENE}/n{{n}}/mvs/predictions.npz"),
+        model=directory(f"{SCENE}/n{{n}}/mvs/sparse"),
+        status=f"{SCENE}/n{{n}}/mvs/status.json",
+    log:
+        f"{SCENE}/n{{n}}/mvs/logs/mvs_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/mvs/benchmarks/mvs_init.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: config["mvs"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=config["mvs"]["runtime"],
+        cpus_per_task=cpus_per_task,
+    params:
+        out=out_dir,
+        args=mvs_args,
+    shell:
+        "python -m evaluation.initialisers.mvs --scene {input.scene} --image-list {input.image_list} "
         "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
 
 

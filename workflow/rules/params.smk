@@ -62,6 +62,15 @@ def posed_args(wildcards):
     return " ".join(args + fallback_args())
 
 
+def mvs_args(wildcards):
+    """evaluation.initialisers.mvs's arguments (config mvs; null keys are left to its MvsConfig,
+    the one place of their defaults)."""
+    m = config["mvs"]
+    return " ".join(
+        f"--{k.replace('_', '-')} {m[k]}" for k in ("max_size", "max_sources") if m[k] is not None
+    )
+
+
 def fallback_args():
     """The random-point fallback of posed and COLMAP (config random; null keys are left to
     evaluation.initialisers.random_init, the one place of their defaults)."""
