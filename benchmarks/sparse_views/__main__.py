@@ -24,8 +24,13 @@ DOC = REPO / "docs" / "results-sparse-views.md"
 DEFAULT_RECIPES = ("paper", "dropgaussian", "mcmc", "sparse")
 
 
+#: a variant's keys that choose its seed (benchmarks.sparse_views.cells.prepare), not training values
+SEED_KEYS = ("init", "bridge_mode")
+
+
 def _variant(text: str) -> tuple[str, dict]:
-    """``name`` (a recipe) or ``name=JSON`` (a tuning variant: a recipe plus config keys)."""
+    """``name`` (a recipe) or ``name=JSON`` (a variant: a recipe plus config keys, and
+    optionally :data:`SEED_KEYS`: ``init`` the cell's seed, ``bridge_mode`` its Bridge mode)."""
     if "=" not in text:
         return text, {}
     name, cfg = text.split("=", 1)
@@ -44,8 +49,12 @@ def cmd_run(args) -> int:
               and (not args.scenes or s.name in args.scenes)]
     # each variant once: its name, config, recipe, config overrides and the values its runs resolve
     plans = []
+    from benchmarks.sparse_views.cells import seed_folder
+
     for name, cfg in (_variant(v) for v in args.recipes):
-        recipe, overrides = cfg.get("recipe", name), {k: v for k, v in cfg.items() if k != "recipe"}
+        seed_folder(cfg.get("init", "posed"), cfg.get("bridge_mode"))  # a bad seed choice fails here, before any run
+        recipe = cfg.get("recipe", name)
+        overrides = {k: v for k, v in cfg.items() if k != "recipe" and k not in SEED_KEYS}
         plans.append((name, cfg, recipe, overrides, resolved_values(recipe, overrides, args.iterations)))
     runs_dir = args.records / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
@@ -99,7 +108,7 @@ def cmd_run(args) -> int:
                       + ("recorded meanwhile" if mine else f"running in another process ({lock})") + ", skipped",
                       flush=True)
                 continue
-            cell = prepare(args.work / f"{s.name}_n{n}", s, n)
+            cell = prepare(args.work / f"{s.name}_n{n}", s, n, cfg.get("init", "posed"), cfg.get("bridge_mode"))
             res = train_and_score(cell, out, recipe, seed, args.iterations,
                                   args.eval_every or max(1, args.iterations // 10), overrides, args.kernel_threads)
             rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
@@ -155,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="recipes, or tuning variants NAME='{\"recipe\": ..., key: value}' (default %(default)s); "
                         "a variant's \"background\": \"mean\" trains and renders against the mean colour of "
                         "the cell's training images (the trainer's; a scene's own background in scenes.yaml "
-                        "stands instead)")
+                        "stands instead); \"init\": posed (default), mvs or random seeds the cell from that "
+                        "initialiser, \"bridge_mode\" its Bridge mode (mvs)")
     r.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     r.add_argument("--iterations", type=int, default=1000)
     r.add_argument("--eval-every", type=int, default=None, help="held-out curve period (default iterations / 10)")

@@ -1,9 +1,11 @@
-"""One benchmark cell (scene, n training views), prepared once through the stage CLIs.
+"""One benchmark cell (scene, n training views, seed), prepared once through the stage CLIs.
 
-Scene conversion (or synthesis), the every-8th split, the ``posed`` initialiser (reference
-cameras, points triangulated from the n training views), the Bridge and the alignment of the
-held-out cameras, each a ``python -m`` stage command (docs/contracts.md) whose output is kept:
-a second call finds the files and runs nothing.
+Scene conversion (or synthesis), the every-8th split, an initialiser from the scene's reference
+cameras and the n training views (:data:`SEEDS`: ``posed``, points triangulated with them, by
+default; ``mvs``, dense multi-view stereo; ``random``, 3DGS's random points), the Bridge (in a
+mode for an initialiser with a confidence) and the alignment of the held-out cameras, each a
+``python -m`` stage command (docs/contracts.md) whose output is kept: a second call finds the
+files and runs nothing. The scene, split and name lists of a (scene, n) are shared by its seeds.
 
 The seed is the triangulated points alone, however few: unlike the workflow, the cell does not
 switch to ``posed``'s random-point fallback (``evaluation.initialisers.random_init``) below 100
@@ -22,15 +24,47 @@ from pathlib import Path
 from benchmarks._proc import run_stage as sh
 from benchmarks.sparse_views.protocol import Scene
 
+#: the initialisers a cell seeds from: name -> (command, whether it writes a confidence)
+SEEDS = {"posed": ("evaluation.initialisers.posed", False), "mvs": ("evaluation.initialisers.mvs", True),
+         "random": ("evaluation.initialisers.random_init", False)}
 
-def prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
-    """Prepare the cell of ``scene`` at ``n`` training views in ``work``; return its paths
-    (scene, train / test name lists, bridge, align). Shards running side by side take turns
-    (a lock file beside the cell)."""
+
+def seed_folder(init: str = "posed", mode: str | None = None) -> str:
+    """The folder of a seed inside a cell: "" for ``posed`` (the cell itself, as before there
+    was a choice), else ``seed_<init>[_<mode>]``."""
+    if init not in SEEDS:
+        raise ValueError(f"unknown seed initialiser {init!r}; known: {', '.join(SEEDS)}")
+    if mode is not None and not SEEDS[init][1]:
+        raise ValueError(f"{init} has no confidence: no Bridge mode to choose (got {mode!r})")
+    return "" if init == "posed" else f"seed_{init}" + (f"_{mode}" if mode else "")
+
+
+def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | None = None) -> dict[str, Path]:
+    """Prepare the cell of ``scene`` at ``n`` training views in ``work``, seeded by ``init``
+    (:data:`SEEDS`; ``mode`` the Bridge mode of one with a confidence, the Bridge's default
+    when None); return its paths (scene, train / test name lists, bridge, align). Shards
+    running side by side take turns (a lock file beside the cell)."""
+    folder = seed_folder(init, mode)
     work.parent.mkdir(parents=True, exist_ok=True)
     with open(work.parent / f".{work.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        return _prepare(work, scene, n)
+        cell = _prepare(work, scene, n)
+        if init == "posed":
+            return cell
+        return {**cell, **_seed(work, work / folder, init, mode, cell, n)}
+
+
+def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, cell: dict, n: int) -> dict[str, Path]:
+    """The initialiser ``init`` into ``seed_dir/init``, then the Bridge and the alignment."""
+    s, logf = cell["scene"], work / "prepare.log"
+    init_dir = seed_dir / "init"
+    if not (seed_dir / "bridge" / "bridge.json").is_file():
+        if init == "random":
+            args = ["--cameras", str(s / "sparse" / "0")]
+        else:
+            args = ["--scene", str(s)]
+        sh(["-m", SEEDS[init][0], *args, "--image-list", str(cell["train"]), "--out", str(init_dir)], logf)
+    return bridge_and_align(seed_dir, s, init_dir, n, logf, mode)
 
 
 def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
@@ -67,14 +101,17 @@ def seed_model(init_dir: Path) -> Path:
     return seed_model_dir(init_dir, only_without_points=True)
 
 
-def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path) -> dict[str, Path]:
-    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, else its
-    COLMAP model, :func:`seed_model`) into ``work/bridge``, then the held-out cameras aligned to
-    it into ``work/align``; each skipped when its output exists. Returns {"bridge", "align"}."""
+def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path,
+                     mode: str | None = None) -> dict[str, Path]:
+    """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, in
+    ``mode`` when given, else its COLMAP model, :func:`seed_model`) into ``work/bridge``, then
+    the held-out cameras aligned to it into ``work/align``; each skipped when its output
+    exists. Returns {"bridge", "align"}."""
     bridge, align = work / "bridge", work / "align"
     if not (bridge / "bridge.json").is_file():
         if (init_dir / "predictions.npz").is_file():
-            sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge)], log)
+            sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge),
+                *(["--mode", mode] if mode else [])], log)
         else:
             sh(["-m", "bridge", "--colmap", str(seed_model(init_dir)), "--images", str(scene / "images"),
                 "--out", str(bridge)], log)
