@@ -256,7 +256,7 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
 MEAN_STAND_IN = [0.25, 0.5, 0.75]
 
 
-def _empty_cell(work, scene, n):
+def _empty_cell(work, scene, n, init="posed", mode=None):
     """A stand-in for the cell's preparation: its folders, no test views."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "test.txt").write_text("")
