@@ -1,6 +1,6 @@
 """Your own photos in one command: cameras, a trained model and a view of it.
 
-    python scripts/photos.py PHOTOS [--out DIR] [--init vggt|colmap|both] [--iterations N]
+    python scripts/photos.py PHOTOS [--out DIR] [--init vggt|colmap|both] [--dense] [--iterations N]
                              [--cores N] [-n] [-- SNAKEMAKE ARGS ...]
 
 PHOTOS is a folder of photographs of one scene (3 or more; no camera files needed). Every photo
@@ -20,7 +20,9 @@ What the run leaves (DIR/photos.md lists the paths and the exact `view` command)
     DIR/photos.md, DIR/report/index.html                   what ran, and why not where it did not
 
 Without the VGGT-1B checkpoint (and no way to download it) VGGT is skipped with one line
-saying why, and COLMAP runs alone.
+saying why, and COLMAP runs alone. ``--dense`` adds, for each initialiser, multi-view stereo of
+the photos on its cameras (``colmap_mvs``, ``vggt_mvs``: evaluation/initialisers/mvs): a dense
+seed with a confidence per point, which the Bridge turns into opacity (Eq. 2).
 """
 
 from __future__ import annotations
@@ -98,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init", choices=sorted(INITS), default="both",
                    help="initialiser: vggt, colmap, or both (default both; VGGT is skipped, with "
                         "the reason, where its checkpoint is missing)")
+    p.add_argument("--dense", action="store_true",
+                   help="also seed from multi-view stereo of the photos on each initialiser's cameras "
+                        "(colmap_mvs, vggt_mvs)")
     p.add_argument("--iterations", type=int, help="training steps (default: the workflow's, "
                                                   "workflow/schemas/config.schema.yaml)")
     p.add_argument("--vggt-checkpoint", dest="vggt_checkpoint",
@@ -129,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("checkpoint", "model_config"):
         if key in vggt:
             vggt[key] = str(Path(vggt[key]).absolute())
-    cfg = make_config(args.photos, out, names, INITS[args.init], args.iterations, vggt)
+    inits = INITS[args.init] + ([f"{i}_mvs" for i in INITS[args.init]] if args.dense else [])
+    cfg = make_config(args.photos, out, names, inits, args.iterations, vggt)
 
     sys.path.insert(0, str(REPO / "workflow" / "scripts"))
     from check_config import config_problems
@@ -144,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     _write_if_changed(out / "config.yaml", "# Written by scripts/photos.py for " + str(args.photos.resolve())
                       + "\n" + yaml.safe_dump(cfg, sort_keys=False))
     print(f"[photos] {len(names)} photos in {args.photos}; config {out / 'config.yaml'}; "
-          f"initialiser(s): {', '.join(INITS[args.init])}", flush=True)
+          f"initialiser(s): {', '.join(inits)}", flush=True)
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
            "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), *(["-n"] if args.dry_run else []),
            *extra]

@@ -102,7 +102,7 @@ def test_each_initialiser_has_its_command_and_its_rule(name):
         assert "init=INIT_COMMON_RULE" in INIT_SMK and "python -m {params.command} " in INIT_SMK
         return
     assert f"python -m {init.command} " in INIT_SMK, f"no rule of init.smk runs {init.command}"
-    folder = "{{base}}_ba" if init.base else name
+    folder = "{{base}}_ba" if init.base else "{{base}}_mvs" if init.cameras_from else name
     assert f"/{folder}/{init.marker}\"" in INIT_SMK, f"no rule of init.smk writes {name}/{init.marker}"
     if init.base:
         base = registry.get(init.base)
@@ -121,10 +121,22 @@ def test_a_studied_initialiser_takes_the_noise_flags(name):
 def test_the_bridge_reads_each_initialiser_by_its_output():
     assert set(registry.from_predictions()) | set(registry.from_colmap_model()) == set(registry.NAMES)
     assert not set(registry.from_predictions()) & set(registry.from_colmap_model())
-    assert set(registry.from_predictions()) == {"vggt", "oracle", "mvs", "vggt_ba", "oracle_ba"}
+    assert set(registry.from_predictions()) == {"vggt", "oracle", "mvs", "vggt_ba", "oracle_ba", "vggt_mvs",
+                                                "colmap_mvs"}
     bridge_smk = (REPO / "workflow" / "rules" / "bridge.smk").read_text()
     assert "init=INIT_FROM_PREDICTIONS" in bridge_smk and "init=INIT_FROM_COLMAP_MODEL" in bridge_smk
     assert "base=BA_FROM_PREDICTIONS" in INIT_SMK and "base=BA_FROM_COLMAP_MODEL" in INIT_SMK
+    assert "base=DENSE_FROM" in INIT_SMK
+
+
+def test_a_dense_step_starts_from_its_bases_cameras():
+    """``<base>_mvs``: multi-view stereo on ``base``'s COLMAP model, needing what ``base`` needs."""
+    dense = {n: i for n, i in registry.INITIALISERS.items() if i.cameras_from}
+    assert set(dense) == {"vggt_mvs", "colmap_mvs"} and registry.dense_bases() == ("vggt", "colmap")
+    for name, init in dense.items():
+        base = registry.get(init.cameras_from)
+        assert name == f"{base.name}_mvs" and init.needs == base.needs and init.confidence
+        assert init.command == registry.get("mvs").command
     # no rule file spells a list out again
     for smk in (REPO / "workflow" / "rules").glob("*.smk"):
         text = smk.read_text()

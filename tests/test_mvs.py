@@ -252,3 +252,20 @@ def test_large_photos_work_at_the_stated_resolution(scene128, tmp_path):
     assert status["working_size"] == [160, 120] and status["original_size"] == [4000, 3000]
     model = read_model(out / "sparse" / "0")
     assert model.cameras[0].width == 4000 and len(model.points) > 100
+
+
+def test_cameras_of_another_model_may_lack_a_photo(scene128, tmp_path, capsys):
+    """``--images --cameras``: an estimated model (COLMAP's) need not register every photo; the
+    photos without a camera are left out with a warning, the rest are swept."""
+    src = read_model(scene128 / "sparse" / "0")
+    names = _names(scene128, 6)
+    model = tmp_path / "model"
+    write_text_model(model, [src.camera(n) for n in names[:4]])  # two photos unregistered
+    lst = tmp_path / "train.txt"
+    lst.write_text("\n".join(names) + "\n")
+    out = tmp_path / "out"
+    assert main(["--images", str(scene128 / "images"), "--cameras", str(model), "--image-list", str(lst),
+                 "--out", str(out)]) == 0
+    pred = np.load(out / "predictions.npz")
+    assert [str(n) for n in pred["image_names"]] == names[:4]
+    assert "2 of 6 training images have no camera" in capsys.readouterr().err

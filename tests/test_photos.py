@@ -97,3 +97,28 @@ def test_photo_folder_to_a_viewable_model(tmp_path, photos):
 
     again = _photos(tmp_path, *args)  # the same command again resumes: nothing to do
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+
+
+@pytest.mark.slow
+def test_dense_seeds_from_multi_view_stereo_on_colmaps_cameras(tmp_path):
+    """``--dense``: COLMAP's cameras of the photos, then multi-view stereo of the photos on them
+    (colmap_mvs), its dense points seeded with Eq. 2's opacity, trained and rendered."""
+    scene = tmp_path / "synth"
+    subprocess.run([sys.executable, "-m", "camio", "-q", "synth", "--out", str(scene), "--views", "16",
+                    "--width", "256", "--seed", "0"], check=True, capture_output=True)
+    folder = tmp_path / "yard"
+    folder.mkdir()
+    for p in sorted((scene / "images").iterdir())[::3]:  # 6 photos along the arc
+        shutil.copy(p, folder / p.name)
+    out = tmp_path / "out"
+    proc = _photos(tmp_path, str(folder), "--out", str(out), "--init", "colmap", "--dense", "--iterations", "3")
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-6000:]
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["initialisers"] == ["colmap", "colmap_mvs"]
+    run = out / "photos" / "yard" / "n6" / "colmap_mvs"
+    status = json.loads((run / "status.json").read_text())
+    assert status["cameras_source"].endswith("colmap/sparse/0") and status["points"] > 1000
+    bridge = json.loads((run / "gated" / "bridge" / "bridge.json").read_text())
+    assert bridge["alpha_out"]["max"] > bridge["alpha_out"]["min"]  # the confidence sets the opacity
+    assert len(list((run / "gated" / "train_renders").glob("*.png"))) == 6
+    assert "### colmap_mvs: ran" in (out / "photos.md").read_text()

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
-           "from_colmap_model", "with_common_rule", "studied", "ba_bases"]
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -50,6 +50,9 @@ class Initialiser:
             writes ``sparse/0`` and ``status.json`` (its marker), with no confidence.
         study: a study cell can degrade it (config ``study.initialiser``): its command takes
             the noise flags ``--rot-deg --trans-frac --depth-rel --outlier-frac``.
+        cameras_from: for a dense step (``<base>_mvs``), the initialiser whose COLMAP model
+            gives the cameras that multi-view stereo of the training views starts from
+            (scenes without reference cameras: your own photos).
     """
 
     name: str
@@ -62,6 +65,7 @@ class Initialiser:
     gpu: bool = False
     own_rule: bool = False
     study: bool = False
+    cameras_from: str | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.needs) - set(NEEDS)
@@ -95,11 +99,20 @@ _POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.j
                      frozenset({"reference"}), own_rule=True, study=True)
 _MVS = Initialiser("mvs", "evaluation.initialisers.mvs", (*_PREDICTIONS, "status.json"), "status.json", True,
                    frozenset({"reference"}), own_rule=True)
+_COLMAP = Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False,
+                      own_rule=True)
+
+
+def _dense(base: Initialiser) -> Initialiser:
+    """Multi-view stereo of the training views on ``base``'s cameras: dense points with a
+    confidence where the scene has no reference cameras."""
+    return Initialiser(f"{base.name}_mvs", _MVS.command, _MVS.writes, "status.json", True, base.needs,
+                       own_rule=True, cameras_from=base.name)
 
 #: every initialiser, by name, in the order tables list them
 INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     _VGGT,
-    Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False, own_rule=True),
+    _COLMAP,
     _ORACLE,
     _POSED,
     _MVS,
@@ -108,6 +121,8 @@ INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     _ba(_POSED),
     Initialiser("random", "evaluation.initialisers.random_init", _MODEL, "status.json", False,
                 frozenset({"reference"}), own_rule=True),
+    _dense(_VGGT),
+    _dense(_COLMAP),
 )}
 NAMES = tuple(INITIALISERS)
 
@@ -143,3 +158,8 @@ def studied() -> tuple[str, ...]:
 def ba_bases(confidence: bool) -> tuple[str, ...]:
     """Names of the initialisers a bundle-adjustment step refines, with (or without) a confidence."""
     return tuple(i.base for i in INITIALISERS.values() if i.base and i.confidence == confidence)
+
+
+def dense_bases() -> tuple[str, ...]:
+    """Names of the initialisers whose cameras a dense step (``<base>_mvs``) starts from."""
+    return tuple(i.cameras_from for i in INITIALISERS.values() if i.cameras_from)

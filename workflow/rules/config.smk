@@ -85,6 +85,7 @@ INIT_FROM_COLMAP_MODEL = _alternatives(initialisers.from_colmap_model())
 INIT_COMMON_RULE = _alternatives(initialisers.with_common_rule())
 BA_FROM_PREDICTIONS = _alternatives(initialisers.ba_bases(confidence=True))
 BA_FROM_COLMAP_MODEL = _alternatives(initialisers.ba_bases(confidence=False))
+DENSE_FROM = _alternatives(initialisers.dense_bases())
 
 
 wildcard_constraints:

@@ -159,6 +159,40 @@ rule mvs_init:
         "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
 
 
+# Multi-view stereo on another initialiser's cameras (the registry's ``cameras_from``:
+# colmap_mvs, vggt_mvs), for scenes without reference cameras (your own photos).
+rule mvs_on_cameras:
+    input:
+        init=dense_base_marker,
+        scene=scene_dir,
+        image_list=f"{SCENE}/n{{n}}/train.txt",
+    output:
+        predictions=temp(f"{SCENE}/n{{n}}/{{base}}_mvs/predictions.npz"),
+        model=directory(f"{SCENE}/n{{n}}/{{base}}_mvs/sparse"),
+        status=f"{SCENE}/n{{n}}/{{base}}_mvs/status.json",
+    log:
+        f"{SCENE}/n{{n}}/{{base}}_mvs/logs/mvs_init.log",
+    benchmark:
+        f"{SCENE}/n{{n}}/{{base}}_mvs/benchmarks/mvs_init.tsv"
+    wildcard_constraints:
+        base=DENSE_FROM,
+    conda:
+        "../envs/project.yaml"
+    threads: config["mvs"]["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=config["mvs"]["runtime"],
+        cpus_per_task=cpus_per_task,
+    params:
+        cameras=dense_base_model,
+        out=out_dir,
+        args=mvs_args,
+    shell:
+        "python -m evaluation.initialisers.mvs --images {input.scene}/images --cameras {params.cameras} "
+        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
+        "> {log} 2>&1"
+
+
 rule random_init:
     input:
         scene=scene_dir,

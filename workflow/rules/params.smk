@@ -71,6 +71,17 @@ def mvs_args(wildcards):
     )
 
 
+def dense_base_marker(wildcards):
+    """The finished-run marker of the initialiser whose cameras a dense step starts from."""
+    run = RUN.format(dataset=wildcards.dataset, scene=wildcards.scene, n=wildcards.n, init=wildcards.base)
+    return f"{run}/{init_marker_of(wildcards.base)}"
+
+
+def dense_base_model(wildcards, input):
+    """That initialiser's COLMAP model (beside its marker)."""
+    return f"{Path(input.init).parent}/sparse/0"
+
+
 def fallback_args():
     """The random-point fallback of posed and COLMAP (config random; null keys are left to
     evaluation.initialisers.random_init, the one place of their defaults)."""

@@ -5,11 +5,12 @@ what does not apply (COLMAP decisions read through the colmap_index checkpoint).
 
 
 def colmap_runs(wildcards=None):
-    """status.json of every configured COLMAP run (inputs of the colmap_index checkpoint)."""
+    """status.json of every configured COLMAP run, and of those a dense step on COLMAP's
+    cameras starts from (inputs of the colmap_index checkpoint)."""
     return [
         f"{RUN.format(dataset=ds, scene=sc, n=n, init='colmap')}/status.json"
         for ds, sc in all_scenes()
-        if "colmap" in scene_inits(ds, sc)
+        if any(i == "colmap" or initialisers.get(i).cameras_from == "colmap" for i in scene_inits(ds, sc))
         for n in scene_views(ds, sc)
     ]
 
@@ -47,6 +48,9 @@ def run_targets(dataset, scene, n, init, stage):
     run = RUN.format(**w)
     ref = has_reference(dataset, scene)
     heldout = ref and has_test_split(dataset, scene)
+    base = initialisers.get(init).cameras_from
+    if base == "colmap" and colmap_status(dataset, scene, n).get("registered", 0) < 2:
+        return []  # no two cameras for stereo: COLMAP's failure, reported as COLMAP's
     out = [f"{run}/{init_marker_of(init)}"]
     if stage == "init":
         return out
@@ -57,6 +61,8 @@ def run_targets(dataset, scene, n, init, stage):
         if not (status.get("success_paper", status.get("success")) or fallback):
             return out
         aligned = status["aligned_ok"]
+    if initialisers.get(init).cameras_from == "colmap":
+        aligned = colmap_status(dataset, scene, n)["aligned_ok"]
     if ref and stage in ("pose", "all"):
         out.append(f"{run}/pose.json")
     if stage == "pose" or not config["train"]["enabled"]:

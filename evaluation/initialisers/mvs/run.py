@@ -322,9 +322,12 @@ def _read_cameras(scene: Path | None, cameras: Path | None, names: list[str]) ->
                          "cameras in sparse/0, or --cameras MODEL: COLMAP's, VGGT's, bundle adjustment's)")
     ref = read_model(model_dir)
     missing = [n for n in names if n not in ref.names]
-    if missing:
+    if missing and not cameras:
         raise ValueError(f"mvs: training images {missing[:5]} have no camera in {model_dir}")
-    return [ref.camera(n) for n in names], str(model_dir)
+    if missing:  # an estimated model (COLMAP's) need not register every photo
+        log.warning("mvs: %d of %d training images have no camera in %s and are left out: %s", len(missing),
+                    len(names), model_dir, ", ".join(missing[:5]))
+    return [ref.camera(n) for n in names if n in ref.names], str(model_dir)
 
 
 def run_mvs(images_dir: str | Path, names: list[str], out_dir: str | Path, *, scene: str | Path | None = None,
@@ -348,6 +351,9 @@ def run_mvs(images_dir: str | Path, names: list[str], out_dir: str | Path, *, sc
     if len(names) < 2:
         raise ValueError(f"mvs: needs >= 2 training views, got {len(names)}")
     cams_full, cam_source = _read_cameras(Path(scene) if scene else None, cameras, names)
+    names = [c.name for c in cams_full]
+    if len(names) < 2:
+        raise ValueError(f"mvs: {cam_source} has cameras for {len(names)} of the training images; stereo needs 2")
     sizes = {(c.width, c.height) for c in cams_full}
     if len(sizes) > 1:
         raise ValueError(f"mvs: the training views have {len(sizes)} sizes {sorted(sizes)}; predictions.npz "
