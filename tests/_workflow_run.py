@@ -84,8 +84,8 @@ def shared_config(root: Path) -> dict:
     cfg["vggt"]["model_config"] = str(FIXTURE / "config.json")
     cfg["random"] = dict(RANDOM)
     cfg["datasets"]["real"] = {"scenes": {
-        "posedscene": {"path": str(src), "views": [3], "initialisers": ["posed", "random", "oracle"]},
-        "photos": {"path": str(photos), "format": "folder", "views": [3], "initialisers": ["posed", "oracle"]},
+        "posedscene": {"path": str(src), "views": [3], "initialisers": ["posed", "mvs", "random", "oracle"]},
+        "photos": {"path": str(photos), "format": "folder", "views": [3], "initialisers": ["posed", "mvs", "oracle"]},
     }}
     return cfg
 

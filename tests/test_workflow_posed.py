@@ -55,4 +55,4 @@ def test_posed_runs_through_the_dag(workflow_run):
     assert not (workflow_run.results / "real" / "photos" / "n3" / "posed").exists()
     notes = json.loads((workflow_run.results / "initialisers.json").read_text())["skipped"]
     assert {(s["scene"], s["init"]) for s in notes} == {("posedscene", "oracle"), ("photos", "posed"),
-                                                       ("photos", "oracle")}
+                                                       ("photos", "mvs"), ("photos", "oracle")}
