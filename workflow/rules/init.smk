@@ -155,8 +155,8 @@ rule mvs_init:
         out=out_dir,
         args=mvs_args,
     shell:
-        "python -m evaluation.initialisers.mvs --scene {input.scene} --image-list {input.image_list} "
-        "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+        "python -m evaluation.initialisers.mvs --scene {input.scene:q} --image-list {input.image_list:q} "
+        "--out {params.out:q} --threads {threads} {params.args} > {log:q} 2>&1"
 
 
 # Multi-view stereo on another initialiser's cameras (the registry's ``cameras_from``:
@@ -188,9 +188,9 @@ rule mvs_on_cameras:
         out=out_dir,
         args=mvs_args,
     shell:
-        "python -m evaluation.initialisers.mvs --images {input.scene}/images --cameras {params.cameras} "
-        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
-        "> {log} 2>&1"
+        "python -m evaluation.initialisers.mvs --images {input.scene:q}/images --cameras {params.cameras:q} "
+        "--image-list {input.image_list:q} --out {params.out:q} --threads {threads} {params.args} "
+        "> {log:q} 2>&1"
 
 
 rule random_init:
