@@ -269,3 +269,22 @@ def test_cameras_of_another_model_may_lack_a_photo(scene128, tmp_path, capsys):
     pred = np.load(out / "predictions.npz")
     assert [str(n) for n in pred["image_names"]] == names[:4]
     assert "2 of 6 training images have no camera" in capsys.readouterr().err
+
+
+def test_held_out_checks_score_exact_points_as_exact_and_shuffled_colours_as_wrong(scene128):
+    """The real-scene measures of benchmarks/bench_mvs.py on the synthetic scene's own points
+    seen from a held-out view: depth error 0 where a point is on the pixel, and the photo's own
+    colours far closer than the same colours shuffled."""
+    from camio.images import read_image_uint8
+    from evaluation.initialisers.mvs.accuracy import heldout_depth_error, heldout_reprojection, visible_points
+
+    ref = read_model(scene128 / "sparse" / "0")
+    test = json.loads((scene128 / "split.json").read_text())["test"][0]
+    cam = ref.camera(test)
+    xy, idx = visible_points(ref.points, cam.K, cam.cam_from_world, cam.width, cam.height)
+    assert 0 < len(idx) < len(ref.points)  # some are hidden or outside
+    err = heldout_depth_error(ref.points, ref.points, xy, idx, cam.K, cam.cam_from_world, cam.width, cam.height)
+    assert err["matched"] == 1.0 and err["median_rel_error"] < 1e-6 and err["share_within_5pct"] == 1.0
+    seen = heldout_reprojection(ref.points[idx], ref.colors[idx], read_image_uint8(scene128 / "images" / test),
+                                cam.K, cam.cam_from_world)
+    assert seen["colour_error"] < 0.5 * seen["colour_error_shuffled"] and 0 < seen["coverage"] < 1
