@@ -67,13 +67,20 @@ def mvs_args(wildcards):
     the one place of their defaults)."""
     m = config["mvs"]
     return " ".join(
-        f"--{k.replace('_', '-')} {m[k]}" for k in ("max_size", "max_sources") if m[k] is not None
+        f"--{k.replace('_', '-')} {m[k]}"
+        for k in ("max_size", "max_sources")
+        if m[k] is not None
     )
 
 
 def dense_base_marker(wildcards):
     """The finished-run marker of the initialiser whose cameras a dense step starts from."""
-    run = RUN.format(dataset=wildcards.dataset, scene=wildcards.scene, n=wildcards.n, init=wildcards.base)
+    run = RUN.format(
+        dataset=wildcards.dataset,
+        scene=wildcards.scene,
+        n=wildcards.n,
+        init=wildcards.base,
+    )
     return f"{run}/{init_marker_of(wildcards.base)}"
 
 

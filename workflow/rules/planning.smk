@@ -10,7 +10,10 @@ def colmap_runs(wildcards=None):
     return [
         f"{RUN.format(dataset=ds, scene=sc, n=n, init='colmap')}/status.json"
         for ds, sc in all_scenes()
-        if any(i == "colmap" or initialisers.get(i).cameras_from == "colmap" for i in scene_inits(ds, sc))
+        if any(
+            i == "colmap" or initialisers.get(i).cameras_from == "colmap"
+            for i in scene_inits(ds, sc)
+        )
         for n in scene_views(ds, sc)
     ]
 

@@ -21,7 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["depth_accuracy", "confidence_deciles", "heldout_reprojection", "heldout_depth_error", "zbuffer",
+#: a held-out depth counts as right within this relative error of the reference point's
+DEPTH_TOLERANCE = 0.05
+
+__all__ = ["DEPTH_TOLERANCE", "depth_accuracy", "confidence_deciles", "heldout_reprojection", "heldout_depth_error", "zbuffer",
            "visible_points"]
 
 
@@ -158,7 +161,7 @@ def heldout_depth_error(points: np.ndarray, ref_points: np.ndarray, obs_xy: np.n
     rel = np.abs(z[ok] - z_ref[ok]) / z_ref[ok]
     return {"observations": int(len(obs_idx)), "matched": float(ok.mean()) if len(ok) else 0.0,
             "median_rel_error": float(np.median(rel)) if len(rel) else float("nan"),
-            "share_within_5pct": float((rel < 0.05).mean()) if len(rel) else float("nan")}
+            "share_within_5pct": float((rel < DEPTH_TOLERANCE).mean()) if len(rel) else float("nan")}
 
 
 def visible_points(points: np.ndarray, K: np.ndarray, cfw: np.ndarray, width: int, height: int,
