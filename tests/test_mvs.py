@@ -163,7 +163,8 @@ def _cam(name: str, eye, target, width: int = 96) -> Camera:
 
 
 def test_two_views_give_points(tmp_path):
-    scene = _posed_scene(tmp_path / "s", [_cam("a.png", (-0.6, -5, 2), (0, 0, 1)), _cam("b.png", (0.6, -5, 2), (0, 0, 1))])
+    cams = [_cam("a.png", (-0.6, -5, 2), (0, 0, 1)), _cam("b.png", (0.6, -5, 2), (0, 0, 1))]
+    scene = _posed_scene(tmp_path / "s", cams)
     out = tmp_path / "out"
     assert _run(scene, ["a.png", "b.png"], out) == 0
     status = json.loads((out / "status.json").read_text())
@@ -171,7 +172,8 @@ def test_two_views_give_points(tmp_path):
 
 
 def test_views_that_do_not_overlap_are_one_line(tmp_path, capsys):
-    scene = _posed_scene(tmp_path / "s", [_cam("a.png", (0, -5, 2), (0, 0, 1)), _cam("b.png", (0, -5.5, 2), (0, -12, 1))])
+    cams = [_cam("a.png", (0, -5, 2), (0, 0, 1)), _cam("b.png", (0, -5.5, 2), (0, -12, 1))]  # back to back
+    scene = _posed_scene(tmp_path / "s", cams)
     assert _run(scene, ["a.png", "b.png"], tmp_path / "out") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no pixel of any view is confirmed" in err[0]

@@ -124,7 +124,8 @@ def report(reg: dict, records: Path, work: Path | None) -> dict:
             lp = {s: per[t["better"]][s]["lpips_alex"] - per[t["than"]][s]["lpips_alex"] for s in complete}
             iv = _interval(list(diffs.values())) if diffs else None
             c = {"kind": kind, "better": t["better"], "than": t["than"], "by": t.get("by"),
-                 "psnr_diff_per_scene": diffs, "psnr_diff": iv, "lpips_alex_diff": _interval(list(lp.values())) if lp else None,
+                 "psnr_diff_per_scene": diffs, "psnr_diff": iv,
+                 "lpips_alex_diff": _interval(list(lp.values())) if lp else None,
                  "scenes_ahead": sum(d > 0 for d in diffs.values()), "scenes": len(diffs)}
             if kind == "target":
                 c["met"] = (iv is not None and len(complete) == len(reg["scenes"]) and iv["mean"] >= t["by"])

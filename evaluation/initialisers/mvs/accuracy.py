@@ -24,8 +24,8 @@ import numpy as np
 #: a held-out depth counts as right within this relative error of the reference point's
 DEPTH_TOLERANCE = 0.05
 
-__all__ = ["DEPTH_TOLERANCE", "depth_accuracy", "confidence_deciles", "heldout_reprojection", "heldout_depth_error", "zbuffer",
-           "visible_points"]
+__all__ = ["DEPTH_TOLERANCE", "depth_accuracy", "confidence_deciles", "heldout_reprojection", "heldout_depth_error",
+           "zbuffer", "visible_points"]
 
 
 def confidence_deciles(err: np.ndarray, conf: np.ndarray, bins: int = 10) -> list[dict]:

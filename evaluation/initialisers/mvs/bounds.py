@@ -147,7 +147,8 @@ def dominant_planes(points: np.ndarray, tol: float, max_planes: int = 2, min_sha
 
 
 def plane_family_range(points: np.ndarray, plane: tuple[np.ndarray, np.ndarray], cfw: np.ndarray,
-                       min_angle_deg: float = 25.0, beyond: float = 1.3) -> tuple[np.ndarray, tuple[float, float]] | None:
+                       min_angle_deg: float = 25.0,
+                       beyond: float = 1.3) -> tuple[np.ndarray, tuple[float, float]] | None:
     """The planes parallel to a dominant ``plane`` (normal, a point on it) that a reference
     camera sweeps: from the median distance of ``points`` [N, 3] on the plane's side of the
     camera out to ``beyond`` times their 99th percentile.

@@ -98,7 +98,8 @@ class MvsConfig:
             "min_conf": 0 <= self.min_conf <= 1, "min_agree": self.min_agree >= 1,
             "tol_px": math.isfinite(self.tol_px) and self.tol_px > 0,
             "tol_rel": math.isfinite(self.tol_rel) and 0 < self.tol_rel < 1,
-            "chunk": self.chunk >= 1, "plane_families": self.plane_families >= 0, "max_points": self.max_points >= 1, "threads": self.threads >= 0,
+            "chunk": self.chunk >= 1, "plane_families": self.plane_families >= 0,
+            "max_points": self.max_points >= 1, "threads": self.threads >= 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

@@ -186,8 +186,8 @@ def _sweep_family(ref, ref_mean, ref_std, src_data, rays, normal, sigma_range, r
 
 def plane_sweep(ref_gray: np.ndarray, ref_K: np.ndarray, ref_cfw: np.ndarray,
                 sources: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rhos: np.ndarray, *,
-                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), window: int = 7, top_k: int = 1, min_std: float = 0.01,
-                margin_scale: float = 0.1, exclusion: int = 2, chunk: int = 16) -> SweepResult:
+                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), window: int = 7, top_k: int = 1,
+                min_std: float = 0.01, margin_scale: float = 0.1, exclusion: int = 2, chunk: int = 16) -> SweepResult:
     """Depth of every pixel of a reference view by a plane sweep (module docstring).
 
     Args:

@@ -1,0 +1,61 @@
+"""benchmarks/sparse_views/seeds.py: a pre-registered seed comparison read from records, and the
+benchmark cell's choice of seed (benchmarks/sparse_views/cells.py)."""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+import pytest
+import yaml
+
+from benchmarks.sparse_views import cells, seeds
+
+REG = {"name": "t", "role": "evaluation", "scenes": ["a", "b", "c"], "n": 3, "seeds": [0, 1], "iterations": 10,
+       "variants": {"paper": {"recipe": "paper"}, "paper-mvs": {"recipe": "paper", "init": "mvs", "bridge_mode": "gated"}},
+       "targets": [{"better": "paper-mvs", "than": "paper", "by": 1.0}]}
+
+
+def _record(root, scene, variant, seed, psnr):
+    run = root / "runs" / f"{scene}_n3_{variant}_s{seed}_i10.json"
+    run.parent.mkdir(parents=True, exist_ok=True)
+    run.write_text(json.dumps({"psnr": psnr, "ssim": 0.5, "lpips_alex": 0.4, "lpips_vgg": 0.5, "gaussians": 10,
+                               "seed_gaussians": 5, "curve": {"coverage": [0.9], "psnr_covered": [psnr + 1]}}))
+
+
+def test_the_report_pairs_by_seed_takes_the_scene_as_the_unit_and_gives_verdicts(tmp_path):
+    gains = {"a": 2.0, "b": 1.0, "c": 3.0}
+    for scene, gain in gains.items():
+        for seed in (0, 1):
+            _record(tmp_path, scene, "paper", seed, 15.0 + seed)
+            _record(tmp_path, scene, "paper-mvs", seed, 15.0 + seed + gain)
+    rep = seeds.report(REG, tmp_path, None)
+    (c,) = rep["comparisons"]
+    assert rep["runs"] == rep["runs_expected"] == 12 and rep["complete_scenes"] == ["a", "b", "c"]
+    assert c["psnr_diff_per_scene"] == pytest.approx(gains) and c["psnr_diff"]["mean"] == pytest.approx(2.0)
+    assert c["psnr_diff"]["k"] == 3 and c["psnr_diff"]["lo"] < 2.0 < c["psnr_diff"]["hi"]
+    assert c["met"] and c["scenes_ahead"] == 3
+    # a scene without all its runs is left out, and the verdict is "incomplete", not "met"
+    (tmp_path / "runs" / "c_n3_paper-mvs_s1_i10.json").unlink()
+    rep = seeds.report(REG, tmp_path, None)
+    assert rep["complete_scenes"] == ["a", "b"] and not rep["comparisons"][0]["met"]
+    assert "| incomplete |" in seeds.markdown(rep, "reg.yaml", "cmd")
+
+
+def test_the_run_command_names_every_variant_and_the_registration_is_checked(tmp_path):
+    cmd = shlex.split(seeds.run_command(REG, "W"))
+    assert cmd[:4] == ["python", "-m", "benchmarks.sparse_views", "run"] and "paper" in cmd
+    assert 'paper-mvs={"recipe":"paper","init":"mvs","bridge_mode":"gated"}' in cmd
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({**REG, "targets": [{"better": "paper-x", "than": "paper", "by": 1}]}))
+    with pytest.raises(ValueError, match="'paper-x' is not a variant"):
+        seeds.load_registration(bad)
+    assert seeds.load_registration(seeds.DEFAULT_REGISTRATION)["n"] == 3  # the shipped one reads
+
+
+def test_a_cell_seed_is_a_known_initialiser():
+    assert cells.seed_folder() == "" and cells.seed_folder("mvs", "uniform") == "seed_mvs_uniform"
+    with pytest.raises(ValueError, match="unknown seed initialiser"):
+        cells.seed_folder("vggt")
+    with pytest.raises(ValueError, match="no confidence"):
+        cells.seed_folder("random", "gated")
