@@ -64,7 +64,7 @@ def run_targets(dataset, scene, n, init, stage):
         if not (status.get("success_paper", status.get("success")) or fallback):
             return out
         aligned = status["aligned_ok"]
-    if initialisers.get(init).cameras_from == "colmap":
+    if base == "colmap":
         aligned = colmap_status(dataset, scene, n)["aligned_ok"]
     if ref and stage in ("pose", "all"):
         out.append(f"{run}/pose.json")
