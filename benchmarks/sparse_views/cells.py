@@ -55,10 +55,11 @@ def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | N
 
 
 def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, cell: dict, n: int) -> dict[str, Path]:
-    """The initialiser ``init`` into ``seed_dir/init``, then the Bridge and the alignment."""
+    """The initialiser ``init`` into ``work/seed_<init>/init`` (run once, whichever Bridge mode
+    reads it), then the Bridge and the alignment into ``seed_dir``."""
     s, logf = cell["scene"], work / "prepare.log"
-    init_dir = seed_dir / "init"
-    if not (seed_dir / "bridge" / "bridge.json").is_file():
+    init_dir = work / seed_folder(init) / "init"
+    if not (seed_dir / "bridge" / "bridge.json").is_file() and not (init_dir / "status.json").is_file():
         if init == "random":
             args = ["--cameras", str(s / "sparse" / "0")]
         else:

@@ -24,22 +24,22 @@ __all__ = ["Consistency", "unproject", "project", "check_consistency", "FusedPoi
 
 
 def unproject(depth: np.ndarray, K: np.ndarray, cfw: np.ndarray) -> np.ndarray:
-    """World points [H, W, 3] float64 of every pixel centre at z-depth ``depth`` [H, W]."""
+    """World points [H, W, 3] float64 of every pixel centre at z-depth ``depth`` [H, W]
+    (:func:`evaluation.initialisers.oracle.unproject_depth` over the whole grid)."""
+    from evaluation.initialisers.oracle import unproject_depth
+
     H, W = depth.shape
-    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # [H, W, 3], z = 1
-    p_cam = rays * depth[..., None].astype(np.float64)
-    return (p_cam - cfw[:3, 3]) @ cfw[:3, :3]
+    return unproject_depth(depth, K, cfw, np.arange(H), np.arange(W))
 
 
 def project(points: np.ndarray, K: np.ndarray, cfw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels [..., 2] and z [...] of world points [..., 3] (NaN pixels where z <= 0)."""
-    pc = points @ cfw[:3, :3].T + cfw[:3, 3]
-    z = pc[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (pc @ K.T)[..., :2] / z[..., None]
-    uv[~(z > 0)] = np.nan
-    return uv, z
+    """Pixels [..., 2] and z [...] of world points [..., 3] (NaN pixels where z <= 0):
+    :func:`camio.cameras.project_points` for any leading shape."""
+    from camio.cameras import project_points
+
+    shape = np.shape(points)[:-1]
+    uv, z = project_points(np.reshape(points, (-1, 3)), K, cfw)
+    return uv.reshape(*shape, 2), z.reshape(shape)
 
 
 @dataclass

@@ -141,6 +141,11 @@ def select_sources(cams: list[Camera], r: int, max_sources: int, min_baseline: f
     return [j for _, j in sorted(cand)[:max_sources]]
 
 
+def _geometry(cams: list[Camera], idx: list[int]) -> list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
+    """(K, cam_from_world, (width, height)) of the views ``idx``: what the bounds read of a source."""
+    return [(cams[j].K, cams[j].cam_from_world, (cams[j].width, cams[j].height)) for j in idx]
+
+
 def _sweep_level(grays, cams, sources, bounds, cfg: MvsConfig, progress: str,
                  families: list[list] | None = None) -> tuple[list, list[dict]]:
     """Sweep every view with its sources and (rho_min, rho_max) bounds; per view the
@@ -156,8 +161,8 @@ def _sweep_level(grays, cams, sources, bounds, cfg: MvsConfig, progress: str,
             stats.append({"planes": 0, "rho": None, "sources": [], "seconds": 0.0})
             log.info("%s view %d/%d %s: no source sees it, no depth", progress, r + 1, len(cams), cam.name)
             continue
-        src = [(cams[j].K, cams[j].cam_from_world, (cams[j].width, cams[j].height)) for j in sources[r]]
-        lengths = epipolar_lengths(cam.K, cam.cam_from_world, (cam.width, cam.height), src, *bounds[r])
+        lengths = epipolar_lengths(cam.K, cam.cam_from_world, (cam.width, cam.height), _geometry(cams, sources[r]),
+                                   *bounds[r])
         # a source in which no depth moves a pixel by two planes' steps tells no depth apart
         use = [j for j, n in zip(sources[r], lengths) if n >= 2 * cfg.step_px]
         if not use:
@@ -231,9 +236,8 @@ def depth_maps(images: list[np.ndarray], cams: list[Camera], cfg: MvsConfig = Mv
     grays = [_gray(im) for im in images]
     geo = []
     for r, cam in enumerate(cams):
-        src = [(cams[j].K, cams[j].cam_from_world, (cams[j].width, cams[j].height)) for j in sources[r]]
-        geo.append(overlap_bounds(cam.K, cam.cam_from_world, (cam.width, cam.height), src, scale)
-                   if src else None)
+        geo.append(overlap_bounds(cam.K, cam.cam_from_world, (cam.width, cam.height), _geometry(cams, sources[r]),
+                                  scale) if sources[r] else None)
     timings = {}
     bounds = geo
     planes: list[tuple[np.ndarray, np.ndarray]] = []
