@@ -423,6 +423,9 @@ def read_strecha(root: Path, image_dir: Path, names: list[str]) -> SparseModel:
     """Cameras of a Strecha scene at the size the .camera files state (the caller rescales
     to the image files). Distortion (k1, k2) is kept as an OPENCV camera model."""
     cdir = _strecha_dir(root)
+    if cdir is None:
+        raise _scene_error(f"{root}: --format strecha needs the .camera files (in gt_dense_cameras/, images/ or "
+                           "the scene folder itself); none found")
     cams, models, missing = [], {}, []
     for n in names:
         f = cdir / f"{n}.camera"

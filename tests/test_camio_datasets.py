@@ -226,6 +226,19 @@ def test_strecha_distortion_undistorted_on_request(tmp_path):
         load_scene(root)
 
 
+def test_strecha_forced_without_camera_files_is_one_clear_error(tmp_path):
+    """--format strecha on a folder with no .camera file (a COLMAP copy of a Strecha scene):
+    a SceneError naming what is missing, and the convert CLI exits with it, not a TypeError."""
+    root = tmp_path / "fountain-colmap"
+    for i in range(3):
+        _img(root / "images" / f"{i:04d}.jpg", seed=i)
+    with pytest.raises(SceneError, match="needs the .camera files"):
+        load_scene(root, format="strecha")
+    r = _convert(root, tmp_path / "out", "--format", "strecha")
+    assert r.returncode != 0 and "needs the .camera files" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------- COLMAP layouts (360, T&T, MVImgNet)
 def _write_colmap_binary(model_dir, cams, model="PINHOLE", extra=()):
     """A binary COLMAP model, as Mip-NeRF 360 / Tanks and Temples / MVImgNet ship it."""
