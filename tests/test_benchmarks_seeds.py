@@ -59,3 +59,16 @@ def test_a_cell_seed_is_a_known_initialiser():
         cells.seed_folder("vggt")
     with pytest.raises(ValueError, match="no confidence"):
         cells.seed_folder("random", "gated")
+    assert cells.seed_folder("mvs", "gated", 4) == "seed_mvs_gated_stride4"
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="stride is an integer >= 1"):
+            cells.seed_folder("mvs", "gated", bad)
+    with pytest.raises(ValueError, match="stride is an integer >= 1"):
+        cells.seed_folder("random", None, 2)
+    # the initialiser's own flags name the folder its run shares with every Bridge choice
+    assert cells.seed_folder("mvs", "uniform", None, {"fill_stride": 0}) == "seed_mvs_fill_stride0_uniform"
+    for bad in ({"fill stride": 0}, {"fill_stride": "../x"}, {"fill_stride": [1]}):
+        with pytest.raises(ValueError, match="init_args"):
+            cells.seed_folder("mvs", None, None, bad)
+    with pytest.raises(ValueError, match="no init_args"):
+        cells.seed_folder("posed", None, None, {"fill_stride": 0})

@@ -100,18 +100,33 @@ def test_the_outputs_follow_the_contract(scene256, run3):
     assert S == 3 and (W, H) == (256, 192)
     assert pred["world_points"].shape == (S, H, W, 3) and pred["colors"].dtype == np.uint8
     assert pred["intrinsics_original"].dtype == np.float64 and pred["image_sizes_original"].dtype == np.int64
-    kept = np.all(np.isfinite(pred["world_points"]), axis=-1)
+    has_point = np.all(np.isfinite(pred["world_points"]), axis=-1)
     conf = pred["world_points_conf"]
-    # a kept pixel has a point, a confidence in (0, 1] and a depth; the others none of them
-    assert kept.any() and np.all((conf[kept] > 0) & (conf[kept] <= 1)) and np.all(conf[~kept] == 0)
-    assert np.all(pred["depth"][kept] > 0) and np.all(pred["depth"][~kept] == 0)
-    # each kept point lies on its own pixel's ray at its depth
+    kept = pred["depth"] > 0
+    # a kept pixel has a point, a confidence in (0, 1] and a depth
+    assert kept.any() and np.all(has_point[kept]) and np.all((conf[kept] > 0) & (conf[kept] <= 1))
+    # an unexplained ray on the fill grid (every 4th row and column) has a point with confidence 0
+    # and no depth; every other pixel nothing
+    filled = has_point & ~kept
+    grid = np.zeros((H, W), bool)
+    grid[2::4, 2::4] = True
+    assert filled.any() and np.all(conf[~kept] == 0) and not np.any(filled & ~grid)
+    assert np.all(filled[:, grid] | kept[:, grid])  # the synthetic views see the scene everywhere
+    status = json.loads((run3 / "status.json").read_text())
+    assert status["filled_points"] == int(filled.sum())
+    # each point lies on its own pixel's ray: a kept one at its depth, a filled one within the
+    # view's stereo depths (5th-95th percentile)
     cfw, K = pred["cam_from_world"][0].astype(np.float64), pred["intrinsics"][0].astype(np.float64)
-    i, j = np.nonzero(kept[0])
-    pc = pred["world_points"][0][i, j].astype(np.float64) @ cfw[:, :3].T + cfw[:, 3]
-    uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
-    assert np.allclose(uv, np.stack([j + 0.5, i + 0.5], 1), atol=1e-2)
-    assert np.allclose(pc[:, 2], pred["depth"][0][i, j], rtol=1e-4)
+    z = {}
+    for name, sel in (("kept", kept[0]), ("filled", filled[0])):
+        i, j = np.nonzero(sel)
+        pc = pred["world_points"][0][i, j].astype(np.float64) @ cfw[:, :3].T + cfw[:, 3]
+        uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+        assert np.allclose(uv, np.stack([j + 0.5, i + 0.5], 1), atol=1e-2), name
+        z[name] = pc[:, 2]
+    assert np.allclose(z["kept"], pred["depth"][0][kept[0]], rtol=1e-4)
+    lo, hi = np.percentile(pred["depth"][0][kept[0]], [5, 95])
+    assert np.all((z["filled"] >= lo * (1 - 1e-4)) & (z["filled"] <= hi * (1 + 1e-4)))
     # the COLMAP model: the reference cameras unchanged, points with tracks; pycolmap opens it
     model = read_model(run3 / "sparse" / "0")
     ref = read_model(scene256 / "sparse" / "0")
@@ -204,8 +219,9 @@ def test_a_narrow_baseline_and_a_forward_move_stay_finite(tmp_path):
         assert rc in (0, 2)
         if rc == 0:
             pred = np.load(out / "predictions.npz")
-            kept = np.all(np.isfinite(pred["world_points"]), axis=-1)
+            kept = pred["world_points_conf"] > 0  # stereo's points; the filled rays have confidence 0
             assert np.all(np.isfinite(pred["world_points_conf"])) and np.all(pred["depth"][kept] > 0)
+            assert np.all(np.isfinite(pred["world_points"]).all(-1) | np.isnan(pred["world_points"]).all(-1))
 
 
 def test_repeated_texture_is_not_trusted():
@@ -290,3 +306,29 @@ def test_held_out_checks_score_exact_points_as_exact_and_shuffled_colours_as_wro
     seen = heldout_reprojection(ref.points[idx], ref.colors[idx], read_image_uint8(scene128 / "images" / test),
                                 cam.K, cam.cam_from_world)
     assert seen["colour_error"] < 0.5 * seen["colour_error_shuffled"] and 0 < seen["coverage"] < 1
+
+
+def test_the_fill_draws_from_the_stereo_depths_and_is_finite_on_nothing():
+    """fill_unexplained in float64: a view with no kept pixel fills from the other views' points
+    seen from it; nothing to draw from leaves every pixel NaN (no exception, no inf); the same
+    seed gives the same points."""
+    from evaluation.initialisers.mvs.fill import fill_unexplained
+
+    cams = [_cam("a.png", [-0.3, 0, -4], [0, 0, 0], 32), _cam("b.png", [0.3, 0, -4], [0, 0, 0], 32)]
+    H, W = cams[0].height, cams[0].width
+    pts = np.full((2, H, W, 3), np.nan)
+    Ks, cfws = [c.K for c in cams], [c.cam_from_world for c in cams]
+    empty = fill_unexplained(pts, Ks, cfws, 2)
+    assert np.isnan(empty).all()
+    rng = np.random.default_rng(0)
+    pts[0, :8] = np.c_[rng.uniform(-1, 1, (8 * W, 2)), rng.uniform(-0.5, 0.5, 8 * W)].reshape(8, W, 3)
+    out = fill_unexplained(pts, Ks, cfws, 2)
+    assert np.array_equal(out[0, :8], pts[0, :8])  # kept points untouched
+    assert np.isfinite(out[1, 1::2, 1::2]).all() and np.isnan(out[1, 0::2]).all()
+    z = out[1, 1::2, 1::2].reshape(-1, 3) @ cfws[1][:, :3].T + cfws[1][:, 3]
+    ref = pts[0, :8].reshape(-1, 3) @ cfws[1][:, :3].T + cfws[1][:, 3]
+    lo, hi = np.percentile(ref[:, 2], [5, 95])
+    assert np.all((z[:, 2] >= lo - 1e-9) & (z[:, 2] <= hi + 1e-9))
+    assert np.array_equal(out, fill_unexplained(pts, Ks, cfws, 2), equal_nan=True)
+    with pytest.raises(ValueError, match="fill stride"):
+        fill_unexplained(pts, Ks, cfws, 0)

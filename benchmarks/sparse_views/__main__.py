@@ -25,12 +25,14 @@ DEFAULT_RECIPES = ("paper", "dropgaussian", "mcmc", "sparse")
 
 
 #: a variant's keys that choose its seed (benchmarks.sparse_views.cells.prepare), not training values
-SEED_KEYS = ("init", "bridge_mode")
+SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
 
 
 def _variant(text: str) -> tuple[str, dict]:
     """``name`` (a recipe) or ``name=JSON`` (a variant: a recipe plus config keys, and
-    optionally :data:`SEED_KEYS`: ``init`` the cell's seed, ``bridge_mode`` its Bridge mode)."""
+    optionally :data:`SEED_KEYS`: ``init`` the cell's seed, ``bridge_mode`` its Bridge mode,
+    ``bridge_stride`` its Bridge pixel stride when not the initialiser's own, ``init_args`` the
+    initialiser's flags beyond its defaults)."""
     if "=" not in text:
         return text, {}
     name, cfg = text.split("=", 1)
@@ -52,7 +54,8 @@ def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import seed_folder
 
     for name, cfg in (_variant(v) for v in args.recipes):
-        seed_folder(cfg.get("init", "posed"), cfg.get("bridge_mode"))  # a bad seed choice fails here, before any run
+        # a bad seed choice fails here, before any run
+        seed_folder(cfg.get("init", "posed"), cfg.get("bridge_mode"), cfg.get("bridge_stride"), cfg.get("init_args"))
         recipe = cfg.get("recipe", name)
         overrides = {k: v for k, v in cfg.items() if k != "recipe" and k not in SEED_KEYS}
         plans.append((name, cfg, recipe, overrides, resolved_values(recipe, overrides, args.iterations)))
@@ -108,7 +111,8 @@ def cmd_run(args) -> int:
                       + ("recorded meanwhile" if mine else f"running in another process ({lock})") + ", skipped",
                       flush=True)
                 continue
-            cell = prepare(args.work / f"{s.name}_n{n}", s, n, cfg.get("init", "posed"), cfg.get("bridge_mode"))
+            cell = prepare(args.work / f"{s.name}_n{n}", s, n, cfg.get("init", "posed"), cfg.get("bridge_mode"),
+                           cfg.get("bridge_stride"), cfg.get("init_args"))
             res = train_and_score(cell, out, recipe, seed, args.iterations,
                                   args.eval_every or max(1, args.iterations // 10), overrides, args.kernel_threads)
             rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
@@ -165,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
                         "a variant's \"background\": \"mean\" trains and renders against the mean colour of "
                         "the cell's training images (the trainer's; a scene's own background in scenes.yaml "
                         "stands instead); \"init\": posed (default), mvs or random seeds the cell from that "
-                        "initialiser, \"bridge_mode\" its Bridge mode (mvs)")
+                        "initialiser, \"bridge_mode\" its Bridge mode and \"bridge_stride\" its Bridge pixel "
+                        "stride (mvs; default the initialiser's own), \"init_args\" its flags ({\"fill_stride\": 0})")
     r.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     r.add_argument("--iterations", type=int, default=1000)
     r.add_argument("--eval-every", type=int, default=None, help="held-out curve period (default iterations / 10)")

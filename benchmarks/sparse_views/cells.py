@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import re
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
@@ -29,43 +30,77 @@ SEEDS = {"posed": ("evaluation.initialisers.posed", False), "mvs": ("evaluation.
          "random": ("evaluation.initialisers.random_init", False)}
 
 
-def seed_folder(init: str = "posed", mode: str | None = None) -> str:
+def _flags(init_args: dict | None) -> list[str]:
+    """An initialiser's extra flags from a variant's ``init_args`` ({"fill_stride": 0} ->
+    ["--fill-stride", "0"]), in name order."""
+    out = []
+    for k, v in sorted((init_args or {}).items()):
+        if not (isinstance(k, str) and re.fullmatch(r"[a-z][a-z0-9_]*", k)
+                and isinstance(v, (int, float, str)) and re.fullmatch(r"[A-Za-z0-9.+-]+", str(v))):
+            raise ValueError(f"init_args: a flag name and a plain value each (letters, digits, . + -), got {k!r}: {v!r}")
+        out += [f"--{k.replace('_', '-')}", str(v)]
+    return out
+
+
+def seed_folder(init: str = "posed", mode: str | None = None, stride: int | None = None,
+                init_args: dict | None = None) -> str:
     """The folder of a seed inside a cell: "" for ``posed`` (the cell itself, as before there
-    was a choice), else ``seed_<init>[_<mode>]``."""
+    was a choice), else ``seed_<init>[_<flag><value>...][_<mode>][_stride<K>]`` (``init_args``:
+    the initialiser's flags other than its defaults; ``stride``: a Bridge pixel stride other
+    than the initialiser's own, the registry's ``bridge_stride``)."""
     if init not in SEEDS:
         raise ValueError(f"unknown seed initialiser {init!r}; known: {', '.join(SEEDS)}")
     if mode is not None and not SEEDS[init][1]:
         raise ValueError(f"{init} has no confidence: no Bridge mode to choose (got {mode!r})")
-    return "" if init == "posed" else f"seed_{init}" + (f"_{mode}" if mode else "")
+    if stride is not None and (not SEEDS[init][1] or isinstance(stride, bool) or not isinstance(stride, int)
+                               or stride < 1):
+        raise ValueError(f"a Bridge stride is an integer >= 1 for an initialiser with a confidence "
+                         f"({', '.join(k for k, v in SEEDS.items() if v[1])}); got {stride!r} for {init}")
+    flags = _flags(init_args)
+    if init == "posed":
+        if flags:
+            raise ValueError("the posed seed is the cell itself: it takes no init_args")
+        return ""
+    return (f"seed_{init}" + "".join(f"_{flags[i].lstrip('-').replace('-', '_')}{flags[i + 1]}"
+                                     for i in range(0, len(flags), 2))
+            + (f"_{mode}" if mode else "") + (f"_stride{stride}" if stride is not None else ""))
 
 
-def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | None = None) -> dict[str, Path]:
+def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | None = None,
+            stride: int | None = None, init_args: dict | None = None) -> dict[str, Path]:
     """Prepare the cell of ``scene`` at ``n`` training views in ``work``, seeded by ``init``
-    (:data:`SEEDS`; ``mode`` the Bridge mode of one with a confidence, the Bridge's default
-    when None); return its paths (scene, train / test name lists, bridge, align). Shards
-    running side by side take turns (a lock file beside the cell)."""
-    folder = seed_folder(init, mode)
+    (:data:`SEEDS`; ``init_args`` its flags beyond its defaults; ``mode`` the Bridge mode of one
+    with a confidence, the Bridge's default when None; ``stride`` its Bridge pixel stride, the
+    registry's ``bridge_stride`` for it when None); return its paths (scene, train / test name
+    lists, bridge, align). Shards running side by side take turns (a lock file beside the cell)."""
+    folder = seed_folder(init, mode, stride, init_args)
     work.parent.mkdir(parents=True, exist_ok=True)
     with open(work.parent / f".{work.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         cell = _prepare(work, scene, n)
         if init == "posed":
             return cell
-        return {**cell, **_seed(work, work / folder, init, mode, cell, n)}
+        return {**cell, **_seed(work, work / folder, init, mode, stride, init_args, cell, n)}
 
 
-def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, cell: dict, n: int) -> dict[str, Path]:
-    """The initialiser ``init`` into ``work/seed_<init>/init`` (run once, whichever Bridge mode
-    reads it), then the Bridge and the alignment into ``seed_dir``."""
+def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, stride: int | None, init_args: dict | None,
+          cell: dict, n: int) -> dict[str, Path]:
+    """The initialiser ``init`` into ``work/seed_<init>[_<flags>]/init`` (run once, whichever
+    Bridge mode reads it), then the Bridge and the alignment into ``seed_dir``."""
     s, logf = cell["scene"], work / "prepare.log"
-    init_dir = work / seed_folder(init) / "init"
+    init_dir = work / seed_folder(init, init_args=init_args) / "init"
     if not (seed_dir / "bridge" / "bridge.json").is_file() and not (init_dir / "status.json").is_file():
         if init == "random":
             args = ["--cameras", str(s / "sparse" / "0")]
         else:
             args = ["--scene", str(s)]
-        sh(["-m", SEEDS[init][0], *args, "--image-list", str(cell["train"]), "--out", str(init_dir)], logf)
-    return bridge_and_align(seed_dir, s, init_dir, n, logf, mode)
+        sh(["-m", SEEDS[init][0], *args, "--image-list", str(cell["train"]), "--out", str(init_dir),
+            *_flags(init_args)], logf)
+    if stride is None:
+        from evaluation.initialisers.registry import get
+
+        stride = get(init).bridge_stride
+    return bridge_and_align(seed_dir, s, init_dir, n, logf, mode, stride)
 
 
 def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
@@ -103,16 +138,17 @@ def seed_model(init_dir: Path) -> Path:
 
 
 def bridge_and_align(work: Path, scene: Path, init_dir: Path, n: int, log: Path,
-                     mode: str | None = None) -> dict[str, Path]:
+                     mode: str | None = None, stride: int | None = None) -> dict[str, Path]:
     """The Bridge on an initialiser's output (its ``predictions.npz`` when it wrote one, in
-    ``mode`` when given, else its COLMAP model, :func:`seed_model`) into ``work/bridge``, then
+    ``mode`` and with pixel ``stride`` when given, else its COLMAP model, :func:`seed_model`)
+    into ``work/bridge``, then
     the held-out cameras aligned to it into ``work/align``; each skipped when its output
     exists. Returns {"bridge", "align"}."""
     bridge, align = work / "bridge", work / "align"
     if not (bridge / "bridge.json").is_file():
         if (init_dir / "predictions.npz").is_file():
             sh(["-m", "bridge", "--pred", str(init_dir / "predictions.npz"), "--out", str(bridge),
-                *(["--mode", mode] if mode else [])], log)
+                *(["--mode", mode] if mode else []), *(["--stride", str(stride)] if stride else [])], log)
         else:
             sh(["-m", "bridge", "--colmap", str(seed_model(init_dir)), "--images", str(scene / "images"),
                 "--out", str(bridge)], log)

@@ -38,6 +38,7 @@ HELP = {
     "tol_rel": "consistency check: relative depth tolerance",
     "plane_families": "slanted plane families beside the fronto-parallel planes (ground, dominant planes)",
     "chunk": "depth planes warped at once (memory)",
+    "fill_stride": "every K-th pixel stereo left without a point gets one, confidence 0, in predictions.npz (0: none)",
     "max_points": "fused points written to sparse/0 at most",
     "threads": "torch CPU threads (0: torch's default)",
 }

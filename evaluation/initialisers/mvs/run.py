@@ -63,6 +63,9 @@ class MvsConfig:
             planes: the ground (normal: the cameras' mean up), then the dominant planes of the
             coarse points (0: fronto-parallel only).
         chunk: planes warped at once (memory: chunk x H x W per buffer).
+        fill_stride: every fill_stride-th pixel (rows and columns) that stereo left without a
+            point gets one on its ray with confidence 0 in predictions.npz
+            (:mod:`evaluation.initialisers.mvs.fill`; 0: none).
         max_points: fused points written to sparse/0 at most.
         threads: torch CPU threads (0: torch's default).
     """
@@ -83,6 +86,7 @@ class MvsConfig:
     tol_rel: float = 0.02
     plane_families: int = 2
     chunk: int = 16
+    fill_stride: int = 4
     max_points: int = MAX_POINTS
     threads: int = 0
 
@@ -98,7 +102,7 @@ class MvsConfig:
             "min_conf": 0 <= self.min_conf <= 1, "min_agree": self.min_agree >= 1,
             "tol_px": math.isfinite(self.tol_px) and self.tol_px > 0,
             "tol_rel": math.isfinite(self.tol_rel) and 0 < self.tol_rel < 1,
-            "chunk": self.chunk >= 1, "plane_families": self.plane_families >= 0,
+            "chunk": self.chunk >= 1, "plane_families": self.plane_families >= 0, "fill_stride": self.fill_stride >= 0,
             "max_points": self.max_points >= 1, "threads": self.threads >= 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
@@ -300,9 +304,14 @@ def depth_maps(images: list[np.ndarray], cams: list[Camera], cfg: MvsConfig = Mv
             "planes": [{"normal": n.tolist(), "point": c.tolist()} for n, c in planes]}
 
 
-def predictions_arrays(names, cams_full, cams, images_u8, dm) -> dict:
-    """predictions.npz's arrays (vggt_init's schema, docs/contracts.md) at the working size."""
+def predictions_arrays(names, cams_full, cams, images_u8, dm, fill_stride: int = 0) -> dict:
+    """predictions.npz's arrays (vggt_init's schema, docs/contracts.md) at the working size;
+    with ``fill_stride``, the unexplained rays' points (confidence 0) beside the kept ones."""
     pts = np.stack([np.where(k[..., None], c.points, np.nan) for c, k in zip(dm["cons"], dm["keep"])])
+    if fill_stride:
+        from evaluation.initialisers.mvs.fill import fill_unexplained
+
+        pts = fill_unexplained(pts, [c.K for c in cams], [c.cam_from_world for c in cams], fill_stride)
     conf = np.stack(dm["conf"])
     return {
         "image_names": np.array(names),
@@ -384,7 +393,9 @@ def run_mvs(images_dir: str | Path, names: list[str], out_dir: str | Path, *, sc
     if len(fused.points) == 0:
         raise ValueError("mvs: no pixel of any view is confirmed by another view (views that do not "
                          "overlap, no texture, or cameras that do not fit the images); nothing to seed")
-    arrays = predictions_arrays(names, cams_full, cams, images_u8, dm)
+    arrays = predictions_arrays(names, cams_full, cams, images_u8, dm, cfg.fill_stride)
+    kept_total = int(sum(k.sum() for k in dm["keep"]))
+    filled = int(np.isfinite(arrays["world_points"]).all(-1).sum()) - kept_total
     save_npz(out_dir / "predictions.npz", **arrays)
     order = np.argsort(-fused.conf, kind="stable")[:cfg.max_points]
     new_id = np.full(len(fused.points), -1)
@@ -402,12 +413,13 @@ def run_mvs(images_dir: str | Path, names: list[str], out_dir: str | Path, *, sc
         "n_images": len(names), "points": int(len(order)), "reason": None, "wall_time_s": None,
         "seed": 0, "cameras_source": cam_source, "working_size": [w, h],
         "original_size": [cams_full[0].width, cams_full[0].height],
-        "kept_share": kept, "fused_points": int(len(fused.points)), "coarse_points": dm["coarse_points"],
+        "kept_share": kept, "filled_points": filled, "fused_points": int(len(fused.points)), "coarse_points": dm["coarse_points"],
         "views": {n: s for n, s in zip(names, dm["stats"])}, "timings_s": dm["timings_s"],
         "config": asdict(cfg), "torch_threads": torch.get_num_threads(),
     }
     status["wall_time_s"] = time.perf_counter() - t0
     write_json(out_dir / "status.json", status)
-    log.info("mvs: %d views at %dx%d, %.1f %% of pixels kept, %d fused points (%d written), %.1f s",
-             len(names), w, h, 100 * kept, len(fused.points), len(order), status["wall_time_s"])
+    log.info("mvs: %d views at %dx%d, %.1f %% of pixels kept, %d fused points (%d written), %d unexplained rays "
+             "filled (confidence 0), %.1f s", len(names), w, h, 100 * kept, len(fused.points), len(order), filled,
+             status["wall_time_s"])
     return status
