@@ -51,6 +51,16 @@ def test_the_run_command_names_every_variant_and_the_registration_is_checked(tmp
     with pytest.raises(ValueError, match="'paper-x' is not a variant"):
         seeds.load_registration(bad)
     assert seeds.load_registration(seeds.DEFAULT_REGISTRATION)["n"] == 3  # the shipped one reads
+    # a registration with its own records folder: the run line writes there and the report reads there
+    own = {**REG, "records": "benchmarks/records/own_set"}
+    cmd = shlex.split(seeds.run_command(own, "W"))
+    assert cmd[3:6] == ["--records", "benchmarks/records/own_set", "run"]
+    assert seeds.records_dir(own) == seeds.REPO / "benchmarks" / "records" / "own_set"
+    assert seeds.records_dir(REG) == seeds.RECORDS
+    for bad_rec in ("/tmp/x", "../x", 3):
+        bad.write_text(yaml.safe_dump({**REG, "records": bad_rec}))
+        with pytest.raises(ValueError, match="'records' is a folder inside the repository"):
+            seeds.load_registration(bad)
 
 
 def test_a_cell_seed_is_a_known_initialiser():

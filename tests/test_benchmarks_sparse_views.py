@@ -255,10 +255,10 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
 @pytest.mark.slow
 def test_a_dense_seed_reaches_the_bridge_at_its_own_stride(tmp_path):
     """A cell seeded by mvs: the initialiser runs once for every Bridge choice; the Bridge reads
-    every kept pixel (the registry's stride) unless a variant names another stride."""
+    its full map at the Bridge's own stride unless a variant names another one."""
     from benchmarks.sparse_views.cells import prepare
     from benchmarks.sparse_views.protocol import Scene
-    from evaluation.initialisers.registry import MVS_BRIDGE_STRIDE
+    from bridge.core import BridgeConfig
 
     scene = Scene("tiny", "tuning", "synthetic", (3,),
                   generate=("python", "-m", "camio", "synth", "--out", "{out}", "--views", "16", "--width", "128"))
@@ -266,8 +266,8 @@ def test_a_dense_seed_reaches_the_bridge_at_its_own_stride(tmp_path):
     other = prepare(tmp_path / "tiny_n3", scene, 3, "mvs", "gated", 4)
     assert own["bridge"].parent.name == "seed_mvs_gated" and other["bridge"].parent.name == "seed_mvs_gated_stride4"
     b1, b4 = (json.loads((c["bridge"] / "bridge.json").read_text()) for c in (own, other))
-    assert b1["stride"] == MVS_BRIDGE_STRIDE == 1 and b4["stride"] == 4
-    assert b1["points_kept"] > 3 * b4["points_kept"] > 0  # the same map, every 4th pixel
+    assert b1["stride"] == BridgeConfig().stride == 20 and b4["stride"] == 4
+    assert b4["points_kept"] > 3 * b1["points_kept"] > 0  # the same map, every 4th pixel against every 20th
     log = (tmp_path / "tiny_n3" / "prepare.log").read_text()
     assert log.count("$ -m evaluation.initialisers.mvs ") == 1  # one stereo run for both
 

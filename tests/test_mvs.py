@@ -20,6 +20,7 @@ from camio.cameras import Camera, look_at
 from camio.colmap import read_model, write_text_model
 from camio.images import write_image
 from evaluation.initialisers.mvs.__main__ import main
+from evaluation.initialisers.mvs.run import MvsConfig
 from evaluation.initialisers.mvs.accuracy import depth_accuracy
 from evaluation.initialisers.mvs.sweep import inverse_depth_planes, plane_sweep
 
@@ -105,11 +106,12 @@ def test_the_outputs_follow_the_contract(scene256, run3):
     kept = pred["depth"] > 0
     # a kept pixel has a point, a confidence in (0, 1] and a depth
     assert kept.any() and np.all(has_point[kept]) and np.all((conf[kept] > 0) & (conf[kept] <= 1))
-    # an unexplained ray on the fill grid (every 4th row and column) has a point with confidence 0
+    # an unexplained ray on the fill grid (by default every pixel) has a point with confidence 0
     # and no depth; every other pixel nothing
     filled = has_point & ~kept
+    k = MvsConfig().fill_stride
     grid = np.zeros((H, W), bool)
-    grid[2::4, 2::4] = True
+    grid[k // 2::k, k // 2::k] = True
     assert filled.any() and np.all(conf[~kept] == 0) and not np.any(filled & ~grid)
     assert np.all(filled[:, grid] | kept[:, grid])  # the synthetic views see the scene everywhere
     status = json.loads((run3 / "status.json").read_text())

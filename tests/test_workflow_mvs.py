@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from bridge.core import BridgeConfig
-from evaluation.initialisers.registry import MVS_BRIDGE_STRIDE
 
 
 @pytest.mark.slow
@@ -23,8 +22,8 @@ def test_mvs_runs_through_the_dag(workflow_run):
     for mode in workflow_run.config["bridge"]["modes"]:
         bridge = json.loads((run / mode / "bridge" / "bridge.json").read_text())
         assert bridge["source"] == "vggt" and bridge["points_kept"] > 100  # a predictions.npz, as VGGT's
-        # every kept pixel: the map holds only what stereo kept (the registry's stride, not the paper's 20)
-        assert bridge["stride"] == MVS_BRIDGE_STRIDE != BridgeConfig().stride
+        # a full map, as VGGT's: stereo's points and the filled rays, read at the paper's stride
+        assert bridge["stride"] == BridgeConfig().stride
         assert bridge["depth_prior"]["source"] == "dense"
         assert (run / mode / "train" / "model.ply").is_file()
         metrics = json.loads((run / mode / "metrics.json").read_text())

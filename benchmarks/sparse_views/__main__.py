@@ -31,7 +31,7 @@ SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
 def _variant(text: str) -> tuple[str, dict]:
     """``name`` (a recipe) or ``name=JSON`` (a variant: a recipe plus config keys, and
     optionally :data:`SEED_KEYS`: ``init`` the cell's seed, ``bridge_mode`` its Bridge mode,
-    ``bridge_stride`` its Bridge pixel stride when not the initialiser's own, ``init_args`` the
+    ``bridge_stride`` its Bridge pixel stride when not the Bridge's own, ``init_args`` the
     initialiser's flags beyond its defaults)."""
     if "=" not in text:
         return text, {}
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
                         "the cell's training images (the trainer's; a scene's own background in scenes.yaml "
                         "stands instead); \"init\": posed (default), mvs or random seeds the cell from that "
                         "initialiser, \"bridge_mode\" its Bridge mode and \"bridge_stride\" its Bridge pixel "
-                        "stride (mvs; default the initialiser's own), \"init_args\" its flags ({\"fill_stride\": 0})")
+                        "stride (mvs; default the Bridge's own), \"init_args\" its flags ({\"fill_stride\": 0})")
     r.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     r.add_argument("--iterations", type=int, default=1000)
     r.add_argument("--eval-every", type=int, default=None, help="held-out curve period (default iterations / 10)")

@@ -47,7 +47,7 @@ def seed_folder(init: str = "posed", mode: str | None = None, stride: int | None
     """The folder of a seed inside a cell: "" for ``posed`` (the cell itself, as before there
     was a choice), else ``seed_<init>[_<flag><value>...][_<mode>][_stride<K>]`` (``init_args``:
     the initialiser's flags other than its defaults; ``stride``: a Bridge pixel stride other
-    than the initialiser's own, the registry's ``bridge_stride``)."""
+    than the Bridge's own)."""
     if init not in SEEDS:
         raise ValueError(f"unknown seed initialiser {init!r}; known: {', '.join(SEEDS)}")
     if mode is not None and not SEEDS[init][1]:
@@ -71,7 +71,7 @@ def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | N
     """Prepare the cell of ``scene`` at ``n`` training views in ``work``, seeded by ``init``
     (:data:`SEEDS`; ``init_args`` its flags beyond its defaults; ``mode`` the Bridge mode of one
     with a confidence, the Bridge's default when None; ``stride`` its Bridge pixel stride, the
-    registry's ``bridge_stride`` for it when None); return its paths (scene, train / test name
+    Bridge's default when None); return its paths (scene, train / test name
     lists, bridge, align). Shards running side by side take turns (a lock file beside the cell)."""
     folder = seed_folder(init, mode, stride, init_args)
     work.parent.mkdir(parents=True, exist_ok=True)
@@ -96,10 +96,6 @@ def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, stride: int |
             args = ["--scene", str(s)]
         sh(["-m", SEEDS[init][0], *args, "--image-list", str(cell["train"]), "--out", str(init_dir),
             *_flags(init_args)], logf)
-    if stride is None:
-        from evaluation.initialisers.registry import get
-
-        stride = get(init).bridge_stride
     return bridge_and_align(seed_dir, s, init_dir, n, logf, mode, stride)
 
 

@@ -6,7 +6,8 @@
 The registration (``registered/*.yaml``, committed before any of its runs) fixes the scenes,
 view count, seeds, budget, variants and targets. ``command`` prints the ``python -m
 benchmarks.sparse_views run`` line that makes its records; ``report`` reads them and writes
-``benchmarks/records/sparse_views/<name>.json`` and a markdown page: per scene and variant the
+``<records>/<name>.json`` (the registration's own ``records`` folder, else
+``benchmarks/records/sparse_views``) and a markdown page: per scene and variant the
 final held-out PSNR, SSIM, LPIPS, the coverage of the held-out pixels and the PSNR over the
 covered ones (alpha >= 0.5: splat_train/heldout.py); the floor, a flat image of the training
 views' mean colour scored like a model (from the cells under ``--work``); per comparison the
@@ -43,6 +44,9 @@ def load_registration(path: Path) -> dict:
     for key in ("name", "role", "scenes", "n", "seeds", "iterations", "variants"):
         if key not in reg:
             raise ValueError(f"{path}: no {key!r}")
+    rec = reg.get("records")
+    if rec is not None and (not isinstance(rec, str) or Path(rec).is_absolute() or ".." in Path(rec).parts):
+        raise ValueError(f"{path}: 'records' is a folder inside the repository, relative to it; got {rec!r}")
     for name, v in reg["variants"].items():
         if not isinstance(v, dict) or "recipe" not in v:
             raise ValueError(f"{path}: variant {name!r} needs a recipe")
@@ -53,12 +57,19 @@ def load_registration(path: Path) -> dict:
     return reg
 
 
+def records_dir(reg: dict) -> Path:
+    """Where the registration's records live: its own ``records`` folder (relative to the
+    repository), else the benchmark's."""
+    return REPO / reg["records"] if reg.get("records") else RECORDS
+
+
 def run_command(reg: dict, work: str = "WORK") -> str:
     """The run line that makes the registration's records (one shard; ``--shard K/2`` splits it)."""
     variants = []
     for name, v in reg["variants"].items():
         variants.append(name if v == {"recipe": name} else f"{name}={json.dumps(v, separators=(',', ':'))}")
-    args = ["python", "-m", "benchmarks.sparse_views", "run", "--role", reg["role"], "--scenes", *reg["scenes"],
+    records = ["--records", reg["records"]] if reg.get("records") else []
+    args = ["python", "-m", "benchmarks.sparse_views", *records, "run", "--role", reg["role"], "--scenes", *reg["scenes"],
             "--n", str(reg["n"]), "--seeds", *map(str, reg["seeds"]), "--iterations", str(reg["iterations"]),
             "--work", work, "--recipes", *variants]
     return shlex.join(args)
@@ -184,7 +195,8 @@ def markdown(rep: dict, registration: str, command: str) -> str:
         lines.append(f"| {c['better']} - {c['than']} | {span} | {c['scenes_ahead']}/{c['scenes']} | {lps} | "
                      f"{target} | {verdict} |")
     lines += ["", "Rerun (records are kept; a second call trains nothing that is recorded):", "",
-              "```bash", command, "python -m benchmarks.sparse_views.seeds report --work WORK", "```", ""]
+              "```bash", command,
+              f"python -m benchmarks.sparse_views.seeds report --registration {registration} --work WORK", "```", ""]
     return "\n".join(lines)
 
 
@@ -192,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views.seeds", description=__doc__.split("\n\n")[0])
     p.add_argument("what", choices=("command", "report"))
     p.add_argument("--registration", type=Path, default=DEFAULT_REGISTRATION, help="default %(default)s")
-    p.add_argument("--records", type=Path, default=RECORDS, help="default %(default)s")
+    p.add_argument("--records", type=Path, default=None,
+                   help="default: the registration's own 'records' folder, else benchmarks/records/sparse_views")
     p.add_argument("--work", type=Path, default=None, help="the run command's --work (the cells: the floor)")
     p.add_argument("--doc", type=Path, default=None, help="markdown page (default docs/results-<name>.md)")
     args = p.parse_args(argv)
@@ -205,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "command":
         print(command)
         return 0
+    args.records = args.records or records_dir(reg)
     rep = report(reg, args.records, args.work)
     from camio.atomic import atomic_path, write_json
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
-           "from_colmap_model", "with_common_rule", "MVS_BRIDGE_STRIDE", "studied", "ba_bases", "dense_bases"]
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -53,10 +53,6 @@ class Initialiser:
         cameras_from: for a dense step (``<base>_mvs``), the initialiser whose COLMAP model
             gives the cameras that multi-view stereo of the training views starts from
             (scenes without reference cameras: your own photos).
-        bridge_stride: the Bridge's pixel stride for its ``predictions.npz`` (None: the
-            Bridge's own default, the paper's 20, which thins VGGT's full point maps). A map
-            that holds only the pixels multi-view stereo kept is thinned already
-            (:data:`MVS_BRIDGE_STRIDE`).
     """
 
     name: str
@@ -70,15 +66,11 @@ class Initialiser:
     own_rule: bool = False
     study: bool = False
     cameras_from: str | None = None
-    bridge_stride: int | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.needs) - set(NEEDS)
         if unknown:
             raise ValueError(f"initialiser {self.name}: unknown needs {sorted(unknown)}; known: {sorted(NEEDS)}")
-        if self.bridge_stride is not None and (not self.confidence or self.bridge_stride < 1):
-            raise ValueError(f"initialiser {self.name}: bridge_stride is for a predictions.npz (confidence=True) "
-                             f"and >= 1, got {self.bridge_stride}")
         if self.marker not in self.writes:
             raise ValueError(f"initialiser {self.name}: its marker {self.marker} is not among what it writes")
         if not self.own_rule and (self.writes != _MODEL or self.marker != "status.json" or self.confidence
@@ -89,11 +81,6 @@ class Initialiser:
 
 
 _PREDICTIONS = ("predictions.npz", "sparse/0")
-
-#: the Bridge's pixel stride for multi-view stereo's predictions.npz, which holds only the
-#: pixels that stereo kept and another view confirmed (chosen on the tuning scenes:
-#: docs/results.md, "Dense seeds from multi-view stereo")
-MVS_BRIDGE_STRIDE = 1
 _MODEL = ("sparse/0", "status.json")
 
 
@@ -111,7 +98,7 @@ _ORACLE = Initialiser("oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS
 _POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.json", False,
                      frozenset({"reference"}), own_rule=True, study=True)
 _MVS = Initialiser("mvs", "evaluation.initialisers.mvs", (*_PREDICTIONS, "status.json"), "status.json", True,
-                   frozenset({"reference"}), own_rule=True, bridge_stride=MVS_BRIDGE_STRIDE)
+                   frozenset({"reference"}), own_rule=True)
 _COLMAP = Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False,
                       own_rule=True)
 
@@ -120,7 +107,7 @@ def _dense(base: Initialiser) -> Initialiser:
     """Multi-view stereo of the training views on ``base``'s cameras: dense points with a
     confidence where the scene has no reference cameras."""
     return Initialiser(f"{base.name}_mvs", _MVS.command, _MVS.writes, "status.json", True, base.needs,
-                       own_rule=True, cameras_from=base.name, bridge_stride=_MVS.bridge_stride)
+                       own_rule=True, cameras_from=base.name)
 
 #: every initialiser, by name, in the order tables list them
 INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (

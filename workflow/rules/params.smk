@@ -144,14 +144,10 @@ def ba_base_dir(wildcards, input):
 
 
 def bridge_args(wildcards):
-    """The Bridge's mode, and its stride: the config's, else the initialiser's own (the
-    registry's bridge_stride: 1 for multi-view stereo's kept pixels), else the Bridge's."""
     b = config["bridge"]
     args = [f"--mode {wildcards.mode}"]
-    init = getattr(wildcards, "init", None) or STUDY_INIT  # a study cell's path names no init
-    stride = b["stride"] or initialisers.get(init).bridge_stride
-    if stride:
-        args.append(f"--stride {stride}")
+    if b["stride"]:
+        args.append(f"--stride {b['stride']}")
     if b["max_points"]:
         args.append(f"--max-points {b['max_points']}")
     return " ".join(args)

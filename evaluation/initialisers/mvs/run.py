@@ -86,7 +86,7 @@ class MvsConfig:
     tol_rel: float = 0.02
     plane_families: int = 2
     chunk: int = 16
-    fill_stride: int = 4
+    fill_stride: int = 1
     max_points: int = MAX_POINTS
     threads: int = 0
 
