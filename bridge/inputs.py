@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.cameras import Camera
+from camio.names import check_name_list
 
 __all__ = ["BridgeInput", "load_predictions", "load_colmap", "PREDICTION_KEYS"]
 
@@ -124,7 +125,7 @@ def load_predictions(path: str | Path) -> BridgeInput:
     ext = d["cam_from_world"]
     if ext.shape not in ((S, 3, 4), (S, 4, 4)):
         raise ValueError(f"{path}: cam_from_world must be [S,3,4], got {list(ext.shape)}")
-    names = [str(n) for n in d["image_names"]]
+    names = check_name_list([str(n) for n in d["image_names"]], path)  # they become file names downstream
     cameras = []
     for i, name in enumerate(names):
         w, h = (int(v) for v in d["image_sizes_original"][i])

@@ -17,6 +17,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir
 from camio.cameras import Camera, qvec_to_rotmat, rotmat_to_qvec
+from camio.names import check_name
 
 __all__ = [
     "MATCHING_THREADS",
@@ -307,7 +308,8 @@ def _check_text_model(model_dir: Path) -> int:
 
     Checked: every number finite; image sizes and focal lengths positive; quaternions
     non-zero; every image's camera id defined in cameras.txt; image names without spaces
-    (COLMAP's reader keeps a name only up to its first space). Point ids that points3D.txt
+    (COLMAP's reader keeps a name only up to its first space) and plain file names
+    (:func:`camio.names.check_name`: a name becomes a path). Point ids that points3D.txt
     does not define are counted (the reader drops those observations with a warning).
 
     Returns:
@@ -371,6 +373,7 @@ def _check_text_model(model_dir: Path) -> int:
                 raise ValueError(f"{imgs_f}:{n}: the image name {whole!r} contains spaces, which the COLMAP text "
                                  f"format cannot hold (COLMAP reads it as {t[9]!r}); rename the image file and "
                                  f"its entry, e.g. to {'_'.join(t[9:])!r}")
+            check_name(t[9], "image name", f"{imgs_f}:{n}")  # it becomes a path: renders, images
             iid, = _numbers(imgs_f, n, t[:1], "the image id", int)
             q = _numbers(imgs_f, n, t[1:5], f"image {t[9]!r}'s quaternion")
             _numbers(imgs_f, n, t[5:8], f"image {t[9]!r}'s translation")

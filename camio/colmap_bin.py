@@ -25,6 +25,8 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+from camio.names import check_name
+
 __all__ = ["MODEL_PARAMS", "check_binary_model", "BinaryModelError"]
 
 # COLMAP's camera model ids -> (name, number of parameters) (colmap/sensor/models.h).
@@ -116,7 +118,8 @@ def _images(path: Path) -> dict[int, str]:
         if end < 0:
             raise BinaryModelError(f"{path}: image {iid}'s name has no end within {min(MAX_NAME, r.left())} bytes: "
                                    "the file is truncated or damaged; copy or export the model again")
-        name = r.buf[r.pos:end].decode("utf-8", errors="replace")
+        name = r.buf[r.pos:end].decode("utf-8", errors="surrogateescape")
+        check_name(name, "image name", f"{path} (image {iid})")  # it becomes a path: renders, images
         r.pos = end + 1
         m, = r.take("<Q", f"image {iid}'s number of 2D points")
         r.skip(m * 24, f"image {iid}'s {m} 2D points")

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.names import check_name_list
+
 __all__ = ["DEPTH_PRIOR_FILE", "DepthSamples", "write_depth_prior", "read_depth_prior"]
 
 DEPTH_PRIOR_FILE = "depth_prior.npz"
@@ -79,7 +81,8 @@ def read_depth_prior(path: str | Path) -> DepthSamples:
             missing = [k for k in _KEYS if k not in data]
             if missing:
                 raise ValueError(f"missing keys {missing}")
-            return DepthSamples([str(x) for x in data["image_names"]], data["image_sizes"], data["view"],
+            names = check_name_list([str(x) for x in data["image_names"]], path)
+            return DepthSamples(names, data["image_sizes"], data["view"],
                                 data["xy"], data["z"], data["weight"], str(data["source"]))
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{path}: not a readable depth prior (docs/contracts.md, 'Bridge output'): {exc}") from exc

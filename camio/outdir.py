@@ -35,8 +35,9 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   lock of a killed process is released by the kernel, so it is taken over (with a log line).
 * SIGTERM and SIGHUP end a command through :class:`Stopped` (:func:`run_stage`), so every
   ``finally`` runs and no temporary file or folder is left; exit code 128 + the signal.
-* A name read from a file (a split, an image list) is a plain file name, listed once
-  (:func:`check_name`, :func:`check_name_list`).
+* A name read from a file (a split, an image list, a COLMAP model, a ``predictions.npz``) is
+  a plain file name, listed once (:mod:`camio.names`; :func:`check_name` and
+  :func:`check_name_list` are handed on here).
 
 Every refusal is an :class:`OutputFolderError` (a ``ValueError``), one line naming both
 paths; the stage CLIs print it and exit with code 2 (:func:`run_stage`, the ending they share).
@@ -51,6 +52,8 @@ import os
 import signal
 from pathlib import Path
 from typing import Callable, Iterable, Mapping
+
+from camio.names import check_name, check_name_list  # noqa: F401  (the name rule, handed on)
 
 __all__ = ["MARKER", "LOCK", "LEDGER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs",
            "run_stage", "typed_line", "release_locks", "check_name", "check_name_list", "finish_outs",
@@ -195,55 +198,6 @@ def _foreign(folder: Path, written: set[str], skip_workflow: bool) -> list[str]:
         if p not in written:
             out.append(p)
     return out
-
-
-def check_name(name: str, what: str, source: PathLike) -> str:
-    """Refuse a file name read from a file (a split, an image list) that is not a plain name
-    in one folder: empty, absolute, with a ``/`` or ``\\`` separator, ``.`` or ``..``, a NUL,
-    a line break, or characters that are not UTF-8. Such a name would make a command read or
-    write outside its folders (or fail in a writer that needs text).
-
-    Returns:
-        ``name`` unchanged.
-
-    Raises:
-        ValueError: one line naming ``source`` and the name.
-    """
-    bad = (not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name
-           or any(c in name for c in "\0\n\r") or not _utf8(name))
-    if bad:
-        raise ValueError(f"{source}: the {what} {name!r} is not a plain file name (no folders, '..', "
-                         "separators or non-UTF-8 bytes): fix the file")
-    return name
-
-
-def _utf8(name: str) -> bool:
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:  # lone surrogates: bytes that were not UTF-8
-        return False
-    return True
-
-
-def check_name_list(names: Iterable[str], source: PathLike, what: str = "image name") -> list[str]:
-    """Every name plain (:func:`check_name`) and none twice (a view listed twice would be
-    trained, or counted, twice).
-
-    Returns:
-        the names as a list.
-
-    Raises:
-        ValueError: one line naming ``source``, the name and its two places in the list.
-    """
-    names = list(names)
-    seen: dict[str, int] = {}
-    for i, name in enumerate(names, 1):
-        check_name(name, what, source)
-        if name in seen:
-            raise ValueError(f"{source}: the {what} {name!r} is listed twice (entries {seen[name]} and {i}): "
-                             "each image may appear once")
-        seen[name] = i
-    return names
 
 
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,

@@ -388,10 +388,17 @@ def _nex_intrinsics(path: Path, npy: Path) -> tuple[float, ...]:
 
 
 # ---------------------------------------------------------------------------------- transforms
-def _find_frame_file(base: Path, file_path: str) -> Path | None:
+def _find_frame_file(base: Path, file_path: object, json_path: Path) -> Path | None:
     """The image a frame names (``file_path`` may omit the extension, as NeRF-synthetic's
-    ``./train/r_0`` does), or None when no such file exists."""
-    p = (base / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
+    ``./train/r_0`` does), or None when no such file exists. The path must stay inside the
+    scene's folder ``base`` (:func:`camio.names.check_inside`: ``../`` and absolute paths
+    elsewhere are refused)."""
+    from camio.names import check_inside
+
+    try:
+        p = check_inside(file_path, base, "frame file_path", json_path).resolve()
+    except ValueError as exc:
+        raise SceneError(str(exc)) from None
     if p.is_file():
         return p
     for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".exr", ".tif"):
@@ -464,7 +471,8 @@ def _load_transforms(path: Path, images_subdir: str | Path | None, skip_missing:
     if not frames:
         raise SceneError(f"{json_path} has no frames")
     base = json_path.parent
-    found = [(f, _find_frame_file(base, str(f.get("file_path", "")))) for f in frames]
+    found = [(f, _find_frame_file(base, f.get("file_path", "") if isinstance(f, dict) else None, json_path))
+             for f in frames]
     missing = [str(f.get("file_path", "")) for f, p in found if p is None]
     if missing:
         msg = (f"{json_path}: {len(missing)} of {len(frames)} frames name image files that are missing "
@@ -477,6 +485,11 @@ def _load_transforms(path: Path, images_subdir: str | Path | None, skip_missing:
         if not found:
             raise SceneError(f"{json_path}: no frame has an image file")
     files = [p for _, p in found]
+    folders = sorted({str(f.parent) for f in files})
+    if images_subdir is None and len(folders) > 1:
+        raise SceneError(f"{json_path}: the frames' images lie in {len(folders)} folders ({', '.join(folders[:3])}): "
+                         "a scene's images share one folder (their names become file names); move them into "
+                         "one, or pass --images-subdir")
     image_dir = _resolve_images(base, images_subdir) if images_subdir is not None else Path(
         _common_dir([f.parent for f in files]))
     cams, models = [], {}

@@ -142,7 +142,7 @@ def read_split(path: str | Path) -> Split:
     Raises:
         ValueError: one line naming the file and what is wrong.
     """
-    from camio.outdir import check_name
+    from camio.names import check_name_list
 
     try:
         data = json.loads(Path(path).read_text())
@@ -160,9 +160,5 @@ def read_split(path: str | Path) -> Split:
     for what, names in lists.items():
         if not isinstance(names, list):
             raise ValueError(f"{path}: '{what}' must be a list of image names")
-        for name in names:
-            check_name(name, f"{what} name", path)
-        if len(set(names)) != len(names):
-            dup = sorted({x for x in names if names.count(x) > 1})
-            raise ValueError(f"{path}: the '{what}' list names {dup[0]!r} twice: fix the split")
+        check_name_list(names, path, f"{what} name")  # plain names, none twice
     return Split(data["rule"], data["test"], data["train_pool"], data["train"])

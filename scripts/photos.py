@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(str(exc).splitlines()[0])
     if len(names) < 3:
         return _fail(f"{args.photos} holds {len(names)} photo(s); at least 3 are needed")
-    out = (args.out or Path("results_photos") / args.photos.resolve().name).absolute()
+    out = (args.out.expanduser() if args.out else Path("results_photos") / args.photos.resolve().name).absolute()
     if out.resolve() == args.photos.resolve() or args.photos.resolve() in out.resolve().parents:
         return _fail(f"--out {out} is inside the photo folder; choose a folder outside it")
     vggt = {k: v for k, v in (("checkpoint", args.vggt_checkpoint), ("model_config", args.vggt_model_config),

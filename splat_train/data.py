@@ -21,6 +21,7 @@ from camio import Camera
 from camio.cameras import scale_intrinsics
 from camio.images import downsample_area, image_size, read_image
 from camio.colmap import read_model
+from camio.names import check_stems
 
 __all__ = ["View", "load_views", "load_cameras", "read_name_list", "scene_extent"]
 
@@ -50,8 +51,8 @@ class View:
 def read_name_list(path: str | Path) -> list[str]:
     """Image names from a file: a JSON list, or plain text with one name per line ('#'
     starts a comment, blank lines ignored); every name plain and none twice
-    (camio.outdir.check_name_list)."""
-    from camio.outdir import check_name_list
+    (camio.names.check_name_list)."""
+    from camio.names import check_name_list
 
     path = Path(path)
     text = path.read_text()
@@ -118,8 +119,13 @@ def load_views(cameras_dir: str | Path, images_dir: str | Path | None, names: li
 
     Returns:
         Views sorted by name; images [H, W, 3] float32 in [0, 1].
+
+    Raises:
+        ValueError: two views whose names differ only by their extension (their renders,
+            ``<stem>.png``, would be one file; :func:`camio.names.check_stems`).
     """
     cams = load_cameras(cameras_dir, names)
+    check_stems([c.name for c in cams], cameras_dir)  # renders are <stem>.png: v0.png and v0.jpg would be one file
     views: list[View] = []
     for cam in cams:
         img = None

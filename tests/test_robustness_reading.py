@@ -305,6 +305,45 @@ def test_results_at_the_root_or_empty_is_refused(tmp_path, value, needle):
     assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
 
 
+@pytest.mark.parametrize("value, needle", [(".", "which is or holds the repository"),
+                                           ("..", "which is or holds the repository"),
+                                           (str(ROOT), "which is or holds the repository"),
+                                           ("camio", "in camio/, which its .gitignore does not set aside"),
+                                           ("docs/out", "in docs/, which its .gitignore does not set aside"),
+                                           ("results/../workflow", "in workflow/"),
+                                           ("~/out", "in camio/")])
+def test_results_in_the_repository_is_refused_and_tilde_is_expanded(tmp_path, value, needle):
+    """``results: .`` (or the repository, or a folder of its own) would plan the outputs among
+    its code; ``~`` is the user's home (here the repository's camio/), not a folder named ``~``."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text((ROOT / "config.yaml").read_text().replace("\nresults: results\n", f"\nresults: '{value}'\n"))
+    env = {**os.environ, "HOME": str(ROOT / "camio")}
+    proc = subprocess.run([sys.executable, str(ROOT / "workflow/scripts/check_config.py"), str(cfg)],
+                          capture_output=True, text=True, timeout=60, cwd=ROOT, env=env)
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    listing = lambda: [sorted(p.name for p in d.iterdir() if not p.name.startswith(".")) for d in (ROOT, ROOT / "camio")]  # noqa: E731
+    before = listing()
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--cores", "1", "--configfile", str(cfg)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
+    text = proc.stdout + proc.stderr
+    errors = [ln for ln in text.splitlines() if "config error" in ln]
+    assert proc.returncode == 2 and len(errors) == 1 and needle in errors[0] and "Traceback" not in text, text[-2000:]
+    assert listing() == before  # nothing planned among the repository's files
+
+
+def test_results_folders_the_repository_ignores_and_home_are_accepted(tmp_path, monkeypatch):
+    import check_config
+    import yaml
+
+    monkeypatch.chdir(ROOT)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    base = yaml.safe_load((ROOT / "config.yaml").read_text())
+    for value in ("results", "results/x", ".test/results", "results_photos/mine", str(tmp_path / "r"), "~/r"):
+        assert check_config.config_problems({**base, "results": value}) == [], value
+
+
 @pytest.mark.parametrize("text, line, key", [
     ("views: [3]\nresults: r\nviews: [6]\n", 3, "views"),
     ("datasets:\n  a:\n    x: 1\n  a:\n    y: 2\n", 4, "a"),

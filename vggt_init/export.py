@@ -35,6 +35,7 @@ import numpy as np
 from camio.atomic import save_npz
 from camio.cameras import Camera
 from camio.colmap import write_text_model
+from camio.names import check_name_list
 from vggt_init.preprocess import ImageGeometry
 
 __all__ = ["PREDICTION_KEYS", "OPTIONAL_KEYS", "write_predictions", "select_points", "write_colmap"]
@@ -65,8 +66,8 @@ def write_predictions(path: str | Path, arrays: dict[str, np.ndarray]) -> Path:
     out = {}
     for k, v in arrays.items():
         v = np.asarray(v)
-        if k == "image_names":
-            v = np.asarray([str(x) for x in v], dtype=str)
+        if k == "image_names":  # plain names, none twice: every reader of the file checks them too
+            v = np.asarray(check_name_list([str(x) for x in v], path), dtype=str)
         else:
             v = v.astype(dtypes[k], copy=False)
         if v.shape != shapes[k]:

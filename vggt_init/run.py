@@ -111,7 +111,7 @@ def _image_paths(opts: RunOptions) -> list[Path]:
                  if ln.strip() and not ln.strip().startswith("#")]
         if not names:
             raise ImageInputError(f"image list {opts.image_list} is empty")
-        from camio.outdir import check_name_list
+        from camio.names import check_name_list
 
         try:
             check_name_list(names, opts.image_list)

@@ -30,6 +30,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
+from camio.names import check_name_list
 from evaluation.metrics.pose import paper_success
 from runtime.cliargs import add_log_flags, plain
 
@@ -145,6 +146,9 @@ def run_ba_init(init_dir: str | Path, images: str | Path, names: list[str], out_
     if seed_points == "dense" and not pred_path.is_file():
         raise ValueError(f"ba: --seed-points dense needs {pred_path} (a VGGT or oracle output); "
                          "use --seed-points triangulated for a COLMAP-model initialiser")
+    if seed_points == "dense":  # its names become file names downstream: refused before anything is written
+        with np.load(pred_path, allow_pickle=False) as z:
+            check_name_list([str(n) for n in z["image_names"]], pred_path)
     given = read_model(init_dir / "sparse" / "0")
     missing = [n for n in names if n not in given.names]
     if missing:

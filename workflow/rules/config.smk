@@ -3,6 +3,7 @@ RUN, MODE), the wildcard constraints, thread counts and helper-script paths."""
 
 import importlib.util
 import json
+import os
 import sys
 
 from snakemake.exceptions import IncompleteCheckpointException
@@ -48,7 +49,8 @@ for _problem in _missing:
 if _missing:
     raise SystemExit(2)
 
-R = config["results"].rstrip("/")
+# ~ expanded, as the config check read it (a relative path stays relative to the workdir)
+R = os.path.expanduser(config["results"]).rstrip("/")
 SCENE = f"{R}/{{dataset}}/{{scene}}"
 RUN = f"{SCENE}/n{{n}}/{{init}}"
 MODE = f"{RUN}/{{mode}}"

@@ -11,12 +11,16 @@ anything is written. The workflow runs the same check (workflow/rules/config.smk
 from __future__ import annotations
 
 import difflib
+import fnmatch
 import sys
 from pathlib import Path
 
 import yaml
 
 SCHEMA = Path(__file__).resolve().parents[1] / "schemas" / "config.schema.yaml"
+REPO = Path(__file__).resolve().parents[2]
+"""The repository this workflow belongs to: a results folder may not be it, hold it, or lie in its
+own folders."""
 
 
 def _merge(base: dict, new: dict) -> dict:
@@ -71,16 +75,56 @@ def read_yaml(path: str | Path):
         raise ValueError(f"{where}: {exc.problem}") from None
 
 
+def results_folder(results: str) -> Path:
+    """The results folder a config's ``results`` names: ``~`` expanded, relative to the working
+    directory (the workflow's), symbolic links resolved."""
+    return Path(results).expanduser().resolve()
+
+
+def _ignored(rel: Path, root: Path) -> bool:
+    """Whether ``rel`` (relative to the repository ``root``) is, or lies in, a path the
+    repository's ``.gitignore`` ignores (its output folders: ``results/``, ``results_photos/``).
+    Plain patterns only (``!`` negations are not followed). Without a ``.gitignore`` (a copy
+    that is no checkout) outputs cannot be told from the repository's files: every path is."""
+    try:
+        lines = (root / ".gitignore").read_text().splitlines()
+    except OSError:
+        return True
+    parts = rel.parts
+    for line in lines:
+        pat = line.strip()
+        if not pat or pat.startswith(("#", "!")):
+            continue
+        anchored = "/" in pat.strip("/") or pat.startswith("/")
+        pat = pat.strip("/")
+        for k in range(1, len(parts) + 1):
+            if fnmatch.fnmatchcase("/".join(parts[:k]) if anchored else parts[k - 1], pat):
+                return True
+    return False
+
+
 def _results_problem(config: dict) -> str | None:
     """The results folder: not empty, not the file system's root (every output would be
-    planned at the top of the disk)."""
+    planned at the top of the disk), not the repository or a folder holding it, and not
+    inside the repository's own folders (the outputs would mix with its code and docs): a
+    folder inside the repository must be one its ``.gitignore`` ignores (``results/``;
+    :func:`_ignored`)."""
     results = config.get("results")
     if not isinstance(results, str):
         return None  # the schema's type check says it
     if not results.strip():
         return "results: the results folder is empty; name a folder (default: results)"
-    if Path(results).expanduser().resolve() == Path(Path(results).expanduser().resolve().anchor):
+    folder = results_folder(results)
+    if folder == Path(folder.anchor):
         return f"results: {results!r} is the file system's root; name a folder of its own (default: results)"
+    if folder == REPO or folder in REPO.parents:
+        return (f"results: {results!r} is {folder}, which is or holds the repository {REPO}: the outputs would "
+                "mix with its code; name a folder of its own (default: results)")
+    if REPO in folder.parents and not _ignored(folder.relative_to(REPO), REPO):
+        return (f"results: {results!r} lies inside the repository {REPO}, in "
+                f"{folder.relative_to(REPO).parts[0]}/, which its .gitignore does not set aside for outputs: "
+                "the outputs would mix with its files; name a folder it ignores (default: results) or one "
+                "outside it")
     return None
 
 

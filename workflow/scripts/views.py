@@ -27,7 +27,8 @@ import time
 from pathlib import Path
 
 from camio.atomic import atomic_dir, atomic_path, write_json
-from camio.outdir import check_name, prepare_out, run_stage, seal_out
+from camio.names import check_name
+from camio.outdir import prepare_out, run_stage, seal_out
 from camio.split import read_split
 from runtime.logs import setup_logging
 
