@@ -276,7 +276,7 @@ def test_a_dense_seed_reaches_the_bridge_at_its_own_stride(tmp_path):
 MEAN_STAND_IN = [0.25, 0.5, 0.75]
 
 
-def _empty_cell(work, scene, n, init="posed", mode=None, stride=None):
+def _empty_cell(work, scene, n, init="posed", mode=None, stride=None, init_args=None):
     """A stand-in for the cell's preparation: its folders, no test views."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "test.txt").write_text("")

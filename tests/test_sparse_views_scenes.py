@@ -44,7 +44,20 @@ def test_scene_list_keeps_tuning_apart_and_each_evaluation_scene_converts_with_c
     assert len(evaluation) >= 4
     assert len({s["kind"] for s in evaluation}) >= 2
     assert {s["name"] for s in evaluation} == {"own__rails", "own__dragonstatue", "own__artcar", "own__plushray",
-                                                 "own__copier"}
+                                                 "own__copier", "own__horsestatue", "own__gamebox", "own__archmodel",
+                                                 "own__figurine", "own__kanazawadrone"}
+    # every pre-registered set is of evaluation scenes only, and no two sets share a scene (a
+    # scene measured by one registration is never the unseen scene of the next)
+    import yaml
+
+    regs = sorted((Path(fetch_scenes.__file__).parent / "registered").glob("*.yaml"))
+    assert len(regs) >= 2
+    seen: set[str] = set()
+    for reg in regs:
+        names = set(yaml.safe_load(reg.read_text())["scenes"])
+        assert names <= {s["name"] for s in evaluation}, reg.name
+        assert not names & seen, reg.name
+        seen |= names
     # no scene is held in reserve until the next one is listed before a change of value
     reserve = [s for s in scenes if s["role"] == "reserve"]
     assert reserve == []
