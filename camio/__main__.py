@@ -2,7 +2,7 @@
 
     python -m camio synth --out DIR [--views 24] [--width 256] [--seed 0] [--arc-deg 70]
     python -m camio convert --src PATH --out DIR [--format auto] [--images-subdir images_8]
-                            [--downsample K] [--undistort] [--skip-missing] [--allow-mixed]
+                            [--downsample K | --max-size PX] [--undistort] [--skip-missing] [--allow-mixed]
     python -m camio split --scene DIR --n 3 6 9 12 [--manifest JSON] --out split.json
 """
 
@@ -20,6 +20,7 @@ log = logging.getLogger("camio")
 
 
 def _parser() -> argparse.ArgumentParser:
+    from camio.prepare import PHOTO_MAX_SIZE
     from camio.scene import FORMATS
 
     p = argparse.ArgumentParser(prog="python -m camio", description=plain(__doc__).split("\n")[0])
@@ -44,6 +45,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="input layout (auto: detected from its camera files)")
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
     c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")
+    c.add_argument("--max-size", dest="max_size", type=int, default=None, metavar="PX",
+                   help=f"a photo folder (no cameras): the long side of the working images at most PX "
+                        f"(area-downsampled; default {PHOTO_MAX_SIZE}; 0 = full resolution)")
     c.add_argument("--undistort", action="store_true",
                    help="undistort distorted cameras (COLMAP, transforms.json k1 k2 p1 p2, Strecha) to PINHOLE")
     c.add_argument("--skip-missing", action="store_true",
@@ -83,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             with timed("convert", log):
                 prepare_scene(args.src, args.out, args.format, args.images_subdir, args.downsample,
                               args.undistort, tuple(args.n), allow_mixed=args.allow_mixed,
-                              skip_missing=args.skip_missing, announce=lambda s: print(s, flush=True))
+                              skip_missing=args.skip_missing, announce=lambda s: print(s, flush=True),
+                              max_size=args.max_size)
             seal_out(args.out, "camio convert")
         elif args.command == "split":
             from camio.images import list_images

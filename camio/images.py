@@ -1,4 +1,5 @@
-"""Image files through OpenImageIO: reading, writing and integer area downsampling.
+"""Image files through OpenImageIO: reading, writing and area downsampling (by an integer
+factor, or to a size: a photo folder's working resolution).
 
 Reading (:func:`read_image`) always returns float32 RGB in [0, 1], shape [H, W, 3], in the
 image's *display* orientation:
@@ -41,6 +42,8 @@ __all__ = [
     "apply_orientation",
     "downsample_area",
     "downsample_folder",
+    "resize_area",
+    "working_size",
     "list_images",
 ]
 
@@ -345,19 +348,73 @@ def downsample_area(img: np.ndarray, factor: int) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def working_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """(width, height) with the long side at most ``max_size``, aspect kept (never enlarged;
+    ``max_size`` 0 = unchanged)."""
+    if max_size < 0:
+        raise ValueError(f"max_size must be 0 (full resolution) or a positive number of pixels, got {max_size}")
+    f = 1.0 if max_size == 0 else min(1.0, max_size / max(width, height))
+    return max(1, round(width * f)), max(1, round(height * f))
+
+
+def _area_axis(a: np.ndarray, n_out: int, axis: int) -> np.ndarray:
+    """Box-filter ``a`` (float64) along ``axis`` to ``n_out`` samples: each output sample is the
+    mean of the input over its interval, fractional pixels weighted by the part covered."""
+    n_in = a.shape[axis]
+    if n_out == n_in:
+        return a
+    step = n_in / n_out
+    edges = np.arange(n_out + 1) * step
+    i = np.minimum(np.floor(edges).astype(np.int64), n_in - 1)
+    frac = (edges - i).reshape([-1 if d == axis else 1 for d in range(a.ndim)])
+    csum = np.concatenate([np.zeros_like(np.take(a, [0], axis)), np.cumsum(a, axis=axis)], axis=axis)
+    area = np.take(csum, i, axis) + frac * np.take(a, i, axis)  # the sum of the input up to each edge
+    return np.diff(area, axis=axis) / step
+
+
+def resize_area(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Area (box) downsampling to any smaller ``size`` = (width, height): each output pixel is
+    the mean of the input pixels it covers, partly covered ones weighted by the part covered
+    (antialiased; :func:`downsample_area` for an integer factor that divides the size).
+    Continuous pixel coordinates scale by ``width / W`` and ``height / H``.
+
+    Args:
+        img: [H, W, C] or [H, W], float or uint8.
+        size: (width, height), each at most the input's.
+
+    Returns:
+        float32 [height, width, C] (uint8 input -> uint8 output, rounded).
+    """
+    a = np.asarray(img)
+    w, h = int(size[0]), int(size[1])
+    if not (1 <= w <= a.shape[1] and 1 <= h <= a.shape[0]):
+        raise ValueError(f"resize_area downsamples only: {a.shape[1]}x{a.shape[0]} -> {w}x{h}")
+    chans = a[..., None] if a.ndim == 2 else a
+    out = np.empty((h, w, chans.shape[2]), np.float64)
+    for c in range(chans.shape[2]):  # one channel at a time: float64 sums of a 12 MP photo stay small
+        out[..., c] = _area_axis(_area_axis(chans[..., c].astype(np.float64), h, 0), w, 1)
+    out = out[..., 0] if a.ndim == 2 else out
+    if a.dtype == np.uint8:
+        return np.round(out).clip(0, 255).astype(np.uint8)
+    return out.astype(np.float32)
+
+
 def downsample_folder(
     src: str | Path,
     dst: str | Path,
     factor: int,
     names: list[str] | None = None,
     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    max_size: int = 0,
 ) -> dict[str, tuple[int, int]]:
     """Read every image of ``src``, downsample by ``factor`` and write it into ``dst``.
 
-    Each output keeps its file name (JPEG stays JPEG at quality 95, 16-bit stays 16-bit). With
-    factor 1 an 8-bit RGB file with orientation 1 is copied byte for byte; anything else is
-    decoded (orientation applied, alpha composited) and re-encoded. Files are written
-    atomically one by one; on an error nothing from this call is left in ``dst``.
+    With ``max_size`` > 0 an image whose long side is then still longer is area-resized to
+    :func:`working_size` (:func:`resize_area`). Each output keeps its file name (JPEG stays
+    JPEG at quality 95, 16-bit stays 16-bit). An 8-bit RGB file with orientation 1 that needs no
+    downsampling is copied byte for byte; anything else is decoded (orientation applied, alpha
+    composited) and re-encoded. Files are written atomically one by one; on an error nothing
+    from this call is left in ``dst``.
 
     Returns:
         name -> (width, height) written.
@@ -371,16 +428,21 @@ def downsample_folder(
     dst.mkdir(parents=True, exist_ok=True)
     sizes: dict[str, tuple[int, int]] = {}
     written: list[Path] = []
+    desc = f"downsample x{factor}" + (f", long side <= {max_size}" if max_size else "")
     try:
-        for name in progress(names, desc=f"downsample x{factor}"):
+        for name in progress(names, desc=desc):
             sp, dp = src / name, dst / name
             bits = _bit_depth(sp)
-            if factor == 1 and bits == 8 and _is_plain_rgb(sp):
+            w, h = image_size(sp)
+            target = working_size(w // factor, h // factor, max_size)
+            if factor == 1 and target == (w, h) and bits == 8 and _is_plain_rgb(sp):
                 img = read_image(sp)  # validates the whole file
                 with atomic_path(dp) as tmp:
                     shutil.copyfile(sp, tmp)
             else:
                 img = downsample_area(read_image(sp, background), factor)
+                if (img.shape[1], img.shape[0]) != target:
+                    img = resize_area(img, target)
                 write_image(dp, img, bits=16 if bits == 16 and dp.suffix.lower() in (".png", ".tif", ".tiff") else 8)
             written.append(dp)
             sizes[name] = (img.shape[1], img.shape[0])
@@ -388,7 +450,8 @@ def downsample_folder(
         for p in written:
             p.unlink(missing_ok=True)
         raise
-    log.info("wrote %d images (x1/%d) to %s", len(names), factor, dst)
+    log.info("wrote %d images (x1/%d%s) to %s", len(names), factor,
+             f", long side <= {max_size}" if max_size else "", dst)
     return sizes
 
 

@@ -1,7 +1,8 @@
 """Prepare a scene for the pipeline: any supported format -> ``OUT/images`` + ``OUT/sparse/0``.
 
 ``OUT/images`` holds the images (copied, or area-downsampled by an integer factor, keeping
-their names); ``OUT/sparse/0`` a COLMAP text model (PINHOLE) with the reference cameras scaled
+their names; a photo folder's at its working resolution: the long side at most
+:data:`PHOTO_MAX_SIZE` unless ``max_size`` says otherwise); ``OUT/sparse/0`` a COLMAP text model (PINHOLE) with the reference cameras scaled
 exactly to the written images (``u_new = u_old / factor``, see
 :func:`camio.images.downsample_area`), points and observations when the source has them;
 ``OUT/split.json`` the PROTOCOL section 4 split; ``OUT/scene.json`` provenance. The output
@@ -18,13 +19,47 @@ from pathlib import Path
 from camio.atomic import atomic_dir, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import SparseModel, write_text_model
-from camio.images import downsample_folder
+from camio.images import downsample_folder, image_size, working_size
 from camio.scene import check_same_size, load_scene
 from camio.split import make_split, write_split, TEST_EVERY
 
-__all__ = ["prepare_scene", "scale_model"]
+__all__ = ["PHOTO_MAX_SIZE", "prepare_scene", "scale_model", "photo_max_size", "describe_working_size"]
 
 log = logging.getLogger(__name__)
+
+#: the long side (pixels) of a photo folder's working images: every stage after conversion
+#: (COLMAP, VGGT, training) reads these, sized for a CPU or one GPU; 0 = the photos' own size
+PHOTO_MAX_SIZE = 1600
+
+
+def photo_max_size(max_size: int | None, has_cameras: bool, downsample: int = 1) -> int:
+    """The size cap in effect: ``max_size`` as given, else :data:`PHOTO_MAX_SIZE` for photos
+    (no cameras, no ``downsample``) and 0 (none) for a dataset. A cap on a dataset's images
+    is refused (its cameras scale by an integer ``downsample``), as is a cap with a factor."""
+    if max_size is None:
+        return 0 if has_cameras or downsample != 1 else PHOTO_MAX_SIZE
+    if max_size < 0:
+        raise ValueError(f"--max-size must be 0 (full resolution) or a number of pixels, got {max_size}")
+    if max_size and has_cameras:
+        raise ValueError("--max-size sizes a photo folder; a dataset with cameras is downsampled by an "
+                         "integer factor: use --downsample K")
+    if max_size and downsample != 1:
+        raise ValueError("give --downsample or --max-size, not both")
+    return max_size
+
+
+def describe_working_size(sizes: list[tuple[int, int]], max_size: int) -> str:
+    """One line: the photos' size and the working resolution ``max_size`` gives them
+    ("12 photos 4032x3024 -> 1600x1200 working resolution")."""
+    n = f"{len(sizes)} photo{'s' if len(sizes) != 1 else ''}"
+    distinct = sorted(set(sizes))
+    if len(distinct) != 1:
+        cap = f"long side at most {max_size} px" if max_size else "full resolution"
+        return f"{n} of {len(distinct)} sizes -> working resolution: {cap}"
+    (w, h) = distinct[0]
+    ww, wh = working_size(w, h, max_size)
+    why = " (full resolution)" if not max_size else (f" (within {max_size} px)" if (ww, wh) == (w, h) else "")
+    return f"{n} {w}x{h} -> {ww}x{wh} working resolution{why}"
 
 
 def scale_model(model: SparseModel, factor: int, sizes: dict[str, tuple[int, int]]) -> SparseModel:
@@ -40,7 +75,7 @@ def prepare_scene(
     src: str | Path, out: str | Path, format: str = "auto", images_subdir: str | Path | None = None,
     downsample: int = 1, undistort: bool = False, ns: tuple[int, ...] = (3, 6, 9, 12),
     require_same_size: bool = True, allow_mixed: bool = False, skip_missing: bool = False,
-    announce=None,
+    announce=None, max_size: int | None = None,
 ) -> Path:
     """Convert the scene at ``src`` into a prepared scene folder ``out`` (module docstring).
 
@@ -51,8 +86,10 @@ def prepare_scene(
         require_same_size: refuse images of mixed sizes (the pipeline needs one size);
             ``allow_mixed`` turns it off too.
         allow_mixed, skip_missing: as :func:`camio.scene.load_scene`.
-        announce: called with :meth:`camio.scene.Scene.describe` once the scene is read (the
-            CLI prints it).
+        announce: called with :meth:`camio.scene.Scene.describe` once the scene is read, and
+            for a photo folder with :func:`describe_working_size` (the CLI prints them).
+        max_size: a photo folder's long side at most this (pixels; 0 = full resolution; None =
+            :data:`PHOTO_MAX_SIZE`): :func:`photo_max_size`.
     """
     t0 = time.perf_counter()
     out = Path(out)
@@ -65,7 +102,15 @@ def prepare_scene(
             announce(scene.describe())
         if require_same_size and not allow_mixed:
             check_same_size(scene.image_dir, scene.names)
-        sizes = downsample_folder(scene.image_dir, tmp / "images", downsample, scene.names)
+        has_cameras = scene.model is not None and bool(scene.model.cameras)
+        cap = photo_max_size(max_size, has_cameras, downsample)
+        source_size = image_size(scene.image_path(scene.names[0]))
+        if not has_cameras:
+            line = describe_working_size([image_size(scene.image_path(n)) for n in scene.names], cap)
+            log.info("%s", line)
+            if announce is not None:
+                announce(line)
+        sizes = downsample_folder(scene.image_dir, tmp / "images", downsample, scene.names, max_size=cap)
         n_cams = 0
         if scene.model is not None and scene.model.cameras:
             model = scale_model(scene.model, downsample, sizes) if downsample != 1 else scene.model
@@ -86,7 +131,8 @@ def prepare_scene(
         write_json(tmp / "scene.json", {
             "source": str(Path(src).resolve()), "format": scene.source_format,
             "images_subdir": None if images_subdir is None else str(images_subdir),
-            "downsample": downsample, "undistorted": scene.undistorted, "n_images": len(scene.names),
+            "downsample": downsample, "max_size": cap, "source_image_size": list(source_size),
+            "undistorted": scene.undistorted, "n_images": len(scene.names),
             "n_reference_cameras": n_cams, "camera_models": list(scene.source_models),
             "n_points": 0 if scene.model is None else int(len(scene.model.points)),
             "image_size": [w, h], "wall_time_s": time.perf_counter() - t0,

@@ -1,13 +1,18 @@
 """Your own photos in one command: cameras, a trained model and a view of it.
 
     python scripts/photos.py PHOTOS [--out DIR] [--init vggt|colmap|both] [--dense] [--iterations N]
-                             [--cores N] [-n] [-- SNAKEMAKE ARGS ...]
+                             [--max-size PX] [--cores N] [-n] [-- SNAKEMAKE ARGS ...]
 
 PHOTOS is a folder of photographs of one scene (3 or more; no camera files needed). Every photo
 trains: there are no reference cameras and no held-out views, so there are no image metrics,
-only the model and a render of every photo. This writes DIR/config.yaml (the workflow's
+only the model and a render of every photo. Every stage works at one working resolution: the
+long side at most camio.prepare.PHOTO_MAX_SIZE pixels unless ``--max-size`` says otherwise (0 =
+the photos' own size); the run says which. This writes DIR/config.yaml (the workflow's
 configuration for this folder) and DIR/split.json (every photo trains), then runs the project's
-Snakemake workflow on it, so a second run resumes and the same config runs on a cluster:
+Snakemake workflow on it, so a second run resumes and the same config runs on a cluster.
+A rerun writes into DIR/config.yaml only the folder's keys and those its flags set, keeping
+every other edit made there (a flag not given leaves its key as the file has it); it refuses a
+config.yaml that it did not write, or wrote for another folder.
 
     snakemake --profile workflow/profiles/slurm --configfile DIR/config.yaml
 
@@ -38,6 +43,9 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
 DATASET = "photos"
+HEADER = "# Written by scripts/photos.py for"
+#: the keys a new config.yaml starts with, which a rerun leaves to the file unless a flag sets them
+FIRST_WRITE = {"initialisers": INITS["both"], "evaluation": {"testpose": False}}
 
 
 def _fail(msg: str) -> int:
@@ -52,28 +60,74 @@ def photo_names(folder: Path) -> list[str]:
     return list(load_scene(folder, format="folder").names)
 
 
-def make_config(folder: Path, out: Path, names: list[str], inits: list[str],
-                iterations: int | None, vggt: dict | None = None) -> dict:
-    """The workflow configuration of one photo folder (results under ``out``)."""
-    scene = folder.resolve().name
-    scene = "".join(c if c.isalnum() or c in "_.-" else "_" for c in scene).lstrip("_.-") or "scene"
-    cfg: dict = {
-        "results": str(out),
-        "datasets": {DATASET: {"scenes": {scene: {
-            "path": str(folder.resolve()),
-            "format": "folder",
-            "reference": False,
-            "split": {"rule": "manifest", "manifest": str(out / "split.json")},
-            "views": [len(names)],
-        }}}},
+def make_config(folder: Path, out: Path, names: list[str], inits: list[str] | None = None,
+                iterations: int | None = None, vggt: dict | None = None, max_size: int | None = None) -> dict:
+    """The keys of the workflow configuration of one photo folder (results under ``out``) that
+    this script sets: the folder's scene, and the keys of the flags given (None: not given)."""
+    scene = scene_name(folder)
+    block: dict = {
+        "path": str(folder.resolve()),
+        "format": "folder",
+        "reference": False,
+        "split": {"rule": "manifest", "manifest": str(out / "split.json")},
         "views": [len(names)],
-        "initialisers": inits,
-        "evaluation": {"testpose": False},
     }
+    if max_size is not None:
+        block["max_size"] = max_size
+    cfg: dict = {"results": str(out), "datasets": {DATASET: {"scenes": {scene: block}}}, "views": [len(names)]}
+    if inits is not None:
+        cfg["initialisers"] = inits
     if iterations is not None:
         cfg["train"] = {"iterations": iterations, "eval_every": max(1, iterations)}
     if vggt:
         cfg["vggt"] = dict(vggt)
+    return cfg
+
+
+def scene_name(folder: Path) -> str:
+    scene = folder.resolve().name
+    return "".join(c if c.isalnum() or c in "_.-" else "_" for c in scene).lstrip("_.-") or "scene"
+
+
+def merge_config(old: dict, new: dict) -> dict:
+    """``old`` with ``new``'s keys written over it: mappings merged key by key, anything else
+    replaced; the keys ``new`` lacks stay as ``old`` has them."""
+    merged = dict(old)
+    for key, value in new.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_config(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def header(folder: Path) -> str:
+    """The first line of the config.yaml this script writes: how it knows its own file."""
+    return f"{HEADER} {folder.resolve()}"
+
+
+def read_own_config(path: Path, folder: Path) -> dict | None:
+    """The config.yaml this script wrote for ``folder`` at ``path`` (None: there is none).
+
+    Raises:
+        ValueError: a file it did not write, wrote for another folder, or cannot read.
+    """
+    if not path.is_file():
+        return None
+    text = path.read_text()
+    first = text.split("\n", 1)[0].strip()
+    if not first.startswith(HEADER):
+        raise ValueError(f"{path} was not written by scripts/photos.py (its first line is not '{HEADER} ...'); "
+                         "choose another --out, or move that file away")
+    if first != header(folder):
+        raise ValueError(f"{path} was written for another folder ({first[len(HEADER):].strip()}); "
+                         "choose another --out, or remove that file to start over")
+    try:
+        cfg = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"cannot read {path}: {' '.join(str(exc).split())}; fix it, or remove it to start over")
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{path} holds no mapping of keys; fix it, or remove it to start over")
     return cfg
 
 
@@ -86,7 +140,17 @@ def _write_if_changed(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def working_resolution(folder: Path, names: list[str], max_size: int | None) -> str:
+    """The line that states the working resolution (camio convert's, which the workflow runs)."""
+    from camio.images import image_size
+    from camio.prepare import describe_working_size, photo_max_size
+
+    return describe_working_size([image_size(folder / n) for n in names], photo_max_size(max_size, False))
+
+
 def main(argv: list[str] | None = None) -> int:
+    from camio.prepare import PHOTO_MAX_SIZE
+
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
     if "--" in argv:
@@ -97,12 +161,13 @@ def main(argv: list[str] | None = None) -> int:
                                        "workflow/profiles/slurm).")
     p.add_argument("photos", type=Path, help="folder of the photographs (3 or more)")
     p.add_argument("--out", type=Path, help="results folder (default: results_photos/<folder name>)")
-    p.add_argument("--init", choices=sorted(INITS), default="both",
-                   help="initialiser: vggt, colmap, or both (default both; VGGT is skipped, with "
-                        "the reason, where its checkpoint is missing)")
+    p.add_argument("--init", choices=sorted(INITS),
+                   help="initialiser: vggt, colmap, or both (default: config.yaml's, else both; VGGT is "
+                        "skipped, with the reason, where its checkpoint is missing)")
     p.add_argument("--dense", action="store_true",
                    help="also seed from multi-view stereo of the photos on each initialiser's cameras "
-                        "(colmap_mvs, vggt_mvs)")
+                        "(colmap_mvs, vggt_mvs; without it, config.yaml's initialisers stay unless --init "
+                        "is given)")
     p.add_argument("--iterations", type=int, help="training steps (default: the workflow's, "
                                                   "workflow/schemas/config.schema.yaml)")
     p.add_argument("--vggt-checkpoint", dest="vggt_checkpoint",
@@ -111,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="VGGT model configuration JSON (default: VGGT-1B)")
     p.add_argument("--vggt-image-size", dest="vggt_image_size", type=int,
                    help="VGGT input width (multiple of 14; default 518)")
+    p.add_argument("--max-size", dest="max_size", type=int, metavar="PX",
+                   help=f"long side of the working images every stage reads, pixels (default: "
+                        f"config.yaml's, else {PHOTO_MAX_SIZE}; 0 = the photos' own size)")
     p.add_argument("--cores", type=int, default=2, help="cores snakemake may use (default 2)")
     p.add_argument("-n", "--dry-run", action="store_true", dest="dry_run",
                    help="write the config and show the jobs, run nothing")
@@ -120,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"{args.photos} is not a folder of photos")
     if args.iterations is not None and args.iterations < 1:
         return _fail(f"--iterations must be at least 1, got {args.iterations}")
+    if args.max_size is not None and args.max_size < 0:
+        return _fail(f"--max-size must be 0 (the photos' own size) or a number of pixels, got {args.max_size}")
     try:
         names = photo_names(args.photos)
     except (ValueError, OSError) as exc:
@@ -134,8 +204,17 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("checkpoint", "model_config"):
         if key in vggt:
             vggt[key] = str(Path(vggt[key]).absolute())
-    inits = INITS[args.init] + ([f"{i}_mvs" for i in INITS[args.init]] if args.dense else [])
-    cfg = make_config(args.photos, out, names, inits, args.iterations, vggt)
+    try:
+        old = read_own_config(out / "config.yaml", args.photos)
+    except (ValueError, OSError) as exc:
+        return _fail(str(exc))
+    inits = None
+    if args.init is not None or args.dense:
+        kept = [i for i in (old or FIRST_WRITE).get("initialisers") or [] if not str(i).endswith("_mvs")]
+        base = INITS[args.init] if args.init is not None else (kept or INITS["both"])
+        inits = base + ([f"{i}_mvs" for i in base] if args.dense else [])
+    cfg = make_config(args.photos, out, names, inits, args.iterations, vggt, args.max_size)
+    cfg = merge_config(old, cfg) if old is not None else {**cfg, **{k: v for k, v in FIRST_WRITE.items() if k not in cfg}}
 
     sys.path.insert(0, str(REPO / "workflow" / "scripts"))
     from check_config import config_problems
@@ -147,10 +226,15 @@ def main(argv: list[str] | None = None) -> int:
     import json
 
     _write_if_changed(out / "split.json", json.dumps({"test": [], "train": {str(len(names)): names}}, indent=1) + "\n")
-    _write_if_changed(out / "config.yaml", "# Written by scripts/photos.py for " + str(args.photos.resolve())
-                      + "\n" + yaml.safe_dump(cfg, sort_keys=False))
+    if cfg != old:  # a file the rerun does not change stays as it is, comments and all
+        _write_if_changed(out / "config.yaml", header(args.photos) + "\n" + yaml.safe_dump(cfg, sort_keys=False))
     print(f"[photos] {len(names)} photos in {args.photos}; config {out / 'config.yaml'}; "
-          f"initialiser(s): {', '.join(inits)}", flush=True)
+          f"initialiser(s): {', '.join(cfg['initialisers'])}", flush=True)
+    block = cfg["datasets"][DATASET]["scenes"][scene_name(args.photos)]
+    try:
+        print(f"[photos] {working_resolution(args.photos, names, block.get('max_size'))}", flush=True)
+    except (ValueError, OSError) as exc:
+        return _fail(str(exc).splitlines()[0])
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
            "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), *(["-n"] if args.dry_run else []),
            *extra]

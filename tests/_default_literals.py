@@ -40,7 +40,7 @@ SOURCES = (
     "evaluation/initialisers/random_init.py", "evaluation/initialisers/oracle.py",
     "evaluation/initialisers/posed.py", "evaluation/initialisers/colmap_baseline.py",
     "evaluation/initialisers/ba_init.py",
-    "camio/ply.py", "runtime/view_defaults.py",
+    "camio/ply.py", "camio/prepare.py", "runtime/view_defaults.py",
 )
 #: the packages whose code is walked, and the workflow
 PACKAGES = ("camio", "vggt_init", "bridge", "splat_train", "evaluation")

@@ -6,11 +6,13 @@ images cannot be matched."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from camio.colmap import read_model
+from camio.colmap import read_model, write_text_model
 from camio.images import read_image, write_image
 from evaluation.initialisers.ba_init import move_points_with_cameras, run_ba_init
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras, run_oracle
@@ -106,6 +108,40 @@ def test_featureless_images_fall_back_and_say_so(scene, tmp_path):
     given, out = read_model(tmp_path / "oracle" / "sparse" / "0"), read_model(tmp_path / "ba" / "sparse" / "0")
     for c in out.cameras:
         np.testing.assert_allclose(c.cam_from_world, given.camera(c.name).cam_from_world, atol=1e-9)
+
+
+def test_the_fallback_through_the_cli_keeps_the_seed_points(tmp_path):
+    """A fallback exits 0 with the base model unchanged, its points included: the Bridge seeds
+    from it (a model of cameras alone it refuses)."""
+    from camio.synthetic import write_synthetic_scene
+
+    root = write_synthetic_scene(tmp_path / "scene", views=6, width=48, seed=0, n_ref_points=200)
+    base = read_model(root)
+    train = base.names[:4]
+    given = base.subset(train)
+    write_text_model(tmp_path / "init" / "sparse" / "0", given.cameras, given.points, given.colors, given.observations)
+    for name in train:  # featureless photos: nothing to match, so the adjustment falls back
+        write_image(tmp_path / "flat" / name, np.full((36, 48, 3), 0.5, np.float32))
+    (tmp_path / "train.txt").write_text("\n".join(train) + "\n")
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, timeout=120)
+
+    proc = run("evaluation.initialisers.ba_init", "--init", str(tmp_path / "init"), "--images", str(tmp_path / "flat"),
+               "--image-list", str(tmp_path / "train.txt"), "--out", str(tmp_path / "ba"), "--seed-points", "triangulated")
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    st = json.loads((tmp_path / "ba" / "status.json").read_text())
+    assert st["ba"]["fallback"] and st["points"] == len(given.points) > 0 and st["success_paper"]
+    out = read_model(tmp_path / "ba" / "sparse" / "0")
+    assert out.names == train
+    np.testing.assert_allclose(out.points, given.points, atol=1e-9)
+    np.testing.assert_array_equal(out.colors, given.colors)
+    for c in out.cameras:
+        np.testing.assert_allclose(c.cam_from_world, given.camera(c.name).cam_from_world, atol=1e-9)
+        np.testing.assert_allclose(out.observations[c.name][0], given.observations[c.name][0], atol=1e-9)
+    proc = run("bridge", "--colmap", str(tmp_path / "ba" / "sparse" / "0"), "--images", str(tmp_path / "flat"),
+               "--out", str(tmp_path / "bridge"))
+    assert proc.returncode == 0 and (tmp_path / "bridge" / "seed.ply").is_file(), (proc.stdout + proc.stderr)[-3000:]
 
 
 def test_dense_seed_needs_predictions(scene, tmp_path):

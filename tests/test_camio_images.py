@@ -14,6 +14,8 @@ from camio.images import (
     list_images,
     read_image,
     read_image_uint8,
+    resize_area,
+    working_size,
     write_image,
 )
 
@@ -190,6 +192,29 @@ def test_downsample_area_box_mean_and_crop():
         downsample_area(a, 32)
 
 
+def test_resize_area_is_the_box_mean_at_any_ratio():
+    """Integer ratios give downsample_area's blocks; any other ratio weights the pixels an output
+    pixel covers in part by the part covered: the mean is kept, 1-pixel stripes become grey."""
+    rng = np.random.default_rng(3)
+    a = rng.random((24, 36, 3)).astype(np.float32)
+    np.testing.assert_allclose(resize_area(a, (12, 8)), downsample_area(a, 3), atol=1e-6)
+    out = resize_area(a, (14, 10))
+    assert out.shape == (10, 14, 3) and out.dtype == np.float32
+    np.testing.assert_allclose(out.mean((0, 1)), a.mean((0, 1)), atol=1e-6)
+    # the first output pixel covers 36/14 columns and 24/10 rows: weights by the part covered
+    wx, wy = np.array([1, 1, 36 / 14 - 2]), np.array([1, 1, 2.4 - 2])
+    np.testing.assert_allclose(out[0, 0], np.einsum("i,j,ijc->c", wy, wx, a[:3, :3]) / (wx.sum() * wy.sum()), atol=1e-6)
+    stripes = np.zeros((30, 40), np.uint8)
+    stripes[:, ::2] = 255
+    grey = resize_area(stripes, (16, 12))  # 2.5 columns a pixel: 1.5 or 1 of them white
+    assert set(np.unique(grey)) == {102, 153}
+    np.testing.assert_array_equal(resize_area(a, (36, 24)), a)
+    with pytest.raises(ValueError, match="downsamples only"):
+        resize_area(a, (37, 24))
+    assert working_size(4032, 3024, 1600) == (1600, 1200) and working_size(3024, 4032, 1600) == (1200, 1600)
+    assert working_size(400, 300, 1600) == (400, 300) and working_size(4032, 3024, 0) == (4032, 3024)
+
+
 def test_downsample_folder(tmp_path, rgb8):
     src = tmp_path / "src"
     big = np.kron(rgb8, np.ones((4, 4, 1), np.uint8))  # 48 x 80
@@ -203,6 +228,10 @@ def test_downsample_folder(tmp_path, rgb8):
     same = downsample_folder(src, tmp_path / "copy", 1)
     assert (tmp_path / "copy" / "a.png").read_bytes() == (src / "a.png").read_bytes()
     assert same["a.png"] == (80, 48)
+    capped = downsample_folder(src, tmp_path / "capped", 1, max_size=30)
+    assert capped == {"a.png": (30, 18), "b.png": (30, 18)}
+    kept = downsample_folder(src, tmp_path / "kept", 1, max_size=80)  # within the cap: copied
+    assert kept["b.png"] == (80, 48) and (tmp_path / "kept" / "b.png").read_bytes() == (src / "b.png").read_bytes()
 
 
 def test_downsample_folder_leaves_nothing_on_error(tmp_path, rgb8):

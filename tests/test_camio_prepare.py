@@ -12,7 +12,7 @@ from camio.__main__ import main
 from camio.cameras import project_points
 from camio.colmap import read_model
 from camio.images import downsample_area, read_image, read_image_uint8, write_image
-from camio.prepare import prepare_scene
+from camio.prepare import PHOTO_MAX_SIZE, prepare_scene
 from camio.scene import SceneError
 
 
@@ -64,6 +64,42 @@ def test_convert_mixed_sizes_leaves_nothing(synth, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
     assert main(["-q", "convert", "--src", str(src), "--out", str(tmp_path / "out")]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+
+
+def test_cli_convert_sizes_a_photo_folder(tmp_path, capsys):
+    """A photo folder is converted at its working resolution (long side at most PHOTO_MAX_SIZE,
+    or --max-size; 0 = the photos' own size), area-downsampled, and the command says so."""
+    src = tmp_path / "photos"
+    w, h = PHOTO_MAX_SIZE + 400, (PHOTO_MAX_SIZE + 400) * 3 // 4
+    stripes = np.zeros((h, w, 3), np.uint8)
+    stripes[:, ::2] = 255  # 1-pixel stripes: antialiased, they become grey; sampled, they would not
+    for i in range(3):
+        write_image(src / f"IMG_{i}.jpg", np.roll(stripes, i, axis=1))
+    ww, wh = PHOTO_MAX_SIZE, PHOTO_MAX_SIZE * 3 // 4
+    capsys.readouterr()
+    assert main(["-q", "convert", "--src", str(src), "--format", "folder", "--out", str(tmp_path / "a")]) == 0
+    assert f"3 photos {w}x{h} -> {ww}x{wh} working resolution" in capsys.readouterr().out
+    meta = json.loads((tmp_path / "a" / "scene.json").read_text())
+    assert meta["image_size"] == [ww, wh] and meta["max_size"] == PHOTO_MAX_SIZE and meta["source_image_size"] == [w, h]
+    img = read_image_uint8(tmp_path / "a" / "images" / "IMG_1.jpg").astype(int)
+    inner = img[8:-8, 8:-8]  # 1.25 columns a pixel: a quarter to three quarters of it white
+    assert img.shape == (wh, ww, 3) and inner.min() > 32 and inner.max() < 223 and abs(inner.mean() - 128) < 8
+
+    assert main(["-q", "convert", "--src", str(src), "--max-size", "200", "--out", str(tmp_path / "b")]) == 0
+    assert "3 photos" in capsys.readouterr().out
+    assert json.loads((tmp_path / "b" / "scene.json").read_text())["image_size"] == [200, 150]
+    assert main(["-q", "convert", "--src", str(src), "--max-size", "0", "--out", str(tmp_path / "c")]) == 0
+    assert (tmp_path / "c" / "images" / "IMG_0.jpg").read_bytes() == (src / "IMG_0.jpg").read_bytes()
+
+
+def test_cli_convert_max_size_is_for_photo_folders(synth, tmp_path, capsys):
+    """A dataset's cameras scale by an integer factor: --max-size on it is one line, exit 2, nothing
+    written; its default leaves a dataset at its own size."""
+    assert main(["-q", "convert", "--src", str(synth), "--max-size", "32", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--downsample K" in err[0] and not (tmp_path / "o").exists()
+    assert main(["-q", "convert", "--src", str(synth), "--max-size", "0", "--out", str(tmp_path / "o")]) == 0
+    assert json.loads((tmp_path / "o" / "scene.json").read_text())["max_size"] == 0
 
 
 def test_cli_split(synth, tmp_path):

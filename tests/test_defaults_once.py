@@ -74,6 +74,26 @@ def test_random_initialiser_defaults_live_in_code():
         props["fallback_min_points"]["description"].split())
 
 
+def test_photo_working_size_lives_in_camio():
+    """A photo folder's working resolution is camio.prepare.PHOTO_MAX_SIZE: camio convert's and
+    scripts/photos.py's --max-size leave it unset (None: the constant), and so does the
+    workflow's scene key max_size, whose description names it."""
+    import subprocess
+    import sys
+
+    from camio.__main__ import _parser
+    from camio.prepare import PHOTO_MAX_SIZE, photo_max_size
+
+    scene = _schema()["$defs"]["scene"]["properties"]["max_size"]
+    assert scene["default"] is None
+    assert f"PHOTO_MAX_SIZE, {PHOTO_MAX_SIZE}" in " ".join(scene["description"].split())
+    assert _parser().parse_args(["convert", "--src", "s", "--out", "o"]).max_size is None
+    assert photo_max_size(None, has_cameras=False) == PHOTO_MAX_SIZE and photo_max_size(None, has_cameras=True) == 0
+    text = subprocess.run([sys.executable, str(REPO / "scripts" / "photos.py"), "--help"], capture_output=True,
+                          text=True, check=True).stdout
+    assert f"else {PHOTO_MAX_SIZE};" in " ".join(text.split())
+
+
 def test_testpose_defaults_live_in_code():
     """evaluation.testpose_steps: null means splat_train.testpose.DEFAULT_STEPS; the patience
     default is DEFAULT_PATIENCE in the schema, the CLI and the functions."""

@@ -65,6 +65,58 @@ def test_without_weights_says_so_and_plans_colmap_alone(tmp_path, photos):
     assert split["test"] == [] and len(split["train"][str(N_PHOTOS)]) == N_PHOTOS
 
 
+def test_rerun_keeps_the_users_config_edits(tmp_path, photos):
+    """config.yaml is the user's to edit: a rerun writes the folder's keys and those of the flags
+    given, and keeps every other key; a rerun that changes nothing leaves the file as it is. The
+    working resolution (--max-size) is a key of the scene, which camio convert receives."""
+    out, cfg_path = tmp_path / "out", tmp_path / "out" / "config.yaml"
+    first = _photos(tmp_path, str(photos), "--out", str(out), "--max-size", "48", "-n", "--", "-p")
+    assert first.returncode == 0, (first.stdout + first.stderr)[-4000:]
+    assert f"[photos] {N_PHOTOS} photos 64x48 -> 48x36 working resolution" in first.stdout
+    assert "--format folder --max-size 48 --out" in first.stdout  # the workflow converts at that size
+    cfg = yaml.safe_load(cfg_path.read_text())
+    scene = cfg["datasets"]["photos"]["scenes"]["garden"]
+    assert scene["max_size"] == 48 and cfg["initialisers"] == ["vggt", "colmap"]
+
+    cfg["initialisers"], cfg["train"], scene["allow_mixed"] = ["colmap"], {"recipe": "paper"}, True
+    head = cfg_path.read_text().splitlines()[0]
+    cfg_path.write_text(f"{head}\n# my edits\n{yaml.safe_dump(cfg, sort_keys=False)}")
+    second = _photos(tmp_path, str(photos), "--out", str(out), "--iterations", "5", "-n")
+    assert second.returncode == 0, (second.stdout + second.stderr)[-4000:]
+    assert "initialiser(s): colmap" in second.stdout and "64x48 -> 48x36 working resolution" in second.stdout
+    cfg = yaml.safe_load(cfg_path.read_text())
+    scene = cfg["datasets"]["photos"]["scenes"]["garden"]
+    assert cfg["initialisers"] == ["colmap"] and cfg["train"] == {"recipe": "paper", "iterations": 5, "eval_every": 5}
+    assert scene["allow_mixed"] is True and scene["max_size"] == 48 and scene["views"] == [N_PHOTOS]
+
+    text = cfg_path.read_text().replace("\n", "\n# my note\n", 1)
+    cfg_path.write_text(text)
+    third = _photos(tmp_path, str(photos), "--out", str(out), "--max-size", "0", "--init", "both", "-n")
+    assert third.returncode == 0 and "64x48 -> 64x48 working resolution (full resolution)" in third.stdout
+    cfg = yaml.safe_load(cfg_path.read_text())
+    assert cfg["datasets"]["photos"]["scenes"]["garden"]["max_size"] == 0 and cfg["initialisers"] == ["vggt", "colmap"]
+    assert cfg["train"]["recipe"] == "paper"
+    text = cfg_path.read_text()
+    assert _photos(tmp_path, str(photos), "--out", str(out), "-n").returncode == 0
+    assert cfg_path.read_text() == text  # nothing to write: left as it is
+
+
+def test_a_config_it_did_not_write_is_refused(tmp_path, photos):
+    """A config.yaml in --out that photos.py did not write, or wrote for another folder, is left
+    alone: exit 2, one line saying how to go on."""
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = "datasets: {}\nviews: [3]\ninitialisers: [colmap]\n"
+    (out / "config.yaml").write_text(mine)
+    proc = _photos(tmp_path, str(photos), "--out", str(out), "-n")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "not written by scripts/photos.py" in proc.stderr and "choose another --out" in proc.stderr
+    (out / "config.yaml").write_text(f"# Written by scripts/photos.py for {tmp_path / 'elsewhere'}\n{mine}")
+    proc = _photos(tmp_path, str(photos), "--out", str(out), "-n")
+    assert proc.returncode == 2 and "written for another folder" in proc.stderr, proc.stderr
+    assert (out / "config.yaml").read_text().endswith(mine) and sorted(p.name for p in out.iterdir()) == ["config.yaml"]
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not (FIXTURE / "weights.safetensors").is_file(), reason="VGGT fixture missing")
 def test_photo_folder_to_a_viewable_model(tmp_path, photos):

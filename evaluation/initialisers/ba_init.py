@@ -15,7 +15,8 @@ From an initialiser's output folder (``sparse/0`` cameras, optionally ``predicti
 
 Fallback: when matching or triangulation fails or yields fewer than ``min_points`` points (as
 at n = 3 on hard scenes), or the adjustment is unusable or does not lower the reprojection
-error, the unrefined prediction is written unchanged and ``status.json`` records
+error, the unrefined prediction is written unchanged (the base model's training cameras with
+all its points and their observations; ``predictions.npz`` as it was) and ``status.json`` records
 ``ba.fallback: true`` with the reason. Outputs (docs/contracts.md): ``DIR/sparse/0`` (COLMAP
 text), ``DIR/predictions.npz`` (dense seed only), ``DIR/status.json``.
 """
@@ -155,9 +156,9 @@ def run_ba_init(init_dir: str | Path, images: str | Path, names: list[str], out_
         raise ValueError(f"ba: training images {missing[:5]} are not in {init_dir / 'sparse' / '0'}")
     cams = [given.camera(n) for n in names]
     refined, stats, reason = _refine(Path(images), cams, refine_focal, min_points, seed, num_threads)
-    if refined is None:
+    if refined is None:  # the base model as it came: its training cameras and every point
         log.warning("ba: falling back to the unrefined prediction: %s", reason)
-        final = SparseModel(cams)
+        final = given.subset(names)
     else:
         final = refined
     with atomic_dir(out_dir / "sparse" / "0") as tmp:

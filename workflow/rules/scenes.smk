@@ -98,6 +98,8 @@ def convert_args(wildcards):
         args.append(f"--images-subdir {cfg['images_subdir']}")
     if cfg["downsample"] > 1:
         args.append(f"--downsample {cfg['downsample']}")
+    if cfg.get("max_size") is not None:
+        args.append(f"--max-size {cfg['max_size']}")
     if cfg["skip_missing"]:
         args.append("--skip-missing")
     if cfg["allow_mixed"]:

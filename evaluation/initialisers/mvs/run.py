@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.cameras import Camera
+from camio.images import working_size  # the one rule of a working resolution, as camio convert sizes photo folders
 from evaluation.initialisers.oracle import MAX_POINTS
 
 __all__ = ["MvsConfig", "MAX_POINTS", "working_size", "select_sources", "depth_maps", "run_mvs",
@@ -109,12 +110,6 @@ class MvsConfig:
         if bad:
             raise ValueError("mvs: bad value of " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad)
                              + " (MvsConfig's docstring gives each one's range)")
-
-
-def working_size(width: int, height: int, max_size: int) -> tuple[int, int]:
-    """(width, height) with the long side at most ``max_size``, aspect kept (never enlarged)."""
-    f = min(1.0, max_size / max(width, height))
-    return max(1, round(width * f)), max(1, round(height * f))
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
