@@ -9,9 +9,6 @@ the file outside it (``victim.png``) byte for byte.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,26 +18,11 @@ from camio import Camera
 from camio.colmap import write_text_model
 from camio.images import write_image
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+from _cli import ENV, ROOT
+from _cli import refused as _refused
+from _cli import run as _run
+
 VICTIM = b"a user's file beside --out"
-
-
-def _run(args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=ROOT, env=ENV,
-                          timeout=timeout)
-
-
-def _refused(proc: subprocess.CompletedProcess, *needles: str) -> str:
-    """The one error line of a refused command (exit 2, no traceback); it holds every needle."""
-    text = proc.stdout + proc.stderr
-    assert proc.returncode == 2, text[-3000:]
-    assert "Traceback" not in text, text[-3000:]
-    errors = [ln for ln in proc.stderr.splitlines() if "ERROR" in ln or "error" in ln]
-    assert len(errors) == 1, text[-3000:]
-    for n in needles:
-        assert n in errors[0], (n, errors[0])
-    return errors[0]
 
 
 def _victim(tmp_path: Path) -> Path:

@@ -10,7 +10,6 @@ byte for byte.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -22,30 +21,15 @@ import pytest
 
 from camio.outdir import LOCK, MARKER, check_name, check_name_list
 
-ROOT = Path(__file__).resolve().parents[1]
+from _cli import ENV, ROOT
+from _cli import refused as _refused
+from _cli import run as _run
+
 VIEWS = ROOT / "workflow" / "scripts" / "views.py"
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
 def _tree(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def _run(args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=ROOT, env=ENV,
-                          timeout=timeout)
-
-
-def _refused(proc: subprocess.CompletedProcess, *needles: str) -> str:
-    """The one error line of a refused command (exit 2, no traceback); it holds every needle."""
-    text = proc.stdout + proc.stderr
-    assert proc.returncode == 2, text[-3000:]
-    assert "Traceback" not in text, text[-3000:]
-    errors = [ln for ln in proc.stderr.splitlines() if "ERROR" in ln or "error" in ln]
-    assert len(errors) == 1, text[-3000:]
-    for n in needles:
-        assert n in errors[0], (n, errors[0])
-    return errors[0]
 
 
 @pytest.fixture(scope="module")
