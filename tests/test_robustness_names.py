@@ -18,7 +18,6 @@ from camio import Camera
 from camio.colmap import write_text_model
 from camio.images import write_image
 
-from _cli import ENV, ROOT
 from _cli import refused as _refused
 from _cli import run as _run
 
