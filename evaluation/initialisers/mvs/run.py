@@ -299,7 +299,7 @@ def depth_maps(images: list[np.ndarray], cams: list[Camera], cfg: MvsConfig = Mv
             "planes": [{"normal": n.tolist(), "point": c.tolist()} for n, c in planes]}
 
 
-def predictions_arrays(names, cams_full, cams, images_u8, dm, fill_stride: int = 0) -> dict:
+def predictions_arrays(names, cams_full, cams, images_u8, dm, fill_stride: int) -> dict:
     """predictions.npz's arrays (vggt_init's schema, docs/contracts.md) at the working size;
     with ``fill_stride``, the unexplained rays' points (confidence 0) beside the kept ones."""
     pts = np.stack([np.where(k[..., None], c.points, np.nan) for c, k in zip(dm["cons"], dm["keep"])])
