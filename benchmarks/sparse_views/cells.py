@@ -61,8 +61,7 @@ def seed_folder(init: str = "posed", mode: str | None = None, stride: int | None
         if flags:
             raise ValueError("the posed seed is the cell itself: it takes no init_args")
         return ""
-    return (f"seed_{init}" + "".join(f"_{flags[i].lstrip('-').replace('-', '_')}{flags[i + 1]}"
-                                     for i in range(0, len(flags), 2))
+    return (f"seed_{init}" + "".join(f"_{k}{v}" for k, v in sorted((init_args or {}).items()))
             + (f"_{mode}" if mode else "") + (f"_stride{stride}" if stride is not None else ""))
 
 
