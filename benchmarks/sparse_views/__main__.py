@@ -3,6 +3,7 @@
     run      train every (scene, n, recipe, seed) of one role that has no record yet
     summary  records -> summary.json and the docs table (no training)
     relabel  rename a recipe's or variant's records when a recipe's value lands
+    floor    score the flat mean-colour image of each cell (records/floors.json; no training)
     list     the protocol's scenes, their role and whether their data is here
 """
 
@@ -133,6 +134,21 @@ def cmd_summary(args) -> int:
     return 0
 
 
+def cmd_floor(args) -> int:
+    from benchmarks.sparse_views.floor import measure_floors
+
+    scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
+              and (not args.scenes or s.name in args.scenes)]
+    unknown = sorted(set(args.scenes or ()) - {s.name for s in scenes})
+    if unknown:
+        raise ValueError(f"no {args.role} scene named {', '.join(unknown)}")
+    missing = [s.name for s in scenes if not s.generate and not s.available]
+    if missing:
+        raise FileNotFoundError(f"no data here for {', '.join(missing)} (pass --data DIR)")
+    measure_floors(args.records, args.work, scenes, args.n)
+    return 0
+
+
 def cmd_relabel(args) -> int:
     from benchmarks.sparse_views.relabel import relabel
 
@@ -183,6 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("summary", help="rebuild summary.json and the docs table from the records")
     s.add_argument("--doc", type=Path, default=DOC, help="markdown table to write (default %(default)s)")
     sub.add_parser("list", help="the protocol's scenes")
+    fl = sub.add_parser("floor", help="score a flat image of the training views' mean colour per cell")
+    fl.add_argument("--role", choices=protocol.RUN_ROLES, default="evaluation", help="(default %(default)s)")
+    fl.add_argument("--scenes", nargs="*", default=None, help="only these scenes (default: every one of the role)")
+    fl.add_argument("--n", nargs="*", type=int, default=None, help="only these view counts (default: the scene's)")
+    fl.add_argument("--work", type=Path, required=True, help="where the cells' scenes and splits are made")
     rl = sub.add_parser("relabel", help="rename the records of OLD to NEW (a value landed: the recipe's old "
                                         "runs become a variant, the candidate's the recipe's)")
     rl.add_argument("old", help="the records' name now (a recipe or a variant)")
@@ -193,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
-                "relabel": cmd_relabel}[args.command](args)
+                "relabel": cmd_relabel, "floor": cmd_floor}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
         return 2

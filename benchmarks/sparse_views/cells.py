@@ -20,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import json
 import re
+from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
@@ -73,13 +74,21 @@ def prepare(work: Path, scene: Scene, n: int, init: str = "posed", mode: str | N
     Bridge's default when None); return its paths (scene, train / test name
     lists, bridge, align). Shards running side by side take turns (a lock file beside the cell)."""
     folder = seed_folder(init, mode, stride, init_args)
-    work.parent.mkdir(parents=True, exist_ok=True)
-    with open(work.parent / f".{work.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with cell_lock(work):
         cell = _prepare(work, scene, n)
         if init == "posed":
             return cell
         return {**cell, **_seed(work, work / folder, init, mode, stride, init_args, cell, n)}
+
+
+@contextmanager
+def cell_lock(work: Path):
+    """Hold the cell's lock (a file beside ``work``) so that shards running side by side take
+    turns preparing it."""
+    work.parent.mkdir(parents=True, exist_ok=True)
+    with open(work.parent / f".{work.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, stride: int | None, init_args: dict | None,
@@ -99,6 +108,19 @@ def _seed(work: Path, seed_dir: Path, init: str, mode: str | None, stride: int |
 
 
 def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
+    split = prepare_split(work, scene, n)
+    s, logf, train_txt = split["scene"], work / "prepare.log", split["train"]
+    init_dir = work / "posed"
+    if not (work / "bridge" / "bridge.json").is_file():
+        sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
+            "--out", str(init_dir)], logf)
+    return {**split, **bridge_and_align(work, s, init_dir, n, logf)}
+
+
+def prepare_split(work: Path, scene: Scene, n: int) -> dict[str, Path]:
+    """The cell's scene (converted or generated into ``work/scene``) and its name lists
+    ``work/train.txt`` (the split's ``n`` training views) and ``work/test.txt`` (the held-out
+    views), each made once; returns {"scene", "train", "test"}. No seed, no training."""
     s, logf = work / "scene", work / "prepare.log"
     if not (s / "split.json").is_file():
         if scene.generate:
@@ -116,11 +138,7 @@ def _prepare(work: Path, scene: Scene, n: int) -> dict[str, Path]:
             raise ValueError(f"{scene.name}: the split has no n = {n} (pool of {len(split['train_pool'])})")
         test_txt.write_text("\n".join(split["test"]) + "\n")
         train_txt.write_text("\n".join(split["train"][str(n)]) + "\n")
-    init_dir = work / "posed"
-    if not (work / "bridge" / "bridge.json").is_file():
-        sh(["-m", "evaluation.initialisers.posed", "--scene", str(s), "--image-list", str(train_txt),
-            "--out", str(init_dir)], logf)
-    return {"scene": s, "train": train_txt, "test": test_txt, **bridge_and_align(work, s, init_dir, n, logf)}
+    return {"scene": s, "train": train_txt, "test": test_txt}
 
 
 def seed_model(init_dir: Path) -> Path:

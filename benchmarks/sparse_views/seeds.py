@@ -25,6 +25,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+from benchmarks.sparse_views.floor import floor_psnr
 from benchmarks.sparse_views.protocol import REPO
 
 HERE = Path(__file__).resolve().parent
@@ -73,28 +74,6 @@ def run_command(reg: dict, work: str = "WORK") -> str:
             "--n", str(reg["n"]), "--seeds", *map(str, reg["seeds"]), "--iterations", str(reg["iterations"]),
             "--work", work, "--recipes", *variants]
     return shlex.join(args)
-
-
-def floor_psnr(cell: Path) -> float | None:
-    """Mean held-out PSNR of a flat image of the training views' mean colour (8-bit, as the
-    renders are scored), over the test views of a prepared cell (scene/, train.txt, test.txt);
-    None where the cell is not here."""
-    import numpy as np
-
-    from camio.images import read_image_uint8
-
-    if not (cell / "train.txt").is_file():
-        return None
-    images = cell / "scene" / "images"
-    names = lambda f: [n for n in (cell / f).read_text().split() if n]  # noqa: E731
-    train = [read_image_uint8(images / n).astype(np.float64) for n in names("train.txt")]
-    mean = np.round(np.mean([t.reshape(-1, 3).mean(0) for t in train], axis=0))
-    out = []
-    for n in names("test.txt"):
-        gt = read_image_uint8(images / n).astype(np.float64)
-        mse = np.mean((gt - mean) ** 2) / 255.0 ** 2
-        out.append(10 * np.log10(1.0 / max(mse, 1e-12)))
-    return float(np.mean(out))
 
 
 def _interval(values: list[float]) -> dict:

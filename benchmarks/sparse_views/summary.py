@@ -15,6 +15,8 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+from benchmarks.sparse_views import scene_level
+from benchmarks.sparse_views.floor import load_floors
 from benchmarks.sparse_views.protocol import REPO
 from benchmarks.sparse_views.runs import RECORD_KEYS
 from splat_train.recipes import RECIPE_NAMES
@@ -121,11 +123,15 @@ def spread(per: dict[str, dict[str, dict]], scenes: list[str], kinds: dict[str, 
 
 
 def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARGET_N,
-             iterations: int | None = None, kinds: dict[str, str] | None = None) -> dict:
+             iterations: int | None = None, kinds: dict[str, str] | None = None,
+             floors: dict[str, dict[int, float]] | None = None) -> dict:
     """The targets, computed on the evaluation scenes at ``n`` views and ``iterations`` (None:
     the most iterations any evaluation run has at ``n``); the targets are stated at
     :data:`TARGET_N`, other view counts get the same measures. None where data is missing.
-    ``kinds`` (scene -> kind, from the protocol) groups :func:`spread`'s means."""
+    ``kinds`` (scene -> kind, from the protocol) groups :func:`spread`'s means; ``floors``
+    ({scene: {n: PSNR}}, :mod:`benchmarks.sparse_views.floor`) gives the floor row. The
+    scene-level readings (floor, equal backgrounds, intervals, covered pixels) are
+    :mod:`benchmarks.sparse_views.scene_level`'s."""
     if iterations is None:
         iterations = max((r["iterations"] for r in rows if r["role"] == "evaluation" and r["n"] == n), default=0)
     # the named recipes only: a variant kept beside them (an earlier version, `mcmc-r13`) is
@@ -145,6 +151,10 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
             and r["scene"] in scenes]
     if not ev:
         return out
+    out["floor"] = scene_level.floor_block(rows, scenes, floors or {}, n, OURS)
+    out["equal_background"] = scene_level.equal_background(rows, scenes)
+    out["scene_level"] = scene_level.scene_level_intervals(rows, scenes, OURS)
+    out["coverage"] = scene_level.coverage(rows, scenes)
     # mean over scenes of each recipe's mean final PSNR (recipes present on every scene)
     per = defaultdict(dict)
     for a in ev:
@@ -237,9 +247,12 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
                   ""]
         if v.get("incomplete_scenes"):
             lines.append("- not counted until every recipe has run there: " + ", ".join(v["incomplete_scenes"]))
-        lines.append("- mean final PSNR over the scenes: " + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
+        lines += _scene_level_lines(v)
+        lines.append("- mean final PSNR over the scenes, each recipe at its own background: "
+                     + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
         if "psnr_lead_over_best_other" in v and v["psnr_lead_over_best_other"] is not None:
-            lines.append(f"- `sparse` − best other recipe: {v['psnr_lead_over_best_other']:+.2f} dB "
+            lines.append(f"- `sparse` − best other recipe, each at its own background (not a like-for-like "
+                         f"comparison; the equal-background lines above are): {v['psnr_lead_over_best_other']:+.2f} dB "
                          f"(target ≥ +0.5: {'met' if v['psnr_lead_ok'] else 'not met'})")
         sp = v.get("spread", {})
         if len(sp.get("by_kind", {})) > 1:
@@ -271,13 +284,51 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
     return "\n".join(lines)
 
 
+def _iv(iv: dict, m: str = "psnr", sign: bool = True) -> str:
+    """A scene-level interval as ``+0.47 [−0.95, +1.90] (k = 5)``."""
+    if iv.get("mean") is None:
+        return "n/a"
+    d = 2 if m == "psnr" else 3
+    f = (lambda x: f"{x:+.{d}f}") if sign else (lambda x: f"{x:.{d}f}")
+    body = f(iv["mean"]) if iv.get("lo") is None else f"{f(iv['mean'])} [{f(iv['lo'])}, {f(iv['hi'])}]"
+    return f"{body} (k = {iv['k']})"
+
+
+def _scene_level_lines(v: dict) -> list[str]:
+    """The scene-level readings of one view count (:mod:`benchmarks.sparse_views.scene_level`)."""
+    out = []
+    fl = v.get("floor")
+    if fl:
+        out.append(f"- floor, a flat image of the training views' mean colour: {fl['psnr']:.2f} dB; `{fl['recipe']}` − floor "
+                   f"{_iv(fl['lead'])}, {fl['lead']['scenes_ahead']} of {len(fl['psnr_per_scene'])} scenes above it "
+                   f"(target ≥ +{fl['target']:.1f}: {'met' if fl['met'] else 'not met'})")
+    else:
+        out.append("- floor: not measured for every scene (`python -m benchmarks.sparse_views floor`)")
+    for eb in v.get("equal_background", []):
+        d = eb["diff"]
+        out.append(f"- at equal background ({eb['background']}): `{eb['ours']}` {eb['mean_psnr'][eb['ours']]:.2f} against "
+                   f"`{eb['base']}` {eb['mean_psnr'][eb['base']]:.2f}; PSNR {_iv(d['psnr'])}, "
+                   f"{d['psnr']['scenes_ahead']} of {len(d['psnr']['per_scene'])} scenes ahead; "
+                   f"LPIPS-Alex {_iv(d['lpips_alex'], 'lpips_alex')}, LPIPS-VGG {_iv(d['lpips_vgg'], 'lpips_vgg')} "
+                   f"(target ≥ +{eb['target']:.1f} dB with the interval above 0 and LPIPS no worse: "
+                   f"{'met' if eb['met'] else 'not met'})")
+    if v.get("scene_level"):
+        out.append("- `sparse` − each other recipe, PSNR with the scene as the unit: " + "; ".join(
+            f"{k} {_iv(iv)}" for k, iv in v["scene_level"].items()))
+    if v.get("coverage"):
+        out.append("- covered pixels (accumulated alpha ≥ 0.5; share covered, PSNR over them, full-image PSNR): " + "; ".join(
+            f"{k} {c['coverage']:.2f}, {c['psnr_covered']:.2f}, {c['psnr']:.2f}" for k, c in v["coverage"].items()))
+    return out
+
+
 def write_summary(records: Path, doc: Path, scenes) -> dict:
     rows = load_records(records)
     agg, pairs = aggregate(rows), paired(rows)
     # the targets at n = TARGET_N and the most iterations run there; every (n, iterations) measured
     kinds = {s.name: s.kind for s in scenes}
-    verdict = verdicts(rows, agg, pairs, kinds=kinds)
-    by_n = {(n, its): verdicts(rows, agg, pairs, n, its, kinds=kinds)
+    floors = load_floors(records)
+    verdict = verdicts(rows, agg, pairs, kinds=kinds, floors=floors)
+    by_n = {(n, its): verdicts(rows, agg, pairs, n, its, kinds=kinds, floors=floors)
             for n, its in sorted({(r["n"], r["iterations"]) for r in rows if r["role"] == "evaluation"})}
     summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
                "aggregate": agg, "paired": pairs, "targets": verdict,
