@@ -9,7 +9,7 @@ Commands:
   plots    training curves and the error / run-time Pareto plot (PNG)
   report   one static HTML report with tables, plots and render grids
   floaters floater measure of Gaussian models against a synthetic scene's surface
-  study    the initialisation study's report (docs/init-study.md)
+  study    the initialisation study's report (docs/reference.md section 6)
 """
 
 from __future__ import annotations
@@ -249,7 +249,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_floaters)
 
-    p = sub.add_parser("study", help="the initialisation study's report (docs/init-study.md)")
+    p = sub.add_parser("study", help="the initialisation study's report (docs/reference.md section 6)")
     p.add_argument("--results", required=True, help="the study tree (R/study)")
     p.add_argument("--out", required=True, help="report folder (study.md, plots/, index.html)")
     p.add_argument("--cells", help="the expanded grid: JSON text or a file (evaluation.study.grid)")

@@ -91,7 +91,8 @@ class TrainConfig:
             which also composites RGBA images on it; train.json's config has the colour and
             its ``background_from`` says which was asked. None: the recipe's (black in the
             field's recipes, the mean in ``sparse``). From a few views a held-out view also
-            sees what no training view did, where the render is this colour (docs/sparse-recipe.md, "Where the held-out error is").
+            sees what no training view did, where the render is this colour (docs/reference.md
+            section 3a).
         random_background: draw a uniform random background every iteration instead.
         densify_from, densify_until, densify_every: densification window and period
             (iterations of this run; None: the recipe's fraction of the run).

@@ -21,7 +21,7 @@ printed by the trainer).
     as 3DGS and gsplat's own loop do (tests/test_train_recipes.py pins the two strategies
     together on a small scene).
     In the sparse regime this recipe overfits: held-out PSNR peaks early and falls while the
-    model grows (docs/sparse-recipe.md).
+    model grows (docs/lessons.md).
 
 ``dropgaussian``
     DropGaussian (Park et al., CVPR 2025) as its release trains LLFF 3 views
@@ -48,33 +48,32 @@ printed by the trainer).
     * opacity decay (Binocular3DGS, NeurIPS 2024): every opacity x 0.995 after each iteration
       from the densification start (:mod:`splat_train.opacity_decay`), so that Gaussians the
       views stop holding up fade and the prune removes them; the release densifies to the end
-      of the run while the decay acts, and so does this recipe; chosen on the tuning scenes
-      (docs/sparse-recipe.md, "Twelfth tuning round");
+      of the run while the decay acts, and so does this recipe;
     * no opacity reset (nor the size prune 3DGS runs after one): measured, the reset cost the
       sparse model about 1 dB held out that it never recovered;
     * binocular stereo consistency (Binocular3DGS, NeurIPS 2024) from the densification start
       on: each training view is rendered again from a camera shifted sideways and warped back
       with the rendered depth, which must reproduce the training image
-      (:mod:`splat_train.binocular`; one more render per iteration); chosen on the tuning
-      scenes (docs/sparse-recipe.md, "Eleventh tuning round"), and its start, earlier than the
-      release's 2/3 of the run, in the "Thirteenth tuning round";
+      (:mod:`splat_train.binocular`; one more render per iteration), from earlier than the
+      release's 2/3 of the run;
     * gsplat's opacity regulariser in its place (``opacity_reg`` 0.01 x mean opacity, the value
       of its MCMC preset, :mod:`splat_train.parts`): Gaussians that no training view needs
       fade, and the 3DGS prune (opacity below 0.005) removes them, which frees the cap for
-      Gaussians the views do need.
+      Gaussians the views do need;
+    * the mean colour of the training images behind the model (``background``
+      :data:`BACKGROUND_MEAN`; black in the field's recipes): from a few views a held-out view
+      sees what no training view did, and there the render is this colour.
 
     A seed larger than the cap (3DGS's random initialisation, 0.25 per training pixel, where
     three views triangulate nothing) shrinks towards the cap (``seed_over_cap`` "cap"): raising
     the cap to the seed, or relocating it as ``mcmc`` does, lost 0.71 and 0.41 dB on the six
-    randomly seeded tuning cells (docs/sparse-recipe.md, "Sixth tuning round").
+    randomly seeded tuning cells.
 
-    The regulariser was chosen on the tuning scenes (docs/sparse-recipe.md, "Third tuning
-    round"), beside SH degree 1 and 0, which did not help.
-    The period was chosen on the tuning scenes (docs/sparse-recipe.md, "Second tuning round"):
-    a period of 1 % of the run (20 at 1,000 iterations) filled the cap by iteration 200 on
-    statistics of 20 steps and lost held-out PSNR there. Growth to half the run (3DGS's window,
-    at least 1,000 iterations; "Fifth tuning round") gave way to growth to the end with the
-    opacity decay ("Twelfth tuning round").
+    Every value was chosen on the tuning scenes of the sparse-view benchmark
+    (docs/reference.md section 3a says how; docs/lessons.md what each choice measured): a
+    densification period of 1 % of the run (20 at 1,000 iterations) filled the cap by
+    iteration 200 on statistics of 20 steps and lost held-out PSNR there; SH degree 1 or 0
+    did not help.
 
 ``mcmc``
     3DGS as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024, arXiv:2404.09591) as
@@ -220,50 +219,50 @@ RECIPES: dict[str, dict[str, Any]] = {
     "sparse": {
         "densify_from_fraction": DENSIFY_FROM_3DGS,
         # every 100 like the field's recipes, to the end of the run, as Binocular3DGS's release
-        # grows while its opacity decay acts (docs/sparse-recipe.md "Twelfth tuning round")
+        # grows while its opacity decay acts (docs/lessons.md)
         "densify_until_fraction": 1.0,
         "densify_every": 100,
         # no opacity reset (None: never; nor the size prune that follows it): on fern posed
         # n = 3 the held-out PSNR peaked just before the reset and fell ~1 dB after it at both
         # 3,000 and 10,000 iterations; without it the 3,000-iteration run ended 1.3 dB higher
-        # (docs/sparse-recipe.md). The cap and dropout do the reset's job of bounding the model.
+        # (docs/lessons.md). The cap and dropout do the reset's job of bounding the model.
         "opacity_reset_every_fraction": None,
         "sh_increase_every_fraction": 0.1,
         # DropGaussian's final rate (docs/field.md)
         "dropout_rate": 0.2,
         "dropout_ramp_fraction": 1.0,  # DropGaussian's ramp, over the whole run
         # FSGS's Pearson depth weight (docs/field.md), reached after 10 % of the run; 0.1 lost
-        # 0.06 dB over twelve scenes (docs/sparse-recipe.md "Eighth tuning round")
+        # 0.06 dB over twelve scenes (docs/lessons.md)
         "depth_weight": 0.05,
         "depth_ramp_fraction": 0.1,
-        # chosen on the tuning scenes only (docs/sparse-recipe.md "Choosing the cap"): on fern
+        # chosen on the tuning scenes only (docs/lessons.md): on fern
         # posed n = 3, 1,000 iterations, 3 seeds, 0.1 per training pixel held out LPIPS-Alex
         # 0.252 / VGG 0.345 against 0.327 / 0.378 for 0.03 and 0.274 / 0.366 for `paper`, at
         # 0.21 dB below 0.03 and 0.46 dB above `paper`; with no cap the model grew to 100k and
         # lost 1.4 dB. The field's LLFF 3-view models hold 80k-120k: 0.1 gives 57k there.
-        # At 3,000 iterations 0.2 lost 0.06 dB over twelve scenes ("Eighth tuning round").
+        # At 3,000 iterations 0.2 lost 0.06 dB over twelve scenes.
         "gaussians_per_pixel": 0.1,
         "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
         "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
         "strategy": "densify",
         "seed_over_cap": "cap",
         "mcmc_growth": "gsplat",  # not read (no seed over the cap grows by relocation)
-        # chosen on the tuning scenes (docs/sparse-recipe.md "Third tuning round")
+        # chosen on the tuning scenes (docs/lessons.md)
         "opacity_reg": OPACITY_REG_GSPLAT,
         "scale_reg": 0.0,
         # binocular stereo consistency (splat_train/binocular.py) with Binocular3DGS's weight,
-        # chosen on the tuning scenes (docs/sparse-recipe.md "Eleventh tuning round": fourteen
-        # cells, 3 seeds, +0.06 dB and lower LPIPS-Alex and VGG than without it), from the
-        # densification start rather than the release's 2/3 of the run ("Thirteenth tuning
-        # round"): the held-out declines it holds back happen while the model grows
+        # chosen on the tuning scenes (docs/lessons.md: fourteen cells, 3 seeds, +0.05 dB and
+        # lower LPIPS-Alex and VGG than without it), from the densification start rather than
+        # the release's 2/3 of the run (+0.12 dB more): the held-out declines it holds back
+        # happen while the model grows
         "binocular_weight": 1.0,
         "binocular_from_fraction": DENSIFY_FROM_3DGS,
         # Binocular3DGS's opacity decay (splat_train/opacity_decay.py) at its release's factor,
-        # chosen on the tuning scenes (docs/sparse-recipe.md "Twelfth tuning round")
+        # chosen on the tuning scenes (docs/lessons.md: +0.40 ± 0.22 dB over fourteen cells)
         "opacity_decay": OPACITY_DECAY_BINOCULAR,
         # the training images' mean colour behind the model, chosen on the tuning scenes
-        # (docs/sparse-recipe.md "Fourteenth tuning round": +0.10 ± 0.37 dB over fourteen
-        # cells, 3 seeds) and held on the five evaluation scenes (docs/results.md)
+        # (docs/lessons.md: +0.10 ± 0.37 dB over fourteen cells, 3 seeds) and held on the five
+        # evaluation scenes (docs/results.md)
         "background": BACKGROUND_MEAN,
     },
     "mcmc": {

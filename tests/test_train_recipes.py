@@ -35,7 +35,7 @@ def test_every_recipe_gives_every_value_key_and_the_config_takes_it():
 
 
 def test_a_seed_within_the_cap_trains_the_same_under_every_seed_over_cap_rule():
-    """The sixth tuning round's variants (docs/sparse-recipe.md) change a run only where the
+    """The ``seed_over_cap`` rules (docs/reference.md section 3a) change a run only where the
     seed is larger than the cap: within it, the cap and the strategy are sparse's."""
     pixels = 3 * 200 * 200  # the cap: 0.1 x 120,000 = 12,000
     for seed in (0, 1, 11_999, 12_000):

@@ -334,7 +334,7 @@ def test_a_binding_cap_does_not_collapse_the_model(tmp_path):
 
 
 def test_a_seed_over_the_cap_is_kept_or_relocated_through_the_trainer(tmp_path):
-    """A 60-Gaussian seed under a cap of 30 (the sixth tuning round, docs/sparse-recipe.md):
+    """A 60-Gaussian seed under a cap of 30 (``seed_over_cap``, docs/reference.md section 3a):
     "cap" trains to the cap of 30, "keep" to a cap of 60, "relocate" to 60 with the mcmc
     strategy, which keeps the seed's count while it moves dead Gaussians."""
     scene = write_scene(tmp_path / "s", n_views=3)

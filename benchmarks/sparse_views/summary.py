@@ -205,7 +205,7 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "(reference cameras, points triangulated from the n training views, however few; random points,",
              "3DGS's random initialisation, only where they triangulate none: benchmarks/sparse_views/cells.py),",
              "every 8th image held out, final-iteration scores of the held-out views (mean ± 95 % t half-width",
-             "over seeds). Recipe values were chosen on the tuning scenes only (docs/sparse-recipe.md says which",
+             "over seeds). Recipe values were chosen on the tuning scenes only (docs/lessons.md says which",
              "runs chose each); a `sparse-*` row of the tuning scenes is a variant of `sparse` tried there",
              "(`sparse-r2`: `sparse` before the opacity regulariser; `sparse-r3`: before growth stopped at half",
              "the run; `sparse-r10`: before binocular consistency; `sparse-r11`: before the opacity decay and",
@@ -214,7 +214,7 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "behind the model). `mcmc-r13` is `mcmc` before its growth rule (5 % per refine step",
              "alone, which leaves a seed of a few triangulated points far below its cap; kept beside the",
              "rerun, outside the targets). `paper-bgmean` is `paper` against the training images' mean colour",
-             "instead of black (`sparse`'s colour since the fourteenth round), so that the lead is also read at",
+             "instead of black (`sparse`'s colour), so that the lead is also read at",
              "equal background; outside the targets. On a scene with a `background` in scenes.yaml (NeRF's",
              "synthetic scenes: white) every recipe trains and renders against it; on the others `sparse`",
              "trains against the mean colour and the field's recipes against black.", ""]

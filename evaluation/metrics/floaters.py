@@ -1,6 +1,6 @@
 """Floater measure against a known surface (scenes with ground-truth geometry).
 
-Definition (the one place; docs/init-study.md quotes it):
+Definition (the one place; docs/reference.md section 6 cites it):
 
     floater_frac = sum_i alpha_i [d_i > tau] / sum_i alpha_i
 

@@ -46,7 +46,7 @@ __all__ = ["MEASURES", "POSE_MEASURES", "DIFF_MEASURES", "CURVE_MEASURES", "MODE
 
 log = logging.getLogger(__name__)
 
-# column -> (label, unit, digits): the measures of docs/init-study.md, in table order
+# column -> (label, unit, digits): the study's measures (docs/reference.md section 6), in table order
 MEASURES = {
     "psnr": ("PSNR (final)", "dB", 2),
     "best_test_psnr": ("PSNR (best it.)", "dB", 2),

@@ -1,4 +1,4 @@
-# The initialisation study (docs/init-study.md): the oracle (or, with study.initialiser: posed,
+# The initialisation study (docs/reference.md section 6): the oracle (or, with study.initialiser: posed,
 # the posed initialiser) degraded one axis at a time, each
 # cell x seed x view count x Bridge mode trained and evaluated with the regular stage rules
 # (reused with `use rule ... with:`, so each stage's command stays in one place), plus the

@@ -1,4 +1,4 @@
-"""Planning of the initialisation study (rules: study.smk; docs/init-study.md): the grid
+"""Planning of the initialisation study (rules: study.smk; docs/reference.md section 6): the grid
 expanded from the config's `study:` section, its layout, targets and stage arguments. Empty
 when the config has no `study:` section.
 
