@@ -25,7 +25,8 @@ sign flipped by its parity) as Niantic's ``PackOptions{from = RDF}`` does, and t
 turns it back. Quantisation (the library's): positions 24-bit fixed point with
 :data:`SPZ_FRACTIONAL_BITS` fractional bits (error <= 2^-(bits+1); fewer bits when the scene
 is larger than 2^(23-bits)), log scales in steps of 1/16 over [-10, 5.9], alpha in steps of
-1/255, the SH DC in steps of 1/(0.15 * 255), the higher bands in steps of 1/128 over [-1, 1).
+1/255, the SH DC in steps of 1/(0.15 * 255), the higher bands in steps of 1/128 over [-1, 127/128]
+(turned into RUB, so a coefficient is kept within 1/256 where |value| <= 127/128, clamped beyond).
 """
 
 from __future__ import annotations
