@@ -94,15 +94,21 @@ def test_export_ply_is_the_same_model(tmp_path):
 
 
 def test_spz_far_scene_keeps_fewer_fractional_bits(tmp_path):
-    """A scene 3,000 units across does not fit 12 fractional bits (at most 2,048): the writer
-    gives up bits, not positions."""
+    """A scene reaching x = 3,000 does not fit 12 fractional bits (at most 2,048): the writer
+    gives up bits, not positions, and says so in the header."""
+    import gzip
+
     c, _ = _model(tmp_path, n=30)
-    c.means = c.means * 1000.0 + np.array([3000.0, 0.0, 0.0], np.float32)
+    c.means = c.means * 100.0 + np.array([3000.0, 0.0, 0.0], np.float32)
+    far = float(np.abs(c.means).max())
+    assert 2048 < far < 4096
     model = str(write_gaussian_ply(tmp_path / "far.ply", c))
     _export("spz", model, tmp_path / "far.spz")
+    header = gzip.decompress((tmp_path / "far.spz").read_bytes())[:16]
+    assert header[:4] == b"NGSP" and header[13] == 11  # 4,096 * 2^11 = 2^23
     r = read_spz(tmp_path / "far.spz")
-    bits = 11  # 3,600 * 2^11 < 2^23
-    assert np.abs(r.means - c.means).max() <= 2.0 ** -(bits + 1) + 1e-3
+    ulp = float(np.spacing(np.float32(far)))  # float32 itself keeps no finer step out there
+    assert np.abs(r.means - c.means).max() <= 2.0 ** -12 + ulp
 
 
 def test_export_refusals(tmp_path):
