@@ -11,7 +11,7 @@ from _cli import ROOT, refused, run
 from _view_scene import make_cameras, make_model
 from camio.ply import GaussianCloud, read_gaussian_ply, sh_dc_to_rgb, write_gaussian_ply
 from camio.splatfmt import (SPZ_FRACTIONAL_BITS, SplatFormatError, rdf_to_rub, read_splat, read_spz,
-                            splat_order)
+                            splat_order, write_spz)
 
 # What each format keeps (module docstring of camio.splatfmt): bytes rounded to nearest.
 SPLAT_BYTE_TOL = 0.5 / 255 + 1e-6  # colour and alpha after the clamp to [0, 1]
@@ -109,6 +109,18 @@ def test_spz_far_scene_keeps_fewer_fractional_bits(tmp_path):
     r = read_spz(tmp_path / "far.spz")
     ulp = float(np.spacing(np.float32(far)))  # float32 itself keeps no finer step out there
     assert np.abs(r.means - c.means).max() <= 2.0 ** -12 + ulp
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_spz_keeps_a_lower_sh_degree(tmp_path, degree):
+    """A model of SH degree 0..2 (a PLY from another trainer) is written at its own degree."""
+    c = make_model(40, sh_degree=degree)
+    c.sh_rest = np.clip(c.sh_rest, -0.99, 0.99)
+    write_spz(tmp_path / "m.spz", c)
+    r = read_spz(tmp_path / "m.spz")
+    assert r.sh_degree == degree and r.sh_rest.shape == c.sh_rest.shape
+    assert np.abs(r.sh_rest - c.sh_rest).max(initial=0.0) <= SPZ_REST_TOL
+    assert np.abs(r.sh_dc - c.sh_dc).max() <= SPZ_DC_TOL
 
 
 def test_export_refusals(tmp_path):
