@@ -83,6 +83,17 @@ def splat_order(cloud: GaussianCloud) -> np.ndarray:
     return np.argsort(-weight, kind="stable")
 
 
+def _unit_quats(cloud: GaussianCloud, fmt: str) -> np.ndarray:
+    """[N, 4] float64 the cloud's rotations normalised (w, x, y, z); both formats store unit
+    quaternions, so a zero one is refused (SplatFormatError naming ``fmt`` and the count)."""
+    q = cloud.quats.astype(np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    if len(q) and not (norm > 0).all():
+        raise SplatFormatError(f"{int((norm <= 0).sum())} of {len(q)} Gaussians have a zero rotation quaternion; "
+                               f"{fmt} stores unit quaternions")
+    return q / np.where(norm > 0, norm, 1.0)
+
+
 def _to_byte(x: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
@@ -94,18 +105,14 @@ def write_splat(path: str | Path, cloud: GaussianCloud) -> Path:
         SplatFormatError: a zero quaternion (no rotation to store).
     """
     n = len(cloud)
-    q = cloud.quats.astype(np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    if n and not (norm > 0).all():
-        raise SplatFormatError(f"{int((norm <= 0).sum())} of {n} Gaussians have a zero rotation quaternion; "
-                               ".splat stores unit quaternions")
+    q = _unit_quats(cloud, ".splat")
     order = splat_order(cloud)
     rec = np.empty(n, SPLAT_RECORD)
     rec["position"] = cloud.means[order]
     rec["scale"] = np.exp(cloud.log_scales[order].astype(np.float64))
     rgb = np.clip(sh_dc_to_rgb(cloud.sh_dc[order]).astype(np.float64), 0.0, 1.0)
     rec["rgba"] = _to_byte(np.concatenate([rgb, cloud.opacity[order, None]], axis=1) * 255.0)
-    rec["rot"] = _to_byte((q / np.where(norm > 0, norm, 1.0))[order] * 128.0 + 128.0)
+    rec["rot"] = _to_byte(q[order] * 128.0 + 128.0)
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(rec.tobytes())
     return Path(path)
@@ -189,13 +196,8 @@ def write_spz(path: str | Path, cloud: GaussianCloud) -> Path:
     if cloud.sh_degree > 3:
         raise SplatFormatError(f"SH degree {cloud.sh_degree}: .spz holds degree 3 at most")
     rub = rdf_to_rub(cloud)
-    q = rub.quats.astype(np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    if len(rub) and not (norm > 0).all():
-        raise SplatFormatError(f"{int((norm <= 0).sum())} of {len(rub)} Gaussians have a zero rotation "
-                               "quaternion; .spz stores unit quaternions")
     n, deg = len(rub), rub.sh_degree
-    data = gsply.GSData(means=rub.means, scales=rub.log_scales, quats=(q / norm).astype(np.float32),
+    data = gsply.GSData(means=rub.means, scales=rub.log_scales, quats=_unit_quats(rub, ".spz").astype(np.float32),
                         opacities=rub.opacity_logit, sh0=rub.sh_dc,
                         shN=rub.sh_rest if deg else np.zeros((n, 0, 3), np.float32),
                         _format=create_ply_format(sh_degree=deg))

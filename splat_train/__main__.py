@@ -55,8 +55,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m splat_train",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
-                                            "`python -m splat_train render -h` renders a trained model, "
-                                            "`python -m splat_train view -h` shows one in the browser.")
+                                            "`python -m splat_train render -h` renders a trained model (or a "
+                                            "fly-through video), `python -m splat_train view -h` shows one in the "
+                                            "browser, `python -m splat_train export -h` writes one for other viewers.")
     p.add_argument("--seed-ply", dest="seed_ply", required=True, help="the seed point cloud to start from: a PLY in the 3DGS layout, "
                    "e.g. the Bridge's seed.ply")
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")

@@ -134,6 +134,13 @@ def test_export_refusals(tmp_path):
     p = run(["-m", "splat_train", "export", "--format", "spz", "--out", str(tmp_path / "far.spz"), far])
     refused(p, "24-bit", "normalise")
     assert not (tmp_path / "far.spz").exists()
+    c.means[0] = 0.0
+    c.quats[3] = 0.0  # no rotation to store
+    zero = str(write_gaussian_ply(tmp_path / "zero.ply", c))
+    for fmt in ("splat", "spz"):
+        p = run(["-m", "splat_train", "export", "--format", fmt, "--out", str(tmp_path / f"zero.{fmt}"), zero])
+        refused(p, "1 of 20", "zero rotation quaternion", f".{fmt}")
+        assert not (tmp_path / f"zero.{fmt}").exists()
     (tmp_path / "mine.splat").write_bytes(b"a user's file")
     p = run(["-m", "splat_train", "export", "--format", "splat", "--out", str(tmp_path / "mine.splat"), model])
     refused(p, "mine.splat")
