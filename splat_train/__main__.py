@@ -14,10 +14,16 @@ Look at a trained model in the browser (splat_train/view)::
     python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed-ply seed.ply]
         [--port P] [--host 127.0.0.1] [--no-browser]
 
-Render a trained model into any camera set::
+Render a trained model into any camera set, or a fly-through video along its cameras::
 
     python -m splat_train render --model model.ply --cameras DIR --out DIR
         [--images DIR | --width W --height H] [--image-list FILE] [--background R,G,B]
+    python -m splat_train render --model model.ply --cameras DIR --path orbit|interpolate --video out.mp4
+        [--frames N] [--fps F] [--width W --height H] [--image-list FILE] [--background R,G,B]
+
+Share a trained model in a web viewer's format (camio.splatfmt)::
+
+    python -m splat_train export --format splat|spz|ply --out FILE model.ply
 
 Test-pose protocol (each held-out pose optimised against its image, Gaussians frozen;
 splat_train/testpose.py)::
@@ -31,6 +37,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from runtime.cliargs import deprecated_flags, is_int
@@ -48,8 +55,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m splat_train",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
-                                            "`python -m splat_train render -h` renders a trained model, "
-                                            "`python -m splat_train view -h` shows one in the browser.")
+                                            "`python -m splat_train render -h` renders a trained model (or a "
+                                            "fly-through video), `python -m splat_train view -h` shows one in the "
+                                            "browser, `python -m splat_train export -h` writes one for other viewers.")
     p.add_argument("--seed-ply", dest="seed_ply", required=True, help="the seed point cloud to start from: a PLY in the 3DGS layout, "
                    "e.g. the Bridge's seed.ply")
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
@@ -97,21 +105,53 @@ def _train_parser() -> argparse.ArgumentParser:
 
 
 def _render_parser() -> argparse.ArgumentParser:
+    from camio.campath import DEFAULT_FRAMES, PATHS
+    from camio.video import DEFAULT_FPS
+
     p = argparse.ArgumentParser(prog="python -m splat_train render",
                                 description="Render a trained model.ply into the cameras of a COLMAP folder "
-                                            "(PNG per camera, named <image stem>.png).")
+                                            "(PNG per camera, named <image stem>.png, into --out), or along a "
+                                            "path over those cameras into an mp4 (--path and --video; needs "
+                                            "the imageio and imageio-ffmpeg packages).")
     p.add_argument("--model", required=True, help="trained model.ply")
     p.add_argument("--cameras", required=True, help="COLMAP model folder (same frame as the model)")
-    p.add_argument("--out", required=True, help="output folder for the PNGs")
+    p.add_argument("--out", help="output folder for the PNGs (not with --path)")
+    p.add_argument("--path", choices=list(PATHS),
+                   help="fly-through instead of PNGs: 'interpolate' goes through the cameras in name order "
+                        "(rotations slerped, centres linear); 'orbit' circles the point their optical axes "
+                        "meet at their mean distance and height, looking at it")
+    p.add_argument("--video", help="the mp4 file a --path writes (H.264; one intrinsic matrix, the first "
+                                   "camera's, scaled to the video size)")
+    p.add_argument("--frames", type=int, help="frames per camera pair (interpolate, default "
+                   f"{DEFAULT_FRAMES['interpolate']}) or per circle (orbit, default {DEFAULT_FRAMES['orbit']})")
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frames per second ({DEFAULT_FPS})")
     p.add_argument("--images", help="take each image size from the same-named file here "
                                     "(also reports PSNR against it)")
-    p.add_argument("--width", type=int, help="render every camera at this width (with --height)")
-    p.add_argument("--height", type=int, help="render every camera at this height (with --width)")
+    p.add_argument("--width", type=int, help="render every camera (or the video) at this width (with --height; a "
+                                             "video's size is rounded down to even numbers)")
+    p.add_argument("--height", type=int, help="render every camera (or the video) at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
                         "from the train.json beside it; black without one)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to render")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    return p
+
+
+def _export_parser() -> argparse.ArgumentParser:
+    from camio.splatfmt import EXPORT_FORMATS
+
+    p = argparse.ArgumentParser(prog="python -m splat_train export",
+                                description="Write a trained model.ply in a format other viewers load "
+                                            "(camio.splatfmt): 'splat' (antimatter15's 32 bytes per Gaussian: "
+                                            "no view-dependent colour), 'spz' (Niantic's compressed format, "
+                                            "right-up-back frame; needs the gsply package), 'ply' (the 3DGS PLY "
+                                            "this project writes).")
+    p.add_argument("model", help="trained model.ply (3DGS layout)")
+    p.add_argument("--format", required=True, choices=list(EXPORT_FORMATS), help="the file format to write")
+    p.add_argument("--out", required=True, help="the file to write (its suffix should match --format)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
@@ -145,18 +185,74 @@ def _testpose_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False) -> bool:
+def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: bool = True) -> bool:
     """camio's output rule for ``--out`` (camio.outdir); False after logging the one-line refusal.
     ``fresh``: the command writes a folder of results (renders) and first removes its earlier
-    run's files, so the folder never mixes two runs (seal it with camio.outdir.seal_out)."""
+    run's files, so the folder never mixes two runs (seal it with camio.outdir.seal_out).
+    ``folder``: False for a command that writes one file (an export, a video)."""
     from camio.outdir import OutputFolderError, prepare_out
 
     try:
-        prepare_out(out, inputs, stage, fresh=fresh)
+        prepare_out(out, inputs, stage, fresh=fresh, folder=folder)
     except OutputFolderError as exc:
         log.error("%s", exc)
         return False
     return True
+
+
+def _export(args: argparse.Namespace) -> int:
+    """``python -m splat_train export``: the model read, checked, and written as ``--format``."""
+    setup_logging(args.verbose, args.quiet)
+    from camio.splatfmt import export_cloud
+
+    if Path(args.out).suffix.lower() != f".{args.format}":
+        log.warning("--out %s does not end in .%s: viewers pick the format by the suffix", args.out, args.format)
+    if not _out_ok(args.out, {"MODEL": args.model}, "splat_train export", folder=False):
+        return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.model), args.model, role="model"):
+        log.warning("degenerate model: %s", warning)
+    cloud, out = export_cloud(args.model, args.format, args.out)
+    print(f"exported {len(cloud)} Gaussians of {args.model} as {args.format}: {out} "
+          f"({out.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
+def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | None) -> int:
+    """``python -m splat_train render --path P --video FILE``: a fly-through (splat_train.flythrough)."""
+    if not (args.path and args.video):
+        log.error("--path and --video go together: --path orbit|interpolate --video out.mp4")
+        return 2
+    if args.out or args.images:
+        log.error("--path writes one video: give --video FILE, not --out or --images")
+        return 2
+    if args.frames is not None and args.frames < 1 or not args.fps > 0:
+        log.error("--frames must be >= 1 and --fps > 0, got --frames %s --fps %s", args.frames, args.fps)
+        return 2
+    if (args.width is None) != (args.height is None) or (args.width is not None and min(args.width, args.height) < 2):
+        log.error("give both --width and --height (each >= 2), or neither")
+        return 2
+    from camio.video import VideoUnavailable, require_imageio
+
+    try:
+        require_imageio()  # before any rendering: a missing encoder is one line naming the package
+    except VideoUnavailable as exc:
+        log.error("%s", exc)
+        return 2
+    if not _out_ok(args.video, {"--model": args.model, "--cameras": args.cameras, "--image-list": args.image_list},
+                   "splat_train render", folder=False):
+        return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
+    from splat_train.flythrough import render_path
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.model), args.model, role="model"):
+        log.warning("degenerate model: %s", warning)
+    n = render_path(args.model, args.cameras, args.path, args.video, frames=args.frames, fps=args.fps,
+                    width=args.width, height=args.height, names=args.image_list, background=bg,
+                    device=args.device)
+    print(f"video: {args.video}  frames: {n}  path: {args.path}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,6 +274,8 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "view":
         from splat_train.view.cli import main as view_main
         return view_main(argv[1:])
+    if argv and argv[0] == "export":
+        return _export(_export_parser().parse_args(argv[1:]))
     if argv and argv[0] == "render":
         args = _render_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
@@ -190,6 +288,11 @@ def _main(argv: list[str] | None = None) -> int:
             return 2
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")
+            return 2
+        if args.path or args.video:
+            return _render_video(args, bg)
+        if not args.out:
+            log.error("give --out DIR (a PNG per camera) or --path and --video FILE (a fly-through)")
             return 2
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train render", fresh=True):

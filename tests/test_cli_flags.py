@@ -18,7 +18,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 _PACKAGES = ("runtime", "camio", "imgmetrics", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "scripts", "workflow")
 # splat_train dispatches its subcommands by hand: each is its own parser
-_SUBCOMMANDS = {"splat_train/__main__.py": ([], ["render"], ["testpose"], ["view"])}
+_SUBCOMMANDS = {"splat_train/__main__.py": ([], ["render"], ["testpose"], ["view"], ["export"])}
 
 
 class _Parsed(Exception):

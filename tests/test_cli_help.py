@@ -31,7 +31,7 @@ def _parsers(module: str, monkeypatch) -> list[argparse.ArgumentParser]:
     if module == "evaluation":
         argvs = [["images"]]  # registers the images command's real parser
     if module == "splat_train":
-        argvs = [[], ["render"]]
+        argvs = [[], ["render"], ["export"]]
     for argv in argvs:
         try:
             mod.main(argv)
