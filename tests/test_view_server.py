@@ -15,7 +15,6 @@ import pytest
 
 from _view_scene import write_view_scene
 from splat_train.view import cli, server
-from splat_train.view.source import ModelSource
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,9 +26,7 @@ def view(tmp_path_factory):
     secret = tmp / "secret.txt"
     secret.write_text("SECRET-CONTENT")
     (files["root"] / "link.ply").symlink_to(secret)
-    model = ModelSource(files["model"])
-    assert model.refresh(strict=True)
-    routes = server.build_routes(model, files["seed"].read_bytes(),
+    routes = server.build_routes(files["model"], files["seed"],
                                  server.cameras_json(files["cameras"], files["test_cameras"]))
     srv = server.make_server(routes, port=0)
     server.serve_in_thread(srv)

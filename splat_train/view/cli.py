@@ -75,7 +75,7 @@ def main(argv: list[str]) -> int:
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
                                          make_server)
-    from splat_train.view.source import ModelSource, follow
+    from splat_train.view.source import ModelSource, follow, read_checked
     try:
         check_installed()
     except ViewerNotInstalled as e:
@@ -89,7 +89,7 @@ def main(argv: list[str]) -> int:
         print(f"python -m splat_train view: error: --timeout {args.timeout:g} is not a number of seconds > 0",
               file=sys.stderr)
         return 2
-    from camio.ply import PlyFormatError, read_gaussian_ply
+    from camio.ply import PlyFormatError
     from splat_train.export import background_note
 
     if not (Path(args.model).is_file() or Path(args.model).is_dir()):
@@ -106,8 +106,7 @@ def main(argv: list[str]) -> int:
         source.refresh(strict=True)
         if args.seed_ply is not None:
             label, path = "--seed-ply", args.seed_ply
-            seed = Path(path).read_bytes()
-            read_gaussian_ply(path, seed)
+            seed = read_checked(path)
     except (PlyFormatError, OSError, ValueError) as e:
         print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
         return 2

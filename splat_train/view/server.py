@@ -33,7 +33,7 @@ from typing import Callable, Union
 import numpy as np
 
 from runtime.view_defaults import VIEW_HOST, VIEW_PORT
-from splat_train.view.source import ModelSource
+from splat_train.view.source import ModelSource, read_checked
 
 log = logging.getLogger("splat_train.view")
 
@@ -107,13 +107,20 @@ def model_route(source: ModelSource) -> Dynamic:
     return answer
 
 
-def build_routes(model: ModelSource, seed: bytes | None = None, cameras_blob: bytes | None = None,
+def build_routes(model: ModelSource | str | Path, seed: bytes | str | Path | None = None,
+                 cameras_blob: bytes | None = None,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Route]:
     """The complete table of what the server answers: URL path -> file, bytes or answer made at
-    request time. ``model``: what ``/model.ply`` serves (:mod:`.source`); ``seed``: the checked
-    bytes of the seed PLY. ``background``: RGB in [0, 1] the page clears to, behind the
-    Gaussians (the colour the model was trained against: a model trained against a colour is
-    transparent where that colour was)."""
+    request time. ``model``: what ``/model.ply`` serves (:mod:`.source`; a path is read and
+    checked now); ``seed``: the seed PLY's checked bytes (a path is read and checked now).
+    ``background``: RGB in [0, 1] the page clears to, behind the Gaussians (the colour the model
+    was trained against: a model trained against a colour is transparent where that colour was).
+    PlyFormatError / OSError for a path that is not a 3DGS PLY."""
+    if not isinstance(model, ModelSource):
+        model = ModelSource(model)
+        model.refresh(strict=True)
+    if seed is not None and not isinstance(seed, bytes):
+        seed = read_checked(seed)
     routes: dict[str, Route] = {url: STATIC_DIR / rel for url, rel in STATIC_FILES.items()}
     routes.update({url: NODE_MODULES / rel for url, rel in VENDOR_FILES.items()})
     routes["/model.ply"] = model_route(model)

@@ -32,6 +32,14 @@ FOLLOW_POLL_S = 1.0  # seconds between two looks at the model file
 MODEL_FILE = "model.ply"  # a finished run's model (docs/contracts.md, splat_train output)
 
 
+def read_checked(path: str | Path) -> bytes:
+    """The bytes of the 3DGS PLY ``path``, read once and checked (what the viewer serves for a
+    file that is not followed: the seed). PlyFormatError / OSError otherwise."""
+    data = Path(path).read_bytes()
+    read_gaussian_ply(path, data)
+    return data
+
+
 @dataclass(frozen=True)
 class Served:
     """One checked model: its bytes, file, training iteration (None for a PLY without one)
