@@ -168,3 +168,16 @@ def test_a_model_swapped_for_garbage_is_not_served(tmp_path, swap):
         _, err = v.stop()
     assert "is not a 3DGS PLY" in err and "still serving the last good model" in err, err
     assert "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf"])
+def test_a_timeout_that_is_not_a_positive_number_is_one_line(scene, value):
+    from _cli import refused, run
+
+    try:
+        server.check_installed()
+    except server.ViewerNotInstalled as e:
+        pytest.skip(str(e))
+    proc = run(["-m", "splat_train", "view", "--model", str(scene["model"]), "--no-browser", "--port", "0",
+                "--timeout", value], timeout=60)
+    refused(proc, "--timeout")

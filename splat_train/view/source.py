@@ -110,7 +110,9 @@ class ModelSource:
         with self._lock:
             version = (self._served.version + 1) if self._served else 1
             self._served = Served(data, path, it, version)
-        log.info("serving %s%s (version %d)", path, "" if it is None else f" at iteration {it}", version)
+        # the start's model is named on the command's own first line; a later one gets its line here
+        log.log(logging.DEBUG if strict else logging.INFO, "serving %s%s (version %d)", path,
+                "" if it is None else f" at iteration {it}", version)
         return True
 
     def state(self) -> dict:
