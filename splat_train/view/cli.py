@@ -135,8 +135,11 @@ def main(argv: list[str]) -> int:
               "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"
+    now = source.current()
     what = args.model if not source.folder else (
-        f"the training run {args.model} live ({source.candidates()[0].name}, reloaded when it changes)")
+        f"the training run {args.model} live ({(now.path if now else source.candidates()[0]).name}"
+        f"{'' if now is None or now.iteration is None else f' at iteration {now.iteration}'}, "
+        "reloaded when it changes)")
     print(f"[view] serving {what} at {url} on {background_note(background, bg_from)}; Ctrl-C stops",
           flush=True)
     if source.current() is None:

@@ -43,8 +43,9 @@ MAX_CONNECTIONS = 16  # handler threads at once (a browser opens 6 per server)
 IDLE_TIMEOUT_S = 30.0  # a connection silent this long (reading or writing) is closed
 # what a client that went away raises mid-answer: one debug line, no traceback
 CLIENT_GONE = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
-BUSY_REPLY = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: 21\r\n"
-              b"Retry-After: 1\r\nConnection: close\r\n\r\nviewer busy: retry.\r\n")
+_BUSY_BODY = b"viewer busy: retry.\r\n"
+BUSY_REPLY = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: "
+              + str(len(_BUSY_BODY)).encode() + b"\r\nRetry-After: 1\r\nConnection: close\r\n\r\n" + _BUSY_BODY)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 NPM_DIR = Path(__file__).resolve().parent / "npm"
 NODE_MODULES = NPM_DIR / "node_modules"
