@@ -181,3 +181,33 @@ def test_a_timeout_that_is_not_a_positive_number_is_one_line(scene, value):
     proc = run(["-m", "splat_train", "view", "--model", str(scene["model"]), "--no-browser", "--port", "0",
                 "--timeout", value], timeout=60)
     refused(proc, "--timeout")
+
+
+def test_a_request_trickled_a_byte_at_a_time_is_cut_at_the_timeout(scene):
+    """Never silent for ``--timeout`` seconds, yet not complete ``--timeout`` seconds after it
+    connected: closed all the same, its thread free again."""
+    v = Viewer("--model", str(scene["model"]), "--timeout", "1")
+    try:
+        s = _connect(v.port)
+        t0 = time.monotonic()
+        closed = False
+        for c in f"GET /model.ply HTTP/1.1\r\nHost: 127.0.0.1:{v.port}\r\nX-Slow: ".encode() + b"a" * 100:
+            try:
+                s.sendall(bytes([c]))
+            except OSError:  # the server closed it
+                closed = True
+                break
+            s.settimeout(0.3)
+            try:
+                if s.recv(1024) == b"":
+                    closed = True
+                    break
+            except TimeoutError:
+                pass
+        waited = time.monotonic() - t0
+        s.close()
+        assert closed and waited < 5, waited
+        assert v.get().status == 200
+    finally:
+        _, err = v.stop()
+    assert "Traceback" not in err, err

@@ -36,7 +36,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
     p.add_argument("--timeout", type=float, default=IDLE_TIMEOUT_S,
-                   help=f"seconds a connection may stay silent before it is closed (default {IDLE_TIMEOUT_S:g}); "
+                   help=f"seconds a connection may stay silent, or take to send its request, before it is closed "
+                        f"(default {IDLE_TIMEOUT_S:g}); "
                         f"at most {MAX_CONNECTIONS} connections are answered at once")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")

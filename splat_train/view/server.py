@@ -11,7 +11,9 @@ rebinding: its requests carry the attacker's domain name as Host and get 403.
 
 Bounded: at most :data:`MAX_CONNECTIONS` connections are handled at once, one thread each; one
 more is answered 503 by the accepting thread and closed, without a thread. A connection that
-sends or takes nothing for ``timeout`` seconds (:data:`IDLE_TIMEOUT_S` unless told) is closed.
+sends or takes nothing for ``timeout`` seconds (:data:`IDLE_TIMEOUT_S` unless told) is closed,
+and so is one whose request is not complete ``timeout`` seconds after it connected (a client
+that trickles a byte at a time holds no thread longer).
 A client that goes away mid-answer (a browser that stops a download: ``BrokenPipeError``,
 ``ConnectionResetError``) costs one debug line, never a traceback.
 
@@ -22,10 +24,13 @@ PLY without an iteration); ``/state.json`` says which version is served now.
 
 from __future__ import annotations
 
+import io
 import json
 import logging
+import socket
 import sys
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Callable, Union
@@ -164,10 +169,34 @@ def host_allowed(host_header: str | None, local_ip: str, port: int) -> bool:
     return name in LOOPBACK_NAMES or name == local
 
 
+class _DeadlineReader(io.RawIOBase):
+    """A socket's reads that fail (TimeoutError) once ``deadline`` (time.monotonic) has passed,
+    each waiting at most ``timeout`` seconds."""
+
+    def __init__(self, sock: socket.socket, timeout: float, deadline: float):
+        self.sock, self.timeout, self.deadline = sock, timeout, deadline
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the request was not complete in time")
+        self.sock.settimeout(min(self.timeout, left))
+        return self.sock.recv_into(buf)
+
+
 class _Handler(BaseHTTPRequestHandler):
     routes: dict[str, Route] = {}
     server_version = "splat_train-view"
     timeout = IDLE_TIMEOUT_S  # the socket's timeout (StreamRequestHandler.setup)
+
+    def setup(self) -> None:
+        super().setup()  # the socket's timeout; rfile and wfile
+        self.rfile.close()  # its own reader, replaced (closed, so that closing the socket closes it)
+        self.rfile = io.BufferedReader(_DeadlineReader(self.connection, self.timeout,
+                                                       time.monotonic() + self.timeout))
 
     def log_message(self, fmt, *args):  # quiet by default; -v shows requests
         log.debug("%s " + fmt, self.address_string(), *args)
@@ -178,6 +207,7 @@ class _Handler(BaseHTTPRequestHandler):
         return self.routes.get(path), path
 
     def _send(self, head_only: bool) -> None:
+        self.connection.settimeout(self.timeout)  # the request is in: the answer's own timeout
         if not host_allowed(self.headers.get("Host"), self.connection.getsockname()[0], self.server.server_port):
             log.warning("refused a request for Host %r (only this server's own address or localhost is "
                         "answered)", self.headers.get("Host"))
