@@ -23,7 +23,7 @@ import numpy as np
 from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
-           "read_gaussian_ply", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
+           "read_gaussian_ply", "ply_comments", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
            "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE", "SH_DEGREE"]
 
 SH_C0 = 0.28209479177387814
@@ -123,8 +123,12 @@ def _field_names(n_rest: int) -> list[str]:
             + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
 
 
-def write_gaussian_ply(path: str | Path, cloud: GaussianCloud) -> Path:
-    """Write ``cloud`` in the 3DGS layout (degree 3, 62 float32 properties), atomically."""
+def write_gaussian_ply(path: str | Path, cloud: GaussianCloud, comments: tuple[str, ...] = ()) -> Path:
+    """Write ``cloud`` in the 3DGS layout (degree 3, 62 float32 properties), atomically;
+    ``comments``: header ``comment`` lines (one line of ASCII each), read by :func:`ply_comments`."""
+    for c in comments:
+        if not c.isascii() or "\n" in c or "\r" in c:
+            raise ValueError(f"a PLY comment is one line of ASCII, got {c!r}")
     n = len(cloud)
     rest = np.zeros((n, 15, 3), np.float32)
     k = min(15, cloud.sh_rest.shape[1])
@@ -143,6 +147,7 @@ def write_gaussian_ply(path: str | Path, cloud: GaussianCloud) -> Path:
     ).astype("<f4")
     names = _field_names(45)
     header = "ply\nformat binary_little_endian 1.0\n"
+    header += "".join(f"comment {c}\n" for c in comments)
     header += f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
@@ -219,10 +224,21 @@ def _skip_element(path: Path, raw: bytes, pos: int, name: str, count: int, props
     return pos
 
 
-def _read_vertices(path: Path) -> np.ndarray:
+def ply_comments(raw: bytes) -> list[str]:
+    """The ``comment`` lines of a PLY header (``raw``: the file's bytes, or its start), in
+    order, without the word ``comment``; [] when ``raw`` holds no whole header."""
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        return []
+    lines = raw[:end].decode("ascii", errors="replace").splitlines()
+    return [ln[len("comment "):].strip() for ln in lines if ln.startswith("comment ")]
+
+
+def _read_vertices(path: Path, raw: bytes | None = None) -> np.ndarray:
     """The vertex element of a binary little-endian PLY as a structured array (elements before
-    it, such as a camera or a face list, are skipped by their exact sizes)."""
-    raw = path.read_bytes()
+    it, such as a camera or a face list, are skipped by their exact sizes). ``raw``: the
+    file's bytes when already read (``path`` then only names it in messages)."""
+    raw = path.read_bytes() if raw is None else raw
     elements, pos = _header(path, raw)
     for name, count, props in elements:
         if name == "vertex":
@@ -298,14 +314,16 @@ def check_seed_cloud(cloud: "GaussianCloud", path: str | Path, role: str = "seed
     return out
 
 
-def read_gaussian_ply(path: str | Path) -> GaussianCloud:
+def read_gaussian_ply(path: str | Path, raw: bytes | None = None) -> GaussianCloud:
     """Read a 3DGS-layout PLY (binary little-endian; any property order; any SH degree).
+    ``raw``: the file's bytes when the caller already holds them (the viewer checks exactly the
+    bytes it serves); ``path`` then only names the file in messages.
 
     Raises:
         PlyFormatError: truncated file, wrong format, or missing 3DGS fields.
     """
     path = Path(path)
-    v = _read_vertices(path)
+    v = _read_vertices(path, raw)
     n = len(v)
     dtype = v.dtype
     names = set(dtype.names)

@@ -7,11 +7,11 @@ Train::
         [--test-image-list FILE]
         [--downsample K] [--config JSON] [--seed INT] [--checkpoint-every K]
         [--eval-every M] [--eval-lpips | --no-eval-lpips] [--lpips-weights PATH] [--pose-refine [--pose-refine-focal]] [--device auto|cpu|cuda] [--threads T]
-        [--resume-dir DIR] [--rasterizer BACKEND]
+        [--resume-dir DIR] [--rasterizer BACKEND] [--snapshot-every N]
 
 Look at a trained model in the browser (splat_train/view)::
 
-    python -m splat_train view --model model.ply [--cameras DIR] [--test-cameras DIR] [--seed-ply seed.ply]
+    python -m splat_train view --model model.ply|OUT [--cameras DIR] [--test-cameras DIR] [--seed-ply seed.ply]
         [--port P] [--host 127.0.0.1] [--no-browser]
 
 Render a trained model into any camera set, or a fly-through video along its cameras::
@@ -96,6 +96,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
+    p.add_argument("--snapshot-every", type=int, dest="snapshot_every", metavar="N",
+                   help="write OUT/snapshot.ply every N iterations and at the last, replaced atomically, its "
+                        "iteration in its header (default: none); `python -m splat_train view --model OUT` "
+                        "follows it live")
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
@@ -332,6 +336,13 @@ def _main(argv: list[str] | None = None) -> int:
 
     args = _train_parser().parse_args(deprecated_flags(argv, "python -m splat_train", _OLD_TRAIN_FLAGS))
     setup_logging(args.verbose, args.quiet)
+    from splat_train.snapshot import check_snapshot_every
+
+    try:
+        check_snapshot_every(args.snapshot_every)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
     if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
                               "--test-cameras": args.test_cameras, "--test-images": args.test_images,
                               "--image-list": args.image_list, "--test-image-list": args.test_image_list,
@@ -356,7 +367,7 @@ def _main(argv: list[str] | None = None) -> int:
         result = train(args.seed_ply, args.cameras, args.images, args.out, cfg, test_cameras=args.test_cameras,
                        test_images=args.test_images, image_list=args.image_list,
                        test_image_list=args.test_image_list, resume_dir=args.resume_dir,
-                       depth_prior=args.depth_prior)
+                       depth_prior=args.depth_prior, snapshot_every=args.snapshot_every)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
         log.error("%s: %s", type(exc).__name__, exc)
         return 2

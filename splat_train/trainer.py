@@ -23,7 +23,9 @@ uninterrupted run. The held-out evaluation scores PSNR, SSIM and, with ``eval_lp
 (:mod:`splat_train.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is a C++ kernel's one-time build
 (``kernel_build_s``; ``python -m splat_train.cpu.build`` builds them ahead).
 Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
-``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text).
+``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text);
+with ``snapshot_every`` N, ``snapshot.ply`` every N iterations and at the last
+(:mod:`splat_train.snapshot`, outside the training time).
 
 Every checkpoint holds :func:`inputs_digest` (SHA-256 of the seed PLY's bytes, the decoded
 training images and cameras, and the result-changing config); a run resumes only from a
@@ -73,6 +75,7 @@ from splat_train.recipes import BACKGROUND_BLACK
 from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
+from splat_train.snapshot import check_snapshot_every, write_snapshot
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest", "seed_depth_prior"]
 
@@ -150,9 +153,10 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
                  test_views: list[View] | None = None, ckpt_dir: str | Path | None = None,
                  digest: str | None = None, depth_prior: str | Path | None = None,
-                 background_from: str = "set") -> None:
+                 background_from: str = "set", snapshot_every: int | None = None) -> None:
         if not train_views:
             raise ValueError("no training views")
+        self.snapshot_every = check_snapshot_every(snapshot_every)  # None: no snapshot.ply
         if cfg.background == BACKGROUND_MEAN:  # the views' own mean: train() composites RGBA images on it
             cfg, background_from = resolve_mean_background(cfg, train_views), BACKGROUND_MEAN
         self.cfg, self.out = cfg, Path(out_dir)
@@ -465,6 +469,8 @@ class Trainer:
             if saving:
                 self.save()
                 self.log.write_parquet(self.out / "log.parquet")
+            if self.snapshot_every and (it % self.snapshot_every == 0 or it == cfg.iterations):
+                write_snapshot(self.out, params_to_cloud(self.params), it)
         return self.finish(time.perf_counter() - t_start, eval_time)
 
     def finish(self, session_s: float, eval_time: float) -> TrainResult:
@@ -535,7 +541,8 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
           cfg: TrainConfig | None = None, test_cameras: str | Path | None = None,
           test_images: str | Path | None = None, image_list: str | Path | list[str] | None = None,
           test_image_list: str | Path | list[str] | None = None,
-          resume_dir: str | Path | None = None, depth_prior: str | Path | None = None) -> TrainResult:
+          resume_dir: str | Path | None = None, depth_prior: str | Path | None = None,
+          snapshot_every: int | None = None) -> TrainResult:
     """Train 3DGS from a seed PLY and posed images; resume from ``out_dir/ckpt`` if present.
 
     Args:
@@ -554,11 +561,15 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
             checkpoint folders of other digests there are stale and removed at the start (any
             other file or folder there is left alone), this run's is
             removed after its outputs are written.
+        snapshot_every: write ``out_dir/snapshot.ply`` every this many iterations and at the
+            last (:mod:`splat_train.snapshot`; what ``python -m splat_train view`` follows);
+            None: never.
 
     Raises:
         NonFiniteLossError: the loss became non-finite (the last checkpoint stays in ckpt/).
     """
     cfg = cfg or TrainConfig()
+    check_snapshot_every(snapshot_every)
     if (test_cameras is None) != (test_images is None):
         raise ValueError("give both --test-cameras and --test-images, or neither")
     if cfg.num_threads > 0:
@@ -584,14 +595,15 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     digest = inputs_digest(seed, train_views, cfg, depth_prior)
     if resume_dir is None:
         return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior,
-                       background_from=background_from).run()
+                       background_from=background_from, snapshot_every=snapshot_every).run()
     resume_dir = Path(resume_dir)
     own = resume_dir / digest[:16]
     for stale in (p for p in resume_dir.iterdir() if p != own and _is_digest_folder(p)) if resume_dir.is_dir() else ():
         log.info("removing %s: checkpoints of other inputs or config", stale)
         shutil.rmtree(stale)
     result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest,
-                     depth_prior=depth_prior, background_from=background_from).run()
+                     depth_prior=depth_prior, background_from=background_from,
+                     snapshot_every=snapshot_every).run()
     shutil.rmtree(own, ignore_errors=True)
     try:
         resume_dir.rmdir()

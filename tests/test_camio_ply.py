@@ -107,3 +107,19 @@ def test_sh_helpers_and_seed():
     np.testing.assert_allclose(g.opacity, [0.1, 0.9], rtol=1e-6)
     np.testing.assert_allclose(np.exp(g.log_scales[:, 0]), [0.01, 0.02], rtol=1e-6)
     np.testing.assert_array_equal(g.quats, [[1, 0, 0, 0]] * 2)
+
+
+def test_header_comments_round_trip_and_stay_one_line(tmp_path):
+    from camio.ply import ply_comments
+
+    cloud = GaussianCloud.from_points(np.zeros((2, 3)), np.full((2, 3), 0.5), np.full(2, 0.5), np.full(2, 0.1))
+    path = write_gaussian_ply(tmp_path / "c.ply", cloud, comments=("iteration 40", "made by a test"))
+    raw = path.read_bytes()
+    assert ply_comments(raw) == ["iteration 40", "made by a test"]
+    assert plyfile.PlyData.read(str(path)).comments == ["iteration 40", "made by a test"]  # standard PLY
+    back = read_gaussian_ply(path, raw)  # the bytes given, not the file read again
+    np.testing.assert_array_equal(back.means, cloud.means)
+    assert ply_comments(b"not a ply") == []
+    with pytest.raises(ValueError, match="one line of ASCII"):
+        write_gaussian_ply(tmp_path / "d.ply", cloud, comments=("two\nlines",))
+    assert not (tmp_path / "d.ply").exists()

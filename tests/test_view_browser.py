@@ -77,3 +77,36 @@ def test_browser_matches_render_at_a_training_camera(tmp_path):
     assert psnr >= MIN_PSNR, psnr
     seed_psnr = 10 * np.log10(1.0 / np.mean((seed_shot - ref) ** 2))
     assert seed_shot.mean() > 0.01 and seed_psnr < 25.0, seed_psnr
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(_skip_reason() is not None, reason=_skip_reason() or "")
+def test_page_shows_the_snapshots_iteration_and_loads_a_newer_one(tmp_path):
+    """`python -m splat_train view --model OUT` on a training run's folder: the page shows the
+    snapshot's iteration and, when the trainer replaces it, loads the new one and its iteration."""
+    from _view_scene import make_model
+    from splat_train.snapshot import write_snapshot
+
+    out = tmp_path / "out"
+    write_snapshot(out, make_model(200, seed=1), 10)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "splat_train", "view", "--model", str(out), "--no-browser",
+                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, cwd=ROOT)
+    try:
+        port = int(proc.stdout.readline().split("http://127.0.0.1:")[1].split("/")[0])
+        with Chromium(W, H) as browser:
+            browser.open(f"http://127.0.0.1:{port}/")
+            browser.wait_for("window.viewerReady", timeout=240, error_expression="window.viewerError")
+            assert browser.evaluate("window.viewerIteration") == 10
+            assert browser.evaluate("document.getElementById('iteration').textContent") == "iteration 10"
+            write_snapshot(out, make_model(300, seed=2), 20)
+            browser.wait_for("window.viewerIteration === 20", timeout=120, error_expression="window.viewerError")
+            assert browser.evaluate("document.getElementById('iteration').textContent") == "iteration 20"
+            assert browser.evaluate("window.viewerModelVersion") == 2
+            browser.wait_for("document.getElementById('status').textContent === 'ready: 300 Gaussians'",
+                             timeout=120)
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    assert "Traceback" not in err, err

@@ -1,4 +1,5 @@
-"""``python -m splat_train view``: serve one trained model (and its cameras) to a browser."""
+"""``python -m splat_train view``: serve one trained model (and its cameras) to a browser, or
+follow a training run's snapshot live (:mod:`.source`)."""
 
 from __future__ import annotations
 
@@ -6,10 +7,11 @@ import argparse
 import errno
 import logging
 import sys
+import threading
 import webbrowser
 
 from runtime.cliargs import deprecated_flags
-from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT
+from splat_train.view.server import DEFAULT_HOST, DEFAULT_PORT, IDLE_TIMEOUT_S, MAX_CONNECTIONS
 
 log = logging.getLogger("splat_train.view")
 
@@ -19,8 +21,12 @@ def parser() -> argparse.ArgumentParser:
         prog="python -m splat_train view",
         description="Show a trained 3DGS PLY in the browser (Spark on three.js, installed by `make install`), "
                     "with its cameras as frusta; pick a camera to look through it. Serves only these files, "
-                    "read-only, on a local port.")
-    p.add_argument("--model", required=True, help="the trained model.ply (3DGS layout)")
+                    "read-only, on a local port. Given a training run's folder, follows its snapshot live.")
+    p.add_argument("--model", required=True,
+                   help="the trained model.ply (3DGS layout), or a training run's --out folder: then its "
+                        "snapshot.ply (train with --snapshot-every N), reloaded in the page whenever the trainer "
+                        "replaces it, or its model.ply while there is none. A changed file is checked again "
+                        "and served only if it is a 3DGS PLY")
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
     p.add_argument("--seed-ply", dest="seed_ply", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
@@ -29,6 +35,10 @@ def parser() -> argparse.ArgumentParser:
                         "trained against, from the train.json beside it; black without one)")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 picks a free one)")
+    p.add_argument("--timeout", type=float, default=IDLE_TIMEOUT_S,
+                   help=f"seconds a connection may stay silent, or take to send its request, before it is closed "
+                        f"(default {IDLE_TIMEOUT_S:g}); "
+                        f"at most {MAX_CONNECTIONS} connections are answered at once")
     p.add_argument("--no-browser", action="store_true", dest="no_browser", help="do not open a browser")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -54,8 +64,8 @@ def view_background(model: str, flag: str | None) -> tuple[tuple[float, float, f
 
 def main(argv: list[str]) -> int:
     """Serve the view until Ctrl-C, SIGTERM or SIGHUP (a quiet stop, exit 0). Bad input (a
-    --model that is not a 3DGS PLY, a port outside 0-65535, an address that cannot be bound)
-    is one line and exit 2."""
+    --model that is not a 3DGS PLY nor a folder, a port outside 0-65535, a --timeout that is
+    not a positive number, an address that cannot be bound) is one line and exit 2."""
     import signal
 
     args = parser().parse_args(deprecated_flags(argv, "python -m splat_train view", {"--seed": ("--seed-ply", None)}))
@@ -66,6 +76,7 @@ def main(argv: list[str]) -> int:
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
                                          make_server)
+    from splat_train.view.source import ModelSource, follow, read_checked
     try:
         check_installed()
     except ViewerNotInstalled as e:
@@ -75,22 +86,33 @@ def main(argv: list[str]) -> int:
         print(f"python -m splat_train view: error: --port {args.port} is not a port: give 1-65535 (0 picks a free one)",
               file=sys.stderr)
         return 2
-    from camio.ply import PlyFormatError, read_gaussian_ply
+    if not (args.timeout > 0 and args.timeout < float("inf")):
+        print(f"python -m splat_train view: error: --timeout {args.timeout:g} is not a number of seconds > 0",
+              file=sys.stderr)
+        return 2
+    from camio.ply import PlyFormatError
     from splat_train.export import background_note
 
-    for label, path in (("--model", args.model), ("--seed-ply", args.seed_ply)):
-        if path is None:
-            continue
-        if not Path(path).is_file():
-            print(f"python -m splat_train view: error: {label} {path}: no such file", file=sys.stderr)
-            return 2
-        try:  # only a 3DGS PLY is ever served (never a link to some other file)
-            read_gaussian_ply(path)
-        except (PlyFormatError, OSError, ValueError) as e:
-            print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
-            return 2
+    if not (Path(args.model).is_file() or Path(args.model).is_dir()):
+        print(f"python -m splat_train view: error: --model {args.model}: no such file or folder", file=sys.stderr)
+        return 2
+    if args.seed_ply is not None and not Path(args.seed_ply).is_file():
+        print(f"python -m splat_train view: error: --seed-ply {args.seed_ply}: no such file", file=sys.stderr)
+        return 2
+    # only the bytes checked here are ever served (never a link to some other file, nor a file
+    # swapped after the check): read once, checked, kept in memory
+    source, seed = ModelSource(args.model), None
+    label, path = "--model", args.model
     try:
-        background, bg_from = view_background(args.model, args.background)
+        source.refresh(strict=True)
+        if args.seed_ply is not None:
+            label, path = "--seed-ply", args.seed_ply
+            seed = read_checked(path)
+    except (PlyFormatError, OSError, ValueError) as e:
+        print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
+        return 2
+    try:
+        background, bg_from = view_background(str(source.candidates()[-1]), args.background)
     except ValueError as e:
         print(f"python -m splat_train view: error: {e}", file=sys.stderr)
         return 2
@@ -100,7 +122,7 @@ def main(argv: list[str]) -> int:
         print(f"python -m splat_train view: error: cannot read the cameras: {e}", file=sys.stderr)
         return 2
     try:
-        srv = make_server(build_routes(args.model, args.seed_ply, blob, background), args.host, args.port)
+        srv = make_server(build_routes(source, seed, blob, background), args.host, args.port, args.timeout)
     except OSError as e:  # in use, no permission, an address this machine does not have
         if e.errno == errno.EADDRINUSE:
             print(f"python -m splat_train view: error: port {args.port} on {args.host} is already in use "
@@ -114,8 +136,15 @@ def main(argv: list[str]) -> int:
               "the default 127.0.0.1 keeps it on this machine", file=sys.stderr, flush=True)
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{srv.server_port}/"
-    print(f"[view] serving {args.model} at {url} on {background_note(background, bg_from)}; Ctrl-C stops",
+    now = source.current()
+    what = args.model if not source.folder else (
+        f"the training run {args.model} live ({(now.path if now else source.candidates()[0]).name}"
+        f"{'' if now is None or now.iteration is None else f' at iteration {now.iteration}'}, "
+        "reloaded when it changes)")
+    print(f"[view] serving {what} at {url} on {background_note(background, bg_from)}; Ctrl-C stops",
           flush=True)
+    if source.current() is None:
+        print(f"[view] waiting for {source.candidates()[0]} (train with --snapshot-every N)", flush=True)
     # after pycolmap is loaded (cameras_json): its crash handler must not answer SIGTERM. SIGINT
     # too: a process started in the background by a non-interactive shell (`cmd &`) inherits
     # SIGINT ignored, and Python then installs no Ctrl-C handler of its own
@@ -123,10 +152,13 @@ def main(argv: list[str]) -> int:
         signal.signal(signum, _stop)
     if not args.no_browser:
         webbrowser.open(url)
+    stop = threading.Event()
+    follow(source, stop)
     try:
         srv.serve_forever()
     except KeyboardInterrupt:
         print("[view] stopped", flush=True)
     finally:
+        stop.set()
         srv.server_close()
     return 0

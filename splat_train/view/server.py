@@ -8,24 +8,49 @@ A request is answered only if its ``Host`` header names this server: ``localhost
 ``127.0.0.1``, ``[::1]``, or the very address the connection arrived at, with the server's
 port (:func:`host_allowed`). A web page the user visits cannot read the model through DNS
 rebinding: its requests carry the attacker's domain name as Host and get 403.
+
+Bounded: at most :data:`MAX_CONNECTIONS` connections are handled at once, one thread each; one
+more is answered 503 by the accepting thread and closed, without a thread. A connection that
+sends or takes nothing for ``timeout`` seconds (:data:`IDLE_TIMEOUT_S` unless told) is closed,
+and so is one whose request is not complete ``timeout`` seconds after it connected (a client
+that trickles a byte at a time holds no thread longer).
+A client that goes away mid-answer (a browser that stops a download: ``BrokenPipeError``,
+``ConnectionResetError``) costs one debug line, never a traceback.
+
+The model (``/model.ply``) is served from memory, the bytes that were checked
+(:mod:`.source`), with the headers ``X-Model-Version`` and ``X-Model-Iteration`` (empty for a
+PLY without an iteration); ``/state.json`` says which version is served now.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import logging
+import socket
+import sys
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Callable, Union
 
 import numpy as np
 
 from runtime.view_defaults import VIEW_HOST, VIEW_PORT
+from splat_train.view.source import ModelSource, read_checked
 
 log = logging.getLogger("splat_train.view")
 
 DEFAULT_HOST = VIEW_HOST
 DEFAULT_PORT = VIEW_PORT
+MAX_CONNECTIONS = 16  # handler threads at once (a browser opens 6 per server)
+IDLE_TIMEOUT_S = 30.0  # a connection silent this long (reading or writing) is closed
+# what a client that went away raises mid-answer: one debug line, no traceback
+CLIENT_GONE = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
+_BUSY_BODY = b"viewer busy: retry.\r\n"
+BUSY_REPLY = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: "
+              + str(len(_BUSY_BODY)).encode() + b"\r\nRetry-After: 1\r\nConnection: close\r\n\r\n" + _BUSY_BODY)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 NPM_DIR = Path(__file__).resolve().parent / "npm"
 NODE_MODULES = NPM_DIR / "node_modules"
@@ -72,16 +97,42 @@ def cameras_json(cameras: str | Path | None = None, test_cameras: str | Path | N
     return json.dumps({"cameras": recs}).encode()
 
 
-def build_routes(model: str | Path, seed: str | Path | None = None, cameras_blob: bytes | None = None,
-                 background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Path | bytes]:
-    """The complete table of what the server answers: URL path -> file or bytes. ``background``:
-    RGB in [0, 1] the page clears to, behind the Gaussians (the colour the model was trained
-    against: a model trained against a colour is transparent where that colour was)."""
-    routes: dict[str, Path | bytes] = {url: STATIC_DIR / rel for url, rel in STATIC_FILES.items()}
+# a route's answer made at request time: (body, extra headers), or None for 503 (not ready)
+Dynamic = Callable[[], "tuple[bytes, dict[str, str]] | None"]
+Route = Union[Path, bytes, Dynamic]
+
+
+def model_route(source: ModelSource) -> Dynamic:
+    """``/model.ply``: the bytes ``source`` serves now, with their version and iteration."""
+    def answer() -> tuple[bytes, dict[str, str]] | None:
+        s = source.current()
+        if s is None:
+            return None
+        return s.data, {"X-Model-Version": str(s.version),
+                        "X-Model-Iteration": "" if s.iteration is None else str(s.iteration)}
+    return answer
+
+
+def build_routes(model: ModelSource | str | Path, seed: bytes | str | Path | None = None,
+                 cameras_blob: bytes | None = None,
+                 background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Route]:
+    """The complete table of what the server answers: URL path -> file, bytes or answer made at
+    request time. ``model``: what ``/model.ply`` serves (:mod:`.source`; a path is read and
+    checked now); ``seed``: the seed PLY's checked bytes (a path is read and checked now).
+    ``background``: RGB in [0, 1] the page clears to, behind the Gaussians (the colour the model
+    was trained against: a model trained against a colour is transparent where that colour was).
+    PlyFormatError / OSError for a path that is not a 3DGS PLY."""
+    if not isinstance(model, ModelSource):
+        model = ModelSource(model)
+        model.refresh(strict=True)
+    if seed is not None and not isinstance(seed, bytes):
+        seed = read_checked(seed)
+    routes: dict[str, Route] = {url: STATIC_DIR / rel for url, rel in STATIC_FILES.items()}
     routes.update({url: NODE_MODULES / rel for url, rel in VENDOR_FILES.items()})
-    routes["/model.ply"] = Path(model).resolve()
+    routes["/model.ply"] = model_route(model)
+    routes["/state.json"] = lambda: (model.state_json(), {})
     if seed is not None:
-        routes["/seed.ply"] = Path(seed).resolve()
+        routes["/seed.ply"] = bytes(seed)
     routes["/cameras.json"] = cameras_blob if cameras_blob is not None else b'{"cameras": []}'
     routes["/view.json"] = json.dumps({"seed": seed is not None,
                                        "background": [float(x) for x in background]}).encode()
@@ -118,19 +169,45 @@ def host_allowed(host_header: str | None, local_ip: str, port: int) -> bool:
     return name in LOOPBACK_NAMES or name == local
 
 
+class _DeadlineReader(io.RawIOBase):
+    """A socket's reads that fail (TimeoutError) once ``deadline`` (time.monotonic) has passed,
+    each waiting at most ``timeout`` seconds."""
+
+    def __init__(self, sock: socket.socket, timeout: float, deadline: float):
+        self.sock, self.timeout, self.deadline = sock, timeout, deadline
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the request was not complete in time")
+        self.sock.settimeout(min(self.timeout, left))
+        return self.sock.recv_into(buf)
+
+
 class _Handler(BaseHTTPRequestHandler):
-    routes: dict[str, Path | bytes] = {}
+    routes: dict[str, Route] = {}
     server_version = "splat_train-view"
+    timeout = IDLE_TIMEOUT_S  # the socket's timeout (StreamRequestHandler.setup)
+
+    def setup(self) -> None:
+        super().setup()  # the socket's timeout; rfile and wfile
+        self.rfile.close()  # its own reader, replaced (closed, so that closing the socket closes it)
+        self.rfile = io.BufferedReader(_DeadlineReader(self.connection, self.timeout,
+                                                       time.monotonic() + self.timeout))
 
     def log_message(self, fmt, *args):  # quiet by default; -v shows requests
         log.debug("%s " + fmt, self.address_string(), *args)
 
-    def _lookup(self) -> tuple[Path | bytes | None, str]:
+    def _lookup(self) -> tuple[Route | None, str]:
         path = self.path.split("?", 1)[0].split("#", 1)[0]
         # exact match only: no decoding, no joining, no normalisation
         return self.routes.get(path), path
 
     def _send(self, head_only: bool) -> None:
+        self.connection.settimeout(self.timeout)  # the request is in: the answer's own timeout
         if not host_allowed(self.headers.get("Host"), self.connection.getsockname()[0], self.server.server_port):
             log.warning("refused a request for Host %r (only this server's own address or localhost is "
                         "answered)", self.headers.get("Host"))
@@ -142,6 +219,13 @@ class _Handler(BaseHTTPRequestHandler):
             return
         ext = Path(path if path != "/" else "/index.html").suffix
         ctype = CONTENT_TYPES.get(ext, "application/octet-stream")
+        extra: dict[str, str] = {}
+        if callable(target):
+            answer = target()
+            if answer is None:
+                self.send_error(503, "no model yet: waiting for the training run's first snapshot")
+                return
+            target, extra = answer
         if isinstance(target, bytes):
             data, size = target, len(target)
         else:
@@ -156,6 +240,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(size))
         self.send_header("Cache-Control", "no-store")
         self.send_header("X-Content-Type-Options", "nosniff")
+        for k, v in extra.items():
+            self.send_header(k, v)
         self.end_headers()
         if head_only:
             return
@@ -178,13 +264,53 @@ class _Handler(BaseHTTPRequestHandler):
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
 
 
-def make_server(routes: dict[str, Path | bytes], host: str = DEFAULT_HOST, port: int = DEFAULT_PORT
-                ) -> ThreadingHTTPServer:
-    """A server answering only ``routes`` (port 0 picks a free one; ``server.server_port``)."""
-    handler = type("ViewHandler", (_Handler,), {"routes": dict(routes)})
-    srv = ThreadingHTTPServer((host, port), handler)
-    srv.daemon_threads = True
-    return srv
+class ViewServer(ThreadingHTTPServer):
+    """A thread per connection, at most ``max_connections`` at once (module docstring)."""
+
+    daemon_threads = True
+
+    def __init__(self, address: tuple[str, int], handler: type, max_connections: int = MAX_CONNECTIONS):
+        self.max_connections = max_connections
+        self.slots = threading.BoundedSemaphore(max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request, client_address) -> None:
+        if not self.slots.acquire(blocking=False):  # full: answer here, in the accepting thread
+            log.debug("busy (%d connections): 503 to %s", self.max_connections, client_address[0])
+            try:
+                request.settimeout(1.0)
+                request.sendall(BUSY_REPLY)
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:  # no thread started: give the slot back
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
+
+    def handle_error(self, request, client_address) -> None:
+        exc = sys.exc_info()[1]
+        if isinstance(exc, CLIENT_GONE):
+            log.debug("%s went away: %s", client_address[0], exc)
+            return
+        log.error("answering %s failed: %s: %s", client_address[0], type(exc).__name__, exc)
+        log.debug("traceback", exc_info=True)
+
+
+def make_server(routes: dict[str, Route], host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
+                timeout: float = IDLE_TIMEOUT_S) -> ViewServer:
+    """A server answering only ``routes`` (port 0 picks a free one; ``server.server_port``);
+    ``timeout``: seconds a connection may stay silent."""
+    handler = type("ViewHandler", (_Handler,), {"routes": dict(routes), "timeout": float(timeout)})
+    return ViewServer((host, port), handler)
 
 
 def serve_in_thread(srv: ThreadingHTTPServer) -> threading.Thread:

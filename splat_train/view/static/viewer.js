@@ -3,6 +3,9 @@
 // cameras as frusta, a seed toggle and a jump to any camera's pose and intrinsics.
 // URL parameters: camera=NAME (start at that camera), seed=1 (show the seed), ui=0 (no panel,
 // no frusta: a clean image of the model). window.viewerReady turns true once the view settled.
+// Live: /state.json is polled every STATE_POLL_MS; when the server serves a new version of the
+// model (a training run's snapshot replaced), it is loaded and swapped in, and the panel shows
+// its training iteration (window.viewerIteration, window.viewerModelVersion).
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
@@ -16,12 +19,16 @@ const SPARK_3DGS = {
   sortRadial: false, clipXY: 1.4, minAlpha: 1.0 / 255.0, premultipliedAlpha: true,
 };
 const NEAR = 0.01, FAR = 1000.0;
+const STATE_POLL_MS = 1000;
 const params = new URLSearchParams(window.location.search);
 const showUi = params.get("ui") !== "0";
 const statusEl = document.getElementById("status");
+const iterationEl = document.getElementById("iteration");
 if (!showUi) document.getElementById("panel").classList.add("hidden");
 window.viewerReady = false;
 window.viewerError = null;
+window.viewerIteration = null;
+window.viewerModelVersion = 0;
 const status = (msg) => { statusEl.textContent = msg; };
 
 const canvas = document.getElementById("view");
@@ -149,9 +156,9 @@ document.getElementById("frusta").addEventListener("change", (e) => { frusta.vis
 document.getElementById("seed").addEventListener("change", (e) => showSeed(e.target.checked));
 window.addEventListener("resize", layout);
 
-async function loadSplats(url) {
+async function loadSplats(url, bytes = null) {
   // extSplats: float colour per splat, so base colours above 1 are not clamped before SH is added
-  const bytes = new Uint8Array(await (await fetch(url)).arrayBuffer());
+  if (bytes === null) bytes = new Uint8Array(await (await fetch(url)).arrayBuffer());
   const mesh = new SplatMesh({ fileBytes: bytes.slice(), fileType: "ply", extSplats: true });
   await mesh.initialized;
   const splats = mesh.extSplats ?? mesh.splats;
@@ -168,6 +175,54 @@ async function showSeed(on) {
   if (model) model.visible = !on;
   lastDirty = performance.now();
   status(on ? "showing the seed" : "showing the trained model");
+}
+
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+async function fetchModel() {
+  // the served model's bytes and the version and iteration they belong to (one response);
+  // null while the server has none yet (503: a training run before its first snapshot)
+  const resp = await fetch("/model.ply", { cache: "no-store" });
+  if (resp.status === 503) return null;
+  if (!resp.ok) throw new Error(`/model.ply: HTTP ${resp.status}`);
+  const version = Number(resp.headers.get("X-Model-Version") || 0);
+  const it = resp.headers.get("X-Model-Iteration");
+  const bytes = new Uint8Array(await resp.arrayBuffer());
+  return { version, iteration: it ? Number(it) : null, mesh: await loadSplats("/model.ply", bytes) };
+}
+
+function showIteration(it) {
+  window.viewerIteration = it;
+  iterationEl.textContent = it === null ? "" : `iteration ${it}`;
+  iterationEl.classList.toggle("hidden", it === null);
+}
+
+function swapModel(next) {
+  const seedShown = document.getElementById("seed").checked;
+  if (model) { scene.remove(model); if (model.dispose) model.dispose(); }
+  model = next.mesh;
+  model.visible = !seedShown;
+  scene.add(model);
+  window.viewerModelVersion = next.version;
+  showIteration(next.iteration);
+  lastDirty = performance.now();
+}
+
+async function followModel() {
+  // poll the served version; load and swap a newer model (never two loads at once)
+  while (true) {
+    await sleep(STATE_POLL_MS);
+    try {
+      const state = await (await fetch("/state.json", { cache: "no-store" })).json();
+      if (state.version && state.version !== window.viewerModelVersion) {
+        const next = await fetchModel();
+        if (next && next.version !== window.viewerModelVersion) {
+          swapModel(next);
+          if (window.viewerReady) status(`ready: ${model.numSplats ?? ""} Gaussians`);
+        }
+      }
+    } catch (e) { console.warn(`following the model: ${e}`); }
+  }
 }
 
 let frames = 0, loadedAt = null;
@@ -208,8 +263,14 @@ async function main() {
   else if (cameras.length) { jumpTo(cameras[0]); activeCam = null; cameraSelect.value = ""; layout(); }
   else { camera.position.set(0, 0, 3); makeControls(new THREE.Vector3()); layout(); }
   renderer.setAnimationLoop(frame);
-  model = await loadSplats("/model.ply");
-  scene.add(model);
+  let first = await fetchModel();
+  while (first === null) {
+    status("waiting for the training run's first snapshot...");
+    await sleep(STATE_POLL_MS);
+    first = await fetchModel();
+  }
+  swapModel(first);
+  followModel();
   if (params.get("seed") === "1" && view.seed) { document.getElementById("seed").checked = true; await showSeed(true); }
   lastDirty = performance.now();
   loadedAt = performance.now();
