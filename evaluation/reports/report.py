@@ -9,6 +9,11 @@ Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.re
 ground truth from ``{scenes}/{dataset}/{scene}/test_images/`` (the workflow's results tree),
 ``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
 (matched by file stem). Thumbnails are downsampled by an integer factor to <= 256 px wide.
+
+A scene with no held-out view (your own photos: its split.json lists no test view) has no
+render grid; the photo section (:mod:`evaluation.reports.photos`) shows its training photos
+beside their renders instead, and a report of such scenes alone leaves out the held-out tables
+and plots with one line that says so.
 """
 
 from __future__ import annotations
