@@ -23,7 +23,8 @@ import numpy as np
 from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
-           "read_gaussian_ply", "ply_vertex_count", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
+           "read_gaussian_ply", "ply_vertex_count", "PlyFormatError", "write_points_ply", "read_points_ply",
+           "check_seed_cloud",
            "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE", "SH_DEGREE"]
 
 SH_C0 = 0.28209479177387814

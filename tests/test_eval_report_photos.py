@@ -4,13 +4,15 @@ training curve, the cameras from above and the model's size, and no held-out sec
 
 The tree is the smallest a photo run leaves (workflow/rules/common.smk layout): the scene's
 split.json with no test view, the photos at the working resolution (``converted/images``),
-COLMAP's status and cameras, the Bridge's cameras, a trained model.ply and its log.parquet."""
+COLMAP's status and cameras, the Bridge's cameras, a trained model.ply and its log.parquet, and
+the render of every photo that the rule render_train_views makes with ``python -m splat_train
+render``."""
 
 from __future__ import annotations
 
 import json
 import re
-import shutil
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -66,8 +68,20 @@ def _report(results: Path, out: Path) -> str:
     return (out / "index.html").read_text()
 
 
+def _render(results: Path) -> float:
+    """render_train_views' command on the run; returns the mean PSNR it logs (float renders)."""
+    scene = results / "photos" / "garden"
+    mode = scene / "n3" / "colmap" / "uniform"
+    proc = run(["-m", "splat_train", "render", "--model", str(mode / "train" / "model.ply"), "--cameras",
+                str(mode / "bridge" / "sparse" / "0"), "--images", str(scene / "converted" / "images"),
+                "--out", str(mode / "train_renders")], timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return float(re.search(r"mean PSNR (\d+\.\d+) dB", proc.stdout + proc.stderr).group(1))
+
+
 def test_photo_report_shows_each_photo_beside_its_render(tmp_path):
     results = photo_run(tmp_path)
+    mean_psnr = _render(results)
     out = tmp_path / "report"
     page = _report(results, out)
     srcs = re.findall(r'<img src="([^"]+)" alt="([^"]+)"', page)
@@ -78,12 +92,14 @@ def test_photo_report_shows_each_photo_beside_its_render(tmp_path):
     grid = grid[: grid.index("</table>")]
     rows = re.findall(r"<tr><th>(IMG_0\d)</th>(.*?)</tr>", grid, re.S)
     assert [stem for stem, _ in rows] == ["IMG_01", "IMG_02", "IMG_03"]
+    scores = []
     for stem, cells in rows:
-        # the photo, then the model's render of its camera (rendered here: no train_renders/),
-        # with the training-view PSNR under it
+        # the photo, then the model's render of its camera with the training-view PSNR under it
         assert f'alt="photo {stem}"' in cells and f'alt="colmap (uniform) render {stem}"' in cells
-        assert re.search(r"training-view PSNR \d+\.\d\d dB", cells), cells
-    assert "training-view fit" in page and "rendered for this report" in page
+        scores.append(float(re.search(r"training-view PSNR (\d+\.\d\d) dB", cells).group(1)))
+    # scored on the 8-bit render files: within rounding of the render command's float renders
+    assert abs(np.mean(scores) - mean_psnr) < 0.1, (scores, mean_psnr)
+    assert "training-view fit" in page and "<code>train_renders/</code> of the run" in page
     # the curve and the camera plot exist; the model's size is stated
     assert (out / alts["photos / garden, n = 3 training curve"]).is_file()
     assert (out / alts["photos / garden, n = 3 camera plot"]).is_file()
@@ -97,12 +113,17 @@ def test_photo_report_shows_each_photo_beside_its_render(tmp_path):
     assert "1 run from" in page and "1 runs" not in page
 
 
-def test_photo_report_uses_the_workflows_train_renders(tmp_path):
-    """A run with ``train_renders/`` (rule render_train_views) is shown from those files: here
-    the photos themselves, so every training-view PSNR is the cap of an identical image."""
+def test_photo_report_without_train_renders_gives_the_command_that_makes_them(tmp_path):
+    """A run whose renders were never made (the workflow stopped before render_train_views):
+    each photo says it has no render, and the run's row gives the command, which makes them."""
     results = photo_run(tmp_path)
-    mode = results / "photos" / "garden" / "n3" / "colmap" / "uniform"
-    shutil.copytree(results / "photos" / "garden" / "converted" / "images", mode / "train_renders")
     page = _report(results, tmp_path / "report")
-    assert page.count("training-view PSNR 100.00 dB") == 3
-    assert "<code>train_renders/</code> of the run" in page and "rendered for this report" not in page
+    grid = page[page.index('<table class="grid">'):]
+    assert grid[: grid.index("</table>")].count("no render (see the run's renders above)") == 3
+    cmd = re.search(r"make it with <code>(.*?)</code>", page).group(1)
+    argv = shlex.split(re.sub(r"<[^>]+>", "", cmd))
+    assert argv[:4] == ["python", "-m", "splat_train", "render"]
+    proc = run(argv[1:], timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    mode = results / "photos" / "garden" / "n3" / "colmap" / "uniform"
+    assert sorted(p.name for p in (mode / "train_renders").glob("*.png")) == ["IMG_01.png", "IMG_02.png", "IMG_03.png"]

@@ -5,10 +5,10 @@ count the section shows, for every run:
 
 * each training photo beside the model's render of its camera, with the PSNR of that render
   against the photo: the *training-view fit*, how well the model reproduces a photo it was
-  trained on, not held-out quality. Renders are read from ``{mode}/train_renders/`` (the
-  workflow's ``render_train_views``); a run without that folder is rendered here from
-  ``{mode}/train/model.ply`` and ``{mode}/bridge/sparse/0`` with the render command's library
-  function (:func:`splat_train.export.render_model`);
+  trained on, not held-out quality. Renders are read from ``{mode}/train_renders/``, which the
+  workflow's rule ``render_train_views`` writes (``python -m splat_train render``); for a run
+  without that folder the section gives the command that makes it (a stage does not import
+  another: the report reads the renders, it does not make them);
 * the training curve: loss and training-view PSNR against iteration from ``log.parquet``
   (:mod:`splat_train.runlog`);
 * the cameras seen from above: centres and viewing directions of ``{mode}/bridge/sparse/0``
@@ -28,19 +28,18 @@ import json
 import logging
 import math
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from evaluation.reports.markup import counted
+from evaluation.reports.markup import command_html, counted
 from evaluation.reports.plots import fit_layout, pyplot, save_png
 from evaluation.reports.results import find_file, read_log, run_label
 from evaluation.reports.thumbs import images_in, thumb
 
-__all__ = ["heldout_views", "photo_scenes", "photo_folder", "training_view_psnr", "camera_plot",
-           "training_curve", "photo_section", "NO_HELDOUT_NOTE"]
+__all__ = ["heldout_views", "photo_scenes", "photo_folder", "training_view_psnr", "top_down", "camera_plot",
+           "training_curve", "render_command", "photo_section", "NO_HELDOUT_NOTE"]
 
 log = logging.getLogger(__name__)
 
@@ -241,25 +240,22 @@ def _model_size(model: Path) -> str:
         return f"unreadable ({exc})"
 
 
-def _renders(row, photos: Path | None, tmp: Path) -> tuple[dict[str, Path], str]:
-    """(stem -> render of that training camera, where they come from) for one run."""
+def render_command(row, photos: Path | None) -> list[str]:
+    """The command that writes a run's ``train_renders/`` (the workflow's rule
+    ``render_train_views``): its model rendered into its training cameras at the photos' size."""
     mode_dir = _mode_dir(row)
-    folder = mode_dir / _TRAIN_RENDERS
+    cams = _cameras_dir(row) or mode_dir / "bridge" / "sparse" / "0"
+    return ["python", "-m", "splat_train", "render", "--model", str(mode_dir / "train" / "model.ply"),
+            "--cameras", str(cams), "--images", str(photos or "PHOTOS"), "--out", str(mode_dir / _TRAIN_RENDERS)]
+
+
+def _renders(row, photos: Path | None) -> tuple[dict[str, Path], str]:
+    """(stem -> render of that training camera, where they come from: HTML) for one run."""
+    folder = _mode_dir(row) / _TRAIN_RENDERS
     if folder.is_dir():
         return images_in(folder), f"<code>{html.escape(_TRAIN_RENDERS)}/</code> of the run"
-    model, cams = mode_dir / "train" / "model.ply", _cameras_dir(row)
-    if not model.is_file() or cams is None or photos is None:
-        return {}, "none: no trained model, cameras or photos to render"
-    from splat_train.export import render_model
-
-    out = tmp / re.sub(r"[^A-Za-z0-9_.-]+", "_", str(mode_dir))
-    try:
-        render_model(model, cams, out, images=photos)
-    except (ValueError, OSError, RuntimeError) as exc:
-        log.warning("report: cannot render %s into %s (%s)", model, cams, exc)
-        return {}, f"none: rendering failed ({html.escape(str(exc).splitlines()[0])})"
-    return images_in(out), ("rendered for this report (no <code>train_renders/</code>) from "
-                            "<code>train/model.ply</code> into <code>bridge/sparse/0</code>")
+    return {}, (f"none: the run has no <code>{_TRAIN_RENDERS}/</code>; make it with "
+                f"<code>{command_html(render_command(row, photos))}</code>")
 
 
 def _photo_cell(src: Path | None, images_dir: Path, rel: str, alt: str, caption: str = "") -> str:
@@ -269,7 +265,7 @@ def _photo_cell(src: Path | None, images_dir: Path, rel: str, alt: str, caption:
     return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}">{cap}</td>'
 
 
-def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, images_dir: Path, tmp: Path) -> list[str]:
+def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, images_dir: Path) -> list[str]:
     ds, sc, n = g["dataset"].iloc[0], g["scene"].iloc[0], int(g["n"].iloc[0])
     key = f"{ds}__{sc}__n{n}"
     title = f"{ds} / {sc}, n = {n}"
@@ -293,7 +289,7 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
             why = row.reason if isinstance(row.reason, str) and row.reason else "see the run status"
             rows.append([label, f"no trained model ({html.escape(why)})", "-", "-", "-", "-"])
             continue
-        renders, source = _renders(row, photos_dir, tmp)
+        renders, source = _renders(row, photos_dir)
         scores = {s: training_view_psnr(renders[s], photos[s]) for s in photos if s in renders}
         finite = [v for v in scores.values() if v is not None]
         its = int(lg["iteration"].max()) if lg is not None and "iteration" in lg and len(lg) else None
@@ -318,12 +314,13 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
         for stem, photo in photos.items():
             cells = [_photo_cell(photo, images_dir, f"photos/{key}__photo__{stem}.png", f"photo {stem}")]
             for lab, renders, scores in columns:
+                why_none = "no camera for this photo" if renders else "see the run's renders above"
                 tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", lab).strip("_")
                 v = scores.get(stem)
                 cap = "training-view PSNR " + ("-" if v is None else f"{v:.2f} dB")
                 cells.append(_photo_cell(renders.get(stem), images_dir, f"photos/{key}__{tag}__{stem}.png",
                                          f"{lab} render {stem}", cap) if stem in renders
-                             else '<td class="missing">no render (no camera for this photo)</td>')
+                             else f'<td class="missing">no render ({why_none})</td>')
             grid.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")
         parts.append(f'<table class="grid"><tr><th>name</th><th>training photo</th>{head}</tr>'
                      + "\n".join(grid) + "</table>")
@@ -344,7 +341,6 @@ def photo_section(results: str | Path, scenes_dir: str | Path | None, runs: pd.D
              "photo's camera, and the PSNR between them: the <b>training-view fit</b>, how well the model "
              "reproduces a photo it has seen, not how well it renders a new view (no view was held out to "
              "measure that). Then the training curve, the cameras seen from above and the model's size.</p>"]
-    with tempfile.TemporaryDirectory(prefix="report_renders_") as tmp:
-        for _, g in mine.groupby(["dataset", "scene", "n"], sort=True):
-            parts += _group_section(results, scenes_dir, g, images_dir, Path(tmp))
+    for _, g in mine.groupby(["dataset", "scene", "n"], sort=True):
+        parts += _group_section(results, scenes_dir, g, images_dir)
     return parts

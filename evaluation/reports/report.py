@@ -102,8 +102,8 @@ def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | N
                 continue
             tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", init.strip("_")).strip("_")
             tag += "__testpose" if protocol == "test-pose" else ""
-            cells.append(thumb_cell(images.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png",
-                                    f"{label} {stem}"))
+            cells.append(thumb_cell(images.get(stem), images_dir,
+                                    f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png", f"{label} {stem}"))
         cells.append(thumb_cell(gt.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__gt__{stem}.png",
                                 f"ground truth {stem}"))
         rows.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")
