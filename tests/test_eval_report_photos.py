@@ -127,3 +127,24 @@ def test_photo_report_without_train_renders_gives_the_command_that_makes_them(tm
     assert proc.returncode == 0, proc.stdout + proc.stderr
     mode = results / "photos" / "garden" / "n3" / "colmap" / "uniform"
     assert sorted(p.name for p in (mode / "train_renders").glob("*.png")) == ["IMG_01.png", "IMG_02.png", "IMG_03.png"]
+
+
+def test_cameras_from_above_keep_distances_and_look_at_what_they_look_at():
+    """The camera plot's projection: cameras around a target at one height keep their distances
+    and their arrows point at the target, whatever the world's up axis."""
+    from camio.cameras import look_at
+    from evaluation.reports.photos import top_down
+
+    target = np.array([0.5, 2.0, -1.0])
+    for up in (np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, 1.0])):
+        a = np.cross(up, [1.0, 0.3, 0.2])
+        a /= np.linalg.norm(a)
+        b = np.cross(up, a)
+        eyes = [target + 3 * (np.cos(t) * a + np.sin(t) * b) for t in 0.2 + np.arange(4) * np.pi / 2]
+        centres, dirs = top_down(np.stack([look_at(e, target, up)[:3] for e in eyes]))
+        eyes = np.stack(eyes)
+        assert np.allclose(np.linalg.norm(centres[:, None] - centres[None], axis=-1),
+                           np.linalg.norm(eyes[:, None] - eyes[None], axis=-1))
+        to_target = centres.mean(axis=0) - centres  # the target: the centre of the square of cameras
+        cos = np.sum(dirs * to_target, axis=1) / np.linalg.norm(dirs, axis=1) / np.linalg.norm(to_target, axis=1)
+        assert np.allclose(cos, 1.0)

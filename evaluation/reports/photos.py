@@ -179,6 +179,8 @@ def camera_plot(cameras: dict[str, Path], path: Path, title: str) -> Path | None
         ax.scatter(centres[:, 0], centres[:, 1], s=12, c="C0", zorder=3)
         ax.quiver(centres[:, 0], centres[:, 1], dirs[:, 0] * length, dirs[:, 1] * length, angles="xy",
                   scale_units="xy", scale=1, width=0.004, color="C1")
+        ax.update_datalim(centres + dirs * length)  # quiver leaves the arrow tips out of the limits
+        ax.autoscale_view()
         if len(cams) <= 20:
             for c, (x, y) in zip(cams, centres):
                 ax.annotate(Path(c.name).stem, (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
@@ -214,7 +216,9 @@ def training_curve(logs: dict[str, pd.DataFrame], path: Path, title: str) -> Pat
             drawn = True
         ax.set_xlabel("iteration")
         ax.set_ylabel(ylab)
-        if col == "loss":
+        ax.xaxis.get_major_locator().set_params(integer=True)
+        low, high = ax.get_ylim()
+        if col == "loss" and low > 0 and high > 10 * low:  # a loss over decades: log axis
             ax.set_yscale("log")
         ax.grid(alpha=0.3)
     if not drawn:
@@ -227,7 +231,7 @@ def training_curve(logs: dict[str, pd.DataFrame], path: Path, title: str) -> Pat
 
 
 def _size(nbytes: int) -> str:
-    return f"{nbytes / 1e6:.1f} MB" if nbytes >= 1e5 else f"{nbytes / 1e3:.1f} kB"
+    return f"{nbytes / 1e6:.1f} MB" if nbytes >= 1e6 else f"{nbytes / 1e3:.1f} kB"
 
 
 def _model_size(model: Path) -> str:
