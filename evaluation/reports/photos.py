@@ -36,7 +36,7 @@ import pandas as pd
 from evaluation.reports.markup import command_html, counted
 from evaluation.reports.plots import fit_layout, pyplot, save_png
 from evaluation.reports.results import find_file, read_log, run_label
-from evaluation.reports.thumbs import images_in, thumb
+from evaluation.reports.thumbs import images_in, thumb_cell
 
 __all__ = ["heldout_views", "photo_scenes", "photo_folder", "training_view_psnr", "top_down", "camera_plot",
            "training_curve", "render_command", "photo_section", "NO_HELDOUT_NOTE"]
@@ -241,7 +241,7 @@ def _model_size(model: Path) -> str:
     try:
         return f"{counted(ply_vertex_count(model), 'Gaussian')}, {_size(model.stat().st_size)}"
     except (PlyFormatError, OSError) as exc:
-        return f"unreadable ({exc})"
+        return f"unreadable ({html.escape(str(exc))})"
 
 
 def render_command(row, photos: Path | None) -> list[str]:
@@ -262,13 +262,6 @@ def _renders(row, photos: Path | None) -> tuple[dict[str, Path], str]:
                 f"<code>{command_html(render_command(row, photos))}</code>")
 
 
-def _photo_cell(src: Path | None, images_dir: Path, rel: str, alt: str, caption: str = "") -> str:
-    if src is None or not thumb(src, images_dir / rel):
-        return '<td class="missing">missing</td>'
-    cap = f"<br><small>{caption}</small>" if caption else ""
-    return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}">{cap}</td>'
-
-
 def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, images_dir: Path) -> list[str]:
     ds, sc, n = g["dataset"].iloc[0], g["scene"].iloc[0], int(g["n"].iloc[0])
     key = f"{ds}__{sc}__n{n}"
@@ -283,6 +276,7 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
     for row in g.itertuples():
         label = run_label(row.init, row.bridge_mode)
         mode_dir = _mode_dir(row)
+        cell = html.escape(label)
         model = mode_dir / "train" / "model.ply"
         lg = read_log(find_file(mode_dir, "log.parquet"))
         if lg is not None:
@@ -291,7 +285,7 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
             cameras[label] = cams
         if not model.is_file():
             why = row.reason if isinstance(row.reason, str) and row.reason else "see the run status"
-            rows.append([label, f"no trained model ({html.escape(why)})", "-", "-", "-", "-"])
+            rows.append([cell, f"no trained model ({html.escape(why)})", "-", "-", "-", "-"])
             continue
         renders, source = _renders(row, photos_dir)
         scores = {s: training_view_psnr(renders[s], photos[s]) for s in photos if s in renders}
@@ -299,7 +293,7 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
         its = int(lg["iteration"].max()) if lg is not None and "iteration" in lg and len(lg) else None
         loss = float(lg["loss"].dropna().iloc[-1]) if lg is not None and "loss" in lg and lg["loss"].notna().any() \
             else math.nan
-        rows.append([label, _model_size(model), "-" if its is None else str(its),
+        rows.append([cell, _model_size(model), "-" if its is None else str(its),
                      "-" if math.isnan(loss) else f"{loss:.4f}",
                      f"{np.mean(finite):.2f} dB over {counted(len(finite), 'photo')}" if finite else "-", source])
         columns.append((label, renders, scores))
@@ -316,13 +310,13 @@ def _group_section(results: Path, scenes_dir: Path | None, g: pd.DataFrame, imag
         head = "".join(f"<th>{html.escape(lab)}: render of the photo's camera</th>" for lab, _, _ in columns)
         grid = []
         for stem, photo in photos.items():
-            cells = [_photo_cell(photo, images_dir, f"photos/{key}__photo__{stem}.png", f"photo {stem}")]
+            cells = [thumb_cell(photo, images_dir, f"photos/{key}__photo__{stem}.png", f"photo {stem}")]
             for lab, renders, scores in columns:
                 why_none = "no camera for this photo" if renders else "see the run's renders above"
                 tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", lab).strip("_")
                 v = scores.get(stem)
                 cap = "training-view PSNR " + ("-" if v is None else f"{v:.2f} dB")
-                cells.append(_photo_cell(renders.get(stem), images_dir, f"photos/{key}__{tag}__{stem}.png",
+                cells.append(thumb_cell(renders.get(stem), images_dir, f"photos/{key}__{tag}__{stem}.png",
                                          f"{lab} render {stem}", cap) if stem in renders
                              else f'<td class="missing">no render ({why_none})</td>')
             grid.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")

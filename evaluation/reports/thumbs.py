@@ -38,8 +38,10 @@ def thumb(src: Path, dst: Path) -> bool:
     return True
 
 
-def thumb_cell(src: Path | None, images_dir: Path, rel: str, alt: str) -> str:
-    """A table cell: the thumbnail of ``src`` written to ``images_dir/rel``, or "missing"."""
+def thumb_cell(src: Path | None, images_dir: Path, rel: str, alt: str, caption: str = "") -> str:
+    """A table cell: the thumbnail of ``src`` written to ``images_dir/rel`` (with a line of
+    ``caption`` text under it), or "missing"."""
     if src is None or not thumb(src, images_dir / rel):
         return '<td class="missing">missing</td>'
-    return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}"></td>'
+    cap = f"<br><small>{html.escape(caption)}</small>" if caption else ""
+    return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}">{cap}</td>'
