@@ -23,7 +23,8 @@ import numpy as np
 from camio.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
-           "read_gaussian_ply", "ply_comments", "PlyFormatError", "write_points_ply", "read_points_ply", "check_seed_cloud",
+           "read_gaussian_ply", "ply_comments", "ply_vertex_count", "PlyFormatError", "write_points_ply",
+           "read_points_ply", "check_seed_cloud",
            "SEED_MAX_ABS_POSITION", "SEED_LOG_SCALE_RANGE", "SH_DEGREE"]
 
 SH_C0 = 0.28209479177387814
@@ -312,6 +313,22 @@ def check_seed_cloud(cloud: "GaussianCloud", path: str | Path, role: str = "seed
     if zq.any():
         out.append(f"{path}: {int(zq.sum())} of {n} Gaussians have a zero rotation quaternion")
     return out
+
+
+def ply_vertex_count(path: str | Path, header_bytes: int = 1 << 16) -> int:
+    """The number of vertices (a model's Gaussians) a PLY's header declares, read from its
+    first ``header_bytes`` only (a model of millions of Gaussians is not loaded).
+
+    Raises:
+        PlyFormatError: not a binary little-endian PLY, or no ``vertex`` element.
+    """
+    path = Path(path)
+    with open(path, "rb") as f:
+        elements, _ = _header(path, f.read(header_bytes))
+    counts = [count for name, count, _ in elements if name == "vertex"]
+    if not counts:
+        raise PlyFormatError(f"{path}: the PLY header declares no vertex element")
+    return counts[0]
 
 
 def read_gaussian_ply(path: str | Path, raw: bytes | None = None) -> GaussianCloud:

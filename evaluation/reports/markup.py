@@ -10,7 +10,14 @@ import re
 
 import numpy as np
 
-__all__ = ["format_value", "markdown_table", "html_table", "html_page"]
+__all__ = ["counted", "format_value", "markdown_table", "html_table", "html_page"]
+
+
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``n`` and the noun in the number that fits: "1 run", "2 runs", "0 runs" (``plural``
+    where adding "s" is wrong)."""
+    n = int(n)
+    return f"{n} {noun if n == 1 else (plural or noun + 's')}"
 
 
 def format_value(v, digits: int) -> str:

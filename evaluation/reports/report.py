@@ -9,6 +9,11 @@ Renders are read from each run's ``renders/<name>`` folder (:func:`evaluation.re
 ground truth from ``{scenes}/{dataset}/{scene}/test_images/`` (the workflow's results tree),
 ``{scenes}/{dataset}/{scene}/images/`` or ``{scenes}/{scene}/images/``
 (matched by file stem). Thumbnails are downsampled by an integer factor to <= 256 px wide.
+
+A scene with no held-out view (your own photos: its split.json lists no test view) has no
+render grid; the photo section (:mod:`evaluation.reports.photos`) shows its training photos
+beside their renders instead, and a report of such scenes alone leaves out the held-out tables
+and plots with one line that says so.
 """
 
 from __future__ import annotations
@@ -24,45 +29,24 @@ import numpy as np
 import pandas as pd
 
 from camio.atomic import atomic_dir
-from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
-from evaluation.reports.markup import html_page, number_cells
+from evaluation.reports import photos
+from evaluation.reports.markup import counted, html_page, number_cells
 from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
 from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
-from evaluation.reports.tables import build_tables, protocol_note, table_notes
+from evaluation.reports.tables import HELDOUT_TABLES, build_tables, protocol_note, table_notes
+from evaluation.reports.thumbs import images_in, thumb_cell
 
-__all__ = ["render_grid_html", "run_report"]
+__all__ = ["guide_html", "render_grid_html", "run_report"]
 
 log = logging.getLogger(__name__)
 
-THUMB_WIDTH = 256
 _CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;
 margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}
 td.num{text-align:right}.arg{white-space:nowrap}
 th{background:#eee}.grid td{text-align:center;vertical-align:middle}.failed{background:#fdd;
 color:#900;width:160px}.missing{background:#eee;color:#666;width:160px}img{max-width:100%}"""
-
-
-def _images_in(folder: Path) -> dict[str, Path]:
-    """stem -> path of the images directly in ``folder``."""
-    if not folder.is_dir():
-        return {}
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_EXTENSIONS}
-
-
-def _thumb(src: Path, dst: Path) -> bool:
-    """Write a PNG thumbnail of ``src`` to ``dst``; False (logged) when unreadable."""
-    try:
-        img = read_image(src)
-    except (ImageReadError, OSError) as exc:
-        log.warning("report: cannot read %s (%s)", src, exc)
-        return False
-    factor = max(1, -(-img.shape[1] // THUMB_WIDTH))
-    if factor > 1 and img.shape[0] >= factor:
-        img = downsample_area(img[: img.shape[0] // factor * factor, : img.shape[1] // factor * factor], factor)
-    write_image(dst, img)
-    return True
 
 
 def _gt_folder(scenes_dir: Path | None, dataset: str, scene: str) -> Path | None:
@@ -95,13 +79,13 @@ def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | N
     for init in _init_order(runs):
         row = runs[init]
         folder = find_file(Path(row.run_dir), "renders")
-        strict = _images_in(folder) if folder is not None and folder.is_dir() else {}
+        strict = images_in(folder) if folder is not None and folder.is_dir() else {}
         tp_folder = Path(row.run_dir) / TESTPOSE_DIR / "refine" / "renders"
         columns.append([init, "strict", row, strict])
         if tp_folder.is_dir():
-            columns.append([init, "test-pose", row, _images_in(tp_folder)])
+            columns.append([init, "test-pose", row, images_in(tp_folder)])
     both = any(c[1] == "test-pose" for c in columns)
-    gt = _images_in(_gt_folder(scenes_dir, dataset, scene) or Path("/nonexistent"))
+    gt = images_in(_gt_folder(scenes_dir, dataset, scene))
     views = sorted(set().union(*[set(c[3]) for c in columns]))[:max_views]
     if not views:
         return ""
@@ -118,24 +102,22 @@ def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | N
                 continue
             tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", init.strip("_")).strip("_")
             tag += "__testpose" if protocol == "test-pose" else ""
-            cells.append(_thumb_cell(images.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png",
-                                     f"{label} {stem}"))
-        cells.append(_thumb_cell(gt.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__gt__{stem}.png",
-                                 f"ground truth {stem}"))
+            cells.append(thumb_cell(images.get(stem), images_dir,
+                                    f"renders/{dataset}__{scene}__n{n}__{tag}__{stem}.png", f"{label} {stem}"))
+        cells.append(thumb_cell(gt.get(stem), images_dir, f"renders/{dataset}__{scene}__n{n}__gt__{stem}.png",
+                                f"ground truth {stem}"))
         rows.append(f"<tr><th>{html.escape(stem)}</th>{''.join(cells)}</tr>")
     return (f"<h3>{html.escape(dataset)} / {html.escape(scene)}, n = {n}</h3>\n<table class=\"grid\">"
             f"<tr><th>view</th>{head}</tr>\n" + "\n".join(rows) + "</table>")
 
 
-def _thumb_cell(src: Path | None, images_dir: Path, rel: str, alt: str) -> str:
-    """A grid cell: the thumbnail of ``src`` written to ``images_dir/rel``, or "missing"."""
-    if src is None or not _thumb(src, images_dir / rel):
-        return '<td class="missing">missing</td>'
-    return f'<td><img src="images/{html.escape(rel)}" alt="{html.escape(alt)}"></td>'
-
-
-# What the report's names mean, shown once at its top.
-GUIDE_HTML = (
+# What the report's names mean, shown once at its top (the image metrics only where views were
+# held out: guide_html).
+_GUIDE_METRICS = (
+    "<li><b>Image metrics</b>: PSNR / SSIM / LPIPS are scored on the 8-bit renders of the held-out views "
+    "after the last iteration; <i>log PSNR final</i> and <i>log PSNR best</i> are the training log's "
+    "held-out PSNR at the last and at the best evaluated iteration (<i>best it.</i>).</li>")
+_GUIDE_HEAD = (
     "<h2>What you are looking at</h2><ul>"
     "<li><b>Initialisers</b> give the training cameras and the seed points: <code>vggt</code> "
     "(VGGT-1B from the unposed photos), <code>colmap</code> (COLMAP structure-from-motion on the same "
@@ -149,12 +131,18 @@ GUIDE_HTML = (
     "COLMAP model, which has no confidence, always gets); <code>filtered</code> is <code>gated</code> "
     "after dropping the least confident points.</li>"
     "<li><b>Success</b>: <i>success (paper)</i> is the paper's criterion; <i>success (accurate)</i> adds the "
-    "accuracy gate on pose error (both defined above). Neither is a Bridge mode.</li>"
-    "<li><b>Image metrics</b>: PSNR / SSIM / LPIPS are scored on the 8-bit renders of the held-out views "
-    "after the last iteration; <i>log PSNR final</i> and <i>log PSNR best</i> are the training log's "
-    "held-out PSNR at the last and at the best evaluated iteration (<i>best it.</i>).</li>"
+    "accuracy gate on pose error (both defined above). Neither is a Bridge mode.</li>")
+_GUIDE_TIMES = (
     "<li><b>Run times</b> are wall seconds per stage; one-time builds (the C++ kernel) are not "
-    "included.</li></ul>")
+    "included.</li>")
+
+
+def guide_html(heldout: bool = True) -> str:
+    """The report's "What you are looking at" list; the image metrics only with ``heldout``."""
+    return _GUIDE_HEAD + (_GUIDE_METRICS if heldout else "") + _GUIDE_TIMES + "</ul>"
+
+
+GUIDE_HTML = guide_html()
 
 
 def _table_html(df: pd.DataFrame) -> str:
@@ -229,22 +217,33 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
     """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
 
     ``plots=False`` leaves out the plots (``python -m evaluation plots`` makes them alone).
+    Scenes with no held-out view (your own photos) get the photo section
+    (:mod:`evaluation.reports.photos`); when no scene has one, the held-out tables, plots and
+    render grids are left out with one line that says so.
     """
     t0 = time.perf_counter()
     out = Path(out)
     scenes_dir = Path(scenes_dir) if scenes_dir is not None else None
     runs = collect_runs(results, gate)
+    photo_scenes = photos.photo_scenes(results, runs)
+    heldout = not len(runs) or any((ds, sc) not in photo_scenes for ds, sc in zip(runs["dataset"], runs["scene"]))
     with atomic_dir(out) as tmp:
         images = tmp / "images"
         images.mkdir()
-        plots = run_plots(results, images, runs) if plots else []
+        plots = run_plots(results, images, runs) if plots and heldout else []
         tables = build_tables(runs, gate, results=results)
+        if not heldout:
+            tables = {t: df for t, df in tables.items() if t not in HELDOUT_TABLES}
         notes = table_notes(tables)
-        parts = ["<h1>Evaluation report</h1>",
-                 f"<p>{len(runs)} runs from <code>{html.escape(str(results))}</code>. "
-                 + " ".join(success_criteria_text(gate, html=True)) + "</p>", GUIDE_HTML]
+        page_title = "Evaluation report" if heldout else "Report on your photos"
+        parts = [f"<h1>{page_title}</h1>",
+                 f"<p>{counted(len(runs), 'run')} from <code>{html.escape(str(results))}</code>. "
+                 + " ".join(success_criteria_text(gate, html=True)) + "</p>", guide_html(heldout)]
         parts += _initialiser_notes(Path(results), runs)
-        parts += _heldout_cameras_note(runs)
+        if heldout:
+            parts += _heldout_cameras_note(runs)
+        else:
+            parts.append(f"<p>{html.escape(photos.NO_HELDOUT_NOTE)}</p>")
         empty = []
         for title, df in tables.items():
             if title in notes:
@@ -260,23 +259,25 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
             for p in plots:
                 rel = p.relative_to(tmp).as_posix()
                 parts.append(f'<p><img src="{html.escape(rel)}" alt="{html.escape(p.stem)}"></p>')
-        else:
+        elif heldout:
             parts.append("<p>No plots: no run has a training log or both a run time and a held-out "
                          "PSNR (training off?).</p>")
+        parts += photos.photo_section(results, scenes_dir, runs, photo_scenes, images)
         parts += _study_section(Path(results), images)
         parts += view_section(results)
-        parts.append("<h2>Renders (one column per initialiser that produced them, as headed, a second "
-                     "one where the test-pose protocol ran; then the ground truth)</h2>")
         n_grids = 0
-        for _, g in runs.groupby(["dataset", "scene", "n"], sort=True):
-            grid = render_grid_html(g, images, scenes_dir, max_views)
-            if grid:
-                parts.append(grid)
-                n_grids += 1
-        if not n_grids:
-            parts.append("<p>(no renders found)</p>")
-        (tmp / "index.html").write_text(html_page("Evaluation report", _CSS, "\n".join(parts)))
-    log.info("report: %d runs, %d tables, %d plots, %d render grids -> %s (%.2f s)", len(runs), len(tables),
-             len(plots), n_grids, out / "index.html", time.perf_counter() - t0)
+        if heldout:
+            parts.append("<h2>Renders (one column per initialiser that produced them, as headed, a second "
+                         "one where the test-pose protocol ran; then the ground truth)</h2>")
+            for (ds, sc, _), g in runs.groupby(["dataset", "scene", "n"], sort=True):
+                grid = render_grid_html(g, images, scenes_dir, max_views) if (ds, sc) not in photo_scenes else ""
+                if grid:
+                    parts.append(grid)
+                    n_grids += 1
+            if not n_grids:
+                parts.append("<p>(no renders found)</p>")
+        (tmp / "index.html").write_text(html_page(page_title, _CSS, "\n".join(parts)))
+    log.info("report: %s, %s, %s, %s -> %s (%.2f s)", counted(len(runs), "run"), counted(len(tables), "table"),
+             counted(len(plots), "plot"), counted(n_grids, "render grid"), out / "index.html",
+             time.perf_counter() - t0)
     return out / "index.html"
-

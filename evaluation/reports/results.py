@@ -59,6 +59,7 @@ from pathlib import Path
 import pandas as pd
 
 from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
+from evaluation.reports.markup import counted
 
 __all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_log", "best_along", "read_run",
            "collect_runs", "STAGES"]
@@ -399,6 +400,7 @@ def collect_runs(results: str | Path, gate: GateConfig = GateConfig()) -> pd.Dat
         unverified = scene_ref & ~df["has_reference"].astype(bool)
         df["has_reference"] = scene_ref
         df.loc[unverified, "success_gated"] = False
-    log.info("results: %d runs under %s (%d datasets, %d scenes)", len(df), results,
-             df["dataset"].nunique(), df[["dataset", "scene"]].drop_duplicates().shape[0])
+    log.info("results: %s under %s (%s, %s)", counted(len(df), "run"), results,
+             counted(df["dataset"].nunique(), "dataset"),
+             counted(df[["dataset", "scene"]].drop_duplicates().shape[0], "scene"))
     return df

@@ -29,7 +29,7 @@ import pandas as pd
 
 from camio.atomic import atomic_path
 from evaluation.metrics.pose import GateConfig, success_criteria_text
-from evaluation.reports.markup import format_value, markdown_table
+from evaluation.reports.markup import counted, format_value, markdown_table
 from evaluation.reports.results import PROTOCOLS, collect_runs
 
 __all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
@@ -189,6 +189,10 @@ _DIGITS = {"best it.": 0, "SSIM": 3, "ATE": 4, "registered/n": 2, "max abs(fy/fx
 
 TABLE_ONE = "Table I: COLMAP vs VGGT per dataset and n"
 RUN_STATUS = "Run status: what ran, per initialiser and scene"
+TABLE_TWO = "Table II: summary per initialiser"
+POSE_TABLE = "Pose accuracy"
+#: the tables of held-out image metrics and pose accuracy: left out of a report with no held-out view
+HELDOUT_TABLES = (TABLE_ONE, TABLE_TWO, POSE_TABLE)
 
 
 def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str | tuple[str, ...] = LPIPS_NETS,
@@ -200,8 +204,8 @@ def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str
     return {
         RUN_STATUS: run_status_table(runs, results),
         TABLE_ONE: table_one(runs, lpips=lpips),
-        "Table II: summary per initialiser": table_two(runs, lpips=lpips),
-        "Pose accuracy": pose_table(runs),
+        TABLE_TWO: table_two(runs, lpips=lpips),
+        POSE_TABLE: pose_table(runs),
         "Run time": runtime_table(runs),
         "COLMAP repeats": repeats_table(runs),
     }
@@ -239,7 +243,7 @@ def protocol_note(runs: pd.DataFrame) -> str | None:
     same = "" if len(pairs) == 1 else " (the runs differ: compare like with like)"
     return (f"Held-out protocols: [strict] renders each test view at its reference pose mapped by the Sim(3) "
             f"fitted on the training cameras (the paper's); [test-pose] first optimises that pose alone "
-            f"against the test image with the model frozen: {words}, in {len(tp)} runs{same} "
+            f"against the test image with the model frozen: {words}, in {counted(len(tp), 'run')}{same} "
             "(docs/protocols.md).")
 
 
@@ -280,6 +284,6 @@ def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConf
     tables = build_tables(runs, gate, lpips, results)
     with atomic_path(out / "tables.md") as tmp:
         tmp.write_text(tables_markdown(tables, gate, protocol_note(runs)) + "\n")
-    log.info("tables: %d runs -> %s and %s in %.2f s", len(runs), out / "runs.parquet", out / "tables.md",
+    log.info("tables: %s -> %s and %s in %.2f s", counted(len(runs), "run"), out / "runs.parquet", out / "tables.md",
              time.perf_counter() - t0)
     return tables

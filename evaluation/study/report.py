@@ -13,7 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from camio.atomic import atomic_dir, write_json
-from evaluation.reports.markup import html_page, html_table, markdown_table
+from evaluation.reports.markup import counted, html_page, html_table, markdown_table
 from evaluation.study.collect import STUDY_INITS, collect_curves, collect_references, collect_study
 from evaluation.study.plots import study_plots
 from evaluation.study.stats import summarise
@@ -51,7 +51,7 @@ def study_markdown(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, plots
     k = runs.groupby(["dataset", "scene", "n", "cell", "bridge_mode"])["seed"].nunique()
     lpips_nets = sorted(set(runs["lpips_net"]))
     parts = ["# Initialisation study", "", _init_note(runs), "",
-             f"{len(runs)} runs; {runs['cell'].nunique()} cells; seeds per cell and mode: "
+             f"{counted(len(runs), 'run')}; {counted(runs['cell'].nunique(), 'cell')}; seeds per cell and mode: "
              f"{int(k.min())}-{int(k.max())}; training iterations: "
              f"{', '.join(str(int(i)) for i in sorted(runs['iterations'].dropna().unique()))}; "
              f"LPIPS network: {', '.join(lpips_nets)}. Every entry: mean ± 95 % t-interval half-width "

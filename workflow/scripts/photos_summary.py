@@ -76,7 +76,8 @@ def summary(results: str | Path, runs: list[dict]) -> str:
                     "  ```",
                 ]
             lines.append("")
-    lines.append(f"The full report: {results / 'report' / 'index.html'}")
+    lines.append(f"The full report, each photo beside the model's render of its camera (training-view fit), the "
+                 f"training curve, the cameras from above and the model's size: {results / 'report' / 'index.html'}")
     return "\n".join(lines) + "\n"
 
 
