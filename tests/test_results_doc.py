@@ -73,3 +73,14 @@ def test_unreadable_record_is_a_one_line_refusal_and_writes_nothing(tmp_path):
     proc = run(["-m", "benchmarks.results", "--records", str(tmp_path / "nowhere"), "--doc", str(out)])
     refused(proc, "nowhere", "does not exist")
     assert not out.exists()
+
+
+def test_figures_without_a_record_point_at_sections_that_exist():
+    from benchmarks.results.page import UNRECORDED
+
+    headings = {ln.lstrip("#").strip() for ln in (ROOT / "benchmarks" / "README.md").read_text().splitlines()
+                if ln.startswith("## ")}
+    for what, command, where in UNRECORDED:
+        assert command.startswith("`"), what
+        # cited by the heading's leading words, as benchmarks/README.md's own table cites them
+        assert where is None or any(h.startswith(where) for h in headings), (what, where)
