@@ -1,6 +1,6 @@
 """docs/results.md is generated from the records and cannot drift from them.
 
-``python -m benchmarks.results`` writes the page from ``benchmarks/records/``; the committed page
+``python -m benchmarks.results_doc`` writes the page from ``benchmarks/records/``; the committed page
 must be exactly what the command writes today. A section whose record is missing is left out
 and named with the command that makes it, never filled in; a record that cannot be read is a
 one-line refusal.
@@ -34,10 +34,10 @@ def _records_copy(dest: Path, leave_out: tuple[str, ...] = ()) -> Path:
 
 def test_committed_page_is_what_the_records_give(tmp_path):
     out = tmp_path / "results.md"
-    proc = run(["-m", "benchmarks.results", "--doc", str(out)])
+    proc = run(["-m", "benchmarks.results_doc", "--doc", str(out)])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert out.read_text() == DOC.read_text(), (
-        "docs/results.md differs from what the records give: run `python -m benchmarks.results` and commit it")
+        "docs/results.md differs from what the records give: run `python -m benchmarks.results_doc` and commit it")
     text = out.read_text()
     for headline in ("equal background, black", "`sparse` − floor", "3DGS, random points | 15.52",
                      "DropGaussian | 20.76", "Do the backends train to the same result?",
@@ -48,7 +48,7 @@ def test_committed_page_is_what_the_records_give(tmp_path):
 def test_section_without_its_record_is_named_with_its_command_not_filled(tmp_path):
     records = _records_copy(tmp_path / "records", leave_out=("llff_protocol",))
     out = tmp_path / "results.md"
-    proc = run(["-m", "benchmarks.results", "--records", str(records), "--doc", str(out)])
+    proc = run(["-m", "benchmarks.results_doc", "--records", str(records), "--doc", str(out)])
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = out.read_text()
     assert LLFF_HEADING not in text
@@ -67,16 +67,16 @@ def test_unreadable_record_is_a_one_line_refusal_and_writes_nothing(tmp_path):
     records = _records_copy(tmp_path / "records", leave_out=("sparse_views/summary.json",))
     (records / "sparse_views" / "summary.json").write_text('{"measures_by_n": ')
     out = tmp_path / "results.md"
-    proc = run(["-m", "benchmarks.results", "--records", str(records), "--doc", str(out)])
+    proc = run(["-m", "benchmarks.results_doc", "--records", str(records), "--doc", str(out)])
     refused(proc, "summary.json", "not a readable JSON record")
     assert not out.exists()
-    proc = run(["-m", "benchmarks.results", "--records", str(tmp_path / "nowhere"), "--doc", str(out)])
+    proc = run(["-m", "benchmarks.results_doc", "--records", str(tmp_path / "nowhere"), "--doc", str(out)])
     refused(proc, "nowhere", "does not exist")
     assert not out.exists()
 
 
 def test_figures_without_a_record_point_at_sections_that_exist():
-    from benchmarks.results.page import UNRECORDED
+    from benchmarks.results_doc.page import UNRECORDED
 
     headings = {ln.lstrip("#").strip() for ln in (ROOT / "benchmarks" / "README.md").read_text().splitlines()
                 if ln.startswith("## ")}
