@@ -33,6 +33,8 @@ import logging
 import sys
 
 from camio.depth_prior import DEPTH_PRIOR_FILE
+from camio.limits import MAX_IMAGE_SIDE
+from runtime.checks import flag
 from runtime.cliargs import deprecated_flags, is_int
 from runtime.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
@@ -55,7 +57,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
+    p.add_argument("--iterations", type=flag(int, 1), help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
                    help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
@@ -66,12 +68,12 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
     p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
-    p.add_argument("--downsample", type=int, help="integer image downsampling factor (default 1)")
+    p.add_argument("--downsample", type=flag(int, 1), help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=int, help="held-out evaluation period M (PSNR, SSIM; default 200)")
+    p.add_argument("--seed", type=flag(int, 0), help="random seed (default 0)")
+    p.add_argument("--checkpoint-every", type=flag(int, 1), help="checkpoint period K (default 500)")
+    p.add_argument("--eval-every", type=flag(int, 0), help="held-out evaluation period M (PSNR, SSIM; default 200)")
     p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
@@ -88,8 +90,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
-    p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
+    p.add_argument("--threads", type=flag(int, 0), help="torch CPU threads (default 1; 0: torch's default)")
+    p.add_argument("--kernel-threads", type=flag(int, 0), dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -105,8 +107,8 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder for the PNGs")
     p.add_argument("--images", help="take each image size from the same-named file here "
                                     "(also reports PSNR against it)")
-    p.add_argument("--width", type=int, help="render every camera at this width (with --height)")
-    p.add_argument("--height", type=int, help="render every camera at this height (with --width)")
+    p.add_argument("--width", type=flag(int, 1, MAX_IMAGE_SIDE), help="render every camera at this width (with --height)")
+    p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE), help="render every camera at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
@@ -130,11 +132,11 @@ def _testpose_parser() -> argparse.ArgumentParser:
                                                     "(the strict protocol's aligned cameras, model frame)")
     p.add_argument("--images", required=True, help="the held-out images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
-    p.add_argument("--patience", type=int, default=DEFAULT_PATIENCE,
+    p.add_argument("--steps", type=flag(int, 0), default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
+    p.add_argument("--patience", type=flag(int, 0), default=DEFAULT_PATIENCE,
                    help=f"stop a view after K steps in a row without a new lowest loss ({DEFAULT_PATIENCE}; 0: "
                         "every step; recorded in testpose.json with each view's steps_run)")
-    p.add_argument("--lr", type=float, default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
+    p.add_argument("--lr", type=flag(float, 0, lo_open=True), default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
                    help="where to render and optimise (auto: CUDA when available, else CPU; default cpu)")
@@ -191,6 +193,10 @@ def _main(argv: list[str] | None = None) -> int:
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")
             return 2
+        if args.width and args.height:
+            from camio.limits import check_image_size
+
+            check_image_size(args.width, args.height, "--width/--height")
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train render", fresh=True):
             return 2
@@ -208,9 +214,6 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "testpose":
         args = _testpose_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        if args.steps < 0 or args.patience < 0 or not args.lr > 0:
-            log.error("--steps and --patience must be >= 0 and --lr > 0")
-            return 2
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train testpose", fresh=True):
             return 2
@@ -229,24 +232,26 @@ def _main(argv: list[str] | None = None) -> int:
 
     args = _train_parser().parse_args(deprecated_flags(argv, "python -m splat_train", _OLD_TRAIN_FLAGS))
     setup_logging(args.verbose, args.quiet)
-    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
-                              "--test-cameras": args.test_cameras, "--test-images": args.test_images,
-                              "--image-list": args.image_list, "--test-image-list": args.test_image_list,
-                              "--resume-dir": args.resume_dir}, "splat_train"):
-        return 2
-    from camio.ply import check_seed_cloud, read_gaussian_ply
     from splat_train.config import load_config
-    from splat_train.trainer import train
 
-    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
-        log.warning("degenerate seed: %s", warning)
-
+    # checked before anything is written: a bad --config is one line naming it, no --out
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
                       num_threads=args.threads, rasterizer=args.rasterizer,
                       kernel_threads=args.kernel_threads, eval_lpips=args.eval_lpips,
                       lpips_weights=args.lpips_weights, recipe=args.recipe)
+    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
+                              "--test-cameras": args.test_cameras, "--test-images": args.test_images,
+                              "--image-list": args.image_list, "--test-image-list": args.test_image_list,
+                              "--resume-dir": args.resume_dir}, "splat_train"):
+        return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
+    from splat_train.trainer import train
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
+        log.warning("degenerate seed: %s", warning)
+
     from camio.images import ImageReadError
 
     try:
