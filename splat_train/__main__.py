@@ -183,13 +183,15 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "render":
         args = _render_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        from splat_train.export import parse_background, render_model
+        from splat_train.export import background_note, model_background, parse_background, render_model
 
-        try:
-            bg = None if args.background is None else parse_background(args.background)
+        try:  # before anything is written: a bad flag or train.json is one line
+            bg, source = ((parse_background(args.background), "--background") if args.background is not None
+                          else model_background(args.model))
         except ValueError as e:
             log.error("%s", e)
             return 2
+        log.info("%s", background_note(bg, source))
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")
             return 2
@@ -214,6 +216,9 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "testpose":
         args = _testpose_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
+        from splat_train.export import model_background
+
+        model_background(args.model)  # a bad train.json beside the model: one line before anything is written
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train testpose", fresh=True):
             return 2
