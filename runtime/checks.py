@@ -20,12 +20,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import numbers
 import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Range", "flag", "check_fields", "field_ranges", "RGB"]
+__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB"]
 
 
 @dataclass(frozen=True)
@@ -62,9 +63,9 @@ class Range:
         return f"{'an integer' if self.integer else 'a finite number'}{' ' + bounds if bounds else ''}"
 
     def _ok(self, x: Any) -> bool:
-        if isinstance(x, bool) or not isinstance(x, (int, float)):
+        if isinstance(x, bool) or not isinstance(x, numbers.Real):  # numpy's numbers too, never a bool
             return False
-        if self.integer and not isinstance(x, int):
+        if self.integer and not isinstance(x, numbers.Integral):
             return False
         if not self.integer and not math.isfinite(x):
             return False
@@ -114,6 +115,16 @@ def flag(kind: type = float, lo: float | None = None, hi: float | None = None, *
     parse.range = rng  # type: ignore[attr-defined]
     parse.__name__ = kind.__name__  # argparse names the type in some messages
     return parse
+
+
+def flag_of(cls: type, name: str) -> Callable[[str], Any]:
+    """The argparse ``type=`` of the flag that sets field ``name`` of the config dataclass
+    ``cls``: :func:`flag` with the field's own :class:`Range`, so that the flag and the config
+    key accept the same values (one range, beside the field)."""
+    allowed, rng = _ranges_cached(cls)[name]
+    if rng is None:
+        rng = Range(integer=float not in allowed)
+    return flag(int if rng.integer else float, rng.lo, rng.hi, lo_open=rng.lo_open, hi_open=rng.hi_open)
 
 
 def field_ranges(cls: type) -> dict[str, tuple[tuple[type, ...], Range | None]]:

@@ -34,7 +34,7 @@ import sys
 
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.limits import MAX_IMAGE_SIDE
-from runtime.checks import flag
+from runtime.checks import flag, flag_of
 from runtime.cliargs import deprecated_flags, is_int
 from runtime.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
@@ -47,6 +47,8 @@ _OLD_TRAIN_FLAGS = {"--seed": ("--seed-ply", lambda v: not is_int(v)), "--seed-r
 
 
 def _train_parser() -> argparse.ArgumentParser:
+    from splat_train.config import TrainConfig  # each numeric flag takes its config field's range
+
     p = argparse.ArgumentParser(prog="python -m splat_train",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
@@ -57,7 +59,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=flag(int, 1), help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
+    p.add_argument("--iterations", type=flag_of(TrainConfig, "iterations"), help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
                    help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
@@ -68,12 +70,12 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
     p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
-    p.add_argument("--downsample", type=flag(int, 1), help="integer image downsampling factor (default 1)")
+    p.add_argument("--downsample", type=flag_of(TrainConfig, "downsample"), help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
-    p.add_argument("--seed", type=flag(int, 0), help="random seed (default 0)")
-    p.add_argument("--checkpoint-every", type=flag(int, 1), help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=flag(int, 0), help="held-out evaluation period M (PSNR, SSIM; default 200)")
+    p.add_argument("--seed", type=flag_of(TrainConfig, "seed"), help="random seed (default 0)")
+    p.add_argument("--checkpoint-every", type=flag_of(TrainConfig, "checkpoint_every"), help="checkpoint period K (default 500)")
+    p.add_argument("--eval-every", type=flag_of(TrainConfig, "eval_every"), help="held-out evaluation period M (PSNR, SSIM; default 200)")
     p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
@@ -90,8 +92,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
-    p.add_argument("--threads", type=flag(int, 0), help="torch CPU threads (default 1; 0: torch's default)")
-    p.add_argument("--kernel-threads", type=flag(int, 0), dest="kernel_threads",
+    p.add_argument("--threads", type=flag_of(TrainConfig, "num_threads"), help="torch CPU threads (default 1; 0: torch's default)")
+    p.add_argument("--kernel-threads", type=flag_of(TrainConfig, "kernel_threads"), dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
