@@ -153,7 +153,8 @@ def test_render_refuses_a_train_json_it_cannot_read(scene, model, tmp_path):
 
 @pytest.mark.parametrize("train_json, colour", [(None, "0,0,0 (black: no train.json"),
                                                 ('{"config": {"background": [1, 1, 1]}}', "1,1,1 ("),
-                                                ('{"config": {}}', "0,0,0 (black")])
+                                                ('{"config": {}}', "0,0,0 (black")],
+                         ids=["no_train_json", "white", "no_colour"])
 def test_render_draws_on_the_train_json_colour_or_black_without_one(scene, model, tmp_path, train_json, colour):
     if train_json is not None:
         (model.parent / "train.json").write_text(train_json)
