@@ -86,7 +86,10 @@ POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", 
 
 @dataclass
 class TrainConfig:
-    """Every hyperparameter of a training run. Field names are the JSON override keys.
+    """Every hyperparameter of a training run. Field names are the JSON override keys; each
+    field's type and range is its annotation (``Annotated[float, RATE]``; the ranges above),
+    checked when the config is made (:func:`runtime.checks.check_fields`) and taken by the
+    flag that sets it.
 
     Attributes (learning rates are Adam step sizes for the stored parameterisation):
         iterations: optimisation steps; None (the default): :func:`default_iterations` of
