@@ -32,9 +32,11 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
     s.add_argument("--views", type=flag(int, 4), default=24, help="number of rendered views")
-    s.add_argument("--width", type=flag(int, 32, MAX_IMAGE_SIDE), default=256, help="image width in pixels (height 3/4 of it)")
+    s.add_argument("--width", type=flag(int, 32, MAX_IMAGE_SIDE), default=256,
+                   help="image width in pixels (height 3/4 of it)")
     s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene")
-    s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=70.0, help="angle the cameras span (degrees)")
+    s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=70.0,
+                   help="angle the cameras span (degrees)")
     s.add_argument("--layout", choices=("arc", "sphere"), default="arc",
                    help="cameras on an arc facing the scene, or spread over a sphere")
     s.add_argument("--supersample", type=flag(int, 1, 16), default=1, help="anti-aliasing rays per pixel side")
@@ -56,7 +58,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="transforms.json: drop frames whose image files are missing (warning) instead of failing")
     c.add_argument("--allow-mixed", action="store_true",
                    help="bare folder: accept images of mixed pixel types or sizes")
-    c.add_argument("--n", type=flag(int, 1), nargs="+", default=[3, 6, 9, 12], help="training-view counts for split.json")
+    c.add_argument("--n", type=flag(int, 1), nargs="+", default=[3, 6, 9, 12],
+                   help="training-view counts for split.json")
     add_log_flags(c, subcommand=True)
 
     t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")

@@ -204,7 +204,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--test-names", help="text file, JSON list or split.json (default: --train-names' test list)")
     p.add_argument("--n", type=flag(int, 1), help="training-view count, to pick from a split.json")
     p.add_argument("--images", help="folder of the test images (their size sets the cameras' size)")
-    p.add_argument("--image-scale", type=flag(float, 0, lo_open=True), help="scale of the test images relative to the reference")
+    p.add_argument("--image-scale", type=flag(float, 0, lo_open=True),
+                   help="scale of the test images relative to the reference")
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
                    help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
     p.add_argument("--collinear-tol", type=flag(float, 0, 1), default=0.1,
@@ -261,7 +262,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=flag(int, 0), nargs="+",
                    help="report only these seeds (default: every seed found); with --cells and --views, "
                         "runs of an earlier grid in the same tree are left out (logged)")
-    p.add_argument("--views", type=flag(int, 1), nargs="+", help="report only these view counts n (default: every n found)")
+    p.add_argument("--views", type=flag(int, 1), nargs="+",
+                   help="report only these view counts n (default: every n found)")
     add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_study)
     return parser

@@ -59,7 +59,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=flag_of(TrainConfig, "iterations"), help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
+    p.add_argument("--iterations", type=flag_of(TrainConfig, "iterations"),
+                   help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
                    help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
@@ -70,12 +71,15 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
     p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
-    p.add_argument("--downsample", type=flag_of(TrainConfig, "downsample"), help="integer image downsampling factor (default 1)")
+    p.add_argument("--downsample", type=flag_of(TrainConfig, "downsample"),
+                   help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
     p.add_argument("--seed", type=flag_of(TrainConfig, "seed"), help="random seed (default 0)")
-    p.add_argument("--checkpoint-every", type=flag_of(TrainConfig, "checkpoint_every"), help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=flag_of(TrainConfig, "eval_every"), help="held-out evaluation period M (PSNR, SSIM; default 200)")
+    p.add_argument("--checkpoint-every", type=flag_of(TrainConfig, "checkpoint_every"),
+                   help="checkpoint period K (default 500)")
+    p.add_argument("--eval-every", type=flag_of(TrainConfig, "eval_every"),
+                   help="held-out evaluation period M (PSNR, SSIM; default 200)")
     p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
@@ -92,7 +96,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
-    p.add_argument("--threads", type=flag_of(TrainConfig, "num_threads"), help="torch CPU threads (default 1; 0: torch's default)")
+    p.add_argument("--threads", type=flag_of(TrainConfig, "num_threads"),
+                   help="torch CPU threads (default 1; 0: torch's default)")
     p.add_argument("--kernel-threads", type=flag_of(TrainConfig, "kernel_threads"), dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
@@ -109,8 +114,10 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder for the PNGs")
     p.add_argument("--images", help="take each image size from the same-named file here "
                                     "(also reports PSNR against it)")
-    p.add_argument("--width", type=flag(int, 1, MAX_IMAGE_SIDE), help="render every camera at this width (with --height)")
-    p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE), help="render every camera at this height (with --width)")
+    p.add_argument("--width", type=flag(int, 1, MAX_IMAGE_SIDE),
+                   help="render every camera at this width (with --height)")
+    p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE),
+                   help="render every camera at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "

@@ -43,7 +43,8 @@ def _numeric(action) -> bool:
 
 
 def test_every_numeric_flag_of_a_stage_command_has_a_range(monkeypatch):
-    parsers = {k: p for k, p in _parsers(monkeypatch).items() if k.startswith(_STAGE_ROOTS) and not k.startswith(_NOT_STAGES)}
+    parsers = {k: p for k, p in _parsers(monkeypatch).items()
+               if k.startswith(_STAGE_ROOTS) and not k.startswith(_NOT_STAGES)}
     assert len(parsers) >= 12, sorted(parsers)
     bare = [f"{cmd} {a.option_strings[0]}" for cmd, p in parsers.items() for a in _actions(p)
             if _numeric(a) and not hasattr(a.type, "range")]
@@ -83,7 +84,8 @@ _FEEDS = {
     "colmap.max_num_features": ("evaluation/initialisers/colmap_baseline.py", "--max-num-features"),
     "colmap.threads": ("evaluation/initialisers/colmap_baseline.py", "--threads"),
     **{f"oracle.{k}": ("evaluation/initialisers/oracle.py", "--" + k.replace("_", "-"))
-       for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac", "conf_scale", "conf_noise", "downsample")},
+       for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac", "conf_scale", "conf_noise",
+                 "downsample")},
     **{f"posed.{k}": ("evaluation/initialisers/posed.py", "--" + k.replace("_", "-"))
        for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")},
     "study.seeds.items": ("evaluation/initialisers/oracle.py", "--seed"),
@@ -124,8 +126,10 @@ def _schema_node(schema: dict, path: str) -> dict:
 
 def _schema_bounds(node: dict) -> tuple[float, bool, float, bool]:
     """(lo, lo_open, hi, hi_open) of a schema number (-inf / inf when unbounded)."""
-    lo, lo_open = (node["exclusiveMinimum"], True) if "exclusiveMinimum" in node else (node.get("minimum", -math.inf), False)
-    hi, hi_open = (node["exclusiveMaximum"], True) if "exclusiveMaximum" in node else (node.get("maximum", math.inf), False)
+    lo, lo_open = ((node["exclusiveMinimum"], True) if "exclusiveMinimum" in node
+                   else (node.get("minimum", -math.inf), False))
+    hi, hi_open = ((node["exclusiveMaximum"], True) if "exclusiveMaximum" in node
+                   else (node.get("maximum", math.inf), False))
     return lo, lo_open, hi, hi_open
 
 

@@ -39,7 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="network width/longer side (multiple of 14)")
     p.add_argument("--frames-chunk", type=flag(int, 1), default=defaults.FRAMES_CHUNK,
                    help="frames per DPT-head chunk (memory vs speed)")
-    p.add_argument("--max-memory-gb", type=flag(float, 0, lo_open=True), help="memory budget (default: what the OS reports free)")
+    p.add_argument("--max-memory-gb", type=flag(float, 0, lo_open=True),
+                   help="memory budget (default: what the OS reports free)")
     p.add_argument("--threads", type=flag(int, 0), help="torch CPU threads")
     p.add_argument("--no-retain-memory", action="store_true",
                    help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "

@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
                    "(ATE, rotation error, both success criteria) and report their spread; "
                    "written as a repeats summary, also for a single run")
     add_gate_args(p, "accuracy gate for --ref")
-    p.add_argument("--max-image-size", type=flag(int, 16), default=3200, help="SIFT extraction: longest image side in pixels")
+    p.add_argument("--max-image-size", type=flag(int, 16), default=3200,
+                   help="SIFT extraction: longest image side in pixels")
     p.add_argument("--max-num-features", type=flag(int, 16), default=16384, help="SIFT features per image at most")
     p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
     p.add_argument("--threads", type=flag(int, 0), default=0,

@@ -325,7 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="confidence informativeness: ranked (ranks the depth error), noise "
                    "(random order), anti (reversed ranks); see the module docstring")
     p.add_argument("--downsample", type=flag(int, 1), default=1, help="prediction grid stride")
-    p.add_argument("--max-points", type=flag(int, 1), default=MAX_POINTS, help="points kept in sparse/0 at most (default %(default)s)")
+    p.add_argument("--max-points", type=flag(int, 1), default=MAX_POINTS,
+                   help="points kept in sparse/0 at most (default %(default)s)")
     p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the noise")
     add_log_flags(p)
     args, names = parse_training_args(p, argv)

@@ -347,8 +347,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--points", type=flag(int, 1), default=None,
                    help=f"points to place (default: {N_POINTS}, at most {POINTS_PER_PIXEL} per training pixel)")
     p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the points")
-    p.add_argument("--near", type=flag(float, 0, lo_open=True), help="near camera depth, scene units (default: from the cameras)")
-    p.add_argument("--far", type=flag(float, 0, lo_open=True), help="far camera depth, scene units (default: from the cameras)")
+    p.add_argument("--near", type=flag(float, 0, lo_open=True),
+                   help="near camera depth, scene units (default: from the cameras)")
+    p.add_argument("--far", type=flag(float, 0, lo_open=True),
+                   help="far camera depth, scene units (default: from the cameras)")
     add_log_flags(p)
     args = p.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
