@@ -16,6 +16,7 @@ import logging
 import sys
 
 from bridge.core import DEFAULT_PERCENTILE, MODES, BridgeConfig, run_bridge
+from runtime.checks import flag_of
 from runtime.logs import setup_logging, timed
 
 log = logging.getLogger("bridge")
@@ -39,30 +40,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=MODES, default=DEFAULTS.mode,
                    help="opacity: gated (Eq. 2), uniform (constant), filtered (percentile, then Eq. 2); "
                         "default %(default)s")
-    p.add_argument("--alpha-min", type=float, default=DEFAULTS.alpha_min, help="Eq. 2 a_min (default %(default)s)")
-    p.add_argument("--alpha-max", type=float, default=DEFAULTS.alpha_max, help="Eq. 2 a_max (default %(default)s)")
-    p.add_argument("--uniform-alpha", type=float, default=DEFAULTS.uniform_alpha,
+    p.add_argument("--alpha-min", type=flag_of(BridgeConfig, "alpha_min"), default=DEFAULTS.alpha_min,
+                   help="Eq. 2 a_min (default %(default)s)")
+    p.add_argument("--alpha-max", type=flag_of(BridgeConfig, "alpha_max"), default=DEFAULTS.alpha_max,
+                   help="Eq. 2 a_max (default %(default)s)")
+    p.add_argument("--uniform-alpha", type=flag_of(BridgeConfig, "uniform_alpha"), default=DEFAULTS.uniform_alpha,
                    help="opacity of uniform mode (default %(default)s)")
-    p.add_argument("--stride", type=int, default=None,
+    p.add_argument("--stride", type=flag_of(BridgeConfig, "stride"), default=None,
                    help=f"keep every stride-th flattened pixel (default {DEFAULTS.stride} for --pred as the paper, "
                         f"{COLMAP_STRIDE} for --colmap)")
-    p.add_argument("--max-points", type=int, default=None, help="keep at most this many (most confident)")
-    p.add_argument("--percentile", type=float, default=None,
+    p.add_argument("--max-points", type=flag_of(BridgeConfig, "max_points"), default=None,
+                   help="keep at most this many (most confident)")
+    p.add_argument("--percentile", type=flag_of(BridgeConfig, "percentile"), default=None,
                    help=f"drop the lowest P %% by confidence (default: off; {DEFAULT_PERCENTILE:g} in filtered mode)")
-    p.add_argument("--voxel-size", type=float, default=None, help="voxel downsampling, normalised units")
+    p.add_argument("--voxel-size", type=flag_of(BridgeConfig, "voxel_size"), default=None,
+                   help="voxel downsampling, normalised units")
     p.add_argument("--outlier-removal", action="store_true", help="open3d statistical outlier removal")
-    p.add_argument("--outlier-neighbors", type=int, default=DEFAULTS.outlier_neighbors,
+    p.add_argument("--outlier-neighbors", type=flag_of(BridgeConfig, "outlier_neighbors"),
+                   default=DEFAULTS.outlier_neighbors,
                    help="outlier removal: neighbours per point (default %(default)s)")
-    p.add_argument("--outlier-std", type=float, default=DEFAULTS.outlier_std_ratio,
+    p.add_argument("--outlier-std", type=flag_of(BridgeConfig, "outlier_std_ratio"), default=DEFAULTS.outlier_std_ratio,
                    help="outlier removal: standard deviations of the mean neighbour distance kept "
                         "(default %(default)s)")
     p.add_argument("--points3d", action="store_true",
                    help="also write the seed points into sparse/0/points3D.txt (for the original 3DGS loader)")
     p.add_argument("--no-depth-prior", dest="depth_prior", action="store_false",
                    help="do not write depth_prior.npz (the initialiser's per-camera depth for training's depth term)")
-    p.add_argument("--depth-prior-samples", type=int, default=DEFAULTS.depth_prior_samples,
+    p.add_argument("--depth-prior-samples", type=flag_of(BridgeConfig, "depth_prior_samples"),
+                   default=DEFAULTS.depth_prior_samples,
                    help="at most this many depth-prior samples per camera (default %(default)s)")
-    p.add_argument("--seed", type=int, default=DEFAULTS.seed,
+    p.add_argument("--seed", type=flag_of(BridgeConfig, "seed"), default=DEFAULTS.seed,
                    help="random seed (capping a cloud, the depth prior's subset; default %(default)s)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")

@@ -19,6 +19,7 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
@@ -31,12 +32,15 @@ from camio.cameras import Camera
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
 from camio.modes import BRIDGE_MODES
 from camio.ply import SH_DEGREE, GaussianCloud
+from runtime.checks import Range, check_fields
 from runtime.logs import timed
 
 __all__ = ["MODES", "BridgeConfig", "SeedResult", "build_seed", "write_outputs", "run_bridge"]
 
 log = logging.getLogger(__name__)
 
+# An opacity the Bridge gives a seed point: in (0, 1) (0 would be no point, 1 a logit of inf).
+OPACITY = Range(0.0, 1.0, lo_open=True, hi_open=True)
 MODES = BRIDGE_MODES  # camio.modes, the one list (evaluation and the workflow read it too)
 DEFAULT_PERCENTILE = 40.0
 UNIFORM_ALPHA = 0.1
@@ -72,41 +76,29 @@ class BridgeConfig:
     """
 
     mode: str = "gated"
-    alpha_min: float = ALPHA_MIN
-    alpha_max: float = ALPHA_MAX
-    uniform_alpha: float = UNIFORM_ALPHA
-    stride: int = 20
-    percentile: float | None = None
-    voxel_size: float | None = None
+    alpha_min: Annotated[float, OPACITY] = ALPHA_MIN
+    alpha_max: Annotated[float, OPACITY] = ALPHA_MAX
+    uniform_alpha: Annotated[float, OPACITY] = UNIFORM_ALPHA
+    stride: Annotated[int, Range(1, integer=True)] = 20
+    percentile: Annotated[float | None, Range(0.0, 100.0, hi_open=True)] = None
+    voxel_size: Annotated[float | None, Range(0.0, lo_open=True)] = None
     outlier_removal: bool = False
-    outlier_neighbors: int = 20
-    outlier_std_ratio: float = 2.0
-    max_points: int | None = None
-    seed: int = 0
-    sh_degree: int = SH_DEGREE
+    outlier_neighbors: Annotated[int, Range(1, integer=True)] = 20
+    outlier_std_ratio: Annotated[float, Range(0.0, lo_open=True)] = 2.0
+    max_points: Annotated[int | None, Range(1, integer=True)] = None
+    # numpy's default_rng takes any integer >= 0
+    seed: Annotated[int, Range(0, integer=True)] = 0
+    sh_degree: Annotated[int, Range(0, SH_DEGREE, integer=True)] = SH_DEGREE
     write_points3d: bool = False
     depth_prior: bool = True
-    depth_prior_samples: int = 50000
+    depth_prior_samples: Annotated[int, Range(1, integer=True)] = 50000
 
     def __post_init__(self) -> None:
+        check_fields(self)  # each field's type and range, as annotated above
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if not (0.0 < self.alpha_min <= self.alpha_max < 1.0):
-            raise ValueError(f"need 0 < alpha_min <= alpha_max < 1, got {self.alpha_min}, {self.alpha_max}")
-        if not 0.0 < self.uniform_alpha < 1.0:
-            raise ValueError(f"uniform_alpha must be in (0, 1), got {self.uniform_alpha}")
-        if self.stride < 1:
-            raise ValueError(f"stride must be >= 1, got {self.stride}")
-        if self.percentile is not None and not 0.0 <= self.percentile < 100.0:
-            raise ValueError(f"percentile must be in [0, 100), got {self.percentile}")
-        if self.voxel_size is not None and not self.voxel_size > 0:
-            raise ValueError(f"voxel_size must be > 0, got {self.voxel_size}")
-        if self.depth_prior_samples < 1:
-            raise ValueError(f"depth_prior_samples must be >= 1, got {self.depth_prior_samples}")
-        if self.max_points is not None and self.max_points < 1:
-            raise ValueError(f"max_points must be >= 1, got {self.max_points}")
-        if self.outlier_neighbors < 1 or not self.outlier_std_ratio > 0:
-            raise ValueError("outlier_neighbors must be >= 1 and outlier_std_ratio > 0")
+        if not self.alpha_min <= self.alpha_max:
+            raise ValueError(f"need alpha_min <= alpha_max, got {self.alpha_min}, {self.alpha_max}")
 
     @property
     def effective_percentile(self) -> float | None:

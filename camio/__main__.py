@@ -13,6 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
+from camio.limits import MAX_IMAGE_SIDE
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
 from runtime.logs import setup_logging, timed
 
@@ -29,13 +31,15 @@ def _parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
-    s.add_argument("--views", type=int, default=24, help="number of rendered views")
-    s.add_argument("--width", type=int, default=256, help="image width in pixels (height 3/4 of it)")
-    s.add_argument("--seed", type=int, default=0, help="random seed of the scene")
-    s.add_argument("--arc-deg", type=float, default=70.0, help="angle the cameras span (degrees)")
+    s.add_argument("--views", type=flag(int, 4), default=24, help="number of rendered views")
+    s.add_argument("--width", type=flag(int, 32, MAX_IMAGE_SIDE), default=256,
+                   help="image width in pixels (height 3/4 of it)")
+    s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene")
+    s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=70.0,
+                   help="angle the cameras span (degrees)")
     s.add_argument("--layout", choices=("arc", "sphere"), default="arc",
                    help="cameras on an arc facing the scene, or spread over a sphere")
-    s.add_argument("--supersample", type=int, default=1, help="anti-aliasing rays per pixel side")
+    s.add_argument("--supersample", type=flag(int, 1, 16), default=1, help="anti-aliasing rays per pixel side")
     add_log_flags(s, subcommand=True)
 
     c = sub.add_parser("convert", help="any supported dataset format -> prepared scene")
@@ -44,8 +48,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--format", default="auto", choices=FORMATS,
                    help="input layout (auto: detected from its camera files)")
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
-    c.add_argument("--downsample", type=int, default=1, help="integer area-downsampling factor")
-    c.add_argument("--max-size", dest="max_size", type=int, default=None, metavar="PX",
+    c.add_argument("--downsample", type=flag(int, 1), default=1, help="integer area-downsampling factor")
+    c.add_argument("--max-size", dest="max_size", type=flag(int, 0, MAX_IMAGE_SIDE), default=None, metavar="PX",
                    help=f"a photo folder (no cameras): the long side of the working images at most PX "
                         f"(area-downsampled; default {PHOTO_MAX_SIZE}; 0 = full resolution)")
     c.add_argument("--undistort", action="store_true",
@@ -54,12 +58,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="transforms.json: drop frames whose image files are missing (warning) instead of failing")
     c.add_argument("--allow-mixed", action="store_true",
                    help="bare folder: accept images of mixed pixel types or sizes")
-    c.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts for split.json")
+    c.add_argument("--n", type=flag(int, 1), nargs="+", default=[3, 6, 9, 12],
+                   help="training-view counts for split.json")
     add_log_flags(c, subcommand=True)
 
     t = sub.add_parser("split", help="write split.json for a scene (PROTOCOL section 4)")
     t.add_argument("--scene", required=True, type=Path, help="scene folder (its images/) or an image folder")
-    t.add_argument("--n", type=int, nargs="+", default=[3, 6, 9, 12], help="training-view counts")
+    t.add_argument("--n", type=flag(int, 1), nargs="+", default=[3, 6, 9, 12], help="training-view counts")
     t.add_argument("--manifest", type=Path, default=None, help="JSON split manifest overriding the rule")
     t.add_argument("--out", required=True, type=Path, help="split.json to write")
     add_log_flags(t, subcommand=True)

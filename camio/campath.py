@@ -17,12 +17,14 @@ import numpy as np
 
 from camio.cameras import Camera, look_at, to_homogeneous, qvec_to_rotmat, rotmat_to_qvec
 
-__all__ = ["PATHS", "DEFAULT_FRAMES", "slerp", "interpolate_path", "look_centre", "orbit_path"]
+__all__ = ["PATHS", "DEFAULT_FRAMES", "MAX_PATH_FRAMES", "slerp", "interpolate_path", "look_centre", "orbit_path"]
 
 #: the path names ``python -m splat_train render --path`` takes
 PATHS = ("interpolate", "orbit")
 #: frames of each path unless told otherwise: per pair of cameras (interpolate), per circle (orbit)
 DEFAULT_FRAMES = {"interpolate": 30, "orbit": 120}
+#: the most frames a path may ask for per camera pair or per circle (a bound on the video's size)
+MAX_PATH_FRAMES = 10_000
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir
 from camio.cameras import Camera, qvec_to_rotmat, rotmat_to_qvec
+from camio.limits import check_image_size
 from camio.names import check_name
 
 __all__ = [
@@ -329,6 +330,7 @@ def _check_text_model(model_dir: Path) -> int:
             params = _numbers(cams_f, n, t[4:], f"camera {cid}'s parameters")
             if w <= 0 or h <= 0:
                 raise ValueError(f"{cams_f}:{n}: camera {cid} has the image size {w}x{h}; sizes must be positive")
+            check_image_size(w, h, f"{cams_f}:{n}: camera {cid}")
             k = _FOCALS.get(t[1], 0)
             bad = [v for v in params[:k] if v <= 0]
             if bad:
@@ -410,6 +412,7 @@ def _check_read(model_dir: Path, rec) -> None:
         if not np.all(np.isfinite(params)) or np.any(params[:k] <= 0) or cam.width <= 0 or cam.height <= 0:
             raise ValueError(f"{model_dir}: camera {cid} ({cam.model.name} {cam.width}x{cam.height} "
                              f"{params.tolist()}) is not finite or has a non-positive size or focal length")
+        check_image_size(cam.width, cam.height, f"{model_dir}: camera {cid}")
         if binary:  # a text model had these checks line by line
             refusal, warning = camera_problem(cam.model.name, cam.width, cam.height, params)
             if refusal:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+from camio.limits import check_image_size
 from camio.names import check_name
 
 __all__ = ["MODEL_PARAMS", "check_binary_model", "BinaryModelError"]
@@ -97,6 +98,7 @@ def _cameras(path: Path) -> dict[int, tuple[str, int, int, tuple[float, ...]]]:
         if model_id not in MODEL_PARAMS:
             raise BinaryModelError(f"{path}: camera {cid} has the unknown camera model id {model_id} (record "
                                    f"{i + 1}): the file is damaged or from another program")
+        check_image_size(w, h, f"{path}: camera {cid}")
         name, k = MODEL_PARAMS[model_id]
         params = r.take(f"<{k}d", f"camera {cid}'s {k} {name} parameters")
         if cid in out:

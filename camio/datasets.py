@@ -53,6 +53,7 @@ import numpy as np
 from camio.cameras import Camera
 from camio.colmap import SparseModel, find_model_dir
 from camio.images import image_size, list_images
+from camio.limits import check_image_size
 
 __all__ = ["detect_layout", "camera_like_files", "split_photos", "decompose_projection",
            "read_dtu", "read_mvsnet", "read_strecha", "read_middlebury", "DTU_FRAME", "source_camera_models"]
@@ -416,6 +417,9 @@ def read_strecha_camera(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     w, h = int(round(v[24])), int(round(v[25]))
     if not np.all(np.isfinite(v)) or abs(np.linalg.det(R) - 1) > 1e-3:
         raise _scene_error(f"{path}: R is not a rotation (det {np.linalg.det(R):.4f}) or values are not finite")
+    if w <= 0 or h <= 0:
+        raise _scene_error(f"{path}: the image size {w}x{h} is not positive")
+    check_image_size(w, h, str(path))
     return K, dist, R, C, w, h
 
 

@@ -106,6 +106,17 @@ def list_images(folder: str | Path) -> list[str]:
     )
 
 
+def _check_size(spec, path: Path) -> tuple[int, int]:
+    """(width, height) of an image's header, within camio.limits' bounds (checked before any
+    pixel is read); ImageReadError naming the file, the size and the limit otherwise."""
+    from camio.limits import ImageSizeError, check_image_size
+
+    try:
+        return check_image_size(int(spec.width), int(spec.height), f"image {path}")
+    except ImageSizeError as exc:
+        raise ImageReadError(str(exc)) from None
+
+
 def _open(path: Path):
     import OpenImageIO as oiio
 
@@ -139,6 +150,7 @@ def read_pixels(path: str | Path, fmt: str = "float"):
     inp = _open(path)
     try:
         spec = inp.spec()
+        _check_size(spec, path)
         data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         err = inp.geterror() if inp.has_error else ""
     finally:
@@ -167,7 +179,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
     inp = _open(Path(path))
     try:
         spec = inp.spec()
-        w, h = int(spec.width), int(spec.height)
+        w, h = _check_size(spec, path)
         o = int(spec.get_int_attribute("Orientation", 1))
     finally:
         inp.close()

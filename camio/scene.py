@@ -39,6 +39,7 @@ from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelErro
 from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_middlebury, read_mvsnet, read_strecha, \
     split_photos
 from camio.images import image_size, list_images, read_image
+from camio.limits import check_image_size
 
 __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_size", "read_llff_poses",
            "llff_to_cam_from_world", "FORMATS", "REFERENCE_FORMATS", "UNDISTORTABLE_MODELS"]
@@ -370,6 +371,10 @@ def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = 
     else:
         poses = arr[:, :15].reshape(-1, 3, 5)
         intrinsics = [(h, w, np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])) for h, w, f in poses[:, :, 4]]
+    for h, w, _ in intrinsics:
+        if not (np.isfinite(h) and np.isfinite(w) and h >= 1 and w >= 1):
+            raise SceneError(f"{npy}: the image size {w}x{h} (H, W of the poses) is not a positive number")
+        check_image_size(int(round(w)), int(round(h)), str(npy))
     cfw = llff_to_cam_from_world(poses)
     return SparseModel([Camera(name, int(round(w)), int(round(h)), K, m)
                         for name, (h, w, K), m in zip(sorted(names), intrinsics, cfw)])
@@ -417,6 +422,10 @@ def _intrinsics(d: dict, fallback: dict, size: tuple[int, int], where: str
     get = lambda k: d.get(k, fallback.get(k))  # noqa: E731
     w = get("w") or size[0]
     h = get("h") or size[1]
+    if isinstance(w, bool) or isinstance(h, bool) or not isinstance(w, (int, float)) or not isinstance(h, (int, float)) \
+            or not (np.isfinite(w) and np.isfinite(h) and w >= 1 and h >= 1 and int(w) == w and int(h) == h):
+        raise SceneError(f"{where}: w and h must be positive whole numbers of pixels, got {w!r} x {h!r}")
+    check_image_size(int(w), int(h), where)
     for k in ("k3", "k4"):
         if abs(float(get(k) or 0.0)) > 0:
             raise UnsupportedCameraModelError(

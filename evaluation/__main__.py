@@ -18,6 +18,7 @@ import argparse
 import logging
 import sys
 
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
 from runtime.logs import setup_logging
 
@@ -186,7 +187,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--ref", required=True, help="the reference COLMAP model folder")
     p.add_argument("--out", required=True, help="pose.json to write")
     p.add_argument("--names", help="restrict to these names (text file, JSON list or split.json)")
-    p.add_argument("--n", type=int, help="training-view count, to pick from a split.json")
+    p.add_argument("--n", type=flag(int, 1), help="training-view count, to pick from a split.json")
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
                    help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
     _add_gate_args(p)
@@ -201,12 +202,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--ref", required=True, help="the reference COLMAP model")
     p.add_argument("--train-names", required=True, help="text file, JSON list or split.json")
     p.add_argument("--test-names", help="text file, JSON list or split.json (default: --train-names' test list)")
-    p.add_argument("--n", type=int, help="training-view count, to pick from a split.json")
+    p.add_argument("--n", type=flag(int, 1), help="training-view count, to pick from a split.json")
     p.add_argument("--images", help="folder of the test images (their size sets the cameras' size)")
-    p.add_argument("--image-scale", type=float, help="scale of the test images relative to the reference")
+    p.add_argument("--image-scale", type=flag(float, 0, lo_open=True),
+                   help="scale of the test images relative to the reference")
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
                    help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
-    p.add_argument("--collinear-tol", type=float, default=0.1,
+    p.add_argument("--collinear-tol", type=flag(float, 0, 1), default=0.1,
                    help="sigma2/sigma1 of the centres below which they count as collinear")
     p.add_argument("--train-cameras", choices=["initialiser", "refined"], default="initialiser",
                    help="what --pred holds (recorded in align.json): the initialiser's cameras, or the "
@@ -233,7 +235,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder to write (index.html and its images)")
     p.add_argument("--scenes", help="prepared scenes root, for ground-truth images "
                    "({scenes}/{dataset}/{scene}/images or {scenes}/{scene}/images)")
-    p.add_argument("--max-views", type=int, default=4, help="test views per render grid")
+    p.add_argument("--max-views", type=flag(int, 1), default=4, help="test views per render grid")
     _add_gate_args(p)
     add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_report)
@@ -242,7 +244,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--model", nargs="+", required=True, help="NAME=PLY (e.g. seed=... final=...)")
     p.add_argument("--align", required=True, help="align.json of the run (model frame -> reference)")
     p.add_argument("--scene", required=True, help="prepared synthetic scene (synthetic.json, sparse/0)")
-    p.add_argument("--tau-rel", type=float, default=None,
+    p.add_argument("--tau-rel", type=flag(float, 0, lo_open=True), default=None,
                    help="threshold as a fraction of the reference trajectory radius "
                    "(default: evaluation.metrics.floaters.TAU_REL)")
     p.add_argument("--out", required=True, help="floaters.json to write")
@@ -257,10 +259,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="a regular run folder R/{dataset}/{scene}/n{n}/{init} (e.g. COLMAP) to report as a "
                         "reference row beside the cells (repeatable; a failed run is a reported row)")
     p.add_argument("--write-cells", help="also write the grid to this JSON file")
-    p.add_argument("--seeds", type=int, nargs="+",
+    p.add_argument("--seeds", type=flag(int, 0), nargs="+",
                    help="report only these seeds (default: every seed found); with --cells and --views, "
                         "runs of an earlier grid in the same tree are left out (logged)")
-    p.add_argument("--views", type=int, nargs="+", help="report only these view counts n (default: every n found)")
+    p.add_argument("--views", type=flag(int, 1), nargs="+",
+                   help="report only these view counts n (default: every n found)")
     add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_study)
     return parser

@@ -40,6 +40,8 @@ import sys
 from pathlib import Path
 
 from camio.depth_prior import DEPTH_PRIOR_FILE
+from camio.limits import MAX_IMAGE_SIDE
+from runtime.checks import flag, flag_of
 from runtime.cliargs import deprecated_flags, is_int
 from runtime.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
@@ -52,6 +54,8 @@ _OLD_TRAIN_FLAGS = {"--seed": ("--seed-ply", lambda v: not is_int(v)), "--seed-r
 
 
 def _train_parser() -> argparse.ArgumentParser:
+    from splat_train.config import TrainConfig  # each numeric flag takes its config field's range
+
     p = argparse.ArgumentParser(prog="python -m splat_train",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
@@ -63,7 +67,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
+    p.add_argument("--iterations", type=flag_of(TrainConfig, "iterations"),
+                   help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
                    "see splat_train.config)")
     p.add_argument("--recipe", choices=list(RECIPE_NAMES),
                    help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
@@ -74,12 +79,15 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
     p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
-    p.add_argument("--downsample", type=int, help="integer image downsampling factor (default 1)")
+    p.add_argument("--downsample", type=flag_of(TrainConfig, "downsample"),
+                   help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
                                      "(keys of splat_train.config.TrainConfig)")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--checkpoint-every", type=int, help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=int, help="held-out evaluation period M (PSNR, SSIM; default 200)")
+    p.add_argument("--seed", type=flag_of(TrainConfig, "seed"), help="random seed (default 0)")
+    p.add_argument("--checkpoint-every", type=flag_of(TrainConfig, "checkpoint_every"),
+                   help="checkpoint period K (default 500)")
+    p.add_argument("--eval-every", type=flag_of(TrainConfig, "eval_every"),
+                   help="held-out evaluation period M (PSNR, SSIM; default 200)")
     p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
                    help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
     p.add_argument("--lpips-weights", dest="lpips_weights",
@@ -96,12 +104,13 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
-    p.add_argument("--snapshot-every", type=int, dest="snapshot_every", metavar="N",
+    p.add_argument("--snapshot-every", type=flag(int, 1), dest="snapshot_every", metavar="N",
                    help="write OUT/snapshot.ply every N iterations and at the last, replaced atomically, its "
                         "iteration in its header (default: none); `python -m splat_train view --model OUT` "
                         "follows it live")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default 1; 0: torch's default)")
-    p.add_argument("--kernel-threads", type=int, dest="kernel_threads",
+    p.add_argument("--threads", type=flag_of(TrainConfig, "num_threads"),
+                   help="torch CPU threads (default 1; 0: torch's default)")
+    p.add_argument("--kernel-threads", type=flag_of(TrainConfig, "kernel_threads"), dest="kernel_threads",
                    help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -109,7 +118,7 @@ def _train_parser() -> argparse.ArgumentParser:
 
 
 def _render_parser() -> argparse.ArgumentParser:
-    from camio.campath import DEFAULT_FRAMES, PATHS
+    from camio.campath import DEFAULT_FRAMES, MAX_PATH_FRAMES, PATHS
     from camio.video import DEFAULT_FPS
 
     p = argparse.ArgumentParser(prog="python -m splat_train render",
@@ -126,14 +135,16 @@ def _render_parser() -> argparse.ArgumentParser:
                         "meet at their mean distance and height, looking at it")
     p.add_argument("--video", help="the mp4 file a --path writes (H.264; one intrinsic matrix, the first "
                                    "camera's, scaled to the video size)")
-    p.add_argument("--frames", type=int, help="frames per camera pair (interpolate, default "
+    p.add_argument("--frames", type=flag(int, 1, MAX_PATH_FRAMES), help="frames per camera pair (interpolate, default "
                    f"{DEFAULT_FRAMES['interpolate']}) or per circle (orbit, default {DEFAULT_FRAMES['orbit']})")
-    p.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frames per second ({DEFAULT_FPS})")
+    p.add_argument("--fps", type=flag(float, 0, 240, lo_open=True), default=DEFAULT_FPS, help=f"video frames per second ({DEFAULT_FPS})")
     p.add_argument("--images", help="take each image size from the same-named file here "
                                     "(also reports PSNR against it)")
-    p.add_argument("--width", type=int, help="render every camera (or the video) at this width (with --height; a "
-                                             "video's size is rounded down to even numbers)")
-    p.add_argument("--height", type=int, help="render every camera (or the video) at this height (with --width)")
+    p.add_argument("--width", type=flag(int, 1, MAX_IMAGE_SIDE),
+                   help="render every camera (or the video) at this width (with --height; a video's size is "
+                        "rounded down to even numbers)")
+    p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE),
+                   help="render every camera (or the video) at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
@@ -174,11 +185,11 @@ def _testpose_parser() -> argparse.ArgumentParser:
                                                     "(the strict protocol's aligned cameras, model frame)")
     p.add_argument("--images", required=True, help="the held-out images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
-    p.add_argument("--patience", type=int, default=DEFAULT_PATIENCE,
+    p.add_argument("--steps", type=flag(int, 0), default=DEFAULT_STEPS, help=f"Adam steps per view ({DEFAULT_STEPS})")
+    p.add_argument("--patience", type=flag(int, 0), default=DEFAULT_PATIENCE,
                    help=f"stop a view after K steps in a row without a new lowest loss ({DEFAULT_PATIENCE}; 0: "
                         "every step; recorded in testpose.json with each view's steps_run)")
-    p.add_argument("--lr", type=float, default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
+    p.add_argument("--lr", type=flag(float, 0, lo_open=True), default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
                    help="where to render and optimise (auto: CUDA when available, else CPU; default cpu)")
@@ -283,16 +294,22 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "render":
         args = _render_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        from splat_train.export import parse_background, render_model
+        from splat_train.export import background_note, model_background, parse_background, render_model
 
-        try:
-            bg = None if args.background is None else parse_background(args.background)
+        try:  # before anything is written: a bad flag or train.json is one line
+            bg, source = ((parse_background(args.background), "--background") if args.background is not None
+                          else model_background(args.model))
         except ValueError as e:
             log.error("%s", e)
             return 2
+        log.info("%s", background_note(bg, source))
         if args.images and args.width:
             log.error("give --images or --width/--height, not both")
             return 2
+        if args.width and args.height:
+            from camio.limits import check_image_size
+
+            check_image_size(args.width, args.height, "--width/--height")
         if args.path or args.video:
             return _render_video(args, bg)
         if not args.out:
@@ -315,9 +332,9 @@ def _main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "testpose":
         args = _testpose_parser().parse_args(argv[1:])
         setup_logging(args.verbose, args.quiet)
-        if args.steps < 0 or args.patience < 0 or not args.lr > 0:
-            log.error("--steps and --patience must be >= 0 and --lr > 0")
-            return 2
+        from splat_train.export import model_background
+
+        model_background(args.model)  # a bad train.json beside the model: one line before anything is written
         if not _out_ok(args.out, {"--model": args.model, "--cameras": args.cameras, "--images": args.images,
                                   "--image-list": args.image_list}, "splat_train testpose", fresh=True):
             return 2
@@ -343,24 +360,26 @@ def _main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         log.error("%s", e)
         return 2
-    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
-                              "--test-cameras": args.test_cameras, "--test-images": args.test_images,
-                              "--image-list": args.image_list, "--test-image-list": args.test_image_list,
-                              "--resume-dir": args.resume_dir}, "splat_train"):
-        return 2
-    from camio.ply import check_seed_cloud, read_gaussian_ply
     from splat_train.config import load_config
-    from splat_train.trainer import train
 
-    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
-        log.warning("degenerate seed: %s", warning)
-
+    # checked before anything is written: a bad --config is one line naming it, no --out
     cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed,
                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                       pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
                       num_threads=args.threads, rasterizer=args.rasterizer,
                       kernel_threads=args.kernel_threads, eval_lpips=args.eval_lpips,
                       lpips_weights=args.lpips_weights, recipe=args.recipe)
+    if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
+                              "--test-cameras": args.test_cameras, "--test-images": args.test_images,
+                              "--image-list": args.image_list, "--test-image-list": args.test_image_list,
+                              "--resume-dir": args.resume_dir}, "splat_train"):
+        return 2
+    from camio.ply import check_seed_cloud, read_gaussian_ply
+    from splat_train.trainer import train
+
+    for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
+        log.warning("degenerate seed: %s", warning)
+
     from camio.images import ImageReadError
 
     try:

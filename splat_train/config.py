@@ -23,12 +23,13 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
            "RESUME_FREE_KEYS", "POSE_KEYS", "BACKGROUND_MEAN", "load_config"]
 
 from camio.ply import SH_DEGREE
+from runtime.checks import RGB, Range, check_fields
 from splat_train.recipes import (BACKGROUND_MEAN, DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  STRATEGIES, SEED_OVER_CAP, MCMC_GROWTH, VALUE_KEYS,
                                  recipe_defaults)
@@ -56,6 +57,22 @@ def default_iterations(device: str) -> int:
     on a CPU."""
     return PAPER_ITERATIONS if resolve_device(device) == "cuda" else DEFAULT_ITERATIONS
 
+
+# The ranges of the fields (each field names its own beside its default; runtime.checks.Range).
+# Iteration counts and periods: a count >= 1, a start or a period where 0 means never >= 0.
+COUNT = Range(1, integer=True)
+ITERATION = Range(0, integer=True)
+# Adam step sizes (a rate of 0 freezes the parameter) and loss weights / thresholds (0 = off).
+RATE = Range(0.0)
+WEIGHT = Range(0.0)
+POSITIVE = Range(0.0, lo_open=True)
+# Probabilities, fractions of the run, opacities.
+FRACTION = Range(0.0, 1.0)
+# torch.manual_seed's range: an unsigned 64-bit integer.
+SEED = Range(0, 2**64 - 1, integer=True)
+# Thread counts: 0 = the library's own choice.
+THREADS = Range(0, integer=True)
+
 # Config fields that do not change the optimisation result: they may differ on resume.
 # The rasterizer backend is among them: the backends are parity-tested against one reference
 # (tests/test_raster_parity.py, tests/test_raster_gsplat.py), so a run started on CPU may go on
@@ -69,7 +86,10 @@ POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", 
 
 @dataclass
 class TrainConfig:
-    """Every hyperparameter of a training run. Field names are the JSON override keys.
+    """Every hyperparameter of a training run. Field names are the JSON override keys; each
+    field's type and range is its annotation (``Annotated[float, RATE]``; the ranges above),
+    checked when the config is made (:func:`runtime.checks.check_fields`) and taken by the
+    flag that sets it.
 
     Attributes (learning rates are Adam step sizes for the stored parameterisation):
         iterations: optimisation steps; None (the default): :func:`default_iterations` of
@@ -193,141 +213,99 @@ class TrainConfig:
             job also lets Snakemake run two jobs side by side on --cores 2.
     """
 
-    iterations: int | None = None
+    iterations: Annotated[int | None, COUNT] = None
     recipe: str = DEFAULT_RECIPE
-    seed: int = 0
-    sh_degree: int = SH_DEGREE
-    sh_increase_every: int | None = None
-    lr_position_init: float = 1.6e-4
-    lr_position_final: float = 1.6e-6
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 2.5e-3 / 20.0
-    lr_opacity: float = 0.05
-    lr_scaling: float = 5e-3
-    lr_rotation: float = 1e-3
-    adam_eps: float = 1e-15
-    lambda_dssim: float = 0.2
-    background: list[float] | str | None = None
+    seed: Annotated[int, SEED] = 0
+    sh_degree: Annotated[int, Range(0, SH_DEGREE, integer=True)] = SH_DEGREE
+    sh_increase_every: Annotated[int | None, COUNT] = None
+    lr_position_init: Annotated[float, RATE] = 1.6e-4
+    lr_position_final: Annotated[float, RATE] = 1.6e-6
+    lr_sh_dc: Annotated[float, RATE] = 2.5e-3
+    lr_sh_rest: Annotated[float, RATE] = 2.5e-3 / 20.0
+    lr_opacity: Annotated[float, RATE] = 0.05
+    lr_scaling: Annotated[float, RATE] = 5e-3
+    lr_rotation: Annotated[float, RATE] = 1e-3
+    adam_eps: Annotated[float, POSITIVE] = 1e-15
+    lambda_dssim: Annotated[float, FRACTION] = 0.2
+    background: Annotated[list[float] | str | None, RGB] = None
     random_background: bool = False
-    densify_from: int | None = None
-    densify_until: int | None = None
-    densify_every: int | None = None
-    densify_grad_threshold: float | None = None
-    percent_dense: float = 0.01
-    opacity_reset_every: int | None = None
-    opacity_reset_value: float = 0.01
-    prune_opacity: float = 0.005
-    prune_screen_size: float | None = None
-    prune_world_size: float = 0.1
-    max_gaussians: int | None = None
-    gaussians_per_pixel: float | None = None
+    densify_from: Annotated[int | None, ITERATION] = None
+    densify_until: Annotated[int | None, ITERATION] = None
+    densify_every: Annotated[int | None, COUNT] = None
+    densify_grad_threshold: Annotated[float | None, WEIGHT] = None
+    percent_dense: Annotated[float, WEIGHT] = 0.01
+    opacity_reset_every: Annotated[int | None, ITERATION] = None
+    opacity_reset_value: Annotated[float, FRACTION] = 0.01
+    prune_opacity: Annotated[float, FRACTION] = 0.005
+    prune_screen_size: Annotated[float | None, WEIGHT] = None
+    prune_world_size: Annotated[float, WEIGHT] = 0.1
+    max_gaussians: Annotated[int | None, COUNT] = None
+    gaussians_per_pixel: Annotated[float | None, WEIGHT] = None
     strategy: str | None = None
     seed_over_cap: str | None = None
     mcmc_growth: str | None = None
-    noise_lr: float = 5e5
-    opacity_reg: float | None = None
-    scale_reg: float | None = None
-    dropout_rate: float | None = None
-    dropout_ramp_fraction: float | None = None
-    depth_weight: float | None = None
-    depth_ramp_fraction: float | None = None
+    noise_lr: Annotated[float, RATE] = 5e5
+    opacity_reg: Annotated[float | None, WEIGHT] = None
+    scale_reg: Annotated[float | None, WEIGHT] = None
+    dropout_rate: Annotated[float | None, Range(0.0, 1.0, hi_open=True)] = None
+    dropout_ramp_fraction: Annotated[float | None, FRACTION] = None
+    depth_weight: Annotated[float | None, WEIGHT] = None
+    depth_ramp_fraction: Annotated[float | None, FRACTION] = None
     depth_use_confidence: bool = True
-    binocular_weight: float | None = None
-    binocular_from_fraction: float | None = None
+    binocular_weight: Annotated[float | None, WEIGHT] = None
+    binocular_from_fraction: Annotated[float | None, FRACTION] = None
     # Binocular3DGS's shift of up to 0.4 scene units on LLFF is 1.0-1.4 % of the median point
     # depth of fern, horns and trex in their COLMAP frames (splat_train/binocular.py)
-    binocular_shift: float = 0.012
-    opacity_decay: float | None = None
-    depth_min_samples: int = 16
+    binocular_shift: Annotated[float, POSITIVE] = 0.012
+    opacity_decay: Annotated[float | None, Range(0.0, 1.0, lo_open=True)] = None
+    depth_min_samples: Annotated[int, Range(2, integer=True)] = 16
     pose_refine: bool = False
     # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
     # 1e-3 from iteration 1 walked the cameras away on fern (ATE 1.5 -> 30 % of the radius) while
     # the Gaussians were still a blur; 1e-4 after 100 iterations with a 100-iteration ramp lowered
     # both errors on both scenes (benchmarks/README.md).
-    lr_pose: float = 1e-4
-    pose_refine_from: int = 100
-    pose_warmup: int = 100
+    lr_pose: Annotated[float, RATE] = 1e-4
+    pose_refine_from: Annotated[int, ITERATION] = 100
+    pose_warmup: Annotated[int, ITERATION] = 100
     pose_refine_focal: bool = False
-    lr_focal: float = 1e-4
-    downsample: int = 1
-    checkpoint_every: int = 500
-    keep_checkpoints: int = 2
-    eval_every: int = 200
+    lr_focal: Annotated[float, RATE] = 1e-4
+    downsample: Annotated[int, COUNT] = 1
+    checkpoint_every: Annotated[int, COUNT] = 500
+    keep_checkpoints: Annotated[int, COUNT] = 2
+    eval_every: Annotated[int, ITERATION] = 200
     eval_lpips: bool = False
     lpips_weights: str | None = None
     device: str = "auto"
     rasterizer: str = "auto"
-    num_threads: int = 1
-    kernel_threads: int = 0
+    num_threads: Annotated[int, THREADS] = 1
+    kernel_threads: Annotated[int, THREADS] = 0
     extent_from_points: bool = True
 
     def __post_init__(self) -> None:
+        check_fields(self)  # every field's type and range, as annotated above
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
         if self.iterations is None:
             self.iterations = default_iterations(self.device)
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         preset = recipe_defaults(self.recipe)
         for key in (*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS):
             if getattr(self, key) is None:
                 setattr(self, key, preset[key])
-        for key in SCHEDULE_KEYS:
-            v = getattr(self, key)
-            # densify_until 0: no densification; opacity_reset_every 0: no reset
-            least = 0 if key in ("densify_from", "densify_until", "opacity_reset_every") else 1
-            if v is not None and (int(v) != v or v < least):
-                raise ValueError(f"{key} must be an iteration count >= {least}, got {v}")
-        if not (0.0 <= self.dropout_rate < 1.0 and 0.0 <= self.dropout_ramp_fraction <= 1.0):
-            raise ValueError(f"dropout_rate must be in [0, 1) and dropout_ramp_fraction in [0, 1], got "
-                             f"{self.dropout_rate} and {self.dropout_ramp_fraction}")
-        if not (self.depth_weight >= 0.0 and 0.0 <= self.depth_ramp_fraction <= 1.0):
-            raise ValueError(f"depth_weight must be >= 0 and depth_ramp_fraction in [0, 1], got "
-                             f"{self.depth_weight} and {self.depth_ramp_fraction}")
-        if not (self.binocular_weight >= 0.0 and 0.0 <= self.binocular_from_fraction <= 1.0
-                and self.binocular_shift > 0.0):
-            raise ValueError(f"binocular_weight must be >= 0, binocular_from_fraction in [0, 1] and binocular_shift "
-                             f"> 0, got {self.binocular_weight}, {self.binocular_from_fraction} and "
-                             f"{self.binocular_shift}")
-        if not 0.0 < self.opacity_decay <= 1.0:
-            raise ValueError(f"opacity_decay must be in (0, 1] (1: off), got {self.opacity_decay}")
-        if not (isinstance(self.depth_min_samples, int) and self.depth_min_samples >= 2):
-            raise ValueError(f"depth_min_samples must be an integer >= 2, got {self.depth_min_samples!r}")
+        check_fields(self)  # the recipe's values too
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
         if self.seed_over_cap not in SEED_OVER_CAP:
             raise ValueError(f"seed_over_cap must be one of {list(SEED_OVER_CAP)}, got {self.seed_over_cap!r}")
         if self.mcmc_growth not in MCMC_GROWTH:
             raise ValueError(f"mcmc_growth must be one of {list(MCMC_GROWTH)}, got {self.mcmc_growth!r}")
-        if not (self.opacity_reg >= 0.0 and self.scale_reg >= 0.0 and self.noise_lr >= 0.0):
-            raise ValueError(f"opacity_reg, scale_reg and noise_lr must be >= 0, got {self.opacity_reg}, "
-                             f"{self.scale_reg} and {self.noise_lr}")
         if self.strategy == "mcmc" and not self.gaussians_per_pixel and self.max_gaussians is None:
             raise ValueError("the mcmc strategy grows to a cap: set gaussians_per_pixel > 0 or max_gaussians")
-        if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel >= 0:
-            raise ValueError(f"gaussians_per_pixel must be >= 0 (0: no cap), got {self.gaussians_per_pixel}")
-        if self.max_gaussians is not None and self.max_gaussians < 1:
-            raise ValueError(f"max_gaussians must be >= 1 (or null: no cap), got {self.max_gaussians}")
-        if not 0 <= self.sh_degree <= SH_DEGREE:
-            raise ValueError(f"sh_degree must be 0..{SH_DEGREE}, got {self.sh_degree}")
         if isinstance(self.background, str):
             if self.background != BACKGROUND_MEAN:
-                raise ValueError(f"background must be 3 numbers (RGB in [0, 1]) or {BACKGROUND_MEAN!r}, "
+                raise ValueError(f"background must be {RGB.describe()} (RGB) or {BACKGROUND_MEAN!r}, "
                                  f"got {self.background!r}")
-        elif len(self.background) != 3:
-            raise ValueError(f"background must be 3 numbers (RGB in [0, 1]) or {BACKGROUND_MEAN!r}, "
-                             f"got {self.background}")
         else:
             self.background = [float(x) for x in self.background]
-        if int(self.downsample) != self.downsample or self.downsample < 1:
-            raise ValueError(f"downsample must be a positive integer, got {self.downsample}")
-        if self.checkpoint_every < 1:
-            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
-        if self.keep_checkpoints < 1:
-            raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
-        if self.pose_refine_from < 0 or self.pose_warmup < 0:
-            raise ValueError(f"pose_refine_from and pose_warmup must be >= 0, got "
-                             f"{self.pose_refine_from} and {self.pose_warmup}")
         from splat_train.rasterize import BACKENDS
 
         if self.rasterizer not in BACKENDS:
@@ -421,19 +399,31 @@ def _check_keys(keys: dict[str, Any]) -> None:
 
 def load_config(overrides: str | Path | dict | None = None, **cli: Any) -> TrainConfig:
     """Defaults, then JSON overrides (a file path, a JSON string or a dict), then ``cli``
-    values that are not None (the CLI flags win)."""
+    values that are not None (the CLI flags win).
+
+    Raises:
+        ValueError: one line naming the source ("--config FILE: lr_opacity must be a finite
+            number >= 0, got -1"): an unreadable or malformed file, an unknown key, a value of
+            the wrong type or out of its field's range.
+    """
     data: dict[str, Any] = {}
+    source = "config"
     if isinstance(overrides, dict):
         data = dict(overrides)
     elif overrides is not None:
         text = str(overrides)
         p = Path(text)
+        source = f"--config {text}" if p.is_file() else "--config (JSON string)"
         try:
             data = json.loads(p.read_text() if p.is_file() else text)
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"--config must be a JSON file or a JSON object string: {exc}") from exc
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{source}: must be a JSON file or a JSON object string: {exc}") from exc
         if not isinstance(data, dict):
-            raise ValueError(f"--config must hold a JSON object, got {type(data).__name__}")
+            raise ValueError(f"{source}: must hold a JSON object, got {type(data).__name__}")
     data.update({k: v for k, v in cli.items() if v is not None})
-    _check_keys(data)
-    return TrainConfig(**data)  # made once, so an unset iterations follows the device given
+    try:
+        _check_keys(data)
+        return TrainConfig(**data)  # made once, so an unset iterations follows the device given
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+

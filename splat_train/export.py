@@ -21,6 +21,7 @@ import torch
 from camio import Camera
 from camio.images import write_image
 from camio.ply import read_gaussian_ply
+from runtime.checks import RGB
 from runtime.logs import progress
 from splat_train.data import View, load_views, read_name_list
 from splat_train.gaussians import activated, params_from_cloud
@@ -37,18 +38,35 @@ def model_background(model: str | Path) -> tuple[tuple[float, float, float], str
     """The colour a trained model was trained against, to render it against: the config
     ``background`` of the ``train.json`` beside ``model`` (RGB in [0, 1]; the trainer keeps the
     resolved colour there, a recipe's "mean" included), and where it came from (that file's path).
-    Without a readable train.json, or one without the colour (a model from another trainer):
-    black (:data:`splat_train.recipes.BACKGROUND_BLACK`) and "default"."""
+    Without a train.json, or with one whose config has no colour (a model from another trainer):
+    black (:data:`splat_train.recipes.BACKGROUND_BLACK`) and "default".
+
+    Raises:
+        ValueError: one line naming the train.json: it cannot be read, is not a JSON object, or
+            its colour is not three finite numbers in [0, 1] (a NaN would zero a channel).
+    """
     tj = Path(model).with_name("train.json")
+    if not tj.exists():
+        return BACKGROUND_BLACK, "default"
     try:
-        bg = json.loads(tj.read_text()).get("config", {}).get("background")
-    except (OSError, ValueError, AttributeError):
-        bg = None
-    if isinstance(bg, list) and len(bg) == 3 and all(isinstance(x, (int, float)) for x in bg):
-        rgb, source = (float(bg[0]), float(bg[1]), float(bg[2])), str(tj)
-    else:
-        rgb, source = BACKGROUND_BLACK, "default"
-    return rgb, source
+        data = json.loads(tj.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{tj}: cannot be read ({exc.strerror if isinstance(exc, OSError) else exc}); "
+                         "fix or remove it, or pass --background R,G,B") from None
+    except ValueError as exc:
+        raise ValueError(f"{tj}: not JSON ({exc}); fix or remove it, or pass --background R,G,B") from None
+    config = data.get("config", {}) if isinstance(data, dict) else None
+    if not isinstance(config, dict):
+        raise ValueError(f"{tj}: not a training summary (a JSON object whose config is an object); fix or remove "
+                         "it, or pass --background R,G,B")
+    bg = config.get("background")
+    if bg is None:
+        return BACKGROUND_BLACK, "default"
+    try:
+        RGB.check(bg, "config background")
+    except ValueError as exc:
+        raise ValueError(f"{tj}: {exc}; fix or remove it, or pass --background R,G,B") from None
+    return (float(bg[0]), float(bg[1]), float(bg[2])), str(tj)
 
 
 def background_note(rgb: tuple[float, float, float], source: str) -> str:
@@ -66,7 +84,7 @@ def parse_background(text: str) -> tuple[float, float, float]:
         rgb = tuple(float(x) for x in text.split(","))
     except ValueError:
         rgb = ()
-    if len(rgb) != 3 or not all(0.0 <= x <= 1.0 for x in rgb):  # NaN fails the range test too
+    if not RGB.ok(rgb):
         raise ValueError(f"--background must be three numbers in [0, 1] like 0,0,0, got {text!r}")
     return rgb
 

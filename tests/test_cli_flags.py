@@ -72,9 +72,10 @@ def _kind(action: argparse.Action) -> str:
     if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction,
                            argparse._StoreConstAction)):
         return "switch"
-    if action.type in (int,):
+    rng = getattr(action.type, "range", None)  # a runtime.checks.flag: a number with a range
+    if action.type in (int,) or (rng is not None and rng.integer):
         return "integer"
-    if action.type in (float,):
+    if action.type in (float,) or rng is not None:
         return "number"
     return "text or path"
 

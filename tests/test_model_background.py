@@ -89,8 +89,10 @@ def test_a_model_without_its_train_json_is_drawn_on_black(trained, tmp_path):
     alone.parent.mkdir()
     shutil.copy(out / "model.ply", alone)
     assert model_background(alone) == (BACKGROUND_BLACK, "default")
-    (alone.parent / "train.json").write_text("{not json")
-    assert model_background(alone) == (BACKGROUND_BLACK, "default")
+    (alone.parent / "train.json").write_text("{not json")  # a damaged one is refused, not taken for black
+    with pytest.raises(ValueError, match="train.json: not JSON"):
+        model_background(alone)
+    (alone.parent / "train.json").unlink()
     default = _render(paths, alone, tmp_path / "r")
     black = _render(paths, out / "model.ply", tmp_path / "b", "--background", "0,0,0")
     for name in default:

@@ -90,7 +90,7 @@ def test_default_iterations_follow_the_device(monkeypatch):
     assert TrainConfig(device="cuda").to_dict()["iterations"] == 10000
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert load_config(None).iterations == 10000  # device auto on a CUDA machine
-    with pytest.raises(ValueError, match="iterations must be >= 1"):
+    with pytest.raises(ValueError, match="iterations must be an integer >= 1"):
         load_config(None, iterations=0)
     with pytest.raises(ValueError, match="unknown training config keys.*iteration"):
         load_config('{"iteration": 5}')

@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from camio.limits import MAX_IMAGE_SIDE
+from runtime.checks import flag
 from runtime.logs import setup_logging
 from vggt_init import defaults
 
@@ -30,15 +32,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="auto (default: CUDA when available, else CPU), cpu or cuda[:N]")
     p.add_argument("--points-from", choices=defaults.POINT_SOURCES, default=defaults.POINTS_FROM,
                    help="world points from the point head (paper) or depth head + cameras")
-    p.add_argument("--max-points", type=int, default=defaults.MAX_POINTS,
+    p.add_argument("--max-points", type=flag(int, 1), default=defaults.MAX_POINTS,
                    help="points kept in sparse/0 (most confident)")
     p.add_argument("--mode", choices=defaults.MODES, default=defaults.MODE, help="VGGT preprocessing mode")
-    p.add_argument("--image-size", type=int, default=defaults.IMAGE_SIZE,
+    p.add_argument("--image-size", type=flag(int, 14, MAX_IMAGE_SIDE), default=defaults.IMAGE_SIZE,
                    help="network width/longer side (multiple of 14)")
-    p.add_argument("--frames-chunk", type=int, default=defaults.FRAMES_CHUNK,
+    p.add_argument("--frames-chunk", type=flag(int, 1), default=defaults.FRAMES_CHUNK,
                    help="frames per DPT-head chunk (memory vs speed)")
-    p.add_argument("--max-memory-gb", type=float, help="memory budget (default: what the OS reports free)")
-    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--max-memory-gb", type=flag(float, 0, lo_open=True),
+                   help="memory budget (default: what the OS reports free)")
+    p.add_argument("--threads", type=flag(int, 0), help="torch CPU threads")
     p.add_argument("--no-retain-memory", action="store_true",
                    help="let glibc return freed memory to the system at once (less peak RSS, slower on CPU; "
                         "see runtime/memory.py)")

@@ -33,6 +33,7 @@ from camio.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from camio.names import check_name_list
 from evaluation.metrics.pose import paper_success
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["SEED_POINTS", "DEFAULT_MIN_POINTS", "move_points_with_cameras", "refine_predictions", "run_ba_init"]
@@ -209,10 +210,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--refine-focal", action="store_true", help="also refine focal lengths")
     p.add_argument("--seed-points", choices=SEED_POINTS, default="dense",
                    help="dense predicted points moved with the refined cameras, or the triangulated points")
-    p.add_argument("--min-points", type=int, default=DEFAULT_MIN_POINTS,
+    p.add_argument("--min-points", type=flag(int, 1), default=DEFAULT_MIN_POINTS,
                    help=f"fewer triangulated points fall back (default {DEFAULT_MIN_POINTS})")
-    p.add_argument("--seed", type=int, default=0, help="pycolmap's random seed")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="pycolmap's random seed")
+    p.add_argument("--threads", type=flag(int, 1), default=1,
                    help="pycolmap threads of the triangulation (its feature extraction and matching) and of "
                         "the bundle adjustment; 1 (the default) is reproducible")
     add_log_flags(p)

@@ -21,6 +21,7 @@ from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, 
 from evaluation.metrics.pose import add_gate_args, gate_from_args
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags
 
 __all__ = ["main", "ColmapSettings", "available_cores", "model_fingerprint", "run_colmap"]
@@ -36,18 +37,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--images", required=True, help="scene image folder")
     add_view_args(p)
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
-    p.add_argument("--repeats", type=int, default=1,
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="PRNG seed (default 0)")
+    p.add_argument("--repeats", type=flag(int, 1), default=1,
                    help="run K times with seeds seed, seed+1, ... (or --seeds) and report the spread")
-    p.add_argument("--seeds", type=int, nargs="+", help="explicit seeds for the repeats")
+    p.add_argument("--seeds", type=flag(int, 0), nargs="+", help="explicit seeds for the repeats")
     p.add_argument("--ref", help="reference COLMAP model: evaluate every run's poses "
                    "(ATE, rotation error, both success criteria) and report their spread; "
                    "written as a repeats summary, also for a single run")
     add_gate_args(p, "accuracy gate for --ref")
-    p.add_argument("--max-image-size", type=int, default=3200, help="SIFT extraction: longest image side in pixels")
-    p.add_argument("--max-num-features", type=int, default=16384, help="SIFT features per image at most")
+    p.add_argument("--max-image-size", type=flag(int, 16), default=3200,
+                   help="SIFT extraction: longest image side in pixels")
+    p.add_argument("--max-num-features", type=flag(int, 16), default=16384, help="SIFT features per image at most")
     p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
-    p.add_argument("--threads", type=int, default=0,
+    p.add_argument("--threads", type=flag(int, 0), default=0,
                    help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     add_fallback_args(p)

@@ -48,6 +48,7 @@ from camio.atomic import save_npz, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags
 
 __all__ = ["CONF_MODES", "MAX_POINTS", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
@@ -312,20 +313,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
     add_view_args(p)
     p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
-    p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
-    p.add_argument("--trans-frac", type=float, default=0.0,
+    p.add_argument("--rot-deg", type=flag(float, 0), default=0.0, help="RMS rotation noise (degrees)")
+    p.add_argument("--trans-frac", type=flag(float, 0), default=0.0,
                    help="RMS centre noise, fraction of the trajectory radius")
-    p.add_argument("--depth-rel", type=float, default=0.0, help="relative depth noise (std)")
-    p.add_argument("--outlier-frac", type=float, default=0.0, help="fraction of outlier pixels")
-    p.add_argument("--conf-scale", type=float, default=10.0, help="confidence range above 1")
-    p.add_argument("--conf-noise", type=float, default=0.0,
+    p.add_argument("--depth-rel", type=flag(float, 0), default=0.0, help="relative depth noise (std)")
+    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=0.0, help="fraction of outlier pixels")
+    p.add_argument("--conf-scale", type=flag(float, 0), default=10.0, help="confidence range above 1")
+    p.add_argument("--conf-noise", type=flag(float, 0), default=0.0,
                    help="log-normal noise on the confidence (0 = perfect ranking)")
     p.add_argument("--conf-mode", choices=CONF_MODES, default="ranked",
                    help="confidence informativeness: ranked (ranks the depth error), noise "
                    "(random order), anti (reversed ranks); see the module docstring")
-    p.add_argument("--downsample", type=int, default=1, help="prediction grid stride")
-    p.add_argument("--max-points", type=int, default=MAX_POINTS, help="points kept in sparse/0 at most (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the noise")
+    p.add_argument("--downsample", type=flag(int, 1), default=1, help="prediction grid stride")
+    p.add_argument("--max-points", type=flag(int, 1), default=MAX_POINTS,
+                   help="points kept in sparse/0 at most (default %(default)s)")
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the noise")
     add_log_flags(p)
     args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,

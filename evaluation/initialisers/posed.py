@@ -42,6 +42,7 @@ from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
@@ -134,12 +135,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     add_view_args(p, split=False)
     p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
-    p.add_argument("--rot-deg", type=float, default=0.0, help="RMS rotation noise (degrees)")
-    p.add_argument("--trans-frac", type=float, default=0.0, help="RMS centre noise, fraction of the radius")
-    p.add_argument("--depth-rel", type=float, default=0.0, help="relative depth noise of the points (std)")
-    p.add_argument("--outlier-frac", type=float, default=0.0, help="fraction of outlier points")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the noise and of pycolmap")
-    p.add_argument("--threads", type=int, default=1, help="feature extraction / matching threads")
+    p.add_argument("--rot-deg", type=flag(float, 0), default=0.0, help="RMS rotation noise (degrees)")
+    p.add_argument("--trans-frac", type=flag(float, 0), default=0.0, help="RMS centre noise, fraction of the radius")
+    p.add_argument("--depth-rel", type=flag(float, 0), default=0.0, help="relative depth noise of the points (std)")
+    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=0.0, help="fraction of outlier points")
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the noise and of pycolmap")
+    p.add_argument("--threads", type=flag(int, 1), default=1, help="feature extraction / matching threads")
     add_fallback_args(p)
     add_log_flags(p)
     args, names = parse_training_args(p, argv)

@@ -60,6 +60,7 @@ from camio.colmap import read_model, write_text_model
 from camio.ply import SH_C0
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.views import read_image_list
+from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["N_POINTS", "POINTS_PER_PIXEL", "default_points", "FALLBACK_MIN_POINTS", "NEAR_FRAC", "FAR_FRAC", "PARALLEL_DEPTH_BASELINES",
@@ -308,11 +309,11 @@ def seed_model_dir(init_dir: str | Path, *, only_without_points: bool = False) -
 
 def add_fallback_args(parser) -> None:
     """``--fallback-min-points`` and ``--fallback-points`` (defaults: the constants above)."""
-    parser.add_argument("--fallback-min-points", type=int, default=FALLBACK_MIN_POINTS,
+    parser.add_argument("--fallback-min-points", type=flag(int, 0), default=FALLBACK_MIN_POINTS,
                         help="with fewer points than this and >= 1 camera, write random points for the "
                              f"cameras to {FALLBACK_DIR}/sparse/0 and record it (default {FALLBACK_MIN_POINTS}; "
                              "0 = off)")
-    parser.add_argument("--fallback-points", type=int, default=None,
+    parser.add_argument("--fallback-points", type=flag(int, 1), default=None,
                         help=f"random points of the fallback (default: {N_POINTS}, at most {POINTS_PER_PIXEL} "
                              "per training pixel)")
 
@@ -343,11 +344,13 @@ def main(argv: list[str] | None = None) -> int:
                    "(e.g. the scene's sparse/0)")
     p.add_argument("--image-list", required=True, help="file with one training image name per line")
     p.add_argument("--out", required=True, help="output folder (sparse/0 and status.json)")
-    p.add_argument("--points", type=int, default=None,
+    p.add_argument("--points", type=flag(int, 1), default=None,
                    help=f"points to place (default: {N_POINTS}, at most {POINTS_PER_PIXEL} per training pixel)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the points")
-    p.add_argument("--near", type=float, help="near camera depth, scene units (default: from the cameras)")
-    p.add_argument("--far", type=float, help="far camera depth, scene units (default: from the cameras)")
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the points")
+    p.add_argument("--near", type=flag(float, 0, lo_open=True),
+                   help="near camera depth, scene units (default: from the cameras)")
+    p.add_argument("--far", type=flag(float, 0, lo_open=True),
+                   help="far camera depth, scene units (default: from the cameras)")
     add_log_flags(p)
     args = p.parse_args(argv)
     setup_logging(args.verbose, args.quiet)

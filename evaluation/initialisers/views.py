@@ -11,6 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
+from runtime.checks import flag
+
 __all__ = ["add_view_args", "read_image_list", "training_names", "parse_training_args"]
 
 
@@ -18,7 +20,7 @@ def add_view_args(p: argparse.ArgumentParser, split: bool = True) -> None:
     """``--split``/``--n`` (when ``split``), ``--image-list`` and ``--names`` on ``p``."""
     if split:
         p.add_argument("--split", help="split.json (docs/contracts.md); use with --n")
-        p.add_argument("--n", type=int, help="number of training views (key in split.json)")
+        p.add_argument("--n", type=flag(int, 1), help="number of training views (key in split.json)")
     p.add_argument("--image-list", help="file with one training image name per line")
     p.add_argument("--names", nargs="+", help="training image names (instead of --image-list)")
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from camio.colmap import SparseModel
 from evaluation.metrics.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
+from runtime.checks import flag
 
 __all__ = ["MAX_ATE_REL_RADIUS", "MAX_REL_ROT_DEG", "GateConfig", "add_gate_args", "gate_from_args", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
            "success_criteria_text", "evaluate_pose",
@@ -62,10 +63,10 @@ class GateConfig:
 def add_gate_args(parser, what: str = "accuracy gate") -> None:
     """Add ``--max-ate-rel-radius`` and ``--max-rel-rot-deg`` (defaults: the constants above)
     to an argparse parser; :func:`gate_from_args` reads them back."""
-    parser.add_argument("--max-ate-rel-radius", type=float, default=MAX_ATE_REL_RADIUS,
+    parser.add_argument("--max-ate-rel-radius", type=flag(float, 0, lo_open=True), default=MAX_ATE_REL_RADIUS,
                         help=f"{what}: ATE / RMS trajectory radius must be below this "
                              f"(default {MAX_ATE_REL_RADIUS:g})")
-    parser.add_argument("--max-rel-rot-deg", type=float, default=MAX_REL_ROT_DEG,
+    parser.add_argument("--max-rel-rot-deg", type=flag(float, 0, lo_open=True), default=MAX_REL_ROT_DEG,
                         help=f"{what}: mean relative rotation error must be below this "
                              f"(default {MAX_REL_ROT_DEG:g})")
 

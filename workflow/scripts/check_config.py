@@ -1,6 +1,7 @@
 """Check a workflow configuration against workflow/schemas/config.schema.yaml, one line per
 problem, naming the key and, for an unknown key, the nearest valid one. The schema's enums of
-the lists the code defines once (x-enum-from) are read from the code here.
+the lists the code defines once (x-enum-from) and the limits it defines once (x-maximum-from)
+are read from the code here.
 
     python workflow/scripts/check_config.py config.yaml [more.yaml ...] [--set KEY=YAML ...]
 
@@ -145,18 +146,33 @@ def enum_sources() -> dict[str, tuple]:
     }
 
 
+def maximum_sources() -> dict[str, int]:
+    """The limits the schema names (``x-maximum-from: KEY``), each read from its one place."""
+    from camio.limits import MAX_IMAGE_SIDE
+    from splat_train.config import SEED
+
+    return {"MAX_IMAGE_SIDE": MAX_IMAGE_SIDE, "TRAIN_SEED_MAX": int(SEED.hi)}
+
+
 def load_schema(path: Path = SCHEMA) -> dict:
     """The config schema with every ``x-enum-from: KEY`` filled in as ``enum`` from
-    :func:`enum_sources` (``None`` added where the key may be null).
+    :func:`enum_sources` (``None`` added where the key may be null), and every
+    ``x-maximum-from: KEY`` as ``maximum`` from :func:`maximum_sources`.
 
     Raises:
-        ValueError: a ``x-enum-from`` names no list.
+        ValueError: a ``x-enum-from`` names no list, or a ``x-maximum-from`` no limit.
     """
     schema = yaml.safe_load(Path(path).read_text())
     sources = enum_sources()
+    maxima = maximum_sources()
 
     def fill(node):
         if isinstance(node, dict):
+            if "x-maximum-from" in node:
+                key = node["x-maximum-from"]
+                if key not in maxima:
+                    raise ValueError(f"{path}: x-maximum-from {key!r} names no limit; known: {', '.join(maxima)}")
+                node["maximum"] = maxima[key]
             if "x-enum-from" in node:
                 key = node["x-enum-from"]
                 if key not in sources:

@@ -30,6 +30,7 @@ from camio.atomic import atomic_dir, atomic_path, write_json
 from camio.names import check_name
 from camio.outdir import prepare_out, run_stage, seal_out
 from camio.split import read_split
+from runtime.checks import flag
 from runtime.logs import setup_logging
 
 log = logging.getLogger("workflow.views")
@@ -108,12 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     a = sub.add_parser("names", help="write the training (or test) names, one per line")
     a.add_argument("--split", required=True)
     a.add_argument("--which", choices=["train", "test"], default="train")
-    a.add_argument("--n", type=int)
+    a.add_argument("--n", type=flag(int, 1))
     a.add_argument("--out", required=True)
     b = sub.add_parser("link", help="a folder of links to the test (or training) images")
     b.add_argument("--split", required=True)
     b.add_argument("--which", choices=["train", "test"], default="test")
-    b.add_argument("--n", type=int)
+    b.add_argument("--n", type=flag(int, 1))
     b.add_argument("--images", required=True)
     b.add_argument("--out", required=True)
     c = sub.add_parser("index", help="gather COLMAP status.json files into one JSON")

@@ -16,6 +16,7 @@ from dataclasses import fields
 
 from evaluation.initialisers.mvs.run import MvsConfig, run_mvs
 from evaluation.initialisers.views import add_view_args, parse_training_args
+from runtime.checks import flag_of
 from runtime.cliargs import add_log_flags, plain
 
 log = logging.getLogger("evaluation.initialisers.mvs")
@@ -54,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
     defaults = MvsConfig()
     for f in fields(MvsConfig):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(getattr(defaults, f.name)),
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=flag_of(MvsConfig, f.name),
                        default=getattr(defaults, f.name), help=HELP[f.name] + " (default %(default)s)")
     add_log_flags(p)
     return p

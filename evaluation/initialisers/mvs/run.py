@@ -25,16 +25,17 @@ confident, with their tracks) and ``status.json``.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 from camio.cameras import Camera
 from camio.images import working_size  # the one rule of a working resolution, as camio convert sizes photo folders
 from evaluation.initialisers.oracle import MAX_POINTS
+from runtime.checks import Range, check_fields
 
 __all__ = ["MvsConfig", "MAX_POINTS", "working_size", "select_sources", "depth_maps", "run_mvs",
            "predictions_arrays"]
@@ -71,45 +72,34 @@ class MvsConfig:
         threads: torch CPU threads (0: torch's default).
     """
 
-    max_size: int = 640
-    max_sources: int = 4
-    window: int = 7
-    top_k: int = 0
-    step_px: float = 1.0
-    min_planes: int = 32
-    max_planes: int = 192
-    coarse_factor: int = 4
-    min_std: float = 0.01
-    margin_scale: float = 0.1
-    min_conf: float = 0.02
-    min_agree: int = 1
-    tol_px: float = 2.0
-    tol_rel: float = 0.02
-    plane_families: int = 2
-    chunk: int = 16
-    fill_stride: int = 1
-    max_points: int = MAX_POINTS
-    threads: int = 0
+    max_size: Annotated[int, Range(16, integer=True)] = 640
+    max_sources: Annotated[int, Range(1, integer=True)] = 4
+    window: Annotated[int, Range(3, integer=True)] = 7
+    top_k: Annotated[int, Range(0, integer=True)] = 0
+    step_px: Annotated[float, Range(0.0, lo_open=True)] = 1.0
+    min_planes: Annotated[int, Range(3, integer=True)] = 32
+    max_planes: Annotated[int, Range(3, integer=True)] = 192
+    coarse_factor: Annotated[int, Range(1, integer=True)] = 4
+    min_std: Annotated[float, Range(0.0)] = 0.01
+    margin_scale: Annotated[float, Range(0.0, lo_open=True)] = 0.1
+    min_conf: Annotated[float, Range(0.0, 1.0)] = 0.02
+    min_agree: Annotated[int, Range(1, integer=True)] = 1
+    tol_px: Annotated[float, Range(0.0, lo_open=True)] = 2.0
+    tol_rel: Annotated[float, Range(0.0, 1.0, lo_open=True, hi_open=True)] = 0.02
+    plane_families: Annotated[int, Range(0, integer=True)] = 2
+    chunk: Annotated[int, Range(1, integer=True)] = 16
+    fill_stride: Annotated[int, Range(0, integer=True)] = 1
+    max_points: Annotated[int, Range(1, integer=True)] = MAX_POINTS
+    threads: Annotated[int, Range(0, integer=True)] = 0
 
     def __post_init__(self) -> None:
-        checks = {
-            "max_size": self.max_size >= 16, "max_sources": self.max_sources >= 1,
-            "window": self.window >= 3 and self.window % 2 == 1, "top_k": self.top_k >= 0,
-            "step_px": math.isfinite(self.step_px) and self.step_px > 0,
-            "min_planes": self.min_planes >= 3, "max_planes": self.max_planes >= self.min_planes,
-            "coarse_factor": self.coarse_factor >= 1,
-            "min_std": math.isfinite(self.min_std) and self.min_std >= 0,
-            "margin_scale": math.isfinite(self.margin_scale) and self.margin_scale > 0,
-            "min_conf": 0 <= self.min_conf <= 1, "min_agree": self.min_agree >= 1,
-            "tol_px": math.isfinite(self.tol_px) and self.tol_px > 0,
-            "tol_rel": math.isfinite(self.tol_rel) and 0 < self.tol_rel < 1,
-            "chunk": self.chunk >= 1, "plane_families": self.plane_families >= 0, "fill_stride": self.fill_stride >= 0,
-            "max_points": self.max_points >= 1, "threads": self.threads >= 0,
-        }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError("mvs: bad value of " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad)
-                             + " (MvsConfig's docstring gives each one's range)")
+        try:
+            check_fields(self)  # each field's type and range, as annotated above
+        except ValueError as exc:
+            raise ValueError(f"mvs: {exc}") from None
+        if self.window % 2 != 1 or self.max_planes < self.min_planes:
+            raise ValueError(f"mvs: window must be odd (got {self.window}) and max_planes >= min_planes (got "
+                             f"{self.max_planes} and {self.min_planes})")
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
