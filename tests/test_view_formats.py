@@ -111,3 +111,30 @@ def test_a_spz_without_gsply_names_the_package(tmp_path, exported):
                         str(exported["spz"])], capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
     line = refused(p, str(exported["spz"]), "gsply", "pip install")
     assert "not a readable .spz file" not in line  # the file is fine: the package is missing
+
+
+def test_a_served_splat_torn_later_is_not_served(tmp_path, exported):
+    """The followed file is checked again by its own type's reader: a .splat cut mid-record after
+    the start is not served (one warning naming the type); a whole one put there is, as version 2."""
+    import time
+
+    from splat_train.view.source import FOLLOW_POLL_S
+
+    path = tmp_path / "model.splat"
+    good = exported["splat"].read_bytes()
+    path.write_bytes(good)
+    v = Viewer("--model", str(path))
+    try:
+        path.write_bytes(good[:-5])  # a writer caught mid-file
+        time.sleep(3 * FOLLOW_POLL_S)
+        r = v.get("/model.splat")
+        assert r.body == good and r.getheader("X-Model-Version") == "1"
+        path.write_bytes(good[:32 * 10])  # ten whole records
+        deadline = time.monotonic() + 20
+        while (r := v.get("/model.splat")).getheader("X-Model-Version") == "1" and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert r.body == good[:32 * 10] and r.getheader("X-Model-Version") == "2"
+    finally:
+        _, err = v.stop()
+    assert "is not a .splat file" in err and "still serving the last good model" in err, err
+    assert "Traceback" not in err, err
