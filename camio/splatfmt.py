@@ -43,8 +43,7 @@ from camio.atomic import atomic_path
 from camio.ply import GaussianCloud, read_gaussian_ply, sh_dc_to_rgb, write_gaussian_ply
 
 __all__ = ["EXPORT_FORMATS", "SPLAT_RECORD", "SplatRecords", "SplatFormatError", "SpzUnavailable", "splat_order",
-           "write_splat",
-           "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud"]
+           "write_splat", "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud"]
 
 #: the formats ``python -m splat_train export --format`` writes, by file suffix
 EXPORT_FORMATS = ("ply", "splat", "spz")

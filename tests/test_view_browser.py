@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MIN_PSNR = 45.0  # measured 58 dB (SwiftShader); 37 dB without the SH re-encoding of shfix.js
 # an export against the PLY it came from, SwiftShader: measured .splat 58 dB, .spz 33 dB (its SH
 # bands at Spark's own precision, which shfix.js lifts only for a PLY: 45 dB with the PLY's at
-# that precision too); the PLY without its SH bands 23 dB, a .spz left in its frame 12 dB
+# that precision too); the PLY without its SH bands 23 dB, a .spz left in its frame 12 dB (SH 0)
 MIN_FORMAT_PSNR = 28.0
 W, H = 160, 120
 BACKGROUND = (0.2, 0.45, 0.7)  # what the model was trained against (its train.json)

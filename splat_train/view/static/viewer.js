@@ -24,7 +24,9 @@ const NEAR = 0.01, FAR = 1000.0;
 // turned 180 degrees about x (camio.splatfmt.rdf_to_rub). Spark 2.2.0 reads a .spz's positions,
 // rotations and SH bands as stored and converts no frame, so the mesh is turned back by the
 // same half turn about x (quaternion x=1, w=0) to line up with the cameras, which are in the
-// PLY's frame. A .splat is written in the PLY's frame and needs no turn.
+// PLY's frame (measured on tests/test_view_browser.py's scene, SH degree 0: 52 dB against the
+// PLY's image turned, 12 dB not).
+// A .splat is written in the PLY's frame and needs no turn.
 const SPZ_TO_PLY_FRAME = new THREE.Quaternion(1, 0, 0, 0);
 const STATE_POLL_MS = 1000;
 const params = new URLSearchParams(window.location.search);
