@@ -31,6 +31,9 @@ is larger than 2^(23-bits)), log scales in steps of 1/16 over [-10, 5.9], alpha 
 
 from __future__ import annotations
 
+import struct
+import tempfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,8 +42,8 @@ import numpy as np
 from camio.atomic import atomic_path
 from camio.ply import GaussianCloud, read_gaussian_ply, sh_dc_to_rgb, write_gaussian_ply
 
-__all__ = ["EXPORT_FORMATS", "SPLAT_RECORD", "SplatRecords", "SplatFormatError", "splat_order", "write_splat",
-           "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud"]
+__all__ = ["EXPORT_FORMATS", "SPLAT_RECORD", "SplatRecords", "SplatFormatError", "SpzUnavailable", "splat_order",
+           "write_splat", "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud"]
 
 #: the formats ``python -m splat_train export --format`` writes, by file suffix
 EXPORT_FORMATS = ("ply", "splat", "spz")
@@ -56,6 +59,10 @@ _SPZ_INT_MAX = (1 << 23) - 1  # signed 24-bit fixed point
 
 class SplatFormatError(ValueError):
     """A ``.splat`` or ``.spz`` file that is not one, or a cloud a format cannot hold."""
+
+
+class SpzUnavailable(SplatFormatError):
+    """``.spz`` asked for without the optional ``gsply`` package (the message says how to install it)."""
 
 
 @dataclass
@@ -118,17 +125,27 @@ def write_splat(path: str | Path, cloud: GaussianCloud) -> Path:
     return Path(path)
 
 
-def read_splat(path: str | Path) -> SplatRecords:
-    """Read an antimatter15 ``.splat`` file.
+def read_splat(path: str | Path, raw: bytes | None = None) -> SplatRecords:
+    """Read an antimatter15 ``.splat`` file. ``raw``: the file's bytes when the caller already
+    holds them (the viewer checks exactly the bytes it serves); ``path`` then only names the
+    file in messages.
 
     Raises:
-        SplatFormatError: empty, or a size that is not a whole number of 32-byte records.
+        SplatFormatError: empty, a size that is not a whole number of 32-byte records, or a
+            position or scale that is not a finite number (scales also > 0).
     """
-    raw = Path(path).read_bytes()
+    if raw is None:
+        raw = Path(path).read_bytes()
     if not raw or len(raw) % SPLAT_RECORD.itemsize:
         raise SplatFormatError(f"{path}: not a .splat file: {len(raw)} bytes is not a positive multiple of the "
                                f"{SPLAT_RECORD.itemsize}-byte record")
     rec = np.frombuffer(raw, SPLAT_RECORD)
+    bad = ~(np.isfinite(rec["position"]).all(axis=1) & np.isfinite(rec["scale"]).all(axis=1)
+            & (rec["scale"] > 0).all(axis=1))
+    if bad.any():
+        raise SplatFormatError(f"{path}: not a .splat file: {int(bad.sum())} of {len(rec)} records have a position "
+                               f"or scale that is not a finite number (scales > 0); first at record "
+                               f"{int(np.argmax(bad))}")
     return SplatRecords(means=rec["position"].copy(), scales=rec["scale"].copy(), rgba=rec["rgba"].copy(),
                         quats=(rec["rot"].astype(np.float64) - 128.0) / 128.0)
 
@@ -166,8 +183,8 @@ def _gsply():
     try:
         import gsply
     except ImportError as exc:
-        raise SplatFormatError("writing or reading .spz needs the gsply package: pip install gsply "
-                               "(or pip install -e .[share])") from exc
+        raise SpzUnavailable("writing or reading .spz needs the gsply package: pip install gsply "
+                             "(or pip install -e .[share])") from exc
     return gsply
 
 
@@ -207,17 +224,29 @@ def write_spz(path: str | Path, cloud: GaussianCloud) -> Path:
     return Path(path)
 
 
-def read_spz(path: str | Path) -> GaussianCloud:
+def read_spz(path: str | Path, raw: bytes | None = None) -> GaussianCloud:
     """Read a ``.spz`` file (any version ``gsply`` reads) into the RDF (3DGS PLY) frame.
+    ``raw``: the file's bytes when the caller already holds them (the viewer checks exactly the
+    bytes it serves: gsply reads only files, so these go through a private temporary file);
+    ``path`` then only names the file in messages.
 
     Raises:
-        SplatFormatError: gsply missing, or not an SPZ file.
+        SpzUnavailable: gsply missing.
+        SplatFormatError: not an SPZ file.
     """
     gsply = _gsply()
+    copy = None
     try:
-        d = gsply.read_spz(path)
-    except (ValueError, OSError, EOFError) as exc:
-        raise SplatFormatError(f"{path}: not a readable .spz file ({exc})") from exc
+        if raw is None:
+            d = gsply.read_spz(path)
+        else:
+            with tempfile.TemporaryDirectory(prefix="spz-") as tmp:
+                copy = Path(tmp) / "model.spz"
+                copy.write_bytes(raw)
+                d = gsply.read_spz(copy)
+    except (ValueError, OSError, EOFError, zlib.error, struct.error, IndexError) as exc:
+        why = str(exc) if copy is None else str(exc).replace(str(copy), str(path))  # name the user's file
+        raise SplatFormatError(f"{path}: not a readable .spz file ({why})") from exc
     n = len(d.means)
     rest = np.asarray(d.shN, np.float32) if d.shN is not None and np.asarray(d.shN).size else \
         np.zeros((n, 0, 3), np.float32)

@@ -457,7 +457,7 @@ def test_viewer_bad_input_is_one_line(scene, tmp_path, case):
         server.check_installed()
     except server.ViewerNotInstalled as e:
         pytest.skip(str(e))
-    text = tmp_path / "passwd"
+    text = tmp_path / "passwd.ply"  # text under a model's suffix (a file without one: test_view_formats.py)
     text.write_text("root:x:0:0:root:/root:/bin/bash\n")
     link = tmp_path / "model.ply"
     link.symlink_to(text)

@@ -5,66 +5,23 @@ a model file swapped after the start is checked again and served only if it is a
 
 from __future__ import annotations
 
-import http.client
 import os
 import socket
 import struct
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
 from _view_scene import make_model, write_view_scene
+from _viewer import Viewer
 from camio.ply import write_gaussian_ply
 from splat_train.view import server
 from splat_train.view.source import FOLLOW_POLL_S
-
-ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> dict:
     return write_view_scene(tmp_path_factory.mktemp("view"), n=40, width=32, height=24)
-
-
-class Viewer:
-    """The viewer as a user starts it (``--port 0 --no-browser``), stopped by SIGTERM."""
-
-    def __init__(self, *args: str):
-        try:
-            server.check_installed()
-        except server.ViewerNotInstalled as e:
-            pytest.skip(str(e))
-        self.proc = subprocess.Popen([sys.executable, "-m", "splat_train", "view", "--no-browser", "--port", "0",
-                                      *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     cwd=ROOT, env=ENV)
-        line = self.proc.stdout.readline()
-        assert "http://127.0.0.1:" in line, (line, self.stop()[1])
-        self.port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
-
-    def get(self, path: str = "/model.ply") -> http.client.HTTPResponse:
-        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=20)
-        conn.request("GET", path)
-        r = conn.getresponse()
-        r.body = r.read()
-        conn.close()
-        return r
-
-    def threads(self) -> int:
-        return len(os.listdir(f"/proc/{self.proc.pid}/task"))
-
-    def stop(self) -> tuple[str, str]:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-        try:
-            out, err = self.proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate()
-        return out, err
 
 
 def _connect(port: int) -> socket.socket:

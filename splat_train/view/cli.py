@@ -19,14 +19,16 @@ log = logging.getLogger("splat_train.view")
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m splat_train view",
-        description="Show a trained 3DGS PLY in the browser (Spark on three.js, installed by `make install`), "
+        description="Show a trained model (3DGS PLY, or the .splat or .spz `python -m splat_train export` writes) "
+                    "in the browser (Spark on three.js, installed by `make install`), "
                     "with its cameras as frusta; pick a camera to look through it. Serves only these files, "
                     "read-only, on a local port. Given a training run's folder, follows its snapshot live.")
     p.add_argument("--model", required=True,
-                   help="the trained model.ply (3DGS layout), or a training run's --out folder: then its "
+                   help="the trained model.ply (3DGS layout), or its export as .splat or .spz (the type is the "
+                        "file's suffix; .spz needs the gsply package), or a training run's --out folder: then its "
                         "snapshot.ply (train with --snapshot-every N), reloaded in the page whenever the trainer "
                         "replaces it, or its model.ply while there is none. A changed file is checked again "
-                        "and served only if it is a 3DGS PLY")
+                        "and served only if it is still a model of its type")
     p.add_argument("--cameras", help="COLMAP model folder of the training cameras (drawn green)")
     p.add_argument("--test-cameras", dest="test_cameras", help="COLMAP model folder of held-out cameras (orange)")
     p.add_argument("--seed-ply", dest="seed_ply", help="the seed point cloud (PLY) the model was trained from, to toggle against it")
@@ -64,7 +66,8 @@ def view_background(model: str, flag: str | None) -> tuple[tuple[float, float, f
 
 def main(argv: list[str]) -> int:
     """Serve the view until Ctrl-C, SIGTERM or SIGHUP (a quiet stop, exit 0). Bad input (a
-    --model that is not a 3DGS PLY nor a folder, a port outside 0-65535, a --timeout that is
+    --model that is not a model of its suffix's type (.ply, .splat, .spz) nor a folder, gsply
+    missing for a .spz, a port outside 0-65535, a --timeout that is
     not a positive number, an address that cannot be bound) is one line and exit 2."""
     import signal
 
@@ -76,7 +79,7 @@ def main(argv: list[str]) -> int:
 
     from splat_train.view.server import (ViewerNotInstalled, build_routes, cameras_json, check_installed,
                                          make_server)
-    from splat_train.view.source import ModelSource, follow, read_checked
+    from splat_train.view.source import TYPE_NAMES, ModelSource, UnknownModelType, follow, read_checked
     try:
         check_installed()
     except ViewerNotInstalled as e:
@@ -91,6 +94,7 @@ def main(argv: list[str]) -> int:
               file=sys.stderr)
         return 2
     from camio.ply import PlyFormatError
+    from camio.splatfmt import SplatFormatError, SpzUnavailable
     from splat_train.export import background_note
 
     if not (Path(args.model).is_file() or Path(args.model).is_dir()):
@@ -101,15 +105,25 @@ def main(argv: list[str]) -> int:
         return 2
     # only the bytes checked here are ever served (never a link to some other file, nor a file
     # swapped after the check): read once, checked, kept in memory
-    source, seed = ModelSource(args.model), None
-    label, path = "--model", args.model
+    try:
+        source, seed = ModelSource(args.model), None
+    except UnknownModelType as e:
+        print(f"python -m splat_train view: error: --model {e}", file=sys.stderr)
+        return 2
+    label, path, kind = "--model", args.model, source.kind
     try:
         source.refresh(strict=True)
         if args.seed_ply is not None:
-            label, path = "--seed-ply", args.seed_ply
+            label, path, kind = "--seed-ply", args.seed_ply, "ply"
             seed = read_checked(path)
+    except SpzUnavailable as e:
+        print(f"python -m splat_train view: error: --model {path}: {e}", file=sys.stderr)
+        return 2
+    except SplatFormatError as e:  # its message names the file and says it is not one
+        print(f"python -m splat_train view: error: --model {e}", file=sys.stderr)
+        return 2
     except (PlyFormatError, OSError, ValueError) as e:
-        print(f"python -m splat_train view: error: {label} {path} is not a 3DGS PLY: {e}", file=sys.stderr)
+        print(f"python -m splat_train view: error: {label} {path} is not a {TYPE_NAMES[kind]}: {e}", file=sys.stderr)
         return 2
     try:
         background, bg_from = view_background(str(source.candidates()[-1]), args.background)

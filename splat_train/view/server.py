@@ -17,9 +17,10 @@ that trickles a byte at a time holds no thread longer).
 A client that goes away mid-answer (a browser that stops a download: ``BrokenPipeError``,
 ``ConnectionResetError``) costs one debug line, never a traceback.
 
-The model (``/model.ply``) is served from memory, the bytes that were checked
+The model is served at ``/model.<type>`` (``/model.ply``, ``/model.splat`` or ``/model.spz``:
+its file's type, :func:`.source.model_type`) from memory, the bytes that were checked
 (:mod:`.source`), with the headers ``X-Model-Version`` and ``X-Model-Iteration`` (empty for a
-PLY without an iteration); ``/state.json`` says which version is served now.
+model without an iteration); ``/state.json`` says which version is served now, and its type.
 """
 
 from __future__ import annotations
@@ -63,8 +64,11 @@ VENDOR_FILES = {
     "/vendor/spark.module.js": "@sparkjsdev/spark/dist/spark.module.js",
 }
 STATIC_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js", "/shfix.js": "shfix.js"}
+# the three model types are binary formats with no registered media type (a .spz is a gzip stream,
+# but not one a browser should unpack: Spark reads the stream itself)
 CONTENT_TYPES = {".js": "text/javascript; charset=utf-8", ".html": "text/html; charset=utf-8",
-                 ".json": "application/json", ".ply": "application/octet-stream"}
+                 ".json": "application/json", ".ply": "application/octet-stream",
+                 ".splat": "application/octet-stream", ".spz": "application/octet-stream"}
 INSTALL_HINT = ("the viewer's browser libraries are not installed: run `make install` "
                 "(or `npm ci --prefix splat_train/view/npm`)")
 
@@ -103,7 +107,7 @@ Route = Union[Path, bytes, Dynamic]
 
 
 def model_route(source: ModelSource) -> Dynamic:
-    """``/model.ply``: the bytes ``source`` serves now, with their version and iteration."""
+    """``/model.<type>``: the bytes ``source`` serves now, with their version and iteration."""
     def answer() -> tuple[bytes, dict[str, str]] | None:
         s = source.current()
         if s is None:
@@ -113,15 +117,21 @@ def model_route(source: ModelSource) -> Dynamic:
     return answer
 
 
+def model_url(source: ModelSource) -> str:
+    """The URL the model of ``source`` is served at: ``/model.`` and its type."""
+    return f"/model.{source.kind}"
+
+
 def build_routes(model: ModelSource | str | Path, seed: bytes | str | Path | None = None,
                  cameras_blob: bytes | None = None,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Route]:
     """The complete table of what the server answers: URL path -> file, bytes or answer made at
-    request time. ``model``: what ``/model.ply`` serves (:mod:`.source`; a path is read and
+    request time. ``model``: what ``/model.<type>`` serves (:mod:`.source`; a path is read and
     checked now); ``seed``: the seed PLY's checked bytes (a path is read and checked now).
     ``background``: RGB in [0, 1] the page clears to, behind the Gaussians (the colour the model
     was trained against: a model trained against a colour is transparent where that colour was).
-    PlyFormatError / OSError for a path that is not a 3DGS PLY."""
+    PlyFormatError / SplatFormatError / OSError for a path that is not a model of its type
+    (UnknownModelType for a suffix that is none)."""
     if not isinstance(model, ModelSource):
         model = ModelSource(model)
         model.refresh(strict=True)
@@ -129,7 +139,7 @@ def build_routes(model: ModelSource | str | Path, seed: bytes | str | Path | Non
         seed = read_checked(seed)
     routes: dict[str, Route] = {url: STATIC_DIR / rel for url, rel in STATIC_FILES.items()}
     routes.update({url: NODE_MODULES / rel for url, rel in VENDOR_FILES.items()})
-    routes["/model.ply"] = model_route(model)
+    routes[model_url(model)] = model_route(model)
     routes["/state.json"] = lambda: (model.state_json(), {})
     if seed is not None:
         routes["/seed.ply"] = bytes(seed)

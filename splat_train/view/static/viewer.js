@@ -1,6 +1,7 @@
-// The page of `python -m splat_train view`: a trained 3DGS PLY rendered by Spark with the
-// original 3DGS conventions (so it matches `python -m splat_train render`), the COLMAP
-// cameras as frusta, a seed toggle and a jump to any camera's pose and intrinsics.
+// The page of `python -m splat_train view`: a trained model (3DGS PLY, or its .splat or .spz
+// export: /state.json's "type", served at /model.<type>) rendered by Spark with the original
+// 3DGS conventions (so a PLY matches `python -m splat_train render`), the COLMAP cameras as
+// frusta, a seed toggle and a jump to any camera's pose and intrinsics.
 // URL parameters: camera=NAME (start at that camera), seed=1 (show the seed), ui=0 (no panel,
 // no frusta: a clean image of the model). window.viewerReady turns true once the view settled.
 // Live: /state.json is polled every STATE_POLL_MS; when the server serves a new version of the
@@ -19,6 +20,14 @@ const SPARK_3DGS = {
   sortRadial: false, clipXY: 1.4, minAlpha: 1.0 / 255.0, premultipliedAlpha: true,
 };
 const NEAR = 0.01, FAR = 1000.0;
+// A .spz stores the right-up-back (OpenGL) frame: the PLY's right-down-front (OpenCV) world
+// turned 180 degrees about x (camio.splatfmt.rdf_to_rub). Spark 2.2.0 reads a .spz's positions,
+// rotations and SH bands as stored and converts no frame, so the mesh is turned back by the
+// same half turn about x (quaternion x=1, w=0) to line up with the cameras, which are in the
+// PLY's frame (measured on tests/test_view_browser.py's scene, SH degree 0: 52 dB against the
+// PLY's image turned, 12 dB not).
+// A .splat is written in the PLY's frame and needs no turn.
+const SPZ_TO_PLY_FRAME = new THREE.Quaternion(1, 0, 0, 0);
 const STATE_POLL_MS = 1000;
 const params = new URLSearchParams(window.location.search);
 const showUi = params.get("ui") !== "0";
@@ -156,16 +165,18 @@ document.getElementById("frusta").addEventListener("change", (e) => { frusta.vis
 document.getElementById("seed").addEventListener("change", (e) => showSeed(e.target.checked));
 window.addEventListener("resize", layout);
 
-async function loadSplats(url, bytes = null) {
+async function loadSplats(url, bytes = null, fileType = "ply") {
   // extSplats: float colour per splat, so base colours above 1 are not clamped before SH is added
   if (bytes === null) bytes = new Uint8Array(await (await fetch(url)).arrayBuffer());
-  const mesh = new SplatMesh({ fileBytes: bytes.slice(), fileType: "ply", extSplats: true });
+  const mesh = new SplatMesh({ fileBytes: bytes.slice(), fileType, extSplats: true });
   await mesh.initialized;
-  const splats = mesh.extSplats ?? mesh.splats;
-  let fix;
-  try { fix = fixShPrecision(splats, bytes); } catch (e) { fix = `failed: ${e}`; }
+  if (fileType === "spz") mesh.quaternion.copy(SPZ_TO_PLY_FRAME);
+  let fix = `not a PLY (${fileType}): as Spark reads it`;
+  if (fileType === "ply") {  // the SH re-encoding reads the PLY's own floats
+    try { fix = fixShPrecision(mesh.extSplats ?? mesh.splats, bytes); } catch (e) { fix = `failed: ${e}`; }
+    if (fix !== "applied") console.warn(`SH bands of ${url} at Spark's precision: ${fix}`);
+  }
   window.viewerShFix = Object.assign(window.viewerShFix || {}, { [url]: fix });
-  if (fix !== "applied") console.warn(`SH bands of ${url} at Spark's precision: ${fix}`);
   return mesh;
 }
 
@@ -179,16 +190,18 @@ async function showSeed(on) {
 
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
+let modelType = "ply";  // /state.json's "type": Spark's fileType, the suffix of the model's URL
 async function fetchModel() {
   // the served model's bytes and the version and iteration they belong to (one response);
   // null while the server has none yet (503: a training run before its first snapshot)
-  const resp = await fetch("/model.ply", { cache: "no-store" });
+  const url = `/model.${modelType}`;
+  const resp = await fetch(url, { cache: "no-store" });
   if (resp.status === 503) return null;
-  if (!resp.ok) throw new Error(`/model.ply: HTTP ${resp.status}`);
+  if (!resp.ok) throw new Error(`${url}: HTTP ${resp.status}`);
   const version = Number(resp.headers.get("X-Model-Version") || 0);
   const it = resp.headers.get("X-Model-Iteration");
   const bytes = new Uint8Array(await resp.arrayBuffer());
-  return { version, iteration: it ? Number(it) : null, mesh: await loadSplats("/model.ply", bytes) };
+  return { version, iteration: it ? Number(it) : null, mesh: await loadSplats(url, bytes, modelType) };
 }
 
 function showIteration(it) {
@@ -243,9 +256,12 @@ function frame() {
 }
 
 async function main() {
-  const [camsResp, viewResp] = await Promise.all([fetch("/cameras.json"), fetch("/view.json")]);
+  const [camsResp, viewResp, stateResp] = await Promise.all(
+    [fetch("/cameras.json"), fetch("/view.json"), fetch("/state.json", { cache: "no-store" })]);
   cameras = (await camsResp.json()).cameras;
   const view = await viewResp.json();
+  modelType = (await stateResp.json()).type;
+  window.viewerModelType = modelType;
   // the colour the model was trained against, as the trainer composites it (no sRGB conversion)
   const bg = view.background;
   renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.LinearSRGBColorSpace), 1);
