@@ -493,6 +493,7 @@ def test_summary_doc_replaces_only_a_table_it_wrote(tmp_path):
 @pytest.mark.parametrize("select, needles", [
     (["--scenes", "dekс"], ["--scenes dekс", "known: desk, lamp"]),
     (["--scenes", "desk", "lamb"], ["--scenes lamb", "known: desk, lamp"]),
+    (["--scenes", "fern"], ["--scenes fern", "role evaluation", "known: desk, lamp"]),
     (["--n", "7"], ["--n 7", "known: 3, 6"]),
     (["--scenes"], ["(none given)"]),
 ])
