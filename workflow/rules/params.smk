@@ -33,7 +33,7 @@ def colmap_args(wildcards):
         if has_reference(wildcards.dataset, wildcards.scene):
             # every repeat is evaluated against the reference: ATE and gated-success spread
             args.append(
-                f"--ref {shlex.quote(scene_dir(wildcards) + '/sparse/0')} {gate_args()}"
+                f"--ref {shlex.quote(str(Path(scene_dir(wildcards), 'sparse', '0')))} {gate_args()}"
             )
     return " ".join(args)
 
@@ -225,7 +225,7 @@ def train_resume_dir(wildcards, output):
 def train_test_args(wildcards, input):
     if "test_cameras" in input.keys():
         return (
-            f"--test-cameras {shlex.quote(input.test_cameras + '/0')} "
+            f"--test-cameras {shlex.quote(str(Path(input.test_cameras, '0')))} "
             f"--test-images {shlex.quote(input.test_images)}"
         )
     return ""
