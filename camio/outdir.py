@@ -514,10 +514,11 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             raise OutputFolderError(f"--out {out} contains the input {name} {p}: choose an output "
                                     "folder that holds none of the inputs")
     parent = out_p.parent if str(out_p.parent) else Path(".")
-    for p, what in ((out_p, "--out"), *(() if folder else ((parent, "the folder of --out"),))):
+    links = [(out_p, "folder" if folder else "file")] + ([] if folder else [(parent, "folder")])
+    for p, kind in links:
         if p.is_symlink():
-            raise OutputFolderError(f"{what} {p} is a symbolic link: name the {'folder' if p != out_p or folder else 'file'} "
-                                    f"itself; {stage} never writes through a link (nothing was changed)")
+            raise OutputFolderError(f"--out {out}: {p} is a symbolic link; name the {kind} itself, {stage} never "
+                                    "writes through a link (nothing was changed)")
     if not folder:
         if o.is_dir():
             raise OutputFolderError(f"--out {out} is a folder; {stage} writes a file there: name the file")
@@ -527,8 +528,9 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         if o.exists():
             kin = {other for other, names in (same_file_as or {}).items() if o.name in set(names)}
             if not writers & ({stage} | kin) and not (derived is not None and o.is_file() and derived(o)):
-                who = (f"has changed since `{sorted(recorded)[0]}` wrote it" if recorded
-                       else f"was written by `{sorted(writers)[0]}`" if writers else f"was not written by `{stage}`")
+                who = (f"was written by `{sorted(writers)[0]}`" if writers
+                       else f"has changed since `{sorted(recorded)[0]}` wrote it" if recorded
+                       else f"was not written by `{stage}`")
                 raise OutputFolderError(f"--out {out} exists and {who}: {stage} never replaces a file it did not "
                                         "write; move it away or name a new file (nothing was changed)")
         return out_p
@@ -622,23 +624,24 @@ def _before_rename(tmp: Path, path: Path) -> None:
             before the run and the stage did not write it.
     """
     target = Path(os.path.realpath(path.parent)) / path.name
-    if target in _PREPARED_FILES:
-        stage = _PREPARED_FILES[target][0]
-        st = _stamp(tmp)
-        if st is not None and tmp.is_file():
-            _ledger(target.parent)  # a ledger this version does not read is never appended to
-            _append_own(target.parent / LEDGER, [json.dumps([target.name, stage, *st], ensure_ascii=True)])
     owners = [f for f in _BEFORE if f in target.parents]
-    if not owners:
+    folder = max(owners, key=lambda f: len(f.parts)) if owners else None
+    if folder is not None:
+        stage, before = _BEFORE[folder]
+        rel = target.relative_to(folder).as_posix()
+        hit = [p for p in before if p.rstrip("/") == rel or p.startswith(rel + "/")]
+        hit = [p for p in hit if os.path.lexists(folder / p.rstrip("/"))]
+        if hit:
+            raise OutputFolderError(f"`{stage}` would replace {folder / hit[0].rstrip('/')}, which was in {folder} "
+                                    "before it ran and which it did not write: move it away and run it again")
+    if target in _PREPARED_FILES and tmp.is_file() and not tmp.is_symlink():
+        st = _stamp(tmp)
+        if st is not None:
+            _ledger(target.parent)  # a ledger this version does not read is never appended to
+            _append_own(target.parent / LEDGER,
+                        [json.dumps([target.name, _PREPARED_FILES[target][0], *st], ensure_ascii=True)])
+    if folder is None:
         return
-    folder = max(owners, key=lambda f: len(f.parts))
-    stage, before = _BEFORE[folder]
-    rel = target.relative_to(folder).as_posix()
-    hit = [p for p in before if p.rstrip("/") == rel or p.startswith(rel + "/")]
-    hit = [p for p in hit if os.path.lexists(folder / p.rstrip("/"))]
-    if hit:
-        raise OutputFolderError(f"`{stage}` would replace {folder / hit[0].rstrip('/')}, which was in {folder} "
-                                "before it ran and which it did not write: move it away and run it again")
     if tmp.is_dir() and not tmp.is_symlink():
         rels = [rel + "/"] + [f"{rel}/{p}" for p in _tree_all(tmp)]
         lines = [_entry(r, None if r.endswith("/") else _stamp(tmp / r[len(rel) + 1:])) for r in rels]

@@ -308,7 +308,8 @@ def write_summary(records: Path, doc: Path, scenes) -> dict:
     summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
                "aggregate": agg, "paired": pairs, "targets": verdict,
                "measures_by_n": {f"n{n}_i{its}": v for (n, its), v in by_n.items()}}
-    (records / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    with atomic_path(records / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1) + "\n")
     doc.parent.mkdir(parents=True, exist_ok=True)
     runs_dir = (records / "runs").resolve()
     shown = runs_dir.relative_to(REPO) if runs_dir.is_relative_to(REPO) else runs_dir
