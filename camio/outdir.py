@@ -209,7 +209,7 @@ def _write_own(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", errors="surrogateescape") as f:
             f.write(text)
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, 0o666 & ~atomic._umask())  # as a file the stage writes
         os.replace(tmp, path)
     except BaseException:
         try:
