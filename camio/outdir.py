@@ -524,8 +524,8 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             raise OutputFolderError(f"--out {out} is a folder; {stage} writes a file there: name the file")
         if o.name in _OWN:
             raise OutputFolderError(f"--out {out}: {o.name} is the output rule's own file; name another file")
-        writers, recorded = _file_writers(o.parent, o.name) if o.parent.is_dir() else (set(), set())
         if o.exists():
+            writers, recorded = _file_writers(o.parent, o.name)
             kin = {other for other, names in (same_file_as or {}).items() if o.name in set(names)}
             if not writers & ({stage} | kin) and not (derived is not None and o.is_file() and derived(o)):
                 who = (f"was written by `{sorted(writers)[0]}`" if writers
