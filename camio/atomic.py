@@ -20,6 +20,18 @@ import numpy as np
 __all__ = ["atomic_path", "atomic_dir", "write_json", "save_npz"]
 
 
+BEFORE_RENAME: list[Callable[[Path, Path], None]] = []
+"""Called as ``hook(tmp, path)`` when a temporary is complete, before it is renamed onto
+``path`` (:mod:`camio.outdir` records there what a stage writes, so that a rerun knows it even
+after a kill, and refuses to replace what is not the stage's). A hook that raises stops the
+write; the temporary is removed."""
+
+
+def _before_rename(tmp: Path, path: Path) -> None:
+    for hook in BEFORE_RENAME:
+        hook(tmp, path)
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -96,6 +108,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     with _temporary(lambda: _temp_file(path), Path.unlink) as tmp:
         yield tmp
+        _before_rename(tmp, path)
         os.replace(tmp, path)
 
 
@@ -107,6 +120,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     with _temporary(lambda: _temp_dir(path), lambda t: shutil.rmtree(t, ignore_errors=True)) as tmp:
         yield tmp
+        _before_rename(tmp, path)
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
             os.replace(path, old / "x")

@@ -273,13 +273,16 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
 def main(argv: list[str] | None = None) -> int:
     """Train, render, test-pose or view; the output folder's writer's lock is given up when the
     command returns or raises (camio.outdir)."""
-    from camio.outdir import finish_outs, release_locks
+    from camio.outdir import OutputFolderError, finish_outs, release_locks
 
     try:
         rc = _main(argv)
         if rc == 0:
             finish_outs()  # record what the command wrote, file by file (camio.outdir)
         return rc
+    except OutputFolderError as exc:  # a write the output rule refused: never over a user's file
+        log.error("%s", exc)
+        return 2
     finally:
         release_locks()
 

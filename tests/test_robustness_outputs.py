@@ -165,7 +165,12 @@ def test_synth_rerun_into_its_own_folder_still_works(scene):
     proc = _run(["-m", "camio", "synth", "--out", str(scene), "--views", "9", "--width", "32"])
     assert proc.returncode == 0, proc.stderr
     marker = (scene / MARKER).read_text().splitlines()
-    assert marker[:2] == ["camio synth", "#files"] and "images/0000.png" in marker
+    assert marker[:2] == ["camio synth", "#files"] and "images/0000.png" in _recorded(marker)
+
+
+def _recorded(marker: list[str]) -> list[str]:
+    """The paths a marker's record lines (after its two header lines) name."""
+    return [json.loads(line)[0] for line in marker[2:]]
 
 
 def test_convert_rerun_keeps_a_users_model_folder(synth, tmp_path):
@@ -204,16 +209,35 @@ def test_render_rerun_clears_its_own_earlier_renders_and_keeps_the_users(view, t
     assert (out / "mine.txt").read_text() == "keep"
 
 
-def test_render_after_an_unfinished_run_removes_what_that_run_left(view, tmp_path):
-    """A run that did not finish (killed) recorded what was there before it; the next run
-    removes everything else, so half a run never mixes with a whole one."""
+_KILLED = ("import os, signal, sys\nfrom pathlib import Path\nfrom camio.atomic import atomic_path\n"
+           "from camio.outdir import prepare_out\nout = Path(sys.argv[1])\n"
+           "prepare_out(out, {}, 'splat_train render', fresh=True)\n"
+           "for name in sys.argv[2:]:\n    with atomic_path(out / name) as tmp:\n        tmp.write_bytes(b'half a run')\n"
+           "os.kill(os.getpid(), signal.SIGKILL)\n")
+
+
+def _killed_render(out: Path, *names: str) -> None:
+    """What a render killed (SIGKILL: no ``finally`` runs) after writing ``names`` leaves."""
+    proc = subprocess.run([sys.executable, "-c", _KILLED, str(out), *names], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+
+
+def test_render_after_an_unfinished_run_removes_what_that_run_wrote_and_keeps_the_users(view, tmp_path):
+    """A run that did not finish (killed) recorded each file as it wrote it; the next run
+    removes those, so half a run never mixes with a whole one, and keeps everything the user
+    added to the folder after the kill."""
     out = tmp_path / "renders"
     assert _render(view, out, ["view00.png", "view01.png"]).returncode == 0
-    marker = (out / MARKER).read_text().splitlines()
-    (out / MARKER).write_text("\n".join([marker[0], "#kept"]) + "\n")  # as a killed run leaves it
-    (out / "view02.png").write_bytes(b"half a run")
-    assert _render(view, out, ["view03.png"]).returncode == 0
-    assert sorted(p.name for p in out.rglob("*.png")) == ["view03.png"]
+    _killed_render(out, "view02.png", "sub/view04.png")
+    (out / "view05.png").write_bytes(b"the user's, added after the kill")
+    (out / "mine").mkdir()
+    (out / "mine" / "notes.txt").write_text("mine")
+    proc = _render(view, out, ["view03.png"])
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.png")) == ["view03.png", "view05.png"]
+    assert (out / "view05.png").read_bytes() == b"the user's, added after the kill" and not (out / "sub").exists()
+    assert (out / "mine" / "notes.txt").read_text() == "mine"
 
 
 # --- one writer per output folder ------------------------------------------------------------
@@ -326,7 +350,7 @@ def test_a_stage_rerun_refuses_a_foreign_file_inside_a_folder_it_wrote(synth, tm
             "0003.png", "--out", str(out)]
     assert _run(args).returncode == 0
     written = (out / MARKER).read_text().splitlines()
-    assert written[:2] == ["evaluation.posed", "#files"] and "sparse/0/cameras.txt" in written
+    assert written[:2] == ["evaluation.posed", "#files"] and "sparse/0/cameras.txt" in _recorded(written)
     (out / "notes.txt").write_text("beside")
     proc = _run(args)
     assert proc.returncode == 0, proc.stderr

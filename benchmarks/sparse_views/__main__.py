@@ -43,13 +43,38 @@ def _variant(text: str) -> tuple[str, dict]:
     return name, cfg
 
 
+def _check_selection(args, of_role, scenes) -> None:
+    """Refuse a grid selection that names what the protocol does not hold (``--scenes`` not of
+    the role, ``--n`` no selected scene has) or that selects nothing: a misspelt name is an
+    error, never "0 runs to do".
+
+    Raises:
+        ValueError: one line naming the unknown values and the known ones.
+    """
+    known = [s.name for s in of_role]
+    if args.scenes is not None:
+        unknown = [n for n in args.scenes if n not in known]
+        if unknown or not args.scenes:
+            raise ValueError(f"--scenes {' '.join(unknown) if unknown else '(none given)'}: no such scene of role "
+                             f"{args.role} in {args.protocol} (known: {', '.join(known) or 'none'})")
+    if args.n is not None:
+        views = sorted({n for s in scenes for n in s.views})
+        unknown = [n for n in args.n if n not in views]
+        if unknown or not args.n:
+            raise ValueError(f"--n {' '.join(map(str, unknown)) if unknown else '(none given)'}: no selected scene "
+                             f"has that view count (known: {', '.join(map(str, views)) or 'none'})")
+    if not scenes:
+        raise ValueError(f"no scene of role {args.role} in {args.protocol}: the grid is empty")
+
+
 def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import prepare
     from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
     from camio.atomic import atomic_path
 
-    scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
-              and (not args.scenes or s.name in args.scenes)]
+    of_role = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role]
+    scenes = [s for s in of_role if args.scenes is None or s.name in args.scenes]
+    _check_selection(args, of_role, scenes)
     # each variant once: its name, config, recipe, config overrides and the values its runs resolve
     plans = []
     from benchmarks.sparse_views.cells import seed_folder
@@ -216,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
                 "relabel": cmd_relabel, "floor": cmd_floor}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        print(f"python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
+        print(f"error: python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
         return 2
 
 

@@ -25,8 +25,8 @@ rule bridge_predictions:
         out=out_dir,
         args=bridge_args,
     shell:
-        "python -m bridge --pred {input.predictions} --out {params.out} {params.args} "
-        "> {log} 2>&1"
+        "python -m bridge --pred {input.predictions:q} --out {params.out:q} {params.args} "
+        "> {log:q} 2>&1"
 
 
 rule bridge_colmap:
@@ -57,6 +57,6 @@ rule bridge_colmap:
     shell:
         # the model the initialiser seeds from: its sparse/0, or its random-point fallback's
         # when status.json records one (evaluation/initialisers/random_init.py)
-        "model=$(python -m evaluation.initialisers.random_init seed-model {params.init} 2> {log}) && "
-        "python -m bridge --colmap $model --images {input.scene}/images --mode uniform "
-        "--out {params.out} >> {log} 2>&1"
+        "model=$(python -m evaluation.initialisers.random_init seed-model {params.init:q} 2> {log:q}) && "
+        'python -m bridge --colmap "$model" --images {input.scene:q}/images --mode uniform '
+        "--out {params.out:q} >> {log:q} 2>&1"

@@ -4,6 +4,7 @@ RUN, MODE), the wildcard constraints, thread counts and helper-script paths."""
 import importlib.util
 import json
 import os
+import shlex
 import sys
 
 from snakemake.exceptions import IncompleteCheckpointException

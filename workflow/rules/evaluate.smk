@@ -21,8 +21,8 @@ rule image_metrics:
     params:
         lpips=lpips_args,
     shell:
-        "python -m evaluation images --pred {input.renders} --gt {input.test_images} "
-        "{params.lpips} --out {output} > {log} 2>&1"
+        "python -m evaluation images --pred {input.renders:q} --gt {input.test_images:q} "
+        "{params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 # The test-pose protocol (docs/protocols.md): each held-out pose optimised against its image
@@ -50,8 +50,8 @@ rule testpose_refine:
     params:
         args=testpose_args,
     shell:
-        "python -m splat_train testpose --model {input.model} --cameras {input.cameras}/0 "
-        "--images {input.test_images} --out {output} {params.args} > {log} 2>&1"
+        "python -m splat_train testpose --model {input.model:q} --cameras {input.cameras:q}/0 "
+        "--images {input.test_images:q} --out {output:q} {params.args} > {log:q} 2>&1"
 
 
 rule testpose_metrics:
@@ -74,8 +74,8 @@ rule testpose_metrics:
     params:
         lpips=lpips_args,
     shell:
-        "python -m evaluation images --pred {input.refine}/renders --gt {input.test_images} "
-        "{params.lpips} --out {output} > {log} 2>&1"
+        "python -m evaluation images --pred {input.refine:q}/renders --gt {input.test_images:q} "
+        "{params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 rule unavailable_initialisers:
@@ -114,8 +114,8 @@ rule tables:
         out=out_dir,
         gate=gate_args,
     shell:
-        "python -m evaluation tables --results {params.results} --out {params.out} "
-        "{params.gate} > {log} 2>&1"
+        "python -m evaluation tables --results {params.results:q} --out {params.out:q} "
+        "{params.gate} > {log:q} 2>&1"
 
 
 rule plots:
@@ -137,7 +137,7 @@ rule plots:
     params:
         results=results_of_input,
     shell:
-        "python -m evaluation plots --results {params.results} --out {output} > {log} 2>&1"
+        "python -m evaluation plots --results {params.results:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule initialiser_notes:
@@ -158,7 +158,7 @@ rule initialiser_notes:
         script=VIEWS_SCRIPT,
         skipped=skipped_initialisers_json,
     shell:
-        "python {params.script} notes --skipped {params.skipped:q} --out {output} > {log} 2>&1"
+        "python {params.script:q} notes --skipped {params.skipped:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule report:
@@ -187,5 +187,5 @@ rule report:
         out=out_dir,
         gate=gate_args,
     shell:
-        "python -m evaluation report --results {params.results} --out {params.out} "
-        "--scenes {params.results} {params.gate} > {log} 2>&1"
+        "python -m evaluation report --results {params.results:q} --out {params.out:q} "
+        "--scenes {params.results:q} {params.gate} > {log:q} 2>&1"

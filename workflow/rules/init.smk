@@ -27,8 +27,8 @@ rule vggt_init:
         out=out_dir,
         args=vggt_args,
     shell:
-        "python -m vggt_init --images {input.scene}/images --image-list {input.image_list} "
-        "--out {params.out} {params.args} > {log} 2>&1"
+        "python -m vggt_init --images {input.scene:q}/images --image-list {input.image_list:q} "
+        "--out {params.out:q} {params.args} > {log:q} 2>&1"
 
 
 rule colmap_baseline:
@@ -52,9 +52,9 @@ rule colmap_baseline:
         out=out_dir,
         args=colmap_args,
     shell:
-        "python -m evaluation.initialisers.colmap_baseline --images {input.scene}/images "
-        "--image-list {input.image_list} --out {params.out} --threads {threads} "
-        "{params.args} > {log} 2>&1"
+        "python -m evaluation.initialisers.colmap_baseline --images {input.scene:q}/images "
+        "--image-list {input.image_list:q} --out {params.out:q} --threads {threads} "
+        "{params.args} > {log:q} 2>&1"
 
 
 checkpoint colmap_index:
@@ -76,7 +76,7 @@ checkpoint colmap_index:
     params:
         script=VIEWS_SCRIPT,
     shell:
-        "python {params.script} index --status {input} --out {output} > {log} 2>&1"
+        "python {params.script:q} index --status {input:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule oracle_init:
@@ -102,8 +102,8 @@ rule oracle_init:
         out=out_dir,
         args=oracle_args,
     shell:
-        "python -m evaluation.initialisers.oracle --scene {input.scene} --image-list {input.image_list} "
-        "--out {params.out} {params.args} > {log} 2>&1"
+        "python -m evaluation.initialisers.oracle --scene {input.scene:q} --image-list {input.image_list:q} "
+        "--out {params.out:q} {params.args} > {log:q} 2>&1"
 
 
 rule posed_init:
@@ -128,8 +128,8 @@ rule posed_init:
         out=out_dir,
         args=posed_args,
     shell:
-        "python -m evaluation.initialisers.posed --scene {input.scene} --image-list {input.image_list} "
-        "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+        "python -m evaluation.initialisers.posed --scene {input.scene:q} --image-list {input.image_list:q} "
+        "--out {params.out:q} --threads {threads} {params.args} > {log:q} 2>&1"
 
 
 rule mvs_init:
@@ -215,8 +215,8 @@ rule random_init:
         out=out_dir,
         args=random_args,
     shell:
-        "python -m evaluation.initialisers.random_init --cameras {input.scene}/sparse/0 "
-        "--image-list {input.image_list} --out {params.out} {params.args} > {log} 2>&1"
+        "python -m evaluation.initialisers.random_init --cameras {input.scene:q}/sparse/0 "
+        "--image-list {input.image_list:q} --out {params.out:q} {params.args} > {log:q} 2>&1"
 
 
 # Every initialiser without a rule of its own (the registry's ``own_rule`` False): its command
@@ -245,8 +245,8 @@ rule registry_init:
         command=init_command,
         out=out_dir,
     shell:
-        "python -m {params.command} --scene {input.scene} --image-list {input.image_list} "
-        "--out {params.out} > {log} 2>&1"
+        "python -m {params.command} --scene {input.scene:q} --image-list {input.image_list:q} "
+        "--out {params.out:q} > {log:q} 2>&1"
 
 
 rule ba_predictions:
@@ -274,9 +274,9 @@ rule ba_predictions:
         out=out_dir,
         args=ba_args,
     shell:
-        "python -m evaluation.initialisers.ba_init --init {params.init} --images {input.scene}/images "
-        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
-        "> {log} 2>&1"
+        "python -m evaluation.initialisers.ba_init --init {params.init:q} --images {input.scene:q}/images "
+        "--image-list {input.image_list:q} --out {params.out:q} --threads {threads} {params.args} "
+        "> {log:q} 2>&1"
 
 
 rule ba_posed:
@@ -303,9 +303,9 @@ rule ba_posed:
         out=out_dir,
         args=ba_args,
     shell:
-        "python -m evaluation.initialisers.ba_init --init {params.init} --images {input.scene}/images "
-        "--image-list {input.image_list} --out {params.out} --threads {threads} {params.args} "
-        "> {log} 2>&1"
+        "python -m evaluation.initialisers.ba_init --init {params.init:q} --images {input.scene:q}/images "
+        "--image-list {input.image_list:q} --out {params.out:q} --threads {threads} {params.args} "
+        "> {log:q} 2>&1"
 
 
 rule pose_eval:
@@ -330,5 +330,5 @@ rule pose_eval:
         model=init_model_dir,
         gate=gate_args,
     shell:
-        "python -m evaluation pose --pred {params.model} --ref {input.scene}/sparse/0 "
-        "--names {input.split} --n {wildcards.n} {params.gate} --out {output} > {log} 2>&1"
+        "python -m evaluation pose --pred {params.model:q} --ref {input.scene:q}/sparse/0 "
+        "--names {input.split:q} --n {wildcards.n} {params.gate} --out {output:q} > {log:q} 2>&1"

@@ -12,9 +12,9 @@ def vggt_args(wildcards):
         f"--points-from {v['points_from']}",
     ]
     if v["checkpoint"]:
-        args.append(f"--checkpoint {v['checkpoint']}")
+        args.append(f"--checkpoint {shlex.quote(str(v['checkpoint']))}")
     if v["model_config"]:
-        args.append(f"--model-config {v['model_config']}")
+        args.append(f"--model-config {shlex.quote(str(v['model_config']))}")
     if v["image_size"]:
         args.append(f"--image-size {v['image_size']}")
     return " ".join(args)
@@ -32,7 +32,9 @@ def colmap_args(wildcards):
         args.append(f"--repeats {c['repeats']}")
         if has_reference(wildcards.dataset, wildcards.scene):
             # every repeat is evaluated against the reference: ATE and gated-success spread
-            args.append(f"--ref {scene_dir(wildcards)}/sparse/0 {gate_args()}")
+            args.append(
+                f"--ref {shlex.quote(str(Path(scene_dir(wildcards), 'sparse', '0')))} {gate_args()}"
+            )
     return " ".join(args)
 
 
@@ -223,7 +225,8 @@ def train_resume_dir(wildcards, output):
 def train_test_args(wildcards, input):
     if "test_cameras" in input.keys():
         return (
-            f"--test-cameras {input.test_cameras}/0 --test-images {input.test_images}"
+            f"--test-cameras {shlex.quote(str(Path(input.test_cameras, '0')))} "
+            f"--test-images {shlex.quote(input.test_images)}"
         )
     return ""
 
@@ -255,7 +258,7 @@ def train_recipe_args(wildcards):
     )
     parts = {k: t[k] for k in keys if t[k] is not None}
     if parts:
-        args.append(f"--config '{json.dumps(parts, sort_keys=True)}'")
+        args.append(f"--config {shlex.quote(json.dumps(parts, sort_keys=True))}")
     return " ".join(args)
 
 

@@ -23,9 +23,9 @@ rule render_train_views:
         runtime=short_runtime,
         cpus_per_task=cpus_per_task,
     shell:
-        "python -m splat_train render --model {input.model} --cameras {input.cameras}/0 "
-        "--images {input.scene}/images --image-list {input.image_list} --out {output} "
-        "> {log} 2>&1"
+        "python -m splat_train render --model {input.model:q} --cameras {input.cameras:q}/0 "
+        "--images {input.scene:q}/images --image-list {input.image_list:q} --out {output:q} "
+        "> {log:q} 2>&1"
 
 
 rule photos_summary:
@@ -49,5 +49,5 @@ rule photos_summary:
         results=folder_of_output,
         runs=photo_runs_json,
     shell:
-        "python {params.script} --results {params.results:q} --runs {params.runs:q} --out {output} "
-        "> {log} 2>&1"
+        "python {params.script:q} --results {params.results:q} --runs {params.runs:q} --out {output:q} "
+        "> {log:q} 2>&1"

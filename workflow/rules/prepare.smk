@@ -18,7 +18,7 @@ rule synth_scene:
     params:
         args=synth_args,
     shell:
-        "python -m camio synth --out {output} {params.args} > {log} 2>&1"
+        "python -m camio synth --out {output:q} {params.args} > {log:q} 2>&1"
 
 
 rule convert_scene:
@@ -40,7 +40,7 @@ rule convert_scene:
     params:
         args=convert_args,
     shell:
-        "python -m camio convert {params.args} --out {output} > {log} 2>&1"
+        "python -m camio convert {params.args} --out {output:q} > {log:q} 2>&1"
 
 
 rule undistort_scene:
@@ -62,7 +62,7 @@ rule undistort_scene:
     params:
         args=convert_args,
     shell:
-        "python -m camio convert {params.args} --undistort --out {output} > {log} 2>&1"
+        "python -m camio convert {params.args} --undistort --out {output:q} > {log:q} 2>&1"
 
 
 rule split_scene:
@@ -84,7 +84,7 @@ rule split_scene:
     params:
         args=split_args,
     shell:
-        "python -m camio split --scene {input.scene} {params.args} --out {output} > {log} 2>&1"
+        "python -m camio split --scene {input.scene:q} {params.args} --out {output:q} > {log:q} 2>&1"
 
 
 rule train_list:
@@ -106,8 +106,8 @@ rule train_list:
     params:
         script=VIEWS_SCRIPT,
     shell:
-        "python {params.script} names --split {input} --n {wildcards.n} "
-        "--out {output} > {log} 2>&1"
+        "python {params.script:q} names --split {input:q} --n {wildcards.n} "
+        "--out {output:q} > {log:q} 2>&1"
 
 
 rule test_images:
@@ -130,5 +130,5 @@ rule test_images:
     params:
         script=VIEWS_SCRIPT,
     shell:
-        "python {params.script} link --split {input.split} --which test "
-        "--images {input.scene}/images --out {output} > {log} 2>&1"
+        "python {params.script:q} link --split {input.split:q} --which test "
+        "--images {input.scene:q}/images --out {output:q} > {log:q} 2>&1"

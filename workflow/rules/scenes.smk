@@ -91,11 +91,11 @@ def synth_args(wildcards):
 def convert_args(wildcards):
     """Arguments of `camio convert` (without --undistort, which the rule adds)."""
     cfg = scene_cfg(wildcards.dataset, wildcards.scene)
-    args = [f"--src {cfg['path']}"]
+    args = [f"--src {shlex.quote(str(cfg['path']))}"]
     if cfg["format"] != "auto":
         args.append(f"--format {cfg['format']}")
     if cfg.get("images_subdir"):
-        args.append(f"--images-subdir {cfg['images_subdir']}")
+        args.append(f"--images-subdir {shlex.quote(str(cfg['images_subdir']))}")
     if cfg["downsample"] > 1:
         args.append(f"--downsample {cfg['downsample']}")
     if cfg.get("max_size") is not None:
@@ -138,7 +138,9 @@ def split_inputs(wildcards):
 def split_args(wildcards):
     views = " ".join(str(n) for n in scene_views(wildcards.dataset, wildcards.scene))
     manifest = split_manifest(wildcards.dataset, wildcards.scene)
-    return f"--n {views}" + (f" --manifest {manifest}" if manifest else "")
+    return f"--n {views}" + (
+        f" --manifest {shlex.quote(str(manifest))}" if manifest else ""
+    )
 
 
 def has_test_split(dataset, scene):

@@ -29,8 +29,8 @@ if STUDY_INIT == "oracle":
             out=out_dir,
             args=study_oracle_args,
         shell:
-            "python -m evaluation.initialisers.oracle --scene {input.scene} --image-list {input.image_list} "
-            "--out {params.out} {params.args} > {log} 2>&1"
+            "python -m evaluation.initialisers.oracle --scene {input.scene:q} --image-list {input.image_list:q} "
+            "--out {params.out:q} {params.args} > {log:q} 2>&1"
 
     use rule bridge_predictions as study_bridge with:
         input:
@@ -66,8 +66,8 @@ else:
             out=out_dir,
             args=study_posed_args,
         shell:
-            "python -m evaluation.initialisers.posed --scene {input.scene} --image-list {input.image_list} "
-            "--out {params.out} --threads {threads} {params.args} > {log} 2>&1"
+            "python -m evaluation.initialisers.posed --scene {input.scene:q} --image-list {input.image_list:q} "
+            "--out {params.out:q} --threads {threads} {params.args} > {log:q} 2>&1"
 
     use rule bridge_colmap as study_bridge with:
         input:
@@ -167,8 +167,8 @@ rule study_floaters:
     resources:
         mem_mb=2000,
     shell:
-        "python -m evaluation floaters --model seed={input.seed} final={input.model} "
-        "--align {input.align} --scene {input.scene} --out {output} > {log} 2>&1"
+        "python -m evaluation floaters --model seed={input.seed:q} final={input.model:q} "
+        "--align {input.align:q} --scene {input.scene:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule study_report:
@@ -194,6 +194,6 @@ rule study_report:
         refs=study_reference_args,
         plan=study_plan_args,
     shell:
-        "python -m evaluation study --results {params.root} --cells {params.cells:q} "
-        "--write-cells {output.cells} --out {params.root}/report {params.refs} {params.plan} "
-        "> {log} 2>&1"
+        "python -m evaluation study --results {params.root:q} --cells {params.cells:q} "
+        "--write-cells {output.cells:q} --out {params.root:q}/report {params.refs} {params.plan} "
+        "> {log:q} 2>&1"

@@ -102,7 +102,7 @@ def study_reference_targets(wildcards=None):
 def study_reference_args(wildcards=None):
     """--reference RUN_DIR for every reference run (evaluation study)."""
     return " ".join(
-        f"--reference {RUN.format(dataset=ds, scene=sc, n=n, init=init)}"
+        f"--reference {shlex.quote(RUN.format(dataset=ds, scene=sc, n=n, init=init))}"
         for init, ds, sc, n in study_reference_runs()
     )
 

@@ -26,9 +26,9 @@ rule align_test_cameras:
     params:
         out=out_dir,
     shell:
-        "python -m evaluation align --pred {input.cameras}/0 --ref {input.scene}/sparse/0 "
-        "--train-names {input.split} --n {wildcards.n} --images {input.test_images} "
-        "--out {params.out} > {log} 2>&1"
+        "python -m evaluation align --pred {input.cameras:q}/0 --ref {input.scene:q}/sparse/0 "
+        "--train-names {input.split:q} --n {wildcards.n} --images {input.test_images:q} "
+        "--out {params.out:q} > {log:q} 2>&1"
 
 
 rule train_splats:
@@ -62,12 +62,12 @@ rule train_splats:
         pose=pose_refine_args,
         lpips=train_lpips_args,
     shell:
-        "python -m splat_train --seed-ply {input.seed} --cameras {input.cameras}/0 "
-        "--images {input.scene}/images --image-list {input.image_list} --out {params.out} "
+        "python -m splat_train --seed-ply {input.seed:q} --cameras {input.cameras:q}/0 "
+        "--images {input.scene:q}/images --image-list {input.image_list:q} --out {params.out:q} "
         "{params.recipe} --seed {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
-        "--resume-dir {params.resume} --device {params.device} --threads {threads} "
-        "{params.test} {params.pose} {params.lpips} > {log} 2>&1"
+        "--resume-dir {params.resume:q} --device {params.device} --threads {threads} "
+        "{params.test} {params.pose} {params.lpips} > {log:q} 2>&1"
 
 
 rule align_refined_cameras:
@@ -94,9 +94,9 @@ rule align_refined_cameras:
         out=out_dir,
         pred=refined_cameras_dir,
     shell:
-        "python -m evaluation align --pred {params.pred} --train-cameras refined "
-        "--ref {input.scene}/sparse/0 --train-names {input.split} --n {wildcards.n} "
-        "--images {input.test_images} --out {params.out} > {log} 2>&1"
+        "python -m evaluation align --pred {params.pred:q} --train-cameras refined "
+        "--ref {input.scene:q}/sparse/0 --train-names {input.split:q} --n {wildcards.n} "
+        "--images {input.test_images:q} --out {params.out:q} > {log:q} 2>&1"
 
 
 rule render_test:
@@ -118,5 +118,5 @@ rule render_test:
         runtime=short_runtime,
         cpus_per_task=cpus_per_task,
     shell:
-        "python -m splat_train render --model {input.model} --cameras {input.cameras}/0 "
-        "--images {input.test_images} --out {output} > {log} 2>&1"
+        "python -m splat_train render --model {input.model:q} --cameras {input.cameras:q}/0 "
+        "--images {input.test_images:q} --out {output:q} > {log:q} 2>&1"
