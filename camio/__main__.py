@@ -31,8 +31,8 @@ def _parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
-    s.add_argument("--views", type=flag(int, 4), default=24, help="number of rendered views")
-    s.add_argument("--width", type=flag(int, 32, MAX_IMAGE_SIDE), default=256,
+    s.add_argument("--views", type=flag(int, 1), default=24, help="number of rendered views")
+    s.add_argument("--width", type=flag(int, 4, MAX_IMAGE_SIDE), default=256,
                    help="image width in pixels (height 3/4 of it)")
     s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene")
     s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=70.0,

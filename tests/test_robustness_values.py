@@ -189,7 +189,7 @@ _FLAGS = {
                (_BRIDGE, "--stride", "0"), (_BRIDGE, "--percentile", "100"), (_BRIDGE, "--voxel-size", "inf"),
                (_BRIDGE, "--seed", "-3"), (_BRIDGE, "--max-points", "0"), (_BRIDGE, "--outlier-std", "-1"),
                (_BRIDGE, "--depth-prior-samples", "0")],
-    "camio": [(["-m", "camio", "synth"], "--views", "2"), (["-m", "camio", "synth"], "--width", "999999"),
+    "camio": [(["-m", "camio", "synth"], "--views", "0"), (["-m", "camio", "synth"], "--width", "999999"),
               (["-m", "camio", "synth"], "--arc-deg", "nan"), (["-m", "camio", "synth"], "--supersample", "0"),
               (["-m", "camio", "convert", "--src", "s"], "--downsample", "0"),
               (["-m", "camio", "convert", "--src", "s"], "--max-size", "-1"),
