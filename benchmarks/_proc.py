@@ -1,4 +1,6 @@
-"""One way for the benchmarks to run a command: from the repository root, its output in a log file."""
+"""One way for the benchmarks to run a command: from the repository root, its output in a log file;
+a stop signal of the benchmark is passed on to the command, which ends cleanly first
+(:func:`runtime.stops.run_child`)."""
 
 from __future__ import annotations
 
@@ -6,6 +8,8 @@ import os
 import subprocess
 import time
 from pathlib import Path
+
+from runtime.stops import run_child
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -22,11 +26,11 @@ def run_logged(argv: list[str], log: Path, what: str | None = None) -> float:
     env = {**os.environ, "PYTHONUNBUFFERED": "1",
            "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     with open(log, "w") as fh:
-        res = subprocess.run(argv, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+        rc = run_child(argv, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
     dt = time.perf_counter() - t0
-    if res.returncode != 0:
+    if rc != 0:
         tail = Path(log).read_text(errors="replace")[-1500:]
-        raise StageError(f"{what or ' '.join(argv[1:5])} failed with status {res.returncode} after {dt:.1f} s; "
+        raise StageError(f"{what or ' '.join(argv[1:5])} failed with status {rc} after {dt:.1f} s; "
                          f"end of {log}:\n{tail}")
     return dt
 
@@ -42,6 +46,6 @@ def run_stage(args: list[str], log: Path) -> None:
     with open(log, "a") as fh:
         fh.write("$ " + " ".join(args) + "\n")
         fh.flush()
-        rc = subprocess.run([sys.executable, *args], cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT).returncode
+        rc = run_child([sys.executable, *args], cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
     if rc != 0:
         raise StageError(f"{' '.join(args[:2])} failed (exit {rc}); see {log}")

@@ -213,4 +213,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from runtime.stops import run_command
+
+    # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
+    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    sys.exit(run_command(main))

@@ -10,14 +10,15 @@ import contextlib
 import json
 import os
 import shutil
-import signal
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_dir", "write_json", "save_npz"]
+from runtime.stops import stops_held
+
+__all__ = ["atomic_path", "atomic_dir", "scratch_dir", "write_json", "save_npz"]
 
 
 BEFORE_RENAME: list[Callable[[Path, Path], None]] = []
@@ -38,40 +39,18 @@ def _umask() -> int:
     return mask
 
 
-# the signals a stage turns into an exception (camio.outdir: SIGTERM, SIGHUP; SIGINT is Python's
-# KeyboardInterrupt); held back while a temporary name is made, so that none lands between the
-# file's creation and the ``try`` that removes it
-_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
-
-
-def _hold_stop_signals() -> set | None:
-    """Block the stop signals in this thread; returns the mask to restore (None where the
-    platform has no ``pthread_sigmask``)."""
-    if not hasattr(signal, "pthread_sigmask"):
-        return None
-    return signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-
-
-def _release(held: set | None) -> None:
-    """Restore the mask :func:`_hold_stop_signals` returned; a stop that came meanwhile is
-    raised here, by its handler."""
-    if held is not None:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
-
-
 @contextlib.contextmanager
 def _temporary(make: Callable[[], Path], remove: Callable[[Path], None]) -> Iterator[Path]:
-    """Yield the temporary ``make()`` creates, made with the stop signals held and released
-    inside the ``try``: a stop that came while it was made, or at any point after, ends in
+    """Yield the temporary ``make()`` creates, made with the stop signals held
+    (:func:`runtime.stops.stops_held`) so that none lands between its creation and the ``try``
+    that removes it: a stop that came while it was made, or at any point after, ends in
     ``remove(tmp)`` unless the block moved it away."""
-    held, tmp = _hold_stop_signals(), None
+    tmp = None
     try:
-        tmp = make()
-        _release(held)
-        held = None
+        with stops_held():
+            tmp = make()
         yield tmp
     finally:
-        _release(held)
         if tmp is not None and tmp.exists():
             remove(tmp)
 
@@ -122,12 +101,23 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         yield tmp
         _before_rename(tmp, path)
         if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.replace(path, old / "x")
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
+            with stops_held():  # the swap is whole: no stop leaves the old version aside
+                old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+                os.replace(path, old / "x")
+                os.replace(tmp, path)
+                shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def scratch_dir(prefix: str, parent: str | Path | None = None) -> Iterator[Path]:
+    """A scratch folder (``tempfile.mkdtemp`` in ``parent``, default the system's) removed when
+    the block ends, however it ends, a stop signal at its creation included; a folder the
+    block moved away stays where it went."""
+    with _temporary(lambda: Path(tempfile.mkdtemp(prefix=prefix, dir=parent)),
+                    lambda t: shutil.rmtree(t, ignore_errors=True)) as tmp:
+        yield tmp
 
 
 def _jsonable(obj: Any) -> Any:

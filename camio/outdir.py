@@ -46,8 +46,10 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   (:data:`LOCK`, ``flock``, holding the writer's pid) for the life of the command. A
   second command on the same folder is refused with one line naming the holder's pid; the
   lock of a killed process is released by the kernel, so it is taken over (with a log line).
-* SIGTERM and SIGHUP end a command through :class:`Stopped` (:func:`run_stage`), so every
-  ``finally`` runs and no temporary file or folder is left; exit code 128 + the signal.
+* SIGTERM, SIGINT and SIGHUP end a command through :class:`Stopped` (:func:`run_stage`,
+  :mod:`runtime.stops`, also after pycolmap installed its own handler), so every ``finally``
+  runs: no temporary file or folder is left, the lock is given up, the marker says the run did
+  not finish; one line, exit code 128 + the signal (SIGHUP 129, SIGINT 130, SIGTERM 143).
 * A name read from a file (a split, an image list, a COLMAP model, a ``predictions.npz``) is
   a plain file name, listed once (:mod:`camio.names`; :func:`check_name` and
   :func:`check_name_list` are handed on here).
@@ -63,7 +65,6 @@ import errno
 import json
 import logging
 import os
-import signal
 import stat
 import tempfile
 from dataclasses import dataclass, field
@@ -72,6 +73,7 @@ from typing import Callable, Iterable, Mapping
 
 from camio import atomic
 from camio.names import check_name, check_name_list  # noqa: F401  (the name rule, handed on)
+from runtime.stops import Stopped, stop_line, stops_caught, stops_held  # noqa: F401  (Stopped handed on)
 
 __all__ = ["MARKER", "LOCK", "LEDGER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs",
            "run_stage", "typed_line", "release_locks", "check_name", "check_name_list", "finish_outs",
@@ -204,7 +206,13 @@ def _read_own(path: Path) -> str | None:
 
 def _write_own(path: Path, text: str) -> None:
     """Replace the rule's file ``path`` whole: a temporary beside it (created anew, never
-    through a link), renamed over it (a link standing there is replaced, not followed)."""
+    through a link), renamed over it (a link standing there is replaced, not followed). A stop
+    signal that comes meanwhile waits until it is whole (:func:`runtime.stops.stops_held`)."""
+    with stops_held():
+        _replace_own(path, text)
+
+
+def _replace_own(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f"{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8", errors="surrogateescape") as f:
@@ -227,7 +235,7 @@ def _append_own(path: Path, lines: list[str]) -> None:
         if exc.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
             raise _link_refused(path) from None
         raise
-    with os.fdopen(fd, "a", encoding="utf-8", errors="surrogateescape") as f:
+    with stops_held(), os.fdopen(fd, "a", encoding="utf-8", errors="surrogateescape") as f:
         if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
             raise _link_refused(path)
         f.write("".join(ln + "\n" for ln in lines))
@@ -763,7 +771,8 @@ def _start_run(folder: Path, stage: str, remove: bool) -> None:
             made = {"/".join(p.rstrip("/").split("/")[:k]) + "/" for p in own
                     for k in range(1, p.rstrip("/").count("/") + 1)} - set(m.entries)
         gone = 0
-        for p in sorted(own | made, key=lambda q: -q.count("/")):
+        # deepest first, a folder after the files beside it (set order is random: one rule)
+        for p in sorted(own | made, key=lambda q: (-q.rstrip("/").count("/"), q.endswith("/"), q)):
             target = folder / p.rstrip("/")
             try:
                 if p.endswith("/"):
@@ -834,39 +843,41 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
                       same_file_as=same_file_as, derived=derived, fresh=fresh)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
-        created = []  # the folders this call creates, deepest first (the parents too)
-        probe = _resolved(target)
-        while not probe.exists():
-            created.append(probe)
-            probe = probe.parent
-        target.mkdir(parents=True, exist_ok=True)
-        if folder:
-            try:
-                _lock(target, out)
-                # again under the lock: another writer may have filled the folder meanwhile
-                check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
-                          fresh=fresh)
-            except OutputFolderError:
-                _unlock(_resolved(target))
-                for made in created:  # leave no folder this call made
-                    try:
-                        made.rmdir()
-                    except OSError:
-                        break
-                raise
-            owner = _marker(target).stage
-            if not replaces:
-                _start_run(target, stage, remove=fresh)
-            elif owner != stage:
-                _write_own(target / MARKER, stage + "\n")
-            if owner != stage:
-                _PREPARED[_resolved(target)] = tuple(created)
-            _STAGES[_resolved(target)] = stage
-        else:
-            if not os.access(target, os.W_OK | os.X_OK):
-                raise PermissionError(errno.EACCES, "Permission denied", str(target))
-            _ledger(target)  # a ledger this version does not read is refused before anything is written
-            _PREPARED_FILES[Path(os.path.realpath(target)) / out_p.name] = (stage, tuple(created))
+        # held against stop signals: the folders, lock, marker and the records of them come together
+        with stops_held():
+            created = []  # the folders this call creates, deepest first (the parents too)
+            probe = _resolved(target)
+            while not probe.exists():
+                created.append(probe)
+                probe = probe.parent
+            target.mkdir(parents=True, exist_ok=True)
+            if folder:
+                try:
+                    _lock(target, out)
+                    # again under the lock: another writer may have filled the folder meanwhile
+                    check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
+                              fresh=fresh)
+                except OutputFolderError:
+                    _unlock(_resolved(target))
+                    for made in created:  # leave no folder this call made
+                        try:
+                            made.rmdir()
+                        except OSError:
+                            break
+                    raise
+                owner = _marker(target).stage
+                if not replaces:
+                    _start_run(target, stage, remove=fresh)
+                elif owner != stage:
+                    _write_own(target / MARKER, stage + "\n")
+                if owner != stage:
+                    _PREPARED[_resolved(target)] = tuple(created)
+                _STAGES[_resolved(target)] = stage
+            else:
+                if not os.access(target, os.W_OK | os.X_OK):
+                    raise PermissionError(errno.EACCES, "Permission denied", str(target))
+                _ledger(target)  # a ledger this version does not read is refused before anything is written
+                _PREPARED_FILES[Path(os.path.realpath(target)) / out_p.name] = (stage, tuple(created))
     except OSError as exc:
         raise OutputFolderError(f"cannot write --out {out}: {exc.strerror or exc} ({exc.filename or target}); "
                                 "choose a writable folder") from exc
@@ -896,7 +907,8 @@ def run_stage(log: logging.Logger, work: Callable[[], int | None], *,
               errors: tuple[type[BaseException], ...] = (ValueError, OSError),
               line: Callable[[BaseException], str] = str, traceback: bool = False) -> int:
     """What every stage CLI ends with: run ``work`` (it calls :func:`prepare_out` first, then
-    the stage) and turn a bad input into one error line and exit code 2.
+    the stage) and turn a bad input into one error line and exit code 2, a stop signal into one
+    line and exit code 128 + the signal.
 
     Args:
         log: the stage's logger.
@@ -907,61 +919,30 @@ def run_stage(log: logging.Logger, work: Callable[[], int | None], *,
 
     Returns:
         ``work``'s exit code; 2 for a refusal of the output rule (:class:`OutputFolderError`,
-        its own line) or an error of ``errors``, after :func:`tidy_outs` (a failed stage leaves
-        nothing behind).
+        its own line) or an error of ``errors``; 128 + the signal for SIGTERM, SIGINT or SIGHUP
+        (:mod:`runtime.stops`: 143, 130, 129); each after :func:`tidy_outs` (a failed or stopped
+        stage leaves nothing behind).
     """
-    previous = _catch_signals()
-    try:
-        rc = int(work() or 0)
-        if rc == 0:
-            finish_outs()
-        return rc
-    except OutputFolderError as exc:
-        tidy_outs()
-        log.error("%s", exc)
-        return 2
-    except errors as exc:
-        tidy_outs()
-        if traceback:
-            log.debug("traceback", exc_info=True)
-        log.error("%s", line(exc))
-        return 2
-    except Stopped as exc:
-        tidy_outs()
-        log.error("stopped by %s: nothing half-written was kept (outputs are written atomically); run the "
-                  "same command again", exc.name)
-        return 128 + exc.signum
-    finally:
-        release_locks()
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-
-class Stopped(BaseException):
-    """The process was asked to stop (SIGTERM, SIGHUP): raised in the main thread so that every
-    ``finally`` runs (temporary files and folders of :mod:`camio.atomic` are removed)."""
-
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-        self.name = signal.Signals(signum).name
-
-
-def _stop(signum, frame) -> None:
-    raise Stopped(signum)
-
-
-def _catch_signals() -> dict:
-    """Turn SIGTERM and SIGHUP into :class:`Stopped` (main thread only; SIGINT stays Python's
-    KeyboardInterrupt). Returns the handlers to put back."""
-    import threading
-
-    previous = {}
-    if threading.current_thread() is not threading.main_thread():
-        return previous
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    with stops_caught():
         try:
-            previous[signum] = signal.signal(signum, _stop)
-        except (ValueError, OSError):
-            pass
-    return previous
+            rc = int(work() or 0)
+            if rc == 0:
+                finish_outs()
+            return rc
+        except OutputFolderError as exc:
+            tidy_outs()
+            log.error("%s", exc)
+            return 2
+        except errors as exc:
+            tidy_outs()
+            if traceback:
+                log.debug("traceback", exc_info=True)
+            log.error("%s", line(exc))
+            return 2
+        except (Stopped, KeyboardInterrupt) as exc:
+            tidy_outs()
+            text, rc = stop_line(exc)
+            log.error("%s", text)
+            return rc
+        finally:
+            release_locks()

@@ -2,6 +2,8 @@
 
 * :mod:`runtime.cliargs`: flag spellings and helpers shared by the command lines;
 * :mod:`runtime.logs`: logging, timing and progress bars of the CLIs;
+* :mod:`runtime.stops`: SIGTERM, SIGINT and SIGHUP end a command through one exception (one
+  line, exit code 128 + the signal), also after pycolmap installed its own handler;
 * :mod:`runtime.memory`: glibc's malloc settings that keep freed memory in the process
   (``RETAIN_FREED_MEMORY=0`` turns them off);
 * :mod:`runtime.cbuild`: the cached build of single-file C++ kernels loaded with ctypes;

@@ -411,13 +411,9 @@ def _cli() -> int:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         return f"{type(exc).__name__}: {msg}"
 
-    try:
-        return run_stage(log, main, errors=(ValueError, KeyError, OSError), line=line, traceback=True)
-    except KeyboardInterrupt:
-        # Checkpoints are written atomically (camio.atomic): the last one is whole, and a
-        # rerun with the same arguments resumes from it.
-        log.error("interrupted (Ctrl-C): the last checkpoint is intact; run the same command again to resume")
-        return 130
+    # a stop signal (Ctrl-C, SIGTERM, SIGHUP) is one line and 128 + the signal (runtime.stops):
+    # checkpoints are written atomically, so the last one is whole and a rerun resumes from it
+    return run_stage(log, main, errors=(ValueError, KeyError, OSError), line=line, traceback=True)
 
 
 if __name__ == "__main__":

@@ -123,7 +123,7 @@ def test_trainer_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
     assert cli._cli() == 130
     err = capsys.readouterr().err
     line, = _errors(err)
-    assert "interrupted" in line and "resume" in line and "Traceback" not in err
+    assert "stopped by SIGINT" in line and "run the same command again" in line and "Traceback" not in err
 
 
 def _seed(tmp_path: Path, **edit) -> Path:

@@ -283,12 +283,18 @@ def test_two_trainers_on_one_folder_one_is_refused(tmp_path):
 
 # --- signals ---------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def _default_stops() -> None:
+    """In the child: SIGTERM, SIGINT, SIGHUP at their defaults (an ignored one stays ignored)."""
+    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
 def test_a_stopped_command_leaves_no_temporary_folder(tmp_path, sig):
     out = tmp_path / "scene"
     proc = subprocess.Popen([sys.executable, "-m", "camio", "synth", "--out", str(out), "--views", "60",
                              "--width", "96"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT, env=ENV)
+                            cwd=ROOT, env=ENV, preexec_fn=_default_stops)
     deadline = time.time() + 60
     while time.time() < deadline and not list(tmp_path.glob(".scene.*.tmp")):
         time.sleep(0.02)

@@ -25,13 +25,11 @@ refinement too (:mod:`splat_train.pose`).
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
+from camio.atomic import scratch_dir
 from camio.cameras import project_points
 from camio.colmap import SparseModel, read_model, write_text_model
 
@@ -110,8 +108,7 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
                          f"{len(model.cameras)} cameras and {len(model.points)} points")
     t0 = time.perf_counter()
     before = reprojection_errors(model)
-    work = Path(tempfile.mkdtemp(prefix=".bundle_"))
-    try:
+    with scratch_dir(".bundle_") as work:
         write_text_model(work / "in", model.cameras, model.points, model.colors, model.observations)
         rec = pycolmap.Reconstruction()
         rec.read(str(work / "in"))
@@ -136,8 +133,6 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
         (work / "out").mkdir()
         rec.write_text(str(work / "out"))
         out = read_model(work / "out")
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     by_name = {c.name: c for c in out.cameras}
     cams = [by_name[c.name] for c in model.cameras]
     refined, scale = rescale_about_first_camera(

@@ -30,13 +30,12 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, write_json
+from camio.atomic import atomic_dir, scratch_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import ImageReadError, check_images
 from evaluation.metrics.pose import paper_success
@@ -264,65 +263,64 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
     for p in problems:
         log.warning("COLMAP baseline input: %s", p)
     t0 = time.perf_counter()
-    work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
-    try:
-        _link_images(images_dir, names, work / "images")
-        reader, extraction, matching, verification, mapping = _options(settings, seed)
-        db = work / "database.db"
-        # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
-        # (25-60 lines a call) only with -v, its errors always.
-        pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
-        pycolmap.set_random_seed(int(seed))
-        log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
-        t = time.perf_counter()
-        pycolmap.extract_features(db, work / "images", image_names=names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
-        log.info("feature extraction done in %.2f s", time.perf_counter() - t)
-        t = time.perf_counter()
-        pycolmap.match_exhaustive(db, matching_options=matching,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
-        log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
-        t = time.perf_counter()
-        (work / "sparse").mkdir()
-        recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
-        log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
-                 len(recs))
-        status["num_models"] = len(recs)
-        _, rec = _largest(recs)
-        sparse = out_dir / "sparse" / "0"
-        if rec is None:
-            status["reason"] = "no model: the incremental mapper found no initial image pair"
-        else:
-            reg = rec.num_reg_images()
-            pts = rec.num_points3D()
-            status["registered"] = int(reg)
-            status["points"] = int(pts)
-            status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
-            status["fy_over_fx"] = _fy_over_fx(rec)
-            if pts:
-                status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
-            with atomic_dir(sparse) as tmp:
-                rec.write_text(str(tmp))
-            status["success_paper"] = paper_success(reg, pts)
-            status["aligned_ok"] = bool(status["success_paper"] and reg >= MIN_ALIGN_IMAGES)
-            if not status["success_paper"]:
-                status["reason"] = f"model has {reg} registered images and {pts} points"
-        if rec is None and sparse.exists():
-            shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
-    except Exception as exc:  # noqa: BLE001 - a failed reconstruction is a recorded result
-        if isinstance(exc, (FileNotFoundError, ImageReadError)):
-            raise
-        log.warning("COLMAP baseline failed: %s", exc)
-        status["reason"] = f"{type(exc).__name__}: {exc}"
-    finally:
-        if keep_work:
-            dst = out_dir / "work"
-            if dst.exists():
-                shutil.rmtree(dst)
-            os.replace(work, dst)
-        else:
-            shutil.rmtree(work, ignore_errors=True)
+    # removed however the run ends (a stop signal too), unless --keep-work moves it to out/work
+    with scratch_dir(".colmap_work.", out_dir) as work:
+        try:
+            _link_images(images_dir, names, work / "images")
+            reader, extraction, matching, verification, mapping = _options(settings, seed)
+            db = work / "database.db"
+            # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
+            # (25-60 lines a call) only with -v, its errors always.
+            pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
+            pycolmap.set_random_seed(int(seed))
+            log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
+            t = time.perf_counter()
+            pycolmap.extract_features(db, work / "images", image_names=names,
+                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            log.info("feature extraction done in %.2f s", time.perf_counter() - t)
+            t = time.perf_counter()
+            pycolmap.match_exhaustive(db, matching_options=matching,
+                                      verification_options=verification, device=pycolmap.Device.cpu)
+            log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
+            t = time.perf_counter()
+            (work / "sparse").mkdir()
+            recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
+            log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
+                     len(recs))
+            status["num_models"] = len(recs)
+            _, rec = _largest(recs)
+            sparse = out_dir / "sparse" / "0"
+            if rec is None:
+                status["reason"] = "no model: the incremental mapper found no initial image pair"
+            else:
+                reg = rec.num_reg_images()
+                pts = rec.num_points3D()
+                status["registered"] = int(reg)
+                status["points"] = int(pts)
+                status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
+                status["fy_over_fx"] = _fy_over_fx(rec)
+                if pts:
+                    status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
+                with atomic_dir(sparse) as tmp:
+                    rec.write_text(str(tmp))
+                status["success_paper"] = paper_success(reg, pts)
+                status["aligned_ok"] = bool(status["success_paper"] and reg >= MIN_ALIGN_IMAGES)
+                if not status["success_paper"]:
+                    status["reason"] = f"model has {reg} registered images and {pts} points"
+            if rec is None and sparse.exists():
+                shutil.rmtree(sparse)  # a stale model from an earlier run is not this result
+        except Exception as exc:  # noqa: BLE001 - a failed reconstruction is a recorded result
+            if isinstance(exc, (FileNotFoundError, ImageReadError)):
+                raise
+            log.warning("COLMAP baseline failed: %s", exc)
+            status["reason"] = f"{type(exc).__name__}: {exc}"
+        finally:
+            if keep_work:
+                dst = out_dir / "work"
+                if dst.exists():
+                    shutil.rmtree(dst)
+                os.replace(work, dst)
     if problems and not status["success_paper"]:
         status["reason"] = "; ".join(problems) + (f" (COLMAP: {status['reason']})" if status["reason"] else "")
     status["input_problems"] = problems

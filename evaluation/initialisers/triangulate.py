@@ -11,12 +11,12 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from camio.atomic import scratch_dir
 from camio.cameras import Camera, rotmat_to_qvec
 from camio.colmap import SparseModel, cpu_matching_options, read_model
 
@@ -52,8 +52,7 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
     missing = [c.name for c in cameras if not (image_dir / c.name).is_file()]
     if missing:
         raise FileNotFoundError(f"images {missing[:5]} are missing from {image_dir}")
-    work = Path(tempfile.mkdtemp(prefix=".triangulate_"))
-    try:
+    with scratch_dir(".triangulate_") as work:
         images = work / "images"
         for c in cameras:
             dst = images / c.name
@@ -127,8 +126,6 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
         (work / "model").mkdir()
         tri.write_text(str(work / "model"))
         model = read_model(work / "model")
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     # the poses must not have moved (fixed in the triangulator); keep the caller's exactly
     got = {c.name: c for c in model.cameras}
     for c in cameras:
