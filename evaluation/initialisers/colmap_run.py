@@ -1,7 +1,7 @@
 """The train-only COLMAP baseline, seeded and repeatable.
 
-Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
-features), exhaustive matching with guided matching, incremental mapping, all through
+Settings: SIFT features (one shared PINHOLE camera, or one per image size where the images
+differ in size, e.g. portrait and landscape photos; max image size 3200, max 16384 features), exhaustive matching with guided matching, incremental mapping, all through
 pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
@@ -68,7 +68,7 @@ class ColmapSettings:
         max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
         max_num_features: SIFT features per image.
         guided_matching: guided matching after geometric verification.
-        camera_model: the single shared camera model ("PINHOLE").
+        camera_model: the shared camera model ("PINHOLE"): one camera per image size.
         num_threads: threads for extraction and mapping; None or 0 = every available core
             (:func:`available_cores`); 1 = bitwise reproducible. Matching always runs on
             :data:`camio.colmap.MATCHING_THREADS` (1): pycolmap's bundled OpenBLAS is not safe
@@ -90,8 +90,10 @@ class ColmapSettings:
         return dict(vars(self))
 
 
-def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
-    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``."""
+def _link_images(images_dir: Path, names: list[str], work_images: Path,
+                 work_names: dict[str, str] | None = None) -> None:
+    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``, each as
+    ``work_names[name]`` (default: its own name)."""
     missing = [n for n in names if not (images_dir / n).is_file()]
     if missing:
         raise FileNotFoundError(
@@ -99,7 +101,7 @@ def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
             "the scene's images/ folder")
     work_images.mkdir(parents=True, exist_ok=True)
     for name in names:
-        dst = work_images / name
+        dst = work_images / (work_names or {}).get(name, name)
         dst.parent.mkdir(parents=True, exist_ok=True)
         try:
             os.symlink((images_dir / name).resolve(), dst)
@@ -133,20 +135,19 @@ MIN_IMAGE_SIDE = 16
 
 
 def input_problems(images_dir: Path, names: list[str]) -> list[str]:
-    """What in the training images keeps COLMAP's single shared camera from using them all.
+    """What in the training images keeps COLMAP from using them all.
 
-    COLMAP's extractor (``CameraMode.SINGLE``) gives every image the first image's camera and
-    skips any image whose stored size differs (a message shown only with -v); an EXIF
-    rotation changes the stored-vs-displayed size, and a tiny image has no features. The
-    mapper then reports only "no initial image pair".
+    An EXIF rotation changes the stored-vs-displayed size (COLMAP reads the stored pixels;
+    ``camio convert`` writes every image upright), and a tiny image has no features. The
+    mapper then reports only "no initial image pair". Images of different sizes are no problem:
+    each size gets its own camera (:func:`size_groups`).
 
     Returns:
-        One sentence per problem ([] when none): mixed stored sizes, EXIF-rotated images,
-        images smaller than :data:`MIN_IMAGE_SIDE` px.
+        One sentence per problem ([] when none): EXIF-rotated images, images smaller than
+        :data:`MIN_IMAGE_SIDE` px.
     """
     import OpenImageIO as oiio
 
-    sizes: dict[tuple[int, int], list[str]] = {}
     rotated, small = [], []
     for n in names:
         inp = oiio.ImageInput.open(str(images_dir / n))
@@ -157,21 +158,35 @@ def input_problems(images_dir: Path, names: list[str]) -> list[str]:
             w, h, o = int(spec.width), int(spec.height), int(spec.get_int_attribute("Orientation", 1))
         finally:
             inp.close()
-        sizes.setdefault((w, h), []).append(n)
         if o not in (0, 1):
             rotated.append(f"{n} (orientation {o})")
         if min(w, h) < MIN_IMAGE_SIDE:
             small.append(f"{n} ({w}x{h})")
     out = []
-    if len(sizes) > 1:
-        parts = ", ".join(f"{w}x{h}: {len(v)} image{'s' * (len(v) > 1)} (e.g. {v[0]})"
-                          for (w, h), v in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
-        out.append(f"images of different sizes ({parts}): COLMAP's single shared camera skips the odd ones")
     if rotated:
         out.append(f"EXIF-rotated images: {', '.join(rotated[:3])}: COLMAP reads them unrotated")
     if small:
         out.append(f"images too small for features (< {MIN_IMAGE_SIDE} px): {', '.join(small[:3])}")
     return out
+
+
+def size_groups(images_dir: Path, names: list[str]) -> dict[str, str]:
+    """name -> the name COLMAP extracts it under: the name itself where every image has one
+    stored size (one shared camera, ``CameraMode.SINGLE``), else ``"<W>x<H>/<name>"``, a folder
+    per size, so that ``CameraMode.PER_FOLDER`` gives each size its own camera (COLMAP's
+    ``SINGLE`` mode skips every image whose size differs from the first's)."""
+    from camio.images import _open
+
+    sizes = {}
+    for n in names:
+        inp = _open(images_dir / n)
+        try:
+            sizes[n] = f"{int(inp.spec().width)}x{int(inp.spec().height)}"
+        finally:
+            inp.close()
+    if len(set(sizes.values())) == 1:
+        return {n: n for n in names}
+    return {n: f"{sizes[n]}/{n}" for n in names}
 
 
 def _options(settings: ColmapSettings, seed: int):
@@ -266,17 +281,22 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix=".colmap_work.", dir=out_dir))
     try:
-        _link_images(images_dir, names, work / "images")
+        work_names = size_groups(images_dir, names)
+        _link_images(images_dir, names, work / "images", work_names)
         reader, extraction, matching, verification, mapping = _options(settings, seed)
         db = work / "database.db"
         # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
         # (25-60 lines a call) only with -v, its errors always.
         pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
         pycolmap.set_random_seed(int(seed))
-        log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
+        per_size = any(w != n for n, w in work_names.items())
+        log.info("COLMAP baseline: %d training images (%s), seed %d, %d threads", len(names),
+                 f"a camera for each of {len({w.split('/')[0] for w in work_names.values()})} image sizes"
+                 if per_size else "one camera", seed, settings.num_threads)
         t = time.perf_counter()
-        pycolmap.extract_features(db, work / "images", image_names=names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+        pycolmap.extract_features(db, work / "images", image_names=[work_names[n] for n in names],
+                                  camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size else pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
         log.info("feature extraction done in %.2f s", time.perf_counter() - t)
         t = time.perf_counter()
@@ -290,6 +310,10 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
                  len(recs))
         status["num_models"] = len(recs)
         _, rec = _largest(recs)
+        if rec is not None and per_size:
+            original = {w: n for n, w in work_names.items()}
+            for image in rec.images.values():
+                image.name = original[image.name]
         sparse = out_dir / "sparse" / "0"
         if rec is None:
             status["reason"] = "no model: the incremental mapper found no initial image pair"
@@ -300,6 +324,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
             status["points"] = int(pts)
             status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
             status["fy_over_fx"] = _fy_over_fx(rec)
+            status["n_cameras"] = len(rec.cameras)
             if pts:
                 status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
             with atomic_dir(sparse) as tmp:
