@@ -30,6 +30,7 @@ from camio.atomic import atomic_path
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "MIN_IMAGE_SIDE",
     "ImageReadError",
     "ImageNameError",
     "check_image_name",
@@ -52,6 +53,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+#: images with a shorter side give SIFT nothing to find (COLMAP then reports only "no initial pair")
+MIN_IMAGE_SIDE = 16
 
 
 class ImageReadError(OSError):

@@ -38,7 +38,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
-from camio.images import ImageReadError, check_images
+from camio.images import MIN_IMAGE_SIDE, ImageReadError, check_images
 from evaluation.metrics.pose import paper_success
 from runtime.logs import peak_rss_mb
 
@@ -130,8 +130,6 @@ def _check_inputs(images_dir: Path, names: list[str]) -> None:
     check_images(images_dir / n for n in names)
 
 
-MIN_IMAGE_SIDE = 16
-"""Smaller images give SIFT nothing to find (COLMAP then reports only "no initial pair")."""
 
 
 def input_problems(images_dir: Path, names: list[str]) -> list[str]:
