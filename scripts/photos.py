@@ -17,8 +17,8 @@ own size); the run says which.
 The run prints snakemake's progress lines, each naming the step that finished, the workflow's
 own messages, and every HEARTBEAT_S seconds (workflow/scripts/progress.py) the time elapsed and
 the newest log line; ``-v`` shows snakemake's job blocks too. SIGINT (Ctrl-C) or SIGTERM stops
-the run: snakemake ends its jobs, the script says so in one line and exits 128 + the signal's
-number; the same command again resumes (snakemake --rerun-incomplete redoes the jobs that were
+the run: it is passed on to snakemake (as SIGINT, snakemake's signal to stop now), which ends its
+jobs; the script waits for it, says so in one line and exits 128 + the signal's number; the same command again resumes (snakemake --rerun-incomplete redoes the jobs that were
 cut short). This writes DIR/config.yaml (the workflow's
 configuration for this folder) and DIR/split.json (every photo trains), then runs the project's
 Snakemake workflow on it, so a second run resumes and the same config runs on a cluster.
@@ -204,7 +204,7 @@ def visible_gpu(device: str) -> tuple[str, dict]:
 
 def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat: bool) -> tuple[int, int | None]:
     """Run snakemake ``cmd``, its output passed through workflow/scripts/progress.py's filters
-    (all of it with ``verbose``) with a heartbeat; SIGINT and SIGTERM are forwarded to it.
+    (all of it with ``verbose``) with a heartbeat; a SIGINT or SIGTERM stops it (passed on as SIGINT).
 
     Returns:
         (snakemake's exit code, the signal that stopped the run or None).
@@ -226,14 +226,18 @@ def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat
     def forward(sig, _frame) -> None:
         stopped.append(sig)
         try:
-            proc.send_signal(sig)  # snakemake ends its jobs and marks their outputs incomplete
+            # SIGINT is snakemake's "stop now": it ends its jobs, marks their outputs incomplete and
+            # exits; on a SIGTERM it waits for the running jobs and (snakemake 9.27) hangs when the
+            # signal falls between two jobs
+            proc.send_signal(signal.SIGINT)
         except ProcessLookupError:
             pass
 
     saved = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         lines = annotate(proc.stdout, "[photos]")
-        lines = lines if verbose else brief(lines)
+        # once stopped, snakemake's own account of the stop (its jobs cut short) only with -v
+        lines = lines if verbose else (ln for ln in brief(lines) if not stopped)
         if heartbeat:
             with Heartbeat(out, write, "[photos]"):
                 for line in lines:

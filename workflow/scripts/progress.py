@@ -34,7 +34,7 @@ _FINISHED = re.compile(r"^Finished jobid: \d+ \(Rule: ([^)]+)\)")
 _CHATTER = re.compile(r"^(\s|\[(Mon|Tue|Wed|Thu|Fri|Sat|Sun) |(local)?(rule|checkpoint) \S+:$|Finished jobid|"
                       r"Select jobs to execute|Execute \d+ jobs|Assuming unrestricted|SNAKEMAKE$|=+$|Building DAG|"
                       r"Using shell|Provided cores|Rules claiming|Conda environments|DAG of jobs will be updated|"
-                      r"Updating checkpoint dependencies|Complete log|Job stats:|job +count|-+ +-+$|\S+ +\d+$|$)")
+                      r"Updating checkpoint dependencies|Complete log|Job stats:|Will exit after finishing currently running jobs|job +count|-+ +-+$|\S+ +\d+$|$)")
 _ERROR = re.compile(r"^(Error in rule|RuleException|WorkflowError|Traceback|Exiting because|MissingInputException|"
                     r"IncompleteFilesException|LockException)")
 #: seconds between two heartbeat lines
