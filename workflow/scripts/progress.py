@@ -13,7 +13,7 @@ files are; ``-v`` of scripts/photos.py shows them) and keeps the progress lines,
 rule that finished, the workflow's own messages and everything from the first error on.
 ``--heartbeat RESULTS`` (:class:`Heartbeat`) prints, every :data:`HEARTBEAT_S` seconds (the
 environment's ``PROGRESS_HEARTBEAT_S`` where set), the time elapsed and the newest line of the job
-log under RESULTS written last, e.g. the trainer's "it 400/1000 ...": a long COLMAP or training
+log under RESULTS written last since the run began, e.g. the trainer's "it 400/1000 ...": a long COLMAP or training
 step shows it is alive. scripts/demo.sh and scripts/photos.py use both.
 """
 
@@ -119,7 +119,7 @@ class Heartbeat:
         t0 = time.time()
         while not self._stop.wait(self.every):
             now = time.time()
-            newest = newest_log_line(self.results, now - self.every) if self.results.is_dir() else None
+            newest = newest_log_line(self.results, t0) if self.results.is_dir() else None
             said = f"; newest log {newest[0]}: {newest[1]}" if newest else ""
             self.write(f"{self.prefix}{_clock(now - t0)} elapsed{said}\n")
 
