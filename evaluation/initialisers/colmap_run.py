@@ -13,11 +13,12 @@ pose.json). A failed reconstruction is a *result* (``success_paper = false`` wit
 ``status.json``), never an exception.
 
 Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
-``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. By default every
-stage uses every core this process may run on (:func:`available_cores`); the thread count is
-recorded in ``status.json`` (``num_threads``). With ``--threads 1`` two runs with the same seed
-on the same input give identical models (tested); with more threads the feature extraction and
-matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.initialisers.colmap_repeats`).
+``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. ``--threads 0``
+makes every stage use every core this process may run on (:func:`available_cores`); the thread count is
+recorded in ``status.json`` (``num_threads``). By default (:data:`DEFAULT_THREADS`, 1) two runs
+with the same seed on the same input give identical models (tested); with more threads
+(``--threads 0``: every core) the feature extraction and matching are the same but the
+mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.initialisers.colmap_repeats`).
 CLI: ``python -m evaluation.initialisers.colmap_baseline`` (:mod:`evaluation.initialisers.colmap_baseline`).
 
 Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
@@ -51,6 +52,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 MIN_ALIGN_IMAGES = 3
+#: threads of a COLMAP run unless told otherwise: 1 gives the same model on every run (bitwise);
+#: 0 = every available core, faster, but the mapper's parallel steps may then order work differently
+DEFAULT_THREADS = 1
 
 
 def available_cores() -> int:
@@ -69,8 +73,8 @@ class ColmapSettings:
         max_num_features: SIFT features per image.
         guided_matching: guided matching after geometric verification.
         camera_model: the shared camera model ("PINHOLE"): one camera per image size.
-        num_threads: threads for extraction and mapping; None or 0 = every available core
-            (:func:`available_cores`); 1 = bitwise reproducible. Matching always runs on
+        num_threads: threads for extraction and mapping (default :data:`DEFAULT_THREADS`, 1 =
+            bitwise reproducible); None or 0 = every available core (:func:`available_cores`). Matching always runs on
             :data:`camio.colmap.MATCHING_THREADS` (1): pycolmap's bundled OpenBLAS is not safe
             for concurrent matcher threads.
         matching_threads: the matcher's thread count (recorded in ``status.json``).
@@ -78,7 +82,7 @@ class ColmapSettings:
 
     def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
                  guided_matching: bool = True, camera_model: str = "PINHOLE",
-                 num_threads: int | None = None) -> None:
+                 num_threads: int | None = DEFAULT_THREADS) -> None:
         self.max_image_size = int(max_image_size)
         self.max_num_features = int(max_num_features)
         self.guided_matching = bool(guided_matching)
