@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="where VGGT and training run: auto (CUDA when a job sees a GPU, else CPU), cpu, cuda, or "
                         "cuda:N, the GPU of index N (the jobs see only that one: CUDA_VISIBLE_DEVICES; give it "
                         "again on a rerun) (default: config.yaml's, else auto)")
-    p.add_argument("-v", "--verbose", action="store_true", help="show snakemake's job blocks too")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="show snakemake's job blocks too")
     p.add_argument("-n", "--dry-run", action="store_true", dest="dry_run",
                    help="write the config and show the jobs, run nothing")
     args = p.parse_args(argv)
