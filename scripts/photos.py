@@ -196,9 +196,11 @@ def visible_gpu(device: str) -> tuple[str, dict]:
     index = int(device.split(":", 1)[1])
     seen = os.environ.get("CUDA_VISIBLE_DEVICES")
     ids = [x.strip() for x in seen.split(",") if x.strip()] if seen else None
+    if ids is not None and not ids:
+        raise ValueError(f"--device {device}: CUDA_VISIBLE_DEVICES={seen!r} shows no GPU; use --device cpu")
     if ids is not None and index >= len(ids):
         raise ValueError(f"--device {device}: CUDA_VISIBLE_DEVICES={seen} shows {len(ids)} GPU(s); "
-                         f"choose cuda:0..cuda:{len(ids) - 1}" if ids else "no GPU is visible")
+                         f"choose cuda:0..cuda:{len(ids) - 1}")
     return "cuda", {"CUDA_VISIBLE_DEVICES": ids[index] if ids is not None else str(index)}
 
 
