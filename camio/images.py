@@ -30,6 +30,7 @@ from camio.atomic import atomic_path
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "MIN_IMAGE_SIDE",
     "ImageReadError",
     "ImageNameError",
     "check_image_name",
@@ -40,6 +41,8 @@ __all__ = [
     "write_image",
     "image_size",
     "apply_orientation",
+    "exif_orientation",
+    "describe_orientation",
     "downsample_area",
     "downsample_folder",
     "resize_area",
@@ -50,6 +53,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+#: images with a shorter side give SIFT nothing to find (COLMAP then reports only "no initial pair")
+MIN_IMAGE_SIDE = 16
 
 
 class ImageReadError(OSError):
@@ -184,6 +190,34 @@ def image_size(path: str | Path) -> tuple[int, int]:
     finally:
         inp.close()
     return (h, w) if o in (5, 6, 7, 8) else (w, h)
+
+
+def exif_orientation(path: str | Path) -> int:
+    """The EXIF/TIFF ``Orientation`` of ``path`` (1..8; 1 where the file has none or an invalid
+    one), header only: what :func:`read_image` applies."""
+    inp = _open(Path(path))
+    try:
+        o = int(inp.spec().get_int_attribute("Orientation", 1))
+    finally:
+        inp.close()
+    return o if 1 <= o <= 8 else 1
+
+
+#: what :func:`apply_orientation` does to a stored image, for the log
+ORIENTATION_WORDS = {1: "as stored", 2: "mirrored left-right", 3: "turned 180 degrees",
+                     4: "mirrored top-bottom", 5: "transposed", 6: "turned 90 degrees clockwise",
+                     7: "transversed", 8: "turned 90 degrees counter-clockwise"}
+
+
+def describe_orientation(folder: str | Path, names: list[str]) -> str | None:
+    """One line naming the images of ``names`` that :func:`read_image` turns upright from their
+    EXIF orientation (None: every one is stored upright)."""
+    turned = [(n, o) for n in names if (o := exif_orientation(Path(folder) / n)) != 1]
+    if not turned:
+        return None
+    shown = ", ".join(f"{n} ({ORIENTATION_WORDS[o]})" for n, o in turned[:6])
+    more = f" and {len(turned) - 6} more" if len(turned) > 6 else ""
+    return f"EXIF orientation applied: {len(turned)} of {len(names)} image(s) turned upright: {shown}{more}"
 
 
 def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:

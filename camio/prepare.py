@@ -19,7 +19,7 @@ from pathlib import Path
 from camio.atomic import atomic_dir, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import SparseModel, write_text_model
-from camio.images import downsample_folder, image_size, working_size
+from camio.images import describe_orientation, downsample_folder, image_size, working_size
 from camio.scene import check_same_size, load_scene
 from camio.split import make_split, write_split, TEST_EVERY
 
@@ -49,16 +49,21 @@ def photo_max_size(max_size: int | None, has_cameras: bool, downsample: int = 1)
 
 
 def describe_working_size(sizes: list[tuple[int, int]], max_size: int) -> str:
-    """One line: the photos' size and the working resolution ``max_size`` gives them
-    ("12 photos 4032x3024 -> 1600x1200 working resolution")."""
+    """One line: the photos' sizes and the working resolution ``max_size`` gives them
+    ("12 photos 4032x3024 -> 1600x1200 working resolution"; photos of several sizes, e.g.
+    portrait and landscape, list each size with its count)."""
     n = f"{len(sizes)} photo{'s' if len(sizes) != 1 else ''}"
-    distinct = sorted(set(sizes))
-    if len(distinct) != 1:
-        cap = f"long side at most {max_size} px" if max_size else "full resolution"
-        return f"{n} of {len(distinct)} sizes -> working resolution: {cap}"
-    (w, h) = distinct[0]
+    why = " (full resolution)" if not max_size else ""
+    counts: dict[tuple[int, int], int] = {}
+    for s in sizes:
+        counts[s] = counts.get(s, 0) + 1
+    if len(counts) != 1:
+        parts = ", ".join(f"{c} x {w}x{h} -> {'x'.join(map(str, working_size(w, h, max_size)))}"
+                          for (w, h), c in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+        return f"{n} of {len(counts)} sizes ({parts}) working resolution{why or f' (long side at most {max_size} px)'}"
+    (w, h) = next(iter(counts))
     ww, wh = working_size(w, h, max_size)
-    why = " (full resolution)" if not max_size else (f" (within {max_size} px)" if (ww, wh) == (w, h) else "")
+    why = why or (f" (within {max_size} px)" if (ww, wh) == (w, h) else "")
     return f"{n} {w}x{h} -> {ww}x{wh} working resolution{why}"
 
 
@@ -83,8 +88,9 @@ def prepare_scene(
         src, format, images_subdir, undistort: as :func:`camio.scene.load_scene`.
         downsample: integer area-downsampling factor (1 = copy).
         ns: training-view counts written to split.json (those that do not fit are skipped).
-        require_same_size: refuse images of mixed sizes (the pipeline needs one size);
-            ``allow_mixed`` turns it off too.
+        require_same_size: refuse a dataset (reference cameras) whose images differ in size;
+            ``allow_mixed`` turns it off too. A photo folder (no cameras) may mix sizes
+            (portrait and landscape photos): every image keeps its own size and camera.
         allow_mixed, skip_missing: as :func:`camio.scene.load_scene`.
         announce: called with :meth:`camio.scene.Scene.describe` once the scene is read, and
             for a photo folder with :func:`describe_working_size` (the CLI prints them).
@@ -100,9 +106,14 @@ def prepare_scene(
         log.info("%s", scene.describe())
         if announce is not None:
             announce(scene.describe())
-        if require_same_size and not allow_mixed:
-            check_same_size(scene.image_dir, scene.names)
         has_cameras = scene.model is not None and bool(scene.model.cameras)
+        if require_same_size and not allow_mixed and has_cameras:
+            check_same_size(scene.image_dir, scene.names)
+        turned = describe_orientation(scene.image_dir, scene.names)
+        if turned is not None:
+            log.info("%s", turned)
+            if announce is not None:
+                announce(turned)
         cap = photo_max_size(max_size, has_cameras, downsample)
         source_size = image_size(scene.image_path(scene.names[0]))
         if not has_cameras:
@@ -135,10 +146,12 @@ def prepare_scene(
             "undistorted": scene.undistorted, "n_images": len(scene.names),
             "n_reference_cameras": n_cams, "camera_models": list(scene.source_models),
             "n_points": 0 if scene.model is None else int(len(scene.model.points)),
-            "image_size": [w, h], "wall_time_s": time.perf_counter() - t0,
+            "image_size": [w, h], "image_sizes": {n: list(sizes[n]) for n in scene.names},
+            "wall_time_s": time.perf_counter() - t0,
         })
-    log.info("prepared %s -> %s (%d images at %dx%d, %d reference cameras) in %.2f s", src, out,
-             len(scene.names), w, h, n_cams, time.perf_counter() - t0)
+    shown = f"{w}x{h}" if len(set(sizes.values())) == 1 else f"{len(set(sizes.values()))} sizes"
+    log.info("prepared %s -> %s (%d images at %s, %d reference cameras) in %.2f s", src, out,
+             len(scene.names), shown, n_cams, time.perf_counter() - t0)
     return out
 
 

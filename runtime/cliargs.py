@@ -11,7 +11,19 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
-__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command", "plain"]
+__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command", "plain", "device_name"]
+
+
+def device_name(text: str) -> str:
+    """An argparse ``type``: ``text`` when it names a device (auto, cpu, cuda or cuda:N, N >= 0),
+    else one line saying which names are taken (argparse prints it and exits 2)."""
+    import argparse
+    import re
+
+    if re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", text):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r} is not a device: use auto, cpu, cuda or cuda:N (N = the GPU's "
+                                     "index, 0, 1, ...)")
 
 
 def is_int(text: str) -> bool:

@@ -22,26 +22,12 @@ done
 python3 workflow/scripts/check_config.py "${conf[@]}" || exit 2
 RESULTS=$(python3 -c "import yaml; print(yaml.safe_load(open('config.yaml')).get('results', 'results'))")
 
+# snakemake's progress total grows after the COLMAP checkpoint: progress.py says so in a line.
 # Progress during long steps: snakemake prints a line per finished job only, and a job's own
-# output goes to its log; every DEMO_HEARTBEAT_S seconds (default 30) print the newest log line
-# of the job that wrote last, e.g. the trainer's "it 400/1000 ...".
-heartbeat() {
-  local every=${DEMO_HEARTBEAT_S:-30} t0=$SECONDS latest line
-  while sleep "$every"; do
-    latest=$(find "$RESULTS" -name '*.log' -newermt "${every} seconds ago" -printf '%T@ %p\n' 2>/dev/null \
-             | sort -n | tail -1 | cut -d' ' -f2-)
-    [ -n "$latest" ] || continue
-    line=$(tail -c 2000 "$latest" | tr '\r' '\n' | grep '[[:alnum:]]' | tail -1 | cut -c1-140)
-    [ -n "$line" ] || line="(started)"
-    echo "[demo] $(( (SECONDS - t0) / 60 ))m$(( (SECONDS - t0) % 60 ))s, working on ${latest#"$RESULTS"/}: $line"
-  done
-}
-heartbeat &
-HB=$!
-trap 'kill "$HB" 2>/dev/null' EXIT
-
-# snakemake's progress total grows after the COLMAP checkpoint: progress.py says so in a line
-if python3 -m snakemake --cores 2 --keep-going "$@" 2>&1 | python3 workflow/scripts/progress.py --prefix "[demo]"; then
+# output goes to its log; every HEARTBEAT_S seconds (progress.py; PROGRESS_HEARTBEAT_S) it prints the time elapsed
+# and the newest log line of the job that wrote last, e.g. the trainer's "it 400/1000 ...".
+if python3 -m snakemake --cores 2 --keep-going "$@" 2>&1 \
+    | python3 workflow/scripts/progress.py --prefix "[demo]" --heartbeat "$RESULTS"; then
   skipped=$(python3 -c "import sys; from evaluation.reports.run_status import read_skipped; print(', '.join(read_skipped(sys.argv[1])))" "$RESULTS")
   if [ -n "$skipped" ]; then
     echo "[demo] done WITHOUT $skipped (skipped, see $RESULTS/skipped.json): $RESULTS/tables/tables.md and $RESULTS/report/index.html"

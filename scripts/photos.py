@@ -1,13 +1,25 @@
 """Your own photos in one command: cameras, a trained model and a view of it.
 
     python scripts/photos.py PHOTOS [--out DIR] [--init vggt|colmap|both] [--dense] [--iterations N]
-                             [--max-size PX] [--cores N] [-n] [-- SNAKEMAKE ARGS ...]
+                             [--max-size PX] [--cores N] [--device auto|cpu|cuda|cuda:N] [-v] [-n]
+                             [-- SNAKEMAKE ARGS ...]
 
-PHOTOS is a folder of photographs of one scene (3 or more; no camera files needed). Every photo
-trains: there are no reference cameras and no held-out views, so there are no image metrics,
-only the model and a render of every photo. Every stage works at one working resolution: the
-long side at most camio.prepare.PHOTO_MAX_SIZE pixels unless ``--max-size`` says otherwise (0 =
-the photos' own size); the run says which. This writes DIR/config.yaml (the workflow's
+PHOTOS is a folder of photographs of one scene (3 or more; no camera files needed), as a phone
+or camera takes them: portrait and landscape mixed, EXIF-rotated (turned upright when they are
+prepared; the run names them), of several sizes (each size gets its own camera). Every photo
+that cannot be used (a format the readers do not take, such as HEIC; a file that does not
+decode; one too small) is named, all in one line, before anything runs. Every photo trains:
+there are no reference cameras and no held-out views, so there are no image metrics, only the
+model and a render of every photo. Every stage works at a working resolution: the long side at
+most camio.prepare.PHOTO_MAX_SIZE pixels unless ``--max-size`` says otherwise (0 = the photos'
+own size); the run says which.
+
+The run prints snakemake's progress lines, each naming the step that finished, the workflow's
+own messages, and every HEARTBEAT_S seconds (workflow/scripts/progress.py) the time elapsed and
+the newest log line; ``-v`` shows snakemake's job blocks too. SIGINT (Ctrl-C) or SIGTERM stops
+the run: it is passed on to snakemake (as SIGINT, snakemake's signal to stop now), which ends its
+jobs; the script waits for it, says so in one line and exits 128 + the signal's number; the same command again resumes (snakemake --rerun-incomplete redoes the jobs that were
+cut short). This writes DIR/config.yaml (the workflow's
 configuration for this folder) and DIR/split.json (every photo trains), then runs the project's
 Snakemake workflow on it, so a second run resumes and the same config runs on a cluster.
 A rerun writes into DIR/config.yaml only the folder's keys and those its flags set, keeping
@@ -34,8 +46,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import yaml
@@ -60,8 +74,32 @@ def photo_names(folder: Path) -> list[str]:
     return list(load_scene(folder, format="folder").names)
 
 
+def photo_sizes(folder: Path, names: list[str], max_size: int | None) -> tuple[list[tuple[int, int]], set]:
+    """(each photo's (width, height) as displayed, the set of working sizes ``max_size`` gives
+    them: :func:`camio.prepare.photo_max_size`, as camio convert sizes them)."""
+    from camio.images import image_size, working_size
+    from camio.prepare import photo_max_size
+
+    sizes = [image_size(folder / n) for n in names]
+    cap = photo_max_size(max_size, False)
+    return sizes, {working_size(w, h, cap) for w, h in sizes}
+
+
+def one_grid_problem(initialisers: list[str], working: set) -> str | None:
+    """Why the initialisers cannot run on photos of several working sizes (None: they can).
+    Multi-view stereo (the ``*_mvs`` initialisers) writes one grid for all views."""
+    mvs = [i for i in initialisers if str(i).endswith("_mvs")]
+    if not mvs or len(working) < 2:
+        return None
+    shown = ", ".join(f"{w}x{h}" for w, h in sorted(working))
+    return (f"multi-view stereo ({', '.join(mvs)}: --dense) needs photos of one size, and these have "
+            f"{len(working)} ({shown}); run without --dense (and drop {', '.join(mvs)} from config.yaml's "
+            "initialisers), or keep only the photos of one orientation")
+
+
 def make_config(folder: Path, out: Path, names: list[str], inits: list[str] | None = None,
-                iterations: int | None = None, vggt: dict | None = None, max_size: int | None = None) -> dict:
+                iterations: int | None = None, vggt: dict | None = None, max_size: int | None = None,
+                device: str | None = None) -> dict:
     """The keys of the workflow configuration of one photo folder (results under ``out``) that
     this script sets: the folder's scene, and the keys of the flags given (None: not given)."""
     scene = scene_name(folder)
@@ -79,8 +117,10 @@ def make_config(folder: Path, out: Path, names: list[str], inits: list[str] | No
         cfg["initialisers"] = inits
     if iterations is not None:
         cfg["train"] = {"iterations": iterations, "eval_every": max(1, iterations)}
-    if vggt:
-        cfg["vggt"] = dict(vggt)
+    if vggt or device:
+        cfg["vggt"] = {**(vggt or {}), **({"device": device} if device else {})}
+    if device:
+        cfg.setdefault("train", {})["device"] = device
     return cfg
 
 
@@ -140,16 +180,84 @@ def _write_if_changed(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def working_resolution(folder: Path, names: list[str], max_size: int | None) -> str:
+def working_resolution(sizes: list[tuple[int, int]], max_size: int | None) -> str:
     """The line that states the working resolution (camio convert's, which the workflow runs)."""
-    from camio.images import image_size
     from camio.prepare import describe_working_size, photo_max_size
 
-    return describe_working_size([image_size(folder / n) for n in names], photo_max_size(max_size, False))
+    return describe_working_size(sizes, photo_max_size(max_size, False))
+
+
+def visible_gpu(device: str) -> tuple[str, dict]:
+    """(the device the workflow's jobs are given, the environment that goes with it): cuda:N
+    becomes cuda with only GPU N visible (CUDA_VISIBLE_DEVICES, counted among those already
+    visible); any other name is passed on as it is."""
+    if not device.startswith("cuda:"):
+        return device, {}
+    index = int(device.split(":", 1)[1])
+    seen = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [x.strip() for x in seen.split(",") if x.strip()] if seen else None
+    if ids is not None and not ids:
+        raise ValueError(f"--device {device}: CUDA_VISIBLE_DEVICES={seen!r} shows no GPU; use --device cpu")
+    if ids is not None and index >= len(ids):
+        raise ValueError(f"--device {device}: CUDA_VISIBLE_DEVICES={seen} shows {len(ids)} GPU(s); "
+                         f"choose cuda:0..cuda:{len(ids) - 1}")
+    return "cuda", {"CUDA_VISIBLE_DEVICES": ids[index] if ids is not None else str(index)}
+
+
+def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat: bool) -> tuple[int, int | None]:
+    """Run snakemake ``cmd``, its output passed through workflow/scripts/progress.py's filters
+    (all of it with ``verbose``) with a heartbeat; a SIGINT or SIGTERM stops it (passed on as SIGINT).
+
+    Returns:
+        (snakemake's exit code, the signal that stopped the run or None).
+    """
+    from progress import Heartbeat, annotate, brief
+
+    lock = threading.Lock()
+
+    def write(line: str) -> None:
+        with lock:
+            sys.stdout.write(line)
+            sys.stdout.flush()
+
+    # a session of its own: a Ctrl-C at the terminal reaches snakemake once, through forward()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                            start_new_session=True, env={**os.environ, **env})
+    stopped: list[int] = []
+
+    def forward(sig, _frame) -> None:
+        stopped.append(sig)
+        try:
+            # SIGINT is snakemake's "stop now": it ends its jobs, marks their outputs incomplete and
+            # exits; on a SIGTERM it waits for the running jobs and (snakemake 9.27) hangs when the
+            # signal falls between two jobs
+            proc.send_signal(signal.SIGINT)
+        except ProcessLookupError:
+            pass
+
+    saved = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        lines = annotate(proc.stdout, "[photos]")
+        # once stopped, snakemake's own account of the stop (its jobs cut short) only with -v
+        lines = lines if verbose else (ln for ln in brief(lines) if not stopped)
+        if heartbeat:
+            with Heartbeat(out, write, "[photos]"):
+                for line in lines:
+                    write(line)
+        else:
+            for line in lines:
+                write(line)
+        rc = proc.wait()
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+    return rc, (stopped[0] if stopped else None)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from camio.photo_folder import describe_problems, photo_problems
     from camio.prepare import PHOTO_MAX_SIZE
+    from runtime.cliargs import device_name
 
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
@@ -179,7 +287,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-size", dest="max_size", type=int, metavar="PX",
                    help=f"long side of the working images every stage reads, pixels (default: "
                         f"config.yaml's, else {PHOTO_MAX_SIZE}; 0 = the photos' own size)")
-    p.add_argument("--cores", type=int, default=2, help="cores snakemake may use (default 2)")
+    p.add_argument("--cores", type=int, default=2, help="cores snakemake may use (default 2; at least 1)")
+    p.add_argument("--device", type=device_name,
+                   help="where VGGT and training run: auto (CUDA when a job sees a GPU, else CPU), cpu, cuda, or "
+                        "cuda:N, the GPU of index N (the jobs see only that one: CUDA_VISIBLE_DEVICES; give it "
+                        "again on a rerun) (default: config.yaml's, else auto)")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="show snakemake's job blocks too")
     p.add_argument("-n", "--dry-run", action="store_true", dest="dry_run",
                    help="write the config and show the jobs, run nothing")
     args = p.parse_args(argv)
@@ -190,6 +303,18 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--iterations must be at least 1, got {args.iterations}")
     if args.max_size is not None and args.max_size < 0:
         return _fail(f"--max-size must be 0 (the photos' own size) or a number of pixels, got {args.max_size}")
+    if args.cores < 1:
+        return _fail(f"--cores must be at least 1 (the cores snakemake may use), got {args.cores}")
+    try:
+        device, device_env = visible_gpu(args.device) if args.device else (None, {})
+    except ValueError as exc:
+        return _fail(str(exc))
+    try:
+        problems = photo_problems(args.photos)
+    except OSError as exc:
+        return _fail(f"cannot read the folder {args.photos}: {exc}")
+    if problems:
+        return _fail(describe_problems(args.photos, problems))
     try:
         names = photo_names(args.photos)
     except (ValueError, OSError) as exc:
@@ -213,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         kept = [i for i in (old or FIRST_WRITE).get("initialisers") or [] if not str(i).endswith("_mvs")]
         base = INITS[args.init] if args.init is not None else (kept or INITS["both"])
         inits = base + ([f"{i}_mvs" for i in base] if args.dense else [])
-    cfg = make_config(args.photos, out, names, inits, args.iterations, vggt, args.max_size)
+    cfg = make_config(args.photos, out, names, inits, args.iterations, vggt, args.max_size, device)
     cfg = merge_config(old, cfg) if old is not None else {**cfg, **{k: v for k, v in FIRST_WRITE.items() if k not in cfg}}
 
     sys.path.insert(0, str(REPO / "workflow" / "scripts"))
@@ -222,6 +347,14 @@ def main(argv: list[str] | None = None) -> int:
     problems = config_problems(cfg)
     if problems:
         return _fail("; ".join(problems))
+    block = cfg["datasets"][DATASET]["scenes"][scene_name(args.photos)]
+    try:
+        sizes, working = photo_sizes(args.photos, names, block.get("max_size"))
+    except (ValueError, OSError) as exc:
+        return _fail(str(exc).splitlines()[0])
+    why = one_grid_problem(cfg["initialisers"], working)
+    if why:
+        return _fail(why)
     out.mkdir(parents=True, exist_ok=True)
     import json
 
@@ -230,21 +363,24 @@ def main(argv: list[str] | None = None) -> int:
         _write_if_changed(out / "config.yaml", header(args.photos) + "\n" + yaml.safe_dump(cfg, sort_keys=False))
     print(f"[photos] {len(names)} photos in {args.photos}; config {out / 'config.yaml'}; "
           f"initialiser(s): {', '.join(cfg['initialisers'])}", flush=True)
-    block = cfg["datasets"][DATASET]["scenes"][scene_name(args.photos)]
-    try:
-        print(f"[photos] {working_resolution(args.photos, names, block.get('max_size'))}", flush=True)
-    except (ValueError, OSError) as exc:
-        return _fail(str(exc).splitlines()[0])
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
-           "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), *(["-n"] if args.dry_run else []),
-           *extra]
-    from progress import annotate  # says when the progress total grows after the COLMAP checkpoint
+    print(f"[photos] {working_resolution(sizes, block.get('max_size'))}", flush=True)
+    from camio.images import describe_orientation
 
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
-    for line in annotate(proc.stdout, "[photos]"):
-        sys.stdout.write(line)
-        sys.stdout.flush()
-    rc = proc.wait()
+    turned = describe_orientation(args.photos, names)
+    if turned:
+        print(f"[photos] {turned}", flush=True)
+    if device_env:
+        print(f"[photos] device {args.device}: the jobs see only that GPU (CUDA_VISIBLE_DEVICES="
+              f"{device_env['CUDA_VISIBLE_DEVICES']}) and use it as cuda", flush=True)
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
+           "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), "--rerun-incomplete",
+           *(["-n"] if args.dry_run else []), *extra]
+    # the dry run's job list is what -n asks for: shown whole
+    rc, stopped = run_snakemake(cmd, out, device_env, args.verbose or args.dry_run, not args.dry_run)
+    if stopped is not None:
+        print(f"[photos] stopped by {signal.Signals(stopped).name}: snakemake ended its jobs (exit {rc}); "
+              "the same command resumes the run", file=sys.stderr, flush=True)
+        return 128 + int(stopped)
     if rc != 0:
         print(f"[photos] FAILED (snakemake exit {rc}): see the output above and the logs under {out}",
               file=sys.stderr)

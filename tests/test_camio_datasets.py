@@ -409,16 +409,19 @@ def test_bare_folder_takes_photographs_only(tmp_path):
     assert len(load_scene(d, allow_mixed=True).names) == 5
 
 
-def test_bare_folder_mixed_sizes_need_allow_mixed(tmp_path):
+def test_bare_folder_of_mixed_sizes_keeps_each_size(tmp_path):
+    """Photos of several sizes (portrait and landscape) convert without --allow-mixed: each
+    keeps its size, which scene.json lists, and the run says so; a dataset with cameras still
+    needs one size (tests/test_camio_prepare.py)."""
     d = tmp_path / "shots"
     for i in range(3):
         _img(d / f"{i}.jpg", seed=i)
     _img(d / "3.jpg", 32, 32)
     r = _convert(d, tmp_path / "out")
-    assert r.returncode == 2 and "mixed sizes" in r.stderr and not (tmp_path / "out").exists()
-    r = _convert(d, tmp_path / "out", "--allow-mixed")
     assert r.returncode == 0, r.stderr
-    assert "detected format folder: 4 images, no reference cameras" in r.stdout
+    assert "4 photos of 2 sizes" in r.stdout
+    meta = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert meta["image_sizes"]["3.jpg"] == [32, 32] and len({tuple(v) for v in meta["image_sizes"].values()}) == 2
 
 
 def test_unknown_camera_files_refused(tmp_path):

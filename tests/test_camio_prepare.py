@@ -56,9 +56,11 @@ def test_convert_copy_is_byte_exact(synth, tmp_path):
 
 
 def test_convert_mixed_sizes_leaves_nothing(synth, tmp_path):
+    """A dataset with reference cameras needs one image size (a photo folder may mix them:
+    test_convert_turns_exif_rotated_photos_upright_and_says_so)."""
     src = tmp_path / "src"
-    shutil.copytree(synth / "images", src / "images")
-    write_image(src / "images" / "0005.png", read_image(src / "images" / "0005.png")[:40])
+    shutil.copytree(synth, src)
+    write_image(src / "images" / "0005.png", downsample_area(read_image(src / "images" / "0005.png"), 2))
     with pytest.raises(SceneError, match="mixed sizes"):
         prepare_scene(src, tmp_path / "out")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
@@ -113,3 +115,31 @@ def test_cli_split(synth, tmp_path):
     assert json.loads(out.read_text())["rule"] == "manifest"
     assert main(["-q", "split", "--scene", str(synth), "--n", "12", "--out", str(tmp_path / "x.json")]) == 2
     assert not (tmp_path / "x.json").exists()
+
+
+def test_convert_turns_exif_rotated_photos_upright_and_says_so(tmp_path, capsys):
+    """A photo stored sideways with EXIF Orientation 6 (a phone held upright) is written
+    upright, with no tag left, and convert names it; the photo folder may mix sizes."""
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(0)
+    src = tmp_path / "shots"
+    src.mkdir()
+    upright = (rng.random((48, 32, 3)) * 255).astype(np.uint8)  # portrait 32x48
+    for name, stored, o in (("a.png", upright, 6), ("b.png", np.rot90(upright, k=1).copy(), 1),
+                            ("c.png", upright, 1)):
+        data = np.rot90(stored, k=1) if o == 6 else stored  # stored sideways: the viewer turns it back
+        spec = oiio.ImageSpec(data.shape[1], data.shape[0], 3, "uint8")
+        spec.attribute("Orientation", o)
+        f = oiio.ImageOutput.create(str(src / name))
+        assert f.open(str(src / name), spec) and f.write_image(np.ascontiguousarray(data))
+        f.close()
+    assert main(["-q", "convert", "--src", str(src), "--format", "folder", "--out", str(tmp_path / "o")]) == 0
+    said = capsys.readouterr().out
+    assert "EXIF orientation applied: 1 of 3 image(s) turned upright: a.png (turned 90 degrees clockwise)" in said
+    assert "3 photos of 2 sizes" in said
+    a = tmp_path / "o" / "images" / "a.png"
+    np.testing.assert_array_equal(read_image_uint8(a), upright)
+    inp = oiio.ImageInput.open(str(a))
+    assert int(inp.spec().get_int_attribute("Orientation", 1)) == 1
+    inp.close()

@@ -17,6 +17,7 @@ from evaluation.initialisers.colmap_baseline import (
     run_colmap,
 )
 from evaluation.initialisers.colmap_repeats import run_colmap_repeats, summarise_repeats
+from evaluation.initialisers.colmap_run import DEFAULT_THREADS
 
 TRAIN = ["0001.png", "0003.png", "0005.png", "0007.png"]
 
@@ -143,8 +144,8 @@ def test_settings_follow_the_protocol():
     s = ColmapSettings()
     assert (s.max_image_size, s.max_num_features, s.guided_matching, s.camera_model) == \
         (3200, 16384, True, "PINHOLE")
-    assert s.num_threads == available_cores() >= 1  # every available core by default
-    assert ColmapSettings(num_threads=1).num_threads == 1
+    assert s.num_threads == DEFAULT_THREADS == 1  # the same model every run, by default
+    assert ColmapSettings(num_threads=0).num_threads == available_cores() >= 1
 
 
 def test_matching_runs_on_one_thread_whatever_the_core_count(scene, tmp_path, monkeypatch):

@@ -6,6 +6,7 @@ package code, the CLIs or the workflow (the AST walk of tests/_default_literals.
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import yaml
@@ -210,3 +211,16 @@ def test_the_literal_check_finds_repeats(tmp_path):
         literals.repeats(tmp_path, sources=two)
     assert not any(f.startswith("camio/again.py") for f in literals.repeats(
         tmp_path, sources=two, shared={("camio/again.py", "max_points"): "a stage that may not import camio"}))
+
+
+def test_colmap_threads_default_once():
+    """One default for the COLMAP thread count (1: the same model every run): the CLI flag reads
+    the constant, the workflow schema spells the same value."""
+    from evaluation.initialisers import colmap_baseline
+    from evaluation.initialisers.colmap_run import DEFAULT_THREADS, ColmapSettings
+
+    assert _schema()["properties"]["colmap"]["properties"]["threads"]["default"] == DEFAULT_THREADS
+    assert ColmapSettings().num_threads == DEFAULT_THREADS
+    src = Path(colmap_baseline.__file__).read_text()
+    assert re.search(r'p\.add_argument\("--threads", type=[^\n]*, default=DEFAULT_THREADS\b', src), \
+        "the --threads flag must take its default from DEFAULT_THREADS"

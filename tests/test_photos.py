@@ -9,12 +9,15 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import yaml
+
+from _cli import refused
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURE = REPO / "tests" / "data" / "vggt" / "shared"
@@ -174,3 +177,153 @@ def test_dense_seeds_from_multi_view_stereo_on_colmaps_cameras(tmp_path):
     assert bridge["alpha_out"]["max"] > bridge["alpha_out"]["min"]  # the confidence sets the opacity
     assert len(list((run / "gated" / "train_renders").glob("*.png"))) == 6
     assert "### colmap_mvs: ran" in (out / "photos.md").read_text()
+
+
+# ------------------------------------------------------------------ photos as people take them
+def _write_oriented(path: Path, upright: "np.ndarray", orientation: int) -> None:
+    """Write ``upright`` [H, W, 3] uint8 as a JPEG that stores it on its side with an EXIF
+    Orientation tag (6: the viewer turns the stored pixels 90 degrees clockwise), through
+    OpenImageIO directly, as a phone held upright writes it."""
+    import numpy as np
+    import OpenImageIO as oiio
+
+    stored = {1: upright, 6: np.rot90(upright, k=1)}[orientation]
+    h, w, c = stored.shape
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    spec.attribute("Orientation", orientation)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(stored))
+    out.close()
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory) -> Path:
+    """Six photos along an arc, landscape 320x240 and portrait 180x240 in turn; each portrait
+    one is stored sideways (240x180 pixels) with EXIF Orientation 6."""
+    from camio.images import read_image_uint8
+
+    scene = tmp_path_factory.mktemp("synth") / "scene"
+    subprocess.run([sys.executable, "-m", "camio", "-q", "synth", "--out", str(scene), "--views", "12",
+                    "--width", "320", "--seed", "0"], check=True, capture_output=True)
+    folder = tmp_path_factory.mktemp("mixed") / "street"
+    folder.mkdir()
+    for k, p in enumerate(sorted((scene / "images").iterdir())[::2]):
+        img = read_image_uint8(p)
+        if k % 2:  # portrait: the middle 3/4 of the height's width, a phone turned upright
+            x0 = (img.shape[1] - 180) // 2
+            _write_oriented(folder / f"{p.stem}.jpg", img[:, x0:x0 + 180], 6)
+        else:
+            _write_oriented(folder / f"{p.stem}.jpg", img, 1)
+    return folder
+
+
+@pytest.mark.slow
+def test_mixed_orientation_photos_run_end_to_end_and_resume_after_sigterm(tmp_path, mixed):
+    """Portrait and landscape photos, the portrait ones EXIF-rotated, in one folder: the run says
+    which it turned upright, COLMAP gives each size its own camera, and every photo is trained
+    on and rendered at its own upright size. A SIGTERM in the middle stops the run (the signal
+    forwarded to snakemake, one line, exit 128 + 15); the same command then resumes to the end."""
+    import numpy as np
+
+    from camio.colmap import read_model
+    from camio.images import image_size, read_image
+
+    out = tmp_path / "out"
+    args = [sys.executable, str(REPO / "scripts" / "photos.py"), str(mixed), "--out", str(out), "--init", "colmap",
+            "--iterations", "3"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(tmp_path),
+                            cwd=tmp_path)
+    seen = []
+    for line in proc.stdout:  # stop once the conversion is done and later jobs run
+        seen.append(line)
+        if "(convert_scene)" in line:
+            proc.send_signal(signal.SIGTERM)
+            break
+    rest, err = proc.communicate(timeout=120)
+    text = "".join(seen) + rest
+    assert proc.returncode == 128 + signal.SIGTERM, text + err
+    assert err.strip().splitlines() == [err.strip()] and "stopped by SIGTERM" in err and "resumes" in err, err
+    assert "EXIF orientation applied: 3 of 6 image(s) turned upright" in text
+    assert "6 photos of 2 sizes (3 x 180x240 -> 180x240, 3 x 320x240 -> 320x240)" in text
+    assert "localrule" not in text and "jobid" not in text  # snakemake's job blocks only with -v
+    assert not (out / "photos.md").exists()
+
+    again = _photos(tmp_path, *args[2:])
+    assert again.returncode == 0, (again.stdout + again.stderr)[-6000:]
+    assert "(colmap_baseline)" in again.stdout and "(convert_scene)" not in again.stdout  # resumed
+
+    scene = out / "photos" / "street"
+    for name in ("0002.jpg", "0006.jpg"):  # turned upright when prepared, no tag left
+        upright = read_image(scene / "converted" / "images" / name)
+        assert upright.shape == (240, 180, 3)
+        src = read_image(mixed / name)  # the reader turns it upright too: the same pixels, re-encoded
+        assert np.abs(upright - src).mean() < 0.02
+    model = read_model(scene / "n6" / "colmap" / "sparse" / "0")
+    sizes = {c.name: (c.width, c.height) for c in model.cameras}
+    assert len(sizes) == 6 and set(sizes.values()) == {(320, 240), (180, 240)}
+    status = json.loads((scene / "n6" / "colmap" / "status.json").read_text())
+    assert status["n_cameras"] == 2 and status["registered"] == 6, status
+    renders = {p.stem: image_size(p) for p in (scene / "n6" / "colmap" / "uniform" / "train_renders").glob("*.png")}
+    assert renders == {Path(n).stem: s for n, s in sizes.items()}
+    assert "### colmap: ran, registered 6 of 6 photos" in (out / "photos.md").read_text()
+
+
+def test_dense_on_photos_of_several_sizes_is_refused_up_front(tmp_path, mixed):
+    """Multi-view stereo writes one grid for all views: --dense on portrait and landscape photos
+    is one line before anything runs, saying what to do."""
+    proc = _photos(tmp_path, str(mixed), "--out", str(tmp_path / "out"), "--init", "colmap", "--dense")
+    line = refused(proc, "colmap_mvs", "one size", "180x240, 320x240", "without --dense")
+    assert line.startswith("scripts/photos.py: error:") and not (tmp_path / "out").exists()
+
+
+def test_every_unusable_photo_is_named_at_once(tmp_path, photos):
+    """A HEIC photo, a truncated JPEG, a tiny PNG and a name with a space: one line names all
+    four and why, before anything is written; sidecar files are no photos and pass."""
+    from camio.images import read_image, write_image
+
+    folder = tmp_path / "trip"
+    shutil.copytree(photos, folder)
+    (folder / "IMG_0001.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic" + bytes(64))
+    good = sorted(folder.glob("*.png"))[0]
+    cut = folder / "cut.jpg"
+    write_image(cut, read_image(good))
+    cut.write_bytes(cut.read_bytes()[:400])
+    write_image(folder / "tiny.png", read_image(good)[:8, :8])
+    shutil.copy(good, folder / "my photo.png")
+    (folder / "IMG_0001.xmp").write_text("<x:xmpmeta/>")
+    proc = _photos(tmp_path, str(folder), "--out", str(tmp_path / "out"), "-n")
+    line = refused(proc, "4 photo(s)", "IMG_0001.HEIC: HEIC is not read here", "cut.jpg: does not decode",
+                   "tiny.png: 8x8 px: too small", "my photo.png: the name holds whitespace", "move them out")
+    assert "xmp" not in line and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("cores", ["0", "-1"])
+def test_cores_below_one_is_refused(tmp_path, photos, cores):
+    """--cores 0 made snakemake wait for ever: a count below 1 is one line."""
+    refused(_photos(tmp_path, str(photos), "--out", str(tmp_path / "out"), "--cores", cores, "-n"),
+            "--cores must be at least 1", cores)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("device", ["gpu", "cuda:x", "cuda:-1", "cuda1"])
+def test_a_bad_device_is_refused(tmp_path, photos, device):
+    refused(_photos(tmp_path, str(photos), "--out", str(tmp_path / "out"), "--device", device, "-n"),
+            "--device", repr(device), "cuda:N")
+
+
+def test_cuda_n_shows_the_jobs_that_gpu_alone(tmp_path, photos):
+    """--device cuda:N: VGGT and training are configured for cuda, and the jobs see only GPU N
+    (CUDA_VISIBLE_DEVICES), counted among those already visible. Parsing only: no GPU is needed
+    for a dry run."""
+    env_visible = {**_env(tmp_path), "CUDA_VISIBLE_DEVICES": "3,5"}
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / "photos.py"), str(photos), "--out",
+                           str(tmp_path / "out"), "--device", "cuda:1", "-n"], capture_output=True, text=True,
+                          timeout=600, env=env_visible, cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    assert "device cuda:1: the jobs see only that GPU (CUDA_VISIBLE_DEVICES=5)" in proc.stdout
+    cfg = yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())
+    assert cfg["train"]["device"] == "cuda" and cfg["vggt"]["device"] == "cuda"
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / "photos.py"), str(photos), "--out",
+                           str(tmp_path / "out"), "--device", "cuda:2", "-n"], capture_output=True, text=True,
+                          timeout=600, env=env_visible, cwd=tmp_path)
+    refused(proc, "--device cuda:2", "CUDA_VISIBLE_DEVICES=3,5", "cuda:0..cuda:1")

@@ -1,7 +1,7 @@
 """The README's stage commands ("Stages, one command each") run as written, in order, from a
 copy of the repository root, on the synthetic scene with the posed initialiser, and write only
 into ``work/``; then "Look at a model" serves the model they trained. Lines marked ``# needs ...`` (the VGGT weights, a downloaded scene, the
-workflow's results) are left out; ``[...]`` options are left out."""
+workflow's results) are left out; every line runs as it pastes (no ``[...]`` placeholders)."""
 from __future__ import annotations
 
 import os
@@ -33,17 +33,17 @@ def stage_commands(readme: str) -> tuple[list[str], list[str]]:
         if comment.strip().startswith("needs "):
             left_out.append(code.strip())
             continue
-        run.append(re.sub(r"\s*\[[^\]]*\]", "", code).strip())
+        run.append(code.strip())
     return run, left_out
 
 
 def view_command(readme: str) -> str:
-    """The command of "Look at a model", without its [...] options."""
+    """The command of "Look at a model", without its comment."""
     block = readme[readme.index("## Look at a model"):]
     block = block[block.index("```bash") + 7:]
     block = re.sub(r"\\\n\s*", "", block[: block.index("```")]).strip()
     assert len(block.splitlines()) == 1, block
-    return re.sub(r"\s*\[[^\]]*\]", "", block).strip()
+    return block.partition("  #")[0].strip()
 
 
 def test_stage_block_parses():

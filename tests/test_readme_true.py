@@ -8,12 +8,15 @@
   (``views.py names`` writes train.txt before ``--image-list train.txt`` is used) and says how
   long the demo takes.
 * make install / demo / test use the clone's own .venv.
+* Every command of the project in a README code block pastes into a shell as written (no
+  ``[...]`` placeholder, no ``a|b`` pipe) and uses only flags its --help lists.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -87,3 +90,57 @@ def test_readme_python_example_runs(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert re.search(r"^\d+ seed points -> \d+ Gaussians: work/api/train/model.ply$", proc.stdout, re.M), proc.stdout
     assert (tmp_path / "work" / "api" / "train" / "train.json").is_file()
+
+
+_SHELL_OPERATORS = {"|", "||", "&", "&&", ";", "<", ">", ">>", "(", ")"}
+
+
+def readme_commands(readme: str) -> list[str]:
+    """Every command line of the README's bash blocks that runs one of the project's own
+    programs (``python -m <package>``, ``python <repo script>``), continuation lines joined and
+    the trailing comment cut."""
+    out = []
+    for block in re.findall(r"```bash\n(.*?)```", readme, re.S):
+        for line in re.sub(r"\\\n\s*", "", block).splitlines():
+            code = line.partition("  #")[0].strip()
+            if re.match(r"python (-m (camio|vggt_init|bridge|splat_train|evaluation)\b|(scripts|workflow)/)", code):
+                out.append(code)
+    return out
+
+
+def test_readme_commands_paste_as_written():
+    """Each of the project's commands in the README is one command in a shell: shlex reads it,
+    no placeholder in brackets, no ``a|b`` that the shell would take for a pipe."""
+    cmds = readme_commands(README)
+    assert len(cmds) >= 20, cmds
+    for cmd in cmds:
+        lexer = shlex.shlex(cmd, posix=True, punctuation_chars=True)
+        tokens = list(lexer)
+        assert not _SHELL_OPERATORS & set(tokens), f"{cmd}: a shell operator in {sorted(_SHELL_OPERATORS & set(tokens))}"
+        assert not any(t.startswith("[") or t.endswith("]") for t in shlex.split(cmd)), f"{cmd}: a [...] placeholder"
+
+
+def _program(argv: list[str]) -> list[str]:
+    """The part of ``argv`` that names the program and its subcommand (``python -m camio convert``)."""
+    if argv[1] == "-m":
+        sub = argv[3:4] if len(argv) > 3 and not argv[3].startswith("-") and argv[3].isidentifier() else []
+        return [sys.executable, "-m", argv[2], *sub]
+    sub = argv[2:3] if len(argv) > 2 and not argv[2].startswith("-") and argv[2].isidentifier() else []
+    return [sys.executable, argv[1], *sub]
+
+
+def test_readme_flags_exist_in_the_commands_help():
+    """Every --flag of a README command appears in that command's --help, so the README cannot
+    show a flag that the program refuses."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    flags: dict[tuple[str, ...], set[str]] = {}
+    for cmd in readme_commands(README):
+        argv = shlex.split(cmd)
+        flags.setdefault(tuple(_program(argv)), set()).update(t.split("=")[0] for t in argv if t.startswith("--"))
+    assert len(flags) >= 10, flags
+    missing = []
+    for program, used in flags.items():
+        proc = subprocess.run([*program, "--help"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, (program, proc.stderr[-2000:])
+        missing += [f"{' '.join(program[1:])} {f}" for f in sorted(used) if not re.search(rf"{re.escape(f)}\b", proc.stdout)]
+    assert not missing, f"README flags that --help does not list: {missing}"

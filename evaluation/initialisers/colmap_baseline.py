@@ -17,7 +17,7 @@ import logging
 from camio.images import ImageReadError
 from camio.outdir import prepare_out, run_stage, seal_out, typed_line
 from evaluation.initialisers import colmap_repeats
-from evaluation.initialisers.colmap_run import ColmapSettings, available_cores, model_fingerprint, run_colmap
+from evaluation.initialisers.colmap_run import DEFAULT_THREADS, ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.metrics.pose import add_gate_args, gate_from_args
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
@@ -49,8 +49,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="SIFT extraction: longest image side in pixels")
     p.add_argument("--max-num-features", type=flag(int, 16), default=16384, help="SIFT features per image at most")
     p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
-    p.add_argument("--threads", type=flag(int, 0), default=0,
-                   help="threads per COLMAP stage (default 0 = every available core; 1 = bitwise reproducible)")
+    p.add_argument("--threads", type=flag(int, 0), default=DEFAULT_THREADS,
+                   help=f"threads per COLMAP stage (default {DEFAULT_THREADS}: the same model every run; 0 = every "
+                        "available core, faster, the model may differ between runs)")
     p.add_argument("--keep-work", action="store_true", help="keep the database and image links")
     add_fallback_args(p)
     add_log_flags(p)

@@ -1,7 +1,7 @@
 """The train-only COLMAP baseline, seeded and repeatable.
 
-Settings: SIFT features (one shared PINHOLE camera, max image size 3200, max 16384
-features), exhaustive matching with guided matching, incremental mapping, all through
+Settings: SIFT features (one shared PINHOLE camera, or one per image size where the images
+differ in size, e.g. portrait and landscape photos; max image size 3200, max 16384 features), exhaustive matching with guided matching, incremental mapping, all through
 pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
@@ -13,11 +13,12 @@ pose.json). A failed reconstruction is a *result* (``success_paper = false`` wit
 ``status.json``), never an exception.
 
 Reproducibility: pycolmap's global PRNG (:func:`pycolmap.set_random_seed`) and every
-``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. By default every
-stage uses every core this process may run on (:func:`available_cores`); the thread count is
-recorded in ``status.json`` (``num_threads``). With ``--threads 1`` two runs with the same seed
-on the same input give identical models (tested); with more threads the feature extraction and
-matching are the same but the mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.initialisers.colmap_repeats`).
+``random_seed`` option (mapper, triangulator, RANSAC) are set from ``seed``. ``--threads 0``
+makes every stage use every core this process may run on (:func:`available_cores`); the thread count is
+recorded in ``status.json`` (``num_threads``). By default (:data:`DEFAULT_THREADS`, 1) two runs
+with the same seed on the same input give identical models (tested); with more threads
+(``--threads 0``: every core) the feature extraction and matching are the same but the
+mapper's parallel steps may order work differently. ``--repeats k`` runs k seeds and reports the spread (:mod:`evaluation.initialisers.colmap_repeats`).
 CLI: ``python -m evaluation.initialisers.colmap_baseline`` (:mod:`evaluation.initialisers.colmap_baseline`).
 
 Output (docs/contracts.md): ``DIR/sparse/0/*.txt`` (COLMAP text, PINHOLE) when a model
@@ -37,7 +38,7 @@ import numpy as np
 
 from camio.atomic import atomic_dir, scratch_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
-from camio.images import ImageReadError, check_images
+from camio.images import MIN_IMAGE_SIDE, ImageReadError, check_images
 from evaluation.metrics.pose import paper_success
 from runtime.logs import peak_rss_mb
 
@@ -50,6 +51,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 MIN_ALIGN_IMAGES = 3
+#: threads of a COLMAP run unless told otherwise: 1 gives the same model on every run (bitwise);
+#: 0 = every available core, faster, but the mapper's parallel steps may then order work differently
+DEFAULT_THREADS = 1
 
 
 def available_cores() -> int:
@@ -67,9 +71,9 @@ class ColmapSettings:
         max_image_size: SIFT extraction downsizes larger images to this (pixels, long side).
         max_num_features: SIFT features per image.
         guided_matching: guided matching after geometric verification.
-        camera_model: the single shared camera model ("PINHOLE").
-        num_threads: threads for extraction and mapping; None or 0 = every available core
-            (:func:`available_cores`); 1 = bitwise reproducible. Matching always runs on
+        camera_model: the shared camera model ("PINHOLE"): one camera per image size.
+        num_threads: threads for extraction and mapping (default :data:`DEFAULT_THREADS`, 1 =
+            bitwise reproducible); None or 0 = every available core (:func:`available_cores`). Matching always runs on
             :data:`camio.colmap.MATCHING_THREADS` (1): pycolmap's bundled OpenBLAS is not safe
             for concurrent matcher threads.
         matching_threads: the matcher's thread count (recorded in ``status.json``).
@@ -77,7 +81,7 @@ class ColmapSettings:
 
     def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
                  guided_matching: bool = True, camera_model: str = "PINHOLE",
-                 num_threads: int | None = None) -> None:
+                 num_threads: int | None = DEFAULT_THREADS) -> None:
         self.max_image_size = int(max_image_size)
         self.max_num_features = int(max_num_features)
         self.guided_matching = bool(guided_matching)
@@ -89,8 +93,10 @@ class ColmapSettings:
         return dict(vars(self))
 
 
-def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
-    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``."""
+def _link_images(images_dir: Path, names: list[str], work_images: Path,
+                 work_names: dict[str, str] | None = None) -> None:
+    """Symlink (or copy) exactly ``names`` from ``images_dir`` into ``work_images``, each as
+    ``work_names[name]`` (default: its own name)."""
     missing = [n for n in names if not (images_dir / n).is_file()]
     if missing:
         raise FileNotFoundError(
@@ -98,7 +104,7 @@ def _link_images(images_dir: Path, names: list[str], work_images: Path) -> None:
             "the scene's images/ folder")
     work_images.mkdir(parents=True, exist_ok=True)
     for name in names:
-        dst = work_images / name
+        dst = work_images / (work_names or {}).get(name, name)
         dst.parent.mkdir(parents=True, exist_ok=True)
         try:
             os.symlink((images_dir / name).resolve(), dst)
@@ -127,25 +133,22 @@ def _check_inputs(images_dir: Path, names: list[str]) -> None:
     check_images(images_dir / n for n in names)
 
 
-MIN_IMAGE_SIDE = 16
-"""Smaller images give SIFT nothing to find (COLMAP then reports only "no initial pair")."""
 
 
 def input_problems(images_dir: Path, names: list[str]) -> list[str]:
-    """What in the training images keeps COLMAP's single shared camera from using them all.
+    """What in the training images keeps COLMAP from using them all.
 
-    COLMAP's extractor (``CameraMode.SINGLE``) gives every image the first image's camera and
-    skips any image whose stored size differs (a message shown only with -v); an EXIF
-    rotation changes the stored-vs-displayed size, and a tiny image has no features. The
-    mapper then reports only "no initial image pair".
+    An EXIF rotation changes the stored-vs-displayed size (COLMAP reads the stored pixels;
+    ``camio convert`` writes every image upright), and a tiny image has no features. The
+    mapper then reports only "no initial image pair". Images of different sizes are no problem:
+    each size gets its own camera (:func:`size_groups`).
 
     Returns:
-        One sentence per problem ([] when none): mixed stored sizes, EXIF-rotated images,
-        images smaller than :data:`MIN_IMAGE_SIDE` px.
+        One sentence per problem ([] when none): EXIF-rotated images, images smaller than
+        :data:`MIN_IMAGE_SIDE` px.
     """
     import OpenImageIO as oiio
 
-    sizes: dict[tuple[int, int], list[str]] = {}
     rotated, small = [], []
     for n in names:
         inp = oiio.ImageInput.open(str(images_dir / n))
@@ -156,21 +159,35 @@ def input_problems(images_dir: Path, names: list[str]) -> list[str]:
             w, h, o = int(spec.width), int(spec.height), int(spec.get_int_attribute("Orientation", 1))
         finally:
             inp.close()
-        sizes.setdefault((w, h), []).append(n)
         if o not in (0, 1):
             rotated.append(f"{n} (orientation {o})")
         if min(w, h) < MIN_IMAGE_SIDE:
             small.append(f"{n} ({w}x{h})")
     out = []
-    if len(sizes) > 1:
-        parts = ", ".join(f"{w}x{h}: {len(v)} image{'s' * (len(v) > 1)} (e.g. {v[0]})"
-                          for (w, h), v in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
-        out.append(f"images of different sizes ({parts}): COLMAP's single shared camera skips the odd ones")
     if rotated:
         out.append(f"EXIF-rotated images: {', '.join(rotated[:3])}: COLMAP reads them unrotated")
     if small:
         out.append(f"images too small for features (< {MIN_IMAGE_SIDE} px): {', '.join(small[:3])}")
     return out
+
+
+def size_groups(images_dir: Path, names: list[str]) -> dict[str, str]:
+    """name -> the name COLMAP extracts it under: the name itself where every image has one
+    stored size (one shared camera, ``CameraMode.SINGLE``), else ``"<W>x<H>/<name>"``, a folder
+    per size, so that ``CameraMode.PER_FOLDER`` gives each size its own camera (COLMAP's
+    ``SINGLE`` mode skips every image whose size differs from the first's)."""
+    from camio.images import _open
+
+    sizes = {}
+    for n in names:
+        inp = _open(images_dir / n)
+        try:
+            sizes[n] = f"{int(inp.spec().width)}x{int(inp.spec().height)}"
+        finally:
+            inp.close()
+    if len(set(sizes.values())) == 1:
+        return {n: n for n in names}
+    return {n: f"{sizes[n]}/{n}" for n in names}
 
 
 def _options(settings: ColmapSettings, seed: int):
@@ -266,17 +283,22 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
     # removed however the run ends (a stop signal too), unless --keep-work moves it to out/work
     with scratch_dir(".colmap_work.", out_dir) as work:
         try:
-            _link_images(images_dir, names, work / "images")
+            work_names = size_groups(images_dir, names)
+            _link_images(images_dir, names, work / "images", work_names)
             reader, extraction, matching, verification, mapping = _options(settings, seed)
             db = work / "database.db"
             # pycolmap's own (glog) lines go to stderr, i.e. the stage log; its INFO chatter
             # (25-60 lines a call) only with -v, its errors always.
             pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2
             pycolmap.set_random_seed(int(seed))
-            log.info("COLMAP baseline: %d training images, seed %d, %d threads", len(names), seed, settings.num_threads)
+            per_size = any(w != n for n, w in work_names.items())
+            log.info("COLMAP baseline: %d training images (%s), seed %d, %d threads", len(names),
+                     f"a camera for each of {len({w.split('/')[0] for w in work_names.values()})} image sizes"
+                     if per_size else "one camera", seed, settings.num_threads)
             t = time.perf_counter()
-            pycolmap.extract_features(db, work / "images", image_names=names,
-                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+            pycolmap.extract_features(db, work / "images", image_names=[work_names[n] for n in names],
+                                      camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size
+                                      else pycolmap.CameraMode.SINGLE, reader_options=reader,
                                       extraction_options=extraction, device=pycolmap.Device.cpu)
             log.info("feature extraction done in %.2f s", time.perf_counter() - t)
             t = time.perf_counter()
@@ -290,6 +312,10 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
                      len(recs))
             status["num_models"] = len(recs)
             _, rec = _largest(recs)
+            if rec is not None and per_size:
+                original = {w: n for n, w in work_names.items()}
+                for image in rec.images.values():
+                    image.name = original[image.name]
             sparse = out_dir / "sparse" / "0"
             if rec is None:
                 status["reason"] = "no model: the incremental mapper found no initial image pair"
@@ -300,6 +326,7 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
                 status["points"] = int(pts)
                 status["registered_names"] = sorted(rec.images[i].name for i in rec.reg_image_ids())
                 status["fy_over_fx"] = _fy_over_fx(rec)
+                status["n_cameras"] = len(rec.cameras)
                 if pts:
                     status["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
                 with atomic_dir(sparse) as tmp:
