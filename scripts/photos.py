@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -59,7 +60,11 @@ INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
 DATASET = "photos"
 HEADER = "# Written by scripts/photos.py for"
 #: the keys a new config.yaml starts with, which a rerun leaves to the file unless a flag sets them
-FIRST_WRITE = {"initialisers": INITS["both"], "evaluation": {"testpose": False}}
+#: how often (iterations) a photo run's trainer replaces train/snapshot.ply, which the viewer
+#: follows live (train.snapshot_every; written on the first run, yours to change after)
+SNAPSHOT_EVERY = 100
+FIRST_WRITE = {"initialisers": INITS["both"], "evaluation": {"testpose": False},
+               "train": {"snapshot_every": SNAPSHOT_EVERY}}
 
 
 def _fail(msg: str) -> int:
@@ -122,6 +127,24 @@ def make_config(folder: Path, out: Path, names: list[str], inits: list[str] | No
     if device:
         cfg.setdefault("train", {})["device"] = device
     return cfg
+
+
+def live_view_lines(cfg: dict, out: Path, scene: str, n: int) -> list[str]:
+    """The command that watches each run train (its train/snapshot.ply, replaced every
+    ``train.snapshot_every`` iterations); [] when the config writes no snapshots."""
+    every = (cfg.get("train") or {}).get("snapshot_every")
+    if not every:
+        return []
+    from evaluation.initialisers.registry import get
+
+    schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
+    modes = (cfg.get("bridge") or {}).get("modes") or schema["properties"]["bridge"]["properties"]["modes"]["default"]
+    lines = [f"watch a run train (the model every {every} iterations, in the browser):"]
+    for init in cfg["initialisers"]:
+        for mode in (modes if get(init).confidence else ["uniform"]):
+            run = out / DATASET / scene / f"n{n}" / init / mode / "train"
+            lines.append(f"  python -m splat_train view --model {shlex.quote(str(run))}")
+    return lines
 
 
 def scene_name(folder: Path) -> str:
@@ -339,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
         base = INITS[args.init] if args.init is not None else (kept or INITS["both"])
         inits = base + ([f"{i}_mvs" for i in base] if args.dense else [])
     cfg = make_config(args.photos, out, names, inits, args.iterations, vggt, args.max_size, device)
-    cfg = merge_config(old, cfg) if old is not None else {**cfg, **{k: v for k, v in FIRST_WRITE.items() if k not in cfg}}
+    cfg = merge_config(old if old is not None else FIRST_WRITE, cfg)
 
     sys.path.insert(0, str(REPO / "workflow" / "scripts"))
     from check_config import config_problems
@@ -372,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     if device_env:
         print(f"[photos] device {args.device}: the jobs see only that GPU (CUDA_VISIBLE_DEVICES="
               f"{device_env['CUDA_VISIBLE_DEVICES']}) and use it as cuda", flush=True)
+    for line in live_view_lines(cfg, out, scene_name(args.photos), len(names)):
+        print(f"[photos] {line}", flush=True)
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(REPO),
            "--cores", str(args.cores), "--configfile", str(out / "config.yaml"), "--rerun-incomplete",
            *(["-n"] if args.dry_run else []), *extra]

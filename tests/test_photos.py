@@ -68,6 +68,26 @@ def test_without_weights_says_so_and_plans_colmap_alone(tmp_path, photos):
     assert split["test"] == [] and len(split["train"][str(N_PHOTOS)]) == N_PHOTOS
 
 
+def test_a_photo_run_writes_snapshots_and_says_how_to_watch_them(tmp_path, photos):
+    """photos.py sets train.snapshot_every on its first run (the workflow then passes it to the
+    trainer: tests/test_workflow_dryrun.py) and prints the viewer command that follows each
+    run's training live, before the workflow starts."""
+    out = tmp_path / "out"
+    proc = _photos(tmp_path, str(photos), "--out", str(out), "--init", "colmap", "-n")
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    every = cfg["train"]["snapshot_every"]
+    assert every >= 1 and f"the model every {every} iterations" in proc.stdout
+    run = out / "photos" / "garden" / f"n{N_PHOTOS}" / "colmap" / "uniform" / "train"
+    assert f"[photos]   python -m splat_train view --model {run}" in proc.stdout
+    # the user turns snapshots off: no flag, no viewer line
+    cfg["train"]["snapshot_every"] = None
+    head = (out / "config.yaml").read_text().splitlines()[0]
+    (out / "config.yaml").write_text(f"{head}\n{yaml.safe_dump(cfg, sort_keys=False)}")
+    proc = _photos(tmp_path, str(photos), "--out", str(out), "-n")
+    assert proc.returncode == 0 and "splat_train view" not in proc.stdout, proc.stdout[-2000:]
+
+
 def test_rerun_keeps_the_users_config_edits(tmp_path, photos):
     """config.yaml is the user's to edit: a rerun writes the folder's keys and those of the flags
     given, and keeps every other key; a rerun that changes nothing leaves the file as it is. The

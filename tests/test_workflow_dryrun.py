@@ -193,6 +193,20 @@ def test_testpose_protocol_switch(tmp_path):
     assert jobs(counts, "testpose_refine") == jobs(counts, "testpose_metrics") == 0
 
 
+def test_snapshot_every_reaches_the_trainer_only_when_set(tmp_path):
+    """train.snapshot_every N makes every training job replace train/snapshot.ply every N
+    iterations (what the viewer follows live); null, the default, passes nothing."""
+    (tmp_path / "on").mkdir()
+    (tmp_path / "off").mkdir()
+    _, out = dry_run(tmp_path / "on", synth_config(initialisers=["oracle"], views=[3],
+                                                   train={"iterations": 10, "snapshot_every": 7}))
+    cmd = next(line for line in out.splitlines() if "python -m splat_train --seed-ply" in line)
+    assert "--snapshot-every 7 " in cmd + " "
+    _, out = dry_run(tmp_path / "off", synth_config(initialisers=["oracle"], views=[3]))
+    cmd = next(line for line in out.splitlines() if "python -m splat_train --seed-ply" in line)
+    assert "--snapshot-every" not in cmd
+
+
 def test_stage_target_and_per_scene_view_counts(tmp_path):
     cfg = synth_config()
     cfg["datasets"]["synthetic"]["scenes"]["bundled"]["views"] = [3]

@@ -262,6 +262,12 @@ def train_recipe_args(wildcards):
     return " ".join(args)
 
 
+def train_snapshot_args(wildcards):
+    """--snapshot-every N from train.snapshot_every; nothing when null (no snapshots)."""
+    n = config["train"]["snapshot_every"]
+    return "" if n is None else f"--snapshot-every {int(n)}"
+
+
 def train_lpips_args(wildcards):
     """--eval-lpips / --no-eval-lpips from train.eval_lpips; nothing when null (the trainer's
     default, splat_train.config, decides)."""

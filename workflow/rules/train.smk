@@ -61,13 +61,14 @@ rule train_splats:
         test=train_test_args,
         pose=pose_refine_args,
         lpips=train_lpips_args,
+        snapshot=train_snapshot_args,
     shell:
         "python -m splat_train --seed-ply {input.seed:q} --cameras {input.cameras:q}/0 "
         "--images {input.scene:q}/images --image-list {input.image_list:q} --out {params.out:q} "
         "{params.recipe} --seed {params.seed} "
         "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
         "--resume-dir {params.resume:q} --device {params.device} --threads {threads} "
-        "{params.test} {params.pose} {params.lpips} > {log:q} 2>&1"
+        "{params.test} {params.pose} {params.lpips} {params.snapshot} > {log:q} 2>&1"
 
 
 rule align_refined_cameras:
