@@ -11,16 +11,22 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
-__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command", "plain", "device_name"]
+__all__ = ["deprecated_flags", "is_int", "add_log_flags", "not_a_command", "plain", "device_name", "is_device"]
+
+
+def is_device(text: object) -> bool:
+    """Does ``text`` name a device: auto, cpu, cuda or cuda:N (N >= 0, the GPU's index)?"""
+    import re
+
+    return isinstance(text, str) and re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", text) is not None
 
 
 def device_name(text: str) -> str:
-    """An argparse ``type``: ``text`` when it names a device (auto, cpu, cuda or cuda:N, N >= 0),
-    else one line saying which names are taken (argparse prints it and exits 2)."""
+    """An argparse ``type``: ``text`` when it names a device (:func:`is_device`), else one line
+    saying which names are taken (argparse prints it and exits 2)."""
     import argparse
-    import re
 
-    if re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", text):
+    if is_device(text):
         return text
     raise argparse.ArgumentTypeError(f"{text!r} is not a device: use auto, cpu, cuda or cuda:N (N = the GPU's "
                                      "index, 0, 1, ...)")

@@ -42,7 +42,7 @@ from pathlib import Path
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.limits import MAX_IMAGE_SIDE
 from runtime.checks import flag, flag_of
-from runtime.cliargs import deprecated_flags, is_int
+from runtime.cliargs import deprecated_flags, device_name, is_int
 from runtime.logs import setup_logging
 from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
 
@@ -101,7 +101,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
                    help="with --pose-refine, also learn a focal-length correction per camera "
                         "(not with the gsplat rasterizer, which gives the intrinsics no gradient)")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="auto (default): CUDA when available, else CPU")
+    p.add_argument("--device", type=device_name, metavar="auto|cpu|cuda|cuda:N",
+                   help="auto (default): CUDA when available, else CPU; cuda:N the GPU of index N")
     p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
                                         "CUDA), cpu, torch, reference or gsplat")
     p.add_argument("--snapshot-every", type=flag(int, 1), dest="snapshot_every", metavar="N",

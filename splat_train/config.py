@@ -30,6 +30,7 @@ __all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", 
 
 from camio.ply import SH_DEGREE
 from runtime.checks import RGB, Range, check_fields
+from runtime.cliargs import is_device
 from splat_train.recipes import (BACKGROUND_MEAN, DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
                                  STRATEGIES, SEED_OVER_CAP, MCMC_GROWTH, VALUE_KEYS,
                                  recipe_defaults)
@@ -55,7 +56,7 @@ def default_iterations(device: str) -> int:
     """Iterations of a run that names none: :data:`PAPER_ITERATIONS` where training runs on a
     GPU (``device`` 'cuda', or 'auto' with a CUDA device visible), :data:`DEFAULT_ITERATIONS`
     on a CPU."""
-    return PAPER_ITERATIONS if resolve_device(device) == "cuda" else DEFAULT_ITERATIONS
+    return PAPER_ITERATIONS if resolve_device(device).startswith("cuda") else DEFAULT_ITERATIONS
 
 
 # The ranges of the fields (each field names its own beside its default; runtime.checks.Range).
@@ -197,7 +198,7 @@ class TrainConfig:
         lpips_weights: folder or file of the LPIPS-alex safetensors weights (None: the
             :func:`imgmetrics.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
             user cache).
-        device: "auto" (CUDA when available), "cpu" or "cuda".
+        device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N" (GPU N).
         rasterizer: the :func:`splat_train.rasterize` backend; "auto" = the C++ kernel on CPU,
             gsplat on CUDA when installed (else the PyTorch tile code, with a warning). The
             backend that ran is logged and written to ``train.json`` (``rasterizer``).
@@ -283,8 +284,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)  # every field's type and range, as annotated above
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        if not is_device(self.device):
+            raise ValueError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N' (N = the GPU's index), got {self.device!r}")
         if self.iterations is None:
             self.iterations = default_iterations(self.device)
         preset = recipe_defaults(self.recipe)

@@ -141,10 +141,14 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
 
 def _device(name: str) -> torch.device:
     name = resolve_device(name)
-    if name == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; use --config "
-                           "'{\"device\": \"cpu\"}' or install a CUDA build of torch")
-    return torch.device(name)
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} requested but torch sees no CUDA GPU; use --device cpu "
+                           "or install a CUDA build of torch")
+    dev = torch.device(name)
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise RuntimeError(f"device {name!r} requested but torch sees {torch.cuda.device_count()} CUDA GPU(s) "
+                           "(indices from 0; CUDA_VISIBLE_DEVICES renumbers them)")
+    return dev
 
 
 class Trainer:

@@ -73,6 +73,37 @@ def test_cli_reports_bad_input(tmp_path):
               "--out", str(tmp_path / "o"), "--image-list", str(tmp_path / "l.txt"), "-q"])
 
 
+@pytest.mark.parametrize("bad", ["gpu", "cuda:x", "cuda:-1", "cuda1"])
+def test_a_device_that_names_no_device_is_one_line(tmp_path, bad):
+    """--device takes auto, cpu, cuda or cuda:N; anything else is argparse's one line, exit 2,
+    before anything is read or written."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "splat_train", "--seed-ply", "a.ply", "--cameras", "c",
+                           "--images", "i", "--out", str(tmp_path / "o"), "--device", bad],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "is not a device" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_gpu_by_index_is_a_cuda_device(monkeypatch):
+    """cuda:N names GPU N: a GPU device for the iteration default; with no GPU, or fewer than
+    N + 1, the trainer says so in one sentence instead of a CUDA error."""
+    from splat_train.config import PAPER_ITERATIONS, TrainConfig
+    from splat_train.trainer import _device
+
+    assert TrainConfig(device="cuda:1").iterations == PAPER_ITERATIONS
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(RuntimeError, match="'cuda:1' requested but torch sees no CUDA GPU"):
+        _device("cuda:1")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(RuntimeError, match="sees 1 CUDA GPU"):
+        _device("cuda:1")
+    assert _device("cuda:0") == torch.device("cuda", 0)
+
+
 def test_default_iterations_follow_the_device(monkeypatch):
     """A run that names no iteration count gets the paper's 10,000 where it trains on a GPU and
     1,000 on a CPU (where 10,000 take ~13 min for the fern n = 3 cell); the count is resolved

@@ -207,6 +207,14 @@ def test_snapshot_every_reaches_the_trainer_only_when_set(tmp_path):
     assert "--snapshot-every" not in cmd
 
 
+def test_a_training_device_by_index_reaches_the_trainer(tmp_path):
+    """train.device cuda:1 passes --device cuda:1 to every training job."""
+    _, out = dry_run(tmp_path, synth_config(initialisers=["oracle"], views=[3],
+                                            train={"iterations": 10, "device": "cuda:1"}))
+    cmd = next(line for line in out.splitlines() if "python -m splat_train --seed-ply" in line)
+    assert "--device cuda:1 " in cmd
+
+
 def test_stage_target_and_per_scene_view_counts(tmp_path):
     cfg = synth_config()
     cfg["datasets"]["synthetic"]["scenes"]["bundled"]["views"] = [3]

@@ -68,7 +68,7 @@ def train_runtime(wildcards, attempt):
 
 
 def train_gpus(wildcards):
-    return 1 if config["train"]["device"] == "cuda" else 0
+    return 1 if config["train"]["device"].startswith("cuda") else 0
 
 
 def colmap_mem_mb(wildcards, attempt):
