@@ -129,6 +129,21 @@ def test_photo_report_without_train_renders_gives_the_command_that_makes_them(tm
     assert sorted(p.name for p in (mode / "train_renders").glob("*.png")) == ["IMG_01.png", "IMG_02.png", "IMG_03.png"]
 
 
+def test_tables_of_a_photo_run_leave_the_held_out_tables_out(tmp_path):
+    """``python -m evaluation tables`` on a photo run: tables.md says in one line that no view
+    was held out and holds no held-out table (Table I, Table II, pose accuracy), as the report
+    does; the run status stays."""
+    results = photo_run(tmp_path)
+    proc = run(["-m", "evaluation", "tables", "--results", str(results), "--out", str(tmp_path / "t"), "-q"])
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    text = (tmp_path / "t" / "tables.md").read_text()
+    from evaluation.reports.photos import NO_HELDOUT_NOTE
+    from evaluation.reports.tables import HELDOUT_TABLES, RUN_STATUS
+
+    assert text.count(NO_HELDOUT_NOTE) == 1 and f"## {RUN_STATUS}" in text
+    assert not any(title in text for title in HELDOUT_TABLES), text
+
+
 def test_cameras_from_above_keep_distances_and_look_at_what_they_look_at():
     """The camera plot's projection: cameras around a target at one height keep their distances
     and their arrows point at the target, whatever the world's up axis."""

@@ -35,7 +35,7 @@ from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
 from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
-from evaluation.reports.tables import HELDOUT_TABLES, build_tables, protocol_note, table_notes
+from evaluation.reports.tables import HELDOUT_TABLES, build_tables, has_heldout, protocol_note, table_notes
 from evaluation.reports.thumbs import images_in, thumb_cell
 
 __all__ = ["guide_html", "render_grid_html", "run_report"]
@@ -226,7 +226,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
     scenes_dir = Path(scenes_dir) if scenes_dir is not None else None
     runs = collect_runs(results, gate)
     photo_scenes = photos.photo_scenes(results, runs)
-    heldout = not len(runs) or any((ds, sc) not in photo_scenes for ds, sc in zip(runs["dataset"], runs["scene"]))
+    heldout = has_heldout(runs, photo_scenes)
     with atomic_dir(out) as tmp:
         images = tmp / "images"
         images.mkdir()

@@ -33,7 +33,7 @@ from evaluation.reports.markup import counted, format_value, markdown_table
 from evaluation.reports.results import PROTOCOLS, collect_runs
 
 __all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
-           "build_tables", "run_tables"]
+           "build_tables", "run_tables", "has_heldout", "HELDOUT_TABLES"]
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +195,13 @@ POSE_TABLE = "Pose accuracy"
 HELDOUT_TABLES = (TABLE_ONE, TABLE_TWO, POSE_TABLE)
 
 
+def has_heldout(runs: pd.DataFrame, photo_scenes: set[tuple[str, str]]) -> bool:
+    """Whether any run of ``runs`` is on a scene with held-out views (``photo_scenes``: the
+    (dataset, scene) pairs with none, :func:`evaluation.reports.photos.photo_scenes`); with no
+    run at all, the held-out tables are kept (each then says it is empty)."""
+    return not len(runs) or any((ds, sc) not in photo_scenes for ds, sc in zip(runs["dataset"], runs["scene"]))
+
+
 def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str | tuple[str, ...] = LPIPS_NETS,
                  results: str | Path | None = None) -> dict[str, pd.DataFrame]:
     """All tables by title (ordered); the run status reads ``results`` for skipped and failed
@@ -275,15 +282,22 @@ def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConf
 
 def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConfig(),
                lpips: str | tuple[str, ...] = LPIPS_NETS) -> dict[str, pd.DataFrame]:
-    """Collect the results tree, write ``out/runs.parquet`` and ``out/tables.md``."""
+    """Collect the results tree, write ``out/runs.parquet`` and ``out/tables.md`` (with no
+    held-out view anywhere, your own photos, the held-out tables are left out with one line
+    saying why, as in the report)."""
+    from evaluation.reports.photos import NO_HELDOUT_NOTE, photo_scenes
+
     t0 = time.perf_counter()
     out = Path(out)
     runs = collect_runs(results, gate)
     with atomic_path(out / "runs.parquet") as tmp:
         runs.to_parquet(tmp, index=False)
     tables = build_tables(runs, gate, lpips, results)
+    heldout = has_heldout(runs, photo_scenes(results, runs))
+    if not heldout:
+        tables = {t: df for t, df in tables.items() if t not in HELDOUT_TABLES}
     with atomic_path(out / "tables.md") as tmp:
-        tmp.write_text(tables_markdown(tables, gate, protocol_note(runs)) + "\n")
+        tmp.write_text(tables_markdown(tables, gate, protocol_note(runs) if heldout else NO_HELDOUT_NOTE) + "\n")
     log.info("tables: %s -> %s and %s in %.2f s", counted(len(runs), "run"), out / "runs.parquet", out / "tables.md",
              time.perf_counter() - t0)
     return tables
