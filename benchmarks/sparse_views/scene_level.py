@@ -32,11 +32,12 @@ FLOOR_LEAD_TARGET = 3.0
 EQUAL_BACKGROUND_TARGET = 0.5
 COMPARED = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
 
-__all__ = ["EQUAL_BACKGROUND", "scene_means", "scene_interval", "floor_block", "equal_background",
+__all__ = ["EQUAL_BACKGROUND", "interval", "scene_means", "scene_interval", "floor_block", "equal_background",
            "scene_level_intervals", "coverage"]
 
 
-def _interval(values: list[float]) -> dict:
+def interval(values: list[float]) -> dict:
+    """Mean, 95 % t half-width, its ends and k of ``values`` (None where k is too small for one)."""
     from evaluation.study.stats import t_interval
 
     mean, hw, k = t_interval(values)
@@ -55,9 +56,9 @@ def scene_means(rows: list[dict], recipe: str, scenes: list[str], measure: str) 
     return {s: sum(v) / len(v) for s, v in vals.items()}
 
 
-def scene_interval(rows: list[dict], ours: str, other: str, scenes: list[str], measure: str = "psnr") -> dict:
+def sceneinterval(rows: list[dict], ours: str, other: str, scenes: list[str], measure: str = "psnr") -> dict:
     """``ours`` − ``other`` in ``measure``, per scene over the seeds both ran, then over the
-    scenes where both ran: the interval (:func:`_interval`), the per-scene differences and how
+    scenes where both ran: the interval (:func:`interval`), the per-scene differences and how
     many scenes are ahead (a higher PSNR/SSIM, a lower LPIPS)."""
     a, b = defaultdict(dict), defaultdict(dict)
     for r in rows:
@@ -72,7 +73,7 @@ def scene_interval(rows: list[dict], ours: str, other: str, scenes: list[str], m
         if seeds:
             per[s] = sum(a[s][k] - b[s][k] for k in seeds) / len(seeds)
     sign = -1.0 if measure.startswith("lpips") else 1.0
-    return {**_interval(list(per.values())), "per_scene": per,
+    return {**interval(list(per.values())), "per_scene": per,
             "scenes_ahead": sum(sign * d > 0 for d in per.values())}
 
 
@@ -85,7 +86,7 @@ def floor_block(rows: list[dict], scenes: list[str], floors: dict[str, dict[int,
         return None
     mine = scene_means(rows, ours, scenes, "psnr")
     diffs = {s: mine[s] - per[s] for s in scenes if s in mine}
-    lead = _interval(list(diffs.values()))
+    lead = interval(list(diffs.values()))
     return {"psnr_per_scene": per, "psnr": sum(per.values()) / len(per), "recipe": ours,
             "lead": {**lead, "per_scene": diffs, "scenes_ahead": sum(d > 0 for d in diffs.values())},
             "target": FLOOR_LEAD_TARGET,
@@ -102,7 +103,7 @@ def equal_background(rows: list[dict], scenes: list[str]) -> list[dict]:
         have = {r["scene"] for r in rows if r["recipe"] == ours} & {r["scene"] for r in rows if r["recipe"] == base}
         if not scenes or not set(scenes) <= have:
             continue
-        d = {m: scene_interval(rows, ours, base, scenes, m) for m in COMPARED}
+        d = {m: sceneinterval(rows, ours, base, scenes, m) for m in COMPARED}
         p = d["psnr"]
         lpips_ok = all(d[m]["lo"] is None or d[m]["lo"] <= 0 for m in ("lpips_alex", "lpips_vgg"))
         out.append({"background": background, "ours": ours, "base": base,
@@ -118,7 +119,7 @@ def scene_level_intervals(rows: list[dict], scenes: list[str], ours: str = "spar
     """``ours`` − every other recipe or variant that ran on all ``scenes``, in PSNR, with the
     scene as the unit (:func:`scene_interval`)."""
     names = sorted({r["recipe"] for r in rows} - {ours})
-    return {other: scene_interval(rows, ours, other, scenes)
+    return {other: sceneinterval(rows, ours, other, scenes)
             for other in names
             if set(scenes) <= {r["scene"] for r in rows if r["recipe"] == other}}
 

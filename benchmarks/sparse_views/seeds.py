@@ -25,7 +25,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-from benchmarks.sparse_views.floor import floor_psnr
+from benchmarks.sparse_views.floor import floor_psnr, load_floors
+from benchmarks.sparse_views.scene_level import interval as _interval
 from benchmarks.sparse_views.protocol import REPO
 
 HERE = Path(__file__).resolve().parent
@@ -76,13 +77,6 @@ def run_command(reg: dict, work: str = "WORK") -> str:
     return shlex.join(args)
 
 
-def _interval(values: list[float]) -> dict:
-    from evaluation.study.stats import t_interval
-
-    mean, hw, k = t_interval(values)
-    return {"mean": mean, "hw95": hw, "lo": mean - hw, "hi": mean + hw, "k": k}
-
-
 def report(reg: dict, records: Path, work: Path | None) -> dict:
     """The figures of the registration (module docstring) from ``records/runs``."""
     runs = {}
@@ -106,7 +100,10 @@ def report(reg: dict, records: Path, work: Path | None) -> dict:
             row["seed_gaussians"] = sum(r["seed_gaussians"] for r in rs) / len(rs)
             per[name][scene] = row
     complete = [s for s in reg["scenes"] if all(s in per[v] for v in reg["variants"])]
-    floor = {s: floor_psnr(work / f"{s}_n{reg['n']}") if work else None for s in reg["scenes"]}
+    # from the cells when they are here, else as `python -m benchmarks.sparse_views floor` recorded it
+    recorded = load_floors(RECORDS)
+    floor = {s: (floor_psnr(work / f"{s}_n{reg['n']}") if work else None) or recorded.get(s, {}).get(reg["n"])
+             for s in reg["scenes"]}
     comparisons = []
     for kind, items in (("target", reg.get("targets", [])), ("measured", reg.get("measured_without_target", []))):
         for t in items:
