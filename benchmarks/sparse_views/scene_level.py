@@ -56,7 +56,7 @@ def scene_means(rows: list[dict], recipe: str, scenes: list[str], measure: str) 
     return {s: sum(v) / len(v) for s, v in vals.items()}
 
 
-def sceneinterval(rows: list[dict], ours: str, other: str, scenes: list[str], measure: str = "psnr") -> dict:
+def scene_interval(rows: list[dict], ours: str, other: str, scenes: list[str], measure: str = "psnr") -> dict:
     """``ours`` − ``other`` in ``measure``, per scene over the seeds both ran, then over the
     scenes where both ran: the interval (:func:`interval`), the per-scene differences and how
     many scenes are ahead (a higher PSNR/SSIM, a lower LPIPS)."""
@@ -103,7 +103,7 @@ def equal_background(rows: list[dict], scenes: list[str]) -> list[dict]:
         have = {r["scene"] for r in rows if r["recipe"] == ours} & {r["scene"] for r in rows if r["recipe"] == base}
         if not scenes or not set(scenes) <= have:
             continue
-        d = {m: sceneinterval(rows, ours, base, scenes, m) for m in COMPARED}
+        d = {m: scene_interval(rows, ours, base, scenes, m) for m in COMPARED}
         p = d["psnr"]
         lpips_ok = all(d[m]["lo"] is None or d[m]["lo"] <= 0 for m in ("lpips_alex", "lpips_vgg"))
         out.append({"background": background, "ours": ours, "base": base,
@@ -119,7 +119,7 @@ def scene_level_intervals(rows: list[dict], scenes: list[str], ours: str = "spar
     """``ours`` − every other recipe or variant that ran on all ``scenes``, in PSNR, with the
     scene as the unit (:func:`scene_interval`)."""
     names = sorted({r["recipe"] for r in rows} - {ours})
-    return {other: sceneinterval(rows, ours, other, scenes)
+    return {other: scene_interval(rows, ours, other, scenes)
             for other in names
             if set(scenes) <= {r["scene"] for r in rows if r["recipe"] == other}}
 
