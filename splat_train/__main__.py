@@ -219,10 +219,11 @@ def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: boo
 def _export(args: argparse.Namespace) -> int:
     """``python -m splat_train export``: the model read, checked, and written as ``--format``."""
     setup_logging(args.verbose, args.quiet)
-    from camio.splatfmt import export_cloud
+    from camio.splatfmt import check_export_out, export_cloud
 
-    if Path(args.out).suffix.lower() != f".{args.format}":
-        log.warning("--out %s does not end in .%s: viewers pick the format by the suffix", args.out, args.format)
+    note = check_export_out(args.out, args.format)  # before anything is written: a contradicting suffix is refused
+    if note:
+        log.warning("%s", note)
     if not _out_ok(args.out, {"MODEL": args.model}, "splat_train export", folder=False):
         return 2
     from camio.ply import check_seed_cloud, read_gaussian_ply
