@@ -250,11 +250,12 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
     if (args.width is None) != (args.height is None) or (args.width is not None and min(args.width, args.height) < 2):
         log.error("give both --width and --height (each >= 2), or neither")
         return 2
-    from camio.video import VideoUnavailable, require_imageio
+    from camio.video import VideoUnavailable, check_video_path, require_imageio
 
     try:
+        check_video_path(args.video)  # before anything is written: ffmpeg picks the container by the suffix
         require_imageio()  # before any rendering: a missing encoder is one line naming the package
-    except VideoUnavailable as exc:
+    except (ValueError, VideoUnavailable) as exc:
         log.error("%s", exc)
         return 2
     if not _out_ok(args.video, {"--model": args.model, "--cameras": args.cameras, "--image-list": args.image_list},
