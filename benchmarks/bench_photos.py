@@ -9,7 +9,9 @@ wall time of the whole command, the largest resident memory of any of its proces
 workflow step's time and memory from Snakemake's ``benchmark`` files, the photos' sizes and the
 machine's load average, and writes them to ``--out`` as JSON. The target it is read against:
 8 twelve-megapixel photos in at most 15 minutes on a 2-core machine. Without a photo folder it
-says so and exits 0, so that ``python -m benchmarks`` stays runnable anywhere.
+says so and exits 0, so that ``python -m benchmarks`` stays runnable anywhere; a PHOTOS that is
+not a folder of at least ``--count`` photos, a missing ``--work`` or a folder ``--out`` is one
+line and exit 2 before the run.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   results-tree readers' report folders, ``camio split``'s ``scene/split.json``) the command
   names that input in ``may_hold_out``: its ``--out`` may lie inside it, never be it or
   contain it. ``--out`` itself (a folder, or a file and its folder) may not be a symbolic
-  link.
+  link, nor have a name longer than its file system holds (less what a temporary's name adds,
+  :data:`camio.atomic.TEMP_NAME_EXTRA`) or a path of PATH_MAX bytes or more.
 * A folder ``--out`` that exists must be empty (Snakemake creates output folders before a
   job), or hold the marker file :data:`MARKER` naming this same stage: a rerun of the stage
   into its own folder works, any other non-empty folder is refused.

@@ -10,7 +10,8 @@ original 3DGS code and read by it, gsplat and SuperSplat:
 * ``f_dc_*`` are the degree-0 SH coefficients of R, G, B (rgb = 0.5 + C0 * f_dc).
 * ``f_rest_*`` are stored channel-major: f_rest_{c * (K - 1) + k} is coefficient k + 1 of
   channel c, K = (degree + 1)^2. Degree 3 (45 values) is always written; a lower degree is
-  padded with zeros, and the reader infers K from the number of f_rest fields.
+  padded with zeros, a higher one refused (never cut silently), and the reader infers K from
+  the number of f_rest fields (a count that is no degree's is refused).
 """
 
 from __future__ import annotations
@@ -126,7 +127,8 @@ def _field_names(n_rest: int) -> list[str]:
 
 def write_gaussian_ply(path: str | Path, cloud: GaussianCloud, comments: tuple[str, ...] = ()) -> Path:
     """Write ``cloud`` in the 3DGS layout (degree 3, 62 float32 properties), atomically;
-    ``comments``: header ``comment`` lines (one line of ASCII each), read by :func:`ply_comments`."""
+    ``comments``: header ``comment`` lines (one line of ASCII each), read by :func:`ply_comments`.
+    ValueError naming ``path`` for a cloud of SH degree above 3 (its bands would be lost)."""
     for c in comments:
         if not c.isascii() or "\n" in c or "\r" in c:
             raise ValueError(f"a PLY comment is one line of ASCII, got {c!r}")
