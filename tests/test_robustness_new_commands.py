@@ -207,6 +207,18 @@ def test_results_doc_refuses_a_page_it_did_not_write(tmp_path):
         assert p.returncode == 0, p.stderr
 
 
+def test_seeds_report_refuses_a_page_it_did_not_write(tmp_path):
+    (tmp_path / "notes.md").write_text("my notes\n")
+    p = run(["-m", "benchmarks.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
+             "--doc", str(tmp_path / "notes.md")])
+    refused(p, "notes.md", "not written by this command")
+    assert (tmp_path / "notes.md").read_text() == "my notes\n" and not (tmp_path / "rec").exists()
+    for _ in range(2):  # a new page, then its rerun over its own page
+        p = run(["-m", "benchmarks.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
+                 "--doc", str(tmp_path / "seeds.md")])
+        assert p.returncode == 0, p.stderr
+
+
 def test_sparse_views_floor_refuses_bad_folders(tmp_path):
     (tmp_path / "file").write_text("x\n")
     inside = ROOT / "floor_work_of_a_test"
