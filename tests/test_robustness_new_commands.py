@@ -78,6 +78,7 @@ EXPORT_REFUSALS = [  # (id, format, out name, model, needles in the one line)
     ("inf-model", "spz", "i.spz", "inf", ("inf.ply", "non-finite", "log scales")),
     ("zero-gaussians", "splat", "e.splat", "empty", ("empty.ply", "no Gaussians")),
     ("not-a-ply", "splat", "t.splat", "text", ("text.ply", "not a PLY")),
+    ("model-a-folder", "splat", "f.splat", "root", ("Is a directory",)),
     ("sh-degree-4-to-ply", "ply", "d.ply", "deg4", ("d.ply", "SH degree 4", "degree 3 at most")),
     ("sh-degree-4-to-spz", "spz", "d.spz", "deg4", ("d.spz", "SH degree 4", "--format splat")),
     ("f-rest-count-no-degree", "splat", "o.splat", "odd", ("odd.ply", "30 f_rest", "3DGS layout")),
@@ -194,7 +195,7 @@ def test_results_doc_refuses_a_page_it_did_not_write(tmp_path):
     (tmp_path / "link.md").symlink_to(tmp_path / "notes.md")
     (tmp_path / "folder").mkdir()
     for name, needle in (("notes.md", "not written by this command"), ("link.md", "symbolic link"),
-                         ("folder", "not a file")):
+                         ("folder", "not a file"), ("notes.md/r.md", "is a file, not a folder")):
         p = run(["-m", "benchmarks.results_doc", "--doc", str(tmp_path / name), "--records", str(records)])
         refused(p, name, needle)
     assert (tmp_path / "notes.md").read_text() == "my notes\n"

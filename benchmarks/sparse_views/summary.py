@@ -208,9 +208,20 @@ def check_doc(doc: Path, generated: str = GENERATED) -> None:
     generate (one without its ``generated`` line in the first 4 KiB: :data:`GENERATED` for
     ``summary``; every command that writes a generated page passes its own). Nothing is written.
 
+    Also refused: a ``doc`` whose nearest existing folder is a file or cannot be written
+    (its missing folders are made when the page is written).
+
     Raises:
         ValueError: one line naming the file and what to do.
     """
+    import os
+
+    above = next((a for a in Path(os.path.abspath(doc)).parents if a.exists()), None)
+    if above is not None and not above.is_dir():
+        raise ValueError(f"--doc {doc}: {above} is a file, not a folder: name a file in a folder (nothing was changed)")
+    if above is not None and not os.access(above, os.W_OK | os.X_OK):
+        raise ValueError(f"--doc {doc}: the folder {above} cannot be written here: name a file in a writable folder "
+                         "(nothing was changed)")
     if doc.is_symlink():
         raise ValueError(f"--doc {doc} is a symbolic link: name the file itself (nothing was changed)")
     if doc.exists() and not doc.is_file():
