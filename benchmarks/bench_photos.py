@@ -9,7 +9,9 @@ wall time of the whole command, the largest resident memory of any of its proces
 workflow step's time and memory from Snakemake's ``benchmark`` files, the photos' sizes and the
 machine's load average, and writes them to ``--out`` as JSON. The target it is read against:
 8 twelve-megapixel photos in at most 15 minutes on a 2-core machine. Without a photo folder it
-says so and exits 0, so that ``python -m benchmarks`` stays runnable anywhere.
+says so and exits 0, so that ``python -m benchmarks`` stays runnable anywhere; a PHOTOS that is
+not a folder of at least ``--count`` photos, a missing ``--work`` or a folder ``--out`` is one
+line and exit 2 before the run.
 """
 
 from __future__ import annotations
@@ -49,10 +51,18 @@ def _steps(out: Path) -> list[dict]:
     return rows
 
 
-def run(photos_dir: Path, count: int, work: Path, extra: list[str]) -> dict:
+def pick_photos(photos_dir: Path, count: int) -> list[Path]:
+    """The first ``count`` photos of ``photos_dir`` by name (suffixes :data:`PHOTO_SUFFIXES`).
+    ValueError naming the folder, what it holds and what to do when it holds fewer."""
     photos = sorted(p for p in photos_dir.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)[:count]
     if len(photos) < count:
-        raise SystemExit(f"bench_photos: {photos_dir} holds {len(photos)} photos, {count} asked for")
+        raise ValueError(f"{photos_dir} holds {len(photos)} photos ({', '.join(sorted(PHOTO_SUFFIXES))}), "
+                         f"{count} asked for: pass --count {len(photos)} or a folder with more" if photos else
+                         f"{photos_dir} holds no photos ({', '.join(sorted(PHOTO_SUFFIXES))}): name a folder of photos")
+    return photos
+
+
+def run(photos: list[Path], work: Path, extra: list[str]) -> dict:
     src = work / "photos"
     src.mkdir(parents=True)
     for p in photos:
@@ -81,13 +91,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, default=None, help="where the run goes (default: a temporary folder)")
     p.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
     args = p.parse_args(argv)
-    if args.photos is None or not args.photos.is_dir():
+    if args.photos is None:
         print("bench_photos: no photo folder given (python -m benchmarks.bench_photos PHOTOS); nothing measured")
         return 0
     if args.count < 1:
         p.error(f"--count must be >= 1, got {args.count}")
+    # everything a user can get wrong, before the long run: one line each, exit 2
+    if not args.photos.is_dir():
+        p.error(f"PHOTOS {args.photos} is not a folder: name the folder that holds the photos")
+    if args.work is not None and not args.work.is_dir():
+        p.error(f"--work {args.work} is not a folder: name an existing folder (the run goes in a temporary one inside it)")
+    if args.out is not None and args.out.is_dir():
+        p.error(f"--out {args.out} is a folder: name the JSON file to write")
+    try:
+        photos = pick_photos(args.photos, args.count)
+    except ValueError as exc:
+        p.error(str(exc))
     with tempfile.TemporaryDirectory(dir=args.work) as tmp:
-        fig = run(args.photos, args.count, Path(tmp), extra)
+        fig = run(photos, Path(tmp), extra)
     mp = [w * h / 1e6 for w, h in fig["sizes"]]
     print(f"\n{len(fig['photos'])} photos, {min(mp):.1f}-{max(mp):.1f} MP; exit {fig['exit']}; "
           f"wall {fig['wall_s']:.0f} s (target {TARGET_S} s: {'met' if fig['wall_s'] <= TARGET_S and fig['exit'] == 0 else 'not met'}); "

@@ -55,6 +55,12 @@ def _temporary(make: Callable[[], Path], remove: Callable[[Path], None]) -> Iter
             remove(tmp)
 
 
+#: bytes a temporary's name adds to the name of the file or folder it stands for
+#: (``.`` + stem + ``.`` + 8 random characters + ``.tmp`` + suffix): an output's own name must
+#: leave room for them under the file system's name limit (camio.outdir checks ``--out``)
+TEMP_NAME_EXTRA = 14
+
+
 def _temp_file(path: Path) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)

@@ -7,7 +7,8 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   results-tree readers' report folders, ``camio split``'s ``scene/split.json``) the command
   names that input in ``may_hold_out``: its ``--out`` may lie inside it, never be it or
   contain it. ``--out`` itself (a folder, or a file and its folder) may not be a symbolic
-  link.
+  link, nor have a name longer than its file system holds (less what a temporary's name adds,
+  :data:`camio.atomic.TEMP_NAME_EXTRA`) or a path of PATH_MAX bytes or more.
 * A folder ``--out`` that exists must be empty (Snakemake creates output folders before a
   job), or hold the marker file :data:`MARKER` naming this same stage: a rerun of the stage
   into its own folder works, any other non-empty folder is refused.
@@ -159,6 +160,32 @@ atexit.register(tidy_outs)
 
 class OutputFolderError(ValueError):
     """An ``--out`` the stage must not write to (one line naming both paths)."""
+
+
+def _check_name_lengths(out: PathLike) -> None:
+    """Refuse an ``--out`` with a name longer than its file system holds (NAME_MAX of its
+    nearest existing folder in bytes, less :data:`camio.atomic.TEMP_NAME_EXTRA` for the last
+    name, whose temporary is written first) or a path of PATH_MAX bytes or more, before a call
+    on it fails with ``ENAMETOOLONG`` (a bare OSError) or leaves a temporary behind."""
+    path = Path(os.path.abspath(os.fspath(out)))
+    name_max, path_max = 255, 4096
+    for a in [path, *path.parents]:
+        try:
+            if a.is_dir():
+                name_max, path_max = os.pathconf(a, "PC_NAME_MAX"), os.pathconf(a, "PC_PATH_MAX")
+                break
+        except (OSError, ValueError):  # too long to ask about, or no such limit: the next one up
+            continue
+    size = len(os.fsencode(path))
+    if size >= path_max:
+        raise OutputFolderError(f"--out {str(out)[:60]}...: the path is {size} bytes, longer than the file system "
+                                f"allows ({path_max - 1}); choose a shorter path")
+    parts = path.parts[1:]
+    for i, part in enumerate(parts):
+        limit = name_max - (atomic.TEMP_NAME_EXTRA if i == len(parts) - 1 else 0)
+        if len(os.fsencode(part)) > limit:
+            raise OutputFolderError(f"--out {str(out)[:60]}...: the name {part[:30]}... is {len(os.fsencode(part))} "
+                                    f"bytes, over the {limit} this file system leaves for it; choose a shorter name")
 
 
 def _resolved(p: PathLike) -> Path:
@@ -505,6 +532,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
     out_p = Path(out)
     if not os.fspath(out).strip():
         raise OutputFolderError(f"--out is empty: name the {'folder' if folder else 'file'} {stage} writes")
+    _check_name_lengths(out)
     o = _resolved(out)
     if o == Path(o.anchor):
         raise OutputFolderError(f"--out {out} is the file system's root: choose a folder of its own")

@@ -10,7 +10,8 @@ original 3DGS code and read by it, gsplat and SuperSplat:
 * ``f_dc_*`` are the degree-0 SH coefficients of R, G, B (rgb = 0.5 + C0 * f_dc).
 * ``f_rest_*`` are stored channel-major: f_rest_{c * (K - 1) + k} is coefficient k + 1 of
   channel c, K = (degree + 1)^2. Degree 3 (45 values) is always written; a lower degree is
-  padded with zeros, and the reader infers K from the number of f_rest fields.
+  padded with zeros, a higher one refused (never cut silently), and the reader infers K from
+  the number of f_rest fields (a count that is no degree's is refused).
 """
 
 from __future__ import annotations
@@ -126,10 +127,14 @@ def _field_names(n_rest: int) -> list[str]:
 
 def write_gaussian_ply(path: str | Path, cloud: GaussianCloud, comments: tuple[str, ...] = ()) -> Path:
     """Write ``cloud`` in the 3DGS layout (degree 3, 62 float32 properties), atomically;
-    ``comments``: header ``comment`` lines (one line of ASCII each), read by :func:`ply_comments`."""
+    ``comments``: header ``comment`` lines (one line of ASCII each), read by :func:`ply_comments`.
+    ValueError naming ``path`` for a cloud of SH degree above 3 (its bands would be lost)."""
     for c in comments:
         if not c.isascii() or "\n" in c or "\r" in c:
             raise ValueError(f"a PLY comment is one line of ASCII, got {c!r}")
+    if cloud.sh_degree > SH_DEGREE:
+        raise ValueError(f"{path}: SH degree {cloud.sh_degree}: the 3DGS PLY holds degree {SH_DEGREE} at most "
+                         f"(its 45 f_rest fields); the higher bands would be lost")
     n = len(cloud)
     rest = np.zeros((n, 15, 3), np.float32)
     k = min(15, cloud.sh_rest.shape[1])
@@ -350,6 +355,10 @@ def read_gaussian_ply(path: str | Path, raw: bytes | None = None) -> GaussianClo
     if missing:
         raise PlyFormatError(f"{path}: not a 3DGS PLY, missing fields {missing}")
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
+    k = n_rest // 3 + 1
+    if n_rest % 3 or int(round(np.sqrt(k))) ** 2 != k or any(f"f_rest_{i}" not in names for i in range(n_rest)):
+        raise PlyFormatError(f"{path}: not a 3DGS PLY: {n_rest} f_rest fields are not f_rest_0.. of 3 * ((d + 1)^2 - 1) "
+                             "for an SH degree d (0, 9, 24 or 45 for degree 0..3); write the model in the 3DGS layout")
     col = lambda keys: np.stack([v[k].astype(np.float32) for k in keys], axis=1)  # noqa: E731
     rest = (col([f"f_rest_{i}" for i in range(n_rest)]) if n_rest else np.zeros((n, 0), np.float32))
     rest = rest.reshape(n, 3, n_rest // 3).transpose(0, 2, 1)

@@ -43,7 +43,8 @@ from camio.atomic import atomic_path
 from camio.ply import GaussianCloud, read_gaussian_ply, sh_dc_to_rgb, write_gaussian_ply
 
 __all__ = ["EXPORT_FORMATS", "SPLAT_RECORD", "SplatRecords", "SplatFormatError", "SpzUnavailable", "splat_order",
-           "write_splat", "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud"]
+           "write_splat", "read_splat", "rdf_to_rub", "write_spz", "read_spz", "SPZ_FRACTIONAL_BITS", "export_cloud",
+           "check_export_out"]
 
 #: the formats ``python -m splat_train export --format`` writes, by file suffix
 EXPORT_FORMATS = ("ply", "splat", "spz")
@@ -211,7 +212,8 @@ def write_spz(path: str | Path, cloud: GaussianCloud) -> Path:
     from gsply.gsdata import create_ply_format
 
     if cloud.sh_degree > 3:
-        raise SplatFormatError(f"SH degree {cloud.sh_degree}: .spz holds degree 3 at most")
+        raise SplatFormatError(f"{path}: SH degree {cloud.sh_degree}: .spz holds degree 3 at most; export --format "
+                               "splat (no view-dependent colour) instead")
     rub = rdf_to_rub(cloud)
     n, deg = len(rub), rub.sh_degree
     data = gsply.GSData(means=rub.means, scales=rub.log_scales, quats=_unit_quats(rub, ".spz").astype(np.float32),
@@ -255,14 +257,34 @@ def read_spz(path: str | Path, raw: bytes | None = None) -> GaussianCloud:
     return rdf_to_rub(cloud)
 
 
+def check_export_out(out: str | Path, fmt: str) -> str | None:
+    """The suffix rule of an export: ``out`` ending in another export format's suffix (an
+    ``.spz`` file named ``.splat``: viewers pick the reader by the suffix and fail on it) is
+    refused; any other suffix than ``.fmt`` gets a note (returned, for a warning); None when
+    the suffix is ``.fmt`` (case-insensitive).
+
+    Raises:
+        SplatFormatError: unknown ``fmt``, or a suffix naming another export format.
+    """
+    if fmt not in EXPORT_FORMATS:
+        raise SplatFormatError(f"unknown format {fmt!r}: choose one of {', '.join(EXPORT_FORMATS)}")
+    suffix = Path(out).suffix.lower()
+    if suffix == f".{fmt}":
+        return None
+    if suffix[1:] in EXPORT_FORMATS:
+        raise SplatFormatError(f"--out {out} ends in {suffix} but --format is {fmt}: viewers read a file by its "
+                               f"suffix; name it {Path(out).with_suffix('.' + fmt).name} or pass --format {suffix[1:]}")
+    return f"--out {out} does not end in .{fmt}: viewers pick the format by the suffix"
+
+
 def export_cloud(model: str | Path, fmt: str, out: str | Path) -> tuple[GaussianCloud, Path]:
-    """Read a 3DGS PLY ``model`` and write it as ``fmt`` (one of :data:`EXPORT_FORMATS`) to ``out``.
+    """Read a 3DGS PLY ``model`` and write it as ``fmt`` (one of :data:`EXPORT_FORMATS`) to ``out``
+    (whose suffix :func:`check_export_out` checks).
 
     Returns:
         (the cloud read, ``out``).
     """
-    if fmt not in EXPORT_FORMATS:
-        raise SplatFormatError(f"unknown format {fmt!r}: choose one of {', '.join(EXPORT_FORMATS)}")
+    check_export_out(out, fmt)
     cloud = read_gaussian_ply(model)
     writer = {"ply": write_gaussian_ply, "splat": write_splat, "spz": write_spz}[fmt]
     return cloud, writer(out, cloud)

@@ -15,7 +15,7 @@ import numpy as np
 
 from camio.atomic import atomic_path
 
-__all__ = ["VideoUnavailable", "require_imageio", "even_size", "write_video", "count_frames", "DEFAULT_FPS"]
+__all__ = ["VideoUnavailable", "check_video_path", "require_imageio", "even_size", "write_video", "count_frames", "DEFAULT_FPS"]
 
 #: frames per second of a fly-through video unless told otherwise
 DEFAULT_FPS = 30
@@ -36,6 +36,17 @@ def require_imageio():
     return imageio
 
 
+def check_video_path(path: str | Path) -> Path:
+    """``path`` as the mp4 file a video is written to: its suffix must be ``.mp4`` (any case);
+    ffmpeg picks the container by the suffix, and fails on no suffix or one it cannot hold
+    H.264 in (``.gif``). ValueError naming the path and the name to give otherwise."""
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"--video {path}: the video is an H.264 mp4, so its name must end in .mp4 "
+                         f"(e.g. {path.with_suffix('.mp4').name})")
+    return path
+
+
 def even_size(width: int, height: int) -> tuple[int, int]:
     """(width, height) rounded down to even numbers (at least 2), as H.264 in yuv420p needs."""
     return max(2, int(width) // 2 * 2), max(2, int(height) // 2 * 2)
@@ -50,6 +61,7 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float = DEF
     Returns:
         The number of frames written.
     """
+    check_video_path(path)
     imageio = require_imageio()
     count = 0
     with atomic_path(path) as tmp:

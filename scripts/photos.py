@@ -324,8 +324,11 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"{args.photos} is not a folder of photos")
     if args.iterations is not None and args.iterations < 1:
         return _fail(f"--iterations must be at least 1, got {args.iterations}")
-    if args.max_size is not None and args.max_size < 0:
-        return _fail(f"--max-size must be 0 (the photos' own size) or a number of pixels, got {args.max_size}")
+    from camio.limits import MAX_IMAGE_SIDE  # the config schema's maximum of max_size too
+
+    if args.max_size is not None and not 0 <= args.max_size <= MAX_IMAGE_SIDE:
+        return _fail(f"--max-size must be 0 (the photos' own size) or a number of pixels up to {MAX_IMAGE_SIDE}, "
+                     f"got {args.max_size}")
     if args.cores < 1:
         return _fail(f"--cores must be at least 1 (the cores snakemake may use), got {args.cores}")
     try:

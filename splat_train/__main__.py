@@ -219,10 +219,11 @@ def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: boo
 def _export(args: argparse.Namespace) -> int:
     """``python -m splat_train export``: the model read, checked, and written as ``--format``."""
     setup_logging(args.verbose, args.quiet)
-    from camio.splatfmt import export_cloud
+    from camio.splatfmt import check_export_out, export_cloud
 
-    if Path(args.out).suffix.lower() != f".{args.format}":
-        log.warning("--out %s does not end in .%s: viewers pick the format by the suffix", args.out, args.format)
+    note = check_export_out(args.out, args.format)  # before anything is written: a contradicting suffix is refused
+    if note:
+        log.warning("%s", note)
     if not _out_ok(args.out, {"MODEL": args.model}, "splat_train export", folder=False):
         return 2
     from camio.ply import check_seed_cloud, read_gaussian_ply
@@ -249,11 +250,12 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
     if (args.width is None) != (args.height is None) or (args.width is not None and min(args.width, args.height) < 2):
         log.error("give both --width and --height (each >= 2), or neither")
         return 2
-    from camio.video import VideoUnavailable, require_imageio
+    from camio.video import VideoUnavailable, check_video_path, require_imageio
 
     try:
+        check_video_path(args.video)  # before anything is written: ffmpeg picks the container by the suffix
         require_imageio()  # before any rendering: a missing encoder is one line naming the package
-    except VideoUnavailable as exc:
+    except (ValueError, VideoUnavailable) as exc:
         log.error("%s", exc)
         return 2
     if not _out_ok(args.video, {"--model": args.model, "--cameras": args.cameras, "--image-list": args.image_list},

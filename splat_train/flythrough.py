@@ -65,9 +65,13 @@ def render_path(model: str | Path, cameras: str | Path, path: str, video: str | 
         background, source = model_background(model)
         log.info("%s", background_note(background, source))
     cams = load_cameras(cameras, read_name_list(names) if names is not None else None)
-    if not cams:
-        raise ValueError(f"{cameras}: no cameras to fly along")
-    poses = path_poses(path, cams, frames)
+    if len(cams) < 2:  # interpolate would be one still frame, orbit has no point to circle
+        raise ValueError(f"{cameras}: {len(cams)} camera(s) to fly along: a path needs at least 2; render the "
+                         "single view with --out instead of --path/--video")
+    try:
+        poses = path_poses(path, cams, frames)
+    except ValueError as exc:  # e.g. parallel axes: no orbit centre; name the cameras it came from
+        raise ValueError(f"{cameras}: {exc}") from None
     w, h = even_size(width or cams[0].width, height or cams[0].height)
     first = cams[0].scaled(w, h)
     cloud = read_gaussian_ply(model)

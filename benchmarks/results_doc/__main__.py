@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from benchmarks.results_doc import DOC, RECORDS, SECTIONS, render_page
-from benchmarks.results_doc.page import RecordError
+from benchmarks.results_doc.page import GENERATED, RecordError
+from benchmarks.sparse_views.summary import check_doc
 
 PROG = "python -m benchmarks.results_doc"
 
@@ -18,8 +19,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--doc", type=Path, default=DOC, help="the page to write (default %(default)s)")
     p.add_argument("--records", type=Path, default=RECORDS, help="the records folder (default %(default)s)")
     args = p.parse_args(argv)
+    try:
+        check_doc(args.doc, GENERATED)  # a page the user wrote is never replaced
+    except ValueError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
     if not args.records.is_dir():
-        print(f"{PROG}: error: records folder {args.records} does not exist; pass --records with the folder "
+        print(f"{PROG}: error: records folder {args.records} "
+              f"{'is not a folder' if args.records.exists() else 'does not exist'}; pass --records with the folder "
               "that holds the benchmark records", file=sys.stderr)
         return 2
     try:

@@ -67,6 +67,29 @@ def _check_selection(args, of_role, scenes) -> None:
         raise ValueError(f"no scene of role {args.role} in {args.protocol}: the grid is empty")
 
 
+def check_folders(args) -> None:
+    """The runner's folder rule, for every subcommand: ``--records`` and ``--work`` are folders
+    (or do not exist yet, and are made), and ``--work`` (cells and trained models, never
+    committed) does not lie inside the repository unless git ignores it there (``work/``).
+    ValueError naming the folder and what to do otherwise; nothing is written."""
+    import subprocess
+
+    for flag, path in (("--records", args.records), ("--work", getattr(args, "work", None))):
+        if path is not None and path.exists() and not path.is_dir():
+            raise ValueError(f"{flag} {path} is not a folder: name a folder (it is made if missing)")
+    work = getattr(args, "work", None)
+    if work is None or not work.resolve().is_relative_to(REPO):
+        return
+    try:  # 0: ignored, 1: not ignored, 128: not a git checkout (no repository to keep clean)
+        rc = subprocess.run(["git", "-C", str(REPO), "check-ignore", "-q", str(work.resolve())],
+                            capture_output=True).returncode
+    except OSError:  # no git here
+        rc = 128
+    if rc == 1:
+        raise ValueError(f"--work {work} lies inside the repository, where git would list its cells and models "
+                         f"as new files: pass a folder outside {REPO}, or under its ignored work/")
+
+
 def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import prepare
     from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
@@ -238,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     rl.add_argument("--work", type=Path, default=None, help="the run command's --work: rename the run folders too")
     args = p.parse_args(argv)
     try:
+        check_folders(args)
         return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
                 "relabel": cmd_relabel, "floor": cmd_floor}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
