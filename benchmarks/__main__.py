@@ -391,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gpu-parts", default=None,
                    help="comma list of --gpu parts, run in this order (default: all, see benchmarks/gpu_check.py)")
     args = p.parse_args(argv)
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from runtime.logs import setup_logging
 
     setup_logging()

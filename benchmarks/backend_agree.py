@@ -220,7 +220,7 @@ def pack_cell(dest: Path, scene: str = "llff__fern", n: int = 3, work: Path | No
     against the output rule first (:func:`main`)."""
     from benchmarks.sparse_views import protocol
     from benchmarks.sparse_views.cells import prepare
-    from camio.atomic import atomic_dir, atomic_path, write_json
+    from runtime.atomic import atomic_dir, atomic_path, write_json
 
     protocol_file = protocol_file or protocol.PROTOCOL
     found = [s for s in protocol.load(protocol_file, data) if s.name == scene]
@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         return _compare_cli(args)
     import logging
 
-    from camio.outdir import prepare_out, run_stage, seal_out
+    from runtime.outdir import prepare_out, run_stage, seal_out
     from runtime.logs import setup_logging
 
     setup_logging()
@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _compare_cli(args) -> int:
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     try:
         doc = json.loads(args.result.read_text())

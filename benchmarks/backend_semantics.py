@@ -97,7 +97,7 @@ def run(cell: Path, variants: list[str], seeds: list[int], recipe: str, iteratio
     """Train every (variant, seed) not done yet in ``work``; the summary JSON into ``out``."""
     from benchmarks.backend_agree import cell_name, cell_paths, curve_end, split_cell_name
     from benchmarks.sparse_views.runs import run_name, train_args
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     paths = cell_paths(cell)
     name = cell_name(cell)
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import logging
 
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
     from runtime.logs import setup_logging
     from splat_train.recipes import RECIPE_NAMES
 

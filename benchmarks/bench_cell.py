@@ -485,7 +485,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recipe", choices=list(RECIPE_NAMES), default=None,
                    help="training recipe (splat_train --recipe; default: the trainer's)")
     args = p.parse_args(argv)
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from runtime.logs import setup_logging
 
     setup_logging()

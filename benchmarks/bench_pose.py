@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", help="working folder (default: OUT/bench_pose_work)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from runtime.logs import setup_logging
 
     setup_logging(args.verbose, quiet=not args.verbose)

@@ -245,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-reference", action="store_true", help="skip the slow dense reference")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/out/...)")
     args = ap.parse_args(argv)
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from runtime.logs import setup_logging
     from runtime.memory import retain_freed_memory
 

@@ -244,7 +244,7 @@ def gsplat_build_marker(marker: str) -> int:
     """:func:`gsplat_build` in a process of its own (scripts/gpu_run.sh's background build),
     its result or its error written to ``marker`` when it ends, failed or not (atomically: the
     part that waits for the file reads it whole); exit status 0 or 1."""
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     try:
         res = gsplat_build("cuda")
@@ -641,7 +641,7 @@ def run_cli(out: Path, iterations: int | None = None, machine_info=None, cell_pr
                   "(torch.cuda.is_available() is False). On a GPU machine: install a CUDA build of torch, "
                   "then pip install -e '.[gpu]' (README, 'GPU install').", torch.__version__)
         return 2
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     stem = out / f"benchmarks_gpu_{time.strftime('%Y%m%d_%H%M%S')}"
     machine = machine_info() if machine_info is not None else None

@@ -54,7 +54,7 @@ def preflight(cell: Path, prog: str) -> str | None:
 
 def emit(result: dict, out: Path | None) -> None:
     """Print ``result`` as JSON and, with ``out``, write it there (atomically)."""
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     print(json.dumps(result, indent=1))
     if out is not None:

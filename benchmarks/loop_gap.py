@@ -177,13 +177,13 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--jobs and --iterations must be positive and --seeds at least 0")
         check_cell(args.cell)
         if args.out is not None:  # a file of its own: never an input, never a file another command wrote
-            from camio.outdir import prepare_out
+            from runtime.outdir import prepare_out
 
             prepare_out(args.out, {"--cell": args.cell}, "benchmarks.loop_gap", folder=False)
     except ValueError as exc:
         print(f"loop_gap: {exc}", file=sys.stderr)
         return 2
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     save = (lambda r: write_json(args.out, r)) if args.out else None
     res = loop_gap(args.cell, seeds, args.iterations, args.jobs, args.device, args.rasterizer, on_result=save)

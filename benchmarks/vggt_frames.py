@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.minutes <= 0 or min(args.counts) < 1:
         print("vggt_frames: --minutes and --counts must be positive", file=sys.stderr)
         return 2
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     res = vggt_frames("cuda", time.perf_counter() + 60 * args.minutes, tuple(args.counts),
                       on_result=lambda r: write_json(args.out, r))

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("--images goes with --colmap only")
         return 2
     from bridge.inputs import load_colmap, load_predictions
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
 
     def work() -> None:
         prepare_out(args.out, {"--pred": args.pred, "--colmap": args.colmap, "--images": args.images}, "bridge")

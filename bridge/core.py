@@ -289,7 +289,7 @@ def write_outputs(result: SeedResult, out_dir: str | Path, write_points3d: bool 
     others are complete. ``depth_prior.npz`` is written when the result has a prior (a stale
     one from an earlier run is removed otherwise).
     """
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from camio.colmap import write_text_model
     from camio.depth_prior import write_depth_prior
     from camio.ply import write_gaussian_ply

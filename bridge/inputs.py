@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from camio.cameras import Camera
-from camio.names import check_name_list
+from runtime.names import check_name_list
 
 __all__ = ["BridgeInput", "load_predictions", "load_colmap", "PREDICTION_KEYS"]
 

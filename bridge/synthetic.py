@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import save_npz
+from runtime.atomic import save_npz
 from camio.cameras import invert_cam_from_world, look_at, scale_intrinsics
 
 __all__ = ["synthetic_predictions", "write_synthetic_predictions", "pixel_rays"]

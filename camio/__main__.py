@@ -74,7 +74,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     setup_logging(args.verbose, args.quiet)
-    from camio.outdir import prepare_out, run_stage, seal_out
+    from runtime.outdir import prepare_out, run_stage, seal_out
 
     def work() -> None:
         if args.command == "synth":

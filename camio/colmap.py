@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir
+from runtime.atomic import atomic_dir
 from camio.cameras import Camera, qvec_to_rotmat, rotmat_to_qvec
 from camio.limits import check_image_size
-from camio.names import check_name
+from runtime.names import check_name
 
 __all__ = [
     "MATCHING_THREADS",
@@ -310,7 +310,7 @@ def _check_text_model(model_dir: Path) -> int:
     Checked: every number finite; image sizes and focal lengths positive; quaternions
     non-zero; every image's camera id defined in cameras.txt; image names without spaces
     (COLMAP's reader keeps a name only up to its first space) and plain file names
-    (:func:`camio.names.check_name`: a name becomes a path). Point ids that points3D.txt
+    (:func:`runtime.names.check_name`: a name becomes a path). Point ids that points3D.txt
     does not define are counted (the reader drops those observations with a warning).
 
     Returns:

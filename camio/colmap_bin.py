@@ -26,7 +26,7 @@ import struct
 from pathlib import Path
 
 from camio.limits import check_image_size
-from camio.names import check_name
+from runtime.names import check_name
 
 __all__ = ["MODEL_PARAMS", "check_binary_model", "BinaryModelError"]
 

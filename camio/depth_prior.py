@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.names import check_name_list
+from runtime.names import check_name_list
 
 __all__ = ["DEPTH_PRIOR_FILE", "DepthSamples", "write_depth_prior", "read_depth_prior"]
 
@@ -66,7 +66,7 @@ class DepthSamples:
 
 def write_depth_prior(path: str | Path, samples: DepthSamples) -> Path:
     """Write ``samples`` to ``path`` atomically (compressed npz)."""
-    from camio.atomic import save_npz
+    from runtime.atomic import save_npz
 
     return save_npz(path, image_names=np.asarray(samples.image_names, dtype=str), image_sizes=samples.image_sizes,
                     view=samples.view, xy=samples.xy, z=samples.z, weight=samples.weight,

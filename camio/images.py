@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 
 __all__ = [
     "IMAGE_EXTENSIONS",

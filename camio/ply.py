@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
            "read_gaussian_ply", "ply_comments", "ply_vertex_count", "PlyFormatError", "write_points_ply",

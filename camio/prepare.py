@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 
-from camio.atomic import atomic_dir, write_json
+from runtime.atomic import atomic_dir, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import SparseModel, write_text_model
 from camio.images import describe_orientation, downsample_folder, image_size, working_size

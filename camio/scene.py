@@ -396,9 +396,9 @@ def _nex_intrinsics(path: Path, npy: Path) -> tuple[float, ...]:
 def _find_frame_file(base: Path, file_path: object, json_path: Path) -> Path | None:
     """The image a frame names (``file_path`` may omit the extension, as NeRF-synthetic's
     ``./train/r_0`` does), or None when no such file exists. The path must stay inside the
-    scene's folder ``base`` (:func:`camio.names.check_inside`: ``../`` and absolute paths
+    scene's folder ``base`` (:func:`runtime.names.check_inside`: ``../`` and absolute paths
     elsewhere are refused)."""
-    from camio.names import check_inside
+    from runtime.names import check_inside
 
     try:
         p = check_inside(file_path, base, "frame file_path", json_path).resolve()

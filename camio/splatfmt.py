@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from camio.ply import GaussianCloud, read_gaussian_ply, sh_dc_to_rgb, write_gaussian_ply
 
 __all__ = ["EXPORT_FORMATS", "SPLAT_RECORD", "SplatRecords", "SplatFormatError", "SpzUnavailable", "splat_order",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 
 __all__ = ["Split", "every8_split", "select_train", "make_split", "load_manifest", "write_split",
            "read_split", "TEST_EVERY"]
@@ -142,7 +142,7 @@ def read_split(path: str | Path) -> Split:
     Raises:
         ValueError: one line naming the file and what is wrong.
     """
-    from camio.names import check_name_list
+    from runtime.names import check_name_list
 
     try:
         data = json.loads(Path(path).read_text())

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, write_json
+from runtime.atomic import atomic_dir, write_json
 from camio.cameras import Camera, look_at, project_points
 from camio.colmap import write_text_model
 from camio.images import write_image

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 
 __all__ = ["VideoUnavailable", "check_video_path", "require_imageio", "even_size", "write_video", "count_frames", "DEFAULT_FPS"]
 

@@ -92,7 +92,7 @@ def _cmd_study(args) -> int:
     import json
     from pathlib import Path
 
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from evaluation.study.report import run_study
 
     cells = {}
@@ -105,7 +105,7 @@ def _cmd_study(args) -> int:
     return 0
 
 
-# The output rule (camio.outdir) of each command: its input options, whether --out is a folder,
+# The output rule (runtime.outdir) of each command: its input options, whether --out is a folder,
 # the inputs whose tree may hold --out (results-tree readers), and whether the command
 # replaces its --out folder whole.
 _OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
@@ -122,7 +122,7 @@ _OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
 
 def _prepare_out(args) -> None:
     """Apply camio's output rule to ``args.out`` of the command (:data:`_OUTPUTS`)."""
-    from camio.outdir import prepare_out
+    from runtime.outdir import prepare_out
 
     spec = _OUTPUTS.get(args.command)
     if spec is None or getattr(args, "out", None) is None:
@@ -141,8 +141,8 @@ def _prepare_out(args) -> None:
 
 
 def _seal_out(args) -> None:
-    """Record what a command that replaces its folder whole wrote (camio.outdir.seal_out)."""
-    from camio.outdir import seal_out
+    """Record what a command that replaces its folder whole wrote (runtime.outdir.seal_out)."""
+    from runtime.outdir import seal_out
 
     spec = _OUTPUTS.get(args.command)
     if spec is not None and spec[3]:
@@ -277,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         log.error("evaluation.metrics.images_cli.add_parser did not set a handler (set_defaults(func=...))")
         return 2
-    from camio.outdir import run_stage
+    from runtime.outdir import run_stage
 
     def work() -> int:
         _prepare_out(args)

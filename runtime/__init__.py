@@ -7,6 +7,10 @@
 * :mod:`runtime.memory`: glibc's malloc settings that keep freed memory in the process
   (``RETAIN_FREED_MEMORY=0`` turns them off);
 * :mod:`runtime.cbuild`: the cached build of single-file C++ kernels loaded with ctypes;
+* :mod:`runtime.outdir`: the output rule of every stage (refusals, the ledger of what a stage
+  wrote, reruns that remove only their own files, the lock of an output folder);
+* :mod:`runtime.atomic`: writes that land whole or not at all (temporary file, fsync, rename);
+* :mod:`runtime.names`: the rule for names read from files before they become paths;
 * :mod:`runtime.view_defaults`: where the browser viewer listens, read by the viewer and by the
   report that prints its commands.
 

@@ -1,7 +1,7 @@
 """Stopping a command: SIGTERM, SIGINT and SIGHUP become one exception, :class:`Stopped`.
 
 Snakemake and SLURM cancel a job with SIGTERM, a terminal sends SIGHUP when it closes and
-SIGINT on Ctrl-C. While :func:`stops_caught` is active (``camio.outdir.run_stage`` holds it
+SIGINT on Ctrl-C. While :func:`stops_caught` is active (``runtime.outdir.run_stage`` holds it
 around every stage command) each of them raises :class:`Stopped` in the main thread, so every
 ``finally`` runs: temporary files and folders are removed, locks given up, and the command ends
 with one line and exit code 128 + the signal (SIGHUP 129, SIGINT 130, SIGTERM 143).
@@ -13,7 +13,7 @@ active: right after such a module is imported (pycolmap is imported lazily, insi
 work), the handlers are installed again.
 
 :func:`stops_held` holds the signals back for a few lines of bookkeeping that must not be cut
-in half (``camio.atomic``'s temporary names, ``camio.outdir``'s markers and lock).
+in half (``runtime.atomic``'s temporary names, ``runtime.outdir``'s markers and lock).
 :func:`run_command` is the ending of a command without an output folder (a benchmark runner);
 :func:`run_child` runs a child command and passes a stop on to it, waiting for its cleanup.
 
@@ -56,7 +56,7 @@ default ``KillWait`` between SIGTERM and SIGKILL is 30 s); then the child is kil
 
 class Stopped(BaseException):
     """The process was asked to stop (SIGTERM, SIGINT, SIGHUP): raised in the main thread so
-    that every ``finally`` runs (temporary files and folders of ``camio.atomic`` are removed).
+    that every ``finally`` runs (temporary files and folders of ``runtime.atomic`` are removed).
     Not an ``Exception``, so ``except Exception`` never swallows it."""
 
     def __init__(self, signum: int):
@@ -197,7 +197,7 @@ def stops_caught() -> Iterator[None]:
 def run_command(work: Callable[[], int | None], log: logging.Logger | None = None) -> int:
     """The ending of a command that writes no stage output folder (a benchmark runner): ``work``'s
     exit code, or after a stop signal the one line of :func:`stop_line` and 128 + the signal.
-    (Stage commands end with ``camio.outdir.run_stage``, which also tidies their output folder.)"""
+    (Stage commands end with ``runtime.outdir.run_stage``, which also tidies their output folder.)"""
     with stops_caught():
         try:
             return int(work() or 0)

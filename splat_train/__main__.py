@@ -202,11 +202,11 @@ def _testpose_parser() -> argparse.ArgumentParser:
 
 
 def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: bool = True) -> bool:
-    """camio's output rule for ``--out`` (camio.outdir); False after logging the one-line refusal.
+    """camio's output rule for ``--out`` (runtime.outdir); False after logging the one-line refusal.
     ``fresh``: the command writes a folder of results (renders) and first removes its earlier
-    run's files, so the folder never mixes two runs (seal it with camio.outdir.seal_out).
+    run's files, so the folder never mixes two runs (seal it with runtime.outdir.seal_out).
     ``folder``: False for a command that writes one file (an export, a video)."""
-    from camio.outdir import OutputFolderError, prepare_out
+    from runtime.outdir import OutputFolderError, prepare_out
 
     try:
         prepare_out(out, inputs, stage, fresh=fresh, folder=folder)
@@ -275,13 +275,13 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
 
 def main(argv: list[str] | None = None) -> int:
     """Train, render, test-pose or view; the output folder's writer's lock is given up when the
-    command returns or raises (camio.outdir)."""
-    from camio.outdir import OutputFolderError, finish_outs, release_locks
+    command returns or raises (runtime.outdir)."""
+    from runtime.outdir import OutputFolderError, finish_outs, release_locks
 
     try:
         rc = _main(argv)
         if rc == 0:
-            finish_outs()  # record what the command wrote, file by file (camio.outdir)
+            finish_outs()  # record what the command wrote, file by file (runtime.outdir)
         return rc
     except OutputFolderError as exc:  # a write the output rule refused: never over a user's file
         log.error("%s", exc)
@@ -330,7 +330,7 @@ def _main(argv: list[str] | None = None) -> int:
             log.warning("degenerate model: %s", warning)
         render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
                      height=args.height, names=args.image_list, background=bg, device=args.device)
-        from camio.outdir import seal_out
+        from runtime.outdir import seal_out
 
         seal_out(args.out, "splat_train render")
         return 0
@@ -350,7 +350,7 @@ def _main(argv: list[str] | None = None) -> int:
         rec = run_testpose(args.model, args.cameras, args.images, args.out, steps=args.steps, lr=args.lr,
                            device=resolve_device(args.device), backend=args.rasterizer, names=args.image_list,
                            patience=args.patience)
-        from camio.outdir import seal_out
+        from runtime.outdir import seal_out
 
         seal_out(args.out, "splat_train testpose")
         print(f"test-pose: {len(rec['views'])} views, {rec['steps']} steps, mean rotation change "
@@ -408,7 +408,7 @@ def _cli() -> int:
     """``python -m splat_train``: :func:`main`, with a bad input (unreadable seed, camera model,
     checkpoint or config) reported as one line naming it instead of a traceback (-v shows the
     traceback). :func:`main` itself still raises, for callers and tests."""
-    from camio.outdir import run_stage
+    from runtime.outdir import run_stage
 
     def line(exc: BaseException) -> str:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc

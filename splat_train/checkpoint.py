@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 
 __all__ = ["checkpoint_path", "list_checkpoints", "latest_checkpoint", "save_checkpoint",
            "load_checkpoint", "CKPT_DIR", "CPU_KEYS"]

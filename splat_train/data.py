@@ -21,7 +21,7 @@ from camio import Camera
 from camio.cameras import scale_intrinsics
 from camio.images import downsample_area, image_size, read_image
 from camio.colmap import read_model
-from camio.names import check_stems
+from runtime.names import check_stems
 
 __all__ = ["View", "load_views", "load_cameras", "read_name_list", "scene_extent"]
 
@@ -51,8 +51,8 @@ class View:
 def read_name_list(path: str | Path) -> list[str]:
     """Image names from a file: a JSON list, or plain text with one name per line ('#'
     starts a comment, blank lines ignored); every name plain and none twice
-    (camio.names.check_name_list)."""
-    from camio.names import check_name_list
+    (runtime.names.check_name_list)."""
+    from runtime.names import check_name_list
 
     path = Path(path)
     text = path.read_text()
@@ -122,7 +122,7 @@ def load_views(cameras_dir: str | Path, images_dir: str | Path | None, names: li
 
     Raises:
         ValueError: two views whose names differ only by their extension (their renders,
-            ``<stem>.png``, would be one file; :func:`camio.names.check_stems`).
+            ``<stem>.png``, would be one file; :func:`runtime.names.check_stems`).
     """
     cams = load_cameras(cameras_dir, names)
     check_stems([c.name for c in cams], cameras_dir)  # renders are <stem>.png: v0.png and v0.jpg would be one file

@@ -3,7 +3,7 @@
 Used by the trainer at the end of a run and by ``python -m splat_train render`` (the
 evaluation stage renders the held-out cameras with it). Output names: the image name with
 its suffix replaced by ``.png``, e.g. ``IMG_0001.JPG -> IMG_0001.png``; image names are plain
-file names (every reader checks them, :mod:`camio.names`) and no two share a stem
+file names (every reader checks them, :mod:`runtime.names`) and no two share a stem
 (:func:`splat_train.data.load_views`), so every render is its own file inside ``out_dir``.
 """
 

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 
 __all__ = ["RunLog", "LOG_COLUMNS", "TEST_MEASURES", "TEST_DIAGNOSTICS"]
 

@@ -55,7 +55,7 @@ import numpy as np
 import torch
 
 from camio import Camera
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.colmap import write_text_model
 from camio.images import write_image
 from camio.ply import read_gaussian_ply

@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from camio import Camera
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.colmap import write_text_model
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.ply import read_gaussian_ply, write_gaussian_ply

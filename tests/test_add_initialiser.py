@@ -51,9 +51,9 @@ import logging
 import sys
 from pathlib import Path
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.colmap import read_model, write_text_model
-from camio.outdir import prepare_out, run_stage
+from runtime.outdir import prepare_out, run_stage
 from evaluation.initialisers.views import read_image_list
 
 log = logging.getLogger(__name__)

@@ -38,7 +38,7 @@ def test_missing_input_exits_2_and_leaves_nothing(case, tmp_path, monkeypatch):
     except SystemExit as exc:
         rc = exc.code
     assert rc == 2, (module, argv)
-    from camio.outdir import tidy_outs
+    from runtime.outdir import tidy_outs
 
     tidy_outs()
     assert not (tmp_path / "out").exists(), "a failed stage left its output folder"

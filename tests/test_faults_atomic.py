@@ -1,10 +1,10 @@
 """Fault: every stage writes its outputs atomically (temporary name, then rename).
 
-Two checks, both through :mod:`camio.atomic`, the one place that renames:
+Two checks, both through :mod:`runtime.atomic`, the one place that renames:
 
 * ``test_stage_writes_only_through_camio_atomic``: each stage runs with the final rename
   turned into a no-op that only records the destination. An output written through
-  camio.atomic then never appears (its temporary is removed); an output written directly
+  runtime.atomic then never appears (its temporary is removed); an output written directly
   would still be there. So after the stage, its output folder must hold no file at all,
   and the recorded destinations must be exactly the stage's outputs (docs/contracts.md).
 * ``test_crash_at_rename_keeps_old_version``: each file writer crashes at the worst moment
@@ -24,12 +24,12 @@ import numpy as np
 import pytest
 import torch
 
-import camio.atomic
+import runtime.atomic
 from _train_scene import write_scene
 
 
 class _NoRename:
-    """Stands in for the ``os`` module inside camio.atomic: ``replace`` into ``root`` records the
+    """Stands in for the ``os`` module inside runtime.atomic: ``replace`` into ``root`` records the
     destination and does nothing (or raises ``fail``); elsewhere it renames as usual."""
 
     def __init__(self, root: Path, fail: BaseException | None = None) -> None:
@@ -153,9 +153,9 @@ def test_stage_writes_only_through_camio_atomic(stage, tmp_path, monkeypatch, re
     out = tmp_path / "out"
     out.mkdir()
     fake = _NoRename(out)
-    monkeypatch.setattr(camio.atomic, "os", fake)
+    monkeypatch.setattr(runtime.atomic, "os", fake)
     run(src, out)
-    assert _files(out) == [], f"{stage} wrote these files without camio.atomic"
+    assert _files(out) == [], f"{stage} wrote these files without runtime.atomic"
     missing = expected - set(fake.dests)
     assert not missing, f"{stage} did not write {sorted(missing)} (recorded: {sorted(fake.dests)})"
 
@@ -181,7 +181,7 @@ def _read_ply(p):
 
 
 def _write_npz(p, v):
-    camio.atomic.save_npz(p, x=np.arange(v))
+    runtime.atomic.save_npz(p, x=np.arange(v))
 
 
 def _read_npz(p):
@@ -190,7 +190,7 @@ def _read_npz(p):
 
 
 def _write_json(p, v):
-    camio.atomic.write_json(p, {"v": v})
+    runtime.atomic.write_json(p, {"v": v})
 
 
 def _write_ckpt(p, v):
@@ -265,7 +265,7 @@ def test_crash_at_rename_keeps_old_version(kind, tmp_path, monkeypatch):
     write(path, 3)
     assert read(path) == 3
     before = _files(tmp_path)
-    monkeypatch.setattr(camio.atomic, "os", _NoRename(tmp_path, fail=KeyboardInterrupt()))
+    monkeypatch.setattr(runtime.atomic, "os", _NoRename(tmp_path, fail=KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
         write(path, 5)
     monkeypatch.undo()

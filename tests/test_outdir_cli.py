@@ -1,4 +1,4 @@
-"""The output-folder rule (camio.outdir) through every stage command's ``main``.
+"""The output-folder rule (runtime.outdir) through every stage command's ``main``.
 
 For each stage command: an ``--out`` equal to an input, inside an input or holding an input
 is refused with exit code 2 and one error line naming both paths, and the input is left
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from camio.outdir import MARKER
+from runtime.outdir import MARKER
 
 
 def _tree(root: Path) -> dict[str, bytes]:

@@ -75,7 +75,7 @@ def test_bridge_constant_confidence_map_from_npz(tmp_path):
     from bridge.core import BridgeConfig, build_seed
     from bridge.inputs import load_predictions
     from bridge.synthetic import synthetic_predictions
-    from camio.atomic import save_npz
+    from runtime.atomic import save_npz
 
     d = synthetic_predictions(n_views=3, height=8, width=10)
     d["world_points_conf"] = np.full_like(d["world_points_conf"], 3.7)
@@ -90,7 +90,7 @@ def test_bridge_predictions_with_float_colours_and_nan(tmp_path):
     with a warning; NaN colour becomes 0 rather than poisoning the SH coefficients."""
     from bridge.inputs import load_predictions
     from bridge.synthetic import synthetic_predictions
-    from camio.atomic import save_npz
+    from runtime.atomic import save_npz
 
     d = synthetic_predictions(n_views=2, height=6, width=8)
     c = d["colors"].astype(np.float32) / 255.0

@@ -1,4 +1,4 @@
-"""The output rule's records cannot be fooled (camio.outdir): a stage vouches for a file only
+"""The output rule's records cannot be fooled (runtime.outdir): a stage vouches for a file only
 while it is what the stage wrote, and the rule's own files are never opened through a link.
 
 Each case runs the command a user runs (``python ...`` in a subprocess) and checks the exit
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from camio.outdir import LEDGER, LOCK, MARKER
+from runtime.outdir import LEDGER, LOCK, MARKER
 
 from _cli import ENV, ROOT, refused, run
 
@@ -98,7 +98,7 @@ def test_a_copied_folder_is_still_the_stages(synth, tmp_path):
     assert proc.returncode == 0, proc.stderr
 
 
-_KILLED = ("import os, signal, sys\nfrom camio.outdir import prepare_out\n"
+_KILLED = ("import os, signal, sys\nfrom runtime.outdir import prepare_out\n"
            "prepare_out(sys.argv[1], {}, 'camio synth', replaces=True)\nos.kill(os.getpid(), signal.SIGKILL)\n")
 
 

@@ -1,4 +1,4 @@
-"""Names read from files never lead a command outside its folders (camio.names, the one rule).
+"""Names read from files never lead a command outside its folders (runtime.names, the one rule).
 
 Each case runs the command a user runs (``python -m ...`` in a subprocess) on a tiny input
 whose file names an image ``../victim.png``, an absolute path, or two images one render would
@@ -95,7 +95,7 @@ def test_render_refuses_two_images_that_differ_only_by_extension(model, tmp_path
 
 def _predictions(path: Path, names: list[str]) -> Path:
     from bridge.synthetic import write_synthetic_predictions
-    from camio.atomic import save_npz
+    from runtime.atomic import save_npz
 
     p = write_synthetic_predictions(path, n_views=len(names), height=6, width=8)
     with np.load(p) as z:

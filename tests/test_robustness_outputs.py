@@ -1,4 +1,4 @@
-"""Nothing a user owns is lost: the output rule (camio.outdir) in every command a user runs,
+"""Nothing a user owns is lost: the output rule (runtime.outdir) in every command a user runs,
 the workflow's views.py included, and in every rerun.
 
 Each case runs the command line as a user does (``python ...`` in a subprocess where a
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from camio.outdir import LOCK, MARKER, check_name, check_name_list
+from runtime.outdir import LOCK, MARKER, check_name, check_name_list
 
 from _cli import ENV, ROOT
 from _cli import refused as _refused
@@ -209,8 +209,8 @@ def test_render_rerun_clears_its_own_earlier_renders_and_keeps_the_users(view, t
     assert (out / "mine.txt").read_text() == "keep"
 
 
-_KILLED = ("import os, signal, sys\nfrom pathlib import Path\nfrom camio.atomic import atomic_path\n"
-           "from camio.outdir import prepare_out\nout = Path(sys.argv[1])\n"
+_KILLED = ("import os, signal, sys\nfrom pathlib import Path\nfrom runtime.atomic import atomic_path\n"
+           "from runtime.outdir import prepare_out\nout = Path(sys.argv[1])\n"
            "prepare_out(out, {}, 'splat_train render', fresh=True)\n"
            "for name in sys.argv[2:]:\n    with atomic_path(out / name) as tmp:\n        tmp.write_bytes(b'half a run')\n"
            "os.kill(os.getpid(), signal.SIGKILL)\n")
@@ -242,7 +242,7 @@ def test_render_after_an_unfinished_run_removes_what_that_run_wrote_and_keeps_th
 
 # --- one writer per output folder ------------------------------------------------------------
 
-_HOLD = ("import sys, time\nfrom camio.outdir import prepare_out\n"
+_HOLD = ("import sys, time\nfrom runtime.outdir import prepare_out\n"
          "prepare_out(sys.argv[1], {}, 'splat_train render', fresh=True)\nprint('ready', flush=True)\ntime.sleep(60)\n")
 
 
@@ -272,7 +272,7 @@ def test_two_trainers_on_one_folder_one_is_refused(tmp_path):
                               stdout=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
     try:
         assert holder.stdout.readline().strip() == "ready"
-        from camio.outdir import OutputFolderError, prepare_out
+        from runtime.outdir import OutputFolderError, prepare_out
 
         with pytest.raises(OutputFolderError, match=f"pid {holder.pid}"):
             prepare_out(out, {}, "splat_train")

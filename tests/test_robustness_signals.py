@@ -1,4 +1,4 @@
-"""Stop signals through every stage command (runtime.stops, camio.outdir.run_stage).
+"""Stop signals through every stage command (runtime.stops, runtime.outdir.run_stage).
 
 Each stage command is started the way Snakemake, SLURM or a user starts it, on a small
 generated input; once it is working (a file or a log line shows it, after its heavy imports:
@@ -24,7 +24,7 @@ from typing import Callable
 import pytest
 
 from _cli import ENV, ROOT
-from camio.outdir import LEDGER, LOCK, MARKER
+from runtime.outdir import LEDGER, LOCK, MARKER
 
 SIGNALS = [signal.SIGTERM, signal.SIGINT, signal.SIGHUP]
 READY_S = 240  # generous: the machine may be loaded; the command is stopped as soon as it is ready

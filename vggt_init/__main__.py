@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     from vggt_init.preprocess import ImageInputError
     from vggt_init.run import MemoryBudgetError, RunOptions, run
 
-    from camio.outdir import prepare_out, run_stage, typed_line
+    from runtime.outdir import prepare_out, run_stage, typed_line
     from runtime.memory import retain_freed_memory
 
     def work() -> None:

@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import save_npz
+from runtime.atomic import save_npz
 from camio.cameras import Camera
 from camio.colmap import write_text_model
-from camio.names import check_name_list
+from runtime.names import check_name_list
 from vggt_init.preprocess import ImageGeometry
 
 __all__ = ["PREDICTION_KEYS", "OPTIONAL_KEYS", "write_predictions", "select_points", "write_colmap"]

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.images import list_images
 from runtime.logs import peak_rss_mb, timed
 from runtime.memory import memory_retained, release_free_memory
@@ -111,7 +111,7 @@ def _image_paths(opts: RunOptions) -> list[Path]:
                  if ln.strip() and not ln.strip().startswith("#")]
         if not names:
             raise ImageInputError(f"image list {opts.image_list} is empty")
-        from camio.names import check_name_list
+        from runtime.names import check_name_list
 
         try:
             check_name_list(names, opts.image_list)

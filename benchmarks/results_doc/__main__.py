@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
         msg = str(exc) if isinstance(exc, RecordError) else f"a record under {args.records} lacks {exc!r}"
         print(f"{PROG}: error: {msg}", file=sys.stderr)
         return 2
-    from camio.atomic import atomic_path
+    from runtime.atomic import atomic_path
 
     args.doc.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(args.doc) as tmp:

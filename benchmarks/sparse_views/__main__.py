@@ -93,7 +93,7 @@ def check_folders(args) -> None:
 def cmd_run(args) -> int:
     from benchmarks.sparse_views.cells import prepare
     from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
-    from camio.atomic import atomic_path
+    from runtime.atomic import atomic_path
 
     of_role = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role]
     scenes = [s for s in of_role if args.scenes is None or s.name in args.scenes]

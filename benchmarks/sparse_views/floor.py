@@ -59,7 +59,7 @@ def measure_floors(records: Path, work: Path, scenes: list, ns: list[int] | None
     are. ``scenes``: protocol scenes whose data is here; ``ns``: view counts (default the
     scene's own). Returns the whole file's floors."""
     from benchmarks.sparse_views.cells import cell_lock, prepare_split
-    from camio.atomic import atomic_path
+    from runtime.atomic import atomic_path
 
     floors = load_floors(records)
     for scene in scenes:

@@ -53,7 +53,7 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
         ValueError: a record moved to a recipe name does not match the recipe now, a target
             name is taken, or nothing is named ``old``.
     """
-    from camio.atomic import atomic_path
+    from runtime.atomic import atomic_path
     from splat_train.recipes import RECIPE_NAMES
 
     if old == new:

@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m benchmarks.sparse_views.seeds: error: {exc}", file=sys.stderr)
         return 2
     rep = report(reg, args.records, args.work)
-    from camio.atomic import atomic_path, write_json
+    from runtime.atomic import atomic_path, write_json
 
     write_json(args.records / f"{reg['name']}.json", rep)
     rel = args.registration.resolve().relative_to(REPO) if args.registration.resolve().is_relative_to(REPO) \

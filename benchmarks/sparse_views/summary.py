@@ -19,7 +19,7 @@ from benchmarks.sparse_views import scene_level
 from benchmarks.sparse_views.floor import load_floors
 from benchmarks.sparse_views.protocol import REPO
 from benchmarks.sparse_views.runs import RECORD_KEYS
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from splat_train.recipes import RECIPE_NAMES
 
 MEASURES = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "gaussians", "train_s")

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, save_npz, write_json
+from runtime.atomic import atomic_dir, save_npz, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
-from camio.names import check_name_list
+from runtime.names import check_name_list
 from evaluation.metrics.pose import paper_success
 from runtime.checks import flag
 from runtime.cliargs import add_log_flags, plain
@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
     names = [x.strip() for x in Path(args.image_list).read_text().splitlines() if x.strip()]
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
 
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from camio.atomic import scratch_dir
+from runtime.atomic import scratch_dir
 from camio.cameras import project_points
 from camio.colmap import SparseModel, read_model, write_text_model
 

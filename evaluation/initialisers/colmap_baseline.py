@@ -15,7 +15,7 @@ import argparse
 import logging
 
 from camio.images import ImageReadError
-from camio.outdir import prepare_out, run_stage, seal_out, typed_line
+from runtime.outdir import prepare_out, run_stage, seal_out, typed_line
 from evaluation.initialisers import colmap_repeats
 from evaluation.initialisers.colmap_run import DEFAULT_THREADS, ColmapSettings, available_cores, model_fingerprint, run_colmap
 from evaluation.metrics.pose import add_gate_args, gate_from_args

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, write_json
+from runtime.atomic import atomic_dir, write_json
 from evaluation.initialisers.colmap_run import ColmapSettings, run_colmap
 from evaluation.metrics.pose import status_success
 

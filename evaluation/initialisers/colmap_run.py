@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, scratch_dir, write_json
+from runtime.atomic import atomic_dir, scratch_dir, write_json
 from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import MIN_IMAGE_SIDE, ImageReadError, check_images
 from evaluation.metrics.pose import paper_success

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import save_npz, write_json
+from runtime.atomic import save_npz, write_json
 from camio.cameras import Camera, scale_intrinsics
 from camio.colmap import read_model, write_text_model
 from evaluation.initialisers.views import add_view_args, parse_training_args
@@ -333,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac,
                         args.conf_scale, args.conf_noise, args.conf_mode)
     from camio.images import ImageReadError
-    from camio.outdir import prepare_out, run_stage, typed_line
+    from runtime.outdir import prepare_out, run_stage, typed_line
 
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)

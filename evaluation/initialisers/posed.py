@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import atomic_dir, write_json
+from runtime.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
 from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import paper_success
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     add_log_flags(p)
     args, names = parse_training_args(p, argv)
     noise = OracleNoise(args.rot_deg, args.trans_frac, args.depth_rel, args.outlier_frac)
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
 
     def work() -> None:
         # the stage's name in its .stage marker stays the flat layout's (reruns into older folders)

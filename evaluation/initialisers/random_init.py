@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from camio.ply import SH_C0
@@ -325,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
     from runtime.logs import setup_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import scratch_dir
+from runtime.atomic import scratch_dir
 from camio.cameras import Camera, rotmat_to_qvec
 from camio.colmap import SparseModel, cpu_matching_options, read_model
 

@@ -37,7 +37,7 @@ def read_image_list(path: str | Path) -> list[str]:
     names = [ln.strip() for ln in lst.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not names:
         raise ValueError(f"image list {lst} is empty: one training image name per line")
-    from camio.names import check_name_list
+    from runtime.names import check_name_list
 
     return check_name_list(names, lst)
 
@@ -51,7 +51,7 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if getattr(args, "split", None):
         if args.n is None:
             raise ValueError("--split needs --n (the number of training views)")
-        from camio.names import check_name_list
+        from runtime.names import check_name_list
 
         try:
             data = json.loads(Path(args.split).read_text())
@@ -67,7 +67,7 @@ def training_names(args: argparse.Namespace) -> list[str]:
     if args.image_list:
         return read_image_list(args.image_list)
     if args.names:
-        from camio.names import check_name_list
+        from runtime.names import check_name_list
 
         return check_name_list(args.names, "--names")
     if hasattr(args, "split"):

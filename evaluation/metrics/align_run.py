@@ -22,7 +22,7 @@ import logging
 import time
 from pathlib import Path
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.metrics.align import fit_sim3_cameras, transform_cam_from_world

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.colmap import read_model
 from camio.ply import read_gaussian_ply
 from evaluation.metrics.align import Sim3

@@ -37,7 +37,7 @@ from typing import Sequence
 
 import torch
 
-from camio.atomic import write_json
+from runtime.atomic import write_json
 from camio.images import list_images, read_image
 from imgmetrics.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
 from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim

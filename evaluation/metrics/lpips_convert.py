@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from imgmetrics.lpips import LPIPS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
 from runtime.cliargs import add_log_flags
 from runtime.logs import setup_logging, timed
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     add_log_flags(p)
     args = p.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
 
     def work() -> int:
         out_dir = args.out.expanduser() if args.out is not None else default_cache_dir()

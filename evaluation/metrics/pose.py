@@ -235,7 +235,7 @@ def run_pose(pred_dir: str | Path, ref_dir: str | Path, out: str | Path,
              names_file: str | Path | None = None, n: int | None = None,
              gate: GateConfig = GateConfig(), use_orientations: str = "auto") -> dict:
     """Read two COLMAP models, evaluate, write ``pose.json`` atomically; returns the record."""
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
     from camio.colmap import read_model
     from evaluation.metrics.align_run import load_names
 

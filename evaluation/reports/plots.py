@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from evaluation.reports.results import collect_runs, find_file, read_log, run_label
 
 __all__ = ["pyplot", "save_png", "training_curves", "pareto_front", "pareto_plot", "run_plots"]

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from camio.atomic import atomic_dir
+from runtime.atomic import atomic_dir
 from evaluation.reports import photos
 from evaluation.reports.markup import counted, html_page, number_cells
 from evaluation.reports.plots import run_plots

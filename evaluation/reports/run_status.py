@@ -48,7 +48,7 @@ def read_skipped(results: str | Path) -> dict[str, str]:
 
 def write_skipped(results: str | Path, skipped: dict[str, str]) -> Path:
     """Write (or, for an empty dict, remove) ``results/skipped.json``."""
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     p = Path(results) / SKIPPED_FILE
     if not skipped:

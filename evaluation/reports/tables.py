@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.markup import counted, format_value, markdown_table
 from evaluation.reports.results import PROTOCOLS, collect_runs

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from camio.atomic import atomic_dir, write_json
+from runtime.atomic import atomic_dir, write_json
 from evaluation.reports.markup import counted, html_page, html_table, markdown_table
 from evaluation.study.collect import STUDY_INITS, collect_curves, collect_references, collect_study
 from evaluation.study.plots import study_plots

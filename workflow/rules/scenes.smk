@@ -240,7 +240,7 @@ def unavailable_json(wildcards=None):
 
 def write_skipped_file(out, log_file, skipped_json):
     """R/skipped.json ({initialiser: reason}; {} when all can run) and a line per entry in the log."""
-    from camio.atomic import write_json
+    from runtime.atomic import write_json
 
     skipped = json.loads(skipped_json)
     write_json(out, skipped)

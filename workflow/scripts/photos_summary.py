@@ -15,7 +15,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from camio.atomic import atomic_path
+from runtime.atomic import atomic_path
 from evaluation.reports.run_status import read_skipped
 
 

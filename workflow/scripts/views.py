@@ -9,7 +9,7 @@
 images, so that image metrics compare renders with the held-out views only; ``index``
 gathers COLMAP status files into one JSON (the workflow's colmap_index checkpoint).
 
-Every command keeps the stages' output rule (camio.outdir): ``--out`` is never an input,
+Every command keeps the stages' output rule (runtime.outdir): ``--out`` is never an input,
 inside one or holding one; a file ``--out`` replaces only a file this command wrote; ``link``
 replaces only a folder it wrote itself (a user's folder is refused, never emptied); a name in
 the split that is not a plain file name (``../x.png``) is refused. A bad input is one error
@@ -26,9 +26,9 @@ import shutil
 import time
 from pathlib import Path
 
-from camio.atomic import atomic_dir, atomic_path, write_json
-from camio.names import check_name
-from camio.outdir import prepare_out, run_stage, seal_out
+from runtime.atomic import atomic_dir, atomic_path, write_json
+from runtime.names import check_name
+from runtime.outdir import prepare_out, run_stage, seal_out
 from camio.split import read_split
 from runtime.checks import flag
 from runtime.logs import setup_logging

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(str(exc))
     images = args.images or f"{args.scene}/images"
     from camio.images import ImageReadError
-    from camio.outdir import prepare_out, run_stage
+    from runtime.outdir import prepare_out, run_stage
 
     def work() -> None:
         prepare_out(args.out, {"--scene": args.scene, "--images": args.images, "--cameras": args.cameras,

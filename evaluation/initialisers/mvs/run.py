@@ -340,7 +340,7 @@ def run_mvs(images_dir: str | Path, names: list[str], out_dir: str | Path, *, sc
     """
     import torch
 
-    from camio.atomic import save_npz, write_json
+    from runtime.atomic import save_npz, write_json
     from camio.colmap import write_text_model
     from camio.images import read_image
 

@@ -14,7 +14,7 @@ render`` write over a file outside ``--out``):
   frame's ``images/x.jpg``) stays inside its folder once ``.`` and ``..`` are resolved.
 
 Every refusal is a ``ValueError`` of one line naming the file the name came from and what to
-do; the stage CLIs print it and exit with code 2 (``camio.outdir.run_stage``).
+do; the stage CLIs print it and exit with code 2 (``runtime.outdir.run_stage``).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   names that input in ``may_hold_out``: its ``--out`` may lie inside it, never be it or
   contain it. ``--out`` itself (a folder, or a file and its folder) may not be a symbolic
   link, nor have a name longer than its file system holds (less what a temporary's name adds,
-  :data:`camio.atomic.TEMP_NAME_EXTRA`) or a path of PATH_MAX bytes or more.
+  :data:`runtime.atomic.TEMP_NAME_EXTRA`) or a path of PATH_MAX bytes or more.
 * A folder ``--out`` that exists must be empty (Snakemake creates output folders before a
   job), or hold the marker file :data:`MARKER` naming this same stage: a rerun of the stage
   into its own folder works, any other non-empty folder is refused.
@@ -16,7 +16,7 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   counts as empty, except for a stage that replaces its folder whole.
 * The marker records every file the stage wrote with its stamp (size, ``mtime_ns``, inode;
   :func:`seal_out`), and while a run goes on, what was there before it (:data:`_KEPT`) and
-  each file the run writes through :mod:`camio.atomic`, before it is renamed into place
+  each file the run writes through :mod:`runtime.atomic`, before it is renamed into place
   (:data:`_WROTE`). A recorded file counts as the stage's only while its stamp still matches:
   a rerun refuses a folder where a file the stage wrote has changed (a user's file put where
   an output stood), and never writes over a file that was there before its run and is not
@@ -52,7 +52,7 @@ Every stage CLI calls :func:`prepare_out` before it reads or writes anything:
   runs: no temporary file or folder is left, the lock is given up, the marker says the run did
   not finish; one line, exit code 128 + the signal (SIGHUP 129, SIGINT 130, SIGTERM 143).
 * A name read from a file (a split, an image list, a COLMAP model, a ``predictions.npz``) is
-  a plain file name, listed once (:mod:`camio.names`; :func:`check_name` and
+  a plain file name, listed once (:mod:`runtime.names`; :func:`check_name` and
   :func:`check_name_list` are handed on here).
 
 Every refusal is an :class:`OutputFolderError` (a ``ValueError``), one line naming both
@@ -72,8 +72,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Mapping
 
-from camio import atomic
-from camio.names import check_name, check_name_list  # noqa: F401  (the name rule, handed on)
+from runtime import atomic
+from runtime.names import check_name, check_name_list  # noqa: F401  (the name rule, handed on)
 from runtime.stops import Stopped, stop_line, stops_caught, stops_held  # noqa: F401  (Stopped handed on)
 
 __all__ = ["MARKER", "LOCK", "LEDGER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs",
@@ -164,7 +164,7 @@ class OutputFolderError(ValueError):
 
 def _check_name_lengths(out: PathLike) -> None:
     """Refuse an ``--out`` with a name longer than its file system holds (NAME_MAX of its
-    nearest existing folder in bytes, less :data:`camio.atomic.TEMP_NAME_EXTRA` for the last
+    nearest existing folder in bytes, less :data:`runtime.atomic.TEMP_NAME_EXTRA` for the last
     name, whose temporary is written first) or a path of PATH_MAX bytes or more, before a call
     on it fails with ``ENAMETOOLONG`` (a bare OSError) or leaves a temporary behind."""
     path = Path(os.path.abspath(os.fspath(out)))
@@ -515,7 +515,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         stage: the stage's name as written in the marker (e.g. ``"camio convert"``).
         folder: ``out`` is a folder (the non-empty rule applies) or a file.
         may_hold_out: input names whose folder may hold ``out`` (results-tree readers).
-        replaces: the stage replaces its folder whole (its writer is ``camio.atomic.atomic_dir``
+        replaces: the stage replaces its folder whole (its writer is ``runtime.atomic.atomic_dir``
             on ``out``): only its own entries, in every subfolder, may be there.
         same_file_as: for a file ``out``: other stage -> the names of its files that this
             command may replace (``camio split`` replaces the ``split.json`` that ``camio
@@ -649,7 +649,7 @@ entries that were there before the run and are not its own)."""
 
 
 def _before_rename(tmp: Path, path: Path) -> None:
-    """:mod:`camio.atomic`'s hook, called when ``tmp`` is complete and before it is renamed onto
+    """:mod:`runtime.atomic`'s hook, called when ``tmp`` is complete and before it is renamed onto
     ``path``: inside a folder prepared in this process, refuse to replace an entry that was
     there before the run and is not the stage's, then record what is about to be written in
     the folder's marker (a file ``--out``: in its folder's ledger), so that a rerun after a
@@ -829,7 +829,7 @@ _SEALED: set[Path] = set()
 def finish_outs() -> None:
     """Record what each folder prepared in this process received (:func:`seal_out`), for the
     folders the command did not seal itself, and the stamp of each file output it wrote
-    without :mod:`camio.atomic`. :func:`run_stage` calls it when the command succeeds; a
+    without :mod:`runtime.atomic`. :func:`run_stage` calls it when the command succeeds; a
     command that failed leaves its marker saying its run did not finish."""
     for folder, stage in list(_STAGES.items()):
         _STAGES.pop(folder, None)

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from camio.atomic import atomic_dir, atomic_path, save_npz, write_json
+from runtime.atomic import atomic_dir, atomic_path, save_npz, write_json
 
 
 def test_atomic_path_success_and_failure(tmp_path):
@@ -59,7 +59,7 @@ def test_atomic_outputs_follow_umask(tmp_path):
     import os
     import stat
 
-    from camio.atomic import atomic_dir, write_json
+    from runtime.atomic import atomic_dir, write_json
 
     old = os.umask(0o022)
     try:
