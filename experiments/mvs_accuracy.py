@@ -1,6 +1,6 @@
 """The mvs initialiser's accuracy, confidence and speed, printed (not a test).
 
-    python -m benchmarks.bench_mvs [--synthetic-views 3 6 12] [--scene SCENE ...] [--out JSON]
+    python -m experiments.mvs_accuracy [--synthetic-views 3 6 12] [--scene SCENE ...] [--out JSON]
 
 * Synthetic scene (generated: 24 views, 256x192, the tuning scene of the sparse-view benchmark),
   against its exact depth, at each view count of its split: AbsRel, the share of kept pixels
@@ -118,7 +118,7 @@ def real(scene: Path, work: Path) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_mvs", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.mvs_accuracy", description=__doc__.split("\n\n")[0])
     p.add_argument("--synthetic-views", nargs="*", type=int, default=[3, 6, 12])
     p.add_argument("--scene", nargs="*", type=Path, default=[], help="prepared scenes with reference cameras")
     p.add_argument("--out", type=Path, help="write the figures as JSON")

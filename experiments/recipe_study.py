@@ -8,13 +8,13 @@ on the synthetic scene the final model's floater measure (``python -m evaluation
 is taken too. Intervals are the study's (:func:`evaluation.study.stats.t_interval`: mean +- t x sd /
 sqrt(k) over seeds); differences against the first variant are paired by seed.
 
-    python benchmarks/recipe_study.py --scene fern --n 3 --init posed --iterations 10000 \\
+    python experiments/recipe_study.py --scene fern --n 3 --init posed --iterations 10000 \\
         --variants paper sparse --seeds 0 1 2 --work /tmp/rs_fern3
-    python benchmarks/recipe_study.py --scene synthetic --n 3 --init oracle --iterations 3000 \\
+    python experiments/recipe_study.py --scene synthetic --n 3 --init oracle --iterations 3000 \\
         --variants sparse no-dropout no-depth no-cap no-early-stop uniform-depth --seeds 0 1 2
 
 A run whose train.json exists is not trained again (the study resumes). The summary goes to
-``--out`` (default benchmarks/out/recipe_study_<cell>.json) and is printed as a table; real
+``--out`` (default experiments/out/recipe_study_<cell>.json) and is printed as a table; real
 scenes are read from this project's machine data (SCENES below) and the cell is skipped
 cleanly without them.
 """
@@ -31,7 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
 from benchmarks._proc import run_stage as sh  # noqa: E402
-from benchmarks.sparse_views.cells import bridge_and_align  # noqa: E402
+from experiments.sparse_views.cells import bridge_and_align  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

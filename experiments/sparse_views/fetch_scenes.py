@@ -1,6 +1,6 @@
 """Fetch the scenes of scenes.yaml that have a source, each at its pinned commit.
 
-    python benchmarks/sparse_views/fetch_scenes.py DEST [--scenes NAME ...] [--convert] [--dry-run]
+    python experiments/sparse_views/fetch_scenes.py DEST [--scenes NAME ...] [--convert] [--dry-run]
 
 For every scene with a ``source`` (every evaluation scene, and the tuning scenes taken from
 public repositories), or those named: a shallow, blob-less, sparse git fetch of the

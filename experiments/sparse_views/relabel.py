@@ -4,7 +4,7 @@ When a tuning round's value lands, the recipe's old runs are kept under a varian
 records stay in the table, beside the new ones: ``sparse`` before the change becomes
 ``sparse-r13``) and the candidate's runs, trained with exactly the values the recipe now gives,
 become the recipe's (``sparse-bgmean`` becomes ``sparse``). Both are checked against the
-recipe as it is now (:func:`benchmarks.sparse_views.runs.resolved_values`, with the scene's
+recipe as it is now (:func:`experiments.sparse_views.runs.resolved_values`, with the scene's
 own background from scenes.yaml), so that a record never carries a name whose values it
 was not trained with:
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.sparse_views.runs import resolved_values, run_name, stale_keys
+from experiments.sparse_views.runs import resolved_values, run_name, stale_keys
 
 
 def _current(rec: dict, recipe: str, backgrounds: dict) -> bool:
@@ -40,7 +40,7 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
     ``work`` their run folders (``WORK/<scene>_n<n>/runs/<run name>``).
 
     Args:
-        runs_dir: the records' folder (``benchmarks/records/sparse_views/runs``).
+        runs_dir: the records' folder (``experiments/records/sparse_views/runs``).
         old, new: the record names (a recipe or a variant).
         scenes: the protocol's scenes (:func:`protocol.load`), for their backgrounds.
         stale_only: move only the records that ``old`` (a recipe) no longer resolves to.

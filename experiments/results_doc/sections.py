@@ -1,7 +1,8 @@
 """One renderer per section of docs/results.md, each reading its records.
 
-Every renderer takes the records folder (``benchmarks/records`` or a copy) and returns the
-section's body lines, or ``None`` when its record is not there (:mod:`benchmarks.results_doc.page`).
+Every renderer takes its records folder (``experiments/records``, for the GPU sections
+``benchmarks/records``, or a copy) and returns the
+section's body lines, or ``None`` when its record is not there (:mod:`experiments.results_doc.page`).
 Figures come from the records only; the fixed text says what the figures are not.
 """
 
@@ -12,7 +13,7 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
-from benchmarks.results_doc.page import REPO, RECORDS, iv, latest, load, table, verdict
+from experiments.results_doc.page import REPO, RECORDS, iv, latest, load, table, verdict
 
 SUMMARY = "sparse_views/summary.json"
 LLFF_RUNS = "llff_protocol/runs"
@@ -20,7 +21,7 @@ MVS_TUNING_RUNS = "mvs_tuning/runs"
 GPU = "gpu-*.json"
 PROTOCOLS = "protocols-*.json"
 SEMANTICS = "backend_semantics-*.json"
-REGISTERED = REPO / "benchmarks" / "sparse_views" / "registered"
+REGISTERED = REPO / "experiments" / "sparse_views" / "registered"
 
 
 def _seeds(seeds) -> str:
@@ -41,7 +42,7 @@ def _mean(xs) -> float:
 
 def sparse_views(records: Path) -> list[str] | None:
     """The targets at equal background with the floor, the scene-level intervals and the covered
-    pixels (summary.json's ``measures_by_n``, :mod:`benchmarks.sparse_views.scene_level`)."""
+    pixels (summary.json's ``measures_by_n``, :mod:`experiments.sparse_views.scene_level`)."""
     p = records / SUMMARY
     if not p.is_file():
         return None
@@ -107,10 +108,10 @@ def sparse_views(records: Path) -> list[str] | None:
                     "" if rc == "sparse" else iv(v.get("scene_level", {}).get(rc))]
         if seen:
             rows2.append(row)
-    from benchmarks.sparse_views.summary import TARGET_N
+    from experiments.sparse_views.summary import TARGET_N
 
     return out + ["", *table(head2, rows2), "",
-                  "Evaluation scenes, on which no recipe value was chosen (`benchmarks/sparse_views/scenes.yaml`):",
+                  "Evaluation scenes, on which no recipe value was chosen (`experiments/sparse_views/scenes.yaml`):",
                   ", ".join(f"`{x}`" for x in by_n[0]["evaluation_scenes"]) + ". `posed` seed, every 8th image "
                   "held out, on a CPU.",
                   "Means over the scenes of each scene's mean over seeds; intervals are 95 % t intervals with the",
@@ -126,12 +127,12 @@ def sparse_views(records: Path) -> list[str] | None:
 
 def _registration(name: str):
     """The record of a pre-registered seed comparison, with its run and report commands."""
-    from benchmarks.sparse_views import seeds
+    from experiments.sparse_views import seeds
 
     path = REGISTERED / f"{name}.yaml"
     reg = seeds.load_registration(path)
     rel = seeds.records_dir(reg).relative_to(RECORDS)
-    report = (f"`{seeds.run_command(reg)}`, then `python -m benchmarks.sparse_views.seeds report "
+    report = (f"`{seeds.run_command(reg)}`, then `python -m experiments.sparse_views.seeds report "
               f"--registration {path.relative_to(REPO)} --work WORK`")
     return rel / f"{reg['name']}.json", report
 
@@ -188,7 +189,7 @@ MVS_TUNING_TEXT = [
     "`paper` from each seed on two tuning scenes. Record names: `-s20` reads every 20th pixel (the",
     "Bridge's stride; otherwise every pixel), `-nofill` keeps only the pixels stereo explains, `-fill1`",
     "fills every unexplained ray (the default now); `paper-mvs` filled every 4th pixel",
-    "(`benchmarks/records/mvs_tuning/README.md`)."]
+    "(`experiments/records/mvs_tuning/README.md`)."]
 
 
 def mvs_tuning(records: Path) -> list[str] | None:
@@ -257,12 +258,12 @@ def llff_command(records: Path) -> str:
     """The run line for the LLFF protocol, its variant and budget taken from the records."""
     runs = _llff_runs(records)
     if not runs:
-        return ("`python -m benchmarks.sparse_views --protocol benchmarks/llff_protocol/scenes.yaml --records "
-                "benchmarks/records/llff_protocol run --role tuning --n 3 --seeds 0 --work WORK --recipes VARIANT`")
+        return ("`python -m experiments.sparse_views --protocol experiments/llff_protocol/scenes.yaml --records "
+                "experiments/records/llff_protocol run --role tuning --n 3 --seeds 0 --work WORK --recipes VARIANT`")
     r = runs[0]
     spec = f"{r['recipe']}={json.dumps(r['config'], separators=(',', ':'))}"
-    return ("`python -m benchmarks.sparse_views --protocol benchmarks/llff_protocol/scenes.yaml --records "
-            f"benchmarks/records/llff_protocol run --role {r['role']} --n {r['n']} --seeds {r['seed']} "
+    return ("`python -m experiments.sparse_views --protocol experiments/llff_protocol/scenes.yaml --records "
+            f"experiments/records/llff_protocol run --role {r['role']} --n {r['n']} --seeds {r['seed']} "
             f"--iterations {r['iterations']} --work WORK --recipes '{spec}'`")
 
 

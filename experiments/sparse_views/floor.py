@@ -3,10 +3,10 @@
 A model that learnt nothing but the mean colour of its training views scores this on the
 held-out views; a recipe's figure means something only above it. Per (scene, n) the floor is
 the mean held-out PSNR of that flat image (8-bit, as renders are scored), over the held-out
-views of the cell's split (:func:`benchmarks.sparse_views.cells.prepare_split`: the same scene,
+views of the cell's split (:func:`experiments.sparse_views.cells.prepare_split`: the same scene,
 split and name lists as every run of the cell).
 
-    python -m benchmarks.sparse_views --data DIR floor --work WORK [--scenes ...] [--n ...]
+    python -m experiments.sparse_views --data DIR floor --work WORK [--scenes ...] [--n ...]
 
 writes ``<records>/floors.json`` ({scene: {n: PSNR}}), which the summary reads; a (scene, n)
 already there is kept, so the file grows as scenes are measured.
@@ -58,7 +58,7 @@ def measure_floors(records: Path, work: Path, scenes: list, ns: list[int] | None
     and add it to ``<records>/floors.json``; (scene, n) pairs already recorded are kept as they
     are. ``scenes``: protocol scenes whose data is here; ``ns``: view counts (default the
     scene's own). Returns the whole file's floors."""
-    from benchmarks.sparse_views.cells import cell_lock, prepare_split
+    from experiments.sparse_views.cells import cell_lock, prepare_split
     from runtime.atomic import atomic_path
 
     floors = load_floors(records)
@@ -73,7 +73,7 @@ def measure_floors(records: Path, work: Path, scenes: list, ns: list[int] | None
             floors.setdefault(scene.name, {})[n] = psnr
             print(f"floor {scene.name} n={n}: {psnr:.2f} dB", flush=True)
     doc = {"what": "held-out PSNR of a flat image of the training views' mean colour (8-bit), "
-                   "per scene and view count (benchmarks/sparse_views/floor.py)",
+                   "per scene and view count (experiments/sparse_views/floor.py)",
            "floors": {s: {str(n): v for n, v in sorted(per.items())} for s, per in sorted(floors.items())}}
     Path(records).mkdir(parents=True, exist_ok=True)
     with atomic_path(Path(records) / FLOORS) as tmp:

@@ -7,9 +7,9 @@ both on the cells of config/protocols_fern.yaml (LLFF fern, n = 3, ``posed`` and
 recovery check: the ``posed`` model's held-out cameras moved by a known rigid error, then
 refined, against the PSNR at the unmoved pose.
 
-    python benchmarks/protocols.py prepare DEST      # on a CPU: snakemake for the CPU stages
+    python experiments/protocols.py prepare DEST      # on a CPU: snakemake for the CPU stages
                                                      # (scene, initialisers, Bridge, alignment)
-    python benchmarks/protocols.py run DEST --out OUT [--device cuda] [--iterations N]
+    python experiments/protocols.py run DEST --out OUT [--device cuda] [--iterations N]
 
 ``run`` calls the commands the workflow's rules call (train_splats, render_test,
 testpose_refine, image_metrics, testpose_metrics), so a GPU machine without Snakemake, open3d

@@ -4,7 +4,7 @@ Three readings of the evaluation scenes beside the summary's means, each compute
 same records:
 
 - **the floor**: a flat image of the training views' mean colour scored like a model
-  (:mod:`benchmarks.sparse_views.floor`), and ``sparse`` − floor per scene;
+  (:mod:`experiments.sparse_views.floor`), and ``sparse`` − floor per scene;
 - **equal backgrounds**: ``sparse`` against ``paper`` with both trained and rendered against
   the same colour, once on black (the field's background for real captures: ``sparse``'s
   records under :data:`EQUAL_BACKGROUND`'s black name) and once on the training views' mean

@@ -1,4 +1,4 @@
-"""``python -m benchmarks.sparse_views``: run the sparse-view grid, or rebuild its table.
+"""``python -m experiments.sparse_views``: run the sparse-view grid, or rebuild its table.
 
     run      train every (scene, n, recipe, seed) of one role that has no record yet
     summary  records -> summary.json and the docs table (no training)
@@ -16,16 +16,16 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.sparse_views import protocol
-from benchmarks.sparse_views.protocol import HERE, REPO
+from experiments.sparse_views import protocol
+from experiments.sparse_views.protocol import HERE, REPO
 
-RECORDS = REPO / "benchmarks" / "records" / "sparse_views"
+RECORDS = REPO / "experiments" / "records" / "sparse_views"
 DOC = REPO / "docs" / "results-sparse-views.md"
 # the field's recipes beside ours, in the table's order
 DEFAULT_RECIPES = ("paper", "dropgaussian", "mcmc", "sparse")
 
 
-#: a variant's keys that choose its seed (benchmarks.sparse_views.cells.prepare), not training values
+#: a variant's keys that choose its seed (experiments.sparse_views.cells.prepare), not training values
 SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
 
 
@@ -91,8 +91,8 @@ def check_folders(args) -> None:
 
 
 def cmd_run(args) -> int:
-    from benchmarks.sparse_views.cells import prepare
-    from benchmarks.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
+    from experiments.sparse_views.cells import prepare
+    from experiments.sparse_views.runs import record, resolved_values, run_lock, run_name, stale_keys, train_and_score
     from runtime.atomic import atomic_path
 
     of_role = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role]
@@ -100,7 +100,7 @@ def cmd_run(args) -> int:
     _check_selection(args, of_role, scenes)
     # each variant once: its name, config, recipe, config overrides and the values its runs resolve
     plans = []
-    from benchmarks.sparse_views.cells import seed_folder
+    from experiments.sparse_views.cells import seed_folder
 
     for name, cfg in (_variant(v) for v in args.recipes):
         # a bad seed choice fails here, before any run
@@ -122,7 +122,7 @@ def cmd_run(args) -> int:
             return 2
     for s in scenes:
         if not s.available:
-            print(f"SKIP {s.name}: {s.path} is not here (benchmarks/sparse_views/fetch_scenes.py fetches it)",
+            print(f"SKIP {s.name}: {s.path} is not here (experiments/sparse_views/fetch_scenes.py fetches it)",
                   flush=True)
             continue
         # the scene's own background (scenes.yaml), the same for every recipe; it also stands
@@ -176,14 +176,14 @@ def cmd_run(args) -> int:
 
 
 def cmd_summary(args) -> int:
-    from benchmarks.sparse_views.summary import write_summary
+    from experiments.sparse_views.summary import write_summary
 
     write_summary(args.records, args.doc, protocol.load(args.protocol, args.data))
     return 0
 
 
 def cmd_floor(args) -> int:
-    from benchmarks.sparse_views.floor import measure_floors
+    from experiments.sparse_views.floor import measure_floors
 
     scenes = [s for s in protocol.load(args.protocol, args.data) if s.role == args.role
               and (not args.scenes or s.name in args.scenes)]
@@ -198,7 +198,7 @@ def cmd_floor(args) -> int:
 
 
 def cmd_relabel(args) -> int:
-    from benchmarks.sparse_views.relabel import relabel
+    from experiments.sparse_views.relabel import relabel
 
     moved = relabel(args.records / "runs", args.old, args.new, protocol.load(args.protocol, args.data),
                     args.stale_only, args.work)
@@ -217,7 +217,7 @@ def cmd_list(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     from runtime.cliargs import plain
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.sparse_views", description=plain(__doc__.split("\n\n")[0]))
+    p = argparse.ArgumentParser(prog="python -m experiments.sparse_views", description=plain(__doc__.split("\n\n")[0]))
     p.add_argument("--protocol", type=Path, default=protocol.PROTOCOL, help="the scenes file (default %(default)s)")
     p.add_argument("--data", type=Path, default=None,
                    help=f"folder of the real scenes (default ${protocol.DATA_ENV}, else the protocol's data_root)")
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
                 "relabel": cmd_relabel, "floor": cmd_floor}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        print(f"error: python -m benchmarks.sparse_views {args.command}: {exc}", file=sys.stderr)
+        print(f"error: python -m experiments.sparse_views {args.command}: {exc}", file=sys.stderr)
         return 2
 
 

@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks._proc import run_stage as sh
-from benchmarks.sparse_views.protocol import Scene
+from experiments.sparse_views.protocol import Scene
 
 #: the initialisers a cell seeds from: name -> (command, whether it writes a confidence)
 SEEDS = {"posed": ("evaluation.initialisers.posed", False), "mvs": ("evaluation.initialisers.mvs", True),

@@ -1,6 +1,6 @@
 """The protocol file as the benchmark runs it: scenes, their role, where their data is.
 
-``scenes.yaml`` is read and checked once, by :func:`benchmarks.sparse_views.fetch_scenes.load_scenes`;
+``scenes.yaml`` is read and checked once, by :func:`experiments.sparse_views.fetch_scenes.load_scenes`;
 this module resolves each scene's data folder: ``--data DIR`` (or ``$SPARSE_VIEWS_DATA``) means
 ``DIR/<name>``, as ``fetch_scenes.py DIR`` leaves them; otherwise the scene's ``local`` entry
 (relative to the repository), which is where this project's own machines keep it.
@@ -12,7 +12,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.sparse_views.fetch_scenes import ROLES, RUN_ROLES, SCENES_YAML, load_scenes
+from experiments.sparse_views.fetch_scenes import ROLES, RUN_ROLES, SCENES_YAML, load_scenes
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
@@ -44,7 +44,7 @@ class Scene:
 
 def load(protocol: Path = PROTOCOL, data: Path | None = None) -> list[Scene]:
     """The scenes of ``protocol`` with their data folders resolved (see the module docstring);
-    :class:`~benchmarks.sparse_views.fetch_scenes.ScenesError` (a ValueError) for a bad file."""
+    :class:`~experiments.sparse_views.fetch_scenes.ScenesError` (a ValueError) for a bad file."""
     data = data or (Path(os.environ[DATA_ENV]) if os.environ.get(DATA_ENV) else None)
     out = []
     for s in load_scenes(protocol):
