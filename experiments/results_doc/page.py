@@ -75,26 +75,29 @@ def verdict(met: bool | None) -> str:
 
 
 # Figures the project reports that no record holds: the page names their commands instead, and
-# the section of benchmarks/README.md that keeps their method and latest figures, where one does.
+# the page and section that keep their method and latest figures (benchmarks/README.md for speed
+# and memory, experiments/README.md for the studies), where one does.
 UNRECORDED = (
-    ("the demo's wall time", "`make demo` (`scripts/demo.sh`)", "Workflow, demo and test-suite wall time"),
+    ("the demo's wall time", "`make demo` (`scripts/demo.sh`)", "benchmarks/README.md", "Workflow, demo and test-suite wall time"),
     ("the test suite's time, serially and on both cores; CI from a clean clone",
-     "`.venv/bin/python -m pytest -q`, `make test`, `.ci/run`", "Workflow, demo and test-suite wall time"),
-    ("the real-SLURM test", "`scripts/slurm_test.sh`", "Workflow, demo and test-suite wall time"),
+     "`.venv/bin/python -m pytest -q`, `make test`, `.ci/run`", "benchmarks/README.md", "Workflow, demo and test-suite wall time"),
+    ("the real-SLURM test", "`scripts/slurm_test.sh`", "benchmarks/README.md", "Workflow, demo and test-suite wall time"),
     ("the COLMAP train-only baseline's success count on real scenes",
-     "`snakemake --cores 2 --configfile config/real_scenes.yaml`", None),
-    ("the CPU rasterizer's speed", "`python benchmarks/bench_rasterizer.py`", "Rasterizer and kernels"),
-    ("VGGT-1B's forward on the CPU", "`python benchmarks/bench_vggt.py --frames 3 6 12`", "VGGT on the CPU"),
+     "`snakemake --cores 2 --configfile config/real_scenes.yaml`", None, None),
+    ("the CPU rasterizer's speed", "`python benchmarks/bench_rasterizer.py`", "benchmarks/README.md", "Rasterizer and kernels"),
+    ("VGGT-1B's forward on the CPU", "`python benchmarks/bench_vggt.py --frames 3 6 12`", "benchmarks/README.md", "VGGT on the CPU"),
     ("the paper's 10,000-iteration fern cell on the CPU", "`python benchmarks/bench_cell.py --iterations 10000`",
-     "Training speed on the CPU"),
+     "benchmarks/README.md", "Training speed on the CPU"),
     ("the `mvs` initialiser's depth accuracy, coverage, time and memory",
-     "`python -m experiments.mvs_accuracy --scene FERN --out JSON`", None),
+     "`python -m experiments.mvs_accuracy --scene FERN --out JSON`", "experiments/README.md", "The `mvs` initialiser's depth accuracy"),
+    ("camera refinement under pose error (bundle adjustment, training-time refinement)",
+     "`python experiments/pose_refinement.py --quick`", "experiments/README.md", "Camera refinement"),
     ("the browser viewer's agreement with the renderer, and its load time",
      "`.venv/bin/python -m pytest tests/test_view_browser.py`, `python benchmarks/bench_viewer.py`",
-     "Browser viewer open time"),
-    ("gsplat's CUDA build without a GPU", "`python scripts/gsplat_build_check.py`", None),
+     "benchmarks/README.md", "Browser viewer open time"),
+    ("gsplat's CUDA build without a GPU", "`python scripts/gsplat_build_check.py`", "benchmarks/README.md", "GPU"),
     ("the earlier fern-only recipe study (records in `experiments/records/recipe_study/`, made "
-     "with a former Gaussian cap)", "`python experiments/recipe_study.py`", "Training recipes"),
+     "with a former Gaussian cap)", "`python experiments/recipe_study.py`", "experiments/README.md", "Training recipes"),
 )
 
 #: the line that marks the page this command wrote: ``--doc FILE`` replaces only a file that
@@ -135,6 +138,6 @@ def render_page(records: Path, bench_records: Path,
               "`benchmarks/records/` holds them, so they are not on this page:", ""]
     lines += [f"- {s.heading}: no record `{s.folder}/{s.record}`; "
               f"{command_of(s, bench_records if s.bench else records)}" for s in missing]
-    lines += [f"- {what}: {cmd}" + (f"; see `benchmarks/README.md`, \"{where}\"" if where else "")
-              for what, cmd, where in UNRECORDED]
+    lines += [f"- {what}: {cmd}" + (f"; see `{doc}`, \"{where}\"" if doc else "")
+              for what, cmd, doc, where in UNRECORDED]
     return "\n".join(lines) + "\n", missing

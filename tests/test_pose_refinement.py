@@ -1,28 +1,21 @@
-"""benchmarks/bench_pose.py --quick on the synthetic scene (one seed): both camera refinements
+"""experiments/pose_refinement.py --quick on the synthetic scene (one seed): both camera refinements
 lower both pose errors from the VGGT-level noise, and the JSON and the table say so."""
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
 def test_quick_synthetic_both_methods_lower_both_errors(tmp_path, capsys):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import bench_pose
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    assert bench_pose.main(["--quick", "--scenes", "synthetic", "--seeds", "0", "--out", str(tmp_path)]) == 0
+    from experiments import pose_refinement
+
+    assert pose_refinement.main(["--quick", "--scenes", "synthetic", "--seeds", "0", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "after bundle adjustment" in text and "after training refinement" in text
-    (path,) = tmp_path.glob("bench_pose_*_quick.json")
+    (path,) = tmp_path.glob("pose_refinement_*_quick.json")
     row = json.loads(path.read_text())["results"]["synthetic"][0]
     before = row["before"]
     assert 2.0 < before["ate_pct_radius"] < 5.0 and 0.8 < before["rel_rot_deg"] < 2.0  # VGGT's level

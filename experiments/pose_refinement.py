@@ -1,8 +1,8 @@
 """Camera refinement benchmark: bundle adjustment and training-time pose refinement,
 starting from ground-truth poses with the VGGT-calibrated pose noise.
 
-    python benchmarks/bench_pose.py --quick          # synthetic 128 px + fern images_8 trained at 1/4, 3 seeds
-    python benchmarks/bench_pose.py                  # synthetic 256 px + fern images_8 trained at 1/2
+    python experiments/pose_refinement.py --quick          # synthetic 128 px + fern images_8 trained at 1/4, 3 seeds
+    python experiments/pose_refinement.py                  # synthetic 256 px + fern images_8 trained at 1/2
         [--scenes synthetic fern] [--seeds 0 1 2] [--n 6] [--base oracle|posed]
         [--orientations auto|always] [--refine-config JSON] [--iterations N] [--out DIR]
 
@@ -24,8 +24,8 @@ Printed: ATE (% of the RMS trajectory radius, after Sim(3)) and mean relative ro
 refinement; held-out PSNR of every run (test cameras = reference cameras brought into the
 model frame by the Sim(3) fitted on the training cameras the run ends with). The mean over
 seeds and every per-seed number are saved as JSON in ``--out`` (default
-``benchmarks/out/``, git-ignored; written after every seed) with the load average at start
-and end. Numbers: benchmarks/README.md.
+``experiments/out/``, git-ignored; written after every seed) with the load average at start
+and end. Numbers: experiments/README.md.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ import numpy as np
 # run from a second checkout otherwise measures the first).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-log = logging.getLogger("bench_pose")
+log = logging.getLogger("pose_refinement")
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="held-out Sim(3): centres only unless collinear (auto, the protocol) or also the "
                         "camera orientations (always)")
     p.add_argument("--out", default=str(OUT))
-    p.add_argument("--work", help="working folder (default: OUT/bench_pose_work)")
+    p.add_argument("--work", help="working folder (default: OUT/pose_refinement_work)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     args = p.parse_args(argv)
     from runtime.atomic import write_json
@@ -222,13 +222,13 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     out = Path(args.out)
-    work = Path(args.work) if args.work else out / "bench_pose_work"
+    work = Path(args.work) if args.work else out / "pose_refinement_work"
     mode = "quick" if args.quick else "full"
     record = {"mode": mode, "base": args.base, "orientations": args.orientations, "noise": NOISE,
               "refine_config": args.refine_config, "loadavg_start": os.getloadavg(), "cpu_count": os.cpu_count(),
               "results": {}, "settings": {}}
     t0 = time.perf_counter()
-    path = out / f"bench_pose_{time.strftime('%Y%m%d_%H%M%S')}{'_quick' if args.quick else ''}.json"
+    path = out / f"pose_refinement_{time.strftime('%Y%m%d_%H%M%S')}{'_quick' if args.quick else ''}.json"
     for kind in args.scenes:
         s = dict(SETTINGS[kind][mode])
         if args.iterations:
