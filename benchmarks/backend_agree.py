@@ -1,10 +1,10 @@
 """Do the CPU kernel and gsplat train to the same result? One recipe, seed and cell on both.
 
 The GPU side of the check: the sparse-view grid's own training command
-(:func:`benchmarks.sparse_views.runs.train_and_score`, training only) on one of its prepared cells
+(:func:`experiments.sparse_views.runs.train_and_score`, training only) on one of its prepared cells
 with ``--device cuda --rasterizer gsplat``, for each (recipe, seed) of :data:`RUNS` at
 :data:`ITERATIONS`; the CPU side is the grid's records of the same cell, recipe, seed and
-iterations (``python -m benchmarks.sparse_views run ... --iterations 3000``, the C++ kernel).
+iterations (``python -m experiments.sparse_views run ... --iterations 3000``, the C++ kernel).
 Both are compared on the final iteration of the held-out curve each training writes (PSNR and
 SSIM of the model trained on that backend, rendered by it). Called by the GPU check as the part
 ``backend_agree`` on a copy of the cell (``scripts/gpu_bundle.sh`` makes ``.gpu_agree`` from the
@@ -57,7 +57,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def cell_paths(cell: Path) -> dict[str, Path]:
-    """A sparse-view grid cell's paths (benchmarks/sparse_views/cells.py's layout)."""
+    """A sparse-view grid cell's paths (experiments/sparse_views/cells.py's layout)."""
     cell = Path(cell)
     paths = {"scene": cell / "scene", "train": cell / "train.txt", "test": cell / "test.txt",
              "bridge": cell / "bridge", "align": cell / "align"}
@@ -110,7 +110,7 @@ def backend_agree(cell: Path, name: str, device: str = "cuda", rasterizer: str =
         ``all_records``: these runs against every grid record of the recipe, unpaired
         (:func:`_against_all_records`); ``stopped_at_deadline``.
     """
-    from benchmarks.sparse_views.runs import train_and_score
+    from experiments.sparse_views.runs import train_and_score
 
     paths = cell_paths(cell)
     split_cell_name(name)  # a bad name fails before any training
@@ -141,7 +141,7 @@ def attach_records(res: dict, records: Path) -> dict:
     (``record``, ``psnr_diff``), and recompute ``by_recipe``; ``res`` is updated and returned.
     The GPU runs may come before the CPU records: ``python -m benchmarks.backend_agree compare``
     attaches them afterwards."""
-    from benchmarks.sparse_views.runs import run_name
+    from experiments.sparse_views.runs import run_name
 
     for entry in res["runs"]:
         entry["record"], entry["psnr_diff"] = None, None
@@ -165,7 +165,7 @@ def _against_all_records(res: dict, recipe: str, records: Path) -> dict | None:
     """This backend's runs of ``recipe`` against every grid record of the same cell, recipe and
     iterations, whatever their seeds (unpaired): ``seeds``, ``mean``, ``sd``, and the
     difference with Welch's 95 % half-width (:func:`evaluation.study.stats.welch_interval`)."""
-    from benchmarks.sparse_views.runs import run_name
+    from experiments.sparse_views.runs import run_name
     from evaluation.study.stats import welch_interval
 
     scene, n = split_cell_name(res["cell"])
@@ -218,8 +218,8 @@ def pack_cell(dest: Path, scene: str = "llff__fern", n: int = 3, work: Path | No
     test.txt, each replacing its earlier copy whole: an entry is never half-written), with ``cell.json`` naming it; the GPU
     check carries it (scripts/gpu_bundle.sh: ``.gpu_agree``). The command line checks ``dest``
     against the output rule first (:func:`main`)."""
-    from benchmarks.sparse_views import protocol
-    from benchmarks.sparse_views.cells import prepare
+    from experiments.sparse_views import protocol
+    from experiments.sparse_views.cells import prepare
     from runtime.atomic import atomic_dir, atomic_path, write_json
 
     protocol_file = protocol_file or protocol.PROTOCOL
@@ -252,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("compare", help="attach the grid's records to the backend_agree part of a GPU check's "
                                        "JSON (or of a record) and print the comparison")
     c.add_argument("result", type=Path, help="benchmarks_gpu_*.json or benchmarks/records/gpu-*.json")
-    c.add_argument("--records", type=Path, default=Path(__file__).resolve().parent / "records" / "sparse_views" / "runs",
+    c.add_argument("--records", type=Path, default=Path(__file__).resolve().parents[1] / "experiments" / "records" / "sparse_views" / "runs",
                    help="the grid's runs folder (default %(default)s)")
     c.add_argument("--write", action="store_true", help="write the updated part back into RESULT")
     k = sub.add_parser("pack", help="prepare a grid cell and copy what training reads")

@@ -96,7 +96,7 @@ def run(cell: Path, variants: list[str], seeds: list[int], recipe: str, iteratio
         out: Path, records: Path | None) -> dict:
     """Train every (variant, seed) not done yet in ``work``; the summary JSON into ``out``."""
     from benchmarks.backend_agree import cell_name, cell_paths, curve_end, split_cell_name
-    from benchmarks.sparse_views.runs import run_name, train_args
+    from experiments.sparse_views.runs import run_name, train_args
     from runtime.atomic import write_json
 
     paths = cell_paths(cell)
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recipe", default="sparse")
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--work", type=Path, default=None, help="run folders (default: a temporary folder)")
-    p.add_argument("--records", type=Path, default=ROOT / "benchmarks" / "records" / "sparse_views" / "runs",
+    p.add_argument("--records", type=Path, default=ROOT / "experiments" / "records" / "sparse_views" / "runs",
                    help="the grid's records, whose runs stand for 'cpu' (default %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="summary JSON, rewritten after every run")
     args = p.parse_args(argv)

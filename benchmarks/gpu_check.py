@@ -397,7 +397,7 @@ def backend_agree_part(cell: Path | None, on_result: Callable[[dict], None] | No
     CUDA against the grid's CPU records, the runs of :data:`benchmarks.backend_agree.RUNS` or of
     ``AGREE_SEEDS`` ("0-14") and ``AGREE_RECIPES`` ("sparse,paper")."""
     from benchmarks.backend_agree import RUNS, backend_agree, cell_name, parse_runs
-    from benchmarks.sparse_views.__main__ import RECORDS
+    from experiments.sparse_views.__main__ import RECORDS
 
     if cell is None:
         raise ValueError("the backend comparison needs a grid cell (--gpu-agree-cell)")

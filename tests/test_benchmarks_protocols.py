@@ -1,4 +1,4 @@
-"""benchmarks/protocols.py: the recovery check's known camera error and the summary table."""
+"""experiments/protocols.py: the recovery check's known camera error and the summary table."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks import protocols
+from experiments import protocols
 from splat_train.testpose import pose_change
 
 

@@ -1,5 +1,5 @@
-"""benchmarks/sparse_views/seeds.py: a pre-registered seed comparison read from records, and the
-benchmark cell's choice of seed (benchmarks/sparse_views/cells.py)."""
+"""experiments/sparse_views/seeds.py: a pre-registered seed comparison read from records, and the
+benchmark cell's choice of seed (experiments/sparse_views/cells.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import shlex
 import pytest
 import yaml
 
-from benchmarks.sparse_views import cells, seeds
+from experiments.sparse_views import cells, seeds
 
 REG = {"name": "t", "role": "evaluation", "scenes": ["a", "b", "c"], "n": 3, "seeds": [0, 1], "iterations": 10,
        "variants": {"paper": {"recipe": "paper"}, "paper-mvs": {"recipe": "paper", "init": "mvs", "bridge_mode": "gated"}},
@@ -44,7 +44,7 @@ def test_the_report_pairs_by_seed_takes_the_scene_as_the_unit_and_gives_verdicts
 
 def test_the_run_command_names_every_variant_and_the_registration_is_checked(tmp_path):
     cmd = shlex.split(seeds.run_command(REG, "W"))
-    assert cmd[:4] == ["python", "-m", "benchmarks.sparse_views", "run"] and "paper" in cmd
+    assert cmd[:4] == ["python", "-m", "experiments.sparse_views", "run"] and "paper" in cmd
     assert 'paper-mvs={"recipe":"paper","init":"mvs","bridge_mode":"gated"}' in cmd
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({**REG, "targets": [{"better": "paper-x", "than": "paper", "by": 1}]}))
@@ -52,10 +52,10 @@ def test_the_run_command_names_every_variant_and_the_registration_is_checked(tmp
         seeds.load_registration(bad)
     assert seeds.load_registration(seeds.DEFAULT_REGISTRATION)["n"] == 3  # the shipped one reads
     # a registration with its own records folder: the run line writes there and the report reads there
-    own = {**REG, "records": "benchmarks/records/own_set"}
+    own = {**REG, "records": "experiments/records/own_set"}
     cmd = shlex.split(seeds.run_command(own, "W"))
-    assert cmd[3:6] == ["--records", "benchmarks/records/own_set", "run"]
-    assert seeds.records_dir(own) == seeds.REPO / "benchmarks" / "records" / "own_set"
+    assert cmd[3:6] == ["--records", "experiments/records/own_set", "run"]
+    assert seeds.records_dir(own) == seeds.REPO / "experiments" / "records" / "own_set"
     assert seeds.records_dir(REG) == seeds.RECORDS
     for bad_rec in ("/tmp/x", "../x", 3):
         bad.write_text(yaml.safe_dump({**REG, "records": bad_rec}))

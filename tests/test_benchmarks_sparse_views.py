@@ -1,7 +1,7 @@
-"""benchmarks/sparse_views: the protocol file, and the table rebuilt from run records.
+"""experiments/sparse_views: the protocol file, and the table rebuilt from run records.
 
 The records here are made up to exercise the aggregation (means, paired differences, the
-targets' verdicts); the benchmark's real records are in benchmarks/records/sparse_views.
+targets' verdicts); the benchmark's real records are in experiments/records/sparse_views.
 """
 
 import json
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from benchmarks.backend_agree import backend_agree
-from benchmarks.sparse_views import protocol
-from benchmarks.sparse_views.runs import RECORD_KEYS
-from benchmarks.sparse_views.summary import spread, write_summary
+from experiments.sparse_views import protocol
+from experiments.sparse_views.runs import RECORD_KEYS
+from experiments.sparse_views.summary import spread, write_summary
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -38,9 +38,9 @@ def test_reserve_scenes_are_listed_but_never_run():
     scenes, with no run record, and ``run`` refuses their role."""
     reserve = [s for s in protocol.load() if s.role == "reserve"]
     assert all(s.kind and s.source.get("repo") and s.source.get("licence") for s in reserve)
-    runs = REPO / "benchmarks" / "records" / "sparse_views" / "runs"
+    runs = REPO / "experiments" / "records" / "sparse_views" / "runs"
     assert not [p.name for s in reserve for p in runs.glob(f"{s.name}_n*.json")]
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "run", "--role", "reserve", "--work", "w"],
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "run", "--role", "reserve", "--work", "w"],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 2 and "invalid choice: 'reserve'" in out.stderr
 
@@ -84,7 +84,7 @@ def test_summary_cli_rebuilds_table_and_verdicts(tmp_path):
     for i, r in enumerate(recs):
         (runs / f"{i}.json").write_text(json.dumps(r))
     doc = tmp_path / "results.md"
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"),
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--records", str(tmp_path / "rec"),
                           "summary", "--doc", str(doc)], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     s = json.loads((tmp_path / "rec" / "summary.json").read_text())
@@ -121,7 +121,7 @@ def test_users_own_evaluation_scene_needs_no_public_source(tmp_path):
     (scene,) = protocol.load(f)
     assert scene.role == "evaluation" and scene.convert == ("--format", "llff") and not scene.available
     assert protocol.load(f, data=tmp_path)[0].path == tmp_path / "desk"
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records",
                           str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w")],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0 and "SKIP desk" in out.stdout, out.stdout + out.stderr
@@ -150,7 +150,7 @@ def test_run_skips_a_scene_whose_data_is_absent(tmp_path):
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: far, role: evaluation, kind: outdoor, licence: x, local: /nonexistent/far,\n"
                  "   source: {repo: a/b, commit: '" + "0" * 40 + "', path: .}, convert: [], views: [3]}\n")
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records",
                           str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w")],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0 and "SKIP far" in out.stdout and "0 runs to do" in out.stdout
@@ -159,7 +159,7 @@ def test_run_skips_a_scene_whose_data_is_absent(tmp_path):
 def test_a_run_another_process_holds_is_skipped(tmp_path):
     """Two ``run`` commands over overlapping grids: a run whose lock another process holds is
     skipped, with no record; the lock is the system's (``flock``), gone with its holder."""
-    from benchmarks.sparse_views.runs import run_lock
+    from experiments.sparse_views.runs import run_lock
 
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: tiny, role: tuning, kind: synthetic, views: [3],\n"
@@ -167,7 +167,7 @@ def test_a_run_another_process_holds_is_skipped(tmp_path):
     lock = tmp_path / "w" / "tiny_n3" / "runs" / "tiny_n3_paper_s0_i20.lock"
     with run_lock(lock) as mine:
         assert mine
-        out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+        out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records",
                               str(tmp_path / "rec"), "run", "--role", "tuning", "--recipes", "paper", "--seeds", "0",
                               "--iterations", "20", "--work", str(tmp_path / "w")], cwd=REPO, capture_output=True,
                              text=True)
@@ -194,7 +194,7 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: tiny, role: tuning, kind: synthetic, views: [3],\n"
                  "   generate: [python, -m, camio, synth, --out, '{out}', --views, '16', --width, '128']}\n")
-    cmd = [sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
+    cmd = [sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
            "run", "--role", "tuning", "--recipes", "paper", "--seeds", "0", "--iterations", "20",
            "--work", str(tmp_path / "w")]
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
@@ -256,8 +256,8 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
 def test_a_dense_seed_reaches_the_bridge_at_its_own_stride(tmp_path):
     """A cell seeded by mvs: the initialiser runs once for every Bridge choice; the Bridge reads
     its full map at the Bridge's own stride unless a variant names another one."""
-    from benchmarks.sparse_views.cells import prepare
-    from benchmarks.sparse_views.protocol import Scene
+    from experiments.sparse_views.cells import prepare
+    from experiments.sparse_views.protocol import Scene
     from bridge.core import BridgeConfig
 
     scene = Scene("tiny", "tuning", "synthetic", (3,),
@@ -289,7 +289,7 @@ def _stand_in_stages(monkeypatch, calls, prepare):
     next step reads (train.json with the config it got, its background black unless given, "mean"
     resolved to :data:`MEAN_STAND_IN`, a metrics file); ``prepare`` stands for the cell's preparation, and
     every recipe resolves no values."""
-    from benchmarks.sparse_views import cells, runs
+    from experiments.sparse_views import cells, runs
 
     def stage(args, log):
         calls.append(args)
@@ -312,7 +312,7 @@ def _stand_in_stages(monkeypatch, calls, prepare):
 def test_a_scene_background_reaches_training_and_the_held_out_renders(tmp_path, monkeypatch):
     """A scene whose images are composited on white (scenes.yaml ``background: [1, 1, 1]``, as
     NeRF-synthetic's) trains and renders every recipe against white; others stay black."""
-    from benchmarks.sparse_views import __main__ as cli
+    from experiments.sparse_views import __main__ as cli
 
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: white, role: tuning, kind: synthetic, views: [3], background: [1, 1, 1],\n"
@@ -342,7 +342,7 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
     """``"background": "mean"`` reaches the trainer as it is; the colour the trainer resolved
     it to (train.json's config) is the one the held-out renders use and the record keeps; a
     scene's own background stands instead (tests/test_train_background.py: the trainer's side)."""
-    from benchmarks.sparse_views import __main__ as cli
+    from experiments.sparse_views import __main__ as cli
 
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: plain, role: tuning, kind: synthetic, views: [3],\n"
@@ -365,14 +365,14 @@ def test_a_variant_against_the_training_views_mean_colour(tmp_path, monkeypatch)
 
 @pytest.mark.parametrize("bad", ["2/2", "1", "a/b", "0/0", "-1/2"])
 def test_run_refuses_a_bad_shard_in_one_line(tmp_path, bad):
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"), "run",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--records", str(tmp_path / "rec"), "run",
                           "--role", "evaluation", "--work", str(tmp_path / "w"), f"--shard={bad}"],
                          cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 2 and "--shard must be K/M" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_a_cell_seeds_from_the_random_fallback_only_when_its_views_triangulate_no_point(tmp_path):
-    from benchmarks.sparse_views.cells import seed_model
+    from experiments.sparse_views.cells import seed_model
 
     init = tmp_path / "posed"
     init.mkdir()
@@ -419,10 +419,10 @@ def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now()
     values"): the shipped records of the four recipes must stay current when a recipe gains a
     key, or rerunning the README's grid fails on them. Records from before values were recorded
     (the first tuning round's) say so and are left out."""
-    from benchmarks.sparse_views.runs import resolved_values, stale_keys
+    from experiments.sparse_views.runs import resolved_values, stale_keys
     from splat_train.recipes import RECIPE_NAMES
 
-    records = sorted((protocol.REPO / "benchmarks" / "records" / "sparse_views" / "runs").glob("*.json"))
+    records = sorted((protocol.REPO / "experiments" / "records" / "sparse_views" / "runs").glob("*.json"))
     checked = 0
     for path in records:
         rec = json.loads(path.read_text())
@@ -436,7 +436,7 @@ def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now()
 
 
 def test_a_key_older_records_predate_counts_at_the_value_their_runs_had():
-    from benchmarks.sparse_views.runs import stale_keys
+    from experiments.sparse_views.runs import stale_keys
 
     want = {"dropout_rate": 0.2, "dropout_ramp_fraction": 1.0}
     assert stale_keys({"dropout_rate": 0.2}, want) == []  # made before the ramp was a key: ramp 1
@@ -448,7 +448,7 @@ def test_a_run_against_the_mean_colour_is_told_apart_from_one_against_a_colour()
     """The recipe's background is a value like the others: a kept run trained against black
     is stale for a recipe or variant that asks for the mean colour (and the other way round),
     while train.json keeps the resolved colour and, in ``background_from``, that it was the mean."""
-    from benchmarks.sparse_views.runs import resolved_values, stale_keys, train_values
+    from experiments.sparse_views.runs import resolved_values, stale_keys, train_values
 
     black, mean = resolved_values("paper", {}, 300), resolved_values("paper", {"background": "mean"}, 300)
     assert resolved_values("sparse", {}, 300)["background"] == "mean"
@@ -467,7 +467,7 @@ def _summary(tmp_path, doc: Path) -> subprocess.CompletedProcess:
     runs = tmp_path / "rec" / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     (runs / "0.json").write_text(json.dumps(_rec("a", "evaluation", "sparse", 0, 20.0, 0.2)))
-    return subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(tmp_path / "rec"),
+    return subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--records", str(tmp_path / "rec"),
                            "summary", "--doc", str(doc)], cwd=REPO, capture_output=True, text=True)
 
 
@@ -506,7 +506,7 @@ def test_run_refuses_a_selection_that_matches_nothing(tmp_path, select, needles)
     f.write_text("scenes:\n- {name: desk, role: evaluation, kind: indoor, views: [3], local: /nonexistent/desk}\n"
                  "- {name: lamp, role: evaluation, kind: indoor, views: [3, 6], local: /nonexistent/lamp}\n"
                  "- {name: fern, role: tuning, kind: indoor, views: [3], local: /nonexistent/fern}\n")
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records",
                           str(tmp_path / "rec"), "run", "--role", "evaluation", "--work", str(tmp_path / "w"),
                           *select], cwd=REPO, capture_output=True, text=True)
     refused(out, *needles)

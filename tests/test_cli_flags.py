@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-_PACKAGES = ("runtime", "camio", "imgmetrics", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "scripts", "workflow")
+_PACKAGES = ("runtime", "camio", "imgmetrics", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "experiments", "scripts", "workflow")
 # splat_train dispatches its subcommands by hand: each is its own parser
 _SUBCOMMANDS = {"splat_train/__main__.py": ([], ["render"], ["testpose"], ["view"], ["export"])}
 
@@ -36,7 +36,7 @@ def _cli_files() -> list[Path]:
 
 
 def _load(rel: Path):
-    if rel.parts[0] in ("scripts", "workflow", "benchmarks") and rel.name != "__main__.py":
+    if rel.parts[0] in ("scripts", "workflow", "benchmarks", "experiments") and rel.name != "__main__.py":
         spec = importlib.util.spec_from_file_location(f"_cli_{rel.stem}", ROOT / rel)
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)

@@ -22,7 +22,7 @@ from evaluation.initialisers.mvs.run import MvsConfig  # noqa: E402
 from runtime.checks import Range, field_ranges  # noqa: E402
 from splat_train.config import TrainConfig  # noqa: E402
 
-# The stages' commands; benchmarks/ and scripts/ are tools, splat_train view the viewer's own.
+# The stages' commands; benchmarks/, experiments/ and scripts/ are tools, splat_train view the viewer's own.
 _STAGE_ROOTS = ("camio/", "bridge/", "splat_train/", "evaluation/", "vggt_init/", "runtime/", "imgmetrics/",
                 "workflow/")
 _NOT_STAGES = ("splat_train/__main__.py view", "splat_train/view/")

@@ -14,7 +14,11 @@ Three levels are checked:
 * subpackages: inside a package, its subpackages (e.g. evaluation.metrics, splat_train.cpu) and
   top-level modules import each other one way; evaluation's subpackages follow its layers
   (:data:`EVALUATION_LAYERS`);
-* modules: inside each package, subpackages included, the modules import each other one way.
+* modules: inside each package, subpackages included, the modules import each other one way;
+* the tool rooms (:data:`TOOL_ROOMS`: benchmarks, experiments) are not shipped and run from the
+  clone: they may import every package, no package imports them, and their subpackages and
+  modules import each other one way across both rooms (the studies reuse the benchmarks' command
+  runner and GPU table; the GPU check trains the sparse-view grid's command).
 
 The C++ kernels' loaders (``splat_train.cpu``) sit below everything that calls them.
 """
@@ -31,6 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 GROUND_FLOOR = ("runtime", "camio", "imgmetrics")
 STAGES = ("vggt_init", "bridge", "splat_train", "evaluation")
 PACKAGES = GROUND_FLOOR + STAGES
+# Not shipped (pyproject's package list leaves them out); run from the clone as python -m ...:
+# benchmarks (time and memory), experiments (quality studies and the results page).
+TOOL_ROOMS = ("benchmarks", "experiments")
 # evaluation's subpackages by job, lowest first: each imports only those before it
 # (evaluation/__init__.py); evaluation.__main__, the CLI, sits above them all.
 EVALUATION_LAYERS = ("evaluation.metrics", "evaluation.initialisers", "evaluation.reports", "evaluation.study")
@@ -158,13 +165,13 @@ def test_package_layers():
 
 def test_every_package_has_its_floor():
     """The packages ``pip install`` ships are the ones these rules cover, and each top-level
-    folder with an ``__init__.py`` besides tests, benchmarks and scripts is one of them."""
+    folder with an ``__init__.py`` besides tests, scripts and the tool rooms is one of them."""
     import re
 
     include = re.search(r"^include = \[(.*)\]$", (ROOT / "pyproject.toml").read_text(), re.M).group(1)
     shipped = {s.strip().strip('"').rstrip("*") for s in include.split(",")}
     assert shipped == set(PACKAGES), shipped ^ set(PACKAGES)
-    folders = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests", "benchmarks", "scripts"}
+    folders = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests", "scripts", *TOOL_ROOMS}
     assert folders == set(PACKAGES), folders ^ set(PACKAGES)
 
 
@@ -238,3 +245,38 @@ def test_cpu_kernels_import_no_caller():
         if mod.startswith("splat_train.cpu."):
             outside = {d for d in deps if d.startswith("splat_train.") and not d.startswith("splat_train.cpu")} - allowed
             assert not outside, (mod, outside)
+
+
+def _tool_units(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """{subpackage or top-level module of a tool room: the others of both rooms it imports}
+    (the rooms' package faces left out)."""
+    out: dict[str, set[str]] = {}
+    for mod, deps in graph.items():
+        if mod.split(".")[0] not in TOOL_ROOMS or mod in TOOL_ROOMS:
+            continue
+        unit = _unit(mod)
+        out.setdefault(unit, set()).update(
+            _unit(d) for d in deps if d.split(".")[0] in TOOL_ROOMS and d not in TOOL_ROOMS and _unit(d) != unit)
+    return out
+
+
+def test_no_package_imports_a_tool_room():
+    """A shipped package never imports benchmarks or experiments: an installed copy has neither."""
+    graph = import_graph(packages=PACKAGES + TOOL_ROOMS)
+    found = sorted(f"{m} -> {d}" for m, deps in graph.items() if m.split(".")[0] in PACKAGES
+                   for d in deps if d.split(".")[0] in TOOL_ROOMS)
+    assert not found, found
+
+
+def test_no_circle_in_the_tool_rooms():
+    """benchmarks and experiments import each other's parts one way: no circle between their
+    subpackages and modules (experiments.sparse_views, benchmarks.gpu_check, ...)."""
+    graph = import_graph(packages=PACKAGES + TOOL_ROOMS)
+    units = _tool_units(graph)
+    assert "benchmarks._proc" in units["experiments.sparse_views"]  # the checker sees across the rooms
+    assert "experiments.sparse_views" in units["benchmarks.backend_agree"]
+    cycle = find_cycle(units)
+    assert cycle is None, " -> ".join(cycle)
+    for room in TOOL_ROOMS:
+        cycle = find_cycle(module_graph(graph, room))
+        assert cycle is None, " -> ".join(cycle)

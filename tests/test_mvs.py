@@ -292,7 +292,7 @@ def test_cameras_of_another_model_may_lack_a_photo(scene128, tmp_path, capsys):
 
 
 def test_held_out_checks_score_exact_points_as_exact_and_shuffled_colours_as_wrong(scene128):
-    """The real-scene measures of benchmarks/bench_mvs.py on the synthetic scene's own points
+    """The real-scene measures of experiments/mvs_accuracy.py on the synthetic scene's own points
     seen from a held-out view: depth error 0 where a point is on the pixel, and the photo's own
     colours far closer than the same colours shuffled."""
     from camio.images import read_image_uint8

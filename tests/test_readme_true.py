@@ -26,7 +26,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 _TOP = ("camio/", "vggt_init/", "bridge/", "splat_train/", "evaluation/", "workflow/", "docs/",
-        "scripts/", "config/", "benchmarks/", "constraints/", "tests/", ".ci/")
+        "scripts/", "config/", "benchmarks/", "experiments/", "constraints/", "tests/", ".ci/")
 
 
 def _repo_paths(text: str) -> list[str]:

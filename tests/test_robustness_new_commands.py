@@ -1,5 +1,5 @@
 """The newer commands as a hostile user runs them: ``splat_train export``, ``render --path
---video``, ``view`` on odd names, ``benchmarks.results_doc``, ``benchmarks.sparse_views floor``,
+--video``, ``view`` on odd names, ``experiments.results_doc``, ``experiments.sparse_views floor``,
 ``benchmarks.bench_photos`` and ``scripts/photos.py``. Every bad input is exit 2, one line
 naming the value and what to do, nothing written; every legitimate one works (docs/robustness.md)."""
 
@@ -187,35 +187,36 @@ def test_view_serves_a_model_whose_path_has_spaces_quotes_and_unicode(models, tm
     assert "Traceback" not in err and err.strip() == "", err
 
 
-# -- benchmarks.results_doc and benchmarks.sparse_views --------------------------------------
+# -- experiments.results_doc and experiments.sparse_views --------------------------------------
 
 def test_results_doc_refuses_a_page_it_did_not_write(tmp_path):
-    records = ROOT / "benchmarks" / "records"
+    records = ROOT / "experiments" / "records"
     (tmp_path / "notes.md").write_text("my notes\n")
     (tmp_path / "link.md").symlink_to(tmp_path / "notes.md")
     (tmp_path / "folder").mkdir()
     for name, needle in (("notes.md", "not written by this command"), ("link.md", "symbolic link"),
                          ("folder", "not a file"), ("notes.md/r.md", "is a file, not a folder")):
-        p = run(["-m", "benchmarks.results_doc", "--doc", str(tmp_path / name), "--records", str(records)])
+        p = run(["-m", "experiments.results_doc", "--doc", str(tmp_path / name), "--records", str(records)])
         refused(p, name, needle)
     assert (tmp_path / "notes.md").read_text() == "my notes\n"
-    for records_arg, needle in ((tmp_path / "nowhere", "does not exist"), (tmp_path / "notes.md", "is not a folder")):
-        p = run(["-m", "benchmarks.results_doc", "--doc", str(tmp_path / "r.md"), "--records", str(records_arg)])
-        refused(p, str(records_arg), needle, "--records")
+    for flag in ("--records", "--bench-records"):
+        for records_arg, needle in ((tmp_path / "nowhere", "does not exist"), (tmp_path / "notes.md", "is not a folder")):
+            p = run(["-m", "experiments.results_doc", "--doc", str(tmp_path / "r.md"), flag, str(records_arg)])
+            refused(p, str(records_arg), needle, flag)
     assert not (tmp_path / "r.md").exists()
     for _ in range(2):  # a new page, then its rerun over its own page
-        p = run(["-m", "benchmarks.results_doc", "--doc", str(tmp_path / "new" / "r.md"), "--records", str(records)])
+        p = run(["-m", "experiments.results_doc", "--doc", str(tmp_path / "new" / "r.md"), "--records", str(records)])
         assert p.returncode == 0, p.stderr
 
 
 def test_seeds_report_refuses_a_page_it_did_not_write(tmp_path):
     (tmp_path / "notes.md").write_text("my notes\n")
-    p = run(["-m", "benchmarks.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
+    p = run(["-m", "experiments.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
              "--doc", str(tmp_path / "notes.md")])
     refused(p, "notes.md", "not written by this command")
     assert (tmp_path / "notes.md").read_text() == "my notes\n" and not (tmp_path / "rec").exists()
     for _ in range(2):  # a new page, then its rerun over its own page
-        p = run(["-m", "benchmarks.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
+        p = run(["-m", "experiments.sparse_views.seeds", "report", "--records", str(tmp_path / "rec"),
                  "--doc", str(tmp_path / "seeds.md")])
         assert p.returncode == 0, p.stderr
 
@@ -227,7 +228,7 @@ def test_sparse_views_floor_refuses_bad_folders(tmp_path):
              (("--records", str(tmp_path / "rec")), ("--work", str(tmp_path / "file")), ("--work", "not a folder")),
              (("--records", str(tmp_path / "file")), ("--work", str(tmp_path / "w")), ("--records", "not a folder"))]
     for records, work, needles in cases:
-        p = run(["-m", "benchmarks.sparse_views", *records, "floor", "--role", "tuning", "--scenes", "synthetic",
+        p = run(["-m", "experiments.sparse_views", *records, "floor", "--role", "tuning", "--scenes", "synthetic",
                  "--n", "3", *work])
         refused(p, *needles)
     assert not inside.exists() and not (tmp_path / "rec").exists() and not (tmp_path / "w").exists()

@@ -314,7 +314,7 @@ def test_a_benchmark_runner_passes_the_stop_on_to_its_stage(tmp_path, sig):
     stage gets the same signal and ends cleanly first (no temporary folder, no orphan process),
     then the runner ends with one line and 128 + the signal."""
     work = tmp_path / "cell"
-    run = _Run(["benchmarks/recipe_study.py", "--scene", "synthetic", "--n", "3", "--init", "oracle",
+    run = _Run(["experiments/recipe_study.py", "--scene", "synthetic", "--n", "3", "--init", "oracle",
                 "--iterations", "10", "--variants", "sparse", "--seeds", "0", "--work", str(work)])
     rc, err = run.stop_when(_file(LOCK, work / "scene"), sig)
     check_stopped(rc, err, sig, work / "scene", "camio synth")

@@ -7,7 +7,7 @@ beside the clone where this project's machines keep reference material. The one 
 data: a file may name that folder's data (real scenes, official fixture sets) when it says, with
 the marker ``machine-data``, that the path exists on this project's machines only; the tests'
 one place for it is ``tests/_machine_data.py``. Records of measured runs (the JSON files under
-``benchmarks/``) keep the data paths of the machine that made them, as a record must.
+``benchmarks/`` and ``experiments/``) keep the data paths of the machine that made them, as a record must.
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ FILES = _tracked_text_files()
 
 
 def _is_record(rel: str) -> bool:
-    return rel.startswith("benchmarks/") and rel.endswith(".json")
+    return rel.startswith(("benchmarks/", "experiments/")) and rel.endswith(".json")
 
 
 def test_the_listing_sees_the_repository():

@@ -1,4 +1,4 @@
-"""``python -m benchmarks.sparse_views relabel``: when a value lands, the recipe's old records
+"""``python -m experiments.sparse_views relabel``: when a value lands, the recipe's old records
 become a variant and the candidate's the recipe's, each checked against the recipe as it is
 then, so that no record carries a name whose values it was not trained with."""
 
@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from benchmarks.sparse_views.__main__ import main
-from benchmarks.sparse_views.runs import resolved_values, run_name
+from experiments.sparse_views.__main__ import main
+from experiments.sparse_views.runs import resolved_values, run_name
 from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, RECIPES
 
 ITS = 300

@@ -1,4 +1,4 @@
-"""benchmarks/sparse_views: the floor (a flat mean-colour image scored like a model), equal
+"""experiments/sparse_views: the floor (a flat mean-colour image scored like a model), equal
 backgrounds, scene-level intervals and covered pixels in the summary."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from benchmarks.sparse_views import scene_level
-from benchmarks.sparse_views.floor import floor_psnr
+from experiments.sparse_views import scene_level
+from experiments.sparse_views.floor import floor_psnr
 from camio.images import write_image
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
@@ -72,7 +72,7 @@ def test_summary_holds_floor_equal_backgrounds_intervals_and_coverage(tmp_path):
         (rec / "runs" / f"{i}.json").write_text(json.dumps(r))
     (rec / "floors.json").write_text(json.dumps({"floors": {"a": {"3": 15.0}, "b": {"3": 14.0}}}))
     doc = tmp_path / "t.md"
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(rec), "summary",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--records", str(rec), "summary",
                           "--doc", str(doc)], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     t = json.loads((rec / "summary.json").read_text())["targets"]
@@ -99,11 +99,11 @@ def test_summary_without_floors_says_how_to_measure_them(tmp_path):
     for i, r in enumerate([_rec("a", "sparse", 0, 20.0), _rec("a", "paper", 0, 18.0)]):
         (rec / "runs" / f"{i}.json").write_text(json.dumps(r))
     doc = tmp_path / "t.md"
-    out = subprocess.run([sys.executable, "-m", "benchmarks.sparse_views", "--records", str(rec), "summary",
+    out = subprocess.run([sys.executable, "-m", "experiments.sparse_views", "--records", str(rec), "summary",
                           "--doc", str(doc)], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert json.loads((rec / "summary.json").read_text())["targets"]["floor"] is None
-    assert "python -m benchmarks.sparse_views floor" in doc.read_text()
+    assert "python -m experiments.sparse_views floor" in doc.read_text()
 
 
 def test_floor_cli_scores_a_generated_cell_and_refuses_unknown_scenes(tmp_path):
@@ -113,7 +113,7 @@ def test_floor_cli_scores_a_generated_cell_and_refuses_unknown_scenes(tmp_path):
     f = tmp_path / "p.yaml"
     f.write_text("scenes:\n- {name: tiny, role: evaluation, kind: synthetic, views: [3],\n"
                  "   generate: [python, -m, camio, synth, --out, '{out}', --views, '16', --width, '128']}\n")
-    cmd = [sys.executable, "-m", "benchmarks.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
+    cmd = [sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
            "floor", "--work", str(tmp_path / "w")]
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr

@@ -1,4 +1,4 @@
-"""benchmarks/sparse_views: the scene list's protocol (tuning apart from evaluation) and the
+"""experiments/sparse_views: the scene list's protocol (tuning apart from evaluation) and the
 fetch script, its dry run, a real fetch from a local mirror, and its one-line errors."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.sparse_views import fetch_scenes
+from experiments.sparse_views import fetch_scenes
 from camio.__main__ import _parser as camio_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "sparse_views" / "fetch_scenes.py"
+SCRIPT = ROOT / "experiments" / "sparse_views" / "fetch_scenes.py"
 
 
 def _cli(*args, cwd=None):
