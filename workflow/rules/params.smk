@@ -4,6 +4,15 @@ functions, and the folders derived from a job's own files."""
 # ----------------------------------------------------------------------------- stages
 
 
+def set_flags(section, keys):
+    """``--key-name value`` of each of ``keys`` set in a config section; a null key (the
+    schema's default for a value its stage owns) passes no flag, so the stage's own default
+    acts."""
+    return [
+        f"--{k.replace('_', '-')} {section[k]}" for k in keys if section[k] is not None
+    ]
+
+
 def vggt_args(wildcards):
     v = config["vggt"]
     args = [
@@ -22,11 +31,9 @@ def vggt_args(wildcards):
 
 def colmap_args(wildcards):
     c = config["colmap"]
-    args = [
-        f"--seed {c['seed']}",
-        f"--max-image-size {c['max_image_size']}",
-        f"--max-num-features {c['max_num_features']}",
-    ]
+    args = [f"--seed {c['seed']}"] + set_flags(
+        c, ("max_image_size", "max_num_features")
+    )
     args += fallback_args()
     if c["repeats"] > 1:
         args.append(f"--repeats {c['repeats']}")
@@ -67,12 +74,7 @@ def posed_args(wildcards):
 def mvs_args(wildcards):
     """evaluation.initialisers.mvs's arguments (config mvs; null keys are left to its MvsConfig,
     the one place of their defaults)."""
-    m = config["mvs"]
-    return " ".join(
-        f"--{k.replace('_', '-')} {m[k]}"
-        for k in ("max_size", "max_sources")
-        if m[k] is not None
-    )
+    return " ".join(set_flags(config["mvs"], ("max_size", "max_sources")))
 
 
 def dense_base_marker(wildcards):
@@ -156,10 +158,10 @@ def bridge_args(wildcards):
 
 
 def gate_args(wildcards=None):
-    e = config["evaluation"]
-    return (
-        f"--max-ate-rel-radius {e['max_ate_rel_radius']} "
-        f"--max-rel-rot-deg {e['max_rel_rot_deg']}"
+    """The accuracy gate set in config evaluation (null keys are left to
+    evaluation.metrics.pose, the one place of their defaults)."""
+    return " ".join(
+        set_flags(config["evaluation"], ("max_ate_rel_radius", "max_rel_rot_deg"))
     )
 
 
@@ -260,6 +262,12 @@ def train_recipe_args(wildcards):
     if parts:
         args.append(f"--config {shlex.quote(json.dumps(parts, sort_keys=True))}")
     return " ".join(args)
+
+
+def train_period_args(wildcards):
+    """--eval-every and --checkpoint-every when set in config train; null keys are left to
+    splat_train (TrainConfig, the one place of their defaults)."""
+    return " ".join(set_flags(config["train"], ("eval_every", "checkpoint_every")))
 
 
 def train_snapshot_args(wildcards):
