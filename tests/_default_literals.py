@@ -56,7 +56,7 @@ SOURCES = (
     "evaluation/initialisers/random_init.py", "evaluation/initialisers/oracle.py",
     "evaluation/initialisers/posed.py", "evaluation/initialisers/colmap_baseline.py",
     "evaluation/initialisers/ba_init.py", "evaluation/initialisers/colmap_run.py",
-    "camio/ply.py", "camio/prepare.py", "runtime/view_defaults.py",
+    "camio/ply.py", "camio/prepare.py", "camio/synthetic.py", "runtime/view_defaults.py",
 )
 #: the packages whose code is walked (CLIs included), the command-line scripts, and the workflow
 PACKAGES = ("camio", "vggt_init", "bridge", "splat_train", "evaluation", "runtime", "imgmetrics", "scripts")
@@ -71,17 +71,19 @@ SCHEMA_RANGES = frozenset({"minimum", "maximum", "exclusiveMinimum", "exclusiveM
                            "minProperties", "maxProperties", "minLength", "maxLength", "multipleOf"})
 # floats too common to stand for one default by value alone (a name ties them, see module doc)
 _COMMON_FLOATS = frozenset({0.2, 0.25, 0.3, 0.4, 0.75, 0.02, 1.5, 2.5})
+# integers with common other meanings (24: three doubles in bytes, a binary record's size)
+_COMMON_INTS = frozenset({24})
 
 
 def distinctive(value: float) -> bool:
     """A number that names one default wherever it appears: not trivial, not a small or round
-    integer (<= 16, a power of two, a multiple of ten), not a float of one significant digit 1
+    integer (<= 16, a power of two, a multiple of ten, 24), not a float of one significant digit 1
     (0.1, 0.01, 1e-6) nor a common fraction."""
     if value in TRIVIAL:
         return False
     if float(value).is_integer():
         i = int(value)
-        return not (i <= 16 or i & (i - 1) == 0 or i % 10 == 0)
+        return not (i <= 16 or i & (i - 1) == 0 or i % 10 == 0 or i in _COMMON_INTS)
     mantissa = f"{value:.6e}".split("e")[0].rstrip("0").rstrip(".")
     return mantissa != "1" and value not in _COMMON_FLOATS
 

@@ -83,9 +83,10 @@ def scene_dir(wildcards):
 
 
 def synth_args(wildcards):
-    """Arguments of `camio synth` for a synthetic scene."""
+    """Arguments of `camio synth` for a synthetic scene: the keys its synth block sets (the
+    others are camio.synthetic's defaults)."""
     s = scene_cfg(wildcards.dataset, wildcards.scene)["synth"]
-    return f"--views {s['views']} --width {s['width']} --seed {s['seed']}"
+    return " ".join(set_flags(s, ("views", "width", "seed")))
 
 
 def convert_args(wildcards):
