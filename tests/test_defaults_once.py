@@ -9,6 +9,7 @@ import argparse
 import re
 from pathlib import Path
 
+import pytest
 import yaml
 
 import _default_literals as literals
@@ -269,3 +270,248 @@ def test_colmap_threads_default_once():
     src = Path(colmap_baseline.__file__).read_text()
     assert re.search(r'p\.add_argument\("--threads", type=[^\n]*, default=DEFAULT_THREADS\b', src), \
         "the --threads flag must take its default from DEFAULT_THREADS"
+
+
+def test_the_literal_check_reads_yaml_help_texts_and_settings_classes(tmp_path):
+    """The checker on a small tree with YAML and help texts: a config value restating a
+    default under its name (round numbers included: conf_scale 10), a schema property's
+    default and a distinctive number in its description, a profile's ``name=N``, an argparse
+    help "(default N)", a settings class's __init__ default written again; and what it leaves
+    alone (schema ranges, a config value under another name, a quoted ``CONSTANT, N``, 0 and 1)."""
+    (tmp_path / "camio").mkdir()
+    (tmp_path / "config").mkdir()
+    (tmp_path / "workflow" / "schemas").mkdir(parents=True)
+    (tmp_path / "workflow" / "profiles" / "p").mkdir(parents=True)
+    (tmp_path / "camio" / "defaults.py").write_text(
+        "from dataclasses import dataclass\nSTEPS = 500\n\n\n@dataclass\nclass Noise:\n    conf_scale: float = 10.0\n"
+        "    seed: int = 0\n\n\nclass Settings:\n    def __init__(self, max_image_size=3200, ratio=0.8125):\n"
+        "        self.max_image_size = max_image_size\n")
+    (tmp_path / "camio" / "cli.py").write_text(
+        "import argparse\np = argparse.ArgumentParser()\n"
+        "p.add_argument('--steps', type=int, help='Adam steps (default 500)')\n"
+        "p.add_argument('--ratio', help='keep (ratio 0.8125 by default)')\n"
+        "p.add_argument('--n', help='at most 500, default: STEPS, 500')\n"
+        "p.add_argument('--seed', type=int, default=0, help='seed (default %(default)s)')\n\n\n"
+        "def run(max_image_size=3200):\n    return max_image_size\n")
+    (tmp_path / "config.yaml").write_text(
+        "oracle:\n  conf_scale: 10.0\n  seed: 0\n  levels: [10.0, 0.8125]\ntrain:\n  steps: 400\n")
+    (tmp_path / "config" / "study.yaml").write_text("cells:\n  a: {steps: 500}\n")
+    (tmp_path / "workflow" / "schemas" / "config.schema.yaml").write_text(
+        "properties:\n  steps:\n    type: integer\n    minimum: 500\n    default: 500\n"
+        "  ratio:\n    type: number\n    description: kept share (0.8125 in the paper)\n"
+        "  size:\n    type: [integer, 'null']\n    maximum: 3200\n    default: null\n"
+        "    description: null = camio.defaults.Settings' MAX_IMAGE_SIZE, 3200\n")
+    (tmp_path / "workflow" / "profiles" / "p" / "config.yaml").write_text(
+        "set-resources:\n  - 'train:steps=500'\n  - 'train:mem_mb=500'\n")
+    found = literals.repeats(tmp_path, sources=("camio/defaults.py",))
+    assert found == sorted([
+        "camio/cli.py:3: 500 (steps) is the default of camio/defaults.py:steps",
+        "camio/cli.py:4: 0.8125 is the default of camio/defaults.py:ratio",
+        "camio/cli.py:9: 3200 (max_image_size) is the default of camio/defaults.py:max_image_size",
+        "config.yaml:2: 10 (conf_scale) is the default of camio/defaults.py:conf_scale",
+        "config/study.yaml:2: 500 (steps) is the default of camio/defaults.py:steps",
+        "workflow/profiles/p/config.yaml:2: 500 (steps) is the default of camio/defaults.py:steps",
+        "workflow/schemas/config.schema.yaml:5: 500 (steps) is the default of camio/defaults.py:steps",
+        "workflow/schemas/config.schema.yaml:8: 0.8125 is the default of camio/defaults.py:ratio",
+    ]), found
+
+
+def _copy_checked_tree(dst: Path) -> None:
+    for rel in {*literals.SOURCES, *(str(p.relative_to(REPO)) for p in literals.walked_files(REPO))}:
+        (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+        (dst / rel).write_text((REPO / rel).read_text())
+
+
+def test_the_literal_check_fails_on_a_repeat_planted_in_the_project(tmp_path):
+    """A copy of the project's checked files has no repeat (as the project); a default planted
+    in config.yaml, in a help text of a script and in a rule's shell string is found, each."""
+    _copy_checked_tree(tmp_path)
+    excused = {**SHARED, **UNRESOLVED}
+    assert literals.repeats(tmp_path, shared=excused) == []
+    from splat_train.config import TrainConfig
+
+    every = TrainConfig().checkpoint_every
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(cfg.read_text() + f"\ncolmap_extra:\n  checkpoint_every: {every}\n")
+    photos = tmp_path / "scripts" / "photos.py"
+    photos.write_text(photos.read_text().replace('help="write the config and show the jobs, run nothing"',
+                                                 f'help="run nothing (default {vggt_defaults.IMAGE_SIZE} px)"'))
+    rule = tmp_path / "workflow" / "rules" / "train.smk"
+    rule.write_text(rule.read_text().replace("--resume-dir {params.resume:q}",
+                                             f"--eval-every {TrainConfig().eval_every} --resume-dir {{params.resume:q}}"))
+    found = literals.repeats(tmp_path, shared=excused)
+    assert len(found) == 3, found
+    assert any(f.startswith("config.yaml:") and "(checkpoint_every)" in f for f in found), found
+    assert any(f.startswith("scripts/photos.py:") and f" {vggt_defaults.IMAGE_SIZE} " in f for f in found), found
+    assert any(f.startswith("workflow/rules/train.smk:") and "(eval_every)" in f for f in found), found
+
+
+def _stage_default(parsers: dict, where, name: str):
+    """The default of a command's flag or a config class's field (where/name as in
+    tests/test_config_ranges.py's _FEEDS)."""
+    import dataclasses
+
+    from test_config_ranges import _actions
+
+    if not isinstance(where, str):
+        return next(f.default for f in dataclasses.fields(where) if f.name == name)
+    return next(a.default for a in _actions(parsers[where]) if name in a.option_strings)
+
+
+# Schema keys that feed a stage but are the workflow's own: {key: why}.
+WORKFLOW_OWNED = {
+    **{f"{section}.threads": "a job's threads are its rule's (a resource Snakemake schedules and may lower to "
+                             "--cores), passed to the stage as its thread count"
+       for section in ("vggt", "mvs", "train")},
+    "colmap.threads": "the rule's threads (0: every core Snakemake gives); its default is "
+                      "colmap_run.DEFAULT_THREADS, test_colmap_threads_default_once",
+}
+
+
+# Schema defaults that equal a stage's default because the workflow itself reads the key: {key: why}.
+SCHEMA_COPIES = {
+    "oracle.conf_scale": "every study cell passes it (workflow/rules/study_plan.smk)",
+    "oracle.downsample": "every study cell passes it (workflow/rules/study_plan.smk)",
+    "colmap.repeats": "the workflow plans from it: more than one run adds --repeats and the reference (--ref)",
+}
+
+
+def test_schema_defaults_are_null_or_the_stages(monkeypatch):
+    """Every schema key that feeds a stage's flag or config field (test_config_ranges._FEEDS)
+    defaults to null (the workflow passes nothing, the stage's default acts) or, where the
+    workflow must pass it, to the stage's own default: never a second value."""
+    from test_cli_flags import _parsers
+    from test_config_ranges import _FEEDS, _schema_node, check_config
+
+    parsers = _parsers(monkeypatch)
+    schema = check_config.load_schema()
+    copies = {}
+    for path, (where, name) in sorted(_FEEDS.items()):
+        default = _schema_node(schema, path).get("default")
+        if default is not None and path not in WORKFLOW_OWNED:
+            copies[path] = default
+            assert default == _stage_default(parsers, where, name), (path, default, where, name)
+    # the copies left, each needed: the study's cells read conf_scale and downsample; threads
+    # are the jobs' resources (Snakemake may lower them to --cores)
+    assert sorted(copies) == sorted(SCHEMA_COPIES), copies
+
+
+# Flags a stage command holds whatever the config says: {flag: why}.
+WORKFLOW_FLAGS = {
+    "--device": "where a job runs is the workflow's (train.device, vggt.device): its resources ask the "
+                "cluster for a GPU from the same key",
+    "--threads": "the rule's threads, a resource (WORKFLOW_OWNED)",
+    "--mode": "the job's Bridge mode wildcard (bridge.modes)",
+    "--n": "the job's view count wildcard (views)",
+    **{flag: SCHEMA_COPIES[f"oracle.{key}"] for flag, key in (("--conf-scale", "conf_scale"),
+                                                               ("--downsample", "downsample"))},
+}
+# the schema's sections whose keys feed stage commands
+_STAGE_SECTIONS = ("vggt", "colmap", "oracle", "posed", "mvs", "random", "ba", "bridge", "train", "evaluation")
+_STAGE_CMD = re.compile(r"python -m ([\w.]+)((?:\s+(?!>|2>|&&|\|)[^\s)]+)*)")
+
+
+def _stage_commands(out: str) -> list[tuple[str, list[str]]]:
+    """(module, arguments) of every ``python -m`` command of a dry run's shell commands."""
+    import shlex
+
+    return [(m.group(1), shlex.split(m.group(2))) for line in out.splitlines() if line.startswith("Shell command:")
+            for m in _STAGE_CMD.finditer(line)]
+
+
+def _stage_parser(parsers: dict, module: str, args: list[str]) -> argparse.ArgumentParser:
+    """The parser of ``python -m module args`` (a subcommand's where it has one)."""
+    if module == "evaluation":
+        from evaluation.__main__ import build_parser
+
+        parser = build_parser(args)
+    else:
+        rel = module.replace(".", "/")
+        key = f"{rel}.py" if (REPO / f"{rel}.py").is_file() else f"{rel}/__main__.py"
+        sub = args[0] if args and not args[0].startswith("-") else None
+        parser = parsers.get(f"{key} {sub}") or parsers[key]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and args and args[0] in action.choices:
+            return action.choices[args[0]]
+    return parser
+
+
+def _flag_values(args: list[str]) -> list[tuple[str, str | None]]:
+    return [(a, args[i + 1] if i + 1 < len(args) and not args[i + 1].startswith("--") else None)
+            for i, a in enumerate(args) if a.startswith("--")]
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    """Dry runs of every initialiser, training with held-out and test-pose evaluation: one with
+    no stage key in the config, one that sets some."""
+    from test_workflow_dryrun import SNAKEMAKE, dry_run, synth_config
+
+    if SNAKEMAKE is None:
+        pytest.skip("snakemake is not installed")
+    inits = ["vggt", "colmap", "oracle", "posed", "random", "mvs", "vggt_ba"]
+    unset = synth_config(initialisers=inits, views=[3], evaluation={"testpose": True})
+    given = synth_config(
+        initialisers=inits, views=[3], evaluation={"testpose": True, "lpips_nets": ["alex"], "max_rel_rot_deg": 2.5,
+                                                    "testpose_patience": 4},
+        train={"iterations": 10, "eval_every": 7, "checkpoint_every": 9, "seed": 3},
+        colmap={"max_image_size": 640, "max_num_features": 1024, "seed": 5},
+        oracle={"rot_deg": 0.5}, vggt={"dtype": "fp32", "points_from": "depth"})
+    out = {}
+    for name, cfg in (("unset", unset), ("given", given)):
+        (tmp_path_factory.getbasetemp() / name).mkdir()
+        out[name] = (cfg, dry_run(tmp_path_factory.getbasetemp() / name, cfg)[1])
+    return out
+
+
+def test_the_workflow_passes_no_stage_default_the_user_did_not_set(planned, monkeypatch):
+    """With no stage key in the config, every stage command holds only the flags the user set
+    (the scene's width, the iterations), the workflow's own (WORKFLOW_FLAGS) and flags without
+    a default of their stage (paths, names): no flag restates a stage's default, and no key
+    whose schema default is null reaches a command."""
+    from test_cli_flags import _parsers
+
+    parsers = _parsers(monkeypatch)
+    cfg, out = planned["unset"]
+    user = {"--width", "--iterations", "--views"}
+    commands = _stage_commands(out)
+    assert {m for m, _ in commands} >= {"vggt_init", "evaluation.initialisers.colmap_baseline", "splat_train",
+                                        "evaluation.initialisers.oracle", "evaluation.initialisers.posed",
+                                        "evaluation.initialisers.random_init", "evaluation.initialisers.mvs",
+                                        "evaluation.initialisers.ba_init", "camio", "bridge", "evaluation"}
+    restated = []
+    for module, args in commands:
+        options = {o: a for a in _stage_parser(parsers, module, args)._actions for o in a.option_strings}
+        for flag, value in _flag_values(args):
+            assert flag in options, (module, flag)
+            if options[flag].default is not None and flag not in user and flag not in WORKFLOW_FLAGS:
+                restated.append(f"{module} {flag} {value}")
+    assert not restated, restated
+    schema = _schema()["properties"]
+    null_keys = [f"--{k.replace('_', '-')}" for s in _STAGE_SECTIONS for k, v in schema[s]["properties"].items()
+                 if "default" in v and v["default"] is None]
+    assert {"--eval-every", "--checkpoint-every", "--max-image-size", "--max-num-features", "--seed"} <= set(null_keys)
+    passed = {flag for _, args in commands for flag, _ in _flag_values(args)}
+    assert not (passed - user) & set(null_keys), sorted((passed - user) & set(null_keys))
+
+
+def test_a_stage_key_the_user_sets_reaches_its_command(planned):
+    """Each stage key set in the config is in its stage's command with its value."""
+    _, out = planned["given"]
+    commands = _stage_commands(out)
+
+    def holds(module: str, flag: str, value: str, sub: str | None = None) -> bool:
+        return any(m == module and (sub is None or a[:1] == [sub]) and (flag, value) in _flag_values(a)
+                   for m, a in commands)
+
+    for module, flag, value, sub in [
+        ("splat_train", "--eval-every", "7", None), ("splat_train", "--checkpoint-every", "9", None),
+        ("splat_train", "--seed", "3", None), ("splat_train", "--patience", "4", "testpose"),
+        ("evaluation.initialisers.colmap_baseline", "--max-image-size", "640", None),
+        ("evaluation.initialisers.colmap_baseline", "--max-num-features", "1024", None),
+        ("evaluation.initialisers.colmap_baseline", "--seed", "5", None),
+        ("evaluation.initialisers.oracle", "--rot-deg", "0.5", None),
+        ("vggt_init", "--dtype", "fp32", None), ("vggt_init", "--points-from", "depth", None),
+        ("evaluation", "--lpips-nets", "alex", "images"), ("evaluation", "--max-rel-rot-deg", "2.5", "pose"),
+    ]:
+        assert holds(module, flag, value, sub), (module, flag, value)

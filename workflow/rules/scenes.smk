@@ -97,8 +97,7 @@ def convert_args(wildcards):
         args.append(f"--format {cfg['format']}")
     if cfg.get("images_subdir"):
         args.append(f"--images-subdir {shlex.quote(str(cfg['images_subdir']))}")
-    if cfg["downsample"] > 1:
-        args.append(f"--downsample {cfg['downsample']}")
+    args += set_flags(cfg, ("downsample",))
     if cfg.get("max_size") is not None:
         args.append(f"--max-size {cfg['max_size']}")
     if cfg["skip_missing"]:
