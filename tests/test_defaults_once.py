@@ -515,3 +515,21 @@ def test_a_stage_key_the_user_sets_reaches_its_command(planned):
         ("evaluation", "--lpips-nets", "alex", "images"), ("evaluation", "--max-rel-rot-deg", "2.5", "pose"),
     ]:
         assert holds(module, flag, value, sub), (module, flag, value)
+
+
+def test_the_reference_docs_quote_the_code_defaults():
+    """docs/reference.md, docs/contracts.md and docs/protocols.md quote the COLMAP baseline's
+    SIFT sizes, the accuracy gate and the test-pose budget for the reader: the values of their
+    one place in code."""
+    from evaluation.initialisers.colmap_run import ColmapSettings
+
+    cs = ColmapSettings()
+    reference = _words((REPO / "docs" / "reference.md").read_text())
+    assert f"max image size {cs.max_image_size}, at most {cs.max_num_features} features" in reference
+    contracts = _words((REPO / "docs" / "contracts.md").read_text())
+    assert f"`max_ate_rel_radius` ({MAX_ATE_REL_RADIUS:g})" in contracts
+    assert f"`max_rel_rot_deg` ({MAX_REL_ROT_DEG:g} deg)" in contracts
+    from splat_train.testpose import DEFAULT_PATIENCE, DEFAULT_STEPS
+
+    protocols = _words((REPO / "docs" / "protocols.md").read_text())
+    assert f"DEFAULT_STEPS`, {DEFAULT_STEPS})" in protocols and f"DEFAULT_PATIENCE`, {DEFAULT_PATIENCE}," in protocols
