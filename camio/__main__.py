@@ -32,7 +32,8 @@ def _parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
-    s.add_argument("--views", type=flag(int, 1), default=VIEWS, help="number of rendered views (default %(default)s)")
+    s.add_argument("--views", type=flag(int, 1), default=VIEWS,
+                   help="number of rendered views (default %(default)s)")
     s.add_argument("--width", type=flag(int, 4, MAX_IMAGE_SIDE), default=WIDTH,
                    help="image width in pixels, height 3/4 of it (default %(default)s)")
     s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene (default %(default)s)")

@@ -3,21 +3,22 @@ tests/test_defaults_once.py).
 
 A *default* is a number bound to a name in a defining file (:data:`SOURCES`: the config
 dataclasses, the registries, the defaults modules): a module-level ``NAME = 3``, a dataclass
-field ``name: int = 3``, a parameter ``name=3`` of a settings class's ``__init__``, an entry ``"name": 3`` of a module-level dict (a recipe), an element of
-a module-level tuple. Every other file of the package code, the CLIs and the workflow is walked
+field ``name: int = 3``, a parameter ``name=3`` of a settings class's ``__init__``, an entry
+``"name": 3`` of a module-level dict (a recipe), an element of a module-level tuple. Every
+other file of the package code, the CLIs, the scripts, the workflow and its YAML is walked
 (Python by its AST; the workflow's ``.smk`` files by their tokens, the numbers of their shell
-strings' ``--flag N`` included), and a literal is a *repeat* of a default when
+strings' ``--flag N`` included; YAML below), and a literal is a *repeat* of a default when
 
 * it is bound to the default's name (a keyword ``name=3``, a parameter default, an assignment,
   a dict key, an argparse flag ``--name`` with ``default=3``, a rule's ``name=3``, a shell
-  ``--name 3``) and has its value, the value not :data:`TRIVIAL`; or
+  ``--name 3``, a YAML ``name: 3``) and has its value, the value not 0 or 1
+  (:data:`TRIVIAL_BY_NAME`: seeds, switches, counts that mean "none" or "one"); or
 * it has a :func:`distinctive` value of a default, bound to any name or none.
 
 Two defining files that bind one value to one name define one default twice: a repeat too.
 
-Round numbers (0.5, 10, 100, 1000, ...) are repeats by name only: ``conf_scale: 10.0`` in a
-YAML file restates the oracle's default, ``width=10`` does not. 0 and 1 never are (seeds,
-switches, counts that mean "none" or "one").
+Round numbers (0.5, 10, 100, 500, 1000, ...) are repeats by name only: ``conf_scale: 10.0`` in
+a YAML file restates the oracle's default, ``width=10`` does not.
 
 YAML is walked too (:data:`YAML_FILES`: config.yaml, config/*.yaml, the workflow schema and
 profiles): a number under a key is bound to that key and is a repeat by that name only (a

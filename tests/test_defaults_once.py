@@ -348,8 +348,8 @@ def test_the_literal_check_fails_on_a_repeat_planted_in_the_project(tmp_path):
     photos.write_text(photos.read_text().replace('help="write the config and show the jobs, run nothing"',
                                                  f'help="run nothing (default {vggt_defaults.IMAGE_SIZE} px)"'))
     rule = tmp_path / "workflow" / "rules" / "train.smk"
-    rule.write_text(rule.read_text().replace("--resume-dir {params.resume:q}",
-                                             f"--eval-every {TrainConfig().eval_every} --resume-dir {{params.resume:q}}"))
+    planted = f"--eval-every {TrainConfig().eval_every} --resume-dir {{params.resume:q}}"
+    rule.write_text(rule.read_text().replace("--resume-dir {params.resume:q}", planted))
     found = literals.repeats(tmp_path, shared=excused)
     assert len(found) == 3, found
     assert any(f.startswith("config.yaml:") and "(checkpoint_every)" in f for f in found), found

@@ -46,8 +46,17 @@ def oracle_args(wildcards):
     """The oracle's arguments set in config oracle (null keys are left to
     evaluation.initialisers.oracle; conf_scale and downsample the schema fills, the study's
     cells read them too)."""
-    keys = ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac", "conf_scale")
-    return " ".join(set_flags(config["oracle"], (*keys, "conf_noise", "downsample")))
+    keys = (
+        "seed",
+        "rot_deg",
+        "trans_frac",
+        "depth_rel",
+        "outlier_frac",
+        "conf_scale",
+        "conf_noise",
+        "downsample",
+    )
+    return " ".join(set_flags(config["oracle"], keys))
 
 
 def posed_args(wildcards):
