@@ -358,3 +358,18 @@ def repeats(root: Path, sources=SOURCES, shared: dict | None = None) -> list[str
                 name, home = sorted(names.items())[0]
                 out.append(f"{rel}:{lit.line}: {lit.value:g} is the default of {home}:{name}")
     return sorted(set(out))
+
+
+def hand_written_defaults(root: Path) -> list[str]:
+    """One line per argparse help text that writes its flag's default as a number
+    (``help="... (default 500)"``), trivial numbers included: the help should say
+    ``%(default)s`` (or format the constant), so that it cannot drift from the default."""
+    out = []
+    for path in walked_files(root):
+        if path.suffix != ".py":
+            continue
+        rel = str(path.relative_to(root))
+        for lit in _help_literals(ast.parse(path.read_text()), rel):
+            if lit.name is not None:
+                out.append(f"{rel}:{lit.line}: the help of {lit.name} writes its default {lit.value:g} by hand")
+    return sorted(set(out))
