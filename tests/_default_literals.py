@@ -37,6 +37,10 @@ definitions are its one place for their values (another concept that happens to 
 number: floaters' TAU_REL and the Bridge's ALPHA_MIN, both 0.05), unless a definition binds a
 default's value to the default's name: that restates the default, a repeat, or, where a stage
 may not import the defining one, an entry of ``shared`` with the reason.
+
+:func:`hand_written_defaults` is the stricter rule for help texts: a number after the word
+*default* in an argparse help is written by hand whatever its value (0 and 1 included), where
+``%(default)s`` or the formatted constant would follow the default.
 """
 
 from __future__ import annotations
