@@ -537,6 +537,35 @@ def test_the_workflow_passes_no_stage_default_the_user_did_not_set(planned, monk
     assert not (passed - user) & set(null_keys), sorted((passed - user) & set(null_keys))
 
 
+@pytest.mark.parametrize("name", ["unset", "given"])
+def test_every_planned_stage_command_parses(planned, name):
+    """Every stage command of both dry runs is one its CLI accepts: a flag the workflow leaves
+    out is one the stage does not require."""
+    from test_cli_flags import _parsers
+
+    mp = pytest.MonkeyPatch()
+    try:
+        parsers = _parsers(mp)
+    finally:
+        mp.undo()  # the parsers parse for real below
+    refused, parsed = [], set()
+    for module, args in _stage_commands(planned[name][1]):
+        parser = _stage_parser(parsers, module, args)
+        rest = args
+        if args and not args[0].startswith("-"):
+            if not parser.prog.endswith(f" {args[0]}"):  # a command read by hand (random_init seed-model DIR)
+                assert not _flag_values(args), (module, args)
+                continue
+            rest = args[1:]
+        try:
+            parser.parse_args(rest)
+            parsed.add(parser.prog)
+        except SystemExit:
+            refused.append(f"{module} {' '.join(args)}")
+    assert not refused, refused
+    assert len(parsed) >= 19, sorted(parsed)  # every stage and evaluation command of the plan
+
+
 def test_a_stage_key_the_user_sets_reaches_its_command(planned):
     """Each stage key set in the config is in its stage's command with its value."""
     _, out = planned["given"]
