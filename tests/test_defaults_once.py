@@ -436,9 +436,7 @@ def test_schema_defaults_are_null_or_the_stages(monkeypatch):
         if default is not None and path not in WORKFLOW_OWNED:
             copies[path] = default
             assert default == _stage_default(parsers, where, name), (path, default, where, name)
-    # the copies left, each needed: the study's cells read conf_scale and downsample; threads
-    # are the jobs' resources (Snakemake may lower them to --cores)
-    assert sorted(copies) == sorted(SCHEMA_COPIES), copies
+    assert sorted(copies) == sorted(SCHEMA_COPIES), copies  # each copy left has its reason
 
 
 # Flags a stage command holds whatever the config says: {flag: why}.
