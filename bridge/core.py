@@ -54,7 +54,7 @@ class BridgeConfig:
 
     Attributes:
         mode: "gated" (Eq. 2), "uniform" (constant ``uniform_alpha``) or "filtered"
-            (percentile filter, default 40, then Eq. 2).
+            (percentile filter, :data:`DEFAULT_PERCENTILE` by default, then Eq. 2).
         alpha_min, alpha_max: Eq. 2's opacity range.
         uniform_alpha: the constant opacity of ``uniform`` mode (seed code fallback 0.1).
         stride: keep every stride-th flattened pixel (paper 20; 1 keeps all).

@@ -1,6 +1,6 @@
 """``python -m camio``: synthetic scene, dataset conversion, splits.
 
-    python -m camio synth --out DIR [--views 24] [--width 256] [--seed 0] [--arc-deg 70]
+    python -m camio synth --out DIR [--views N] [--width PX] [--seed S] [--arc-deg DEG]
     python -m camio convert --src PATH --out DIR [--format auto] [--images-subdir images_8]
                             [--downsample K | --max-size PX] [--undistort] [--skip-missing] [--allow-mixed]
     python -m camio split --scene DIR --n 3 6 9 12 [--manifest JSON] --out split.json
@@ -24,6 +24,7 @@ log = logging.getLogger("camio")
 def _parser() -> argparse.ArgumentParser:
     from camio.prepare import PHOTO_MAX_SIZE
     from camio.scene import FORMATS
+    from camio.synthetic import ARC_DEG, VIEWS, WIDTH
 
     p = argparse.ArgumentParser(prog="python -m camio", description=plain(__doc__).split("\n")[0])
     add_log_flags(p)
@@ -31,12 +32,13 @@ def _parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("synth", help="write the synthetic ground-truth scene")
     s.add_argument("--out", required=True, type=Path, help="scene folder to write (images/, sparse/0, gt/)")
-    s.add_argument("--views", type=flag(int, 1), default=24, help="number of rendered views")
-    s.add_argument("--width", type=flag(int, 4, MAX_IMAGE_SIDE), default=256,
-                   help="image width in pixels (height 3/4 of it)")
-    s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene")
-    s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=70.0,
-                   help="angle the cameras span (degrees)")
+    s.add_argument("--views", type=flag(int, 1), default=VIEWS,
+                   help="number of rendered views (default %(default)s)")
+    s.add_argument("--width", type=flag(int, 4, MAX_IMAGE_SIDE), default=WIDTH,
+                   help="image width in pixels, height 3/4 of it (default %(default)s)")
+    s.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the scene (default %(default)s)")
+    s.add_argument("--arc-deg", type=flag(float, 0, 360, lo_open=True), default=ARC_DEG,
+                   help="angle the cameras span, degrees (default %(default)s)")
     s.add_argument("--layout", choices=("arc", "sphere"), default="arc",
                    help="cameras on an arc facing the scene, or spread over a sphere")
     s.add_argument("--supersample", type=flag(int, 1, 16), default=1, help="anti-aliasing rays per pixel side")

@@ -38,6 +38,12 @@ from camio.ply import write_points_ply
 from camio.split import make_split, write_split
 from camio.textures import SolidTexture, ValueNoise
 
+#: the default camera set of the synthetic scene (``python -m camio synth`` and the workflow's
+#: ``synth`` block default to these): views, image width in pixels, the arc they span in degrees
+VIEWS = 24
+WIDTH = 256
+ARC_DEG = 70.0
+
 __all__ = ["SyntheticScene", "build_scene", "make_cameras", "render_view", "cast_pixels",
            "sample_surface_points", "write_synthetic_scene"]
 
@@ -152,8 +158,8 @@ def build_scene(seed: int = 0) -> SyntheticScene:
 
 
 def make_cameras(
-    scene: SyntheticScene, views: int = 24, width: int = 256, height: int | None = None,
-    arc_deg: float = 70.0, layout: str = "arc", radius: float = 5.5, fov_deg: float = 60.0,
+    scene: SyntheticScene, views: int = VIEWS, width: int = WIDTH, height: int | None = None,
+    arc_deg: float = ARC_DEG, layout: str = "arc", radius: float = 5.5, fov_deg: float = 60.0,
 ) -> list[Camera]:
     """Cameras named 0000.png ... looking at the scene centre, ordered along the arc.
 
@@ -289,7 +295,7 @@ def _visibility(pts: np.ndarray, cam: Camera, depth: np.ndarray, tol: float = 0.
 
 
 def write_synthetic_scene(
-    out: str | Path, views: int = 24, width: int = 256, seed: int = 0, arc_deg: float = 70.0,
+    out: str | Path, views: int = VIEWS, width: int = WIDTH, seed: int = 0, arc_deg: float = ARC_DEG,
     layout: str = "arc", supersample: int = 1, n_gt_points: int = 60000, n_ref_points: int = 4000,
     ns: tuple[int, ...] = (3, 6, 9, 12),
 ) -> Path:

@@ -176,6 +176,9 @@ def _add_images(sub, wanted: bool) -> None:
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    from evaluation.metrics.align import COLLINEAR_TOL
+    from evaluation.reports.thumbs import MAX_VIEWS
+
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(prog="python -m evaluation", description=plain(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -208,8 +211,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="scale of the test images relative to the reference")
     p.add_argument("--orientations", choices=["auto", "always", "never"], default="auto",
                    help="use camera orientations in the Sim(3) fit (auto: when centres are collinear)")
-    p.add_argument("--collinear-tol", type=flag(float, 0, 1), default=0.1,
-                   help="sigma2/sigma1 of the centres below which they count as collinear")
+    p.add_argument("--collinear-tol", type=flag(float, 0, 1), default=COLLINEAR_TOL,
+                   help="sigma2/sigma1 of the centres below which they count as collinear (default %(default)s)")
     p.add_argument("--train-cameras", choices=["initialiser", "refined"], default="initialiser",
                    help="what --pred holds (recorded in align.json): the initialiser's cameras, or the "
                         "training cameras refined during training (splat_train --pose-refine)")
@@ -235,7 +238,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder to write (index.html and its images)")
     p.add_argument("--scenes", help="prepared scenes root, for ground-truth images "
                    "({scenes}/{dataset}/{scene}/images or {scenes}/{scene}/images)")
-    p.add_argument("--max-views", type=flag(int, 1), default=4, help="test views per render grid")
+    p.add_argument("--max-views", type=flag(int, 1), default=MAX_VIEWS,
+                   help="test views per render grid (default %(default)s)")
     _add_gate_args(p)
     add_log_flags(p, subcommand=True)
     p.set_defaults(func=_cmd_report)

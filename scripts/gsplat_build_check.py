@@ -88,9 +88,9 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--gsplat", default=GSPLAT_VERSION, help="gsplat version (default: the pinned one)")
-    ap.add_argument("--cuda", default="13.0", help="CUDA toolkit minor version of the wheels (default 13.0)")
-    ap.add_argument("--torch", default="2.11.0", help="torch version, its PyPI (CUDA) build (default 2.11.0)")
-    ap.add_argument("--arch", default="9.0", help="TORCH_CUDA_ARCH_LIST (default 9.0: Hopper)")
+    ap.add_argument("--cuda", default="13.0", help="CUDA toolkit minor version of the wheels (default %(default)s)")
+    ap.add_argument("--torch", default="2.11.0", help="torch version, its PyPI (CUDA) build (default %(default)s)")
+    ap.add_argument("--arch", default="9.0", help="TORCH_CUDA_ARCH_LIST (default %(default)s: Hopper)")
     ap.add_argument("--work", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "gsplat_build_check")
     ap.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
     ap.add_argument("-v", "--verbose", action="count", default=0, help="print ninja's compile lines ([k/30] progress)")

@@ -281,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     from camio.photo_folder import describe_problems, photo_problems
     from camio.prepare import PHOTO_MAX_SIZE
     from runtime.cliargs import device_name
+    from vggt_init.defaults import IMAGE_SIZE
 
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
@@ -306,11 +307,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--vggt-model-config", dest="vggt_model_config",
                    help="VGGT model configuration JSON (default: VGGT-1B)")
     p.add_argument("--vggt-image-size", dest="vggt_image_size", type=int,
-                   help="VGGT input width (multiple of 14; default 518)")
+                   help=f"VGGT input width (multiple of 14; default: config.yaml's, else {IMAGE_SIZE})")
     p.add_argument("--max-size", dest="max_size", type=int, metavar="PX",
                    help=f"long side of the working images every stage reads, pixels (default: "
                         f"config.yaml's, else {PHOTO_MAX_SIZE}; 0 = the photos' own size)")
-    p.add_argument("--cores", type=int, default=2, help="cores snakemake may use (default 2; at least 1)")
+    p.add_argument("--cores", type=int, default=2, help="cores snakemake may use (default %(default)s; at least 1)")
     p.add_argument("--device", type=device_name,
                    help="where VGGT and training run: auto (CUDA when a job sees a GPU, else CPU), cpu, cuda, or "
                         "cuda:N, the GPU of index N (the jobs see only that one: CUDA_VISIBLE_DEVICES; give it "

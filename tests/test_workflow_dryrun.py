@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from vggt_init import defaults as vggt_defaults
+
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = shutil.which("snakemake")
 # VGGT is planned as on a machine with its checkpoint (any existing file will do for a dry run);
@@ -122,11 +124,12 @@ def test_synthetic_scene_plans_every_stage(mixed):
     assert jobs(counts, "testpose_refine") == 0  # the test-pose protocol is off by default
     assert jobs(counts, "colmap_index") == 1 and jobs(counts, "test_images", "bundled") == 1
     assert jobs(counts, "tables") == jobs(counts, "plots") == jobs(counts, "report") == 1
-    # the point head is used: the depth head is not asked for
-    assert "--points-from point_head" in out and "--points-from depth" not in out
-    # VGGT asks for a GPU (resources gpu=1) and is told to use it when the job sees one
+    # the point head is used (vggt_init's default: no --points-from): the depth head is not asked for
+    assert vggt_defaults.POINTS_FROM == "point_head" and "--points-from" not in out
+    # VGGT asks for a GPU (resources gpu=1) and is told to use it when the job sees one; its
+    # dtype is vggt_init's default (auto)
     vggt_cmds = [line for line in out.splitlines() if "python -m vggt_init" in line]
-    assert vggt_cmds and all("--device auto --dtype auto" in c for c in vggt_cmds), vggt_cmds
+    assert vggt_cmds and all("--device auto " in c + " " and "--dtype" not in c for c in vggt_cmds), vggt_cmds
     # the COLMAP baseline is given every core snakemake has (recorded in status.json)
     assert re.search(r"evaluation\.initialisers\.colmap_baseline .*--threads [1-9]", out)
 

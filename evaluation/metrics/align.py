@@ -34,9 +34,14 @@ __all__ = [
     "fit_sim3_cameras",
     "transform_cam_from_world",
     "rotation_angle_deg",
+    "COLLINEAR_TOL",
 ]
 
 log = logging.getLogger(__name__)
+
+#: collinearity ratio (sigma2 / sigma1 of the camera centres) below which they count as collinear
+#: and the Sim(3) fit uses the camera orientations too (``use_orientations="auto"``)
+COLLINEAR_TOL = 0.1
 
 
 class AlignmentError(ValueError):
@@ -218,7 +223,7 @@ def fit_sim3_cameras(
     ref: dict[str, np.ndarray],
     names: list[str] | None = None,
     use_orientations: str = "auto",
-    collinear_tol: float = 0.1,
+    collinear_tol: float = COLLINEAR_TOL,
     min_cameras: int = 3,
     coincident_tol: float = 1e-9,
 ) -> Alignment:

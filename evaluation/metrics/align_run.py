@@ -25,7 +25,7 @@ from pathlib import Path
 from runtime.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
-from evaluation.metrics.align import fit_sim3_cameras, transform_cam_from_world
+from evaluation.metrics.align import COLLINEAR_TOL, fit_sim3_cameras, transform_cam_from_world
 
 __all__ = ["load_names", "test_cameras_in_model_frame", "run_align", "TRAIN_CAMERAS"]
 
@@ -113,7 +113,7 @@ def test_cameras_in_model_frame(ref_cameras: list[Camera], sim, size: tuple[int,
 def run_align(pred_dir: str | Path, ref_dir: str | Path, train_names: str | Path,
               test_names: str | Path | None, out: str | Path, n: int | None = None,
               images_dir: str | Path | None = None, image_scale: float | None = None,
-              use_orientations: str = "auto", collinear_tol: float = 0.1,
+              use_orientations: str = "auto", collinear_tol: float = COLLINEAR_TOL,
               train_cameras: str = "initialiser") -> dict:
     """Fit the alignment and write ``align.json`` and ``sparse/0`` (see the module docstring).
 

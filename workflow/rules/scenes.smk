@@ -83,9 +83,10 @@ def scene_dir(wildcards):
 
 
 def synth_args(wildcards):
-    """Arguments of `camio synth` for a synthetic scene."""
+    """Arguments of `camio synth` for a synthetic scene: the keys its synth block sets (the
+    others are camio.synthetic's defaults)."""
     s = scene_cfg(wildcards.dataset, wildcards.scene)["synth"]
-    return f"--views {s['views']} --width {s['width']} --seed {s['seed']}"
+    return " ".join(set_flags(s, ("views", "width", "seed")))
 
 
 def convert_args(wildcards):
@@ -96,8 +97,7 @@ def convert_args(wildcards):
         args.append(f"--format {cfg['format']}")
     if cfg.get("images_subdir"):
         args.append(f"--images-subdir {shlex.quote(str(cfg['images_subdir']))}")
-    if cfg["downsample"] > 1:
-        args.append(f"--downsample {cfg['downsample']}")
+    args += set_flags(cfg, ("downsample",))
     if cfg.get("max_size") is not None:
         args.append(f"--max-size {cfg['max_size']}")
     if cfg["skip_missing"]:

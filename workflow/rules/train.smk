@@ -53,9 +53,7 @@ rule train_splats:
     params:
         out=out_dir,
         recipe=train_recipe_args,
-        seed=config["train"]["seed"],
-        eval_every=config["train"]["eval_every"],
-        checkpoint_every=config["train"]["checkpoint_every"],
+        settings=train_set_args,
         device=config["train"]["device"],
         resume=train_resume_dir,
         test=train_test_args,
@@ -65,9 +63,7 @@ rule train_splats:
     shell:
         "python -m splat_train --seed-ply {input.seed:q} --cameras {input.cameras:q}/0 "
         "--images {input.scene:q}/images --image-list {input.image_list:q} --out {params.out:q} "
-        "{params.recipe} --seed {params.seed} "
-        "--eval-every {params.eval_every} --checkpoint-every {params.checkpoint_every} "
-        "--resume-dir {params.resume:q} --device {params.device} --threads {threads} "
+        "{params.recipe} {params.settings} --resume-dir {params.resume:q} --device {params.device} --threads {threads} "
         "{params.test} {params.pose} {params.lpips} {params.snapshot} > {log:q} 2>&1"
 
 
