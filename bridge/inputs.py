@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.arrays import check_npz
 from camio.cameras import Camera
 from runtime.names import check_name_list
 
@@ -99,6 +100,7 @@ def load_predictions(path: str | Path) -> BridgeInput:
     if not path.is_file():
         raise FileNotFoundError(f"predictions file {path} does not exist; run `python -m vggt_init` first")
     try:
+        check_npz(path)  # before numpy allocates what a header claims
         with np.load(path, allow_pickle=False) as z:
             files = list(z.files)
             d = {k: z[k] for k in PREDICTION_KEYS if k in files}

@@ -244,6 +244,10 @@ def _read_vertices(path: Path, raw: bytes | None = None) -> np.ndarray:
     """The vertex element of a binary little-endian PLY as a structured array (elements before
     it, such as a camera or a face list, are skipped by their exact sizes). ``raw``: the
     file's bytes when already read (``path`` then only names it in messages)."""
+    if raw is None and path.is_dir():
+        plys = sorted(path.glob("*.ply"))
+        raise PlyFormatError(f"{path} is a folder, not a PLY file: name the file"
+                             + (f" (it holds {plys[0].name}{', ...' if len(plys) > 1 else ''})" if plys else ""))
     raw = path.read_bytes() if raw is None else raw
     elements, pos = _header(path, raw)
     for name, count, props in elements:

@@ -20,13 +20,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import numbers
 import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB"]
+__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem"]
 
 
 @dataclass(frozen=True)
@@ -172,3 +173,14 @@ def _ranges_cached(cls: type) -> dict:
     if cls not in _CACHE:
         _CACHE[cls] = field_ranges(cls)
     return _CACHE[cls]
+
+
+def folder_problem(path: str | os.PathLike, what: str) -> str | None:
+    """Why ``path`` cannot be read as the folder ``what`` names (``"image folder"``), else None:
+    ``"<what> <path> does not exist"`` or ``"<what> <path> is a file, not a folder"``, the
+    one wording of every command that takes a folder (a file given for it is named as such)."""
+    if os.path.isdir(path):
+        return None
+    if os.path.lexists(path):
+        return f"{what} {path} is a file, not a folder: name the folder"
+    return f"{what} {path} does not exist"

@@ -53,7 +53,11 @@ import sys
 import threading
 from pathlib import Path
 
-import yaml
+from runtime.stops import stops_early
+
+stops_early()  # a stop while the script loads (until snakemake runs): one line, exit 128 + the signal
+
+import yaml  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
