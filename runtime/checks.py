@@ -27,7 +27,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem"]
+__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem", "NotAFolderError", "check_folder"]
 
 
 @dataclass(frozen=True)
@@ -184,3 +184,15 @@ def folder_problem(path: str | os.PathLike, what: str) -> str | None:
     if os.path.lexists(path):
         return f"{what} {path} is a file, not a folder: name the folder"
     return f"{what} {path} does not exist"
+
+
+class NotAFolderError(FileNotFoundError, NotADirectoryError):
+    """A folder argument that does not exist or is a file (:func:`check_folder`); caught by
+    whoever catches either ``FileNotFoundError`` or ``NotADirectoryError``."""
+
+
+def check_folder(path: str | os.PathLike, what: str) -> None:
+    """Raise :class:`NotAFolderError` with :func:`folder_problem`'s line unless ``path`` is a folder."""
+    problem = folder_problem(path, what)
+    if problem:
+        raise NotAFolderError(problem)

@@ -1,0 +1,311 @@
+"""Commands as a hostile user (or a scheduler) runs them: a stop signal while a command is still
+loading, paths that name a file where a folder belongs and the other way round, output paths
+under a file, array headers that claim more than their file holds, broken JSON, odd names.
+Every bad input is exit 2, one line naming the value and what to do, nothing written; every
+legitimate one works (docs/robustness.md)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+
+import numpy as np
+import pytest
+from numpy.lib import format as npy_format
+
+from _cli import ENV, ROOT, refused, run
+from _view_scene import make_cameras, make_model
+from camio.colmap import write_text_model
+from camio.ply import write_gaussian_ply
+
+
+def _listing(root) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> dict:
+    """A small synthetic scene (camio synth), a trained-looking model and its cameras."""
+    root = tmp_path_factory.mktemp("hostile")
+    p = run(["-m", "camio", "synth", "--out", str(root / "scene"), "--views", "6", "--width", "48", "-q"])
+    assert p.returncode == 0, p.stderr
+    c = make_model(30)
+    c.sh_rest = np.clip(c.sh_rest, -0.99, 0.99)
+    (root / "afile").write_text("hi\n")
+    (root / "empty").mkdir()
+    return {"root": root, "scene": root / "scene", "model": write_gaussian_ply(root / "model.ply", c),
+            "cams": write_text_model(root / "cams", make_cameras(48, 36, 4)), "afile": root / "afile",
+            "empty": root / "empty"}
+
+
+def _npy_header(shape, dtype="<f4", data: bytes = b"\0" * 64) -> bytes:
+    b = io.BytesIO()
+    npy_format.write_array_header_1_0(b, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return b.getvalue() + data
+
+
+# -- a stop while the command loads ------------------------------------------------------------
+
+EARLY = [  # (id, argv after python, the --out it would write or None)
+    ("camio", ["-m", "camio", "synth", "--views", "4", "--width", "32", "--out", "@out"]),
+    ("splat_train", ["-m", "splat_train", "export", "--format", "splat", "--out", "@out/m.splat", "@model"]),
+    ("bridge", ["-m", "bridge", "--colmap", "@scene/sparse/0", "--out", "@out"]),
+    ("evaluation", ["-m", "evaluation", "pose", "--pred", "@scene/sparse/0", "--ref", "@scene/sparse/0",
+                    "--out", "@out/pose.json"]),
+    ("vggt_init", ["-m", "vggt_init", "--images", "@scene/images", "--out", "@out"]),
+    ("photos", ["scripts/photos.py", "@scene/images", "--out", "@out", "-n"]),
+]
+
+
+def _started(proc: subprocess.Popen, first: str) -> list[str]:
+    """Read ``-X importtime`` lines until the one after ``first`` (the module that installs the
+    handlers): the command's own code has run past that point."""
+    seen, lines = False, []
+    for line in proc.stderr:
+        lines.append(line)
+        if seen:
+            return lines
+        seen = line.startswith("import time:") and line.split("|")[-1].strip() == first
+    raise AssertionError("".join(lines[-20:]))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("case,argv", EARLY, ids=[c[0] for c in EARLY])
+def test_a_stop_while_the_command_loads_is_one_line(scene, tmp_path, case, argv, sig):
+    """The signal comes right after the command's first line (before numpy, torch or pycolmap
+    are imported) and a little later, during those imports: one line, exit 128 + the signal, no
+    traceback, nothing written. (Within the first few ms, before any line of the project runs,
+    the interpreter's own defaults answer.)"""
+    rng = random.Random(f"{case}{sig}")
+    for delay in (0.0, rng.uniform(0.02, 0.15)):
+        out = tmp_path / f"out{delay:.3f}"
+        args = [str(scene["model"]) if a == "@model" else a.replace("@scene", str(scene["scene"]))
+                .replace("@out", str(out)) for a in argv]
+        proc = subprocess.Popen([sys.executable, "-X", "importtime", *args], cwd=ROOT, env=ENV, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        try:
+            head = _started(proc, "runtime.stops")
+            time.sleep(delay)
+            proc.send_signal(sig)
+            stdout, rest = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        err = [ln for ln in head + rest.splitlines(keepends=True) if not ln.startswith("import time:")]
+        text = "".join(err)
+        assert proc.returncode == 128 + sig, (delay, proc.returncode, text[-2000:])
+        assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-2000:]
+        lines = [ln for ln in err if ln.strip()]
+        assert len(lines) == 1 and f"stopped by {sig.name}" in lines[0], text[-2000:]
+        assert not out.exists(), _listing(out)
+
+
+# -- file and folder mix-ups -------------------------------------------------------------------
+
+def _video(scene, video, *extra):
+    return run(["-m", "splat_train", "render", "--model", str(scene["model"]), "--cameras", str(scene["cams"]),
+                "--width", "32", "--height", "24", "--frames", "2", "--path", "orbit", "--video", str(video),
+                *extra])
+
+
+VIDEO_OUTS = [  # (id, how the --video path is made, needles)
+    ("users-file", "mine.mp4", ("--video", "mine.mp4", "not written by")),
+    ("a-folder", "dir.mp4/", ("--video", "dir.mp4", "is a folder", "name the file")),
+    ("under-a-file", "notes.txt/v.mp4", ("--video", "notes.txt is a file, not a folder")),
+]
+
+
+@pytest.mark.parametrize("case,name,needles", VIDEO_OUTS, ids=[c[0] for c in VIDEO_OUTS])
+def test_a_video_path_it_cannot_write_is_refused_naming_video(scene, tmp_path, case, name, needles):
+    (tmp_path / "mine.mp4").write_bytes(b"the user's own")
+    (tmp_path / "dir.mp4").mkdir()
+    (tmp_path / "notes.txt").write_text("notes")
+    before = _listing(tmp_path)
+    line = refused(_video(scene, tmp_path / name.rstrip("/")), *needles)
+    assert "--out" not in line, line
+    assert _listing(tmp_path) == before and (tmp_path / "mine.mp4").read_bytes() == b"the user's own"
+
+
+def test_an_export_under_a_file_is_refused(scene, tmp_path):
+    (tmp_path / "notes.txt").write_text("notes")
+    refused(run(["-m", "splat_train", "export", "--format", "splat", "--out", str(tmp_path / "notes.txt" / "m.splat"),
+                 str(scene["model"])]), "--out", "notes.txt is a file, not a folder")
+    assert _listing(tmp_path) == {"notes.txt"}
+
+
+FOLDER_AS_PLY = [  # (id, argv with @dir for the folder given as a PLY file)
+    ("render-model", ["-m", "splat_train", "render", "--model", "@dir", "--cameras", "@cams", "--width", "32",
+                      "--height", "24", "--out", "@out"]),
+    ("train-seed-ply", ["-m", "splat_train", "--seed-ply", "@dir", "--cameras", "@scene/sparse/0", "--images",
+                        "@scene/images", "--iterations", "1", "--out", "@out"]),
+    ("floaters-model", ["-m", "evaluation", "floaters", "--model", "seed=@dir", "--align", "@afile", "--scene",
+                        "@scene", "--out", "@out/f.json"]),
+]
+
+
+@pytest.mark.parametrize("case,argv", FOLDER_AS_PLY, ids=[c[0] for c in FOLDER_AS_PLY])
+def test_a_folder_given_for_a_ply_is_named_as_a_folder(scene, tmp_path, case, argv):
+    (tmp_path / "dir").mkdir()
+    write_gaussian_ply(tmp_path / "dir" / "model.ply", make_model(5))
+    if case == "floaters-model":  # the model is read after the alignment
+        (tmp_path / "align.json").write_text(json.dumps({"scale": 1.0, "R": np.eye(3).tolist(), "t": [0, 0, 0]}))
+    args = [a.replace("@dir", str(tmp_path / "dir")).replace("@cams", str(scene["cams"]))
+            .replace("@scene", str(scene["scene"])).replace("@out", str(tmp_path / "out"))
+            .replace("@afile", str(tmp_path / "align.json")) for a in argv]
+    refused(run(args), "dir is a folder, not a PLY file", "model.ply")
+    assert not (tmp_path / "out").exists()
+
+
+FILE_AS_FOLDER = [  # (id, argv with @afile where a folder belongs, needles)
+    ("split-scene", ["-m", "camio", "split", "--scene", "@afile", "--n", "3", "--out", "@out/s.json"],
+     ("afile is a file, not a folder",)),
+    ("vggt-images", ["-m", "vggt_init", "--images", "@afile", "--out", "@out"], ("afile is a file, not a folder",)),
+    ("tables-results", ["-m", "evaluation", "tables", "--results", "@afile", "--out", "@out"],
+     ("results folder", "afile is a file, not a folder")),
+    ("convert-images-subdir", ["-m", "camio", "convert", "--src", "@scene", "--images-subdir", "@afile", "--out",
+                               "@out"], ("image folder", "afile is a file, not a folder")),
+]
+
+
+@pytest.mark.parametrize("case,argv,needles", FILE_AS_FOLDER, ids=[c[0] for c in FILE_AS_FOLDER])
+def test_a_file_given_for_a_folder_is_named_as_a_file(scene, tmp_path, case, argv, needles):
+    args = [a.replace("@afile", str(scene["afile"])).replace("@scene", str(scene["scene"]))
+            .replace("@out", str(tmp_path / "out")) for a in argv]
+    refused(run(args), *needles)
+    assert not (tmp_path / "out").exists()
+
+
+# -- array headers that claim more than the file holds ------------------------------------------
+
+def _npz(path, members: dict[str, bytes]) -> str:
+    with zipfile.ZipFile(path, "w") as z:
+        for k, v in members.items():
+            z.writestr(k + ".npy", v)
+    return str(path)
+
+
+def test_predictions_whose_header_claims_terabytes_are_refused_before_allocating(scene, tmp_path):
+    """A predictions.npz whose world_points header claims 10^12 values (a MemoryError traceback
+    asking for 10.9 TiB): refused from the header, in one line naming the file and the member,
+    under a 2 GB address-space limit, so nothing of the claimed size was asked for."""
+    huge = _npz(tmp_path / "huge.npz", {"world_points": _npy_header((10 ** 6, 10 ** 3, 10 ** 3, 3)),
+                                        "extrinsic": _npy_header((10 ** 6, 3, 4))})
+    proc = subprocess.run(["bash", "-c", 'ulimit -v 2000000 && exec "$@"', "-", sys.executable, "-m", "bridge",
+                           "--pred", huge, "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                          cwd=ROOT, env=ENV, timeout=120)
+    refused(proc, "huge.npz", "the header claims an array of shape", "write it again")
+    assert not (tmp_path / "out").exists()
+
+
+def test_predictions_holding_a_pickle_are_refused(scene, tmp_path):
+    buf = io.BytesIO()
+    np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    bad = _npz(tmp_path / "p.npz", {"world_points": buf.getvalue()})
+    refused(run(["-m", "bridge", "--pred", bad, "--out", str(tmp_path / "out")]), "p.npz", "Python objects")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("case", ["huge-header", "not-npy", "nex-intrinsics-not-npy"])
+def test_llff_poses_that_are_no_readable_array_are_refused(scene, tmp_path, case):
+    """poses_bounds.npy whose header claims 10^11 rows (numpy tried to allocate 13 TB), text
+    named .npy, and NeX's hwf_cxcy.npy as text: one line naming the file."""
+    src = tmp_path / "llff"
+    (src / "images").mkdir(parents=True)
+    for name in sorted(os.listdir(scene["scene"] / "images"))[:3]:
+        (src / "images" / name).write_bytes((scene["scene"] / "images" / name).read_bytes())
+    if case == "huge-header":
+        (src / "poses_bounds.npy").write_bytes(_npy_header((10 ** 11, 17), "<f8"))
+        needles = ("poses_bounds.npy", "header claims", "[100000000000, 17]")
+    elif case == "not-npy":
+        (src / "poses_bounds.npy").write_text("garbage")
+        needles = ("poses_bounds.npy", "not a readable")
+    else:
+        np.save(src / "poses_bounds.npy", np.zeros((3, 14)))
+        (src / "hwf_cxcy.npy").write_text("garbage")
+        needles = ("hwf_cxcy.npy", "not a readable")
+    refused(run(["-m", "camio", "convert", "--src", str(src), "--out", str(tmp_path / "out")]), *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_ply_whose_header_claims_a_trillion_vertices_is_refused(scene, tmp_path):
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\n"
+    head += "".join(f"property float {x}\n" for x in "xyz") + "end_header\n"
+    (tmp_path / "huge.ply").write_bytes(head.encode() + b"\0" * 120)
+    refused(run(["-m", "splat_train", "export", "--format", "splat", "--out", str(tmp_path / "o.splat"),
+                 str(tmp_path / "huge.ply")]), "huge.ply", "truncated", "1000000000000 vertices")
+    assert not (tmp_path / "o.splat").exists()
+
+
+@pytest.mark.parametrize("content", [b"", b"ply\nformat binary_little_endian 1.0\nelem"], ids=["empty", "cut-header"])
+def test_an_empty_or_cut_ply_is_refused(scene, tmp_path, content):
+    (tmp_path / "m.ply").write_bytes(content)
+    refused(run(["-m", "splat_train", "export", "--format", "splat", "--out", str(tmp_path / "o.splat"),
+                 str(tmp_path / "m.ply")]), "m.ply", "not a PLY file")
+    assert not (tmp_path / "o.splat").exists()
+
+
+# -- JSON and name lists -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("case,text,needles", [
+    ("not-json", "hi\n", ("align.json", "is not an align.json", "python -m evaluation align")),
+    ("nan-scale", '{"scale": NaN, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,0]}', ("align.json", "finite")),
+    ("r-not-3x3", '{"scale": 1, "R": [1, 0, 0], "t": [0,0,0]}', ("align.json", "R 3x3")),
+], ids=["not-json", "nan-scale", "r-not-3x3"])
+def test_floaters_refuse_an_alignment_it_cannot_use(scene, tmp_path, case, text, needles):
+    (tmp_path / "align.json").write_text(text)
+    refused(run(["-m", "evaluation", "floaters", "--model", f"seed={scene['model']}", "--align",
+                 str(tmp_path / "align.json"), "--scene", str(scene["scene"]), "--out", str(tmp_path / "f.json")]),
+            *needles)
+    assert not (tmp_path / "f.json").exists()
+
+
+@pytest.mark.parametrize("command", ["pose", "align"])
+@pytest.mark.parametrize("content", ["", "# only a comment\n\n"], ids=["empty", "comment-only"])
+def test_a_names_list_that_names_nothing_is_refused(scene, tmp_path, command, content):
+    """pose wrote a pose.json of 0 matched views (exit 0); align blamed the models."""
+    (tmp_path / "names.txt").write_text(content)
+    model = str(scene["scene"] / "sparse" / "0")
+    flag = "--names" if command == "pose" else "--train-names"
+    refused(run(["-m", "evaluation", command, "--pred", model, "--ref", model, flag, str(tmp_path / "names.txt"),
+                 "--out", str(tmp_path / "o.json")]), "names.txt names no image")
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_study_cells_that_are_not_json_are_refused_naming_the_flag(scene, tmp_path):
+    refused(run(["-m", "evaluation", "study", "--results", str(scene["empty"]), "--cells", '{"a":',
+                 "--out", str(tmp_path / "st")]), "--cells", "is not JSON")
+    assert not (tmp_path / "st").exists()
+
+
+# -- odd but legitimate names --------------------------------------------------------------------
+
+def test_an_out_with_a_line_break_in_its_name_works(tmp_path):
+    out = tmp_path / "new\nline dir"
+    p = run(["-m", "camio", "synth", "--out", str(out), "--views", "4", "--width", "32", "-q"])
+    assert p.returncode == 0, p.stderr
+    assert (out / "split.json").is_file() and (out / ".stage").read_text().startswith("camio synth")
+
+
+def test_a_split_into_a_folder_named_with_unicode_and_quotes_works(scene, tmp_path):
+    out = tmp_path / "ünï cødé \"q\" 's" / "split.json"
+    p = run(["-m", "camio", "split", "--scene", str(scene["scene"]), "--n", "3", "--out", str(out)])
+    assert p.returncode == 0, p.stderr
+    assert json.loads(out.read_text())["train"]["3"]
+
+
+def test_inputs_given_through_symbolic_links_are_read(scene, tmp_path):
+    """A model folder and a scene folder given as links: read as their targets (only an output
+    may not be a link)."""
+    (tmp_path / "model").symlink_to(scene["scene"] / "sparse" / "0")
+    (tmp_path / "scene").symlink_to(scene["scene"])
+    p = run(["-m", "evaluation", "pose", "--pred", str(tmp_path / "model"), "--ref", str(tmp_path / "model"),
+             "--out", str(tmp_path / "pose.json")])
+    assert p.returncode == 0 and json.loads((tmp_path / "pose.json").read_text())["n_matched"] == 6, p.stderr
+    p = run(["-m", "camio", "convert", "--src", str(tmp_path / "scene"), "--out", str(tmp_path / "conv")])
+    assert p.returncode == 0 and len(os.listdir(tmp_path / "conv" / "images")) == 6, p.stderr
