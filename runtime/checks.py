@@ -27,7 +27,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem", "NotAFolderError", "check_folder"]
+__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem", "NotAFolderError", "check_folder", "file_problem"]
 
 
 @dataclass(frozen=True)
@@ -196,3 +196,16 @@ def check_folder(path: str | os.PathLike, what: str) -> None:
     problem = folder_problem(path, what)
     if problem:
         raise NotAFolderError(problem)
+
+
+def file_problem(path: str | os.PathLike, what: str, suffix: str | None = None) -> str | None:
+    """Why ``path`` cannot be read as the file ``what`` names (``"predictions file"``), else
+    None: ``"<what> <path> does not exist"`` or ``"<what> <path> is a folder, not a file"``,
+    naming a file of ``suffix`` (``".ply"``) the folder holds, the likely meant one."""
+    if os.path.isfile(path):
+        return None
+    if os.path.isdir(path):
+        held = sorted(e for e in os.listdir(path) if suffix and e.lower().endswith(suffix)) if suffix else []
+        hint = f" (it holds {held[0]}{', ...' if len(held) > 1 else ''})" if held else ""
+        return f"{what} {path} is a folder, not a file: name the file{hint}"
+    return f"{what} {path} does not exist"

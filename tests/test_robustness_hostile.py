@@ -158,7 +158,7 @@ def test_a_folder_given_for_a_ply_is_named_as_a_folder(scene, tmp_path, case, ar
     args = [a.replace("@dir", str(tmp_path / "dir")).replace("@cams", str(scene["cams"]))
             .replace("@scene", str(scene["scene"])).replace("@out", str(tmp_path / "out"))
             .replace("@afile", str(tmp_path / "align.json")) for a in argv]
-    refused(run(args), "dir is a folder, not a PLY file", "model.ply")
+    refused(run(args), "PLY file", "dir is a folder, not a file", "model.ply")
     assert not (tmp_path / "out").exists()
 
 
@@ -309,3 +309,49 @@ def test_inputs_given_through_symbolic_links_are_read(scene, tmp_path):
     assert p.returncode == 0 and json.loads((tmp_path / "pose.json").read_text())["n_matched"] == 6, p.stderr
     p = run(["-m", "camio", "convert", "--src", str(tmp_path / "scene"), "--out", str(tmp_path / "conv")])
     assert p.returncode == 0 and len(os.listdir(tmp_path / "conv" / "images")) == 6, p.stderr
+
+
+FOLDER_AS_FILE = [  # (id, argv with @dir where a file belongs, needles)
+    ("bridge-pred", ["-m", "bridge", "--pred", "@dir", "--out", "@out"],
+     ("predictions file", "is a folder, not a file", "vggt_init")),
+    ("pose-names", ["-m", "evaluation", "pose", "--pred", "@model", "--ref", "@model", "--names", "@dir", "--out",
+                    "@out/p.json"], ("names file", "is a folder, not a file")),
+    ("vggt-image-list", ["-m", "vggt_init", "--images", "@scene/images", "--image-list", "@dir", "--out", "@out"],
+     ("image list", "is a folder, not a file")),
+    ("split-manifest", ["-m", "camio", "split", "--scene", "@scene", "--n", "3", "--manifest", "@dir", "--out",
+                        "@out/s.json"], ("split manifest", "is a folder, not a file")),
+]
+
+
+@pytest.mark.parametrize("case,argv,needles", FOLDER_AS_FILE, ids=[c[0] for c in FOLDER_AS_FILE])
+def test_a_folder_given_for_a_file_is_named_as_a_folder(scene, tmp_path, case, argv, needles):
+    """bridge said `predictions file DIR does not exist`, pose `names file DIR does not exist`,
+    vggt_init raised a bare `IsADirectoryError` traceback."""
+    args = [a.replace("@dir", str(scene["empty"])).replace("@model", str(scene["scene"] / "sparse" / "0"))
+            .replace("@scene", str(scene["scene"])).replace("@out", str(tmp_path / "out")) for a in argv]
+    refused(run(args), *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_names_list_that_is_not_text_is_refused(scene, tmp_path):
+    (tmp_path / "names.txt").write_bytes(b"ab\xff\xfe\x00\x81cd\n")
+    model = str(scene["scene"] / "sparse" / "0")
+    refused(run(["-m", "evaluation", "align", "--pred", model, "--ref", model, "--train-names",
+                 str(tmp_path / "names.txt"), "--out", str(tmp_path / "a.json")]), "names.txt", "not a text file")
+    assert not (tmp_path / "a.json").exists()
+
+
+def test_a_depth_prior_whose_header_claims_terabytes_is_refused(scene, tmp_path):
+    huge = _npz(tmp_path / "prior.npz", {"z": _npy_header((10 ** 12,)), "xy": _npy_header((10 ** 12, 2))})
+    refused(run(["-m", "splat_train", "--seed-ply", str(scene["model"]), "--cameras", str(scene["scene"] / "sparse" / "0"),
+                 "--images", str(scene["scene"] / "images"), "--depth-prior", huge, "--iterations", "1",
+                 "--out", str(tmp_path / "out")]), "prior.npz", "header claims", "write it again")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_split_manifest_that_is_not_json_is_refused(scene, tmp_path):
+    (tmp_path / "m.json").write_bytes(b"\xff\xfe not json")
+    refused(run(["-m", "camio", "split", "--scene", str(scene["scene"]), "--n", "3", "--manifest",
+                 str(tmp_path / "m.json"), "--out", str(tmp_path / "s.json")]), "split manifest", "m.json",
+            "give a JSON object")
+    assert not (tmp_path / "s.json").exists()

@@ -26,6 +26,7 @@ from runtime.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.metrics.align import fit_sim3_cameras, transform_cam_from_world
+from runtime.checks import file_problem
 
 __all__ = ["load_names", "test_cameras_in_model_frame", "run_align", "TRAIN_CAMERAS"]
 
@@ -52,8 +53,9 @@ def load_names(spec: str | Path, which: str = "train", n: int | None = None,
         Sorted unique names.
     """
     path = Path(spec)
-    if not path.is_file():
-        raise FileNotFoundError(f"names file {path} does not exist")
+    problem = file_problem(path, "names file")
+    if problem:
+        raise FileNotFoundError(problem)
     try:
         text = path.read_text()
     except UnicodeDecodeError as exc:
