@@ -355,3 +355,56 @@ def test_a_split_manifest_that_is_not_json_is_refused(scene, tmp_path):
                  str(tmp_path / "m.json"), "--out", str(tmp_path / "s.json")]), "split manifest", "m.json",
             "give a JSON object")
     assert not (tmp_path / "s.json").exists()
+
+
+# -- a snakemake run killed outright ---------------------------------------------------------------
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            kids += [int(x) for x in f.read().split()]
+    return kids
+
+
+def test_photos_after_snakemake_was_killed_names_the_stale_lock_and_unlocks_it(tmp_path):
+    """SIGKILL of snakemake (and of the script) while it runs leaves its lock; the rerun said
+    `LockException` / `Directory cannot be locked` from inside snakemake. Now: exit 2, one line
+    naming the lock and `--unlock`, nothing run; `--unlock` removes only that run's lock files
+    and the run goes on."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    from camio.images import write_image
+
+    for i in range(3):
+        write_image(photos / f"p{i}.png", rng.uniform(size=(48, 64, 3)).astype(np.float32))
+    out = tmp_path / "out"
+    locks = ROOT / ".snakemake" / "locks"
+    proc = subprocess.Popen([sys.executable, "scripts/photos.py", str(photos), "--out", str(out), "--init", "colmap",
+                             "--cores", "1"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 90
+        held = []
+        while time.monotonic() < deadline and not held:
+            time.sleep(0.2)
+            held = [p for p in locks.glob("*.lock") if str(out) in p.read_text(errors="replace")] \
+                if locks.is_dir() else []
+        assert held, "snakemake never locked the folder"
+        for kid in _children(proc.pid):
+            os.killpg(kid, signal.SIGKILL)  # snakemake and its jobs (a session of their own)
+        proc.kill()
+        proc.wait()
+        assert all(p.exists() for p in held)  # what SIGKILL leaves behind
+        before = _listing(out)
+        line = refused(run(["scripts/photos.py", str(photos), "--out", str(out), "-n"]), "locked", "no longer running",
+                       "--unlock")
+        assert str(out) in line and _listing(out) == before
+        p = run(["scripts/photos.py", str(photos), "--out", str(out), "-n", "--unlock"], timeout=300)
+        assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+        assert "removed" in p.stdout and not any(p.exists() for p in held)
+    finally:
+        proc.kill()
+        for p in locks.glob("*.lock") if locks.is_dir() else []:
+            if str(out) in p.read_text(errors="replace"):
+                p.unlink(missing_ok=True)
