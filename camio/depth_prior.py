@@ -62,6 +62,11 @@ class DepthSamples:
             raise ValueError(f"depth prior: {len(self.image_names)} images but {len(self.image_sizes)} sizes")
         if m and (self.view.min() < 0 or self.view.max() >= len(self.image_names)):
             raise ValueError("depth prior: a sample's view index is outside image_names")
+        bad = {k: int((~np.isfinite(v)).any(axis=-1).sum() if v.ndim > 1 else (~np.isfinite(v)).sum())
+               for k, v in (("xy", self.xy), ("z", self.z), ("weight", self.weight))}
+        if any(bad.values()):
+            raise ValueError("depth prior: non-finite samples (" + ", ".join(f"{k}: {n}" for k, n in bad.items() if n)
+                             + "); write it again with the Bridge")
         if self.source not in ("dense", "sparse"):
             raise ValueError(f"depth prior: source must be 'dense' or 'sparse', got {self.source!r}")
 

@@ -440,3 +440,23 @@ def test_install_dry_run_keeps_or_refuses_the_machines_torch(tmp_path, case, ver
     for n in needles:
         assert n in text, (n, text)
     assert not (tmp_path / "venv").exists() and "Traceback" not in text
+
+
+def test_a_depth_prior_with_non_finite_samples_is_refused(scene, tmp_path):
+    """A NaN depth and an infinite weight were accepted and trained on (exit 0); now refused when
+    the file is read, naming how many samples of each field are not finite."""
+    from camio.depth_prior import DEPTH_PRIOR_FILE
+
+    names = sorted(os.listdir(scene["scene"] / "images"))
+    z = np.ones(4, np.float32)
+    z[1] = np.nan
+    weight = np.ones(4, np.float32)
+    weight[2] = np.inf
+    np.savez(tmp_path / DEPTH_PRIOR_FILE, image_names=np.asarray(names), image_sizes=np.full((len(names), 2), 48),
+             view=np.zeros(4, np.int64), xy=np.full((4, 2), 10.0, np.float32), z=z, weight=weight,
+             source=np.asarray("sparse"))
+    refused(run(["-m", "splat_train", "--seed-ply", str(scene["model"]), "--cameras", str(scene["scene"] / "sparse" / "0"),
+                 "--images", str(scene["scene"] / "images"), "--depth-prior", str(tmp_path / DEPTH_PRIOR_FILE),
+                 "--iterations", "1", "--out", str(tmp_path / "out")]), DEPTH_PRIOR_FILE, "non-finite", "z: 1",
+            "weight: 1")
+    assert not (tmp_path / "out").exists()
