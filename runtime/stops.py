@@ -20,6 +20,13 @@ in half (``runtime.atomic``'s temporary names, ``runtime.outdir``'s markers and 
 A signal ignored when the command started stays ignored (``nohup`` ignores SIGHUP, a shell
 ignores SIGINT in the jobs it starts in the background).
 
+Before :func:`stops_caught` takes over, while a command is still loading (numpy, torch and
+pycolmap take a second or more to import) and parsing its arguments, :func:`stops_early` ends it
+at once with the same line and exit code: each stage package calls :func:`early_if_main` first
+in its ``__init__``, which acts only when the process was started with ``python -m``. A stop
+that lands inside a native module's initialisation surfaces as that module's ``ImportError``;
+:func:`stopping` tells the command's ending that it was a stop.
+
 Limits: Python runs a handler between two bytecodes of the main thread, so a stop that comes
 during one long native call (a pycolmap reconstruction step) takes effect when that call
 returns.

@@ -170,6 +170,12 @@ FILE_AS_FOLDER = [  # (id, argv with @afile where a folder belongs, needles)
      ("results folder", "afile is a file, not a folder")),
     ("convert-images-subdir", ["-m", "camio", "convert", "--src", "@scene", "--images-subdir", "@afile", "--out",
                                "@out"], ("image folder", "afile is a file, not a folder")),
+    ("images-pred", ["-m", "evaluation", "images", "--pred", "@afile", "--gt", "@scene/images", "--out", "@out/m.json"],
+     ("image folder", "afile is a file, not a folder")),
+    ("report-results", ["-m", "evaluation", "report", "--results", "@afile", "--out", "@out"],
+     ("results folder", "afile is a file, not a folder")),
+    ("plots-results", ["-m", "evaluation", "plots", "--results", "@afile", "--out", "@out"],
+     ("results folder", "afile is a file, not a folder")),
 ]
 
 
