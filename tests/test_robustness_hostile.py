@@ -374,10 +374,11 @@ def _children(pid: int) -> list[int]:
 
 
 def test_photos_after_snakemake_was_killed_names_the_stale_lock_and_unlocks_it(tmp_path):
-    """SIGKILL of snakemake (and of the script) while it runs leaves its lock; the rerun said
-    `LockException` / `Directory cannot be locked` from inside snakemake. Now: exit 2, one line
-    naming the lock and `--unlock`, nothing run; `--unlock` removes only that run's lock files
-    and the run goes on."""
+    """While the run goes on, a second command on the folder (even with --unlock) is refused
+    naming snakemake's pid. SIGKILL of snakemake (and of the script) leaves its lock; the rerun
+    said `LockException` / `Directory cannot be locked` from inside snakemake. Now: exit 2, one
+    line naming the lock and `--unlock`, nothing run; `--unlock` removes only that run's lock
+    files and the run goes on."""
     photos = tmp_path / "photos"
     photos.mkdir()
     rng = np.random.default_rng(0)
@@ -397,7 +398,12 @@ def test_photos_after_snakemake_was_killed_names_the_stale_lock_and_unlocks_it(t
             held = [p for p in locks.glob("*.lock") if str(out) in p.read_text(errors="replace")] \
                 if locks.is_dir() else []
         assert held, "snakemake never locked the folder"
-        for kid in _children(proc.pid):
+        kids = _children(proc.pid)
+        alive = run(["scripts/photos.py", str(photos), "--out", str(out), "-n", "--unlock"])  # while it runs
+        line = refused(alive, "is being run by snakemake (pid ")
+        assert os.path.exists(f"/proc/{line.split('(pid ')[1].split(',')[0]}"), line  # a live process
+        assert all(p.exists() for p in held)
+        for kid in kids:
             os.killpg(kid, signal.SIGKILL)  # snakemake and its jobs (a session of their own)
         proc.kill()
         proc.wait()
