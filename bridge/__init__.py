@@ -5,6 +5,10 @@ of the paper live in :mod:`bridge.equations`; point selection in :mod:`bridge.se
 the stage in :mod:`bridge.core`; the CLI is ``python -m bridge``.
 """
 
+from runtime.stops import early_if_main as _early
+
+_early()  # first: a stop while `python -m` loads the command is one line, exit 128 + the signal
+
 from bridge.core import MODES, BridgeConfig, SeedResult, build_seed, run_bridge, write_outputs
 from bridge.equations import global_coordinate_normalisation, uncertainty_gated_opacity
 from bridge.inputs import BridgeInput, load_colmap, load_predictions

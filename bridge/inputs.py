@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from camio.arrays import check_npz
 from camio.cameras import Camera
+from runtime.checks import file_problem
 from runtime.names import check_name_list
 
 __all__ = ["BridgeInput", "load_predictions", "load_colmap", "PREDICTION_KEYS"]
@@ -96,9 +98,11 @@ def load_predictions(path: str | Path) -> BridgeInput:
             schema; a wrong shape).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"predictions file {path} does not exist; run `python -m vggt_init` first")
+    problem = file_problem(path, "predictions file")
+    if problem:
+        raise FileNotFoundError(f"{problem}; run `python -m vggt_init` first")
     try:
+        check_npz(path)  # before numpy allocates what a header claims
         with np.load(path, allow_pickle=False) as z:
             files = list(z.files)
             d = {k: z[k] for k in PREDICTION_KEYS if k in files}

@@ -16,6 +16,10 @@ Conventions (stated once, converted at every boundary):
 * Images are float32 RGB in [0, 1], shape [H, W, 3], unless a function says otherwise.
 """
 
+from runtime.stops import early_if_main as _early
+
+_early()  # first: a stop while `python -m` loads the command is one line, exit 128 + the signal
+
 from camio.cameras import (
     Camera,
     camera_center,

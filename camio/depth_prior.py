@@ -21,11 +21,13 @@ Keys (one row per sample unless said):
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from camio.arrays import check_npz
 from runtime.names import check_name_list
 
 __all__ = ["DEPTH_PRIOR_FILE", "DepthSamples", "write_depth_prior", "read_depth_prior"]
@@ -60,6 +62,11 @@ class DepthSamples:
             raise ValueError(f"depth prior: {len(self.image_names)} images but {len(self.image_sizes)} sizes")
         if m and (self.view.min() < 0 or self.view.max() >= len(self.image_names)):
             raise ValueError("depth prior: a sample's view index is outside image_names")
+        bad = {k: int((~np.isfinite(v)).any(axis=-1).sum() if v.ndim > 1 else (~np.isfinite(v)).sum())
+               for k, v in (("xy", self.xy), ("z", self.z), ("weight", self.weight))}
+        if any(bad.values()):
+            raise ValueError("depth prior: non-finite samples (" + ", ".join(f"{k}: {n}" for k, n in bad.items() if n)
+                             + "); write it again with the Bridge")
         if self.source not in ("dense", "sparse"):
             raise ValueError(f"depth prior: source must be 'dense' or 'sparse', got {self.source!r}")
 
@@ -77,6 +84,7 @@ def read_depth_prior(path: str | Path) -> DepthSamples:
     """Read a depth-prior file; ValueError naming the file when a key is missing or malformed."""
     path = Path(path)
     try:
+        check_npz(path)  # before numpy allocates what a header claims
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in _KEYS if k not in data]
             if missing:
@@ -84,5 +92,5 @@ def read_depth_prior(path: str | Path) -> DepthSamples:
             names = check_name_list([str(x) for x in data["image_names"]], path)
             return DepthSamples(names, data["image_sizes"], data["view"],
                                 data["xy"], data["z"], data["weight"], str(data["source"]))
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a readable depth prior (docs/contracts.md, 'Bridge output'): {exc}") from exc

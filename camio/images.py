@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.atomic import atomic_path
+from runtime.checks import check_folder
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -104,8 +105,7 @@ def list_images(folder: str | Path) -> list[str]:
     with whitespace is refused (:func:`check_image_name`).
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"image folder {folder} does not exist")
+    check_folder(folder, "image folder")
     return sorted(
         check_image_name(p.name, folder) for p in folder.iterdir()
         if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS

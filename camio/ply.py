@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.atomic import atomic_path
+from runtime.checks import file_problem
 
 __all__ = ["GaussianCloud", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "write_gaussian_ply",
            "read_gaussian_ply", "ply_comments", "ply_vertex_count", "PlyFormatError", "write_points_ply",
@@ -244,6 +245,8 @@ def _read_vertices(path: Path, raw: bytes | None = None) -> np.ndarray:
     """The vertex element of a binary little-endian PLY as a structured array (elements before
     it, such as a camera or a face list, are skipped by their exact sizes). ``raw``: the
     file's bytes when already read (``path`` then only names it in messages)."""
+    if raw is None and path.is_dir():
+        raise PlyFormatError(file_problem(path, "PLY file", ".ply"))
     raw = path.read_bytes() if raw is None else raw
     elements, pos = _header(path, raw)
     for name, count, props in elements:

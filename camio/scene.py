@@ -38,8 +38,10 @@ from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelErro
     find_model_dir, read_model
 from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_middlebury, read_mvsnet, read_strecha, \
     split_photos
+from camio.arrays import check_npy
 from camio.images import image_size, list_images, read_image
 from camio.limits import check_image_size
+from runtime.checks import folder_problem
 
 __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_size", "read_llff_poses",
            "llff_to_cam_from_world", "FORMATS", "REFERENCE_FORMATS", "UNDISTORTABLE_MODELS"]
@@ -128,8 +130,9 @@ def _resolve_images(root: Path, images_subdir: str | Path | None) -> Path:
     if images_subdir is not None:
         d = Path(images_subdir)
         d = d if d.is_absolute() else root / d
-        if not d.is_dir():
-            raise SceneError(f"image folder {d} does not exist")
+        problem = folder_problem(d, "image folder")
+        if problem:
+            raise SceneError(problem)
         return d
     if (root / "images").is_dir():
         return root / "images"
@@ -358,7 +361,11 @@ def read_llff_poses(npy: str | Path, names: list[str], image_dir: Path | None = 
     npy = Path(npy)
     if not npy.is_file():
         raise SceneError(f"no LLFF poses file {npy}")
-    arr = np.load(npy)
+    try:
+        check_npy(npy)  # before numpy allocates what the header claims
+        arr = np.load(npy, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise SceneError(f"{npy}: not a readable poses_bounds.npy ({exc})") from None
     if arr.ndim != 2 or arr.shape[1] not in (14, 15, 17):
         raise SceneError(f"{npy}: expected an [N, 17] poses_bounds array (or NeX's [N, 14]), got shape {arr.shape}")
     if len(arr) != len(names):
@@ -385,7 +392,11 @@ def _nex_intrinsics(path: Path, npy: Path) -> tuple[float, ...]:
     if not path.is_file():
         raise SceneError(f"{npy}: rows of 14 are NeX's layout, whose intrinsics are in {path.name} beside it; "
                          f"there is no {path}")
-    v = np.load(path).astype(np.float64).reshape(-1)
+    try:
+        check_npy(path)
+        v = np.load(path, allow_pickle=False).astype(np.float64).reshape(-1)
+    except (ValueError, OSError, EOFError) as exc:
+        raise SceneError(f"{path}: not a readable {NEX_INTRINSICS} ({exc})") from None
     if v.size != 6 or not np.all(np.isfinite(v)) or v[:4].min() <= 0:
         raise SceneError(f"{path}: expected 6 finite numbers H, W, fx, fy, cx, cy (H, W, fx, fy > 0), got "
                          f"{v.size} values {v.tolist()[:6]}")

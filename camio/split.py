@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.atomic import write_json
+from runtime.checks import file_problem
 
 __all__ = ["Split", "every8_split", "select_train", "make_split", "load_manifest", "write_split",
            "read_split", "TEST_EVERY"]
@@ -79,10 +80,14 @@ def load_manifest(path: str | Path) -> dict:
     ``{"test": [...], "train": {"3": [...], "6": [...]}}``; ``train_pool`` optional.
     """
     path = Path(path)
+    problem = file_problem(path, "split manifest")
+    if problem:
+        raise ValueError(problem)
     try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"cannot read split manifest {path}: {exc}") from exc
+        data = json.loads(path.read_bytes())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read split manifest {path}: {exc}; give a JSON object with 'test' and "
+                         "'train'") from exc
     if not isinstance(data, dict) or "test" not in data or "train" not in data:
         raise ValueError(f"split manifest {path} must be a JSON object with 'test' and 'train'")
     if not isinstance(data["test"], list) or not isinstance(data["train"], (list, dict)):

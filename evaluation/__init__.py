@@ -11,3 +11,7 @@ tests/test_import_layers.py):
 ``python -m evaluation <command>`` (:mod:`evaluation.__main__`) is the CLI of the metrics,
 the reports and the study.
 """
+
+from runtime.stops import early_if_main as _early
+
+_early()  # first: a stop while `python -m` loads the command is one line, exit 128 + the signal

@@ -98,7 +98,11 @@ def _cmd_study(args) -> int:
     cells = {}
     if args.cells:
         text = args.cells if args.cells.lstrip().startswith("{") else Path(args.cells).read_text()
-        cells = json.loads(text)
+        try:
+            cells = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--cells {args.cells[:60]!r} is not JSON ({exc}): give the grid as JSON text "
+                             "or a JSON file (evaluation.study.grid)") from None
     if args.write_cells:
         write_json(args.write_cells, cells)
     run_study(args.results, args.out, cells, references=args.reference, seeds=args.seeds, views=args.views)

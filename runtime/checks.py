@@ -20,13 +20,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import numbers
 import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB"]
+__all__ = ["Range", "flag", "flag_of", "check_fields", "field_ranges", "RGB", "folder_problem", "NotAFolderError", "check_folder", "file_problem"]
 
 
 @dataclass(frozen=True)
@@ -172,3 +173,39 @@ def _ranges_cached(cls: type) -> dict:
     if cls not in _CACHE:
         _CACHE[cls] = field_ranges(cls)
     return _CACHE[cls]
+
+
+def folder_problem(path: str | os.PathLike, what: str) -> str | None:
+    """Why ``path`` cannot be read as the folder ``what`` names (``"image folder"``), else None:
+    ``"<what> <path> does not exist"`` or ``"<what> <path> is a file, not a folder"``, the
+    one wording of every command that takes a folder (a file given for it is named as such)."""
+    if os.path.isdir(path):
+        return None
+    if os.path.lexists(path):
+        return f"{what} {path} is a file, not a folder: name the folder"
+    return f"{what} {path} does not exist"
+
+
+class NotAFolderError(FileNotFoundError, NotADirectoryError):
+    """A folder argument that does not exist or is a file (:func:`check_folder`); caught by
+    whoever catches either ``FileNotFoundError`` or ``NotADirectoryError``."""
+
+
+def check_folder(path: str | os.PathLike, what: str) -> None:
+    """Raise :class:`NotAFolderError` with :func:`folder_problem`'s line unless ``path`` is a folder."""
+    problem = folder_problem(path, what)
+    if problem:
+        raise NotAFolderError(problem)
+
+
+def file_problem(path: str | os.PathLike, what: str, suffix: str | None = None) -> str | None:
+    """Why ``path`` cannot be read as the file ``what`` names (``"predictions file"``), else
+    None: ``"<what> <path> does not exist"`` or ``"<what> <path> is a folder, not a file"``,
+    naming a file of ``suffix`` (``".ply"``) the folder holds, the likely meant one."""
+    if os.path.isfile(path):
+        return None
+    if os.path.isdir(path):
+        held = sorted(e for e in os.listdir(path) if suffix and e.lower().endswith(suffix)) if suffix else []
+        hint = f" (it holds {held[0]}{', ...' if len(held) > 1 else ''})" if held else ""
+        return f"{what} {path} is a folder, not a file: name the file{hint}"
+    return f"{what} {path} does not exist"

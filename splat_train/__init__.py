@@ -7,6 +7,10 @@ config check reads) does not import torch.
 """
 from __future__ import annotations
 
+from runtime.stops import early_if_main as _early
+
+_early()  # first: a stop while `python -m` loads the command is one line, exit 128 + the signal
+
 import importlib
 import sys
 import types

@@ -201,15 +201,16 @@ def _testpose_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: bool = True) -> bool:
+def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: bool = True, flag: str = "--out") -> bool:
     """camio's output rule for ``--out`` (runtime.outdir); False after logging the one-line refusal.
     ``fresh``: the command writes a folder of results (renders) and first removes its earlier
     run's files, so the folder never mixes two runs (seal it with runtime.outdir.seal_out).
-    ``folder``: False for a command that writes one file (an export, a video)."""
+    ``folder``: False for a command that writes one file (an export, a video); ``flag``: the
+    option that named ``out`` (``--video``), as the refusal names it."""
     from runtime.outdir import OutputFolderError, prepare_out
 
     try:
-        prepare_out(out, inputs, stage, fresh=fresh, folder=folder)
+        prepare_out(out, inputs, stage, fresh=fresh, folder=folder, flag=flag)
     except OutputFolderError as exc:
         log.error("%s", exc)
         return False
@@ -259,7 +260,7 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
         log.error("%s", exc)
         return 2
     if not _out_ok(args.video, {"--model": args.model, "--cameras": args.cameras, "--image-list": args.image_list},
-                   "splat_train render", folder=False):
+                   "splat_train render", folder=False, flag="--video"):
         return 2
     from camio.ply import check_seed_cloud, read_gaussian_ply
     from splat_train.flythrough import render_path

@@ -78,7 +78,7 @@ EXPORT_REFUSALS = [  # (id, format, out name, model, needles in the one line)
     ("inf-model", "spz", "i.spz", "inf", ("inf.ply", "non-finite", "log scales")),
     ("zero-gaussians", "splat", "e.splat", "empty", ("empty.ply", "no Gaussians")),
     ("not-a-ply", "splat", "t.splat", "text", ("text.ply", "not a PLY")),
-    ("model-a-folder", "splat", "f.splat", "root", ("Is a directory",)),
+    ("model-a-folder", "splat", "f.splat", "root", ("is a folder, not a file", "name the file (it holds")),
     ("sh-degree-4-to-ply", "ply", "d.ply", "deg4", ("d.ply", "SH degree 4", "degree 3 at most")),
     ("sh-degree-4-to-spz", "spz", "d.spz", "deg4", ("d.spz", "SH degree 4", "--format splat")),
     ("f-rest-count-no-degree", "splat", "o.splat", "odd", ("odd.ply", "30 f_rest", "3DGS layout")),

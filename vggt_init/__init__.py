@@ -15,6 +15,10 @@ CLI: ``python -m vggt_init --images DIR --out DIR [--checkpoint PATH] [--model-c
 [--no-retain-memory]``.
 """
 
+from runtime.stops import early_if_main as _early
+
+_early()  # first: a stop while `python -m` loads the command is one line, exit 128 + the signal
+
 import os as _os
 
 # torch's CPU allocator maps every allocation of 2 MB or more as transparent huge pages when

@@ -107,6 +107,11 @@ class RunOptions:
 def _image_paths(opts: RunOptions) -> list[Path]:
     folder = Path(opts.images)
     if opts.image_list is not None:
+        from runtime.checks import file_problem
+
+        problem = file_problem(opts.image_list, "image list")
+        if problem:
+            raise ImageInputError(problem)
         names = [ln.strip() for ln in Path(opts.image_list).read_text().splitlines()
                  if ln.strip() and not ln.strip().startswith("#")]
         if not names:

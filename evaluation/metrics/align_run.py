@@ -26,6 +26,7 @@ from runtime.atomic import write_json
 from camio.cameras import Camera
 from camio.colmap import read_model, write_text_model
 from evaluation.metrics.align import COLLINEAR_TOL, fit_sim3_cameras, transform_cam_from_world
+from runtime.checks import file_problem
 
 __all__ = ["load_names", "test_cameras_in_model_frame", "run_align", "TRAIN_CAMERAS"]
 
@@ -52,17 +53,30 @@ def load_names(spec: str | Path, which: str = "train", n: int | None = None,
         Sorted unique names.
     """
     path = Path(spec)
-    if not path.is_file():
-        raise FileNotFoundError(f"names file {path} does not exist")
-    text = path.read_text()
-    if path.suffix.lower() != ".json":
-        return sorted({ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")})
+    problem = file_problem(path, "names file")
+    if problem:
+        raise FileNotFoundError(problem)
     try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from exc
-    if isinstance(data, list):
-        return sorted(set(map(str, data)))
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path} is not a text file of names ({exc.reason} at byte {exc.start})") from None
+    if path.suffix.lower() != ".json":
+        names = sorted({ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")})
+    else:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path} is not valid JSON: {exc}") from exc
+        if not isinstance(data, list):
+            return _split_names(path, data, which, n, available)
+        names = sorted(set(map(str, data)))
+    if not names:  # a list given by hand that names nothing is a mistake (a split's empty list is not)
+        raise ValueError(f"{path} names no image: give one image name per line (or a JSON list, or a split.json)")
+    return names
+
+
+def _split_names(path: Path, data: object, which: str, n: int | None, available: list[str] | None) -> list[str]:
+    """:func:`load_names` of a split.json's parsed ``data``."""
     if not isinstance(data, dict) or "test" not in data or "train" not in data:
         raise ValueError(f"{path}: expected a JSON list of names or a split.json with 'test' and 'train'")
     if which == "test":

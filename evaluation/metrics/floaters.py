@@ -95,6 +95,26 @@ def surface_distance(scene: str | Path, points_ref: np.ndarray) -> np.ndarray:
     return mesh.raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
 
 
+def read_align(path: str | Path) -> Sim3:
+    """The model-to-reference Sim(3) of an align.json (``scale``, ``R`` [3, 3], ``t`` [3]).
+
+    Raises:
+        ValueError: one line naming the file: not JSON, a field missing or of the wrong shape,
+            or a value that is not finite (a NaN scale makes every distance NaN).
+    """
+    try:
+        rec = json.loads(Path(path).read_bytes())
+        scale, R, t = (np.asarray(rec[k], np.float64) for k in ("scale", "R", "t"))
+        shapes_ok = scale.shape == () and R.shape == (3, 3) and t.shape == (3,)
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path} is not an align.json ({type(exc).__name__}: {exc}); write it with "
+                         "`python -m evaluation align`") from None
+    if not shapes_ok or not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(scale) and scale > 0):
+        raise ValueError(f"{path}: scale must be a finite number > 0, R 3x3 and t 3 finite numbers; write it "
+                         "again with `python -m evaluation align`")
+    return Sim3(float(scale), R, t)
+
+
 def run_floaters(models: dict[str, str | Path], align: str | Path, scene: str | Path,
                  out: str | Path, tau_rel: float | None = None) -> dict:
     """Floater measure of each model (name -> PLY in the run's model frame) -> ``out`` JSON.
@@ -111,8 +131,7 @@ def run_floaters(models: dict[str, str | Path], align: str | Path, scene: str | 
     ref = read_model(scene / "sparse" / "0")
     r_ref = trajectory_radius(np.stack([ref.camera(n).center for n in ref.names]))
     tau = tau_rel * r_ref
-    rec = json.loads(Path(align).read_text())
-    sim = Sim3(rec["scale"], rec["R"], rec["t"])
+    sim = read_align(align)
     result = {"tau_rel": float(tau_rel), "tau": tau, "r_ref": r_ref,
               "definition": "opacity-weighted fraction of Gaussians farther than tau from the GT mesh"}
     for name, path in models.items():

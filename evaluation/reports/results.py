@@ -60,6 +60,7 @@ import pandas as pd
 
 from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
 from evaluation.reports.markup import counted
+from runtime.checks import check_folder
 
 __all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_log", "best_along", "read_run",
            "collect_runs", "STAGES"]
@@ -119,8 +120,7 @@ def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
     out with a warning.
     """
     results = Path(results)
-    if not results.is_dir():
-        raise FileNotFoundError(f"results folder {results} does not exist")
+    check_folder(results, "results folder")
     out = []
     for p in sorted(results.glob("*/*/n*/*")):
         if not (p.is_dir() and _N_DIR.match(p.parent.name)) or p.parts[-4] == "benchmarks":
