@@ -1,5 +1,5 @@
 """One list per concept: the initialisers (evaluation/initialisers/registry.py), the Bridge modes
-(camio/modes.py) and the training recipes (splat_train/recipes.py). The config schema names
+(runtime/modes.py) and the training recipes (splat_train/recipes.py). The config schema names
 these lists rather than copying them (``x-enum-from``, filled by the config check), the stages
 and the study read them, and the workflow's rules have what the registry says each initialiser
 runs and writes."""
@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from bridge.core import MODES
-from camio.modes import BRIDGE_MODES
+from runtime.modes import BRIDGE_MODES
 from evaluation.initialisers import registry
 from evaluation.study import collect
 from splat_train.recipes import RECIPE_NAMES
@@ -83,15 +83,15 @@ def test_reading_the_lists_imports_no_heavy_module():
 
 
 def test_no_module_spells_out_the_bridge_modes():
-    """The tuple ("gated", "uniform", "filtered") is written once in the packages: camio/modes.py."""
+    """The tuple ("gated", "uniform", "filtered") is written once in the packages: runtime/modes.py."""
     found = []
-    for pkg in ("camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks"):
+    for pkg in ("runtime", "camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks"):
         for path in sorted((REPO / pkg).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, (ast.Tuple, ast.List)) and len(node.elts) >= 2 and all(
                         isinstance(e, ast.Constant) and e.value in BRIDGE_MODES for e in node.elts):
                     found.append(str(path.relative_to(REPO)))
-    assert found == ["camio/modes.py"], found
+    assert found == ["runtime/modes.py"], found
 
 
 @pytest.mark.parametrize("name", registry.NAMES)

@@ -76,8 +76,8 @@ PHOTOS_SCRIPT = str(
 )
 
 # The initialisers and the Bridge modes, each listed once (evaluation/initialisers/registry.py,
-# camio/modes.py): the wildcards, the rules and the planning read them.
-from camio.modes import BRIDGE_MODES
+# runtime/modes.py): the wildcards, the rules and the planning read them.
+from runtime.modes import BRIDGE_MODES
 from evaluation.initialisers import registry as initialisers
 
 # a wildcard constraint matching exactly these names ("(?!)", nothing, when there are none)

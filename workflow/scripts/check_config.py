@@ -132,7 +132,7 @@ def _results_problem(config: dict) -> str | None:
 def enum_sources() -> dict[str, tuple]:
     """The lists the schema names (``x-enum-from: KEY``), each read from its one place; light
     modules only (no torch)."""
-    from camio.modes import BRIDGE_MODES
+    from runtime.modes import BRIDGE_MODES
     from evaluation.initialisers import registry
     from splat_train.recipes import RECIPE_NAMES
     from vggt_init.defaults import POINT_SOURCES
