@@ -132,8 +132,9 @@ def _results_problem(config: dict) -> str | None:
 def enum_sources() -> dict[str, tuple]:
     """The lists the schema names (``x-enum-from: KEY``), each read from its one place; light
     modules only (no torch)."""
-    from runtime.modes import BRIDGE_MODES
+    from camio.scene import FORMATS
     from evaluation.initialisers import registry
+    from runtime.modes import BRIDGE_MODES
     from splat_train.recipes import RECIPE_NAMES
     from vggt_init.defaults import POINT_SOURCES
 
@@ -143,6 +144,7 @@ def enum_sources() -> dict[str, tuple]:
         "bridge_modes": BRIDGE_MODES,
         "recipes": RECIPE_NAMES,
         "vggt_point_sources": POINT_SOURCES,
+        "dataset_formats": FORMATS,
     }
 
 
