@@ -91,7 +91,8 @@ def copy(tmp_path_factory) -> Path:
     """The project with ``refcams`` added: evaluation/ copied and edited, the rest linked."""
     root = tmp_path_factory.mktemp("added") / "repo"
     root.mkdir()
-    for name in ("camio", "vggt_init", "bridge", "splat_train", "workflow", "Snakefile", "config.yaml"):
+    for name in ("runtime", "camio", "imgmetrics", "vggt_init", "bridge", "splat_train", "workflow", "Snakefile",
+                 "config.yaml"):
         (root / name).symlink_to(REPO / name)
     shutil.copytree(REPO / "evaluation", root / "evaluation", ignore=shutil.ignore_patterns("__pycache__"))
     registry = root / "evaluation" / "initialisers" / "registry.py"

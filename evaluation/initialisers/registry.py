@@ -11,10 +11,11 @@ Nothing here imports a stage: a command is named by its module, run as ``python 
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
-__all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
-           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases"]
+__all__ = ["Initialiser", "Option", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases", "option_blocks"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -26,8 +27,68 @@ NEEDS = {
 
 #: the command line of an initialiser without a rule of its own (``own_rule`` False): the
 #: workflow's common rule (workflow/rules/init.smk, ``registry_init``) runs
-#: ``python -m COMMAND`` with these flags; it writes a COLMAP model and status.json
+#: ``python -m COMMAND`` with these flags, then those of its :class:`Option`\ s; it writes a
+#: COLMAP model and status.json
 COMMON_ARGS = "--scene SCENE --image-list TRAIN_TXT --out DIR"
+
+_TYPES = {"integer": int, "number": (int, float), "string": str, "boolean": bool}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option of an initialiser the common rule runs: a key of its config block (the block
+    named after the initialiser, ``<name>: {key: value}``), passed to its command as a flag.
+
+    The config check makes the block's schema from these (workflow/scripts/check_config.py), and
+    the common rule passes ``--key-with-dashes VALUE`` (a boolean: the bare flag when true).
+
+    Attributes:
+        key: the config key (lower case, ``_`` between words).
+        type: its JSON-schema type: ``integer``, ``number``, ``string`` or ``boolean``.
+        default: the value when the config leaves it out; None: the flag is left out and the
+            command's own default holds (the one place of that default).
+        help: one line, the config key's description.
+        minimum, maximum: the range the command's flag accepts (numbers only).
+    """
+
+    key: str
+    type: str
+    default: object
+    help: str
+    minimum: float | None = None
+    maximum: float | None = None
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[a-z][a-z0-9_]*", self.key):
+            raise ValueError(f"option {self.key!r}: a config key is lower case letters, digits and _")
+        if self.type not in _TYPES:
+            raise ValueError(f"option {self.key}: type {self.type!r} is not one of {', '.join(_TYPES)}")
+        ok = _TYPES[self.type]
+        if self.default is not None and (not isinstance(self.default, ok)
+                                         or (self.type != "boolean" and isinstance(self.default, bool))):
+            raise ValueError(f"option {self.key}: default {self.default!r} is not of type {self.type}")
+        if (self.minimum is not None or self.maximum is not None) and self.type not in ("integer", "number"):
+            raise ValueError(f"option {self.key}: a range needs a number, not {self.type}")
+
+    @property
+    def flag(self) -> str:
+        """The command's flag: ``--`` and the key with dashes."""
+        return "--" + self.key.replace("_", "-")
+
+    def schema(self) -> dict:
+        """The JSON schema of the config key (null allowed when the default is None)."""
+        out = {"type": self.type if self.default is not None else [self.type, "null"],
+               "default": self.default, "description": self.help}
+        out.update({k: v for k, v in (("minimum", self.minimum), ("maximum", self.maximum)) if v is not None})
+        return out
+
+    def args(self, value) -> list[str]:
+        """The command-line words for ``value``: none for None or a false boolean."""
+        if value is None or value is False:
+            return []
+        if value is True:
+            return [self.flag]
+        return [self.flag, str(value)]
 
 
 @dataclass(frozen=True)
@@ -53,6 +114,9 @@ class Initialiser:
         cameras_from: for a dense step (``<base>_mvs``), the initialiser whose COLMAP model
             gives the cameras that multi-view stereo of the training views starts from
             (scenes without reference cameras: your own photos).
+        options: what the common rule passes from the initialiser's config block (own rule:
+            none here; its block and params function are in the workflow).
+        label: its name in tables, plots and the report (default: ``name``).
     """
 
     name: str
@@ -66,8 +130,18 @@ class Initialiser:
     own_rule: bool = False
     study: bool = False
     cameras_from: str | None = None
+    options: tuple[Option, ...] = ()
+    label: str = ""
 
     def __post_init__(self) -> None:
+        if not self.label:
+            object.__setattr__(self, "label", self.name)
+        if self.options and self.own_rule:
+            raise ValueError(f"initialiser {self.name}: options are for the common rule; a rule of its own "
+                             "takes its flags from its params function")
+        keys = [o.key for o in self.options]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"initialiser {self.name}: an option key is given twice ({', '.join(keys)})")
         unknown = set(self.needs) - set(NEEDS)
         if unknown:
             raise ValueError(f"initialiser {self.name}: unknown needs {sorted(unknown)}; known: {sorted(NEEDS)}")
@@ -163,3 +237,13 @@ def ba_bases(confidence: bool) -> tuple[str, ...]:
 def dense_bases() -> tuple[str, ...]:
     """Names of the initialisers whose cameras a dense step (``<base>_mvs``) starts from."""
     return tuple(i.cameras_from for i in INITIALISERS.values() if i.cameras_from)
+
+
+def option_blocks() -> dict[str, dict]:
+    """The config schema's block of each initialiser the common rule runs with options:
+    ``{name: JSON schema of {key: value}}`` (each key's default filled in when left out)."""
+    return {n: {"type": "object", "additionalProperties": False, "default": {},
+                "description": f"options of the {n} initialiser (python -m {i.command}; "
+                               "evaluation/initialisers/registry.py)",
+                "properties": {o.key: o.schema() for o in i.options}}
+            for n, i in INITIALISERS.items() if i.options}

@@ -196,6 +196,18 @@ def init_command(wildcards):
     return initialisers.get(wildcards.init).command
 
 
+def init_option_args(wildcards):
+    """The flags of a common-rule initialiser's options (the registry's ``options``), valued from
+    its config block (the config check filled in each default)."""
+    init = initialisers.get(wildcards.init)
+    block = config.get(init.name) or {}
+    return " ".join(
+        shlex.quote(a)
+        for o in init.options
+        for a in o.args(block.get(o.key, o.default))
+    )
+
+
 def init_marker(wildcards):
     """Input function: the finished-run marker of a job's initialiser."""
     return f"{RUN.format(**wildcards)}/{init_marker_of(wildcards.init)}"
