@@ -15,7 +15,8 @@ import re
 from dataclasses import dataclass
 
 __all__ = ["Initialiser", "Option", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
-           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases", "option_blocks"]
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases", "option_blocks",
+           "checkpointed", "with_role", "rank", "label", "ROLES"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -24,6 +25,10 @@ NEEDS = {
     "reference": "it needs reference cameras and the scene has none",
     "gt_geometry": "it needs ground-truth depth (synthetic scenes only)",
 }
+
+#: the roles in Table I (evaluation/reports/tables.py): the method the paper proposes and the
+#: baseline it is compared with; one initialiser each
+ROLES = ("ours", "baseline")
 
 #: the command line of an initialiser without a rule of its own (``own_rule`` False): the
 #: workflow's common rule (workflow/rules/init.smk, ``registry_init``) runs
@@ -117,6 +122,12 @@ class Initialiser:
         options: what the common rule passes from the initialiser's config block (own rule:
             none here; its block and params function are in the workflow).
         label: its name in tables, plots and the report (default: ``name``).
+        role: one of :data:`ROLES` (Table I's columns), or None.
+        study_note: for a studied initialiser, what its study cells are (the study report's
+            first paragraph).
+        checkpoint: its status.json decides what follows its run (its success, registered views,
+            alignment, random-point fallback): the workflow plans the stages after it, and the
+            dense steps on its cameras, once all such runs have finished (a checkpoint).
     """
 
     name: str
@@ -132,6 +143,9 @@ class Initialiser:
     cameras_from: str | None = None
     options: tuple[Option, ...] = ()
     label: str = ""
+    role: str | None = None
+    checkpoint: bool = False
+    study_note: str = ""
 
     def __post_init__(self) -> None:
         if not self.label:
@@ -139,6 +153,8 @@ class Initialiser:
         if self.options and self.own_rule:
             raise ValueError(f"initialiser {self.name}: options are for the common rule; a rule of its own "
                              "takes its flags from its params function")
+        if self.role is not None and self.role not in ROLES:
+            raise ValueError(f"initialiser {self.name}: role {self.role!r} is not one of {', '.join(ROLES)}")
         keys = [o.key for o in self.options]
         if len(set(keys)) != len(keys):
             raise ValueError(f"initialiser {self.name}: an option key is given twice ({', '.join(keys)})")
@@ -166,15 +182,24 @@ def _ba(base: Initialiser) -> Initialiser:
 
 
 _VGGT = Initialiser("vggt", "vggt_init", (*_PREDICTIONS, "timing.json"), "timing.json", True,
-                    frozenset({"weights"}), gpu=True, own_rule=True)
-_ORACLE = Initialiser("oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS, "status.json"), "status.json",
-                      True, frozenset({"gt_geometry"}), own_rule=True, study=True)
-_POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.json", False,
-                     frozenset({"reference"}), own_rule=True, study=True)
+                    frozenset({"weights"}), gpu=True, own_rule=True, role="ours")
+_ORACLE = Initialiser(
+    "oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS, "status.json"), "status.json", True,
+    frozenset({"gt_geometry"}), own_rule=True, study=True,
+    study_note="Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating points "
+               "ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the ATE and rotation "
+               "errors the paper reports for VGGT), not VGGT output.")
+_POSED = Initialiser(
+    "posed", "evaluation.initialisers.posed", _MODEL, "status.json", False, frozenset({"reference"}),
+    own_rule=True, study=True,
+    study_note="Every cell is the posed initialiser (the scene's reference cameras, estimated from all of its "
+               "images, and points triangulated with them; evaluation/initialisers/posed.py) with the oracle's "
+               "seeded noise, never VGGT. It has no confidence: Bridge mode uniform only; no floater measure "
+               "without a ground-truth mesh.")
 _MVS = Initialiser("mvs", "evaluation.initialisers.mvs", (*_PREDICTIONS, "status.json"), "status.json", True,
                    frozenset({"reference"}), own_rule=True)
 _COLMAP = Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False,
-                      own_rule=True)
+                      own_rule=True, role="baseline", checkpoint=True)
 
 
 def _dense(base: Initialiser) -> Initialiser:
@@ -199,6 +224,8 @@ INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     _dense(_COLMAP),
 )}
 NAMES = tuple(INITIALISERS)
+if any(sum(i.role == r for i in INITIALISERS.values()) != 1 for r in ROLES):
+    raise ValueError(f"each role ({', '.join(ROLES)}) is one initialiser's")
 
 
 def get(name: str) -> Initialiser:
@@ -247,3 +274,24 @@ def option_blocks() -> dict[str, dict]:
                                "evaluation/initialisers/registry.py)",
                 "properties": {o.key: o.schema() for o in i.options}}
             for n, i in INITIALISERS.items() if i.options}
+
+
+def checkpointed() -> tuple[str, ...]:
+    """Names of the initialisers whose status.json decides what follows (``checkpoint``)."""
+    return tuple(n for n, i in INITIALISERS.items() if i.checkpoint)
+
+
+def with_role(role: str) -> str:
+    """The name of the initialiser with ``role`` (one of :data:`ROLES`)."""
+    return next(n for n, i in INITIALISERS.items() if i.role == role)
+
+
+def rank(name: str) -> int:
+    """Where ``name`` comes in tables and the report: its place in the registry; a name the
+    registry does not know (a results tree from elsewhere) after all of them."""
+    return NAMES.index(name) if name in INITIALISERS else len(NAMES)
+
+
+def label(name: str) -> str:
+    """The name tables and the report show for ``name`` (its ``label``; an unknown name as is)."""
+    return INITIALISERS[name].label if name in INITIALISERS else name

@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from runtime.atomic import atomic_path
+from evaluation.initialisers import registry
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.markup import counted, format_value, markdown_table
 from evaluation.reports.results import PROTOCOLS, collect_runs
@@ -83,11 +84,14 @@ def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
     return rows[~rows["scene"].duplicated()].set_index("scene")
 
 
-def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap",
+def table_one(runs: pd.DataFrame, ours: str | None = None, baseline: str | None = None,
               lpips: str | tuple[str, ...] = LPIPS_NETS, ours_mode: str | None = "gated",
               baseline_mode: str | None = "uniform") -> pd.DataFrame:
-    """Table I: per dataset and n (see the module docstring); ``*_mode`` picks the bridge mode
-    (the paper's: VGGT gated, COLMAP uniform) when a run has several."""
+    """Table I: per dataset and n (see the module docstring); ``ours`` and ``baseline`` are the
+    registry's initialisers of those roles unless given; ``*_mode`` picks the bridge mode (the
+    paper's: ours gated, the baseline uniform) when a run has several."""
+    ours = ours or registry.with_role("ours")
+    baseline = baseline or registry.with_role("baseline")
     rows = []
     for (dataset, n), g in runs.groupby(["dataset", "n"], sort=True):
         base = _one_mode(g[g["init"] == baseline], baseline_mode)
@@ -218,8 +222,12 @@ def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str
     }
 
 
-def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: str = "colmap") -> dict[str, str]:
-    """Why a table is empty or partly empty, by title (shown instead of, or above, the table)."""
+def table_notes(tables: dict[str, pd.DataFrame], ours: str | None = None,
+                baseline: str | None = None) -> dict[str, str]:
+    """Why a table is empty or partly empty, by title (shown instead of, or above, the table);
+    ``ours`` and ``baseline``: Table I's (the registry's roles) unless given."""
+    ours = ours or registry.with_role("ours")
+    baseline = baseline or registry.with_role("baseline")
     notes: dict[str, str] = {}
     status = tables.get(RUN_STATUS)
     inits_ran = set()
