@@ -55,8 +55,12 @@ from pathlib import Path
 
 import yaml
 
+from evaluation.initialisers import registry
+
 REPO = Path(__file__).resolve().parents[1]
-INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
+#: --init: the method and its baseline (the registry's roles, Table I's pair), alone or both
+_PAIR = [registry.with_role(role) for role in registry.ROLES]
+INITS = {**{name: [name] for name in _PAIR}, "both": _PAIR}
 DATASET = "photos"
 HEADER = "# Written by scripts/photos.py for"
 #: the keys a new config.yaml starts with, which a rerun leaves to the file unless a flag sets them
