@@ -154,3 +154,28 @@ def test_unknown_names_and_needs_are_refused():
     with pytest.raises(ValueError, match="the common rule runs a CPU command that writes sparse/0 and status.json"):
         registry.Initialiser("x", "m", ("predictions.npz", "sparse/0", "status.json"), "status.json", True)
     assert not registry.with_common_rule()  # every shipped initialiser has its rule
+
+
+def test_reports_and_planning_name_no_initialiser():
+    """Reports, the study, planning and the workflow's scripts read order, labels, roles and
+    what follows a run from the registry: no initialiser's name as a string literal there (a
+    config block's key, ``config["vggt"]`` or ``cfg["vggt"]``, is that initialiser's own block)."""
+    names = "|".join(sorted(registry.NAMES, key=len, reverse=True))
+    literal = re.compile(rf"(?<!config\[)(?<!cfg\[)[\"']({names})[\"']")
+    files = [*(REPO / "evaluation" / "reports").glob("*.py"), *(REPO / "evaluation" / "study").glob("*.py"),
+             *(REPO / "workflow" / "scripts").glob("*.py"), *(REPO / "scripts").glob("*.py"),
+             *(REPO / "workflow" / "rules" / f"{n}.smk" for n in ("planning", "study_plan", "targets", "scenes",
+                                                                  "params", "evaluate", "bridge", "train"))]
+    found = [f"{f.relative_to(REPO)}:{i}: {ln.strip()}" for f in files
+             for i, ln in enumerate(f.read_text().splitlines(), 1) if literal.search(ln)]
+    assert len(files) > 20 and not found, found
+
+
+def test_roles_order_and_labels_come_from_the_registry():
+    assert (registry.with_role("ours"), registry.with_role("baseline")) == ("vggt", "colmap")
+    assert registry.checkpointed() == ("colmap",)
+    assert [registry.rank(n) for n in registry.NAMES] == list(range(len(registry.NAMES)))
+    assert registry.rank("not_an_initialiser") == len(registry.NAMES)
+    assert registry.label("vggt") == "vggt" and registry.label("elsewhere") == "elsewhere"
+    with pytest.raises(ValueError, match="role 'best' is not one of ours, baseline"):
+        registry.Initialiser("x", "m", ("sparse/0", "status.json"), "status.json", False, role="best")

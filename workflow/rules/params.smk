@@ -113,14 +113,15 @@ def random_args(wildcards):
 
 
 def ba_args(wildcards):
-    """evaluation.initialisers.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
+    """evaluation.initialisers.ba_init's arguments (config ba); the step on a base without a
+    confidence (posed_ba) seeds from the triangulated points."""
     b = config["ba"]
     args = [f"--seed {b['seed']}"]
     if b["refine_focal"]:
         args.append("--refine-focal")
     if b["min_points"]:
         args.append(f"--min-points {b['min_points']}")
-    if wildcards.base == "posed":
+    if not initialisers.get(wildcards.base).confidence:
         args.append("--seed-points triangulated")
     return " ".join(args)
 
