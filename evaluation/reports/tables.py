@@ -128,6 +128,17 @@ def _recipes(g: pd.DataFrame) -> str:
     return ", ".join(names) or "-"
 
 
+def _in_registry_order(table: pd.DataFrame) -> pd.DataFrame:
+    """Rows of a per-initialiser table in the registry's order of their initialisers (within a
+    dataset, keeping the order of the rest), each shown by its label
+    (evaluation/initialisers/registry.py)."""
+    if table.empty:
+        return table
+    order = table["init"].map(registry.rank)
+    table = table.assign(_rank=order).sort_values(["dataset", "_rank"], kind="stable").drop(columns="_rank")
+    return table.assign(init=table["init"].map(registry.label)).reset_index(drop=True)
+
+
 def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> pd.DataFrame:
     """Table II style summary per dataset, initialiser, bridge mode and n."""
     rows = []
@@ -148,7 +159,7 @@ def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> 
             "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
             "total s": _mean(g["total_s"]),
         })
-    return pd.DataFrame(rows)
+    return _in_registry_order(pd.DataFrame(rows))
 
 
 def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
@@ -174,7 +185,7 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
                      "train s": _mean(g["train_s"]), "eval s": _mean(g["eval_s"]),
                      "total s": _mean(g["total_s"]), "peak MB": float(g["peak_mem_mb"].max()),
                      "peak GPU MB": float(g["peak_gpu_mb"].max())})
-    return pd.DataFrame(rows)
+    return _in_registry_order(pd.DataFrame(rows))
 
 
 def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
