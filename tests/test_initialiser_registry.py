@@ -179,3 +179,31 @@ def test_roles_order_and_labels_come_from_the_registry():
     assert registry.label("vggt") == "vggt" and registry.label("elsewhere") == "elsewhere"
     with pytest.raises(ValueError, match="role 'best' is not one of ours, baseline"):
         registry.Initialiser("x", "m", ("sparse/0", "status.json"), "status.json", False, role="best")
+
+
+def test_a_bad_option_is_refused_when_the_registry_is_read():
+    """An entry's options are checked where they are written: key, type, default, range, and
+    that an initialiser with a rule of its own takes none (its params function does)."""
+    opt = registry.Option("max_points", "integer", 100, "keep at most this many points", minimum=1)
+    assert (opt.flag, opt.args(7), opt.args(None), registry.Option("fast", "boolean", False, "h").args(True)) == (
+        "--max-points", ["--max-points", "7"], [], ["--fast"])
+    assert opt.schema() == {"type": "integer", "default": 100, "description": "keep at most this many points",
+                            "minimum": 1}
+    for kwargs, message in (({"key": "Max-Points"}, "lower case"), ({"type": "int"}, "not one of integer"),
+                            ({"default": "100"}, "is not of type integer"), ({"default": True}, "is not of type"),
+                            ({"type": "string", "default": "a"}, "a range needs a number")):
+        with pytest.raises(ValueError, match=message):
+            registry.Option(**{"key": "max_points", "type": "integer", "default": 100, "help": "h",
+                               "minimum": 1, **kwargs})
+    model = ("sparse/0", "status.json")
+    with pytest.raises(ValueError, match="options are for the common rule"):
+        registry.Initialiser("x", "m", model, "status.json", False, own_rule=True, options=(opt,))
+    with pytest.raises(ValueError, match="an option key is given twice"):
+        registry.Initialiser("x", "m", model, "status.json", False, options=(opt, opt))
+    assert registry.option_blocks() == {}  # no shipped initialiser runs on the common rule
+
+
+def test_an_option_block_beside_a_block_of_the_schema_is_refused(monkeypatch):
+    monkeypatch.setattr(registry, "option_blocks", lambda: {"random": {"type": "object"}})
+    with pytest.raises(ValueError, match="the initialiser random has options in the registry and a block of its own"):
+        check_config.load_schema()
