@@ -1,4 +1,7 @@
-"""Benchmark dataset layouts beside COLMAP / LLFF / transforms.json: detection and adapters.
+"""Benchmark dataset layouts beside COLMAP / LLFF / transforms.json: detection and adapters,
+and the registry of every dataset format (:data:`DATASET_FORMATS`: name, description, camera
+files, reader, detection), which ``python -m camio convert --format``, auto-detection, the
+workflow's config check and docs/contracts.md read.
 
 Every adapter returns cameras in the project conventions (:mod:`camio`): ``cam_from_world``
 float64, OpenCV axes (x right, y down, z forward), ``K`` in COLMAP pixel coordinates (the

@@ -1,9 +1,12 @@
 """The initialisers, listed once: name, command, what each writes and needs, how the Bridge reads it.
 
-The workflow reads this list (the config check's ``initialisers`` enum, the ``init`` wildcard,
-the rule that runs an initialiser, which Bridge rule and which Bridge modes it gets, the file
-that marks its finished run, the scenes it cannot run on), and
-tests/test_initialiser_registry.py checks that the workflow's rules agree with it.
+The workflow reads this list (the config check's ``initialisers`` enum and the config blocks of
+the options of an initialiser without a rule of its own, the ``init`` wildcard, the rule that
+runs an initialiser, which Bridge rule and which Bridge modes it gets, the file that marks its
+finished run, the scenes it cannot run on, the runs whose status decides what follows), and so
+do the reports (the order and labels of initialisers, Table I's pair, the study's notes);
+tests/test_initialiser_registry.py checks that the workflow's rules agree with it and that
+reports and planning spell no initialiser's name.
 Adding an initialiser: docs/contracts.md, "Adding an initialiser" (this file and the
 initialiser's own module; tests/test_add_initialiser.py proves it).
 
@@ -32,8 +35,8 @@ ROLES = ("ours", "baseline")
 
 #: the command line of an initialiser without a rule of its own (``own_rule`` False): the
 #: workflow's common rule (workflow/rules/init.smk, ``registry_init``) runs
-#: ``python -m COMMAND`` with these flags, then those of its :class:`Option`\ s; it writes a
-#: COLMAP model and status.json
+#: ``python -m COMMAND`` with these flags, then one flag per :class:`Option` of its entry; it
+#: writes a COLMAP model and status.json
 COMMON_ARGS = "--scene SCENE --image-list TRAIN_TXT --out DIR"
 
 _TYPES = {"integer": int, "number": (int, float), "string": str, "boolean": bool}

@@ -1,7 +1,7 @@
 """One static HTML report: ``out/index.html`` plus ``out/images/`` (tables, plots, render grids).
 
 Render grids follow the paper's Fig. 2: per scene and n, one row per test view (at most
-``max_views``), one column per initialiser (COLMAP first, then VGGT, then the rest) and the
+``max_views``), one column per initialiser (in the registry's order) and the
 ground truth last. A cell whose initialiser failed (paper criterion) says "failed" with the
 reason; a run without that render says "missing".
 
