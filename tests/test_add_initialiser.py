@@ -21,7 +21,8 @@ says. Then, in the copy, through the commands a user runs:
     option's flag (the config's value, else the entry's default), the Bridge seeds from its
     model in uniform mode, and the scene in the new format is converted with ``--format camlist``;
 (d) the evaluation tables list its run, by its label, after the registry's other initialisers,
-    read from a small results tree in which the run folder is what its command wrote.
+    and the report shows it by its label, read from a small results tree in which the run
+    folder is what its command wrote.
 """
 
 from __future__ import annotations
@@ -286,3 +287,7 @@ def test_d_the_tables_list_its_run_by_its_label(copy, tmp_path):
     inits = [ln.split("|")[2].strip() for ln in rows]
     assert LABEL in inits and NAME not in inits and inits.index(LABEL) > max(
         i for i, x in enumerate(inits) if x == "colmap"), inits
+    report = tmp_path / "report"
+    proc = _run(copy, ["-m", "evaluation", "report", "--results", str(results), "--out", str(report)], timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    assert f"{LABEL} (uniform)" in (report / "index.html").read_text()  # its render-grid column, by its label
