@@ -30,7 +30,7 @@ from bridge.selection import (MIN_DIST2, cap_points, knn_scales, percentile_mask
                               stride_mask, voxel_downsample)
 from camio.cameras import Camera
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples
-from camio.modes import BRIDGE_MODES
+from runtime.modes import BRIDGE_MODES
 from camio.ply import SH_DEGREE, GaussianCloud
 from runtime.checks import Range, check_fields
 from runtime.logs import timed
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 # An opacity the Bridge gives a seed point: in (0, 1) (0 would be no point, 1 a logit of inf).
 OPACITY = Range(0.0, 1.0, lo_open=True, hi_open=True)
-MODES = BRIDGE_MODES  # camio.modes, the one list (evaluation and the workflow read it too)
+MODES = BRIDGE_MODES  # runtime.modes, the one list (evaluation and the workflow read it too)
 DEFAULT_PERCENTILE = 40.0
 UNIFORM_ALPHA = 0.1
 MEDIAN_SET = ("every row with a finite point and a finite confidence, over all pixels of all views, "

@@ -22,6 +22,7 @@ log = logging.getLogger("camio")
 
 
 def _parser() -> argparse.ArgumentParser:
+    from camio.datasets import DATASET_FORMATS
     from camio.prepare import PHOTO_MAX_SIZE
     from camio.scene import FORMATS
     from camio.synthetic import ARC_DEG, VIEWS, WIDTH
@@ -48,7 +49,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--src", required=True, type=Path, help="the downloaded scene folder (its format is detected)")
     c.add_argument("--out", required=True, type=Path, help="prepared scene folder to write (docs/contracts.md)")
     c.add_argument("--format", default="auto", choices=FORMATS,
-                   help="input layout (auto: detected from its camera files)")
+                   help="input layout; auto: detected from its camera files; " + "; ".join(
+                       f"{f.name}: {f.description} ({f.files})" for f in DATASET_FORMATS.values()))
     c.add_argument("--images-subdir", default=None, help="image folder relative to --src (e.g. images_8)")
     c.add_argument("--downsample", type=flag(int, 1), default=1, help="integer area-downsampling factor")
     c.add_argument("--max-size", dest="max_size", type=flag(int, 0, MAX_IMAGE_SIDE), default=None, metavar="PX",

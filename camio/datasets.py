@@ -1,4 +1,7 @@
-"""Benchmark dataset layouts beside COLMAP / LLFF / transforms.json: detection and adapters.
+"""Benchmark dataset layouts beside COLMAP / LLFF / transforms.json: detection and adapters,
+and the registry of every dataset format (:data:`DATASET_FORMATS`: name, description, camera
+files, reader, detection), which ``python -m camio convert --format``, auto-detection, the
+workflow's config check and docs/contracts.md read.
 
 Every adapter returns cameras in the project conventions (:mod:`camio`): ``cam_from_world``
 float64, OpenCV axes (x right, y down, z forward), ``K`` in COLMAP pixel coordinates (the
@@ -46,7 +49,9 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -55,8 +60,9 @@ from camio.colmap import SparseModel, find_model_dir
 from camio.images import image_size, list_images
 from camio.limits import check_image_size
 
-__all__ = ["detect_layout", "camera_like_files", "split_photos", "decompose_projection",
-           "read_dtu", "read_mvsnet", "read_strecha", "read_middlebury", "DTU_FRAME", "source_camera_models"]
+__all__ = ["DatasetFormat", "DATASET_FORMATS", "dataset_format", "detect_layout", "camera_like_files", "split_photos",
+           "decompose_projection", "read_dtu", "read_mvsnet", "read_strecha", "read_middlebury", "DTU_FRAME",
+           "source_camera_models"]
 
 log = logging.getLogger(__name__)
 
@@ -128,42 +134,24 @@ def _middlebury_par(root: Path) -> Path | None:
 
 
 def detect_layout(root: Path) -> str:
-    """The format of a scene folder from the camera files it holds.
-
-    Order: ``transforms.json`` -> "transforms"; ``transforms_train.json`` (NeRF-synthetic) ->
-    "transforms"; a COLMAP model (``.``, ``sparse/0``, ``sparse``, ``0``) -> "colmap";
-    ``poses_bounds.npy`` -> "llff"; ``cameras.npz`` -> "dtu"; ``cams/*_cam.txt`` -> "mvsnet";
-    ``*.camera`` (in ``gt_dense_cameras/``, ``images/`` or the folder) -> "strecha";
-    ``*_par.txt`` -> "middlebury"; else "folder" when no camera-like file is present.
+    """The format of a scene folder from the camera files it holds: the first entry of
+    :data:`DATASET_FORMATS` whose ``detect`` finds its files (transforms, colmap, llff, dtu,
+    mvsnet, strecha, middlebury), else "folder" when no camera-like file is present.
 
     Raises:
         SceneError: camera-like files that no adapter reads (named in the message).
     """
-    if (root / "transforms.json").is_file() or (root / "transforms_train.json").is_file():
-        return "transforms"
-    try:
-        find_model_dir(root)
-        return "colmap"
-    except FileNotFoundError:
-        pass
-    if (root / "poses_bounds.npy").is_file():
-        return "llff"
-    if _dtu_npz(root) is not None:
-        return "dtu"
-    if (root / "cams").is_dir() and any((root / "cams").glob("*_cam.txt")):
-        return "mvsnet"
-    if _strecha_dir(root) is not None:
-        return "strecha"
-    if _middlebury_par(root) is not None:
-        return "middlebury"
+    for fmt in DATASET_FORMATS.values():
+        if fmt.detect is not None and fmt.detect(root):
+            return fmt.name
     unknown = camera_like_files(root)
     if unknown:
         shown = ", ".join(str(p.relative_to(root)) for p in unknown[:5])
+        known = ", ".join(f"{f.name} {f.files}" for f in DATASET_FORMATS.values() if f.cameras)
         raise _scene_error(
             f"{root} holds {len(unknown)} file(s) that look like camera or pose files ({shown}"
-            f"{', ...' if len(unknown) > 5 else ''}) in a layout no camio adapter reads (known: COLMAP "
-            "sparse/0, LLFF poses_bounds.npy, transforms.json, DTU cameras.npz, MVSNet cams/*_cam.txt, "
-            "Strecha *.camera, Middlebury *_par.txt); convert them to COLMAP, or pass --format folder to ignore them")
+            f"{', ...' if len(unknown) > 5 else ''}) in a layout no camio adapter reads (known: {known}); "
+            "convert them to COLMAP, or pass --format folder to ignore them")
     return "folder"
 
 
@@ -506,3 +494,71 @@ def read_middlebury(root: Path, image_dir: Path, names: list[str]) -> SparseMode
         w, h = image_size(image_dir / n)
         cams.append(Camera(n, w, h, K, cw))
     return SparseModel(cams)
+
+
+# ------------------------------------------------------------------------------- the registry
+def _has_colmap_model(root: Path) -> bool:
+    try:
+        find_model_dir(root)
+        return True
+    except FileNotFoundError:
+        return False
+
+
+@dataclass(frozen=True)
+class DatasetFormat:
+    """One dataset format ``python -m camio convert --format`` reads.
+
+    Attributes:
+        name: the ``--format`` value, the config's ``scene.format`` and ``scene.json``'s ``format``.
+        description: one line: what the layout is (``convert --help`` and docs/contracts.md).
+        files: the camera files it reads, as the refusal of an unknown layout names them.
+        cameras: its source carries reference cameras (the workflow evaluates poses and held-out
+            views of such a scene; a folder of photos has none).
+        detect: ``folder -> bool``, whether auto-detection takes a folder as this format (asked in
+            the order of :data:`DATASET_FORMATS`); None: only by name (``folder`` is the fallback).
+        read: ``(root, image_dir, names) -> SparseModel``, the reference cameras of ``names``
+            (world -> OpenCV camera, ``K`` at the image files' resolution); None: camio.scene
+            loads it itself (COLMAP, LLFF, transforms.json, DTU, folder: their own image rules).
+        distortion: ``read`` may return OPENCV distortion, undistorted with ``--undistort``.
+    """
+
+    name: str
+    description: str
+    files: str
+    cameras: bool
+    detect: Callable[[Path], bool] | None = None
+    read: Callable[[Path, Path, list[str]], SparseModel] | None = None
+    distortion: bool = False
+
+
+#: every dataset format by name, in the order auto-detection asks them (docs/contracts.md,
+#: "Adding a dataset format")
+DATASET_FORMATS: dict[str, DatasetFormat] = {f.name: f for f in (
+    DatasetFormat("transforms", "instant-ngp / nerfstudio / NeRF-synthetic camera-to-world poses (OpenGL axes)",
+                  "transforms.json", True,
+                  lambda r: (r / "transforms.json").is_file() or (r / "transforms_train.json").is_file()),
+    DatasetFormat("colmap", "a COLMAP model, text or binary (distorted models undistorted with --undistort)",
+                  "sparse/0", True, _has_colmap_model),
+    DatasetFormat("llff", "LLFF: per image a 3x5 pose-and-intrinsics matrix and two depth bounds",
+                  "poses_bounds.npy", True, lambda r: (r / "poses_bounds.npy").is_file()),
+    DatasetFormat("dtu", "DTU as IDR / MonoSDF / VolSDF / NeuS ship it: projection and scale matrices",
+                  "cameras.npz", True, lambda r: _dtu_npz(r) is not None),
+    DatasetFormat("mvsnet", "DTU / BlendedMVS / Tanks-and-Temples as MVSNet ships them: extrinsic and intrinsic",
+                  "cams/*_cam.txt", True,
+                  lambda r: (r / "cams").is_dir() and any((r / "cams").glob("*_cam.txt")), read_mvsnet),
+    DatasetFormat("strecha", "Strecha et al.'s multi-view sets: K, radial distortion, R and the camera centre",
+                  "*.camera", True, lambda r: _strecha_dir(r) is not None, read_strecha, distortion=True),
+    DatasetFormat("middlebury", "Middlebury multi-view (temple, dino): the projection K [R t] of each image",
+                  "*_par.txt", True, lambda r: _middlebury_par(r) is not None, read_middlebury),
+    DatasetFormat("folder", "a bare folder of photographs, no cameras (maps and masks left out)",
+                  "(none)", False),
+)}
+
+
+def dataset_format(name: str) -> DatasetFormat:
+    """The format called ``name`` (:class:`SceneError` naming the known ones otherwise)."""
+    try:
+        return DATASET_FORMATS[name]
+    except KeyError:
+        raise _scene_error(f"unknown scene format {name!r}; choose one of auto, {', '.join(DATASET_FORMATS)}") from None

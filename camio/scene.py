@@ -36,7 +36,7 @@ import numpy as np
 from camio.cameras import Camera, invert_cam_from_world, opengl_to_opencv_c2w, scale_intrinsics
 from camio.colmap import PINHOLE_MODELS, SparseModel, UnsupportedCameraModelError, \
     find_model_dir, read_model
-from camio.datasets import SceneError, detect_layout, dtu_images, read_dtu, read_middlebury, read_mvsnet, read_strecha, \
+from camio.datasets import DATASET_FORMATS, SceneError, dataset_format, detect_layout, dtu_images, read_dtu, \
     split_photos
 from camio.arrays import check_npy
 from camio.images import image_size, list_images, read_image
@@ -48,9 +48,10 @@ __all__ = ["Scene", "SceneError", "load_scene", "detect_format", "check_same_siz
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("auto", "colmap", "llff", "transforms", "dtu", "mvsnet", "strecha", "middlebury", "folder")
+# the --format values: auto-detection, then every format of the registry (camio.datasets)
+FORMATS = ("auto", *DATASET_FORMATS)
 # the formats whose source carries reference cameras
-REFERENCE_FORMATS = tuple(f for f in FORMATS if f not in ("auto", "folder"))
+REFERENCE_FORMATS = tuple(n for n, f in DATASET_FORMATS.items() if f.cameras)
 UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
@@ -215,8 +216,8 @@ def load_scene(
     Raises:
         SceneError, UnsupportedCameraModelError, ImageReadError: with what to fix.
     """
-    if format not in FORMATS:
-        raise SceneError(f"unknown scene format {format!r}; choose one of {', '.join(FORMATS)}")
+    if format != "auto":
+        dataset_format(format)  # an unknown name: SceneError naming the known ones
     path = Path(path)
     if not path.exists():
         raise SceneError(f"scene path {path} does not exist")
@@ -245,19 +246,16 @@ def load_scene(
                           "llff", path, source_models=("PINHOLE",))
         elif fmt == "colmap":
             scene = _load_colmap(path, image_dir, names, undistort, work_dir)
-        elif fmt == "mvsnet":
-            scene = Scene(image_dir, names, read_mvsnet(root, image_dir, names), "mvsnet", path,
-                          source_models=("PINHOLE",))
-        elif fmt == "middlebury":
-            scene = Scene(image_dir, names, read_middlebury(root, image_dir, names), "middlebury", path,
-                          source_models=("PINHOLE",))
-        elif fmt == "strecha":
-            model = read_strecha(root, image_dir, names)
-            model = _fit_distorted(model, image_dir, names)
-            scene = Scene(image_dir, names, model, "strecha", path)
-            scene = _maybe_undistort(scene, undistort, work_dir)
-        else:  # pragma: no cover - guarded above
-            raise SceneError(fmt)
+        else:  # a format of the registry with a reader (mvsnet, strecha, middlebury, ...)
+            reader = dataset_format(fmt)
+            if reader.read is None:  # pragma: no cover - every format without a reader is loaded above
+                raise SceneError(f"scene format {fmt!r} has no reader in camio.datasets.DATASET_FORMATS")
+            model = reader.read(root, image_dir, names)
+            if reader.distortion:
+                scene = Scene(image_dir, names, _fit_distorted(model, image_dir, names), fmt, path)
+                scene = _maybe_undistort(scene, undistort, work_dir)
+            else:
+                scene = Scene(image_dir, names, model, fmt, path, source_models=("PINHOLE",))
     if verify_images:
         _verify_readable(scene.image_dir, scene.names)
     n_cams = 0 if scene.model is None else len(scene.model.cameras)

@@ -61,8 +61,12 @@ stops_early()  # a stop while the script loads (until snakemake runs): one line,
 
 import yaml  # noqa: E402
 
+from evaluation.initialisers import registry
+
 REPO = Path(__file__).resolve().parents[1]
-INITS = {"vggt": ["vggt"], "colmap": ["colmap"], "both": ["vggt", "colmap"]}
+#: --init: the method and its baseline (the registry's roles, Table I's pair), alone or both
+_PAIR = [registry.with_role(role) for role in registry.ROLES]
+INITS = {**{name: [name] for name in _PAIR}, "both": _PAIR}
 DATASET = "photos"
 HEADER = "# Written by scripts/photos.py for"
 #: the keys a new config.yaml starts with, which a rerun leaves to the file unless a flag sets them

@@ -1,5 +1,5 @@
 """One list per concept: the initialisers (evaluation/initialisers/registry.py), the Bridge modes
-(camio/modes.py) and the training recipes (splat_train/recipes.py). The config schema names
+(runtime/modes.py) and the training recipes (splat_train/recipes.py). The config schema names
 these lists rather than copying them (``x-enum-from``, filled by the config check), the stages
 and the study read them, and the workflow's rules have what the registry says each initialiser
 runs and writes."""
@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from bridge.core import MODES
-from camio.modes import BRIDGE_MODES
+from runtime.modes import BRIDGE_MODES
 from evaluation.initialisers import registry
 from evaluation.study import collect
 from splat_train.recipes import RECIPE_NAMES
@@ -83,15 +83,15 @@ def test_reading_the_lists_imports_no_heavy_module():
 
 
 def test_no_module_spells_out_the_bridge_modes():
-    """The tuple ("gated", "uniform", "filtered") is written once in the packages: camio/modes.py."""
+    """The tuple ("gated", "uniform", "filtered") is written once in the packages: runtime/modes.py."""
     found = []
-    for pkg in ("camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "experiments"):
+    for pkg in ("runtime", "camio", "vggt_init", "bridge", "splat_train", "evaluation", "benchmarks", "experiments"):
         for path in sorted((REPO / pkg).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, (ast.Tuple, ast.List)) and len(node.elts) >= 2 and all(
                         isinstance(e, ast.Constant) and e.value in BRIDGE_MODES for e in node.elts):
                     found.append(str(path.relative_to(REPO)))
-    assert found == ["camio/modes.py"], found
+    assert found == ["runtime/modes.py"], found
 
 
 @pytest.mark.parametrize("name", registry.NAMES)
@@ -154,3 +154,56 @@ def test_unknown_names_and_needs_are_refused():
     with pytest.raises(ValueError, match="the common rule runs a CPU command that writes sparse/0 and status.json"):
         registry.Initialiser("x", "m", ("predictions.npz", "sparse/0", "status.json"), "status.json", True)
     assert not registry.with_common_rule()  # every shipped initialiser has its rule
+
+
+def test_reports_and_planning_name_no_initialiser():
+    """Reports, the study, planning and the workflow's scripts read order, labels, roles and
+    what follows a run from the registry: no initialiser's name as a string literal there (a
+    config block's key, ``config["vggt"]`` or ``cfg["vggt"]``, is that initialiser's own block)."""
+    names = "|".join(sorted(registry.NAMES, key=len, reverse=True))
+    literal = re.compile(rf"(?<!config\[)(?<!cfg\[)[\"']({names})[\"']")
+    files = [*(REPO / "evaluation" / "reports").glob("*.py"), *(REPO / "evaluation" / "study").glob("*.py"),
+             *(REPO / "workflow" / "scripts").glob("*.py"), *(REPO / "scripts").glob("*.py"),
+             *(REPO / "workflow" / "rules" / f"{n}.smk" for n in ("planning", "study_plan", "targets", "scenes",
+                                                                  "params", "evaluate", "bridge", "train"))]
+    found = [f"{f.relative_to(REPO)}:{i}: {ln.strip()}" for f in files
+             for i, ln in enumerate(f.read_text().splitlines(), 1) if literal.search(ln)]
+    assert len(files) > 20 and not found, found
+
+
+def test_roles_order_and_labels_come_from_the_registry():
+    assert (registry.with_role("ours"), registry.with_role("baseline")) == ("vggt", "colmap")
+    assert registry.checkpointed() == ("colmap",)
+    assert [registry.rank(n) for n in registry.NAMES] == list(range(len(registry.NAMES)))
+    assert registry.rank("not_an_initialiser") == len(registry.NAMES)
+    assert registry.label("vggt") == "vggt" and registry.label("elsewhere") == "elsewhere"
+    with pytest.raises(ValueError, match="role 'best' is not one of ours, baseline"):
+        registry.Initialiser("x", "m", ("sparse/0", "status.json"), "status.json", False, role="best")
+
+
+def test_a_bad_option_is_refused_when_the_registry_is_read():
+    """An entry's options are checked where they are written: key, type, default, range, and
+    that an initialiser with a rule of its own takes none (its params function does)."""
+    opt = registry.Option("max_points", "integer", 100, "keep at most this many points", minimum=1)
+    assert (opt.flag, opt.args(7), opt.args(None), registry.Option("fast", "boolean", False, "h").args(True)) == (
+        "--max-points", ["--max-points", "7"], [], ["--fast"])
+    assert opt.schema() == {"type": "integer", "default": 100, "description": "keep at most this many points",
+                            "minimum": 1}
+    for kwargs, message in (({"key": "Max-Points"}, "lower case"), ({"type": "int"}, "not one of integer"),
+                            ({"default": "100"}, "is not of type integer"), ({"default": True}, "is not of type"),
+                            ({"type": "string", "default": "a"}, "a range needs a number")):
+        with pytest.raises(ValueError, match=message):
+            registry.Option(**{"key": "max_points", "type": "integer", "default": 100, "help": "h",
+                               "minimum": 1, **kwargs})
+    model = ("sparse/0", "status.json")
+    with pytest.raises(ValueError, match="options are for the common rule"):
+        registry.Initialiser("x", "m", model, "status.json", False, own_rule=True, options=(opt,))
+    with pytest.raises(ValueError, match="an option key is given twice"):
+        registry.Initialiser("x", "m", model, "status.json", False, options=(opt, opt))
+    assert registry.option_blocks() == {}  # no shipped initialiser runs on the common rule
+
+
+def test_an_option_block_beside_a_block_of_the_schema_is_refused(monkeypatch):
+    monkeypatch.setattr(registry, "option_blocks", lambda: {"random": {"type": "object"}})
+    with pytest.raises(ValueError, match="the initialiser random has options in the registry and a block of its own"):
+        check_config.load_schema()

@@ -1,9 +1,12 @@
 """The initialisers, listed once: name, command, what each writes and needs, how the Bridge reads it.
 
-The workflow reads this list (the config check's ``initialisers`` enum, the ``init`` wildcard,
-the rule that runs an initialiser, which Bridge rule and which Bridge modes it gets, the file
-that marks its finished run, the scenes it cannot run on), and
-tests/test_initialiser_registry.py checks that the workflow's rules agree with it.
+The workflow reads this list (the config check's ``initialisers`` enum and the config blocks of
+the options of an initialiser without a rule of its own, the ``init`` wildcard, the rule that
+runs an initialiser, which Bridge rule and which Bridge modes it gets, the file that marks its
+finished run, the scenes it cannot run on, the runs whose status decides what follows), and so
+do the reports (the order and labels of initialisers, Table I's pair, the study's notes);
+tests/test_initialiser_registry.py checks that the workflow's rules agree with it and that
+reports and planning spell no initialiser's name.
 Adding an initialiser: docs/contracts.md, "Adding an initialiser" (this file and the
 initialiser's own module; tests/test_add_initialiser.py proves it).
 
@@ -11,10 +14,12 @@ Nothing here imports a stage: a command is named by its module, run as ``python 
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
-__all__ = ["Initialiser", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
-           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases"]
+__all__ = ["Initialiser", "Option", "INITIALISERS", "NAMES", "NEEDS", "COMMON_ARGS", "get", "from_predictions",
+           "from_colmap_model", "with_common_rule", "studied", "ba_bases", "dense_bases", "option_blocks",
+           "checkpointed", "with_role", "rank", "label", "ROLES"]
 
 #: what an initialiser may need, and the reason the workflow logs when a scene lacks it
 #: (``weights`` is the VGGT checkpoint: looked up when the job runs, not at planning)
@@ -24,10 +29,74 @@ NEEDS = {
     "gt_geometry": "it needs ground-truth depth (synthetic scenes only)",
 }
 
+#: the roles in Table I (evaluation/reports/tables.py): the method the paper proposes and the
+#: baseline it is compared with; one initialiser each
+ROLES = ("ours", "baseline")
+
 #: the command line of an initialiser without a rule of its own (``own_rule`` False): the
 #: workflow's common rule (workflow/rules/init.smk, ``registry_init``) runs
-#: ``python -m COMMAND`` with these flags; it writes a COLMAP model and status.json
+#: ``python -m COMMAND`` with these flags, then one flag per :class:`Option` of its entry; it
+#: writes a COLMAP model and status.json
 COMMON_ARGS = "--scene SCENE --image-list TRAIN_TXT --out DIR"
+
+_TYPES = {"integer": int, "number": (int, float), "string": str, "boolean": bool}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option of an initialiser the common rule runs: a key of its config block (the block
+    named after the initialiser, ``<name>: {key: value}``), passed to its command as a flag.
+
+    The config check makes the block's schema from these (workflow/scripts/check_config.py), and
+    the common rule passes ``--key-with-dashes VALUE`` (a boolean: the bare flag when true).
+
+    Attributes:
+        key: the config key (lower case, ``_`` between words).
+        type: its JSON-schema type: ``integer``, ``number``, ``string`` or ``boolean``.
+        default: the value when the config leaves it out; None: the flag is left out and the
+            command's own default holds (the one place of that default).
+        help: one line, the config key's description.
+        minimum, maximum: the range the command's flag accepts (numbers only).
+    """
+
+    key: str
+    type: str
+    default: object
+    help: str
+    minimum: float | None = None
+    maximum: float | None = None
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[a-z][a-z0-9_]*", self.key):
+            raise ValueError(f"option {self.key!r}: a config key is lower case letters, digits and _")
+        if self.type not in _TYPES:
+            raise ValueError(f"option {self.key}: type {self.type!r} is not one of {', '.join(_TYPES)}")
+        ok = _TYPES[self.type]
+        if self.default is not None and (not isinstance(self.default, ok)
+                                         or (self.type != "boolean" and isinstance(self.default, bool))):
+            raise ValueError(f"option {self.key}: default {self.default!r} is not of type {self.type}")
+        if (self.minimum is not None or self.maximum is not None) and self.type not in ("integer", "number"):
+            raise ValueError(f"option {self.key}: a range needs a number, not {self.type}")
+
+    @property
+    def flag(self) -> str:
+        """The command's flag: ``--`` and the key with dashes."""
+        return "--" + self.key.replace("_", "-")
+
+    def schema(self) -> dict:
+        """The JSON schema of the config key (null allowed when the default is None)."""
+        out = {"type": self.type if self.default is not None else [self.type, "null"],
+               "default": self.default, "description": self.help}
+        out.update({k: v for k, v in (("minimum", self.minimum), ("maximum", self.maximum)) if v is not None})
+        return out
+
+    def args(self, value) -> list[str]:
+        """The command-line words for ``value``: none for None or a false boolean."""
+        if value is None or value is False:
+            return []
+        if value is True:
+            return [self.flag]
+        return [self.flag, str(value)]
 
 
 @dataclass(frozen=True)
@@ -53,6 +122,15 @@ class Initialiser:
         cameras_from: for a dense step (``<base>_mvs``), the initialiser whose COLMAP model
             gives the cameras that multi-view stereo of the training views starts from
             (scenes without reference cameras: your own photos).
+        options: what the common rule passes from the initialiser's config block (own rule:
+            none here; its block and params function are in the workflow).
+        label: its name in tables, plots and the report (default: ``name``).
+        role: one of :data:`ROLES` (Table I's columns), or None.
+        study_note: for a studied initialiser, what its study cells are (the study report's
+            first paragraph).
+        checkpoint: its status.json decides what follows its run (its success, registered views,
+            alignment, random-point fallback): the workflow plans the stages after it, and the
+            dense steps on its cameras, once all such runs have finished (a checkpoint).
     """
 
     name: str
@@ -66,8 +144,23 @@ class Initialiser:
     own_rule: bool = False
     study: bool = False
     cameras_from: str | None = None
+    options: tuple[Option, ...] = ()
+    label: str = ""
+    role: str | None = None
+    checkpoint: bool = False
+    study_note: str = ""
 
     def __post_init__(self) -> None:
+        if not self.label:
+            object.__setattr__(self, "label", self.name)
+        if self.options and self.own_rule:
+            raise ValueError(f"initialiser {self.name}: options are for the common rule; a rule of its own "
+                             "takes its flags from its params function")
+        if self.role is not None and self.role not in ROLES:
+            raise ValueError(f"initialiser {self.name}: role {self.role!r} is not one of {', '.join(ROLES)}")
+        keys = [o.key for o in self.options]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"initialiser {self.name}: an option key is given twice ({', '.join(keys)})")
         unknown = set(self.needs) - set(NEEDS)
         if unknown:
             raise ValueError(f"initialiser {self.name}: unknown needs {sorted(unknown)}; known: {sorted(NEEDS)}")
@@ -92,15 +185,24 @@ def _ba(base: Initialiser) -> Initialiser:
 
 
 _VGGT = Initialiser("vggt", "vggt_init", (*_PREDICTIONS, "timing.json"), "timing.json", True,
-                    frozenset({"weights"}), gpu=True, own_rule=True)
-_ORACLE = Initialiser("oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS, "status.json"), "status.json",
-                      True, frozenset({"gt_geometry"}), own_rule=True, study=True)
-_POSED = Initialiser("posed", "evaluation.initialisers.posed", _MODEL, "status.json", False,
-                     frozenset({"reference"}), own_rule=True, study=True)
+                    frozenset({"weights"}), gpu=True, own_rule=True, role="ours")
+_ORACLE = Initialiser(
+    "oracle", "evaluation.initialisers.oracle", (*_PREDICTIONS, "status.json"), "status.json", True,
+    frozenset({"gt_geometry"}), own_rule=True, study=True,
+    study_note="Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating points "
+               "ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the ATE and rotation "
+               "errors the paper reports for VGGT), not VGGT output.")
+_POSED = Initialiser(
+    "posed", "evaluation.initialisers.posed", _MODEL, "status.json", False, frozenset({"reference"}),
+    own_rule=True, study=True,
+    study_note="Every cell is the posed initialiser (the scene's reference cameras, estimated from all of its "
+               "images, and points triangulated with them; evaluation/initialisers/posed.py) with the oracle's "
+               "seeded noise, never VGGT. It has no confidence: Bridge mode uniform only; no floater measure "
+               "without a ground-truth mesh.")
 _MVS = Initialiser("mvs", "evaluation.initialisers.mvs", (*_PREDICTIONS, "status.json"), "status.json", True,
                    frozenset({"reference"}), own_rule=True)
 _COLMAP = Initialiser("colmap", "evaluation.initialisers.colmap_baseline", _MODEL, "status.json", False,
-                      own_rule=True)
+                      own_rule=True, role="baseline", checkpoint=True)
 
 
 def _dense(base: Initialiser) -> Initialiser:
@@ -125,6 +227,8 @@ INITIALISERS: dict[str, Initialiser] = {i.name: i for i in (
     _dense(_COLMAP),
 )}
 NAMES = tuple(INITIALISERS)
+if any(sum(i.role == r for i in INITIALISERS.values()) != 1 for r in ROLES):
+    raise ValueError(f"each role ({', '.join(ROLES)}) is one initialiser's")
 
 
 def get(name: str) -> Initialiser:
@@ -163,3 +267,34 @@ def ba_bases(confidence: bool) -> tuple[str, ...]:
 def dense_bases() -> tuple[str, ...]:
     """Names of the initialisers whose cameras a dense step (``<base>_mvs``) starts from."""
     return tuple(i.cameras_from for i in INITIALISERS.values() if i.cameras_from)
+
+
+def option_blocks() -> dict[str, dict]:
+    """The config schema's block of each initialiser the common rule runs with options:
+    ``{name: JSON schema of {key: value}}`` (each key's default filled in when left out)."""
+    return {n: {"type": "object", "additionalProperties": False, "default": {},
+                "description": f"options of the {n} initialiser (python -m {i.command}; "
+                               "evaluation/initialisers/registry.py)",
+                "properties": {o.key: o.schema() for o in i.options}}
+            for n, i in INITIALISERS.items() if i.options}
+
+
+def checkpointed() -> tuple[str, ...]:
+    """Names of the initialisers whose status.json decides what follows (``checkpoint``)."""
+    return tuple(n for n, i in INITIALISERS.items() if i.checkpoint)
+
+
+def with_role(role: str) -> str:
+    """The name of the initialiser with ``role`` (one of :data:`ROLES`)."""
+    return next(n for n, i in INITIALISERS.items() if i.role == role)
+
+
+def rank(name: str) -> int:
+    """Where ``name`` comes in tables and the report: its place in the registry; a name the
+    registry does not know (a results tree from elsewhere) after all of them."""
+    return NAMES.index(name) if name in INITIALISERS else len(NAMES)
+
+
+def label(name: str) -> str:
+    """The name tables and the report show for ``name`` (its ``label``; an unknown name as is)."""
+    return INITIALISERS[name].label if name in INITIALISERS else name

@@ -1,7 +1,7 @@
 """One static HTML report: ``out/index.html`` plus ``out/images/`` (tables, plots, render grids).
 
 Render grids follow the paper's Fig. 2: per scene and n, one row per test view (at most
-``max_views``), one column per initialiser (COLMAP first, then VGGT, then the rest) and the
+``max_views``), one column per initialiser (in the registry's order) and the
 ground truth last. A cell whose initialiser failed (paper criterion) says "failed" with the
 reason; a run without that render says "missing".
 
@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from runtime.atomic import atomic_dir
+from evaluation.initialisers import registry
 from evaluation.reports import photos
 from evaluation.reports.markup import counted, html_page, number_cells
 from evaluation.reports.plots import run_plots
@@ -61,10 +62,10 @@ def _gt_folder(scenes_dir: Path | None, dataset: str, scene: str) -> Path | None
     return None
 
 
-def _init_order(labels) -> list[str]:
-    """COLMAP first, then VGGT, then the rest (labels "init" or "init (mode)")."""
-    rank = {"colmap": 0, "vggt": 1}
-    return sorted(labels, key=lambda lab: (rank.get(lab.split(" ")[0], 2), lab))
+def _init_order(runs: dict) -> list[str]:
+    """The labels of ``runs`` ({label: row}) in the registry's order of their initialisers
+    (evaluation/initialisers/registry.py), then by label (the modes of one initialiser)."""
+    return sorted(runs, key=lambda lab: (registry.rank(runs[lab].init), lab))
 
 
 def render_grid_html(group: pd.DataFrame, images_dir: Path, scenes_dir: Path | None,
@@ -167,14 +168,28 @@ def _table_html(df: pd.DataFrame) -> str:
     return number_cells(shown.to_html(index=False, na_rep="-", float_format=fmt, escape=True, border=0))
 
 
-def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
-    """Where the posed initialiser's cameras come from, and the configured initialisers a
-    scene could not have (``results/initialisers.json``, written by the workflow)."""
-    out = []
-    if len(runs) and (runs["init"] == "posed").any():
-        from evaluation.initialisers.posed import REFERENCE_SOURCE
+def _reference_source(runs: pd.DataFrame) -> str | None:
+    """Where an initialiser's cameras come from when it says so (its status.json's
+    ``reference_source``, e.g. the posed initialiser's), from the first of its runs that does."""
+    for run_dir in runs.get("run_dir", pd.Series(dtype=object)).dropna():
+        status = Path(run_dir) / "status.json"
+        try:
+            source = json.loads(status.read_text()).get("reference_source") if status.is_file() else None
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(source, str) and source:
+            return source
+    return None
 
-        out.append(f"<p>posed: {html.escape(REFERENCE_SOURCE)}.</p>")
+
+def _initialiser_notes(results: Path, runs: pd.DataFrame) -> list[str]:
+    """Where an initialiser's cameras come from (:func:`_reference_source`), and the configured
+    initialisers a scene could not have (``results/initialisers.json``, written by the workflow)."""
+    out = []
+    for init in sorted(set(runs["init"]) if len(runs) else (), key=lambda i: (registry.rank(i), i)):
+        source = _reference_source(runs[runs["init"] == init])
+        if source:
+            out.append(f"<p>{html.escape(registry.label(init))}: {html.escape(source)}.</p>")
     notes = results / "initialisers.json"
     skipped = json.loads(notes.read_text()).get("skipped", []) if notes.is_file() else []
     if skipped:

@@ -58,6 +58,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from evaluation.initialisers import registry
 from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
 from evaluation.reports.markup import counted
 from runtime.checks import check_folder
@@ -77,7 +78,7 @@ PROTOCOLS = {"strict": "", "test-pose": "testpose_"}
 #: The held-out metrics of each protocol: the strict column name -> the test-pose column name.
 TESTPOSE_COLUMNS = {k: PROTOCOLS["test-pose"] + k for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")}
 STAGES = ("init", "bridge", "train", "eval")
-_STAGE_WORDS = {"init": ("init", "vggt", "colmap", "oracle"), "bridge": ("bridge",),
+_STAGE_WORDS = {"init": ("init", *registry.NAMES), "bridge": ("bridge",),
                 "train": ("train", "splat"), "eval": ("eval", "metric", "pose", "render", "align")}
 
 RUN_COLUMNS = [
@@ -104,8 +105,10 @@ def mode_dirs(run_dir: Path) -> list[Path]:
 
 
 def run_label(init: str, mode) -> str:
-    """Display name of an (initialiser, bridge mode) pair: "vggt" or "vggt (gated)"."""
-    return init if mode is None or (isinstance(mode, float) and math.isnan(mode)) else f"{init} ({mode})"
+    """Display name of an (initialiser, bridge mode) pair: the initialiser's label (the
+    registry's), alone or with the mode, "label (mode)"."""
+    name = registry.label(init)
+    return name if mode is None or (isinstance(mode, float) and math.isnan(mode)) else f"{name} ({mode})"
 
 
 _RUN_FILES = ("status.json", "timing.json", "pose.json", "metrics.json", "bridge.json", "train.json",

@@ -10,7 +10,7 @@ Three sources, so that an initialiser that left no result is still named:
   line of its log;
 * ``{results}/skipped.json``, written by the workflow (rule unavailable_initialisers) for the
   initialisers that cannot run here, e.g. VGGT without its checkpoint offline:
-  ``{"vggt": "reason", ...}`` ({} when all can run); "skipped" with that reason, for every
+  ``{initialiser: "reason", ...}`` ({} when all can run); "skipped" with that reason, for every
   (dataset, scene, n) the other initialisers ran on.
 
 The words are the same in Markdown and HTML (they are plain strings).

@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from runtime.atomic import atomic_path
+from evaluation.initialisers import registry
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.markup import counted, format_value, markdown_table
 from evaluation.reports.results import PROTOCOLS, collect_runs
@@ -83,11 +84,14 @@ def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
     return rows[~rows["scene"].duplicated()].set_index("scene")
 
 
-def table_one(runs: pd.DataFrame, ours: str = "vggt", baseline: str = "colmap",
+def table_one(runs: pd.DataFrame, ours: str | None = None, baseline: str | None = None,
               lpips: str | tuple[str, ...] = LPIPS_NETS, ours_mode: str | None = "gated",
               baseline_mode: str | None = "uniform") -> pd.DataFrame:
-    """Table I: per dataset and n (see the module docstring); ``*_mode`` picks the bridge mode
-    (the paper's: VGGT gated, COLMAP uniform) when a run has several."""
+    """Table I: per dataset and n (see the module docstring); ``ours`` and ``baseline`` are the
+    registry's initialisers of those roles unless given; ``*_mode`` picks the bridge mode (the
+    paper's: ours gated, the baseline uniform) when a run has several."""
+    ours = ours or registry.with_role("ours")
+    baseline = baseline or registry.with_role("baseline")
     rows = []
     for (dataset, n), g in runs.groupby(["dataset", "n"], sort=True):
         base = _one_mode(g[g["init"] == baseline], baseline_mode)
@@ -124,6 +128,17 @@ def _recipes(g: pd.DataFrame) -> str:
     return ", ".join(names) or "-"
 
 
+def _in_registry_order(table: pd.DataFrame) -> pd.DataFrame:
+    """Rows of a per-initialiser table in the registry's order of their initialisers (within a
+    dataset, keeping the order of the rest), each shown by its label
+    (evaluation/initialisers/registry.py)."""
+    if table.empty:
+        return table
+    order = table["init"].map(registry.rank)
+    table = table.assign(_rank=order).sort_values(["dataset", "_rank"], kind="stable").drop(columns="_rank")
+    return table.assign(init=table["init"].map(registry.label)).reset_index(drop=True)
+
+
 def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> pd.DataFrame:
     """Table II style summary per dataset, initialiser, bridge mode and n."""
     rows = []
@@ -144,7 +159,7 @@ def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> 
             "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
             "total s": _mean(g["total_s"]),
         })
-    return pd.DataFrame(rows)
+    return _in_registry_order(pd.DataFrame(rows))
 
 
 def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
@@ -170,7 +185,7 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
                      "train s": _mean(g["train_s"]), "eval s": _mean(g["eval_s"]),
                      "total s": _mean(g["total_s"]), "peak MB": float(g["peak_mem_mb"].max()),
                      "peak GPU MB": float(g["peak_gpu_mb"].max())})
-    return pd.DataFrame(rows)
+    return _in_registry_order(pd.DataFrame(rows))
 
 
 def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
@@ -218,8 +233,12 @@ def build_tables(runs: pd.DataFrame, gate: GateConfig = GateConfig(), lpips: str
     }
 
 
-def table_notes(tables: dict[str, pd.DataFrame], ours: str = "vggt", baseline: str = "colmap") -> dict[str, str]:
-    """Why a table is empty or partly empty, by title (shown instead of, or above, the table)."""
+def table_notes(tables: dict[str, pd.DataFrame], ours: str | None = None,
+                baseline: str | None = None) -> dict[str, str]:
+    """Why a table is empty or partly empty, by title (shown instead of, or above, the table);
+    ``ours`` and ``baseline``: Table I's (the registry's roles) unless given."""
+    ours = ours or registry.with_role("ours")
+    baseline = baseline or registry.with_role("baseline")
     notes: dict[str, str] = {}
     status = tables.get(RUN_STATUS)
     inits_ran = set()

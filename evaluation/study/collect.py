@@ -36,7 +36,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from camio.modes import BRIDGE_MODES
+from runtime.modes import BRIDGE_MODES
 from evaluation.initialisers import registry
 from evaluation.reports.results import best_along, read_log, read_run
 
@@ -66,7 +66,7 @@ DIFF_MEASURES = ("psnr", "ssim", "lpips", "floater_final")
 # log.parquet column -> (label, unit, digits, higher is better): the held-out curves along the run
 CURVE_MEASURES = {"test_psnr": ("held-out PSNR", "dB", 2, True), "test_ssim": ("held-out SSIM", "", 3, True),
                   "test_lpips": ("held-out LPIPS-alex", "", 3, False)}
-MODES = BRIDGE_MODES  # camio.modes: the Bridge modes, listed once
+MODES = BRIDGE_MODES  # runtime.modes: the Bridge modes, listed once
 STUDY_INITS = registry.studied()  # what a study cell can degrade (config study.initialiser)
 _SEED = re.compile(r"^s(\d+)$")
 _N = re.compile(r"^n(\d+)$")

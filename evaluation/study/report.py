@@ -13,6 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from runtime.atomic import atomic_dir, write_json
+from evaluation.initialisers import registry
 from evaluation.reports.markup import counted, html_page, html_table, markdown_table
 from evaluation.study.collect import STUDY_INITS, collect_curves, collect_references, collect_study
 from evaluation.study.plots import study_plots
@@ -26,18 +27,10 @@ log = logging.getLogger(__name__)
 _CSS = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:13px}"
         "td,th{border:1px solid #ccc;padding:3px 6px}")
 
-SIMULATION_NOTE = ("Every cell is the oracle (ground truth with seeded noise), never VGGT. Named operating "
-                   "points ending in `_sim` are simulations of VGGT-like error (pose noise calibrated to the "
-                   "ATE and rotation errors the paper reports for VGGT), not VGGT output.")
-POSED_NOTE = ("Every cell is the posed initialiser (the scene's reference cameras, estimated from all of its "
-              "images, and points triangulated with them; evaluation/initialisers/posed.py) with the oracle's "
-              "seeded noise, never VGGT. It has no confidence: Bridge mode uniform only; no floater measure without a "
-              "ground-truth mesh.")
-
-
 def _init_note(runs: pd.DataFrame) -> str:
-    inits = set(runs["init"]) if "init" in runs else {"oracle"}
-    return " ".join(([SIMULATION_NOTE] if "oracle" in inits else []) + ([POSED_NOTE] if "posed" in inits else []))
+    """What the cells are: the registry's ``study_note`` of each studied initialiser in ``runs``."""
+    inits = set(runs["init"]) if "init" in runs else set(registry.studied()[:1])
+    return " ".join(registry.get(i).study_note for i in registry.studied() if i in inits)
 
 
 REFERENCE_NOTE = ("Reference initialisers (e.g. the COLMAP baseline) are the regular runs of the same views and "
@@ -82,7 +75,7 @@ def study_section_html(runs: pd.DataFrame, summary: pd.DataFrame, cells: dict, p
                        img_prefix: str, curves: pd.DataFrame | None = None,
                        refs: pd.DataFrame | None = None) -> str:
     """The study as an HTML section (h2 + tables + plots); images at ``img_prefix + name``."""
-    inits = ", ".join(sorted(set(runs["init"]))) if "init" in runs else "oracle"
+    inits = ", ".join(sorted(set(runs["init"]))) if "init" in runs else registry.studied()[0]
     parts = [f"<h2>Initialisation study ({html.escape(inits)} cells; mean ± 95 % interval over seeds)</h2>",
              f"<p>{html.escape(_init_note(runs))}</p>"]
     if refs is not None and not refs.empty:

@@ -11,10 +11,8 @@ from snakemake.exceptions import IncompleteCheckpointException
 from snakemake.logging import logger
 from pathlib import Path
 
-from snakemake.utils import validate
-
 # One line per configuration problem, naming the key and the nearest valid one, before
-# snakemake's own validation (whose message is a schema dump).
+# the defaults are filled in (a jsonschema message would be a schema dump).
 _check_spec = importlib.util.spec_from_file_location(
     "check_config",
     (Path(str(workflow.current_basedir)) / "../scripts/check_config.py").resolve(),
@@ -34,7 +32,8 @@ for _problem in _problems:
     print(f"config error: {_problem}", file=sys.stderr)
 if _problems:
     raise SystemExit(2)
-validate(config, schema="../schemas/config.schema.yaml", set_default=True)
+# defaults from the checked schema: the lists and the initialisers' option blocks of the code
+_check_config.fill_defaults(config)
 
 # A scene converted from disk must be there before anything is planned (its format decides
 # the jobs): one line here, not an InputFunctionException with a traceback during planning.
@@ -76,8 +75,8 @@ PHOTOS_SCRIPT = str(
 )
 
 # The initialisers and the Bridge modes, each listed once (evaluation/initialisers/registry.py,
-# camio/modes.py): the wildcards, the rules and the planning read them.
-from camio.modes import BRIDGE_MODES
+# runtime/modes.py): the wildcards, the rules and the planning read them.
+from runtime.modes import BRIDGE_MODES
 from evaluation.initialisers import registry as initialisers
 
 # a wildcard constraint matching exactly these names ("(?!)", nothing, when there are none)

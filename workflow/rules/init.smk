@@ -220,7 +220,8 @@ rule random_init:
 
 
 # Every initialiser without a rule of its own (the registry's ``own_rule`` False): its command
-# with the registry's common flags (COMMON_ARGS), writing a COLMAP model and status.json.
+# with the registry's common flags (COMMON_ARGS) and its options (the registry's ``options``,
+# valued from its config block), writing a COLMAP model and status.json.
 rule registry_init:
     input:
         scene=scene_dir,
@@ -244,9 +245,10 @@ rule registry_init:
     params:
         command=init_command,
         out=out_dir,
+        args=init_option_args,
     shell:
         "python -m {params.command} --scene {input.scene:q} --image-list {input.image_list:q} "
-        "--out {params.out:q} > {log:q} 2>&1"
+        "--out {params.out:q} {params.args} > {log:q} 2>&1"
 
 
 rule ba_predictions:

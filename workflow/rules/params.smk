@@ -104,12 +104,13 @@ def random_args(wildcards):
 
 
 def ba_args(wildcards):
-    """evaluation.initialisers.ba_init's arguments (config ba); posed_ba seeds from the triangulated points."""
+    """evaluation.initialisers.ba_init's arguments (config ba); the step on a base without a
+    confidence (posed_ba) seeds from the triangulated points."""
     b = config["ba"]
     args = set_flags(b, ("seed", "min_points"))
     if b["refine_focal"]:
         args.append("--refine-focal")
-    if wildcards.base == "posed":
+    if not initialisers.get(wildcards.base).confidence:
         args.append("--seed-points triangulated")
     return " ".join(args)
 
@@ -185,6 +186,18 @@ def init_marker_of(init):
 def init_command(wildcards):
     """The module the common rule runs for a job's initialiser (the registry's ``command``)."""
     return initialisers.get(wildcards.init).command
+
+
+def init_option_args(wildcards):
+    """The flags of a common-rule initialiser's options (the registry's ``options``), valued from
+    its config block (the config check filled in each default)."""
+    init = initialisers.get(wildcards.init)
+    block = config.get(init.name) or {}
+    return " ".join(
+        shlex.quote(a)
+        for o in init.options
+        for a in o.args(block.get(o.key, o.default))
+    )
 
 
 def init_marker(wildcards):

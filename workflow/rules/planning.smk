@@ -1,17 +1,22 @@
 """Target planning: the files of every (scene, n, initialiser) run up to a stage, leaving out
-what does not apply (COLMAP decisions read through the colmap_index checkpoint)."""
+what does not apply. The initialisers whose status.json decides what follows (the registry's
+``checkpoint``: the COLMAP baseline) are read through the colmap_index checkpoint."""
 
 # ----------------------------------------------------------------------------- targets
 
+# the registry's initialisers whose status.json decides what follows their run
+CHECKPOINTED = initialisers.checkpointed()
+
 
 def colmap_runs(wildcards=None):
-    """status.json of every configured COLMAP run, and of those a dense step on COLMAP's
-    cameras starts from (inputs of the colmap_index checkpoint)."""
+    """status.json of every configured run of a checkpointed initialiser, and of those a dense
+    step on its cameras starts from (inputs of the colmap_index checkpoint)."""
     return [
-        f"{RUN.format(dataset=ds, scene=sc, n=n, init='colmap')}/status.json"
+        f"{RUN.format(dataset=ds, scene=sc, n=n, init=base)}/status.json"
         for ds, sc in all_scenes()
+        for base in CHECKPOINTED
         if any(
-            i == "colmap" or initialisers.get(i).cameras_from == "colmap"
+            i == base or initialisers.get(i).cameras_from == base
             for i in scene_inits(ds, sc)
         )
         for n in scene_views(ds, sc)
@@ -21,23 +26,23 @@ def colmap_runs(wildcards=None):
 _colmap_pending = False
 
 
-def colmap_status(dataset, scene, n):
-    """status.json of a finished COLMAP run. Read through the colmap_index checkpoint, which
-    waits for every COLMAP run, so the jobs after COLMAP are planned once all results exist
-    (success or failure) rather than one checkpoint at a time."""
+def checkpointed_status(dataset, scene, n, init):
+    """status.json of a finished run of a checkpointed initialiser. Read through the
+    colmap_index checkpoint, which waits for every such run, so the jobs after them are planned
+    once all results exist (success or failure) rather than one checkpoint at a time."""
     global _colmap_pending
     try:
         checkpoints.colmap_index.get()
     except IncompleteCheckpointException:
         _colmap_pending = True
         raise
-    if _colmap_pending:  # said once, when the jobs after COLMAP join the plan
+    if _colmap_pending:  # said once, when the jobs after them join the plan
         _colmap_pending = False
         logger.info(
-            "The COLMAP runs have finished: the jobs after them are planned now, so the "
-            "step total grows (the steps done so far stay done)."
+            f"The {', '.join(CHECKPOINTED)} runs have finished: the jobs after them are planned "
+            "now, so the step total grows (the steps done so far stay done)."
         )
-    run = RUN.format(dataset=dataset, scene=scene, n=n, init="colmap")
+    run = RUN.format(dataset=dataset, scene=scene, n=n, init=init)
     path = f"{run}/status.json"
     return json.loads(Path(path).read_text())
 
@@ -52,20 +57,23 @@ def run_targets(dataset, scene, n, init, stage):
     ref = has_reference(dataset, scene)
     heldout = ref and has_test_split(dataset, scene)
     base = initialisers.get(init).cameras_from
-    if base == "colmap" and colmap_status(dataset, scene, n).get("registered", 0) < 2:
-        return []  # no two cameras for stereo: COLMAP's failure, reported as COLMAP's
+    if (
+        base in CHECKPOINTED
+        and checkpointed_status(dataset, scene, n, base).get("registered", 0) < 2
+    ):
+        return []  # no two cameras for stereo: the base's failure, reported as its own
     out = [f"{run}/{init_marker_of(init)}"]
     if stage == "init":
         return out
     aligned = True
-    if init == "colmap":
-        status = colmap_status(dataset, scene, n)
+    if init in CHECKPOINTED:
+        status = checkpointed_status(dataset, scene, n, init)
         fallback = (status.get("fallback") or {}).get("applied", False)
         if not (status.get("success_paper", status.get("success")) or fallback):
             return out
         aligned = status["aligned_ok"]
-    if base == "colmap":
-        aligned = colmap_status(dataset, scene, n)["aligned_ok"]
+    if base in CHECKPOINTED:
+        aligned = checkpointed_status(dataset, scene, n, base)["aligned_ok"]
     if ref and stage in ("pose", "all"):
         out.append(f"{run}/pose.json")
     if stage == "pose" or not config["train"]["enabled"]:
@@ -99,7 +107,7 @@ def run_targets(dataset, scene, n, init, stage):
 
 def stage_targets(stage, colmap):
     """Every run's files up to ``stage`` over all scenes, view counts and initialisers;
-    the COLMAP runs (``colmap=True``, read through the checkpoint) or all the others.
+    the checkpointed runs (``colmap=True``, read through the checkpoint) or all the others.
 
     Target rules take the two halves as separate input functions, so the runs that do not
     depend on COLMAP are planned (and shown by a dry run) before the checkpoint completes.
@@ -110,7 +118,7 @@ def stage_targets(stage, colmap):
             out.append(f"{R}/{ds}/{sc}/split.json")
         for n in scene_views(ds, sc):
             for init in scene_inits(ds, sc):
-                if (init == "colmap") == colmap:
+                if (init in CHECKPOINTED) == colmap:
                     out += run_targets(ds, sc, n, init, stage)
     return out
 

@@ -181,6 +181,14 @@ _NEEDS_VGGT = tuple(
 _unavailable = None
 
 
+def _starts_from(name):
+    """The initialiser whose run ``name`` starts from (its ``base`` or ``cameras_from``, followed
+    to the first), or ``name`` itself."""
+    init = initialisers.get(name)
+    base = init.base or init.cameras_from
+    return name if base is None else _starts_from(base)
+
+
 def configured_inits():
     """Every initialiser some scene is configured with."""
     return {
@@ -219,7 +227,11 @@ def unavailable_inits():
         )
         raise SystemExit(2)
     _unavailable = {
-        i: reason if i == "vggt" else f"it starts from VGGT, which cannot run: {reason}"
+        i: (
+            reason
+            if _starts_from(i) == i
+            else f"it starts from {_starts_from(i)}, which cannot run: {reason}"
+        )
         for i in wanted
     }
     others = sorted(configured_inits() - set(_unavailable))

@@ -21,10 +21,12 @@ from evaluation.study.grid import expand_cells
 
 STUDY = config.get("study")
 STUDY_CELLS = expand_cells(STUDY) if STUDY else {}
-STUDY_INIT = (STUDY or {}).get("initialiser", "oracle")
-# the noise keys the posed initialiser implements (evaluation/initialisers/posed.py): it has no confidence
+# the studied initialiser: study.initialiser (the config check filled in the schema's default)
+STUDY_INIT = STUDY["initialiser"] if STUDY else initialisers.studied()[0]
+# the noise keys every studied initialiser takes (the registry's ``study``); those of the
+# confidence (conf_noise, conf_mode) only apply to one with a confidence
 POSED_NOISE = ("rot_deg", "trans_frac", "depth_rel", "outlier_frac")
-if STUDY_INIT == "posed":
+if not initialisers.get(STUDY_INIT).confidence:
     _conf_cells = [
         c
         for c, info in STUDY_CELLS.items()
@@ -34,7 +36,7 @@ if STUDY_INIT == "posed":
     if _conf_cells:
         raise ValueError(
             f"study cells {_conf_cells} set conf_noise / conf_mode, but study.initialiser "
-            "'posed' has no confidence (only rot_deg, trans_frac, depth_rel, outlier_frac apply)"
+            f"'{STUDY_INIT}' has no confidence (only {', '.join(POSED_NOISE)} apply)"
         )
 STUDY_REFERENCES = list((STUDY or {}).get("references", []))
 _missing_refs = [i for i in STUDY_REFERENCES if i not in config["initialisers"]]
@@ -53,10 +55,15 @@ wildcard_constraints:
 
 
 def study_scenes():
-    """(dataset, scene) pairs of the study: the scenes with ground-truth geometry (oracle) or
-    with reference cameras (posed)."""
-    ok = has_gt_geometry if STUDY_INIT == "oracle" else has_reference
-    return [(ds, sc) for ds, sc in all_scenes() if ok(ds, sc)]
+    """(dataset, scene) pairs of the study: the scenes that have what the studied initialiser
+    needs (the registry's ``needs``: ground-truth geometry for the oracle, reference cameras
+    for posed)."""
+    checks = [
+        _SCENE_CHECKS[n]
+        for n in initialisers.get(STUDY_INIT).needs
+        if n in _SCENE_CHECKS
+    ]
+    return [(ds, sc) for ds, sc in all_scenes() if all(ok(ds, sc) for ok in checks)]
 
 
 def study_run_targets(wildcards=None):

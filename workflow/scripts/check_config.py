@@ -11,6 +11,7 @@ anything is written. The workflow runs the same check (workflow/rules/config.smk
 """
 from __future__ import annotations
 
+import copy
 import difflib
 import fnmatch
 import sys
@@ -132,8 +133,9 @@ def _results_problem(config: dict) -> str | None:
 def enum_sources() -> dict[str, tuple]:
     """The lists the schema names (``x-enum-from: KEY``), each read from its one place; light
     modules only (no torch)."""
-    from camio.modes import BRIDGE_MODES
+    from camio.scene import FORMATS
     from evaluation.initialisers import registry
+    from runtime.modes import BRIDGE_MODES
     from splat_train.recipes import RECIPE_NAMES
     from vggt_init.defaults import POINT_SOURCES
 
@@ -143,6 +145,7 @@ def enum_sources() -> dict[str, tuple]:
         "bridge_modes": BRIDGE_MODES,
         "recipes": RECIPE_NAMES,
         "vggt_point_sources": POINT_SOURCES,
+        "dataset_formats": FORMATS,
     }
 
 
@@ -186,7 +189,35 @@ def load_schema(path: Path = SCHEMA) -> dict:
                 fill(v)
 
     fill(schema)
+    from evaluation.initialisers.registry import option_blocks
+
+    for name, block in option_blocks().items():  # the options of initialisers the common rule runs
+        if name in schema["properties"]:
+            raise ValueError(f"{path}: the initialiser {name} has options in the registry and a block of its own "
+                             "here; keep one (the registry's options are for the common rule)")
+        schema["properties"][name] = block
     return schema
+
+
+def fill_defaults(config: dict, schema: dict | None = None) -> dict:
+    """``config`` with every default of the checked schema (:func:`load_schema`) filled in, in
+    place, nested blocks included (as snakemake's ``validate(set_default=True)`` does with the
+    schema file; here the enums and the initialisers' option blocks are the code's)."""
+    import jsonschema
+
+    schema = schema or load_schema()
+    base = jsonschema.Draft202012Validator
+    properties = base.VALIDATORS["properties"]
+
+    def set_defaults(validator, props, instance, node):
+        if isinstance(instance, dict):
+            for key, sub in props.items():
+                if "default" in sub:
+                    instance.setdefault(key, copy.deepcopy(sub["default"]))
+        yield from properties(validator, props, instance, node)
+
+    jsonschema.validators.extend(base, {"properties": set_defaults})(schema).validate(config)
+    return config
 
 
 def config_problems(config: dict, schema: dict | None = None) -> list[str]:

@@ -16,13 +16,14 @@ import sys
 from pathlib import Path
 
 from runtime.atomic import atomic_path
+from evaluation.initialisers import registry
 from evaluation.reports.run_status import read_skipped
 
 
 def _status(run: Path, init: str) -> tuple[bool, str]:
     """(has a model, one line on how the initialiser went)."""
     status = run / "status.json"
-    if init == "vggt":
+    if registry.get(init).marker != "status.json":  # no status to read (VGGT: timing.json)
         return (run / "sparse" / "0").is_dir(), "ran"
     if not status.is_file():
         return False, "no result (see its logs/)"
