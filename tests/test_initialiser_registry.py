@@ -38,7 +38,8 @@ def test_the_checked_schema_reads_the_lists():
     recipe = schema["properties"]["train"]["properties"]["recipe"]
     assert recipe["enum"] == [*RECIPE_NAMES, None] and recipe["default"] is None  # null: DEFAULT_RECIPE
     assert schema["properties"]["study"]["properties"]["initialiser"]["enum"] == list(registry.studied())
-    assert schema["properties"]["vggt"]["properties"]["points_from"]["enum"] == list(POINT_SOURCES)
+    points_from = schema["properties"]["vggt"]["properties"]["points_from"]
+    assert points_from["enum"] == [*POINT_SOURCES, None] and points_from["default"] is None  # null: vggt_init's
 
 
 def test_the_schema_file_copies_no_list():
