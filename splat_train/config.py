@@ -1,12 +1,24 @@
-"""Training hyperparameters (the evaluation protocol's defaults) and the schedule they imply.
+"""The training configuration, a tree of small configs, and the schedule it implies.
 
-Every key is a field of :class:`TrainConfig`. The keys a training *recipe* decides
-(:mod:`splat_train.recipes`, chosen by ``recipe``) default to None
-and take the recipe's value when the config is made; a value the user sets is kept as it is.
+:class:`TrainConfig` holds the run (:class:`RunConfig`: iterations, seed, device, threads,
+checkpoints, evaluation), the optimisation (:class:`OptimConfig`: learning rates, SH degree,
+loss, background), the growth strategy (:class:`splat_train.strategy.StrategyConfig`), the
+training parts (a tuple of :mod:`splat_train.part_configs` configs) and the recipe's schedule
+as shares of the run (:class:`RecipeSchedule`). A recipe (:mod:`splat_train.recipes`) is such a
+tree, stating only its differences from the base.
+
+What a user writes stays one flat dict (``--config`` JSON, the ``python -m splat_train``
+flags, the workflow's ``train:`` keys, ``train.json``'s ``config``): every flat key names exactly
+one field of the tree (:func:`flat_index`; :meth:`TrainConfig.from_flat`,
+:meth:`TrainConfig.to_flat`). ``TrainConfig(**flat)`` starts from the recipe ``recipe`` names
+and sets the keys given over it: a key the user sets wins; None for a key a recipe decides
+(:data:`RECIPE_KEYS`) keeps the recipe's value; a part's key turns the part's config on in the
+tree, its off value turns the part off.
+
 Schedule keys (densify_from, densify_until, densify_every, opacity_reset_every,
-sh_increase_every) are iterations of this run: the recipes give them as fractions of the run
-(``densify_until_fraction`` ...), resolved once by :meth:`TrainConfig.schedule` and printed by
-the trainer; a number the user writes is never rescaled.
+sh_increase_every) are iterations of this run: the recipes give them as shares of the run,
+resolved once per run by :meth:`TrainConfig.schedule` and printed by the trainer; a number the
+user writes is never rescaled.
 
 At the paper's 10,000 iterations the ``paper`` recipe gives the seed code's counts: densify
 from 500 to 10000 every 100, reset opacity every 3000, raise the SH degree every 1000 up to 3.
@@ -25,15 +37,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
-__all__ = ["TrainConfig", "Schedule", "DEFAULT_ITERATIONS", "PAPER_ITERATIONS", "default_iterations", "resolve_device",
-           "RESUME_FREE_KEYS", "POSE_KEYS", "BACKGROUND_MEAN", "load_config"]
-
 from camio.ply import SH_DEGREE
-from runtime.checks import RGB, Range, check_fields
+from runtime.checks import RGB, Range
 from runtime.cliargs import is_device
-from splat_train.recipes import (BACKGROUND_MEAN, DEFAULT_RECIPE, MIN_DENSIFY_EVERY, PART_KEYS, RAMP_KEYS, RECIPE_NAMES, SCHEDULE_KEYS,
-                                 STRATEGIES, SEED_OVER_CAP, MCMC_GROWTH, VALUE_KEYS,
-                                 recipe_defaults)
+from splat_train.fields import COUNT, FRACTION, ITERATION, POSITIVE, RATE, SEED, THREADS, check, flat_names
+from splat_train.part_configs import PARTS, PartConfig, part_order
+from splat_train.strategy import STRATEGIES, StrategyConfig
+
+__all__ = ["TrainConfig", "RunConfig", "OptimConfig", "RecipeSchedule", "Schedule", "DEFAULT_ITERATIONS",
+           "PAPER_ITERATIONS", "default_iterations", "resolve_device", "RESUME_FREE_KEYS", "POSE_KEYS",
+           "BACKGROUND_MEAN", "BACKGROUND_BLACK", "SCHEDULE_KEYS", "RECIPE_KEYS", "FLAT_KEYS",
+           "MIN_DENSIFY_EVERY", "flat_index", "load_config", "SEED"]
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
@@ -41,6 +55,30 @@ DEFAULT_ITERATIONS = 1000
 # The paper's budget ("10K iterations", docs/reference.md section 3): the default on a GPU, and the
 # run length the seed code's schedule was written for.
 PAPER_ITERATIONS = 10000
+# A densification period below this would average the view-space gradient over too few views.
+MIN_DENSIFY_EVERY = 20
+# 3DGS densifies from iteration 500 of the seed code's 10,000 (gsplat's refine_start_iter 500)
+DENSIFY_FROM_3DGS = 500 / 10000
+
+# The colour behind the Gaussians (``background``): RGB in [0, 1], or BACKGROUND_MEAN, the mean
+# colour of the training images (splat_train.data.mean_colour, resolved once per run by
+# splat_train.trainer.train). Black is 3DGS's default and the field's recipes'.
+BACKGROUND_BLACK = (0.0, 0.0, 0.0)
+BACKGROUND_MEAN = "mean"
+
+# Schedule keys: an int in the config is iterations of this run; None takes the recipe's
+# share of the run (:class:`RecipeSchedule`).
+SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
+
+# Config fields that do not change the optimisation result: they may differ on resume.
+# The rasterizer backend is among them: the backends are parity-tested against one reference
+# (tests/test_raster_parity.py, tests/test_raster_gsplat.py), so a run started on CPU may go on
+# on a GPU, and checkpoints written before the key existed still resume.
+RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads",
+                    "rasterizer", "eval_lpips", "lpips_weights")
+# Config fields that only matter with pose_refine: a run without refinement may resume a
+# checkpoint that differs in them (or predates them).
+POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", "lr_focal")
 
 
 def resolve_device(device: str) -> str:
@@ -59,142 +97,24 @@ def default_iterations(device: str) -> int:
     return PAPER_ITERATIONS if resolve_device(device).startswith("cuda") else DEFAULT_ITERATIONS
 
 
-# The ranges of the fields (each field names its own beside its default; runtime.checks.Range).
-# Iteration counts and periods: a count >= 1, a start or a period where 0 means never >= 0.
-COUNT = Range(1, integer=True)
-ITERATION = Range(0, integer=True)
-# Adam step sizes (a rate of 0 freezes the parameter) and loss weights / thresholds (0 = off).
-RATE = Range(0.0)
-WEIGHT = Range(0.0)
-POSITIVE = Range(0.0, lo_open=True)
-# Probabilities, fractions of the run, opacities.
-FRACTION = Range(0.0, 1.0)
-# torch.manual_seed's range: an unsigned 64-bit integer.
-SEED = Range(0, 2**64 - 1, integer=True)
-# Thread counts: 0 = the library's own choice.
-THREADS = Range(0, integer=True)
+@dataclass(frozen=True)
+class RunConfig:
+    """How a run runs: its length and randomness, the data, the device, checkpoints and evaluation.
 
-# Config fields that do not change the optimisation result: they may differ on resume.
-# The rasterizer backend is among them: the backends are parity-tested against one reference
-# (tests/test_raster_parity.py, tests/test_raster_gsplat.py), so a run started on CPU may go on
-# on a GPU, and checkpoints written before the key existed still resume.
-RESUME_FREE_KEYS = ("checkpoint_every", "keep_checkpoints", "eval_every", "num_threads", "kernel_threads",
-                    "rasterizer", "eval_lpips", "lpips_weights")
-# Config fields that only matter with pose_refine: a run without refinement may resume a
-# checkpoint that differs in them (or predates them).
-POSE_KEYS = ("lr_pose", "pose_refine_from", "pose_warmup", "pose_refine_focal", "lr_focal")
-
-
-@dataclass
-class TrainConfig:
-    """Every hyperparameter of a training run. Field names are the JSON override keys; each
-    field's type and range is its annotation (``Annotated[float, RATE]``; the ranges above),
-    checked when the config is made (:func:`runtime.checks.check_fields`) and taken by the
-    flag that sets it.
-
-    Attributes (learning rates are Adam step sizes for the stored parameterisation):
-        iterations: optimisation steps; None (the default): :func:`default_iterations` of
-            ``device`` (10,000 on a GPU, 1,000 on a CPU), resolved when the config is made.
-        recipe: "sparse" (the default), "paper", "dropgaussian" or "mcmc"
-            (:mod:`splat_train.recipes`); fills every key below whose value is None.
+    Attributes:
+        iterations: optimisation steps; None: :func:`default_iterations` of ``device`` (10,000 on
+            a GPU, 1,000 on a CPU), resolved when the config is made from flat keys.
         seed: seed of the run's random generator (view order, random backgrounds, splits,
             dropout masks).
-        sh_degree: maximum SH degree (3 as in 3DGS).
-        sh_increase_every: raise the active SH degree by one every so many iterations.
-        lr_position_init, lr_position_final: position rate at the start / end, multiplied by
-            the scene extent; exponential decay over the run.
-        lr_sh_dc, lr_sh_rest, lr_opacity, lr_scaling, lr_rotation: constant rates.
-        adam_eps: Adam epsilon (3DGS uses 1e-15).
-        lambda_dssim: weight of (1 - SSIM) in the loss (1 - w) L1 + w (1 - SSIM).
-        background: RGB in [0, 1] behind the Gaussians, or "mean" (:data:`BACKGROUND_MEAN`):
-            the mean colour of the training images, pooled over their pixels (an RGBA image
-            composited on black for it), resolved once by :func:`splat_train.trainer.train`,
-            which also composites RGBA images on it; train.json's config has the colour and
-            its ``background_from`` says which was asked. None: the recipe's (black in the
-            field's recipes, the mean in ``sparse``). From a few views a held-out view also
-            sees what no training view did, where the render is this colour (docs/reference.md
-            section 3a).
-        random_background: draw a uniform random background every iteration instead.
-        densify_from, densify_until, densify_every: densification window and period
-            (iterations of this run; None: the recipe's fraction of the run).
-        densify_grad_threshold: mean view-space (NDC) positional gradient norm above which a
-            Gaussian is cloned (small) or split (large); None: the recipe's (3DGS's 2e-4;
-            ``dropgaussian``: 5e-4).
-        percent_dense: a Gaussian is "large" when its largest scale exceeds this fraction of
-            the scene extent.
-        opacity_reset_every: set every opacity to min(opacity, opacity_reset_value) this often
-            (0: never, and no size prune; None: the recipe's: ``paper`` every 30 % of the run,
-            ``sparse`` never).
-        prune_opacity: remove Gaussians whose opacity falls below this at densification.
-        prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
-            radius exceeded this many pixels (0: never, as the official 3DGS code and gsplat
-            run; None: the recipe's, 0 in every recipe) ...
-        prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
-        max_gaussians: cap on the Gaussian count (None: none). When the clone and split
-            candidates exceed the room left, the ones with the largest view-space gradient
-            are kept (:mod:`splat_train.densify`).
-        gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
-            over the training views at the training resolution); the smaller cap applies.
-            0: no such cap; None: the recipe's value (``paper``: no cap; ``sparse``: 0.1).
-        strategy: how the model grows: "densify" (3DGS clone / split / prune,
-            :mod:`splat_train.densify`) or "mcmc" (relocation of dead Gaussians and 5 % growth
-            per refine step up to the cap, :mod:`splat_train.mcmc`; needs a cap, and reads the
-            densify_* schedule as its refine schedule and prune_opacity as its dead
-            threshold); None: the recipe's (``mcmc`` for the ``mcmc`` recipe, ``densify`` in
-            the others).
-        seed_over_cap: what a run does with a seed larger than its cap (:data:`SEED_OVER_CAP`):
-            "cap" holds the cap (the prune shrinks the model towards it), "keep" raises the cap
-            to the seed's size, "relocate" raises it and grows with the mcmc strategy; a seed
-            within the cap trains the same under all three; None: the recipe's.
-        mcmc_growth: with the mcmc strategy, how the count grows (:data:`MCMC_GROWTH`): "gsplat",
-            5 % per refine step up to the cap; "reach_cap", the same unless that cannot reach
-            the cap within the refine window, then the geometric path from the seed's size to
-            the cap (:func:`splat_train.mcmc.growth_target`); None: the recipe's.
-        noise_lr: with the mcmc strategy, the position noise per unit of position rate
-            (gsplat's 5e5).
-        opacity_reg, scale_reg: weights of mean(opacity) and mean(scale) added to the loss
-            (0 = off; None: the recipe's, 0.01 each in ``mcmc``, off elsewhere).
-        dropout_rate: Gaussian dropout's final rate (0 = off; None: the recipe's), ramped in
-            linearly over ``dropout_ramp_fraction`` of the run: :mod:`splat_train.dropout`.
-        dropout_ramp_fraction: see ``dropout_rate`` (None: the recipe's; 1 in every recipe).
-        depth_weight: weight of the Pearson depth-prior loss (0 = off; None: the recipe's),
-            ramped in linearly over ``depth_ramp_fraction`` of the run; acts only when the
-            seed comes with a depth prior (:mod:`splat_train.depth_prior`).
-        depth_ramp_fraction: see ``depth_weight`` (None: the recipe's).
-        binocular_weight: weight of the binocular stereo consistency term (0 = off; None: the
-            recipe's, 1 in ``sparse``, off in the others): from ``binocular_from_fraction`` of
-            the run on, each training view is rendered again from a camera shifted sideways and
-            warped back with the rendered depth (:mod:`splat_train.binocular`); one more render
-            per iteration.
-        binocular_from_fraction: see ``binocular_weight`` (None: the recipe's, the
-            densification start in ``sparse``, 2/3 as in Binocular3DGS's release in the others).
-        binocular_shift: the largest sideways shift, as a fraction of the view's median rendered
-            depth.
-        opacity_decay: the factor every opacity is multiplied by after each iteration from the
-            densification start on (1 = off; None: the recipe's): Binocular3DGS's opacity decay
-            (:mod:`splat_train.opacity_decay`), 0.995 in its release, which densifies to the end
-            of the run while it acts.
-        depth_use_confidence: weight the prior's samples by the initialiser's confidence
-            (False: every sample weighs 1; for measuring what the confidence adds).
-        depth_min_samples: a training view whose prior has fewer usable samples than this gets
-            no depth term (a correlation over a handful of samples constrains nothing reliably).
-        pose_refine: learn small se(3) corrections of the training cameras (off by default;
-            the first camera and the scale stay fixed, :mod:`splat_train.pose`).
-        lr_pose: Adam rate of the pose corrections (rotation in radians, translation in units
-            of the RMS distance of the training-camera centres from the first one).
-        pose_refine_from: first iteration at which the poses move (the Gaussians settle first).
-        pose_warmup: the pose (and focal) rate ramps linearly from 0 to its value over this
-            many iterations after ``pose_refine_from`` (0: no ramp).
-        pose_refine_focal: with ``pose_refine``, also learn one log-focal correction per
-            camera (fx and fy scaled together).
-        lr_focal: Adam rate of the log-focal corrections.
         downsample: integer area-downsampling factor of the training images.
-        checkpoint_every, keep_checkpoints: checkpoint period and how many to keep.
-        eval_every: held-out evaluation period (only with test cameras): PSNR and SSIM, and
+        checkpoint_every: checkpoint period K.
+        keep_checkpoints: how many checkpoints to keep.
+        eval_every: held-out evaluation period M (only with test cameras): PSNR and SSIM, and
             LPIPS with ``eval_lpips``; 0 disables (final only).
         eval_lpips: also compute LPIPS (v0.1, AlexNet) at every held-out evaluation
             (``log.parquet`` ``test_lpips``). Off by default: the AlexNet pass costs several
-            times PSNR + SSIM per view and needs a weight file; the study configs turn it on. Without weights the column stays null and a warning says how to get them.
+            times PSNR + SSIM per view and needs a weight file; the study configs turn it on.
+            Without weights the column stays null and a warning says how to get them.
         lpips_weights: folder or file of the LPIPS-alex safetensors weights (None: the
             :func:`imgmetrics.lpips.find_weights` search order, LPIPS_WEIGHTS_DIR then the
             user cache).
@@ -202,74 +122,20 @@ class TrainConfig:
         rasterizer: the :func:`splat_train.rasterize` backend; "auto" = the C++ kernel on CPU,
             gsplat on CUDA when installed (else the PyTorch tile code, with a warning). The
             backend that ran is logged and written to ``train.json`` (``rasterizer``).
-        extent_from_points: the scene extent (position rate, world-size prune) is at least 1.1 x
-            the median seed distance from the camera mean, not only the camera spread (see
-            :func:`splat_train.data.scene_extent`); False keeps the plain 3DGS rule.
-        kernel_threads: threads of the C++ rasterizer kernel on CPU (0: every CPU available to
-            the process). Its threads do not spin, so it uses the cores torch leaves idle.
         num_threads: torch CPU threads (0: leave torch's default). Default 1: on the 2-core CPU
             machines here, 2 intra-op threads made 30 iterations on a 128x96 scene take 26.7 s
             instead of 0.8 s whenever the other core was busy (spinning worker threads), and
             the rasterizer benchmark saw 2-8x slowdowns at every size; one thread per training
             job also lets Snakemake run two jobs side by side on --cores 2.
+        kernel_threads: threads of the C++ rasterizer kernel on CPU (0: every CPU available to
+            the process). Its threads do not spin, so it uses the cores torch leaves idle.
+        extent_from_points: the scene extent (position rate, world-size prune) is at least 1.1 x
+            the median seed distance from the camera mean, not only the camera spread (see
+            :func:`splat_train.data.scene_extent`); False keeps the plain 3DGS rule.
     """
 
     iterations: Annotated[int | None, COUNT] = None
-    recipe: str = DEFAULT_RECIPE
     seed: Annotated[int, SEED] = 0
-    sh_degree: Annotated[int, Range(0, SH_DEGREE, integer=True)] = SH_DEGREE
-    sh_increase_every: Annotated[int | None, COUNT] = None
-    lr_position_init: Annotated[float, RATE] = 1.6e-4
-    lr_position_final: Annotated[float, RATE] = 1.6e-6
-    lr_sh_dc: Annotated[float, RATE] = 2.5e-3
-    lr_sh_rest: Annotated[float, RATE] = 2.5e-3 / 20.0
-    lr_opacity: Annotated[float, RATE] = 0.05
-    lr_scaling: Annotated[float, RATE] = 5e-3
-    lr_rotation: Annotated[float, RATE] = 1e-3
-    adam_eps: Annotated[float, POSITIVE] = 1e-15
-    lambda_dssim: Annotated[float, FRACTION] = 0.2
-    background: Annotated[list[float] | str | None, RGB] = None
-    random_background: bool = False
-    densify_from: Annotated[int | None, ITERATION] = None
-    densify_until: Annotated[int | None, ITERATION] = None
-    densify_every: Annotated[int | None, COUNT] = None
-    densify_grad_threshold: Annotated[float | None, WEIGHT] = None
-    percent_dense: Annotated[float, WEIGHT] = 0.01
-    opacity_reset_every: Annotated[int | None, ITERATION] = None
-    opacity_reset_value: Annotated[float, FRACTION] = 0.01
-    prune_opacity: Annotated[float, FRACTION] = 0.005
-    prune_screen_size: Annotated[float | None, WEIGHT] = None
-    prune_world_size: Annotated[float, WEIGHT] = 0.1
-    max_gaussians: Annotated[int | None, COUNT] = None
-    gaussians_per_pixel: Annotated[float | None, WEIGHT] = None
-    strategy: str | None = None
-    seed_over_cap: str | None = None
-    mcmc_growth: str | None = None
-    noise_lr: Annotated[float, RATE] = 5e5
-    opacity_reg: Annotated[float | None, WEIGHT] = None
-    scale_reg: Annotated[float | None, WEIGHT] = None
-    dropout_rate: Annotated[float | None, Range(0.0, 1.0, hi_open=True)] = None
-    dropout_ramp_fraction: Annotated[float | None, FRACTION] = None
-    depth_weight: Annotated[float | None, WEIGHT] = None
-    depth_ramp_fraction: Annotated[float | None, FRACTION] = None
-    depth_use_confidence: bool = True
-    binocular_weight: Annotated[float | None, WEIGHT] = None
-    binocular_from_fraction: Annotated[float | None, FRACTION] = None
-    # Binocular3DGS's shift of up to 0.4 scene units on LLFF is 1.0-1.4 % of the median point
-    # depth of fern, horns and trex in their COLMAP frames (splat_train/binocular.py)
-    binocular_shift: Annotated[float, POSITIVE] = 0.012
-    opacity_decay: Annotated[float | None, Range(0.0, 1.0, lo_open=True)] = None
-    depth_min_samples: Annotated[int, Range(2, integer=True)] = 16
-    pose_refine: bool = False
-    # From benchmarks/bench_pose.py --quick (posed/oracle + VGGT-level noise, 300 iterations): rate
-    # 1e-3 from iteration 1 walked the cameras away on fern (ATE 1.5 -> 30 % of the radius) while
-    # the Gaussians were still a blur; 1e-4 after 100 iterations with a 100-iteration ramp lowered
-    # both errors on both scenes (benchmarks/README.md).
-    lr_pose: Annotated[float, RATE] = 1e-4
-    pose_refine_from: Annotated[int, ITERATION] = 100
-    pose_warmup: Annotated[int, ITERATION] = 100
-    pose_refine_focal: bool = False
-    lr_focal: Annotated[float, RATE] = 1e-4
     downsample: Annotated[int, COUNT] = 1
     checkpoint_every: Annotated[int, COUNT] = 500
     keep_checkpoints: Annotated[int, COUNT] = 2
@@ -283,92 +149,88 @@ class TrainConfig:
     extent_from_points: bool = True
 
     def __post_init__(self) -> None:
-        check_fields(self)  # every field's type and range, as annotated above
+        check(self)
         if not is_device(self.device):
             raise ValueError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N' (N = the GPU's index), got {self.device!r}")
-        if self.iterations is None:
-            self.iterations = default_iterations(self.device)
-        preset = recipe_defaults(self.recipe)
-        for key in (*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS):
-            if getattr(self, key) is None:
-                setattr(self, key, preset[key])
-        check_fields(self)  # the recipe's values too
-        if self.strategy not in STRATEGIES:
-            raise ValueError(f"strategy must be one of {list(STRATEGIES)}, got {self.strategy!r}")
-        if self.seed_over_cap not in SEED_OVER_CAP:
-            raise ValueError(f"seed_over_cap must be one of {list(SEED_OVER_CAP)}, got {self.seed_over_cap!r}")
-        if self.mcmc_growth not in MCMC_GROWTH:
-            raise ValueError(f"mcmc_growth must be one of {list(MCMC_GROWTH)}, got {self.mcmc_growth!r}")
-        if self.strategy == "mcmc" and not self.gaussians_per_pixel and self.max_gaussians is None:
-            raise ValueError("the mcmc strategy grows to a cap: set gaussians_per_pixel > 0 or max_gaussians")
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """The optimisation of the Gaussians: Adam step sizes (for the stored parameterisation), the
+    SH degree, the loss and the colour behind the model.
+
+    Attributes:
+        sh_degree: maximum SH degree (3 as in 3DGS).
+        sh_increase_every: raise the active SH degree by one every so many iterations (None:
+            the recipe's share of the run).
+        lr_position_init: position rate at the start, multiplied by the scene extent;
+            exponential decay over the run.
+        lr_position_final: position rate at the end, multiplied by the scene extent.
+        lr_sh_dc, lr_sh_rest, lr_opacity, lr_scaling, lr_rotation: constant rates.
+        adam_eps: Adam epsilon (3DGS uses 1e-15).
+        lambda_dssim: weight of (1 - SSIM) in the loss (1 - w) L1 + w (1 - SSIM).
+        background: RGB in [0, 1] behind the Gaussians, or "mean" (:data:`BACKGROUND_MEAN`):
+            the mean colour of the training images, pooled over their pixels (an RGBA image
+            composited on black for it), resolved once per run by
+            :func:`splat_train.trainer.train`, which also composites RGBA images on it;
+            train.json's config has the colour and its ``background_from`` says which was
+            asked. From a few views a held-out view also sees what no training view did, where
+            the render is this colour (docs/reference.md section 3a).
+        random_background: draw a uniform random background every iteration instead.
+    """
+
+    sh_degree: Annotated[int, Range(0, SH_DEGREE, integer=True)] = SH_DEGREE
+    sh_increase_every: Annotated[int | None, COUNT] = None
+    lr_position_init: Annotated[float, RATE] = 1.6e-4
+    lr_position_final: Annotated[float, RATE] = 1.6e-6
+    lr_sh_dc: Annotated[float, RATE] = 2.5e-3
+    lr_sh_rest: Annotated[float, RATE] = 2.5e-3 / 20.0
+    lr_opacity: Annotated[float, RATE] = 0.05
+    lr_scaling: Annotated[float, RATE] = 5e-3
+    lr_rotation: Annotated[float, RATE] = 1e-3
+    adam_eps: Annotated[float, POSITIVE] = 1e-15
+    lambda_dssim: Annotated[float, FRACTION] = 0.2
+    background: Annotated[list[float] | str, RGB] = BACKGROUND_BLACK
+    random_background: bool = False
+
+    def __post_init__(self) -> None:
+        check(self)
         if isinstance(self.background, str):
             if self.background != BACKGROUND_MEAN:
                 raise ValueError(f"background must be {RGB.describe()} (RGB) or {BACKGROUND_MEAN!r}, "
                                  f"got {self.background!r}")
         else:
-            self.background = [float(x) for x in self.background]
-        from splat_train.rasterize import BACKENDS
+            object.__setattr__(self, "background", [float(x) for x in self.background])
 
-        if self.rasterizer not in BACKENDS:
-            raise ValueError(f"rasterizer must be one of {BACKENDS}, got {self.rasterizer!r}")
 
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+@dataclass(frozen=True)
+class RecipeSchedule:
+    """A recipe's schedule as shares of the run (not flat keys: a schedule key the user sets is
+    iterations of this run and wins over these). Each share is a fraction of ``iterations``
+    (None: never); ``densify_every_count`` is a period kept at any run length (``paper``'s 100),
+    used instead of the share ``densify_every`` where given. The defaults are 3DGS's at the seed
+    code's 10,000 iterations.
 
-    def replace(self, **overrides: Any) -> "TrainConfig":
-        """A copy with ``overrides`` applied; unknown keys raise ValueError naming them."""
-        _check_keys(overrides)
-        return dataclasses.replace(self, **overrides)
+    Attributes:
+        densify_from: the densification start (3DGS: 500 of 10,000).
+        densify_until: the densification end.
+        densify_every: the densification period as a share of the run (at least
+            :data:`MIN_DENSIFY_EVERY` iterations).
+        densify_every_count: the densification period in iterations, at any run length.
+        opacity_reset_every: the opacity-reset period (3,000 of 10,000; at least 3
+            densification periods).
+        sh_increase_every: the SH-degree period (1,000 of 10,000).
+    """
 
-    def schedule(self) -> "Schedule":
-        """The iteration counts of this run: the values set, else the recipe's fractions of
-        ``iterations`` (see the module docstring); ``source`` says which for each key."""
-        preset = recipe_defaults(self.recipe)
-        n = int(self.iterations)
-        values: dict[str, int] = {}
-        source: dict[str, str] = {}
-        for key in SCHEDULE_KEYS:
-            set_value = getattr(self, key)
-            if set_value is not None:
-                values[key], source[key] = int(set_value), "set"
-            elif key in preset:  # an absolute count of the recipe (paper's period)
-                values[key], source[key] = int(preset[key]), f"recipe {self.recipe}"
-            elif preset[f"{key}_fraction"] is None:  # the recipe never does it (sparse: no reset)
-                values[key], source[key] = 0, f"recipe {self.recipe}: never"
-            else:
-                frac = preset[f"{key}_fraction"]
-                values[key] = max(1, int(round(frac * n)))
-                source[key] = f"recipe {self.recipe}: {frac:g} x {n}"
-        if source["densify_every"] != "set" and "densify_every" not in preset:
-            values["densify_every"] = max(values["densify_every"], MIN_DENSIFY_EVERY)
-        if source["opacity_reset_every"] != "set" and values["opacity_reset_every"] > 0:
-            # a reset needs time to recover: never more often than every 3 densifications
-            values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
-        return Schedule(**values, source=source)
+    densify_from: Annotated[float | None, FRACTION] = DENSIFY_FROM_3DGS
+    densify_until: Annotated[float | None, FRACTION] = 1.0
+    densify_every: Annotated[float | None, FRACTION] = None
+    densify_every_count: Annotated[int | None, COUNT] = 100
+    opacity_reset_every: Annotated[float | None, FRACTION] = 0.3
+    sh_increase_every: Annotated[float | None, FRACTION] = 0.1
 
-    def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
-        """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views):
-        the smaller of ``max_gaussians`` and ``gaussians_per_pixel`` x pixels, raised to
-        ``seed_size`` (the seed's Gaussians) unless ``seed_over_cap`` is "cap"; None: no cap."""
-        cap = self._set_cap(train_pixels)
-        if cap is None or self.seed_over_cap == "cap":
-            return cap
-        return max(cap, int(seed_size))
-
-    def strategy_for(self, train_pixels: int, seed_size: int) -> str:
-        """The growth strategy of a run: ``strategy``, or "mcmc" where ``seed_over_cap`` is
-        "relocate" and the seed is larger than the cap that holds without it."""
-        cap = self._set_cap(train_pixels)
-        over = cap is not None and seed_size > cap
-        return "mcmc" if self.seed_over_cap == "relocate" and over else self.strategy
-
-    def _set_cap(self, train_pixels: int) -> int | None:
-        """The cap the config sets, before any seed raises it: the smaller of ``max_gaussians``
-        and ``gaussians_per_pixel`` x ``train_pixels``; None: no cap."""
-        caps = [c for c in (self.max_gaussians,
-                            None if not self.gaussians_per_pixel
-                            else max(1, int(self.gaussians_per_pixel * train_pixels))) if c is not None]
-        return min(caps) if caps else None
+    def __post_init__(self) -> None:
+        check(self)
 
 
 @dataclass(frozen=True)
@@ -391,11 +253,232 @@ class Schedule:
         return dataclasses.asdict(self)
 
 
+# The flat keys in the order of train.json's ``config`` (the order of the flat dataclass these
+# keys were the fields of); keys of parts registered later follow in registry order.
+FLAT_KEYS = (
+    "iterations", "recipe", "seed", "sh_degree", "sh_increase_every", "lr_position_init", "lr_position_final",
+    "lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scaling", "lr_rotation", "adam_eps", "lambda_dssim", "background",
+    "random_background", "densify_from", "densify_until", "densify_every", "densify_grad_threshold",
+    "percent_dense", "opacity_reset_every", "opacity_reset_value", "prune_opacity", "prune_screen_size",
+    "prune_world_size", "max_gaussians", "gaussians_per_pixel", "strategy", "seed_over_cap", "mcmc_growth",
+    "noise_lr", "opacity_reg", "scale_reg", "dropout_rate", "dropout_ramp_fraction", "depth_weight",
+    "depth_ramp_fraction", "depth_use_confidence", "binocular_weight", "binocular_from_fraction",
+    "binocular_shift", "opacity_decay", "depth_min_samples", "pose_refine", "lr_pose", "pose_refine_from",
+    "pose_warmup", "pose_refine_focal", "lr_focal", "downsample", "checkpoint_every", "keep_checkpoints",
+    "eval_every", "eval_lpips", "lpips_weights", "device", "rasterizer", "num_threads", "kernel_threads",
+    "extent_from_points")
+# Keys whose value None means "the recipe's" (set from the flat vocabulary: the recipe's value
+# is kept): the parts' switches and shares, the thresholds every recipe gives, the strategy and
+# what a seed over the cap does, the background.
+RECIPE_KEYS = ("dropout_rate", "depth_weight", "gaussians_per_pixel", "opacity_reg", "scale_reg",
+               "binocular_weight", "opacity_decay", "depth_ramp_fraction", "dropout_ramp_fraction",
+               "binocular_from_fraction", "densify_grad_threshold", "prune_screen_size", "strategy",
+               "seed_over_cap", "mcmc_growth", "background")
+
+# Where a flat key lives: ("recipe",), (group, field) for group in run / optim / strategy,
+# ("strategy", "default" | "mcmc", field), ("part", part name, field).
+Location = tuple[str, ...]
+_INDEX: dict[tuple, dict[str, Location]] = {}
+
+
+def flat_index() -> dict[str, Location]:
+    """{flat key: where it lives in the tree}, for the registered parts (:data:`FLAT_KEYS` first)."""
+    key = tuple(PARTS.values())
+    if key not in _INDEX:
+        index: dict[str, Location] = {"recipe": ("recipe",)}
+        for group, cls in (("run", RunConfig), ("optim", OptimConfig), ("strategy", StrategyConfig)):
+            index.update({k: (group, f) for f, k in flat_names(cls).items()})
+        for name in STRATEGIES.values():
+            cls = type(getattr(StrategyConfig(), name))
+            index.update({k: ("strategy", name, f) for f, k in flat_names(cls).items()})
+        for name, cls in PARTS.items():
+            for f, k in flat_names(cls).items():
+                if k in index:
+                    raise ValueError(f"part {name!r}: its key {k!r} names another field of the training config")
+                index[k] = ("part", name, f)
+        missing = set(FLAT_KEYS) - set(index)
+        if missing:
+            raise ValueError(f"flat keys without a field: {sorted(missing)}")
+        order = [*FLAT_KEYS, *(k for k in index if k not in FLAT_KEYS)]
+        _INDEX[key] = {k: index[k] for k in order}
+    return _INDEX[key]
+
+
 def _check_keys(keys: dict[str, Any]) -> None:
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(keys) - known)
+    known = flat_index()
+    unknown = sorted(set(keys) - set(known))
     if unknown:
         raise ValueError(f"unknown training config keys {unknown}; valid keys: {sorted(known)}")
+
+
+@dataclass(frozen=True, init=False)
+class TrainConfig:
+    """Every hyperparameter of a training run, as a tree.
+
+    Made two ways: from the tree (``TrainConfig(recipe="paper", strategy=StrategyConfig(...),
+    parts=(DropoutConfig(rate=0.2),))``, what :mod:`splat_train.recipes` does; a field left out
+    takes its config's defaults, ``iterations`` stays as given), or from flat keys
+    (``TrainConfig(recipe="sparse", iterations=1000, dropout_rate=0.1)``, or
+    :meth:`from_flat`): the recipe's tree with the keys set over it (module docstring),
+    ``iterations`` resolved (:func:`default_iterations`) and the rasterizer checked. A flat key
+    reads as an attribute (``cfg.dropout_rate``; ``cfg.flat("strategy")`` for the strategy's
+    name, since ``cfg.strategy`` is its config).
+
+    Attributes:
+        recipe: the recipe the config was made from ("sparse", the default, "paper",
+            "dropgaussian" or "mcmc"; :mod:`splat_train.recipes`).
+        run: iterations, seed, data, device, threads, checkpoints, evaluation.
+        optim: learning rates, SH degree, loss, background.
+        strategy: the growth strategy and its settings.
+        parts: the training parts' configs, in the trainer's order (:data:`splat_train.part_configs.PARTS`).
+        shares: the recipe's schedule as shares of the run.
+    """
+
+    recipe: str
+    run: RunConfig
+    optim: OptimConfig
+    strategy: StrategyConfig
+    parts: tuple[PartConfig, ...]
+    shares: RecipeSchedule
+
+    def __init__(self, recipe: str | None = None, run: RunConfig | None = None, optim: OptimConfig | None = None,
+                 strategy: StrategyConfig | str | None = None, parts: tuple[PartConfig, ...] | None = None,
+                 shares: RecipeSchedule | None = None, **flat: Any) -> None:
+        if isinstance(strategy, str):  # the flat key ``strategy``: the strategy's name
+            flat["strategy"], strategy = strategy, None
+        tree = dict(run=run, optim=optim, strategy=strategy, parts=parts, shares=shares)
+        if flat or all(v is None for v in tree.values()):
+            from splat_train.recipes import DEFAULT_RECIPE, recipe_config
+
+            base = recipe_config(recipe or DEFAULT_RECIPE)
+            tree = {k: (v if v is not None else getattr(base, k)) for k, v in tree.items()}
+            recipe, resolve = base.recipe, True
+        else:  # a recipe itself: its name is new
+            tree = {k: (v if v is not None else _TREE_DEFAULTS[k]()) for k, v in tree.items()}
+            resolve = False
+            if not isinstance(recipe, str) or not recipe:
+                raise ValueError(f"a training config made as a tree names its recipe, got {recipe!r}")
+        object.__setattr__(self, "recipe", recipe)
+        for k, v in _apply_flat(tree, flat).items():
+            object.__setattr__(self, k, v)
+        object.__setattr__(self, "parts", tuple(sorted(self.parts, key=lambda c: part_order(type(c)))))
+        if resolve:
+            if self.run.iterations is None:
+                object.__setattr__(self, "run", dataclasses.replace(
+                    self.run, iterations=default_iterations(self.run.device)))
+            from splat_train.rasterize import BACKENDS
+
+            if self.run.rasterizer not in BACKENDS:
+                raise ValueError(f"rasterizer must be one of {BACKENDS}, got {self.run.rasterizer!r}")
+
+    @classmethod
+    def from_flat(cls, data: dict[str, Any]) -> "TrainConfig":
+        """The config of a flat dict (``--config`` JSON, train.json's ``config``); unknown keys
+        raise ValueError naming them."""
+        _check_keys(data)
+        return cls(**data)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        index = flat_index()
+        if name not in index:
+            raise AttributeError(f"{type(self).__name__!s} has no field or flat key {name!r}")
+        return self.flat(name)
+
+    def flat(self, key: str) -> Any:
+        """The value of flat key ``key``."""
+        loc = flat_index()[key]
+        if loc[0] == "recipe":
+            return self.recipe
+        if loc[0] == "part":
+            return getattr(self.part(loc[1]), loc[2])
+        obj = object.__getattribute__(self, loc[0])
+        for step in loc[1:]:
+            obj = getattr(obj, step)
+        return obj
+
+    def part(self, name: str) -> PartConfig:
+        """The config of part ``name``: the tree's, or the part's defaults (off) where the tree has none."""
+        return next((c for c in self.parts if c.name == name), None) or PARTS[name]()
+
+    def to_flat(self) -> dict[str, Any]:
+        """The flat dict (train.json's ``config``): every key, in :data:`FLAT_KEYS` order."""
+        return {k: self.flat(k) for k in flat_index()}
+
+    to_dict = to_flat
+
+    def replace(self, **overrides: Any) -> "TrainConfig":
+        """A copy with the flat keys ``overrides`` set; unknown keys raise ValueError naming them."""
+        _check_keys(overrides)
+        return TrainConfig(**{**self.to_flat(), **overrides})
+
+    def schedule(self) -> Schedule:
+        """The iteration counts of this run: the values set, else the recipe's shares of
+        ``iterations`` (see the module docstring); ``source`` says which for each key."""
+        shares, name = self.shares, self.recipe
+        n = int(self.run.iterations)
+        values: dict[str, int] = {}
+        source: dict[str, str] = {}
+        for key in SCHEDULE_KEYS:
+            set_value = self.flat(key)
+            frac = getattr(shares, key)
+            if set_value is not None:
+                values[key], source[key] = int(set_value), "set"
+            elif key == "densify_every" and shares.densify_every_count is not None:  # paper's period
+                values[key], source[key] = int(shares.densify_every_count), f"recipe {name}"
+            elif frac is None:  # the recipe never does it (sparse: no reset)
+                values[key], source[key] = 0, f"recipe {name}: never"
+            else:
+                values[key] = max(1, int(round(frac * n)))
+                source[key] = f"recipe {name}: {frac:g} x {n}"
+        if source["densify_every"] != "set" and shares.densify_every_count is None:
+            values["densify_every"] = max(values["densify_every"], MIN_DENSIFY_EVERY)
+        if source["opacity_reset_every"] != "set" and values["opacity_reset_every"] > 0:
+            # a reset needs time to recover: never more often than every 3 densifications
+            values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
+        return Schedule(**values, source=source)
+
+    def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
+        """The Gaussian cap of a run (:meth:`splat_train.strategy.StrategyConfig.max_gaussians_for`)."""
+        return self.strategy.max_gaussians_for(train_pixels, seed_size)
+
+    def strategy_for(self, train_pixels: int, seed_size: int) -> str:
+        """The strategy that runs (:meth:`splat_train.strategy.StrategyConfig.strategy_for`)."""
+        return self.strategy.strategy_for(train_pixels, seed_size)
+
+
+_TREE_DEFAULTS = dict(run=RunConfig, optim=OptimConfig, strategy=StrategyConfig, parts=tuple, shares=RecipeSchedule)
+
+
+def _apply_flat(tree: dict[str, Any], flat: dict[str, Any]) -> dict[str, Any]:
+    """``tree`` (run, optim, strategy, parts, shares) with the flat keys ``flat`` set; None for a
+    :data:`RECIPE_KEYS` key keeps the tree's value. Each changed config is made again, so its
+    checks run."""
+    _check_keys(flat)
+    index = flat_index()
+    groups: dict[Location, dict[str, Any]] = {}
+    for key, value in flat.items():
+        loc = index[key]
+        if loc[0] == "recipe" or (value is None and key in RECIPE_KEYS):
+            continue
+        groups.setdefault(loc[:-1], {})[loc[-1]] = value
+    out = dict(tree)
+    for group in ("run", "optim"):
+        if (group,) in groups:
+            out[group] = dataclasses.replace(out[group], **groups[(group,)])
+    strategy = out["strategy"]
+    own = {name: dataclasses.replace(getattr(strategy, name), **groups[("strategy", name)])
+           for name in STRATEGIES.values() if ("strategy", name) in groups}
+    if own or ("strategy",) in groups:
+        out["strategy"] = dataclasses.replace(strategy, **groups.get(("strategy",), {}), **own)
+    parts = {c.name: c for c in out["parts"]}
+    for loc, values in groups.items():
+        if loc[0] == "part":
+            old = parts.get(loc[1])
+            parts[loc[1]] = dataclasses.replace(old, **values) if old is not None else PARTS[loc[1]](**values)
+    out["parts"] = tuple(parts.values())
+    return out
 
 
 def load_config(overrides: str | Path | dict | None = None, **cli: Any) -> TrainConfig:
@@ -423,8 +506,6 @@ def load_config(overrides: str | Path | dict | None = None, **cli: Any) -> Train
             raise ValueError(f"{source}: must hold a JSON object, got {type(data).__name__}")
     data.update({k: v for k, v in cli.items() if v is not None})
     try:
-        _check_keys(data)
-        return TrainConfig(**data)  # made once, so an unset iterations follows the device given
-    except ValueError as exc:
+        return TrainConfig.from_flat(data)  # made once, so an unset iterations follows the device given
+    except (ValueError, TypeError) as exc:
         raise ValueError(f"{source}: {exc}") from None
-

@@ -160,9 +160,9 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     if patience < 0:
         raise ValueError(f"patience must be >= 0, got {patience}")
     if lambda_dssim is None:
-        from splat_train.config import TrainConfig
+        from splat_train.config import OptimConfig
 
-        lambda_dssim = TrainConfig().lambda_dssim
+        lambda_dssim = OptimConfig.lambda_dssim
     frozen = {k: v.detach() for k, v in params.items()}
     # what does not depend on the pose, once: activations and the SH pair
     scales, opacities, quats = activated(frozen)
