@@ -439,6 +439,10 @@ class TrainConfig:
             values["opacity_reset_every"] = max(values["opacity_reset_every"], 3 * values["densify_every"])
         return Schedule(**values, source=source)
 
+    def reads_depth_prior(self) -> bool:
+        """Whether an active part reads the seed's depth prior."""
+        return any(c.reads_depth_prior and c.active() for c in self.parts)
+
     def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
         """The Gaussian cap of a run (:meth:`splat_train.strategy.StrategyConfig.max_gaussians_for`)."""
         return self.strategy.max_gaussians_for(train_pixels, seed_size)

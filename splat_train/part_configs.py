@@ -90,11 +90,14 @@ class PartConfig:
     Attributes:
         name: the part's key (the registry's, the checkpoint's ``parts`` and the log line's).
         flat_prefix, flat_names: how its fields are spelt as flat keys (:func:`splat_train.fields.flat_names`).
+        reads_depth_prior: whether the part reads the seed's depth prior (the trainer then
+            finds it beside the seed, and its bytes are part of the inputs digest).
     """
 
     name: ClassVar[str] = "part"
     flat_prefix: ClassVar[str] = ""
     flat_names: ClassVar[dict[str, str]] = {}
+    reads_depth_prior: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         check(self)
@@ -102,6 +105,10 @@ class PartConfig:
     def active(self) -> bool:
         """Whether the part acts (False: its switch is at its off value; nothing is built)."""
         return True
+
+    def check_backend(self, backend: str) -> None:
+        """Refuse (ValueError) a rasterizer backend the active part cannot train with; called
+        before the run reads anything."""
 
     def build(self, ctx: PartContext) -> TrainPart | None:
         """The part of one run (None: it has nothing to act on in this run)."""
@@ -170,6 +177,7 @@ class DepthPriorConfig(PartConfig):
 
     name: ClassVar[str] = "depth_prior"
     flat_prefix: ClassVar[str] = "depth_"
+    reads_depth_prior: ClassVar[bool] = True
 
     weight: Annotated[float, WEIGHT] = 0.0
     ramp_fraction: Annotated[float, FRACTION] = 0.0
@@ -316,6 +324,14 @@ class PoseRefinementConfig(PartConfig):
 
     def active(self) -> bool:
         return self.enabled
+
+    def check_backend(self, backend: str) -> None:
+        if self.enabled and self.focal and backend == "gsplat":
+            # gsplat 1.5.3's projection backward returns no gradient for Ks: the focal
+            # corrections would silently stay at zero
+            raise ValueError("focal refinement (pose_refine_focal) needs the gradient of the intrinsics, which "
+                             "gsplat does not compute; train with rasterizer 'torch' (slower on a GPU) or "
+                             "without focal refinement")
 
     def build(self, ctx: PartContext) -> TrainPart | None:
         from splat_train.pose import PoseRefinement

@@ -197,6 +197,12 @@ class PoseRefinement(TrainPart):
     """
 
     name = "pose"
+    moves_cameras = True
+
+    @property
+    def moves_intrinsics(self) -> bool:  # type: ignore[override]
+        """With focal refinement, the written cameras take the refined K."""
+        return self.corrections.log_focal is not None
 
     def __init__(self, given: list[torch.Tensor], view_names: list[str], refine_focal: bool, lr_pose: float,
                  lr_focal: float, refine_from: int, warmup: int) -> None:
