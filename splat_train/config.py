@@ -47,7 +47,7 @@ from splat_train.strategy import STRATEGIES, StrategyConfig
 __all__ = ["TrainConfig", "RunConfig", "OptimConfig", "RecipeSchedule", "Schedule", "DEFAULT_ITERATIONS",
            "PAPER_ITERATIONS", "default_iterations", "resolve_device", "RESUME_FREE_KEYS", "POSE_KEYS",
            "BACKGROUND_MEAN", "BACKGROUND_BLACK", "SCHEDULE_KEYS", "RECIPE_KEYS", "FLAT_KEYS",
-           "MIN_DENSIFY_EVERY", "flat_index", "load_config", "SEED"]
+           "MIN_DENSIFY_EVERY", "flat_index", "field_of", "load_config", "SEED"]
 
 # Training iterations on a CPU when none are given: finishes in minutes on a 2-core machine;
 # on a GPU the paper's 10,000 (PAPER_ITERATIONS). Timings: benchmarks/README.md.
@@ -302,6 +302,20 @@ def flat_index() -> dict[str, Location]:
         order = [*FLAT_KEYS, *(k for k in index if k not in FLAT_KEYS)]
         _INDEX[key] = {k: index[k] for k in order}
     return _INDEX[key]
+
+
+def field_of(key: str) -> tuple[type, str]:
+    """(the config dataclass, its field) that flat key ``key`` names (``("recipe",)``: TrainConfig's
+    ``recipe``): where its type, range, default and description live (the CLI's flags read them)."""
+    loc = flat_index()[key]
+    if loc[0] == "recipe":
+        return TrainConfig, "recipe"
+    if loc[0] == "part":
+        return PARTS[loc[1]], loc[2]
+    cls = {"run": RunConfig, "optim": OptimConfig, "strategy": StrategyConfig}[loc[0]]
+    if len(loc) == 3:
+        cls = type(getattr(StrategyConfig(), loc[1]))
+    return cls, loc[-1]
 
 
 def _check_keys(keys: dict[str, Any]) -> None:

@@ -63,7 +63,7 @@ from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
-from splat_train.config import BACKGROUND_BLACK, BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, Schedule, TrainConfig, resolve_device
+from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, Schedule, TrainConfig, resolve_device
 from splat_train.cpu import raster as cpu_raster
 from splat_train.data import View, load_views, load_views_on_mean, mean_colour, read_name_list, scene_extent
 from splat_train.export import camera_tensors, render_params, render_views

@@ -231,9 +231,10 @@ def test_regularisers_add_their_gradient_through_the_rasterizer(scene):
 
 # ---------------------------------------------------------------- the recipe
 def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
-    r = RECIPES["mcmc"]
+    r = RECIPES["mcmc"].to_flat()
     assert r["strategy"] == "mcmc" and r["opacity_reg"] == r["scale_reg"] == 0.01
-    assert r["densify_every_fraction"] == 100 / 30000 and r["opacity_reset_every_fraction"] is None
+    shares = RECIPES["mcmc"].shares
+    assert shares.densify_every == 100 / 30000 and shares.opacity_reset_every is None
     assert r["dropout_rate"] == r["depth_weight"] == 0.0 and r["gaussians_per_pixel"] == 0.175
     assert r["mcmc_growth"] == "reach_cap" and TrainConfig(recipe="sparse").mcmc_growth == "gsplat"
     cfg = TrainConfig(recipe="mcmc", iterations=30000)
