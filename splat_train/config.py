@@ -2,7 +2,7 @@
 
 :class:`TrainConfig` holds the run (:class:`RunConfig`: iterations, seed, device, threads,
 checkpoints, evaluation), the optimisation (:class:`OptimConfig`: learning rates, SH degree,
-loss, background), the growth strategy (:class:`splat_train.strategy.StrategyConfig`), the
+loss, background), the growth strategy (``growth``, :class:`splat_train.strategy.StrategyConfig`), the
 training parts (a tuple of :mod:`splat_train.part_configs` configs) and the recipe's schedule
 as shares of the run (:class:`RecipeSchedule`). A recipe (:mod:`splat_train.recipes`) is such a
 tree, stating only its differences from the base.
@@ -275,8 +275,8 @@ RECIPE_KEYS = ("dropout_rate", "depth_weight", "gaussians_per_pixel", "opacity_r
                "binocular_from_fraction", "densify_grad_threshold", "prune_screen_size", "strategy",
                "seed_over_cap", "mcmc_growth", "background")
 
-# Where a flat key lives: ("recipe",), (group, field) for group in run / optim / strategy,
-# ("strategy", "default" | "mcmc", field), ("part", part name, field).
+# Where a flat key lives: ("recipe",), (group, field) for group in run / optim / growth,
+# ("growth", "default" | "mcmc", field), ("part", part name, field).
 Location = tuple[str, ...]
 _INDEX: dict[tuple, dict[str, Location]] = {}
 
@@ -286,11 +286,11 @@ def flat_index() -> dict[str, Location]:
     key = tuple(PARTS.values())
     if key not in _INDEX:
         index: dict[str, Location] = {"recipe": ("recipe",)}
-        for group, cls in (("run", RunConfig), ("optim", OptimConfig), ("strategy", StrategyConfig)):
+        for group, cls in (("run", RunConfig), ("optim", OptimConfig), ("growth", StrategyConfig)):
             index.update({k: (group, f) for f, k in flat_names(cls).items()})
         for name in STRATEGIES.values():
             cls = type(getattr(StrategyConfig(), name))
-            index.update({k: ("strategy", name, f) for f, k in flat_names(cls).items()})
+            index.update({k: ("growth", name, f) for f, k in flat_names(cls).items()})
         for name, cls in PARTS.items():
             for f, k in flat_names(cls).items():
                 if k in index:
@@ -312,7 +312,7 @@ def field_of(key: str) -> tuple[type, str]:
         return TrainConfig, "recipe"
     if loc[0] == "part":
         return PARTS[loc[1]], loc[2]
-    cls = {"run": RunConfig, "optim": OptimConfig, "strategy": StrategyConfig}[loc[0]]
+    cls = {"run": RunConfig, "optim": OptimConfig, "growth": StrategyConfig}[loc[0]]
     if len(loc) == 3:
         cls = type(getattr(StrategyConfig(), loc[1]))
     return cls, loc[-1]
@@ -329,21 +329,21 @@ def _check_keys(keys: dict[str, Any]) -> None:
 class TrainConfig:
     """Every hyperparameter of a training run, as a tree.
 
-    Made two ways: from the tree (``TrainConfig(recipe="paper", strategy=StrategyConfig(...),
+    Made two ways: from the tree (``TrainConfig(recipe="paper", growth=StrategyConfig(...),
     parts=(DropoutConfig(rate=0.2),))``, what :mod:`splat_train.recipes` does; a field left out
     takes its config's defaults, ``iterations`` stays as given), or from flat keys
     (``TrainConfig(recipe="sparse", iterations=1000, dropout_rate=0.1)``, or
     :meth:`from_flat`): the recipe's tree with the keys set over it (module docstring),
     ``iterations`` resolved (:func:`default_iterations`) and the rasterizer checked. A flat key
-    reads as an attribute (``cfg.dropout_rate``; ``cfg.flat("strategy")`` for the strategy's
-    name, since ``cfg.strategy`` is its config).
+    reads as an attribute (``cfg.dropout_rate``, ``cfg.strategy``: the strategy's name; its
+    config is ``cfg.growth``).
 
     Attributes:
         recipe: the recipe the config was made from ("sparse", the default, "paper",
             "dropgaussian" or "mcmc"; :mod:`splat_train.recipes`).
         run: iterations, seed, data, device, threads, checkpoints, evaluation.
         optim: learning rates, SH degree, loss, background.
-        strategy: the growth strategy and its settings.
+        growth: the growth strategy (flat key ``strategy``: its name) and its settings.
         parts: the training parts' configs, in the trainer's order (:data:`splat_train.part_configs.PARTS`).
         shares: the recipe's schedule as shares of the run.
     """
@@ -351,16 +351,14 @@ class TrainConfig:
     recipe: str
     run: RunConfig
     optim: OptimConfig
-    strategy: StrategyConfig
+    growth: StrategyConfig
     parts: tuple[PartConfig, ...]
     shares: RecipeSchedule
 
     def __init__(self, recipe: str | None = None, run: RunConfig | None = None, optim: OptimConfig | None = None,
-                 strategy: StrategyConfig | str | None = None, parts: tuple[PartConfig, ...] | None = None,
+                 growth: StrategyConfig | None = None, parts: tuple[PartConfig, ...] | None = None,
                  shares: RecipeSchedule | None = None, **flat: Any) -> None:
-        if isinstance(strategy, str):  # the flat key ``strategy``: the strategy's name
-            flat["strategy"], strategy = strategy, None
-        tree = dict(run=run, optim=optim, strategy=strategy, parts=parts, shares=shares)
+        tree = dict(run=run, optim=optim, growth=growth, parts=parts, shares=shares)
         if flat or all(v is None for v in tree.values()):
             from splat_train.recipes import DEFAULT_RECIPE, recipe_config
 
@@ -459,18 +457,18 @@ class TrainConfig:
 
     def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
         """The Gaussian cap of a run (:meth:`splat_train.strategy.StrategyConfig.max_gaussians_for`)."""
-        return self.strategy.max_gaussians_for(train_pixels, seed_size)
+        return self.growth.max_gaussians_for(train_pixels, seed_size)
 
     def strategy_for(self, train_pixels: int, seed_size: int) -> str:
         """The strategy that runs (:meth:`splat_train.strategy.StrategyConfig.strategy_for`)."""
-        return self.strategy.strategy_for(train_pixels, seed_size)
+        return self.growth.strategy_for(train_pixels, seed_size)
 
 
-_TREE_DEFAULTS = dict(run=RunConfig, optim=OptimConfig, strategy=StrategyConfig, parts=tuple, shares=RecipeSchedule)
+_TREE_DEFAULTS = dict(run=RunConfig, optim=OptimConfig, growth=StrategyConfig, parts=tuple, shares=RecipeSchedule)
 
 
 def _apply_flat(tree: dict[str, Any], flat: dict[str, Any]) -> dict[str, Any]:
-    """``tree`` (run, optim, strategy, parts, shares) with the flat keys ``flat`` set; None for a
+    """``tree`` (run, optim, growth, parts, shares) with the flat keys ``flat`` set; None for a
     :data:`RECIPE_KEYS` key keeps the tree's value. Each changed config is made again, so its
     checks run."""
     _check_keys(flat)
@@ -485,11 +483,11 @@ def _apply_flat(tree: dict[str, Any], flat: dict[str, Any]) -> dict[str, Any]:
     for group in ("run", "optim"):
         if (group,) in groups:
             out[group] = dataclasses.replace(out[group], **groups[(group,)])
-    strategy = out["strategy"]
-    own = {name: dataclasses.replace(getattr(strategy, name), **groups[("strategy", name)])
-           for name in STRATEGIES.values() if ("strategy", name) in groups}
-    if own or ("strategy",) in groups:
-        out["strategy"] = dataclasses.replace(strategy, **groups.get(("strategy",), {}), **own)
+    growth = out["growth"]
+    own = {name: dataclasses.replace(getattr(growth, name), **groups[("growth", name)])
+           for name in STRATEGIES.values() if ("growth", name) in groups}
+    if own or ("growth",) in groups:
+        out["growth"] = dataclasses.replace(growth, **groups.get(("growth",), {}), **own)
     parts = {c.name: c for c in out["parts"]}
     for loc, values in groups.items():
         if loc[0] == "part":

@@ -229,7 +229,7 @@ class DensifyStrategy(Strategy):
         """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its schedule and its
         default strategy's settings), with the growth cap ``max_gaussians`` and any field
         replaced by ``overrides``."""
-        return cfg.strategy.default.build(cfg.strategy, cfg.schedule(), max_gaussians, **overrides)
+        return cfg.growth.default.build(cfg.growth, cfg.schedule(), max_gaussians, **overrides)
 
     @staticmethod
     def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:

@@ -285,7 +285,7 @@ class MCMCStrategy(Strategy):
         """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its schedule and its
         mcmc settings), capped at ``max_gaussians`` (required: MCMC grows to its cap);
         ``seed_size`` (the seed's count) is kept where ``cfg.mcmc_growth`` is "reach_cap"."""
-        return cfg.strategy.mcmc.build(cfg.strategy, cfg.schedule(), max_gaussians, seed_size, **overrides)
+        return cfg.growth.mcmc.build(cfg.growth, cfg.schedule(), max_gaussians, seed_size, **overrides)
 
     @staticmethod
     def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:

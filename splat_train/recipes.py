@@ -159,7 +159,7 @@ PAPER = TrainConfig(recipe="paper", shares=RecipeSchedule())
 # (DropGaussian's ramp, the DropoutConfig default), and its densification gradient threshold.
 DROPGAUSSIAN = replace(
     PAPER, recipe="dropgaussian", parts=(DropoutConfig(rate=0.2),),
-    strategy=replace(PAPER.strategy, default=replace(PAPER.strategy.default, grad_threshold=5e-4)))
+    growth=replace(PAPER.growth, default=replace(PAPER.growth.default, grad_threshold=5e-4)))
 
 SPARSE = TrainConfig(
     recipe="sparse",
@@ -176,7 +176,7 @@ SPARSE = TrainConfig(
         # 3,000 and 10,000 iterations; without it the 3,000-iteration run ended 1.3 dB higher
         # (docs/lessons.md). The cap and dropout do the reset's job of bounding the model.
         opacity_reset_every=None),
-    strategy=StrategyConfig(
+    growth=StrategyConfig(
         # chosen on the tuning scenes only (docs/lessons.md): on fern
         # posed n = 3, 1,000 iterations, 3 seeds, 0.1 per training pixel held out LPIPS-Alex
         # 0.252 / VGG 0.345 against 0.327 / 0.378 for 0.03 and 0.274 / 0.366 for `paper`, at
@@ -216,7 +216,7 @@ MCMC = TrainConfig(
     # run 8 steps (x1.5) where gsplat's run has 245 (the cap)
     shares=RecipeSchedule(densify_from=500 / 30000, densify_until=25000 / 30000, densify_every=100 / 30000,
                           densify_every_count=None, opacity_reset_every=None, sh_increase_every=1000 / 30000),
-    strategy=StrategyConfig(
+    growth=StrategyConfig(
         name="mcmc",
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
         gaussians_per_pixel=0.175,

@@ -8,8 +8,8 @@ prune, relocate). Two strategies: ``densify``, 3DGS's clone / split / prune and 
 ``mcmc``, relocation of dead Gaussians and growth to a cap
 (:class:`splat_train.mcmc.MCMCStrategy`, config :class:`MCMCStrategyConfig`).
 
-:class:`StrategyConfig` is the training config's strategy: the one that runs (``name``, the
-flat key ``strategy``), what every strategy reads (the refine schedule, the dead / prune
+:class:`StrategyConfig` is the training config's strategy (``TrainConfig.growth``): the one
+that runs (``name``, the flat key ``strategy``), what every strategy reads (the refine schedule, the dead / prune
 opacity, the growth cap and what a seed over it does), and each strategy's own settings. Both
 are kept because ``seed_over_cap`` "relocate" switches a ``densify`` run to ``mcmc`` when the
 seed is larger than the cap. This module is light (no torch): the strategy classes are

@@ -231,15 +231,15 @@ class Trainer:
                              "check the Bridge output (bridge.json counts) or its filters")
         # the cap and the strategy: a seed over the cap may raise it (seed_over_cap)
         self.seed_gaussians = len(cloud)
-        self.max_gaussians = cfg.strategy.max_gaussians_for(train_pixels, len(cloud))
-        self.strategy_name = cfg.strategy.strategy_for(train_pixels, len(cloud))
+        self.max_gaussians = cfg.growth.max_gaussians_for(train_pixels, len(cloud))
+        self.strategy_name = cfg.growth.strategy_for(train_pixels, len(cloud))
         log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels, seed %d, "
                  "seed over the cap: %s); parts %s",
                  cfg.recipe, self.strategy_name,
                  {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
-                 self.max_gaussians or "none", train_pixels, len(cloud), cfg.strategy.seed_over_cap,
+                 self.max_gaussians or "none", train_pixels, len(cloud), cfg.growth.seed_over_cap,
                  [c for c in cfg.parts if c.active()] or "none")
-        self.strategy = cfg.strategy.build(self.strategy_name, self.sched, self.max_gaussians, len(cloud))
+        self.strategy = cfg.growth.build(self.strategy_name, self.sched, self.max_gaussians, len(cloud))
         self.params = params_from_cloud(cloud, cfg.optim.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
