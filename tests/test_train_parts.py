@@ -32,6 +32,11 @@ from splat_train.trainer import Trainer, train
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
+def _part(trainer, name):
+    """The trainer's part named ``name`` (the parts are reached by name, never by type)."""
+    return next(p for p in trainer.parts if p.name == name)
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """Three 32x24 views of 60 Gaussians, with a depth prior beside the seed: the true camera
@@ -114,7 +119,7 @@ def _reference_run(cfg, scene, out):
     then the densification step."""
     tr = Trainer(cfg, scene["seed"], load_views(scene["cameras"], scene["images"]), out,
                  depth_prior=scene["seed"].parent / DEPTH_PRIOR_FILE)
-    prior = tr.prior
+    prior = _part(tr, "depth_prior").prior
     tr.parts = []
     given = [c[0] for c in tr.cams]
     pose = PoseCorrections(len(given), refine_focal=True, trans_scale=camera_spread(given))
@@ -186,7 +191,8 @@ def test_a_run_through_the_parts_is_the_hand_written_loop_bit_for_bit(scene, tmp
     assert res.summary["num_gaussians"] == ref.num_gaussians
     for key, p in ref.params.items():
         assert torch.equal(tr.params[key], p), key
-    assert torch.equal(tr.pose.delta, ref_pose.delta) and torch.equal(tr.pose.log_focal, ref_pose.log_focal)
+    pose = _part(tr, "pose").corrections
+    assert torch.equal(pose.delta, ref_pose.delta) and torch.equal(pose.log_focal, ref_pose.log_focal)
 
 
 def test_a_checkpoint_from_before_the_parts_resumes_exactly(scene, tmp_path):
