@@ -11,7 +11,7 @@ order of :data:`PARTS` (the order of their loss terms, opacity maps and random d
 1. :class:`DropoutConfig` (:mod:`splat_train.dropout`);
 2. :class:`DepthPriorConfig` (:mod:`splat_train.depth_prior`; acts only when the seed comes with
    a depth prior);
-3. :class:`RegularisersConfig` (:class:`splat_train.parts.GaussianRegularisers`);
+3. :class:`RegularisersConfig` (:class:`splat_train.losses.GaussianRegularisers`);
 4. :class:`BinocularConfig` (:mod:`splat_train.binocular`);
 5. :class:`OpacityDecayConfig` (:mod:`splat_train.opacity_decay`);
 6. :class:`PoseRefinementConfig` (:mod:`splat_train.pose`).
@@ -33,7 +33,6 @@ from splat_train.fields import FRACTION, ITERATION, POSITIVE, RATE, WEIGHT, chec
 if TYPE_CHECKING:
     import torch
 
-    from splat_train.config import Schedule, TrainConfig
     from splat_train.data import View
     from splat_train.train_part import TrainPart, ViewRenderer
 
@@ -54,8 +53,8 @@ class PartContext:
     """What a part config may need to make its part for one run.
 
     Attributes:
-        cfg: the run's config (iterations resolved).
-        schedule: the run's schedule (:meth:`splat_train.config.TrainConfig.schedule`, resolved once).
+        cfg: the run's :class:`splat_train.config.TrainConfig` (iterations resolved).
+        schedule: the run's :class:`splat_train.config.Schedule` (resolved once per run).
         views: the training views, in the trainer's order (names, image sizes).
         cameras: [4, 4] cam_from_world of each view (world frame of the seed), on the training device.
         generator: the trainer's CPU generator (every random draw of a part).
@@ -64,8 +63,8 @@ class PartContext:
         renderer: the trainer (or None); a part that renders views of its own needs both.
     """
 
-    cfg: TrainConfig
-    schedule: Schedule
+    cfg: Any
+    schedule: Any
     views: list[View]
     cameras: list[torch.Tensor]
     generator: torch.Generator
@@ -206,7 +205,7 @@ class DepthPriorConfig(PartConfig):
 @dataclass(frozen=True)
 class RegularisersConfig(PartConfig):
     """The opacity and scale regularisers (gsplat's MCMC losses;
-    :class:`splat_train.parts.GaussianRegularisers`).
+    :class:`splat_train.losses.GaussianRegularisers`).
 
     Attributes:
         opacity_reg: weight of mean(opacity) added to the loss (0 = off).
@@ -222,7 +221,7 @@ class RegularisersConfig(PartConfig):
         return self.opacity_reg > 0 or self.scale_reg > 0
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.parts import GaussianRegularisers
+        from splat_train.losses import GaussianRegularisers
 
         return GaussianRegularisers(self.opacity_reg, self.scale_reg)
 

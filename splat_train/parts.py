@@ -4,8 +4,8 @@ A training config (:class:`splat_train.config.TrainConfig`) is a growth strategy
 (:mod:`splat_train.strategy`) plus a tuple of part configs (:mod:`splat_train.part_configs`);
 each active config makes its part (:mod:`splat_train.train_part`), in the order of the registry
 :data:`splat_train.part_configs.PARTS`, which is the order the trainer runs their hooks and adds
-their loss terms to the photometric loss. This module holds the parts that have no module of
-their own (:class:`GaussianRegularisers`) and composes the parts' opacity maps (:func:`opacity_map`).
+their loss terms to the photometric loss. This module makes a run's parts and composes their
+opacity maps (:func:`opacity_map`).
 """
 
 from __future__ import annotations
@@ -17,25 +17,11 @@ from torch import Tensor
 
 from splat_train.config import Schedule, TrainConfig
 from splat_train.data import View
-from splat_train.losses import gaussian_regularisers
+from splat_train.losses import GaussianRegularisers
 from splat_train.part_configs import PartContext, build_parts
 from splat_train.train_part import OpacityFn, TrainPart, ViewRenderer
 
 __all__ = ["GaussianRegularisers", "opacity_map", "recipe_parts"]
-
-
-class GaussianRegularisers(TrainPart):
-    """The opacity and scale regularisers as a training part (:func:`splat_train.losses.gaussian_regularisers`:
-    ``opacity_reg`` mean opacity + ``scale_reg`` mean scale, gsplat's MCMC losses)."""
-
-    name = "regularisers"
-
-    def __init__(self, opacity_reg: float, scale_reg: float) -> None:
-        self.opacity_reg, self.scale_reg = float(opacity_reg), float(scale_reg)
-
-    def loss(self, iteration: int, view: int, render: dict[str, Tensor], params: dict[str, Tensor]) -> Tensor | None:
-        """The term of ``params["opacity"]`` [N] (logits) and ``params["scales"]`` [N, 3] (log)."""
-        return gaussian_regularisers(params["opacity"], params["scales"], self.opacity_reg, self.scale_reg)
 
 
 def recipe_parts(cfg: TrainConfig, views: list[View], cameras: list[Tensor], generator: torch.Generator,

@@ -1,14 +1,14 @@
 """The training recipes, ``paper``, ``dropgaussian``, ``sparse`` and ``mcmc``: the one place for their
 defaults.
 
-A recipe is a training config (:class:`splat_train.config.TrainConfig`) that states only its
+A recipe is a training config tree (:class:`splat_train.tree.ConfigTree`) that states only its
 differences from the base (the configs' defaults, 3DGS as its code trains): ``PAPER`` is the base,
 ``DROPGAUSSIAN`` is ``PAPER`` with dropout and a higher gradient threshold, ``SPARSE`` and ``MCMC``
 set their own parts and strategy. A run's config is the recipe's with the flat keys the user
 sets over it (a key the user sets keeps its value, and means what it says: schedule keys are
 iterations of this run, never rescaled). The recipe's own schedule values are shares of the run
 (:class:`splat_train.config.RecipeSchedule`), resolved to iterations once per run
-(:meth:`TrainConfig.schedule`, printed by the trainer).
+(:meth:`splat_train.tree.ConfigTree.schedule`, printed by the trainer).
 
 ``paper``
     The training of the paper's tables (docs/reference.md section 3, 3DGS as the seed code ran it for
@@ -117,8 +117,8 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-from splat_train.config import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3DGS, MIN_DENSIFY_EVERY, RECIPE_KEYS,
-                                SCHEDULE_KEYS, OptimConfig, RecipeSchedule, TrainConfig)
+from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3DGS, MIN_DENSIFY_EVERY, RECIPE_KEYS,
+                              SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
 from splat_train.part_configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
 from splat_train.strategy import (MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES, DefaultStrategyConfig, MCMCStrategyConfig,
@@ -145,6 +145,9 @@ assert set(RECIPE_KEYS) == {*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS}
 
 # gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
 OPACITY_REG_GSPLAT = 0.01
+# FSGS's Pearson depth weight (docs/field.md), ``sparse``'s; 0.1 lost 0.06 dB over twelve
+# scenes (docs/lessons.md)
+DEPTH_WEIGHT_FSGS = 0.05
 
 # ``paper``: the base as it is. Its schedule (RecipeSchedule's defaults): densify from 500/10000
 # of the run to its end every 100 iterations, reset opacity every 30 %, SH degree every 10 %;
@@ -153,7 +156,7 @@ OPACITY_REG_GSPLAT = 0.01
 # hold), mcmc_growth not read (no mcmc strategy); every part off (dropout, depth, regularisers,
 # binocular stereo consistency (splat_train/binocular.py), opacity decay
 # (splat_train/opacity_decay.py)); black behind the model.
-PAPER = TrainConfig(recipe="paper", shares=RecipeSchedule())
+PAPER = ConfigTree(recipe="paper", shares=RecipeSchedule())
 
 # ``dropgaussian``: ``paper`` with DropGaussian's dropout, ramped to 0.2 over the whole run
 # (DropGaussian's ramp, the DropoutConfig default), and its densification gradient threshold.
@@ -161,7 +164,7 @@ DROPGAUSSIAN = replace(
     PAPER, recipe="dropgaussian", parts=(DropoutConfig(rate=0.2),),
     growth=replace(PAPER.growth, default=replace(PAPER.growth.default, grad_threshold=5e-4)))
 
-SPARSE = TrainConfig(
+SPARSE = ConfigTree(
     recipe="sparse",
     # the training images' mean colour behind the model, chosen on the tuning scenes
     # (docs/lessons.md: +0.10 ± 0.37 dB over fourteen cells, 3 seeds) and held on the five
@@ -191,9 +194,8 @@ SPARSE = TrainConfig(
     parts=(
         # DropGaussian's final rate (docs/field.md), DropGaussian's ramp over the whole run
         DropoutConfig(rate=0.2),
-        # FSGS's Pearson depth weight (docs/field.md), reached after 10 % of the run; 0.1 lost
-        # 0.06 dB over twelve scenes (docs/lessons.md)
-        DepthPriorConfig(weight=0.05, ramp_fraction=0.1),
+        # FSGS's Pearson depth weight, reached after 10 % of the run
+        DepthPriorConfig(weight=DEPTH_WEIGHT_FSGS, ramp_fraction=0.1),
         # chosen on the tuning scenes (docs/lessons.md)
         RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT),
         # binocular stereo consistency (splat_train/binocular.py) with Binocular3DGS's weight,
@@ -208,7 +210,7 @@ SPARSE = TrainConfig(
     ),
 )
 
-MCMC = TrainConfig(
+MCMC = ConfigTree(
     recipe="mcmc",
     # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
     # refine_every 100; simple_trainer's sh_degree_interval 1000. The period is a fraction
@@ -235,7 +237,7 @@ MCMC = TrainConfig(
     parts=(RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT, scale_reg=0.01),),
 )
 
-RECIPES: dict[str, TrainConfig] = {"paper": PAPER, "dropgaussian": DROPGAUSSIAN, "sparse": SPARSE, "mcmc": MCMC}
+RECIPES: dict[str, ConfigTree] = {"paper": PAPER, "dropgaussian": DROPGAUSSIAN, "sparse": SPARSE, "mcmc": MCMC}
 RECIPE_NAMES = tuple(RECIPES)
 # One line per recipe, for help texts (the module docstring has the full account).
 RECIPE_SUMMARIES = {
@@ -247,7 +249,7 @@ RECIPE_SUMMARIES = {
 }
 
 
-def recipe_config(name: str) -> TrainConfig:
+def recipe_config(name: str) -> ConfigTree:
     """The recipe ``name`` (a tree; ``iterations`` unresolved); ValueError naming the valid recipes otherwise."""
     if name not in RECIPES:
         raise ValueError(f"recipe must be one of {list(RECIPES)}, got {name!r}")
@@ -261,7 +263,7 @@ def recipe_defaults(name: str) -> dict[str, Any]:
     return {k: flat[k] for k in RECIPE_KEYS}
 
 
-def register_recipe(preset: TrainConfig, summary: str) -> TrainConfig:
+def register_recipe(preset: ConfigTree, summary: str) -> ConfigTree:
     """Add a recipe (a tree whose ``recipe`` is its new name) to :data:`RECIPES` and
     :data:`RECIPE_SUMMARIES`; the CLI's ``--recipe`` and the config keys take it from then on.
     The workflow's config schema lists the recipes it accepts (docs/contracts.md, "Adding a

@@ -26,8 +26,6 @@ from splat_train.fields import COUNT, FRACTION, ITERATION, RATE, WEIGHT, check
 if TYPE_CHECKING:
     import torch
 
-    from splat_train.config import Schedule
-
 __all__ = ["Strategy", "StrategyConfig", "DefaultStrategyConfig", "MCMCStrategyConfig", "STRATEGIES",
            "SEED_OVER_CAP", "MCMC_GROWTH", "GRAD_THRESHOLD_3DGS"]
 
@@ -113,9 +111,10 @@ class DefaultStrategyConfig:
     def __post_init__(self) -> None:
         check(self)
 
-    def build(self, strategy: StrategyConfig, schedule: Schedule, max_gaussians: int | None,
+    def build(self, strategy: StrategyConfig, schedule: Any, max_gaussians: int | None,
               seed_size: int = 0, **overrides: Any) -> Strategy:
-        """The :class:`splat_train.densify.DensifyStrategy` of this run's ``schedule`` and cap."""
+        """The :class:`splat_train.densify.DensifyStrategy` of this run's ``schedule``
+        (:class:`splat_train.config.Schedule`) and cap."""
         from splat_train.densify import DensifyStrategy
 
         fields = dict(
@@ -152,7 +151,7 @@ class MCMCStrategyConfig:
         if self.growth not in MCMC_GROWTH:
             raise ValueError(f"mcmc_growth must be one of {list(MCMC_GROWTH)}, got {self.growth!r}")
 
-    def build(self, strategy: StrategyConfig, schedule: Schedule, max_gaussians: int | None,
+    def build(self, strategy: StrategyConfig, schedule: Any, max_gaussians: int | None,
               seed_size: int = 0, **overrides: Any) -> Strategy:
         """The :class:`splat_train.mcmc.MCMCStrategy` of this run's ``schedule``, capped at
         ``max_gaussians`` (required: MCMC grows to its cap)."""
@@ -250,6 +249,6 @@ class StrategyConfig:
         """The own settings of strategy ``name``."""
         return getattr(self, STRATEGIES[name])
 
-    def build(self, name: str, schedule: Schedule, max_gaussians: int | None, seed_size: int = 0) -> Strategy:
+    def build(self, name: str, schedule: Any, max_gaussians: int | None, seed_size: int = 0) -> Strategy:
         """Strategy ``name`` (:meth:`strategy_for`) of this run."""
         return self.settings(name).build(self, schedule, max_gaussians, seed_size)
