@@ -190,7 +190,7 @@ def cap_candidates(clone_mask: torch.Tensor, split_mask: torch.Tensor, grads: to
 @dataclass
 class DensifyStrategy(Strategy):
     """The 3DGS densification schedule and thresholds (iteration counts of this run), made by its
-    config (:class:`splat_train.strategy.DefaultStrategyConfig`).
+    config (:class:`splat_train.strategy_configs.DefaultStrategyConfig`).
 
     Attributes:
         densify_from, densify_until, densify_every: densify at iterations it with

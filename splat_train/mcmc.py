@@ -253,7 +253,7 @@ def growth_target(n: int, step: int, steps: int, seed: int | None, cap: int, gro
 @dataclass
 class MCMCStrategy(Strategy):
     """The MCMC refine schedule and cap (:class:`splat_train.strategy.Strategy`), made by its
-    config (:class:`splat_train.strategy.MCMCStrategyConfig`).
+    config (:class:`splat_train.strategy_configs.MCMCStrategyConfig`).
 
     Attributes:
         refine_from, refine_until, refine_every: relocate and add at iterations it with

@@ -121,7 +121,7 @@ from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3D
                               SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
 from splat_train.part_configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
-from splat_train.strategy import (MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES, DefaultStrategyConfig, MCMCStrategyConfig,
+from splat_train.strategy_configs import (MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES, DefaultStrategyConfig, MCMCStrategyConfig,
                                   StrategyConfig)
 
 __all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS",

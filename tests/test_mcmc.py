@@ -23,6 +23,7 @@ from splat_train.densify import quat_to_rotmat
 from splat_train.export import render_params
 from splat_train.gaussians import make_optimizer
 from splat_train.losses import gaussian_regularisers, photometric_loss
+from splat_train.tree import OptimConfig
 from splat_train.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
                               relocation_opacity_scale)
 from splat_train.recipes import RECIPES
@@ -216,7 +217,7 @@ def test_regularisers_add_their_gradient_through_the_rasterizer(scene):
     for w in (0.0, 0.5):
         params = params_from_cloud(read_gaussian_ply(scene["seed"]), 0)
         out = render_params(params, 0, cw, K, view.camera.width, view.camera.height, torch.zeros(3))
-        loss = photometric_loss(out["rgb"], torch.as_tensor(view.image))[0]
+        loss = photometric_loss(out["rgb"], torch.as_tensor(view.image), OptimConfig.lambda_dssim)[0]
         reg = gaussian_regularisers(params["opacity"], params["scales"], w, 2 * w)
         assert (reg is None) == (w == 0)
         (loss if reg is None else loss + reg).backward()
