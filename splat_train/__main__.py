@@ -118,8 +118,12 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
 
 def _train_parser() -> argparse.ArgumentParser:
     from splat_train import recipes
+    from splat_train.fields import flat_names
+    from splat_train.part_configs import PARTS
 
+    parts = "; ".join(f"{name} ({', '.join(flat_names(cls).values())})" for name, cls in PARTS.items())
     p = argparse.ArgumentParser(prog="python -m splat_train",
+                                epilog=f"training parts, each set by its --config keys: {parts}",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
                                             "`python -m splat_train render -h` renders a trained model (or a "
