@@ -64,6 +64,7 @@ from camio.ply import read_gaussian_ply, write_gaussian_ply
 from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
 from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, Schedule, TrainConfig, resolve_device
+from splat_train.tree import added_at_default
 from splat_train.cpu import raster as cpu_raster
 from splat_train.data import View, load_views, load_views_on_mean, mean_colour, read_name_list, scene_extent
 from splat_train.export import camera_tensors, render_params, render_views
@@ -140,7 +141,9 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
         h.update(np.ascontiguousarray(cam.K, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(cam.cam_from_world, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(v.image).tobytes())
-    kept = {k: v for k, v in cfg.to_dict().items() if k not in RESUME_FREE_KEYS}
+    flat = cfg.to_flat()
+    skip = {*RESUME_FREE_KEYS, *added_at_default(flat)}  # a part added since, off: the digest stays
+    kept = {k: v for k, v in flat.items() if k not in skip}
     h.update(json.dumps(kept, sort_keys=True, default=str).encode())
     return h.hexdigest()
 
@@ -281,7 +284,7 @@ class Trainer:
         """Continue from checkpoint ``path`` (its config and training views must match)."""
         data = ckpt.load_checkpoint(path, self.dev)
         old, new = data["config"], self.cfg.to_dict()
-        free = set(RESUME_FREE_KEYS)
+        free = {*RESUME_FREE_KEYS, *(added_at_default(new) - set(old))}  # a part added since, off
         if not new["pose_refine"] and not old.get("pose_refine"):
             free |= set(POSE_KEYS)  # unused without refinement (and absent from older checkpoints)
         diff = sorted(k for k in new if k not in free and old.get(k) != new[k])

@@ -24,7 +24,7 @@ from splat_train.strategy_configs import STRATEGIES, StrategyConfig
 
 __all__ = ["ConfigTree", "RunConfig", "OptimConfig", "RecipeSchedule", "Schedule", "BACKGROUND_MEAN",
            "BACKGROUND_BLACK", "SCHEDULE_KEYS", "RECIPE_KEYS", "FLAT_KEYS", "MIN_DENSIFY_EVERY", "DENSIFY_FROM_3DGS",
-           "flat_index", "field_of", "check_keys", "apply_flat", "SEED"]
+           "flat_index", "field_of", "check_keys", "apply_flat", "added_at_default", "SEED"]
 
 # A densification period below this would average the view-space gradient over too few views.
 MIN_DENSIFY_EVERY = 20
@@ -260,6 +260,19 @@ def field_of(key: str) -> tuple[type, str]:
     if len(loc) == 3:
         cls = type(getattr(StrategyConfig(), loc[1]))
     return cls, loc[-1]
+
+
+def added_at_default(flat: dict[str, Any]) -> set[str]:
+    """The keys of ``flat`` beyond :data:`FLAT_KEYS` (of parts registered since) whose value is
+    their part's default: left out of the inputs digest and the resume check, so that adding a
+    part leaves every run without it as it was (its digest, its checkpoints)."""
+    index = flat_index()
+    out = set()
+    for key in flat.keys() - set(FLAT_KEYS):
+        loc = index.get(key)
+        if loc is not None and loc[0] == "part" and flat[key] == getattr(PARTS[loc[1]](), loc[2]):
+            out.add(key)
+    return out
 
 
 def check_keys(keys: dict[str, Any]) -> None:

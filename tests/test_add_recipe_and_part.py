@@ -108,3 +108,20 @@ def test_the_config_and_the_trainer_take_the_added_recipe_and_part(tmp_path):
                str(scene["images"]), "--out", str(tmp_path / "bad"), "--config", '{"counter_every": -1}')
     assert bad.returncode == 2 and "counter_every must be" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_an_added_part_left_off_changes_no_run(tmp_path):
+    """A run without the new part keeps its inputs digest (so its checkpoints resume): the
+    part's keys at their off value are no part of the digest."""
+    scene = write_scene(tmp_path / "scene", n_views=3)
+    code = ("import sys; sys.argv[1:] and __import__(sys.argv[1]); "
+            "from splat_train.config import TrainConfig; from splat_train.data import load_views; "
+            "from splat_train.trainer import inputs_digest; "
+            f"views = load_views({str(scene['cameras'])!r}, {str(scene['images'])!r}); "
+            f"print(inputs_digest({str(scene['seed'])!r}, views, TrainConfig(recipe='paper', iterations=9)))")
+    (tmp_path / "counter_plugin.py").write_text(PLUGIN)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(tmp_path)])}
+    digests = [subprocess.run([sys.executable, "-c", code, *plugin], capture_output=True, text=True, cwd=ROOT,
+                              env=env, timeout=300) for plugin in ([], ["counter_plugin"])]
+    assert all(p.returncode == 0 for p in digests), [p.stderr[-2000:] for p in digests]
+    assert digests[0].stdout == digests[1].stdout and len(digests[0].stdout.strip()) == 64
