@@ -1,6 +1,6 @@
-"""The training configuration, a tree of small configs, and the schedule it implies.
+"""A run's training configuration: a recipe's config tree with the user's flat keys over it.
 
-:class:`TrainConfig` holds the run (:class:`RunConfig`: iterations, seed, device, threads,
+:class:`TrainConfig` (a :class:`splat_train.tree.ConfigTree`) holds the run (:class:`RunConfig`: iterations, seed, device, threads,
 checkpoints, evaluation), the optimisation (:class:`OptimConfig`: learning rates, SH degree,
 loss, background), the growth strategy (``growth``, :class:`splat_train.strategy_configs.StrategyConfig`), the
 training parts (a tuple of :mod:`splat_train.part_configs` configs) and the recipe's schedule

@@ -121,8 +121,8 @@ from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3D
                               SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
 from splat_train.part_configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
-from splat_train.strategy_configs import (MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES, DefaultStrategyConfig, MCMCStrategyConfig,
-                                  StrategyConfig)
+from splat_train.strategy_configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
+                                          MCMCStrategyConfig, StrategyConfig)
 
 __all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS",
            "RAMP_KEYS", "STRATEGIES", "SEED_OVER_CAP", "MCMC_GROWTH", "MIN_DENSIFY_EVERY", "BACKGROUND_BLACK",
@@ -228,9 +228,8 @@ MCMC = ConfigTree(
         # 12-95 points three views triangulate, 5 % per step leaves it at a few hundred
         # Gaussians (under 20 it never grows: int(1.05 N) = N); see the module docstring
         mcmc=MCMCStrategyConfig(growth="reach_cap"),
-        # the default strategy's settings (3DGS's threshold, no size prune) are not read by
-        # the mcmc strategy (no clone / split / size prune)
-        default=DefaultStrategyConfig(),
+        # the default strategy's settings (the base's: 3DGS's threshold, no size prune) are not
+        # read by the mcmc strategy (no clone / split / size prune)
     ),
     # simple_trainer's mcmc preset; no dropout, no depth term, no binocular consistency
     # (splat_train/binocular.py), no opacity decay (splat_train/opacity_decay.py)
