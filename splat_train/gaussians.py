@@ -9,7 +9,7 @@ Parameters (N Gaussians, world frame of the seed PLY):
 * ``quats`` [N, 4] rotations (w, x, y, z), not kept normalised (the rasterizer normalises).
 
 One Adam holds one parameter group per tensor (``group["name"]`` is the key above), so that
-densification can rebuild each group with its optimizer state (:mod:`splat_train.densify`).
+densification can rebuild each group with its optimizer state (:mod:`splat_train.strategy.densify`).
 """
 
 from __future__ import annotations

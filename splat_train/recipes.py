@@ -45,7 +45,7 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
       ``depth_ramp_fraction`` of the run (:mod:`splat_train.depth_prior`); off when the seed has
       no prior file;
     * a model sized to its views: growth keeps the best candidates under a cap of
-      ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.densify`), densifying
+      ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.strategy.densify`), densifying
       every 100 iterations (the field's period: 3DGS, gsplat, DropGaussian) from 5 % of the run
       to its end: under the cap, growth keeps replacing the weakest Gaussians by better ones;
     * opacity decay (Binocular3DGS, NeurIPS 2024): every opacity x 0.995 after each iteration
@@ -81,7 +81,7 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
 ``mcmc``
     3DGS as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024, arXiv:2404.09591) as
     gsplat's ``mcmc`` preset runs it (``examples/simple_trainer.py``, ``gsplat/strategy/mcmc.py``
-    ``MCMCStrategy``; here :mod:`splat_train.mcmc`): no clone / split / prune / opacity reset;
+    ``MCMCStrategy``; here :mod:`splat_train.strategy.mcmc`): no clone / split / prune / opacity reset;
     every 100/30000 of the run (gsplat's ``refine_every`` 100 at its 30,000 steps; at least
     :data:`MIN_DENSIFY_EVERY`) from 500/30000 to 25000/30000 of the run, dead Gaussians (opacity <= ``prune_opacity`` 0.005) are relocated onto live ones
     and 5 % more are added until the cap; position noise ``noise_lr`` 5e5 x the position rate
@@ -100,7 +100,7 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
     cannot take the seed to the cap within the refine window; there the count follows the
     geometric path from the seed's size to the cap over the window's refine steps, so that the
     model reaches the budget it is given, as gsplat's runs do from their SfM seeds of
-    100k-300k points (:func:`splat_train.mcmc.growth_target`). The seeds of the sparse-view
+    100k-300k points (:func:`splat_train.strategy.mcmc.growth_target`). The seeds of the sparse-view
     benchmark are the 12-95 points three views triangulate: at 5 % per step a 3,000-iteration
     run (122 refine steps) ends them at a few thousand Gaussians, a 1,000-iteration one (40
     steps) at 7x the seed, and a seed under 20 never grows (int(1.05 N) = N; the Stitch toy's
@@ -121,7 +121,7 @@ from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3D
                               SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
 from splat_train.part_configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
-from splat_train.strategy_configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
+from splat_train.strategy.configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
                                           MCMCStrategyConfig, StrategyConfig)
 
 __all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS",

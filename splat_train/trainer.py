@@ -5,8 +5,8 @@ the next training view from a shuffled stack (refilled with a new permutation wh
 3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
 (+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
 view-space gradient statistics, Adam step of the Gaussians, the held-out evaluation when due,
-then densify / prune / reset opacity when the schedule says so (:mod:`splat_train.densify`), or
-with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat_train.mcmc`),
+then densify / prune / reset opacity when the schedule says so (:mod:`splat_train.strategy.densify`), or
+with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat_train.strategy.mcmc`),
 then the checkpoint when due.
 
 The config's regularisers and extra optimisations are training parts

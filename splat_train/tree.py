@@ -2,7 +2,7 @@
 
 A training config is a tree (:class:`ConfigTree`): the run (:class:`RunConfig`), the
 optimisation (:class:`OptimConfig`), the growth strategy (``growth``,
-:class:`splat_train.strategy_configs.StrategyConfig`), the training parts (a tuple of
+:class:`splat_train.strategy.configs.StrategyConfig`), the training parts (a tuple of
 :mod:`splat_train.part_configs` configs) and the recipe's schedule as shares of the run
 (:class:`RecipeSchedule`). Every flat key (:data:`FLAT_KEYS`, and those of parts registered
 later) names exactly one field of it (:func:`flat_index`, :func:`field_of`). Light (no torch):
@@ -20,7 +20,7 @@ from runtime.checks import RGB, Range
 from runtime.cliargs import is_device
 from splat_train.fields import COUNT, FRACTION, ITERATION, POSITIVE, RATE, SEED, THREADS, check, flat_names
 from splat_train.part_configs import PARTS, PartConfig, part_order
-from splat_train.strategy_configs import STRATEGIES, StrategyConfig
+from splat_train.strategy.configs import STRATEGIES, StrategyConfig
 
 __all__ = ["ConfigTree", "RunConfig", "OptimConfig", "RecipeSchedule", "Schedule", "BACKGROUND_MEAN",
            "BACKGROUND_BLACK", "SCHEDULE_KEYS", "RECIPE_KEYS", "FLAT_KEYS", "MIN_DENSIFY_EVERY", "DENSIFY_FROM_3DGS",
@@ -372,11 +372,11 @@ class ConfigTree:
         return any(c.reads_depth_prior and c.active() for c in self.parts)
 
     def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
-        """The Gaussian cap of a run (:meth:`splat_train.strategy_configs.StrategyConfig.max_gaussians_for`)."""
+        """The Gaussian cap of a run (:meth:`splat_train.strategy.configs.StrategyConfig.max_gaussians_for`)."""
         return self.growth.max_gaussians_for(train_pixels, seed_size)
 
     def strategy_for(self, train_pixels: int, seed_size: int) -> str:
-        """The strategy that runs (:meth:`splat_train.strategy_configs.StrategyConfig.strategy_for`)."""
+        """The strategy that runs (:meth:`splat_train.strategy.configs.StrategyConfig.strategy_for`)."""
         return self.growth.strategy_for(train_pixels, seed_size)
 
 

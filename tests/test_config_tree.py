@@ -11,10 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from splat_train import part_configs, strategy_configs, tree
+from splat_train import part_configs, tree
 from splat_train.config import FLAT_KEYS, TrainConfig, field_of, flat_index, load_config
 from splat_train.part_configs import PARTS, DropoutConfig
 from splat_train.recipes import DROPGAUSSIAN, PAPER, RECIPE_KEYS, RECIPES, recipe_defaults
+from splat_train.strategy import configs as strategy_configs
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "train_golden.json"
 

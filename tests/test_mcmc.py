@@ -1,4 +1,4 @@
-"""The ``mcmc`` recipe (splat_train.mcmc, 3DGS as MCMC): the relocation formula, relocation and
+"""The ``mcmc`` recipe (splat_train.strategy.mcmc, 3DGS as MCMC): the relocation formula, relocation and
 growth with their Adam moments, the noise, the regularisers, the recipe's values, a capped run
 through the CLI, exact resume, and the gsplat backend path."""
 
@@ -19,12 +19,12 @@ from _train_scene import kill_at_loss_call, write_scene
 from camio.ply import GaussianCloud, read_gaussian_ply, write_gaussian_ply
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
-from splat_train.densify import quat_to_rotmat
+from splat_train.strategy.densify import quat_to_rotmat
 from splat_train.export import render_params
 from splat_train.gaussians import make_optimizer
 from splat_train.losses import gaussian_regularisers, photometric_loss
 from splat_train.tree import OptimConfig
-from splat_train.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
+from splat_train.strategy.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
                               relocation_opacity_scale)
 from splat_train.recipes import RECIPES
 from splat_train.trainer import train

@@ -31,7 +31,7 @@ gsplat = pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip i
 import _fake_gsplat  # noqa: E402  (tests/ is on sys.path via rootdir conftest)
 from splat_train import _gsplat_backend  # noqa: E402
 from splat_train.config import TrainConfig  # noqa: E402
-from splat_train.densify import DensifyStrategy  # noqa: E402
+from splat_train.strategy.densify import DensifyStrategy  # noqa: E402
 from splat_train.pose import so3_exp  # noqa: E402
 from splat_train.projection import project_gaussians  # noqa: E402
 from splat_train.rasterize import rasterize  # noqa: E402

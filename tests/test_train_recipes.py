@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from splat_train.config import TrainConfig
-from splat_train.densify import DensifyStrategy
+from splat_train.strategy.densify import DensifyStrategy
 from splat_train.gaussians import make_optimizer, params_from_cloud
 from splat_train.recipes import RECIPE_NAMES, RECIPES, VALUE_KEYS, recipe_defaults
 from camio.ply import GaussianCloud

@@ -1,4 +1,4 @@
-"""The growth strategies' configs (:mod:`splat_train.strategy`): one small dataclass per strategy
+"""The growth strategies' configs (:mod:`splat_train.strategy.base`): one small dataclass per strategy
 beside the training config's strategy, :class:`StrategyConfig`.
 
 :class:`StrategyConfig` is the training config's strategy (``ConfigTree.growth``): the one that
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from splat_train.fields import COUNT, FRACTION, ITERATION, RATE, WEIGHT, check
 
 if TYPE_CHECKING:
-    from splat_train.strategy import Strategy
+    from splat_train.strategy.base import Strategy
 
 __all__ = ["StrategyConfig", "DefaultStrategyConfig", "MCMCStrategyConfig", "STRATEGIES", "SEED_OVER_CAP",
            "MCMC_GROWTH", "GRAD_THRESHOLD_3DGS"]
@@ -30,7 +30,7 @@ GRAD_THRESHOLD_3DGS = 2e-4
 # cap to the seed's size; "relocate" raises it and grows by relocation (the mcmc strategy)
 # instead of clone / split / prune. Nothing changes for a seed within the cap.
 SEED_OVER_CAP = ("cap", "keep", "relocate")
-# How the mcmc strategy grows (splat_train.mcmc.growth_target): "gsplat", 5 % per refine step
+# How the mcmc strategy grows (splat_train.strategy.mcmc.growth_target): "gsplat", 5 % per refine step
 # (int(1.05 N), gsplat's MCMCStrategy); "reach_cap", the same unless 5 % per step cannot take
 # the seed to the cap within the refine window, in which case the count follows the geometric
 # path from the seed's size to the cap over the window's refine steps. Read only by the mcmc
@@ -41,7 +41,7 @@ MCMC_GROWTH = ("gsplat", "reach_cap")
 
 @dataclass(frozen=True)
 class DefaultStrategyConfig:
-    """3DGS's densification (:class:`splat_train.densify.DensifyStrategy`); the defaults are the
+    """3DGS's densification (:class:`splat_train.strategy.densify.DensifyStrategy`); the defaults are the
     official code's.
 
     Attributes:
@@ -74,9 +74,9 @@ class DefaultStrategyConfig:
 
     def build(self, strategy: StrategyConfig, schedule: Any, max_gaussians: int | None,
               seed_size: int = 0, **overrides: Any) -> Strategy:
-        """The :class:`splat_train.densify.DensifyStrategy` of this run's ``schedule``
+        """The :class:`splat_train.strategy.densify.DensifyStrategy` of this run's ``schedule``
         (:class:`splat_train.config.Schedule`) and cap."""
-        from splat_train.densify import DensifyStrategy
+        from splat_train.strategy.densify import DensifyStrategy
 
         fields = dict(
             densify_from=schedule.densify_from, densify_until=schedule.densify_until,
@@ -91,14 +91,14 @@ class DefaultStrategyConfig:
 
 @dataclass(frozen=True)
 class MCMCStrategyConfig:
-    """3DGS as MCMC (:class:`splat_train.mcmc.MCMCStrategy`): reads the refine schedule as its
+    """3DGS as MCMC (:class:`splat_train.strategy.mcmc.MCMCStrategy`): reads the refine schedule as its
     relocate / add schedule and ``prune_opacity`` as its dead threshold.
 
     Attributes:
         growth: how the count grows (:data:`MCMC_GROWTH`): "gsplat", 5 % per refine step up to
             the cap; "reach_cap", the same unless that cannot reach the cap within the refine
             window, then the geometric path from the seed's size to the cap
-            (:func:`splat_train.mcmc.growth_target`).
+            (:func:`splat_train.strategy.mcmc.growth_target`).
         noise_lr: the position noise per unit of position rate (gsplat's 5e5).
     """
 
@@ -114,9 +114,9 @@ class MCMCStrategyConfig:
 
     def build(self, strategy: StrategyConfig, schedule: Any, max_gaussians: int | None,
               seed_size: int = 0, **overrides: Any) -> Strategy:
-        """The :class:`splat_train.mcmc.MCMCStrategy` of this run's ``schedule``, capped at
+        """The :class:`splat_train.strategy.mcmc.MCMCStrategy` of this run's ``schedule``, capped at
         ``max_gaussians`` (required: MCMC grows to its cap)."""
-        from splat_train.mcmc import MCMCStrategy
+        from splat_train.strategy.mcmc import MCMCStrategy
 
         if max_gaussians is None:
             raise ValueError("the mcmc strategy needs a cap on the Gaussian count: set gaussians_per_pixel > 0 "
@@ -140,15 +140,15 @@ class StrategyConfig:
 
     Attributes:
         name: how the model grows: "densify" (3DGS clone / split / prune,
-            :mod:`splat_train.densify`) or "mcmc" (relocation of dead Gaussians and 5 % growth
-            per refine step up to the cap, :mod:`splat_train.mcmc`; needs a cap).
+            :mod:`splat_train.strategy.densify`) or "mcmc" (relocation of dead Gaussians and 5 % growth
+            per refine step up to the cap, :mod:`splat_train.strategy.mcmc`; needs a cap).
         densify_from, densify_until, densify_every: densification (mcmc: refine) window and
             period (iterations of this run; None: the recipe's share of the run).
         prune_opacity: remove Gaussians whose opacity falls below this at densification
             (mcmc: the dead threshold).
         max_gaussians: cap on the Gaussian count (None: none). When the clone and split
             candidates exceed the room left, the ones with the largest view-space gradient
-            are kept (:mod:`splat_train.densify`).
+            are kept (:mod:`splat_train.strategy.densify`).
         gaussians_per_pixel: a second cap, this many Gaussians per training pixel (summed
             over the training views at the training resolution); the smaller cap applies.
             0: no such cap.

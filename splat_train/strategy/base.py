@@ -4,9 +4,9 @@ A strategy (as gsplat's ``gsplat.strategy.Strategy``) holds its settings and is 
 trainer at fixed points of every iteration: :meth:`Strategy.update_state` after the backward
 pass (the view-space gradient statistics), :meth:`Strategy.step` after the Adam step (grow,
 prune, relocate). Two strategies: ``densify``, 3DGS's clone / split / prune and opacity reset
-(:class:`splat_train.densify.DensifyStrategy`), and ``mcmc``, relocation of dead Gaussians and
-growth to a cap (:class:`splat_train.mcmc.MCMCStrategy`); each is made by its config
-(:mod:`splat_train.strategy_configs`).
+(:class:`splat_train.strategy.densify.DensifyStrategy`), and ``mcmc``, relocation of dead Gaussians and
+growth to a cap (:class:`splat_train.strategy.mcmc.MCMCStrategy`); each is made by its config
+(:mod:`splat_train.strategy.configs`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Kheradmand et al., "3D Gaussian Splatting as Markov Chain Monte Carlo" (NeurIPS 
 arXiv:2404.09591), as gsplat implements it (``gsplat/strategy/mcmc.py`` ``MCMCStrategy``,
 ``gsplat/strategy/ops.py`` ``relocate``, ``sample_add``, ``inject_noise_to_position``,
 ``gsplat/relocation.py`` and its CUDA kernel ``gsplat/cuda/csrc/RelocationCUDA.cu``). Instead
-of 3DGS's gradient-triggered clone / split / prune (:mod:`splat_train.densify`), at every
+of 3DGS's gradient-triggered clone / split / prune (:mod:`splat_train.strategy.densify`), at every
 refine iteration:
 
 1. *relocate*: every dead Gaussian (opacity <= ``min_opacity``) is moved onto a live one drawn
@@ -21,7 +21,7 @@ the paper. The count never falls: dead Gaussians are reused, not removed.
 Adam moments: the rows written by a relocation or an addition (the sources, whose opacity and
 scale changed, and the new copies) start at zero. gsplat zeros the sources and the appended
 rows but leaves a relocated row's destination with the moments of the dead Gaussian it
-replaces; here that row starts at zero too, as every new Gaussian of :mod:`splat_train.densify`.
+replaces; here that row starts at zero too, as every new Gaussian of :mod:`splat_train.strategy.densify`.
 
 Parameters follow :mod:`splat_train.gaussians` (log scales, logit opacity, w x y z quats).
 All draws come from the run's ``torch.Generator`` (CPU), so a run is reproducible and resumes
@@ -38,8 +38,8 @@ from typing import ClassVar
 
 import torch
 
-from splat_train.densify import Params, quat_to_rotmat, update_params
-from splat_train.strategy import Strategy
+from splat_train.strategy.densify import Params, quat_to_rotmat, update_params
+from splat_train.strategy.base import Strategy
 
 __all__ = ["MCMCStrategy", "growth_target", "refine_steps", "relocation_opacity_scale", "relocate", "sample_add", "inject_noise",
            "GROWTH", "MAX_COPIES", "NOISE_K", "NOISE_T"]
@@ -252,8 +252,8 @@ def growth_target(n: int, step: int, steps: int, seed: int | None, cap: int, gro
 
 @dataclass
 class MCMCStrategy(Strategy):
-    """The MCMC refine schedule and cap (:class:`splat_train.strategy.Strategy`), made by its
-    config (:class:`splat_train.strategy_configs.MCMCStrategyConfig`).
+    """The MCMC refine schedule and cap (:class:`splat_train.strategy.base.Strategy`), made by its
+    config (:class:`splat_train.strategy.configs.MCMCStrategyConfig`).
 
     Attributes:
         refine_from, refine_until, refine_every: relocate and add at iterations it with

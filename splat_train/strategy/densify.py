@@ -26,7 +26,7 @@ from typing import Callable, ClassVar
 import torch
 
 from splat_train.cpu import optim as cpu_optim
-from splat_train.strategy import Strategy
+from splat_train.strategy.base import Strategy
 
 __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]
@@ -190,7 +190,7 @@ def cap_candidates(clone_mask: torch.Tensor, split_mask: torch.Tensor, grads: to
 @dataclass
 class DensifyStrategy(Strategy):
     """The 3DGS densification schedule and thresholds (iteration counts of this run), made by its
-    config (:class:`splat_train.strategy_configs.DefaultStrategyConfig`).
+    config (:class:`splat_train.strategy.configs.DefaultStrategyConfig`).
 
     Attributes:
         densify_from, densify_until, densify_every: densify at iterations it with
