@@ -119,7 +119,7 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
 def _train_parser() -> argparse.ArgumentParser:
     from splat_train import recipes
     from splat_train.fields import flat_names
-    from splat_train.part_configs import PARTS
+    from splat_train.parts.configs import PARTS
 
     parts = "; ".join(f"{name} ({', '.join(flat_names(cls).values())})" for name, cls in PARTS.items())
     p = argparse.ArgumentParser(prog="python -m splat_train",

@@ -3,7 +3,7 @@
 :class:`TrainConfig` (a :class:`splat_train.tree.ConfigTree`) holds the run (:class:`RunConfig`: iterations, seed, device, threads,
 checkpoints, evaluation), the optimisation (:class:`OptimConfig`: learning rates, SH degree,
 loss, background), the growth strategy (``growth``, :class:`splat_train.strategy.configs.StrategyConfig`), the
-training parts (a tuple of :mod:`splat_train.part_configs` configs) and the recipe's schedule
+training parts (a tuple of :mod:`splat_train.parts.configs` configs) and the recipe's schedule
 as shares of the run (:class:`RecipeSchedule`). A recipe (:mod:`splat_train.recipes`) is such a
 tree, stating only its differences from the base.
 
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from splat_train.part_configs import PartConfig
+from splat_train.parts.configs import PartConfig
 from splat_train.recipes import DEFAULT_RECIPE, recipe_config
 from splat_train.strategy.configs import StrategyConfig
 from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, FLAT_KEYS, MIN_DENSIFY_EVERY, RECIPE_KEYS,  # noqa: F401

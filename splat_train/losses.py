@@ -18,7 +18,6 @@ import torch
 
 from imgmetrics.ssim import gaussian_window, gaussian_window_1d, ssim_map
 from splat_train.cpu import ssim as cpu_ssim
-from splat_train.train_part import TrainPart
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "photometric_terms", "TrainingLoss",
            "gaussian_regularisers", "gaussian_window", "gaussian_window_1d", "graphed_checked", "CUDA_GRAPHS"]
@@ -255,20 +254,3 @@ def gaussian_regularisers(opacity_logits: torch.Tensor, log_scales: torch.Tensor
     if scale_reg > 0:
         terms.append(scale_reg * torch.exp(log_scales).mean())
     return sum(terms[1:], terms[0]) if terms else None
-
-
-class GaussianRegularisers(TrainPart):
-    """The opacity and scale regularisers as a training part (:func:`gaussian_regularisers`:
-    ``opacity_reg`` mean opacity + ``scale_reg`` mean scale, gsplat's MCMC losses; config
-    :class:`splat_train.part_configs.RegularisersConfig`)."""
-
-    name = "regularisers"
-
-    def __init__(self, opacity_reg: float, scale_reg: float) -> None:
-        self.opacity_reg, self.scale_reg = float(opacity_reg), float(scale_reg)
-
-    def loss(self, iteration: int, view: int, render: dict[str, torch.Tensor],
-             params: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        """The term of ``params["opacity"]`` [N] (logits) and ``params["scales"]`` [N, 3] (log)."""
-        return gaussian_regularisers(params["opacity"], params["scales"], self.opacity_reg, self.scale_reg)
-

@@ -39,17 +39,17 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
 
     * Gaussian dropout (DropGaussian, CVPR 2025): during training only, each Gaussian's
       opacity is zeroed with probability p, ramping linearly from 0 to ``dropout_rate`` over
-      the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.dropout`);
+      the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.parts.dropout`);
     * a depth prior from the initialiser's own dense output, weighted by its confidence: a
       scale-invariant (Pearson) loss between rendered and prior depth, weight ramped in over
-      ``depth_ramp_fraction`` of the run (:mod:`splat_train.depth_prior`); off when the seed has
+      ``depth_ramp_fraction`` of the run (:mod:`splat_train.parts.depth_prior`); off when the seed has
       no prior file;
     * a model sized to its views: growth keeps the best candidates under a cap of
       ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.strategy.densify`), densifying
       every 100 iterations (the field's period: 3DGS, gsplat, DropGaussian) from 5 % of the run
       to its end: under the cap, growth keeps replacing the weakest Gaussians by better ones;
     * opacity decay (Binocular3DGS, NeurIPS 2024): every opacity x 0.995 after each iteration
-      from the densification start (:mod:`splat_train.opacity_decay`), so that Gaussians the
+      from the densification start (:mod:`splat_train.parts.opacity_decay`), so that Gaussians the
       views stop holding up fade and the prune removes them; the release densifies to the end
       of the run while the decay acts, and so does this recipe;
     * no opacity reset (nor the size prune 3DGS runs after one): measured, the reset cost the
@@ -57,10 +57,10 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
     * binocular stereo consistency (Binocular3DGS, NeurIPS 2024) from the densification start
       on: each training view is rendered again from a camera shifted sideways and warped back
       with the rendered depth, which must reproduce the training image
-      (:mod:`splat_train.binocular`; one more render per iteration), from earlier than the
+      (:mod:`splat_train.parts.binocular`; one more render per iteration), from earlier than the
       release's 2/3 of the run;
     * gsplat's opacity regulariser in its place (``opacity_reg`` 0.01 x mean opacity, the value
-      of its MCMC preset, :mod:`splat_train.parts`): Gaussians that no training view needs
+      of its MCMC preset, :mod:`splat_train.parts.compose`): Gaussians that no training view needs
       fade, and the 3DGS prune (opacity below 0.005) removes them, which frees the cap for
       Gaussians the views do need;
     * the mean colour of the training images behind the model (``background``
@@ -119,7 +119,7 @@ from typing import Any
 
 from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3DGS, MIN_DENSIFY_EVERY, RECIPE_KEYS,
                               SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
-from splat_train.part_configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
+from splat_train.parts.configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
 from splat_train.strategy.configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
                                           MCMCStrategyConfig, StrategyConfig)
@@ -154,8 +154,8 @@ DEPTH_WEIGHT_FSGS = 0.05
 # the default strategy at 3DGS's gradient threshold 2e-4, and prune_screen_size off: the official
 # code never applies it (see the module docstring); no cap (seed_over_cap "cap": nothing to
 # hold), mcmc_growth not read (no mcmc strategy); every part off (dropout, depth, regularisers,
-# binocular stereo consistency (splat_train/binocular.py), opacity decay
-# (splat_train/opacity_decay.py)); black behind the model.
+# binocular stereo consistency (splat_train/parts/binocular.py), opacity decay
+# (splat_train/parts/opacity_decay.py)); black behind the model.
 PAPER = ConfigTree(recipe="paper", shares=RecipeSchedule())
 
 # ``dropgaussian``: ``paper`` with DropGaussian's dropout, ramped to 0.2 over the whole run
@@ -198,13 +198,13 @@ SPARSE = ConfigTree(
         DepthPriorConfig(weight=DEPTH_WEIGHT_FSGS, ramp_fraction=0.1),
         # chosen on the tuning scenes (docs/lessons.md)
         RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT),
-        # binocular stereo consistency (splat_train/binocular.py) with Binocular3DGS's weight,
+        # binocular stereo consistency (splat_train/parts/binocular.py) with Binocular3DGS's weight,
         # chosen on the tuning scenes (docs/lessons.md: fourteen cells, 3 seeds, +0.05 dB and
         # lower LPIPS-Alex and VGG than without it), from the densification start rather than
         # the release's 2/3 of the run (+0.12 dB more): the held-out declines it holds back
         # happen while the model grows
         BinocularConfig(weight=1.0, from_fraction=DENSIFY_FROM_3DGS),
-        # Binocular3DGS's opacity decay (splat_train/opacity_decay.py) at its release's factor,
+        # Binocular3DGS's opacity decay (splat_train/parts/opacity_decay.py) at its release's factor,
         # chosen on the tuning scenes (docs/lessons.md: +0.40 ± 0.22 dB over fourteen cells)
         OpacityDecayConfig(factor=OPACITY_DECAY_BINOCULAR),
     ),
@@ -232,7 +232,7 @@ MCMC = ConfigTree(
         # read by the mcmc strategy (no clone / split / size prune)
     ),
     # simple_trainer's mcmc preset; no dropout, no depth term, no binocular consistency
-    # (splat_train/binocular.py), no opacity decay (splat_train/opacity_decay.py)
+    # (splat_train/parts/binocular.py), no opacity decay (splat_train/parts/opacity_decay.py)
     parts=(RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT, scale_reg=0.01),),
 )
 

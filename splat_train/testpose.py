@@ -63,7 +63,7 @@ from splat_train.data import View, load_views, read_name_list
 from splat_train.export import background_note, camera_tensors, model_background, render_name, render_params
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
-from splat_train.pose import so3_exp
+from splat_train.parts.pose import so3_exp
 from splat_train.rasterize import rasterize, resolve_backend
 from splat_train.recipes import BACKGROUND_BLACK
 

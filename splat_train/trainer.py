@@ -10,12 +10,12 @@ with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat
 then the checkpoint when due.
 
 The config's regularisers and extra optimisations are training parts
-(:mod:`splat_train.train_part`, each made by its config in ``cfg.parts``,
+(:mod:`splat_train.parts.base`, each made by its config in ``cfg.parts``,
 :func:`splat_train.parts.recipe_parts`), called only through their interface, whose hooks
 the iteration runs in the list's order: the view's camera (pose refinement), a map of the
 opacities of the training render (Gaussian dropout), loss terms added after the photometric
 loss (depth prior, opacity / scale regularisers), and a step after the Gaussians' Adam step
-(the pose corrections' Adam, their rate ramped by :func:`splat_train.pose.pose_lr_factor` and
+(the pose corrections' Adam, their rate ramped by :func:`splat_train.parts.pose.pose_lr_factor` and
 their scale gauge restored). Each part's state is in every checkpoint.
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
@@ -71,7 +71,7 @@ from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer, unmeasured
 from splat_train.losses import TrainingLoss
-from splat_train.parts import opacity_map, recipe_parts
+from splat_train.parts.compose import opacity_map, recipe_parts
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
 from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
@@ -335,7 +335,7 @@ class Trainer:
     def view_camera(self, idx: int) -> tuple[torch.Tensor, torch.Tensor]:
         """[4, 4] cam_from_world (world -> OpenCV camera) and [3, 3] K (pixels) that training
         view ``idx`` is rendered with at the current iteration: the given ones, through every
-        part's :meth:`~splat_train.train_part.TrainPart.camera` (refined with pose refinement)."""
+        part's :meth:`~splat_train.parts.base.TrainPart.camera` (refined with pose refinement)."""
         cw, K = self.cams[idx]
         for part in self.parts:
             cw, K = part.camera(self.iteration, idx, cw, K)
@@ -354,7 +354,7 @@ class Trainer:
     def render_rgb(self, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
         """[H, W, 3] differentiable render of the model into a camera ([4, 4] cam_from_world, [3, 3]
         K in pixels) at this iteration's SH degree and background, without dropout and without
-        densification statistics (:class:`splat_train.train_part.ViewRenderer`)."""
+        densification statistics (:class:`splat_train.parts.base.ViewRenderer`)."""
         deg, bg = self.render_state
         return render_params(self.params, deg, cam_from_world, K, width, height, bg, self.backend,
                              depth=False, stats=False)["rgb"]

@@ -3,7 +3,7 @@
 A training config is a tree (:class:`ConfigTree`): the run (:class:`RunConfig`), the
 optimisation (:class:`OptimConfig`), the growth strategy (``growth``,
 :class:`splat_train.strategy.configs.StrategyConfig`), the training parts (a tuple of
-:mod:`splat_train.part_configs` configs) and the recipe's schedule as shares of the run
+:mod:`splat_train.parts.configs` configs) and the recipe's schedule as shares of the run
 (:class:`RecipeSchedule`). Every flat key (:data:`FLAT_KEYS`, and those of parts registered
 later) names exactly one field of it (:func:`flat_index`, :func:`field_of`). Light (no torch):
 the recipes and the workflow's config check read it; :mod:`splat_train.config` builds on it.
@@ -19,7 +19,7 @@ from camio.ply import SH_DEGREE
 from runtime.checks import RGB, Range
 from runtime.cliargs import is_device
 from splat_train.fields import COUNT, FRACTION, ITERATION, POSITIVE, RATE, SEED, THREADS, check, flat_names
-from splat_train.part_configs import PARTS, PartConfig, part_order
+from splat_train.parts.configs import PARTS, PartConfig, part_order
 from splat_train.strategy.configs import STRATEGIES, StrategyConfig
 
 __all__ = ["ConfigTree", "RunConfig", "OptimConfig", "RecipeSchedule", "Schedule", "BACKGROUND_MEAN",
@@ -295,7 +295,7 @@ class ConfigTree:
         run: iterations, seed, data, device, threads, checkpoints, evaluation.
         optim: learning rates, SH degree, loss, background.
         growth: the growth strategy (flat key ``strategy``: its name) and its settings.
-        parts: the training parts' configs, in the trainer's order (:data:`splat_train.part_configs.PARTS`).
+        parts: the training parts' configs, in the trainer's order (:data:`splat_train.parts.configs.PARTS`).
         shares: the recipe's schedule as shares of the run.
     """
 

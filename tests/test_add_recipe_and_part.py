@@ -3,7 +3,7 @@
 
 A module outside the project registers a recipe (``paper`` at half the opacity rate: a preset of
 one changed value, :func:`splat_train.recipes.register_recipe`) and a part (a counter of the
-Gaussians' steps, :func:`splat_train.part_configs.register_part`), then runs the project's own
+Gaussians' steps, :func:`splat_train.parts.configs.register_part`), then runs the project's own
 ``python -m splat_train`` entry point. The help lists both, ``--recipe`` and ``--config`` take
 them, and the trainer runs the part through its interface: its summary lands in train.json, its
 key in train.json's ``config``, beside the recipe's changed value.
@@ -29,8 +29,8 @@ from typing import Annotated, ClassVar
 
 from splat_train import recipes
 from splat_train.fields import ITERATION
-from splat_train.part_configs import PartConfig, register_part
-from splat_train.train_part import TrainPart
+from splat_train.parts.configs import PartConfig, register_part
+from splat_train.parts.base import TrainPart
 
 
 class StepCounter(TrainPart):

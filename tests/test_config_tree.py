@@ -11,9 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from splat_train import part_configs, tree
+from splat_train import tree
 from splat_train.config import FLAT_KEYS, TrainConfig, field_of, flat_index, load_config
-from splat_train.part_configs import PARTS, DropoutConfig
+from splat_train.parts import configs as part_configs
+from splat_train.parts.configs import PARTS, DropoutConfig
 from splat_train.recipes import DROPGAUSSIAN, PAPER, RECIPE_KEYS, RECIPES, recipe_defaults
 from splat_train.strategy import configs as strategy_configs
 

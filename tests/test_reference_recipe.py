@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from splat_train.binocular import SMOOTH_WEIGHT
-from splat_train.part_configs import BinocularConfig, DepthPriorConfig
+from splat_train.parts.binocular import SMOOTH_WEIGHT
+from splat_train.parts.configs import BinocularConfig, DepthPriorConfig
 from splat_train.recipes import BACKGROUND_MEAN, RECIPES
 
 ROOT = Path(__file__).resolve().parents[1]

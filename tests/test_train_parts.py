@@ -1,4 +1,4 @@
-"""The training parts (splat_train.train_part, splat_train.parts): which parts each recipe runs,
+"""The training parts (splat_train.parts.base, splat_train.parts.compose): which parts each recipe runs,
 and that a run through the parts is the loop written out by hand, bit for bit: Gaussian
 dropout, the depth prior, the opacity / scale regularisers and pose (and focal) refinement all
 on, against a reference step that calls the functional definitions directly
@@ -15,18 +15,18 @@ import torch
 from _train_scene import make_cloud, write_scene
 from camio.colmap import read_model
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, write_depth_prior
-from splat_train.binocular import binocular_consistency_loss, shifted_camera
+from splat_train.parts.binocular import binocular_consistency_loss, shifted_camera
 from splat_train.config import TrainConfig
 from splat_train.cpu.optim import adam_step
 from splat_train.data import load_views
-from splat_train.depth_prior import depth_weight_at
-from splat_train.dropout import dropout_rate_at, gaussian_dropout
+from splat_train.parts.depth_prior import depth_weight_at
+from splat_train.parts.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import render_params
 from splat_train.gaussians import position_lr
 from splat_train.losses import gaussian_regularisers, photometric_loss
-from splat_train.opacity_decay import opacity_decay
-from splat_train.parts import recipe_parts
-from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
+from splat_train.parts.opacity_decay import opacity_decay
+from splat_train.parts.compose import recipe_parts
+from splat_train.parts.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.trainer import Trainer, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py

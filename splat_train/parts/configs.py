@@ -1,4 +1,4 @@
-"""The configs of the training parts (:mod:`splat_train.train_part`), one small dataclass per part,
+"""The configs of the training parts (:mod:`splat_train.parts.base`), one small dataclass per part,
 and the registry the training config reads them from.
 
 Each config holds its part's settings, says whether the part acts (:meth:`PartConfig.active`:
@@ -8,13 +8,13 @@ and the workflow's config check read it). The training config holds a tuple of t
 (:attr:`splat_train.config.TrainConfig.parts`); the trainer runs the parts they build in the
 order of :data:`PARTS` (the order of their loss terms, opacity maps and random draws):
 
-1. :class:`DropoutConfig` (:mod:`splat_train.dropout`);
-2. :class:`DepthPriorConfig` (:mod:`splat_train.depth_prior`; acts only when the seed comes with
+1. :class:`DropoutConfig` (:mod:`splat_train.parts.dropout`);
+2. :class:`DepthPriorConfig` (:mod:`splat_train.parts.depth_prior`; acts only when the seed comes with
    a depth prior);
-3. :class:`RegularisersConfig` (:class:`splat_train.losses.GaussianRegularisers`);
-4. :class:`BinocularConfig` (:mod:`splat_train.binocular`);
-5. :class:`OpacityDecayConfig` (:mod:`splat_train.opacity_decay`);
-6. :class:`PoseRefinementConfig` (:mod:`splat_train.pose`).
+3. :class:`RegularisersConfig` (:class:`splat_train.parts.regularisers.GaussianRegularisers`);
+4. :class:`BinocularConfig` (:mod:`splat_train.parts.binocular`);
+5. :class:`OpacityDecayConfig` (:mod:`splat_train.parts.opacity_decay`);
+6. :class:`PoseRefinementConfig` (:mod:`splat_train.parts.pose`).
 
 A new part registers its config with :func:`register_part` (docs/contracts.md, "Adding a
 training part"); its fields' flat keys then work in ``--config`` and the workflow's ``train:``.
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     import torch
 
     from splat_train.data import View
-    from splat_train.train_part import TrainPart, ViewRenderer
+    from splat_train.parts.base import TrainPart, ViewRenderer
 
 __all__ = ["PartConfig", "PartContext", "PARTS", "register_part", "part_order", "DropoutConfig",
            "DepthPriorConfig", "RegularisersConfig", "BinocularConfig", "OpacityDecayConfig",
@@ -135,7 +135,7 @@ def part_order(cfg_cls: type[PartConfig]) -> int:
 @register_part
 @dataclass(frozen=True)
 class DropoutConfig(PartConfig):
-    """Gaussian dropout (DropGaussian; :class:`splat_train.dropout.GaussianDropout`).
+    """Gaussian dropout (DropGaussian; :class:`splat_train.parts.dropout.GaussianDropout`).
 
     Attributes:
         rate: the final dropout rate (0 = off), ramped in linearly over ``ramp_fraction`` of
@@ -153,7 +153,7 @@ class DropoutConfig(PartConfig):
         return self.rate > 0
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.dropout import GaussianDropout
+        from splat_train.parts.dropout import GaussianDropout
 
         return GaussianDropout(self.rate, ctx.iterations, ctx.generator, self.ramp_fraction)
 
@@ -162,7 +162,7 @@ class DropoutConfig(PartConfig):
 @dataclass(frozen=True)
 class DepthPriorConfig(PartConfig):
     """The Pearson depth-prior loss against the initialiser's depths
-    (:class:`splat_train.depth_prior.DepthPriorLoss`).
+    (:class:`splat_train.parts.depth_prior.DepthPriorLoss`).
 
     Attributes:
         weight: weight of the Pearson depth-prior loss (0 = off), ramped in linearly over
@@ -188,7 +188,7 @@ class DepthPriorConfig(PartConfig):
 
     def build(self, ctx: PartContext) -> TrainPart | None:
         from camio.depth_prior import DEPTH_PRIOR_FILE
-        from splat_train.depth_prior import DepthPriorLoss, load_depth_prior
+        from splat_train.parts.depth_prior import DepthPriorLoss, load_depth_prior
 
         if ctx.depth_prior is None:
             log.info("depth term off: the seed has no depth prior (%s beside it)", DEPTH_PRIOR_FILE)
@@ -205,7 +205,7 @@ class DepthPriorConfig(PartConfig):
 @dataclass(frozen=True)
 class RegularisersConfig(PartConfig):
     """The opacity and scale regularisers (gsplat's MCMC losses;
-    :class:`splat_train.losses.GaussianRegularisers`).
+    :class:`splat_train.parts.regularisers.GaussianRegularisers`).
 
     Attributes:
         opacity_reg: weight of mean(opacity) added to the loss (0 = off).
@@ -221,7 +221,7 @@ class RegularisersConfig(PartConfig):
         return self.opacity_reg > 0 or self.scale_reg > 0
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.losses import GaussianRegularisers
+        from splat_train.parts.regularisers import GaussianRegularisers
 
         return GaussianRegularisers(self.opacity_reg, self.scale_reg)
 
@@ -229,7 +229,7 @@ class RegularisersConfig(PartConfig):
 @register_part
 @dataclass(frozen=True)
 class BinocularConfig(PartConfig):
-    """Binocular stereo consistency (Binocular3DGS; :class:`splat_train.binocular.BinocularConsistency`).
+    """Binocular stereo consistency (Binocular3DGS; :class:`splat_train.parts.binocular.BinocularConsistency`).
 
     Attributes:
         weight: weight of the binocular stereo consistency term (0 = off): from
@@ -247,14 +247,14 @@ class BinocularConfig(PartConfig):
     weight: Annotated[float, WEIGHT] = 0.0
     from_fraction: Annotated[float, FRACTION] = BINOCULAR_FROM_FRACTION
     # Binocular3DGS's shift of up to 0.4 scene units on LLFF is 1.0-1.4 % of the median point
-    # depth of fern, horns and trex in their COLMAP frames (splat_train/binocular.py)
+    # depth of fern, horns and trex in their COLMAP frames (splat_train/parts/binocular.py)
     shift: Annotated[float, POSITIVE] = 0.012
 
     def active(self) -> bool:
         return self.weight > 0
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.binocular import BinocularConsistency
+        from splat_train.parts.binocular import BinocularConsistency
 
         if ctx.targets is None or ctx.renderer is None:
             raise ValueError("binocular_weight > 0 needs the training images and a renderer")
@@ -266,7 +266,7 @@ class BinocularConfig(PartConfig):
 @register_part
 @dataclass(frozen=True)
 class OpacityDecayConfig(PartConfig):
-    """Binocular3DGS's opacity decay (:class:`splat_train.opacity_decay.OpacityDecay`).
+    """Binocular3DGS's opacity decay (:class:`splat_train.parts.opacity_decay.OpacityDecay`).
 
     Attributes:
         factor: the factor every opacity is multiplied by after each iteration from the
@@ -283,7 +283,7 @@ class OpacityDecayConfig(PartConfig):
         return self.factor < 1.0
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.opacity_decay import OpacityDecay
+        from splat_train.parts.opacity_decay import OpacityDecay
 
         return OpacityDecay(self.factor, ctx.schedule.densify_from, ctx.iterations)
 
@@ -291,7 +291,7 @@ class OpacityDecayConfig(PartConfig):
 @register_part
 @dataclass(frozen=True)
 class PoseRefinementConfig(PartConfig):
-    """Learned se(3) corrections of the training cameras (:class:`splat_train.pose.PoseRefinement`).
+    """Learned se(3) corrections of the training cameras (:class:`splat_train.parts.pose.PoseRefinement`).
 
     Attributes:
         enabled: learn small se(3) corrections of the training cameras (off by default; the
@@ -333,7 +333,7 @@ class PoseRefinementConfig(PartConfig):
                              "without focal refinement")
 
     def build(self, ctx: PartContext) -> TrainPart | None:
-        from splat_train.pose import PoseRefinement
+        from splat_train.parts.pose import PoseRefinement
 
         return PoseRefinement(ctx.cameras, ctx.names, self.focal, self.lr, self.lr_focal, self.start, self.warmup)
 

@@ -3,7 +3,7 @@
 The trainer (:class:`splat_train.trainer.Trainer`) runs the Gaussians' own loop (view, render,
 photometric loss, backward, Adam, densification strategy) and, at fixed points of every
 iteration, the hooks of its config's parts (each made by its config,
-:mod:`splat_train.part_configs`; :func:`splat_train.parts.recipe_parts`), in the list's order. A part overrides only the hooks it needs; the defaults do nothing. As gsplat's
+:mod:`splat_train.parts.configs`; :func:`splat_train.parts.recipe_parts`), in the list's order. A part overrides only the hooks it needs; the defaults do nothing. As gsplat's
 densification strategies (``gsplat.strategy.Strategy``: settings in the object, hooks before
 and after the backward pass) and kornia's training callbacks, the loop calls the part; a part
 never calls the loop.
