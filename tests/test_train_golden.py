@@ -1,7 +1,8 @@
 """Training results pinned bit for bit: every recipe, trained a few dozen iterations on the tiny
 generated scene, ends with exactly the parameters, log, schedule, train.json ``config`` and
-inputs digest recorded in ``tests/data/train_golden.json``; a checkpoint written by an earlier
-version of the trainer (``tests/data/train_golden_ckpt/``) still resumes to the same end.
+inputs digest recorded in ``tests/data/train_golden.json``; a committed checkpoint
+(``tests/data/train_golden_ckpt/``, its config a flat dict as every checkpoint holds) resumes to
+the same end.
 
 The record is regenerated with ``python tests/test_train_golden.py`` (only where a change of the
 training result is intended; the diff of the JSON file then shows what moved).
@@ -111,8 +112,8 @@ def test_training_is_bit_identical_to_the_record(case, golden_scene, golden, tmp
 
 
 def test_an_old_checkpoint_resumes_to_the_recorded_end(golden_scene, golden, tmp_path):
-    """The committed checkpoint (iteration 20 of the ``sparse`` case, written before the config
-    became a tree) resumes and ends bit for bit where the uninterrupted run ends."""
+    """The committed checkpoint (iteration 20 of the ``sparse`` case) resumes and ends bit for bit
+    where the uninterrupted run ends."""
     out = tmp_path / "resumed"
     shutil.copytree(OLD_CKPT, out / "ckpt")
     got = run_case(golden_scene, out, CASES["sparse"])
