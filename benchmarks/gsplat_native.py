@@ -7,7 +7,7 @@ view order (a reshuffled stack from a seeded generator), loss (L1 + 0.2 D-SSIM,
 :func:`splat_train.losses.photometric_loss`), learning rates (position rate decayed from
 1.6e-4 to 1.6e-6 x extent), fused Adam with eps 1e-15, SH degree schedule, densification
 window, period, gradient threshold and opacity-reset period, and the same scene extent. What
-differs is the engine: gsplat's strategy instead of :mod:`splat_train.densify`, and no
+differs is the engine: gsplat's strategy instead of :mod:`splat_train.strategy.densify`, and no
 per-iteration logging, held-out evaluation or checkpoints (held-out PSNR once, at the end).
 
     python benchmarks/gsplat_native.py --cell .gpu_cell --iterations 10000 --out OUT.json

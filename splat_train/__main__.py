@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -44,7 +45,6 @@ from camio.limits import MAX_IMAGE_SIDE
 from runtime.checks import flag, flag_of
 from runtime.cliargs import deprecated_flags, device_name, is_int
 from runtime.logs import setup_logging
-from splat_train.recipes import DEFAULT_RECIPE, RECIPE_NAMES, RECIPE_SUMMARIES
 
 log = logging.getLogger("splat_train")
 
@@ -53,10 +53,77 @@ log = logging.getLogger("splat_train")
 _OLD_TRAIN_FLAGS = {"--seed": ("--seed-ply", lambda v: not is_int(v)), "--seed-rng": ("--seed", None)}
 
 
-def _train_parser() -> argparse.ArgumentParser:
-    from splat_train.config import TrainConfig  # each numeric flag takes its config field's range
+# The config keys the train command sets by flag ({flag: flat key}); every key (these too) is
+# also a --config key. Each flag's type and range, default and help come from the config field
+# the key names (splat_train.config.field_of): the field's annotation, its default, its doc.
+CONFIG_FLAGS = {"--iterations": "iterations", "--downsample": "downsample", "--seed": "seed",
+                "--checkpoint-every": "checkpoint_every", "--eval-every": "eval_every", "--eval-lpips": "eval_lpips",
+                "--lpips-weights": "lpips_weights", "--pose-refine": "pose_refine",
+                "--pose-refine-focal": "pose_refine_focal", "--device": "device", "--rasterizer": "rasterizer",
+                "--threads": "num_threads", "--kernel-threads": "kernel_threads"}
+# what a text flag checks beyond its field (the device's spelling)
+_FLAG_TYPES = {"device": dict(type=device_name, metavar="auto|cpu|cuda|cuda:N")}
 
+
+class _ConfigFlag(argparse.Action):
+    """Stores a config flag's value and notes that it was given (only given flags reach the
+    config, over ``--config`` and the recipe)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.config_given = [*getattr(namespace, "config_given", []), self.dest]
+
+
+class _ConfigSwitch(argparse.BooleanOptionalAction):
+    """A true/false config flag (``--x`` / ``--no-x``) that notes it was given."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        super().__call__(parser, namespace, values, option_string)
+        namespace.config_given = [*getattr(namespace, "config_given", []), self.dest]
+
+
+def _help_of(doc: str) -> str:
+    """A field's doc as flag help: its first sentence, reST roles and literals as plain text,
+    ``%`` escaped for argparse."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", doc)
+    text = text.replace("``", "").replace("`", "")
+    first = re.split(r"(?<=[.)])\s+(?=[A-Z])", text, maxsplit=1)[0].rstrip(".")
+    return first.replace("%", "%%")
+
+
+def _add_config_flags(p: argparse.ArgumentParser) -> None:
+    """The :data:`CONFIG_FLAGS`, made from their config fields."""
+    import dataclasses
+
+    from runtime.checks import field_ranges
+    from splat_train.config import field_of
+    from splat_train.fields import field_docs
+
+    group = p.add_argument_group("training config", "each flag sets the --config key of its name (the flag wins)")
+    for flag_name, key in CONFIG_FLAGS.items():
+        cls, name = field_of(key)
+        default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
+        doc = _help_of(field_docs(cls)[name])
+        help_text = doc if default is None else f"{doc} (default %(default)s)"
+        allowed, _ = field_ranges(cls)[name]
+        if bool in allowed:
+            group.add_argument(flag_name, dest=key, action=_ConfigSwitch, default=default, help=help_text)
+        elif int in allowed or float in allowed:
+            group.add_argument(flag_name, dest=key, action=_ConfigFlag, type=flag_of(cls, name), default=default,
+                               help=help_text)
+        else:
+            group.add_argument(flag_name, dest=key, action=_ConfigFlag, default=default, help=help_text,
+                               **_FLAG_TYPES.get(key, {}))
+
+
+def _train_parser() -> argparse.ArgumentParser:
+    from splat_train import recipes
+    from splat_train.fields import flat_names
+    from splat_train.parts.configs import PARTS
+
+    parts = "; ".join(f"{name} ({', '.join(flat_names(cls).values())})" for name, cls in PARTS.items())
     p = argparse.ArgumentParser(prog="python -m splat_train",
+                                epilog=f"training parts, each set by its --config keys: {parts}",
                                 description="Train 3D Gaussian Splatting from a seed PLY and posed images "
                                             "(resumes from OUT/ckpt automatically). "
                                             "`python -m splat_train render -h` renders a trained model (or a "
@@ -67,52 +134,24 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="COLMAP model folder of the training cameras")
     p.add_argument("--images", required=True, help="folder of the training images")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=flag_of(TrainConfig, "iterations"),
-                   help="optimisation steps (default: the paper's 10000 on a GPU, 1000 on a CPU; "
-                   "see splat_train.config)")
-    p.add_argument("--recipe", choices=list(RECIPE_NAMES),
-                   help=f"training recipe (default {DEFAULT_RECIPE}; splat_train.recipes): "
-                        + "; ".join(f"'{k}': {v}" for k, v in RECIPE_SUMMARIES.items()))
+    p.add_argument("--recipe", choices=list(recipes.RECIPES),
+                   help=f"training recipe (default {recipes.DEFAULT_RECIPE}; splat_train.recipes): "
+                        + "; ".join(f"'{k}': {v}" for k, v in recipes.RECIPE_SUMMARIES.items()))
     p.add_argument("--depth-prior", dest="depth_prior",
                    help=f"the Bridge's {DEPTH_PRIOR_FILE} (default: the one beside --seed-ply, if any)")
     p.add_argument("--test-cameras", help="COLMAP model folder of held-out cameras (same frame)")
     p.add_argument("--test-images", help="folder of the held-out images")
     p.add_argument("--image-list", help="file of training image names (one per line, or a JSON list)")
     p.add_argument("--test-image-list", help="file of held-out image names (restricts --test-cameras)")
-    p.add_argument("--downsample", type=flag_of(TrainConfig, "downsample"),
-                   help="integer image downsampling factor (default 1)")
     p.add_argument("--config", help="JSON file or JSON object string of config overrides "
-                                     "(keys of splat_train.config.TrainConfig)")
-    p.add_argument("--seed", type=flag_of(TrainConfig, "seed"), help="random seed (default 0)")
-    p.add_argument("--checkpoint-every", type=flag_of(TrainConfig, "checkpoint_every"),
-                   help="checkpoint period K (default 500)")
-    p.add_argument("--eval-every", type=flag_of(TrainConfig, "eval_every"),
-                   help="held-out evaluation period M (PSNR, SSIM; default 200)")
-    p.add_argument("--eval-lpips", action=argparse.BooleanOptionalAction, default=None, dest="eval_lpips",
-                   help="also LPIPS-alex at every held-out evaluation (default: TrainConfig.eval_lpips, off)")
-    p.add_argument("--lpips-weights", dest="lpips_weights",
-                   help="LPIPS weights folder or alex.safetensors (default: $LPIPS_WEIGHTS_DIR, then the "
-                        "user cache; see imgmetrics.lpips)")
+                                     "(the flat keys of splat_train.config.FLAT_KEYS)")
     p.add_argument("--resume-dir", help="keep checkpoints in DIR/<hash of inputs and config>/ckpt instead "
                                         "of OUT/ckpt (resume only from identical inputs; removed on success)")
-    p.add_argument("--pose-refine", action="store_true", default=None,
-                   help="learn small corrections of the training camera poses (first camera and scale "
-                        "fixed); writes OUT/cameras_refined")
-    p.add_argument("--pose-refine-focal", action="store_true", default=None, dest="pose_refine_focal",
-                   help="with --pose-refine, also learn a focal-length correction per camera "
-                        "(not with the gsplat rasterizer, which gives the intrinsics no gradient)")
-    p.add_argument("--device", type=device_name, metavar="auto|cpu|cuda|cuda:N",
-                   help="auto (default): CUDA when available, else CPU; cuda:N the GPU of index N")
-    p.add_argument("--rasterizer", help="rasterizer backend: auto (default: C++ kernel on CPU, gsplat on "
-                                        "CUDA), cpu, torch, reference or gsplat")
     p.add_argument("--snapshot-every", type=flag(int, 1), dest="snapshot_every", metavar="N",
                    help="write OUT/snapshot.ply every N iterations and at the last, replaced atomically, its "
                         "iteration in its header (default: none); `python -m splat_train view --model OUT` "
                         "follows it live")
-    p.add_argument("--threads", type=flag_of(TrainConfig, "num_threads"),
-                   help="torch CPU threads (default 1; 0: torch's default)")
-    p.add_argument("--kernel-threads", type=flag_of(TrainConfig, "kernel_threads"), dest="kernel_threads",
-                   help="threads of the C++ rasterizer kernel (default 0: every available CPU)")
+    _add_config_flags(p)
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
@@ -370,12 +409,8 @@ def _main(argv: list[str] | None = None) -> int:
     from splat_train.config import load_config
 
     # checked before anything is written: a bad --config is one line naming it, no --out
-    cfg = load_config(args.config, iterations=args.iterations, downsample=args.downsample, seed=args.seed,
-                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                      pose_refine=args.pose_refine, pose_refine_focal=args.pose_refine_focal, device=args.device,
-                      num_threads=args.threads, rasterizer=args.rasterizer,
-                      kernel_threads=args.kernel_threads, eval_lpips=args.eval_lpips,
-                      lpips_weights=args.lpips_weights, recipe=args.recipe)
+    given = {key: getattr(args, key) for key in getattr(args, "config_given", [])}  # the flags given win
+    cfg = load_config(args.config, **given, recipe=args.recipe)
     if not _out_ok(args.out, {"--seed-ply": args.seed_ply, "--cameras": args.cameras, "--images": args.images,
                               "--test-cameras": args.test_cameras, "--test-images": args.test_images,
                               "--image-list": args.image_list, "--test-image-list": args.test_image_list,

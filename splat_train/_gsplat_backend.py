@@ -11,7 +11,7 @@ CUDA kernels):
 * ``eps2d`` = :data:`splat_train.projection.EPS2D`, ``near_plane`` passed through,
   ``sh_degree`` passed through (None = plain colours), ``packed=False``, ``render_mode="RGB+ED"``;
 * returned ``means2d`` is [N, 2] in pixels and its ``.grad`` after ``backward()`` is
-  dL/d(means2d) in pixels, the units :meth:`splat_train.densify.DensifyStrategy.update_state`
+  dL/d(means2d) in pixels, the units :meth:`splat_train.strategy.densify.DensifyStrategy.update_state`
   expects (gsplat's own meta["means2d"] is [1, N, 2]; a hook copies its gradient);
 * ``visible`` = gsplat's own mask (both per-axis radii > 0); ``radii`` [N] int32 = 3DGS's
   ceil(3 sqrt(lambda_max)) (:func:`splat_train.projection.screen_radius`) of the 2D

@@ -189,3 +189,37 @@ def mean_colour(views: list[View]) -> list[float]:
         total += img.sum(0)
         count += len(img)
     return [round(float(c), 6) for c in total / count]
+
+
+def has_alpha(path: str | Path) -> bool:
+    """Whether the image file has an alpha channel (2 or 4 channels: what
+    :func:`camio.images.read_image` composites on a background); read from its header."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        return True  # unreadable header: read it again, and let the reader name the problem
+    try:
+        return int(inp.spec().nchannels) in (2, 4)
+    finally:
+        inp.close()
+
+
+def load_views_on_mean(cameras_dir: str | Path, images_dir: str | Path, names: list[str] | None = None,
+                       downsample: int = 1) -> tuple[list[View], list[float]]:
+    """The views of :func:`load_views` composited on their own mean colour (the config's
+    ``background`` "mean"), and that colour (:func:`mean_colour` of the images composited on
+    black). Each image is read once; only an image with an alpha channel is read a second time,
+    composited on the mean (an image without one reads the same on any background).
+
+    Returns:
+        (views sorted by name, images [H, W, 3] float32 in [0, 1]; the mean RGB).
+    """
+    views = load_views(cameras_dir, images_dir, names, downsample, (0.0, 0.0, 0.0))
+    colour = mean_colour(views)
+    again = [v.name for v in views if has_alpha(Path(images_dir) / v.name)]
+    if again:
+        redone = {v.name: v for v in load_views(cameras_dir, images_dir, again, downsample, tuple(colour))}
+        views = [redone.get(v.name, v) for v in views]
+    return views, colour
+

@@ -114,7 +114,7 @@ def render_params(params: dict[str, torch.Tensor], sh_degree: int, cam_from_worl
         background: [3] RGB.
         backend: :func:`splat_train.rasterize` backend.
         opacity_fn: maps the [N] opacities (after the sigmoid) before rasterizing; training's
-            Gaussian dropout (:mod:`splat_train.dropout`). None for every scored render.
+            Gaussian dropout (:mod:`splat_train.parts.dropout`). None for every scored render.
         depth: whether the render's depth is needed (:func:`splat_train.rasterize`'s ``depth``).
         stats: whether the densification statistics are read (:func:`splat_train.rasterize`'s
             ``stats``).

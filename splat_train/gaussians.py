@@ -9,7 +9,7 @@ Parameters (N Gaussians, world frame of the seed PLY):
 * ``quats`` [N, 4] rotations (w, x, y, z), not kept normalised (the rasterizer normalises).
 
 One Adam holds one parameter group per tensor (``group["name"]`` is the key above), so that
-densification can rebuild each group with its optimizer state (:mod:`splat_train.densify`).
+densification can rebuild each group with its optimizer state (:mod:`splat_train.strategy.densify`).
 """
 
 from __future__ import annotations
@@ -62,9 +62,10 @@ def params_to_cloud(params: dict[str, torch.Tensor]) -> GaussianCloud:
 def position_lr(cfg: TrainConfig, iteration: int, extent: float) -> float:
     """Exponential position rate: log-linear from lr_init to lr_final (both x extent) over
     the run; ``iteration`` is 1-based (3DGS ``get_expon_lr_func`` with max_steps = iterations)."""
-    t = min(max((iteration - 1) / max(cfg.iterations - 1, 1), 0.0), 1.0)
-    lr0 = cfg.lr_position_init * extent
-    lr1 = cfg.lr_position_final * extent
+    o = cfg.optim
+    t = min(max((iteration - 1) / max(cfg.run.iterations - 1, 1), 0.0), 1.0)
+    lr0 = o.lr_position_init * extent
+    lr1 = o.lr_position_final * extent
     return float(np.exp(np.log(lr0) * (1.0 - t) + np.log(lr1) * t))
 
 
@@ -76,11 +77,12 @@ def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, exte
     parameters, several times faster than the default per-tensor loop at 100k Gaussians
     (benchmarks/README.md). Same update rule, rounding differs.
     """
-    lrs = {"means": cfg.lr_position_init * extent, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
-           "opacity": cfg.lr_opacity, "scales": cfg.lr_scaling, "quats": cfg.lr_rotation}
+    o = cfg.optim
+    lrs = {"means": o.lr_position_init * extent, "sh_dc": o.lr_sh_dc, "sh_rest": o.lr_sh_rest,
+           "opacity": o.lr_opacity, "scales": o.lr_scaling, "quats": o.lr_rotation}
     groups = [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
     fused = all(params[k].device.type in ("cpu", "cuda") and params[k].is_floating_point() for k in PARAM_NAMES)
-    return torch.optim.Adam(groups, lr=0.0, eps=cfg.adam_eps, fused=fused or None)
+    return torch.optim.Adam(groups, lr=0.0, eps=o.adam_eps, fused=fused or None)
 
 
 def adam_step(opt: torch.optim.Adam) -> None:

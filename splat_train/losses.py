@@ -18,7 +18,6 @@ import torch
 
 from imgmetrics.ssim import gaussian_window, gaussian_window_1d, ssim_map
 from splat_train.cpu import ssim as cpu_ssim
-from splat_train.config import TrainConfig
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "photometric_terms", "TrainingLoss",
            "gaussian_regularisers", "gaussian_window", "gaussian_window_1d", "graphed_checked", "CUDA_GRAPHS"]
@@ -108,7 +107,7 @@ def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def photometric_loss(
-    render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = TrainConfig.lambda_dssim
+    render: torch.Tensor, target: torch.Tensor, lambda_dssim: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The 3DGS loss (1 - lambda) L1 + lambda (1 - SSIM).
 
@@ -131,7 +130,7 @@ def photometric_loss(
 
 
 def photometric_terms(render: torch.Tensor, target: torch.Tensor,
-                      lambda_dssim: float = TrainConfig.lambda_dssim) -> tuple[torch.Tensor, torch.Tensor]:
+                      lambda_dssim: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The training step's loss and what its log records, from one render.
 
     Args:

@@ -193,7 +193,7 @@ def rasterize(
         ``means2d`` [N, 2] projected centres in pixels (COLMAP convention); after
         ``backward()`` its ``.grad`` holds dL/d(means2d) in pixel units, [N, 2] for every
         backend (to compare with 3DGS's NDC-based densification threshold, multiply x by W/2
-        and y by H/2, as :mod:`splat_train.densify` does),
+        and y by H/2, as :mod:`splat_train.strategy.densify` does),
         ``radii`` [N] int32 3DGS's 3-sigma screen radius in pixels
         (:func:`splat_train.projection.screen_radius`), 0 = culled, for every backend (gsplat's
         own opacity-aware per-axis radii are converted),

@@ -1,11 +1,14 @@
 """The training recipes, ``paper``, ``dropgaussian``, ``sparse`` and ``mcmc``: the one place for their
 defaults.
 
-A recipe fills every config key that is left at ``None`` (:class:`splat_train.config.TrainConfig`);
-a key the user sets keeps its value, and means what it says: schedule keys are iterations of
-this run, never rescaled. The recipe's own schedule values are fractions of the run, named so
-here (``*_fraction``), and resolved to iterations once per run (:meth:`TrainConfig.schedule`,
-printed by the trainer).
+A recipe is a training config tree (:class:`splat_train.tree.ConfigTree`) that states only its
+differences from the base (the configs' defaults, 3DGS as its code trains): ``PAPER`` is the base,
+``DROPGAUSSIAN`` is ``PAPER`` with dropout and a higher gradient threshold, ``SPARSE`` and ``MCMC``
+set their own parts and strategy. A run's config is the recipe's with the flat keys the user
+sets over it (a key the user sets keeps its value, and means what it says: schedule keys are
+iterations of this run, never rescaled). The recipe's own schedule values are shares of the run
+(:class:`splat_train.config.RecipeSchedule`), resolved to iterations once per run
+(:meth:`splat_train.tree.ConfigTree.schedule`, printed by the trainer).
 
 ``paper``
     The training of the paper's tables (docs/reference.md section 3, 3DGS as the seed code ran it for
@@ -36,17 +39,17 @@ printed by the trainer).
 
     * Gaussian dropout (DropGaussian, CVPR 2025): during training only, each Gaussian's
       opacity is zeroed with probability p, ramping linearly from 0 to ``dropout_rate`` over
-      the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.dropout`);
+      the run, survivors scaled by 1 / (1 - p) (:mod:`splat_train.parts.dropout`);
     * a depth prior from the initialiser's own dense output, weighted by its confidence: a
       scale-invariant (Pearson) loss between rendered and prior depth, weight ramped in over
-      ``depth_ramp_fraction`` of the run (:mod:`splat_train.depth_prior`); off when the seed has
+      ``depth_ramp_fraction`` of the run (:mod:`splat_train.parts.depth_prior`); off when the seed has
       no prior file;
     * a model sized to its views: growth keeps the best candidates under a cap of
-      ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.densify`), densifying
+      ``gaussians_per_pixel`` x the training pixels (:mod:`splat_train.strategy.densify`), densifying
       every 100 iterations (the field's period: 3DGS, gsplat, DropGaussian) from 5 % of the run
       to its end: under the cap, growth keeps replacing the weakest Gaussians by better ones;
     * opacity decay (Binocular3DGS, NeurIPS 2024): every opacity x 0.995 after each iteration
-      from the densification start (:mod:`splat_train.opacity_decay`), so that Gaussians the
+      from the densification start (:mod:`splat_train.parts.opacity_decay`), so that Gaussians the
       views stop holding up fade and the prune removes them; the release densifies to the end
       of the run while the decay acts, and so does this recipe;
     * no opacity reset (nor the size prune 3DGS runs after one): measured, the reset cost the
@@ -54,10 +57,10 @@ printed by the trainer).
     * binocular stereo consistency (Binocular3DGS, NeurIPS 2024) from the densification start
       on: each training view is rendered again from a camera shifted sideways and warped back
       with the rendered depth, which must reproduce the training image
-      (:mod:`splat_train.binocular`; one more render per iteration), from earlier than the
+      (:mod:`splat_train.parts.binocular`; one more render per iteration), from earlier than the
       release's 2/3 of the run;
     * gsplat's opacity regulariser in its place (``opacity_reg`` 0.01 x mean opacity, the value
-      of its MCMC preset, :mod:`splat_train.parts`): Gaussians that no training view needs
+      of its MCMC preset, :mod:`splat_train.parts.compose`): Gaussians that no training view needs
       fade, and the 3DGS prune (opacity below 0.005) removes them, which frees the cap for
       Gaussians the views do need;
     * the mean colour of the training images behind the model (``background``
@@ -78,7 +81,7 @@ printed by the trainer).
 ``mcmc``
     3DGS as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024, arXiv:2404.09591) as
     gsplat's ``mcmc`` preset runs it (``examples/simple_trainer.py``, ``gsplat/strategy/mcmc.py``
-    ``MCMCStrategy``; here :mod:`splat_train.mcmc`): no clone / split / prune / opacity reset;
+    ``MCMCStrategy``; here :mod:`splat_train.strategy.mcmc`): no clone / split / prune / opacity reset;
     every 100/30000 of the run (gsplat's ``refine_every`` 100 at its 30,000 steps; at least
     :data:`MIN_DENSIFY_EVERY`) from 500/30000 to 25000/30000 of the run, dead Gaussians (opacity <= ``prune_opacity`` 0.005) are relocated onto live ones
     and 5 % more are added until the cap; position noise ``noise_lr`` 5e5 x the position rate
@@ -97,7 +100,7 @@ printed by the trainer).
     cannot take the seed to the cap within the refine window; there the count follows the
     geometric path from the seed's size to the cap over the window's refine steps, so that the
     model reaches the budget it is given, as gsplat's runs do from their SfM seeds of
-    100k-300k points (:func:`splat_train.mcmc.growth_target`). The seeds of the sparse-view
+    100k-300k points (:func:`splat_train.strategy.mcmc.growth_target`). The seeds of the sparse-view
     benchmark are the 12-95 points three views triangulate: at 5 % per step a 3,000-iteration
     run (122 refine steps) ends them at a few thousand Gaussians, a 1,000-iteration one (40
     steps) at 7x the seed, and a seed under 20 never grows (int(1.05 N) = N; the Stitch toy's
@@ -111,196 +114,129 @@ printed by the trainer).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
-__all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS", "STRATEGIES", "SEED_OVER_CAP", "MCMC_GROWTH",
-           "MIN_DENSIFY_EVERY", "BACKGROUND_BLACK", "BACKGROUND_MEAN", "recipe_defaults"]
+from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3DGS, MIN_DENSIFY_EVERY, RECIPE_KEYS,
+                              SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
+from splat_train.parts.configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
+                                      DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
+from splat_train.strategy.configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
+                                          MCMCStrategyConfig, StrategyConfig)
+
+__all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS",
+           "RAMP_KEYS", "STRATEGIES", "SEED_OVER_CAP", "MCMC_GROWTH", "MIN_DENSIFY_EVERY", "BACKGROUND_BLACK",
+           "BACKGROUND_MEAN", "BINOCULAR_FROM_FRACTION", "PAPER", "DROPGAUSSIAN", "SPARSE", "MCMC",
+           "recipe_config", "recipe_defaults", "register_recipe"]
 
 DEFAULT_RECIPE = "sparse"
 
-# A densification period below this would average the view-space gradient over too few views.
-MIN_DENSIFY_EVERY = 20
-
-# Schedule keys: an int in the config is iterations of this run; None takes the recipe's
-# ``<key>_fraction`` of the run (densify_every: ``densify_every`` itself when the recipe gives
-# an int, as ``paper`` does).
-SCHEDULE_KEYS = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "sh_increase_every")
-# The regularisation parts and their "off" values.
+# The recipe keys (splat_train.config.RECIPE_KEYS) by kind: the regularisation parts and their
+# "off" values (gaussians_per_pixel: no per-pixel cap) ...
 PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.0, "opacity_reg": 0.0,
              "scale_reg": 0.0, "binocular_weight": 0.0, "opacity_decay": 1.0}
-# Fractions of the run that say when a part acts: over which share a weight or rate ramps in
-# from 0 (1: all of it), or after which share a term starts (binocular_from_fraction).
+# ... the shares of the run that say when a part acts: over which share a weight or rate ramps
+# in from 0 (1: all of it), or after which share a term starts (binocular_from_fraction) ...
 RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction", "binocular_from_fraction")
-# 3DGS densifies from iteration 500 of the seed code's 10,000 (gsplat's refine_start_iter 500)
-DENSIFY_FROM_3DGS = 500 / 10000
-# Binocular3DGS's release turns its consistency term on after 20,000 of 30,000 iterations
-BINOCULAR_FROM_FRACTION = 20000 / 30000
-# and multiplies every opacity by this after each iteration (train.py ``opacity_decay_factor``)
-OPACITY_DECAY_BINOCULAR = 0.995
-# Values a recipe sets (a config value wins); every recipe gives each one: the densification
-# thresholds, and how the model grows (``strategy``).
+# ... and the values every recipe gives: the densification thresholds, how the model grows
+# (``strategy``), the background.
 VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap", "mcmc_growth", "background")
-# The colour behind the Gaussians (``background``): RGB in [0, 1], or BACKGROUND_MEAN, the mean
-# colour of the training images (splat_train.data.mean_colour, resolved once per run by
-# splat_train.trainer.train). Black is 3DGS's default and the field's recipes'; ``sparse``
-# trains against the mean.
-BACKGROUND_BLACK = (0.0, 0.0, 0.0)
-BACKGROUND_MEAN = "mean"
-# 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
-GRAD_THRESHOLD_3DGS = 2e-4
+assert set(RECIPE_KEYS) == {*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS}
+
 # gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
 OPACITY_REG_GSPLAT = 0.01
-# The growth strategies: "densify" (3DGS clone / split / prune, splat_train.densify) or "mcmc"
-# (relocation under a cap, splat_train.mcmc).
-STRATEGIES = ("densify", "mcmc")
-# What a run does with a seed larger than its growth cap (a dense initialiser's point map, or
-# 3DGS's random initialisation where the views triangulate nothing): "cap" holds the cap, so
-# the prune shrinks the model towards it and growth never refills past it; "keep" raises the
-# cap to the seed's size; "relocate" raises it and grows by relocation (the mcmc strategy)
-# instead of clone / split / prune. Nothing changes for a seed within the cap.
-SEED_OVER_CAP = ("cap", "keep", "relocate")
-# How the mcmc strategy grows (splat_train.mcmc.growth_target): "gsplat", 5 % per refine step
-# (int(1.05 N), gsplat's MCMCStrategy); "reach_cap", the same unless 5 % per step cannot take
-# the seed to the cap within the refine window, in which case the count follows the geometric
-# path from the seed's size to the cap over the window's refine steps. Read only by the mcmc
-# strategy (the mcmc recipe, or seed_over_cap "relocate").
-MCMC_GROWTH = ("gsplat", "reach_cap")
+# FSGS's Pearson depth weight (docs/field.md), ``sparse``'s; 0.1 lost 0.06 dB over twelve
+# scenes (docs/lessons.md)
+DEPTH_WEIGHT_FSGS = 0.05
 
-RECIPES: dict[str, dict[str, Any]] = {
-    "paper": {
-        "densify_from_fraction": DENSIFY_FROM_3DGS,
-        "densify_until_fraction": 1.0,
-        "densify_every": 100,
-        "opacity_reset_every_fraction": 0.3,
-        "sh_increase_every_fraction": 0.1,
-        "dropout_rate": 0.0,
-        "dropout_ramp_fraction": 1.0,
-        "depth_weight": 0.0,
-        "depth_ramp_fraction": 0.0,
-        "gaussians_per_pixel": 0.0,
-        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
-        # off: the official code never applies it (see the module docstring)
-        "prune_screen_size": 0.0,
-        "strategy": "densify",
-        "seed_over_cap": "cap",  # no cap
-        "mcmc_growth": "gsplat",  # not read (no mcmc strategy)
-        "opacity_reg": 0.0,
-        "scale_reg": 0.0,
-        # binocular stereo consistency (splat_train/binocular.py): off
-        "binocular_weight": 0.0,
-        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
-        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
-        "background": BACKGROUND_BLACK,
-    },
-    "dropgaussian": {
-        "densify_from_fraction": DENSIFY_FROM_3DGS,
-        "densify_until_fraction": 1.0,
-        "densify_every": 100,
-        "opacity_reset_every_fraction": 0.3,
-        "sh_increase_every_fraction": 0.1,
-        "dropout_rate": 0.2,
-        "dropout_ramp_fraction": 1.0,  # DropGaussian's ramp, over the whole run
-        "depth_weight": 0.0,
-        "depth_ramp_fraction": 0.0,
-        "gaussians_per_pixel": 0.0,
-        "densify_grad_threshold": 5e-4,
-        "prune_screen_size": 0.0,
-        "strategy": "densify",
-        "seed_over_cap": "cap",  # no cap
-        "mcmc_growth": "gsplat",  # not read (no mcmc strategy)
-        "opacity_reg": 0.0,
-        "scale_reg": 0.0,
-        # binocular stereo consistency (splat_train/binocular.py): off
-        "binocular_weight": 0.0,
-        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
-        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
-        "background": BACKGROUND_BLACK,
-    },
-    "sparse": {
-        "densify_from_fraction": DENSIFY_FROM_3DGS,
-        # every 100 like the field's recipes, to the end of the run, as Binocular3DGS's release
-        # grows while its opacity decay acts (docs/lessons.md)
-        "densify_until_fraction": 1.0,
-        "densify_every": 100,
+# ``paper``: the base as it is. Its schedule (RecipeSchedule's defaults): densify from 500/10000
+# of the run to its end every 100 iterations, reset opacity every 30 %, SH degree every 10 %;
+# the default strategy at 3DGS's gradient threshold 2e-4, and prune_screen_size off: the official
+# code never applies it (see the module docstring); no cap (seed_over_cap "cap": nothing to
+# hold), mcmc_growth not read (no mcmc strategy); every part off (dropout, depth, regularisers,
+# binocular stereo consistency (splat_train/parts/binocular.py), opacity decay
+# (splat_train/parts/opacity_decay.py)); black behind the model.
+PAPER = ConfigTree(recipe="paper", shares=RecipeSchedule())
+
+# ``dropgaussian``: ``paper`` with DropGaussian's dropout, ramped to 0.2 over the whole run
+# (DropGaussian's ramp, the DropoutConfig default), and its densification gradient threshold.
+DROPGAUSSIAN = replace(
+    PAPER, recipe="dropgaussian", parts=(DropoutConfig(rate=0.2),),
+    growth=replace(PAPER.growth, default=replace(PAPER.growth.default, grad_threshold=5e-4)))
+
+SPARSE = ConfigTree(
+    recipe="sparse",
+    # the training images' mean colour behind the model, chosen on the tuning scenes
+    # (docs/lessons.md: +0.10 ± 0.37 dB over fourteen cells, 3 seeds) and held on the five
+    # evaluation scenes (docs/results.md)
+    optim=OptimConfig(background=BACKGROUND_MEAN),
+    shares=RecipeSchedule(
+        # every 100 like the field's recipes (the base's period), to the end of the run (the
+        # base's end), as Binocular3DGS's release grows while its opacity decay acts
+        # (docs/lessons.md)
         # no opacity reset (None: never; nor the size prune that follows it): on fern posed
         # n = 3 the held-out PSNR peaked just before the reset and fell ~1 dB after it at both
         # 3,000 and 10,000 iterations; without it the 3,000-iteration run ended 1.3 dB higher
         # (docs/lessons.md). The cap and dropout do the reset's job of bounding the model.
-        "opacity_reset_every_fraction": None,
-        "sh_increase_every_fraction": 0.1,
-        # DropGaussian's final rate (docs/field.md)
-        "dropout_rate": 0.2,
-        "dropout_ramp_fraction": 1.0,  # DropGaussian's ramp, over the whole run
-        # FSGS's Pearson depth weight (docs/field.md), reached after 10 % of the run; 0.1 lost
-        # 0.06 dB over twelve scenes (docs/lessons.md)
-        "depth_weight": 0.05,
-        "depth_ramp_fraction": 0.1,
+        opacity_reset_every=None),
+    growth=StrategyConfig(
         # chosen on the tuning scenes only (docs/lessons.md): on fern
         # posed n = 3, 1,000 iterations, 3 seeds, 0.1 per training pixel held out LPIPS-Alex
         # 0.252 / VGG 0.345 against 0.327 / 0.378 for 0.03 and 0.274 / 0.366 for `paper`, at
         # 0.21 dB below 0.03 and 0.46 dB above `paper`; with no cap the model grew to 100k and
         # lost 1.4 dB. The field's LLFF 3-view models hold 80k-120k: 0.1 gives 57k there.
         # At 3,000 iterations 0.2 lost 0.06 dB over twelve scenes.
-        "gaussians_per_pixel": 0.1,
-        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
-        "prune_screen_size": 0.0,  # no reset, hence no size prune of either kind
-        "strategy": "densify",
-        "seed_over_cap": "cap",
-        "mcmc_growth": "gsplat",  # not read (no seed over the cap grows by relocation)
+        gaussians_per_pixel=0.1,
+        # seed_over_cap "cap" (the base's); mcmc_growth "gsplat", not read (no seed over the cap
+        # grows by relocation); prune_screen_size 0 (the base's): no reset, hence no size prune
+        # of either kind
+    ),
+    parts=(
+        # DropGaussian's final rate (docs/field.md), DropGaussian's ramp over the whole run
+        DropoutConfig(rate=0.2),
+        # FSGS's Pearson depth weight, reached after 10 % of the run
+        DepthPriorConfig(weight=DEPTH_WEIGHT_FSGS, ramp_fraction=0.1),
         # chosen on the tuning scenes (docs/lessons.md)
-        "opacity_reg": OPACITY_REG_GSPLAT,
-        "scale_reg": 0.0,
-        # binocular stereo consistency (splat_train/binocular.py) with Binocular3DGS's weight,
+        RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT),
+        # binocular stereo consistency (splat_train/parts/binocular.py) with Binocular3DGS's weight,
         # chosen on the tuning scenes (docs/lessons.md: fourteen cells, 3 seeds, +0.05 dB and
         # lower LPIPS-Alex and VGG than without it), from the densification start rather than
         # the release's 2/3 of the run (+0.12 dB more): the held-out declines it holds back
         # happen while the model grows
-        "binocular_weight": 1.0,
-        "binocular_from_fraction": DENSIFY_FROM_3DGS,
-        # Binocular3DGS's opacity decay (splat_train/opacity_decay.py) at its release's factor,
+        BinocularConfig(weight=1.0, from_fraction=DENSIFY_FROM_3DGS),
+        # Binocular3DGS's opacity decay (splat_train/parts/opacity_decay.py) at its release's factor,
         # chosen on the tuning scenes (docs/lessons.md: +0.40 ± 0.22 dB over fourteen cells)
-        "opacity_decay": OPACITY_DECAY_BINOCULAR,
-        # the training images' mean colour behind the model, chosen on the tuning scenes
-        # (docs/lessons.md: +0.10 ± 0.37 dB over fourteen cells, 3 seeds) and held on the five
-        # evaluation scenes (docs/results.md)
-        "background": BACKGROUND_MEAN,
-    },
-    "mcmc": {
-        # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
-        # refine_every 100; simple_trainer's sh_degree_interval 1000. The period is a fraction
-        # too: growth is 5 % per refine step, so an absolute 100 would leave a 1,000-iteration
-        # run 8 steps (x1.5) where gsplat's run has 245 (the cap)
-        "densify_from_fraction": 500 / 30000,
-        "densify_until_fraction": 25000 / 30000,
-        "densify_every_fraction": 100 / 30000,
-        "opacity_reset_every_fraction": None,
-        "sh_increase_every_fraction": 1000 / 30000,
-        "dropout_rate": 0.0,
-        "dropout_ramp_fraction": 1.0,
-        "depth_weight": 0.0,
-        "depth_ramp_fraction": 0.0,
+        OpacityDecayConfig(factor=OPACITY_DECAY_BINOCULAR),
+    ),
+)
+
+MCMC = ConfigTree(
+    recipe="mcmc",
+    # gsplat's MCMCStrategy at 30,000 steps: refine_start_iter 500, refine_stop_iter 25000,
+    # refine_every 100; simple_trainer's sh_degree_interval 1000. The period is a fraction
+    # too: growth is 5 % per refine step, so an absolute 100 would leave a 1,000-iteration
+    # run 8 steps (x1.5) where gsplat's run has 245 (the cap)
+    shares=RecipeSchedule(densify_from=500 / 30000, densify_until=25000 / 30000, densify_every=100 / 30000,
+                          densify_every_count=None, opacity_reset_every=None, sh_increase_every=1000 / 30000),
+    growth=StrategyConfig(
+        name="mcmc",
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
-        "gaussians_per_pixel": 0.175,
-        "strategy": "mcmc",
+        gaussians_per_pixel=0.175,
         # gsplat's MCMCStrategy never removes a Gaussian: a seed above the cap keeps its size
-        "seed_over_cap": "keep",
+        seed_over_cap="keep",
         # gsplat's 5 % per refine step, but never a model that cannot reach its cap: from the
         # 12-95 points three views triangulate, 5 % per step leaves it at a few hundred
         # Gaussians (under 20 it never grows: int(1.05 N) = N); see the module docstring
-        "mcmc_growth": "reach_cap",
-        # not read by the mcmc strategy (no clone / split / size prune)
-        "densify_grad_threshold": GRAD_THRESHOLD_3DGS,
-        "prune_screen_size": 0.0,
-        # simple_trainer's mcmc preset
-        "opacity_reg": OPACITY_REG_GSPLAT,
-        "scale_reg": 0.01,
-        # binocular stereo consistency (splat_train/binocular.py): off
-        "binocular_weight": 0.0,
-        "binocular_from_fraction": BINOCULAR_FROM_FRACTION,
-        "opacity_decay": 1.0,  # off (splat_train/opacity_decay.py)
-        "background": BACKGROUND_BLACK,
-    },
-}
+        mcmc=MCMCStrategyConfig(growth="reach_cap"),
+        # the default strategy's settings (the base's: 3DGS's threshold, no size prune) are not
+        # read by the mcmc strategy (no clone / split / size prune)
+    ),
+    # simple_trainer's mcmc preset; no dropout, no depth term, no binocular consistency
+    # (splat_train/parts/binocular.py), no opacity decay (splat_train/parts/opacity_decay.py)
+    parts=(RegularisersConfig(opacity_reg=OPACITY_REG_GSPLAT, scale_reg=0.01),),
+)
+
+RECIPES: dict[str, ConfigTree] = {"paper": PAPER, "dropgaussian": DROPGAUSSIAN, "sparse": SPARSE, "mcmc": MCMC}
 RECIPE_NAMES = tuple(RECIPES)
 # One line per recipe, for help texts (the module docstring has the full account).
 RECIPE_SUMMARIES = {
@@ -312,8 +248,29 @@ RECIPE_SUMMARIES = {
 }
 
 
-def recipe_defaults(name: str) -> dict[str, Any]:
-    """The recipe ``name``'s values (a copy); ValueError naming the valid recipes otherwise."""
+def recipe_config(name: str) -> ConfigTree:
+    """The recipe ``name`` (a tree; ``iterations`` unresolved); ValueError naming the valid recipes otherwise."""
     if name not in RECIPES:
-        raise ValueError(f"recipe must be one of {list(RECIPE_NAMES)}, got {name!r}")
-    return dict(RECIPES[name])
+        raise ValueError(f"recipe must be one of {list(RECIPES)}, got {name!r}")
+    return RECIPES[name]
+
+
+def recipe_defaults(name: str) -> dict[str, Any]:
+    """The recipe ``name``'s values of the keys it decides (:data:`splat_train.config.RECIPE_KEYS`),
+    as flat keys; ValueError naming the valid recipes otherwise."""
+    flat = recipe_config(name).to_flat()
+    return {k: flat[k] for k in RECIPE_KEYS}
+
+
+def register_recipe(preset: ConfigTree, summary: str) -> ConfigTree:
+    """Add a recipe (a tree whose ``recipe`` is its new name) to :data:`RECIPES` and
+    :data:`RECIPE_SUMMARIES`; the CLI's ``--recipe`` and the config keys take it from then on.
+    The workflow's config schema lists the recipes it accepts (docs/contracts.md, "Adding a
+    recipe")."""
+    global RECIPE_NAMES
+    if preset.recipe in RECIPES:
+        raise ValueError(f"a recipe named {preset.recipe!r} exists already")
+    RECIPES[preset.recipe] = preset
+    RECIPE_SUMMARIES[preset.recipe] = summary
+    RECIPE_NAMES = tuple(RECIPES)
+    return preset

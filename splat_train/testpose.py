@@ -63,7 +63,7 @@ from splat_train.data import View, load_views, read_name_list
 from splat_train.export import background_note, camera_tensors, model_background, render_name, render_params
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
-from splat_train.pose import so3_exp
+from splat_train.parts.pose import so3_exp
 from splat_train.rasterize import rasterize, resolve_backend
 from splat_train.recipes import BACKGROUND_BLACK
 
@@ -160,9 +160,9 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
     if patience < 0:
         raise ValueError(f"patience must be >= 0, got {patience}")
     if lambda_dssim is None:
-        from splat_train.config import TrainConfig
+        from splat_train.config import OptimConfig
 
-        lambda_dssim = TrainConfig().lambda_dssim
+        lambda_dssim = OptimConfig.lambda_dssim
     frozen = {k: v.detach() for k, v in params.items()}
     # what does not depend on the pose, once: activations and the SH pair
     scales, opacities, quats = activated(frozen)

@@ -5,16 +5,17 @@ the next training view from a shuffled stack (refilled with a new permutation wh
 3DGS does), choose the background (fixed, or uniform random), render at the active SH degree
 (+1 every ``sh_increase_every``), loss (1 - 0.2) L1 + 0.2 (1 - SSIM), backward, accumulate the
 view-space gradient statistics, Adam step of the Gaussians, the held-out evaluation when due,
-then densify / prune / reset opacity when the schedule says so (:mod:`splat_train.densify`), or
-with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat_train.mcmc`),
+then densify / prune / reset opacity when the schedule says so (:mod:`splat_train.strategy.densify`), or
+with the ``mcmc`` strategy relocate / add and inject position noise (:mod:`splat_train.strategy.mcmc`),
 then the checkpoint when due.
 
-The recipe's regularisers and extra optimisations are training parts
-(:mod:`splat_train.train_part`, listed by :func:`splat_train.parts.recipe_parts`), whose hooks
+The config's regularisers and extra optimisations are training parts
+(:mod:`splat_train.parts.base`, each made by its config in ``cfg.parts``,
+:func:`splat_train.parts.recipe_parts`), called only through their interface, whose hooks
 the iteration runs in the list's order: the view's camera (pose refinement), a map of the
 opacities of the training render (Gaussian dropout), loss terms added after the photometric
 loss (depth prior, opacity / scale regularisers), and a step after the Gaussians' Adam step
-(the pose corrections' Adam, their rate ramped by :func:`splat_train.pose.pose_lr_factor` and
+(the pose corrections' Adam, their rate ramped by :func:`splat_train.parts.pose.pose_lr_factor` and
 their scale gauge restored). Each part's state is in every checkpoint.
 
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
@@ -26,6 +27,10 @@ Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text);
 with ``snapshot_every`` N, ``snapshot.ply`` every N iterations and at the last
 (:mod:`splat_train.snapshot`, outside the training time).
+
+What a run resolves from its config and inputs is resolved once (:class:`ResolvedRun`,
+:func:`resolve_run`): the schedule, the background colour (the training images' mean read from
+the images loaded for training), the depth prior it uses and the inputs digest.
 
 Every checkpoint holds :func:`inputs_digest` (SHA-256 of the seed PLY's bytes, the decoded
 training images and cameras, and the result-changing config); a run resumes only from a
@@ -58,26 +63,23 @@ from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from runtime.logs import peak_rss_mb, progress
 from splat_train import checkpoint as ckpt
-from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, TrainConfig, resolve_device
+from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, Schedule, TrainConfig, resolve_device
+from splat_train.tree import added_at_default
 from splat_train.cpu import raster as cpu_raster
-from splat_train.data import View, load_views, mean_colour, read_name_list, scene_extent
-from splat_train.densify import DensifyStrategy
-from splat_train.depth_prior import DepthPrior, DepthPriorLoss
+from splat_train.data import View, load_views, load_views_on_mean, mean_colour, read_name_list, scene_extent
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
 from splat_train.heldout import LPIPS_NET, HeldoutScorer, unmeasured
 from splat_train.losses import TrainingLoss
-from splat_train.mcmc import MCMCStrategy
-from splat_train.parts import opacity_map, recipe_parts
-from splat_train.pose import PoseCorrections, PoseRefinement
+from splat_train.parts.compose import opacity_map, recipe_parts
 from splat_train.rasterize import SKEW_ERROR, resolve_backend
-from splat_train.recipes import BACKGROUND_BLACK
 from splat_train.rng import uniform
 from splat_train.cpu.build import build_seconds
 from splat_train.runlog import RunLog
 from splat_train.snapshot import check_snapshot_every, write_snapshot
 
-__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "inputs_digest", "seed_depth_prior"]
+__all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "ResolvedRun", "resolve_run", "inputs_digest",
+           "seed_depth_prior"]
 
 log = logging.getLogger(__name__)
 
@@ -109,10 +111,15 @@ class TrainResult:
         return self.out_dir / "model.ply"
 
 
+def with_background(cfg: TrainConfig, colour: list[float]) -> TrainConfig:
+    """``cfg`` with the background ``colour`` (RGB in [0, 1])."""
+    return replace(cfg, optim=replace(cfg.optim, background=list(colour)))
+
+
 def resolve_mean_background(cfg: TrainConfig, views: list[View]) -> TrainConfig:
     """``cfg`` with its ``background`` "mean" replaced by the views' mean colour
     (:func:`splat_train.data.mean_colour`); any other config as it is."""
-    return replace(cfg, background=mean_colour(views)) if cfg.background == BACKGROUND_MEAN else cfg
+    return with_background(cfg, mean_colour(views)) if cfg.optim.background == BACKGROUND_MEAN else cfg
 
 
 def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfig,
@@ -134,9 +141,42 @@ def inputs_digest(seed_ply: str | Path, train_views: list[View], cfg: TrainConfi
         h.update(np.ascontiguousarray(cam.K, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(cam.cam_from_world, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(v.image).tobytes())
-    kept = {k: v for k, v in cfg.to_dict().items() if k not in RESUME_FREE_KEYS}
+    flat = cfg.to_flat()
+    skip = {*RESUME_FREE_KEYS, *added_at_default(flat)}  # a part added since, off: the digest stays
+    kept = {k: v for k, v in flat.items() if k not in skip}
     h.update(json.dumps(kept, sort_keys=True, default=str).encode())
     return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class ResolvedRun:
+    """What one run resolves from its config and inputs, once (:func:`resolve_run`).
+
+    Attributes:
+        cfg: the config, its ``background`` a colour (the mean resolved).
+        schedule: the iteration counts of the run (:meth:`TrainConfig.schedule`).
+        background_from: "set", or "mean" (the colour is the training images' mean).
+        depth_prior: the depth prior the run uses (None: none, or no part reads one).
+        digest: :func:`inputs_digest` of the run.
+    """
+
+    cfg: TrainConfig
+    schedule: Schedule
+    background_from: str
+    depth_prior: Path | None
+    digest: str
+
+
+def resolve_run(cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], depth_prior: str | Path | None = None,
+                digest: str | None = None, background_from: str = "set") -> ResolvedRun:
+    """The :class:`ResolvedRun` of ``cfg`` on ``seed_ply`` and ``train_views``: the background
+    "mean" resolved from the views (:func:`splat_train.data.mean_colour`), ``depth_prior`` kept
+    when a part of the config reads one, the schedule, and the digest (computed unless given)."""
+    if cfg.optim.background == BACKGROUND_MEAN:
+        cfg, background_from = resolve_mean_background(cfg, train_views), BACKGROUND_MEAN
+    prior = Path(depth_prior) if depth_prior is not None and cfg.reads_depth_prior() else None
+    return ResolvedRun(cfg, cfg.schedule(), background_from, prior,
+                       digest or inputs_digest(seed_ply, train_views, cfg, prior))
 
 
 def _device(name: str) -> torch.device:
@@ -157,66 +197,64 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, seed_ply: str | Path, train_views: list[View], out_dir: str | Path,
                  test_views: list[View] | None = None, ckpt_dir: str | Path | None = None,
                  digest: str | None = None, depth_prior: str | Path | None = None,
-                 background_from: str = "set", snapshot_every: int | None = None) -> None:
+                 background_from: str = "set", snapshot_every: int | None = None,
+                 resolved: ResolvedRun | None = None) -> None:
         if not train_views:
             raise ValueError("no training views")
         self.snapshot_every = check_snapshot_every(snapshot_every)  # None: no snapshot.ply
-        if cfg.background == BACKGROUND_MEAN:  # the views' own mean: train() composites RGBA images on it
-            cfg, background_from = resolve_mean_background(cfg, train_views), BACKGROUND_MEAN
+        # once per run: the background colour, the schedule, the depth prior, the digest
+        run = resolved or resolve_run(cfg, seed_ply, train_views, depth_prior, digest, background_from)
+        cfg = run.cfg
         self.cfg, self.out = cfg, Path(out_dir)
         self.ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else self.out  # holds ckpt/
-        self.depth_prior_path = Path(depth_prior) if depth_prior is not None and cfg.depth_weight > 0 else None
-        self.digest = digest or inputs_digest(seed_ply, train_views, cfg, self.depth_prior_path)
-        self.sched = cfg.schedule()
+        self.depth_prior_path, self.digest, self.sched = run.depth_prior, run.digest, run.schedule
         train_pixels = sum(v.camera.width * v.camera.height for v in train_views)
-        self.dev = _device(cfg.device)
+        self.dev = _device(cfg.run.device)
         if self.dev.type == "cuda":  # train.json's peak_cuda_mb is this run's, not the process's
             torch.cuda.reset_peak_memory_stats(self.dev)
-        self.backend = resolve_backend(cfg.rasterizer, self.dev)
-        log.info("rasterizer backend: %s (config %r, device %s)", self.backend, cfg.rasterizer, self.dev)
-        if cfg.pose_refine and cfg.pose_refine_focal and self.backend == "gsplat":
-            # gsplat 1.5.3's projection backward returns no gradient for Ks: the focal
-            # corrections would silently stay at zero
-            raise ValueError("focal refinement (pose_refine_focal) needs the gradient of the intrinsics, which "
-                             "gsplat does not compute; train with rasterizer 'torch' (slower on a GPU) or "
-                             "without focal refinement")
+        self.backend = resolve_backend(cfg.run.rasterizer, self.dev)
+        log.info("rasterizer backend: %s (config %r, device %s)", self.backend, cfg.run.rasterizer, self.dev)
+        for part in cfg.parts:  # before anything is read: a part that cannot run on this backend
+            part.check_backend(self.backend)
         self.train_views, self.test_views = train_views, test_views or []
         for v in [*self.train_views, *self.test_views]:  # once here: rasterize checks CPU tensors only
             if float(v.camera.K[0, 1]) != 0.0:
                 raise ValueError(f"view {v.name!r}: {SKEW_ERROR}")
         self.targets = [torch.as_tensor(v.image, device=self.dev) for v in train_views]
         self.cams = [camera_tensors(v.camera, self.dev) for v in train_views]
-        self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.dev)
-        self.background_from = background_from  # "set", or "mean" (resolved to cfg.background)
-        self.photometric = TrainingLoss(cfg.lambda_dssim, self.dev)  # a CUDA graph on CUDA
-        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.bg = torch.tensor(cfg.optim.background, dtype=torch.float32, device=self.dev)
+        self.background_from = run.background_from  # "set", or "mean" (resolved to cfg's background)
+        self.photometric = TrainingLoss(cfg.optim.lambda_dssim, self.dev)  # a CUDA graph on CUDA
+        self.gen = torch.Generator().manual_seed(int(cfg.run.seed))
         cloud = read_gaussian_ply(seed_ply)
         self.extent = scene_extent([v.camera for v in train_views],
-                                   cloud.means if cfg.extent_from_points else None)
+                                   cloud.means if cfg.run.extent_from_points else None)
         if len(cloud) == 0:
             raise ValueError(f"seed {seed_ply} holds 0 Gaussians: nothing can be trained or densified; "
                              "check the Bridge output (bridge.json counts) or its filters")
-        # the cap and the strategy: a seed over the cap may raise it (cfg.seed_over_cap)
+        # the cap and the strategy: a seed over the cap may raise it (seed_over_cap)
         self.seed_gaussians = len(cloud)
-        self.max_gaussians = cfg.max_gaussians_for(train_pixels, len(cloud))
-        self.strategy_name = cfg.strategy_for(train_pixels, len(cloud))
+        self.max_gaussians = cfg.growth.max_gaussians_for(train_pixels, len(cloud))
+        self.strategy_name = cfg.growth.strategy_for(train_pixels, len(cloud))
         log.info("recipe %s: strategy %s; schedule %s; growth cap %s (%d training pixels, seed %d, "
-                 "seed over the cap: %s); dropout %g (ramped in over %g of the run); depth weight %g",
+                 "seed over the cap: %s); parts %s",
                  cfg.recipe, self.strategy_name,
                  {k: f"{v} ({self.sched.source[k]})" for k, v in self.sched.to_dict().items() if k != "source"},
-                 self.max_gaussians or "none", train_pixels, len(cloud), cfg.seed_over_cap, cfg.dropout_rate,
-                 cfg.dropout_ramp_fraction, cfg.depth_weight)
-        self.strategy = (MCMCStrategy.from_config(cfg, self.max_gaussians, seed_size=len(cloud))
-                         if self.strategy_name == "mcmc" else DensifyStrategy.from_config(cfg, self.max_gaussians))
-        self.params = params_from_cloud(cloud, cfg.sh_degree, self.dev)
+                 self.max_gaussians or "none", train_pixels, len(cloud), cfg.growth.seed_over_cap,
+                 [c for c in cfg.parts if c.active()] or "none")
+        self.strategy = cfg.growth.build(self.strategy_name, self.sched, self.max_gaussians, len(cloud))
+        self.params = params_from_cloud(cloud, cfg.optim.sh_degree, self.dev)
         self.optimizer = make_optimizer(self.params, cfg, self.extent)
         self.state = self.strategy.init_state(len(self.params["means"]), self.dev)
-        self.scorer = HeldoutScorer(cfg.eval_lpips, cfg.lpips_weights, self.dev) if self.test_views else None
+        self.scorer = (HeldoutScorer(cfg.run.eval_lpips, cfg.run.lpips_weights, self.dev)
+                       if self.test_views else None)
         self.render_state: tuple[int, torch.Tensor] = (0, self.bg)  # this iteration's SH degree, background
         self.parts = recipe_parts(cfg, train_views, [c[0] for c in self.cams], self.gen, self.depth_prior_path,
-                                  targets=self.targets, renderer=self)
+                                  targets=self.targets, renderer=self, schedule=self.sched)
         log.info("training parts: %s", ", ".join(p.name for p in self.parts) or "none")
         self.need_depth = any(p.needs_depth for p in self.parts)  # else gsplat renders colour only
+        # the parts whose cameras replace the given ones (pose refinement)
+        self.moves_cameras = any(p.moves_cameras for p in self.parts)
         self.stack: list[int] = []
         self.log = RunLog()
         self.iteration, self.wall, self.resumed_from = 0, 0.0, None
@@ -246,7 +284,7 @@ class Trainer:
         """Continue from checkpoint ``path`` (its config and training views must match)."""
         data = ckpt.load_checkpoint(path, self.dev)
         old, new = data["config"], self.cfg.to_dict()
-        free = set(RESUME_FREE_KEYS)
+        free = {*RESUME_FREE_KEYS, *(added_at_default(new) - set(old))}  # a part added since, off
         if not new["pose_refine"] and not old.get("pose_refine"):
             free |= set(POSE_KEYS)  # unused without refinement (and absent from older checkpoints)
         diff = sorted(k for k in new if k not in free and old.get(k) != new[k])
@@ -294,20 +332,10 @@ class Trainer:
             self.stack = torch.randperm(len(self.train_views), generator=self.gen).tolist()
         return self.stack.pop()
 
-    @property
-    def pose(self) -> PoseCorrections | None:
-        """The pose corrections of the pose-refinement part (None without one)."""
-        return next((p.corrections for p in self.parts if isinstance(p, PoseRefinement)), None)
-
-    @property
-    def prior(self) -> DepthPrior | None:
-        """The depth prior of the depth part (None without one)."""
-        return next((p.prior for p in self.parts if isinstance(p, DepthPriorLoss)), None)
-
     def view_camera(self, idx: int) -> tuple[torch.Tensor, torch.Tensor]:
         """[4, 4] cam_from_world (world -> OpenCV camera) and [3, 3] K (pixels) that training
         view ``idx`` is rendered with at the current iteration: the given ones, through every
-        part's :meth:`~splat_train.train_part.TrainPart.camera` (refined with pose refinement)."""
+        part's :meth:`~splat_train.parts.base.TrainPart.camera` (refined with pose refinement)."""
         cw, K = self.cams[idx]
         for part in self.parts:
             cw, K = part.camera(self.iteration, idx, cw, K)
@@ -326,7 +354,7 @@ class Trainer:
     def render_rgb(self, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
         """[H, W, 3] differentiable render of the model into a camera ([4, 4] cam_from_world, [3, 3]
         K in pixels) at this iteration's SH degree and background, without dropout and without
-        densification statistics (:class:`splat_train.train_part.ViewRenderer`)."""
+        densification statistics (:class:`splat_train.parts.base.ViewRenderer`)."""
         deg, bg = self.render_state
         return render_params(self.params, deg, cam_from_world, K, width, height, bg, self.backend,
                              depth=False, stats=False)["rgb"]
@@ -342,12 +370,13 @@ class Trainer:
         """
         self.iteration += 1
         it, cfg = self.iteration, self.cfg
+        optim = cfg.optim
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = position_lr(cfg, it, self.extent)
-        deg = self.sched.sh_degree_at(it, cfg.sh_degree)
+        deg = self.sched.sh_degree_at(it, optim.sh_degree)
         idx = self.last_view = self.next_view()
-        bg = uniform(3, self.gen, self.dev) if cfg.random_background else self.bg
+        bg = uniform(3, self.gen, self.dev) if optim.random_background else self.bg
         self.render_state = (deg, bg)
         cam = self.train_views[idx].camera
         cam_from_world, K = self.view_camera(idx)
@@ -403,9 +432,9 @@ class Trainer:
         ``scorer``, every render is also scored by it (SSIM, LPIPS: :meth:`evaluate_heldout`)."""
         if not views:
             return float("nan")
-        deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.sh_degree)
-        override = self.refined_cameras() if refined and self.pose is not None else None
-        k_override = self.refined_intrinsics() if refined and self.pose is not None else None
+        deg = self.sched.sh_degree_at(max(self.iteration, 1), self.cfg.optim.sh_degree)
+        override = self.refined_cameras() if refined and self.moves_cameras else None
+        k_override = self.refined_intrinsics() if refined and self.moves_cameras else None
         scores = render_views(self.params, deg, views, self.bg, out_dir, override, desc="evaluate",
                               K_override=k_override, backend=self.backend, on_render=scorer)
         return float(np.mean(list(scores.values()))) if scores else float("nan")
@@ -485,11 +514,11 @@ class Trainer:
         render_set = self.test_views if self.test_views else self.train_views
         test_psnr = self.evaluate(self.test_views, out / "renders") if self.test_views else float("nan")
         train_psnr = self.evaluate(self.train_views, None if self.test_views else out / "renders", refined=True)
-        pose = self.pose
-        if pose is not None:
-            # at the training image size; K is the refined one with focal refinement
+        if self.moves_cameras:
+            # at the training image size; K is the refined one where a part moves it (focal refinement)
+            moves_k = any(p.moves_intrinsics for p in self.parts)
             cams = [Camera(v.name, v.camera.width, v.camera.height,
-                           (v.camera.K if pose.log_focal is None else K.cpu().double().numpy()),
+                           (K.cpu().double().numpy() if moves_k else v.camera.K),
                            cw.cpu().double().numpy()[:3])
                     for v, cw, K in zip(self.train_views, self.refined_cameras(), self.refined_intrinsics())]
             write_text_model(out / "cameras_refined", cams)
@@ -506,7 +535,7 @@ class Trainer:
             "recipe": cfg.recipe, "seed_gaussians": self.seed_gaussians, "max_gaussians": self.max_gaussians,
             "strategy": self.strategy_name,
             # running totals of the mcmc strategy (relocated, added); {} for densify's per-row statistics
-            "strategy_totals": ({k: int(v) for k, v in self.state.items()} if self.strategy_name == "mcmc" else {}),
+            "strategy_totals": self.strategy.totals(self.state),
             "depth_prior": None,  # the depth part's entry below when it runs
             "config": cfg.to_dict(), "background_from": self.background_from,
             "test_curve": self.log.test_curve(),
@@ -525,7 +554,7 @@ class Trainer:
 def seed_depth_prior(seed: str | Path, cfg: TrainConfig, depth_prior: str | Path | None = None) -> Path | None:
     """The depth prior a run of ``cfg`` on ``seed`` uses: ``depth_prior`` when given, else the
     Bridge's file beside the seed when there is one; None when ``cfg`` has no depth term."""
-    if cfg.depth_weight <= 0:
+    if not cfg.reads_depth_prior():
         return None
     if depth_prior is not None:
         return Path(depth_prior)
@@ -576,38 +605,39 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
     check_snapshot_every(snapshot_every)
     if (test_cameras is None) != (test_images is None):
         raise ValueError("give both --test-cameras and --test-images, or neither")
-    if cfg.num_threads > 0:
-        torch.set_num_threads(cfg.num_threads)
-    cpu_raster.set_kernel_threads(cfg.kernel_threads or len(os.sched_getaffinity(0)))
+    if cfg.run.num_threads > 0:
+        torch.set_num_threads(cfg.run.num_threads)
+    cpu_raster.set_kernel_threads(cfg.run.kernel_threads or len(os.sched_getaffinity(0)))
     names = read_name_list(image_list) if isinstance(image_list, (str, Path)) else image_list
     test_names = (read_name_list(test_image_list) if isinstance(test_image_list, (str, Path))
                   else test_image_list)
     t0 = time.perf_counter()
-    background_from = "set"
-    if cfg.background == BACKGROUND_MEAN:  # RGBA images composited on black for the mean, then on it
-        background_from = BACKGROUND_MEAN
-        cfg = resolve_mean_background(cfg, load_views(cameras, images, names, cfg.downsample, BACKGROUND_BLACK))
-        log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *cfg.background)
-    bg = tuple(cfg.background)
-    train_views = load_views(cameras, images, names, cfg.downsample, bg)
-    test_views = (load_views(test_cameras, test_images, test_names, cfg.downsample, bg)
+    background_from, downsample = "set", cfg.run.downsample
+    if cfg.optim.background == BACKGROUND_MEAN:
+        # each image read once, composited on black for the mean (RGBA ones again, on the mean)
+        train_views, colour = load_views_on_mean(cameras, images, names, downsample)
+        cfg, background_from = with_background(cfg, colour), BACKGROUND_MEAN
+        log.info("background: the training images' mean colour (%.4f, %.4f, %.4f)", *colour)
+    else:
+        train_views = load_views(cameras, images, names, downsample, tuple(cfg.optim.background))
+    bg = tuple(cfg.optim.background)
+    test_views = (load_views(test_cameras, test_images, test_names, downsample, bg)
                   if test_cameras is not None else [])
     log.info("data loaded in %.1f s: %d training, %d test views", time.perf_counter() - t0,
              len(train_views), len(test_views))
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    depth_prior = seed_depth_prior(seed, cfg, depth_prior)
-    digest = inputs_digest(seed, train_views, cfg, depth_prior)
+    run = resolve_run(cfg, seed, train_views, seed_depth_prior(seed, cfg, depth_prior), background_from=background_from)
+    digest = run.digest
     if resume_dir is None:
-        return Trainer(cfg, seed, train_views, out_dir, test_views, digest=digest, depth_prior=depth_prior,
-                       background_from=background_from, snapshot_every=snapshot_every).run()
+        return Trainer(run.cfg, seed, train_views, out_dir, test_views, snapshot_every=snapshot_every,
+                       resolved=run).run()
     resume_dir = Path(resume_dir)
     own = resume_dir / digest[:16]
     for stale in (p for p in resume_dir.iterdir() if p != own and _is_digest_folder(p)) if resume_dir.is_dir() else ():
         log.info("removing %s: checkpoints of other inputs or config", stale)
         shutil.rmtree(stale)
-    result = Trainer(cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, digest=digest,
-                     depth_prior=depth_prior, background_from=background_from,
-                     snapshot_every=snapshot_every).run()
+    result = Trainer(run.cfg, seed, train_views, out_dir, test_views, ckpt_dir=own, snapshot_every=snapshot_every,
+                     resolved=run).run()
     shutil.rmtree(own, ignore_errors=True)
     try:
         resume_dir.rmdir()

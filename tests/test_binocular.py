@@ -1,4 +1,4 @@
-"""Binocular stereo consistency (splat_train/binocular.py): the shifted camera, the warp back with
+"""Binocular stereo consistency (splat_train/parts/binocular.py): the shifted camera, the warp back with
 the rendered depth, the loss's minimum at the true depth through the rasterizer, degenerate
 input, and the term as a part of a training run."""
 
@@ -12,7 +12,7 @@ import torch
 
 from _train_scene import write_scene
 from splat_train import rasterize
-from splat_train.binocular import (binocular_consistency_loss, disparity_smoothness, shifted_camera,
+from splat_train.parts.binocular import (binocular_consistency_loss, disparity_smoothness, shifted_camera,
                                    warp_from_shifted)
 from splat_train.config import TrainConfig
 from splat_train.trainer import train

@@ -20,7 +20,7 @@ from test_cli_flags import _parsers  # noqa: E402  (every CLI's parser, stopped 
 from bridge.core import BridgeConfig  # noqa: E402
 from evaluation.initialisers.mvs.run import MvsConfig  # noqa: E402
 from runtime.checks import Range, field_ranges  # noqa: E402
-from splat_train.config import TrainConfig  # noqa: E402
+from splat_train.config import field_of  # noqa: E402
 
 # The stages' commands; benchmarks/, experiments/ and scripts/ are tools, splat_train view the viewer's own.
 _STAGE_ROOTS = ("camio/", "bridge/", "splat_train/", "evaluation/", "vggt_init/", "runtime/", "imgmetrics/",
@@ -99,10 +99,10 @@ _FEEDS = {
     "mvs.threads": (MvsConfig, "threads"),
     "bridge.stride": (BridgeConfig, "stride"),
     "bridge.max_points": (BridgeConfig, "max_points"),
-    **{f"train.{k}": (TrainConfig, k) for k in ("iterations", "dropout_rate", "depth_weight", "binocular_weight",
+    **{f"train.{k}": field_of(k) for k in ("iterations", "dropout_rate", "depth_weight", "binocular_weight",
                                                   "opacity_decay", "gaussians_per_pixel", "seed", "eval_every",
                                                   "checkpoint_every")},
-    "train.threads": (TrainConfig, "num_threads"),
+    "train.threads": field_of("num_threads"),
     "evaluation.max_ate_rel_radius": ("evaluation/__main__.py", "--max-ate-rel-radius"),
     "evaluation.max_rel_rot_deg": ("evaluation/__main__.py", "--max-rel-rot-deg"),
     "evaluation.testpose_steps": ("splat_train/__main__.py testpose", "--steps"),

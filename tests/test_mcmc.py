@@ -1,4 +1,4 @@
-"""The ``mcmc`` recipe (splat_train.mcmc, 3DGS as MCMC): the relocation formula, relocation and
+"""The ``mcmc`` recipe (splat_train.strategy.mcmc, 3DGS as MCMC): the relocation formula, relocation and
 growth with their Adam moments, the noise, the regularisers, the recipe's values, a capped run
 through the CLI, exact resume, and the gsplat backend path."""
 
@@ -19,11 +19,12 @@ from _train_scene import kill_at_loss_call, write_scene
 from camio.ply import GaussianCloud, read_gaussian_ply, write_gaussian_ply
 from splat_train.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
-from splat_train.densify import quat_to_rotmat
+from splat_train.strategy.densify import quat_to_rotmat
 from splat_train.export import render_params
 from splat_train.gaussians import make_optimizer
 from splat_train.losses import gaussian_regularisers, photometric_loss
-from splat_train.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
+from splat_train.tree import OptimConfig
+from splat_train.strategy.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
                               relocation_opacity_scale)
 from splat_train.recipes import RECIPES
 from splat_train.trainer import train
@@ -216,7 +217,7 @@ def test_regularisers_add_their_gradient_through_the_rasterizer(scene):
     for w in (0.0, 0.5):
         params = params_from_cloud(read_gaussian_ply(scene["seed"]), 0)
         out = render_params(params, 0, cw, K, view.camera.width, view.camera.height, torch.zeros(3))
-        loss = photometric_loss(out["rgb"], torch.as_tensor(view.image))[0]
+        loss = photometric_loss(out["rgb"], torch.as_tensor(view.image), OptimConfig.lambda_dssim)[0]
         reg = gaussian_regularisers(params["opacity"], params["scales"], w, 2 * w)
         assert (reg is None) == (w == 0)
         (loss if reg is None else loss + reg).backward()
@@ -231,9 +232,10 @@ def test_regularisers_add_their_gradient_through_the_rasterizer(scene):
 
 # ---------------------------------------------------------------- the recipe
 def test_mcmc_recipe_values_are_gsplats_preset_scaled_to_the_run():
-    r = RECIPES["mcmc"]
+    r = RECIPES["mcmc"].to_flat()
     assert r["strategy"] == "mcmc" and r["opacity_reg"] == r["scale_reg"] == 0.01
-    assert r["densify_every_fraction"] == 100 / 30000 and r["opacity_reset_every_fraction"] is None
+    shares = RECIPES["mcmc"].shares
+    assert shares.densify_every == 100 / 30000 and shares.opacity_reset_every is None
     assert r["dropout_rate"] == r["depth_weight"] == 0.0 and r["gaussians_per_pixel"] == 0.175
     assert r["mcmc_growth"] == "reach_cap" and TrainConfig(recipe="sparse").mcmc_growth == "gsplat"
     cfg = TrainConfig(recipe="mcmc", iterations=30000)

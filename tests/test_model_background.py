@@ -5,6 +5,7 @@ against unless told otherwise, so that the renders a user makes match the traine
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,15 +22,16 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 def test_every_recipe_gives_a_background_and_a_set_one_wins(monkeypatch):
     assert "background" in VALUE_KEYS
-    for name, values in RECIPES.items():  # the field's recipes keep 3DGS's black; sparse asks for the mean
+    for name, preset in RECIPES.items():  # the field's recipes keep 3DGS's black; sparse asks for the mean
         want = BACKGROUND_MEAN if name == "sparse" else BACKGROUND_BLACK
-        assert values["background"] == want, name
+        assert preset.optim.background == (want if want == BACKGROUND_MEAN else list(want)), name
         assert TrainConfig(recipe=name).background == (want if want == BACKGROUND_MEAN else list(want))
     assert TrainConfig().background == BACKGROUND_MEAN  # the default recipe
     for name in RECIPES:  # a set colour wins over the recipe's
         assert TrainConfig(recipe=name, background=[1, 1, 1]).background == [1.0, 1.0, 1.0]
         assert TrainConfig(recipe=name, background="mean").background == BACKGROUND_MEAN
-    monkeypatch.setitem(RECIPES["paper"], "background", BACKGROUND_MEAN)
+    paper = RECIPES["paper"]
+    monkeypatch.setitem(RECIPES, "paper", replace(paper, optim=replace(paper.optim, background=BACKGROUND_MEAN)))
     assert TrainConfig(recipe="paper").background == BACKGROUND_MEAN
 
 

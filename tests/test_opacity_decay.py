@@ -1,4 +1,4 @@
-"""Opacity decay (splat_train/opacity_decay.py): the logit update against a float64 reference,
+"""Opacity decay (splat_train/parts/opacity_decay.py): the logit update against a float64 reference,
 finite on extreme logits, the part's start, the config's bounds, and the decay as a part of a
 training run (it fades and prunes what the views do not hold up)."""
 
@@ -14,8 +14,8 @@ from camio.ply import GaussianCloud, read_gaussian_ply, write_gaussian_ply
 from _train_scene import write_scene
 from splat_train.config import TrainConfig
 from splat_train.data import load_views
-from splat_train.opacity_decay import OpacityDecay, opacity_decay
-from splat_train.parts import recipe_parts
+from splat_train.parts.opacity_decay import OpacityDecay, opacity_decay
+from splat_train.parts.compose import recipe_parts
 from splat_train.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py

@@ -31,8 +31,8 @@ gsplat = pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip i
 import _fake_gsplat  # noqa: E402  (tests/ is on sys.path via rootdir conftest)
 from splat_train import _gsplat_backend  # noqa: E402
 from splat_train.config import TrainConfig  # noqa: E402
-from splat_train.densify import DensifyStrategy  # noqa: E402
-from splat_train.pose import so3_exp  # noqa: E402
+from splat_train.strategy.densify import DensifyStrategy  # noqa: E402
+from splat_train.parts.pose import so3_exp  # noqa: E402
 from splat_train.projection import project_gaussians  # noqa: E402
 from splat_train.rasterize import rasterize  # noqa: E402
 
@@ -277,11 +277,11 @@ def test_gsplat_gets_opacities_clamped_at_3dgs_alpha_clamp(fake_gsplat, monkeypa
 
 
 def test_a_dropped_gaussian_renders_alike_but_counts_as_seen_only_on_the_cpu_backends(fake_gsplat):
-    """The one documented way the backends differ under Gaussian dropout (splat_train/dropout.py):
+    """The one documented way the backends differ under Gaussian dropout (splat_train/parts/dropout.py):
     a Gaussian whose opacity dropout zeroed blends nothing in either backend (same image, no
     gradient), but gsplat culls it in its projection, so only the CPU backends count it in the
     densification's visibility count, as 3DGS's rasterizer does under DropGaussian's release."""
-    from splat_train.dropout import gaussian_dropout
+    from splat_train.parts.dropout import gaussian_dropout
 
     out, stats = {}, {}
     for backend in ("reference", "gsplat"):
@@ -372,7 +372,8 @@ def test_gsplat_trainer_refuses_focal_refinement(fake_gsplat, train_scene, tmp_p
                   pose_refine_from=1, pose_warmup=0, iterations=2)
     tr.step()
     tr.step()
-    assert float(tr.pose.log_focal.detach().abs().max()) > 0
+    pose = next(p for p in tr.parts if p.name == "pose").corrections
+    assert float(pose.log_focal.detach().abs().max()) > 0
 
 
 # host reads of a tensor: on a GPU each waits until the device has run everything queued
@@ -434,7 +435,7 @@ def test_gsplat_adapter_renders_depth_for_the_depth_prior(fake_gsplat, sh_degree
     """The adapter's expected depth ("RGB+ED") and the gradient of the sparse recipe's Pearson
     depth loss alone, through gsplat's own projection (the `_torch_impl` stand-in), match the
     dense reference in float64."""
-    from splat_train.depth_prior import pearson_depth_loss
+    from splat_train.parts.depth_prior import pearson_depth_loss
 
     g = torch.Generator().manual_seed(11)
     idx = torch.randperm(W * H, generator=g)[:200]

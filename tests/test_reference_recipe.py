@@ -1,24 +1,24 @@
 """docs/reference.md section 3a states the `sparse` recipe's values as the code has them.
 
-The values live in one place, ``RECIPES["sparse"]`` of splat_train/recipes.py (and the
-``TrainConfig`` defaults no recipe sets); the reference page restates them for a reader. Each
+The values live in one place, the ``SPARSE`` preset of splat_train/recipes.py (and the
+defaults of the configs it does not change); the reference page restates them for a reader. Each
 check below builds the page's phrase from the code's value, so a value changed in the code
 without the page (or the page without the code) fails here, naming the phrase to update.
 """
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
 
-from splat_train.binocular import SMOOTH_WEIGHT
-from splat_train.config import TrainConfig
+from splat_train.parts.binocular import SMOOTH_WEIGHT
+from splat_train.parts.configs import BinocularConfig, DepthPriorConfig
 from splat_train.recipes import BACKGROUND_MEAN, RECIPES
 
 ROOT = Path(__file__).resolve().parents[1]
-SPARSE = RECIPES["sparse"]
-DEFAULTS = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
+SPARSE = RECIPES["sparse"].to_flat()  # the flat keys of the recipe
+SHARES = RECIPES["sparse"].shares  # its schedule as shares of the run
+DEFAULTS = {"depth_min_samples": DepthPriorConfig().min_samples, "binocular_shift": BinocularConfig().shift}
 
 
 def _section_3a() -> str:
@@ -38,7 +38,7 @@ PHRASES = [
     f"shifted sideways by up to {_pct(DEFAULTS['binocular_shift'])} of its median rendered depth",
     f"(weight {SPARSE['binocular_weight']:g}) plus {SMOOTH_WEIGHT:g} x an edge-aware disparity smoothness",
     f"the room under {SPARSE['gaussians_per_pixel']:g} Gaussians per training pixel",
-    f"densify every {SPARSE['densify_every']} iterations from {_pct(SPARSE['densify_from_fraction'])} of the run to its end",
+    f"densify every {SHARES.densify_every_count} iterations from {_pct(SHARES.densify_from)} of the run to its end",
     f"every opacity x {SPARSE['opacity_decay']:g} after each iteration from the densification start",
     f"{SPARSE['opacity_reg']:g} x the mean opacity added to the loss",
     f"shrinks towards the cap (`{SPARSE['seed_over_cap']}`)",
@@ -52,13 +52,13 @@ def test_reference_states_the_sparse_value_the_code_has(phrase):
 
 def test_reference_states_the_schedule_and_background_the_code_has():
     # growth to the end of the run, no opacity reset, binocular term from the densification start
-    assert SPARSE["densify_until_fraction"] == 1.0 and SPARSE["opacity_reset_every_fraction"] is None
-    assert SPARSE["binocular_from_fraction"] == SPARSE["densify_from_fraction"]
+    assert SHARES.densify_until == 1.0 and SHARES.opacity_reset_every is None
+    assert SPARSE["binocular_from_fraction"] == SHARES.densify_from
     assert SPARSE["dropout_ramp_fraction"] == 1.0
     section = _section_3a()
     assert "never resetting opacity" in section and "from the densification start on" in section
     # the colour behind the model: the training images' mean in `sparse`, black in the field's recipes
     assert SPARSE["background"] == BACKGROUND_MEAN
-    assert all(RECIPES[name]["background"] == (0.0, 0.0, 0.0) for name in ("paper", "dropgaussian", "mcmc"))
+    assert all(RECIPES[name].optim.background == [0.0, 0.0, 0.0] for name in ("paper", "dropgaussian", "mcmc"))
     assert "`sparse` trains against the mean colour of the training images" in section
     assert "the field's recipes against black" in section

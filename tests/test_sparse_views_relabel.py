@@ -4,6 +4,8 @@ then, so that no record carries a name whose values it was not trained with."""
 
 import json
 
+from dataclasses import replace
+
 import pytest
 
 from experiments.sparse_views.__main__ import main
@@ -22,12 +24,18 @@ def _write(runs, scene, name, cfg, values, psnr):
     return path
 
 
+def _set_sparse_background(monkeypatch, colour):
+    """The ``sparse`` recipe with another background, for the test's duration."""
+    sparse = RECIPES["sparse"]
+    monkeypatch.setitem(RECIPES, "sparse", replace(sparse, optim=replace(sparse.optim, background=colour)))
+
+
 @pytest.fixture
 def records(tmp_path, monkeypatch):
     """fern (black behind its runs) and the milk carton (white, its scenes.yaml background):
     `sparse` and the candidate `sparse-bgmean` on each, as the grid writes them while `sparse`
     trains against black."""
-    monkeypatch.setitem(RECIPES["sparse"], "background", BACKGROUND_BLACK)
+    _set_sparse_background(monkeypatch, BACKGROUND_BLACK)
     runs = tmp_path / "records" / "runs"
     runs.mkdir(parents=True)
     mean = {"recipe": "sparse", "background": BACKGROUND_MEAN}
@@ -68,7 +76,7 @@ def test_landing_a_value_moves_the_stale_records_aside_and_the_candidate_in(reco
     white = {"background": [1.0, 1.0, 1.0]}  # a white scene with the candidate's run alone
     _write(records / "runs", "blender__lego", "sparse-bgmean", {"recipe": "sparse", **white},
            resolved_values("sparse", white, ITS), 18.0)
-    monkeypatch.setitem(RECIPES["sparse"], "background", BACKGROUND_MEAN)  # the value lands
+    _set_sparse_background(monkeypatch, BACKGROUND_MEAN)  # the value lands
     # the candidate cannot take the name while fern's old record holds it
     assert _cli(records, "sparse-bgmean", "sparse", "--work", str(work)) == 2
     assert "exists already" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""splat_train.densify: clone / split / prune / reset keep parameters and Adam state consistent."""
+"""splat_train.strategy.densify: clone / split / prune / reset keep parameters and Adam state consistent."""
 
 import math
 
@@ -8,7 +8,7 @@ import torch
 
 from camio.ply import GaussianCloud
 from splat_train.config import TrainConfig
-from splat_train.densify import DensifyStrategy, duplicate, quat_to_rotmat, remove, reset_opacity, split
+from splat_train.strategy.densify import DensifyStrategy, duplicate, quat_to_rotmat, remove, reset_opacity, split
 from splat_train.gaussians import PARAM_NAMES, make_optimizer, params_from_cloud
 
 

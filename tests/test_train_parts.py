@@ -1,4 +1,4 @@
-"""The training parts (splat_train.train_part, splat_train.parts): which parts each recipe runs,
+"""The training parts (splat_train.parts.base, splat_train.parts.compose): which parts each recipe runs,
 and that a run through the parts is the loop written out by hand, bit for bit: Gaussian
 dropout, the depth prior, the opacity / scale regularisers and pose (and focal) refinement all
 on, against a reference step that calls the functional definitions directly
@@ -15,21 +15,26 @@ import torch
 from _train_scene import make_cloud, write_scene
 from camio.colmap import read_model
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, write_depth_prior
-from splat_train.binocular import binocular_consistency_loss, shifted_camera
+from splat_train.parts.binocular import binocular_consistency_loss, shifted_camera
 from splat_train.config import TrainConfig
 from splat_train.cpu.optim import adam_step
 from splat_train.data import load_views
-from splat_train.depth_prior import depth_weight_at
-from splat_train.dropout import dropout_rate_at, gaussian_dropout
+from splat_train.parts.depth_prior import depth_weight_at
+from splat_train.parts.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import render_params
 from splat_train.gaussians import position_lr
 from splat_train.losses import gaussian_regularisers, photometric_loss
-from splat_train.opacity_decay import opacity_decay
-from splat_train.parts import recipe_parts
-from splat_train.pose import PoseCorrections, camera_spread, pose_lr_factor
+from splat_train.parts.opacity_decay import opacity_decay
+from splat_train.parts.compose import recipe_parts
+from splat_train.parts.pose import PoseCorrections, camera_spread, pose_lr_factor
 from splat_train.trainer import Trainer, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
+
+def _part(trainer, name):
+    """The trainer's part named ``name`` (the parts are reached by name, never by type)."""
+    return next(p for p in trainer.parts if p.name == name)
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +119,7 @@ def _reference_run(cfg, scene, out):
     then the densification step."""
     tr = Trainer(cfg, scene["seed"], load_views(scene["cameras"], scene["images"]), out,
                  depth_prior=scene["seed"].parent / DEPTH_PRIOR_FILE)
-    prior = tr.prior
+    prior = _part(tr, "depth_prior").prior
     tr.parts = []
     given = [c[0] for c in tr.cams]
     pose = PoseCorrections(len(given), refine_focal=True, trans_scale=camera_spread(given))
@@ -186,7 +191,8 @@ def test_a_run_through_the_parts_is_the_hand_written_loop_bit_for_bit(scene, tmp
     assert res.summary["num_gaussians"] == ref.num_gaussians
     for key, p in ref.params.items():
         assert torch.equal(tr.params[key], p), key
-    assert torch.equal(tr.pose.delta, ref_pose.delta) and torch.equal(tr.pose.log_focal, ref_pose.log_focal)
+    pose = _part(tr, "pose").corrections
+    assert torch.equal(pose.delta, ref_pose.delta) and torch.equal(pose.log_focal, ref_pose.log_focal)
 
 
 def test_a_checkpoint_from_before_the_parts_resumes_exactly(scene, tmp_path):

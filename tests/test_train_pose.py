@@ -1,4 +1,4 @@
-"""Train-view pose refinement (splat_train.pose): the gauge stays fixed, and on a
+"""Train-view pose refinement (splat_train.parts.pose): the gauge stays fixed, and on a
 scene with a known perturbation the refined cameras move toward the truth by a stated factor."""
 
 import numpy as np
@@ -9,7 +9,7 @@ from _train_scene import kill_at_loss_call, write_pose_scene
 from camio.colmap import SparseModel, read_model
 from evaluation.metrics.pose import evaluate_pose
 from splat_train.config import TrainConfig
-from splat_train.pose import PoseCorrections, pose_lr_factor, scale_gauge_factor, so3_exp
+from splat_train.parts.pose import PoseCorrections, pose_lr_factor, scale_gauge_factor, so3_exp
 from splat_train.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py

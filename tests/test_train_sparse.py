@@ -20,9 +20,9 @@ from splat_train import rasterize
 from splat_train.cpu.raster import available as kernel_available
 from splat_train.recipes import RECIPE_NAMES
 from splat_train.config import TrainConfig
-from splat_train.densify import cap_candidates
-from splat_train.depth_prior import load_depth_prior, pearson_depth_loss
-from splat_train.dropout import dropout_rate_at, gaussian_dropout
+from splat_train.strategy.densify import cap_candidates
+from splat_train.parts.depth_prior import load_depth_prior, pearson_depth_loss
+from splat_train.parts.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import render_params
 from splat_train.trainer import Trainer, train
 
@@ -262,7 +262,7 @@ def test_depth_term_as_a_graph_per_view_is_the_op_by_op_term(tmp_path, monkeypat
     capture and runs the term: built once per view at its first call, the same value and
     gradient as the op-by-op term (float64); a graph that disagrees with the op-by-op term is
     dropped with a warning and that view stays op by op."""
-    from splat_train.depth_prior import DepthPriorLoss
+    from splat_train.parts.depth_prior import DepthPriorLoss
 
     prior = _prior_two_views(tmp_path)
     captured = []
@@ -396,7 +396,7 @@ def test_bridge_writes_prior_and_sparse_recipe_uses_it(tmp_path):
 def test_no_opacity_reset_means_no_reset_and_no_size_prune():
     """opacity_reset_every 0 (the sparse recipe): the schedule never resets opacity, and the
     size prunes that 3DGS runs only after a reset stay off."""
-    from splat_train.densify import DensifyStrategy
+    from splat_train.strategy.densify import DensifyStrategy
     from splat_train.gaussians import make_optimizer, params_from_cloud
     from _train_scene import make_cloud
 

@@ -19,7 +19,7 @@ is scaled about the first camera's centre so that the RMS distance of the camera
 equals the input's (:func:`rescale_about_first_camera`, a similarity: reprojection errors are
 unchanged). The first camera is therefore unchanged and the scale is the input's, so a seed in
 the input's units (dense predicted depths) stays valid. This is the gauge of the training-time
-refinement too (:mod:`splat_train.pose`).
+refinement too (:mod:`splat_train.parts.pose`).
 """
 
 from __future__ import annotations

@@ -99,7 +99,7 @@ def adam_step(opt: torch.optim.Adam) -> bool:
 
 def densify_stats(state: dict[str, torch.Tensor], means2d_grad: torch.Tensor, radii: torch.Tensor,
                   visible: torch.Tensor, width: int, height: int) -> bool:
-    """:meth:`splat_train.densify.DensifyStrategy.update_state`'s accumulation in C (CPU float32
+    """:meth:`splat_train.strategy.densify.DensifyStrategy.update_state`'s accumulation in C (CPU float32
     statistics, a float32 [N, 2] gradient with unit column stride, int32 radii); False (nothing
     done) where it does not apply.
 

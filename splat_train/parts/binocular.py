@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from splat_train.rng import uniform
-from splat_train.train_part import TrainPart, ViewRenderer
+from splat_train.parts.base import TrainPart, ViewRenderer
 
 __all__ = ["SMOOTH_WEIGHT", "EDGE_SCALE", "shifted_camera", "warp_from_shifted", "disparity_smoothness",
            "binocular_consistency_loss", "BinocularConsistency"]
@@ -150,7 +150,7 @@ class BinocularConsistency(TrainPart):
         iterations: the run's length (the term acts in ``iterations - start`` of them).
         targets: [H, W, 3] training image of each view, on the training device.
         generator: the trainer's CPU generator (the shifts).
-        renderer: the trainer (:class:`splat_train.train_part.ViewRenderer`).
+        renderer: the trainer (:class:`splat_train.parts.base.ViewRenderer`).
     """
 
     name = "binocular"

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from splat_train.train_part import TrainPart
+from splat_train.parts.base import TrainPart
 
 __all__ = ["OpacityDecay", "opacity_decay"]
 

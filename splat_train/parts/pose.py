@@ -24,7 +24,7 @@ Gauge (the photometric loss does not see it, so it must not drift):
   only weakly through the view-space gradients; this keeps the refined cameras in the seed's
   units exactly, which the held-out Sim(3) alignment and the benchmarks rely on.
 
-:class:`PoseRefinement` is the training part (:mod:`splat_train.train_part`): it owns the
+:class:`PoseRefinement` is the training part (:mod:`splat_train.parts.base`): it owns the
 corrections and their Adam, gives the trainer the refined camera of each view and steps after
 the Gaussians.
 """
@@ -35,7 +35,7 @@ from typing import Any
 
 import torch
 
-from splat_train.train_part import TrainPart
+from splat_train.parts.base import TrainPart
 
 __all__ = ["so3_exp", "scale_gauge_factor", "camera_spread", "PoseCorrections", "PoseRefinement", "pose_lr_factor"]
 
@@ -197,6 +197,12 @@ class PoseRefinement(TrainPart):
     """
 
     name = "pose"
+    moves_cameras = True
+
+    @property
+    def moves_intrinsics(self) -> bool:  # type: ignore[override]
+        """With focal refinement, the written cameras take the refined K."""
+        return self.corrections.log_focal is not None
 
     def __init__(self, given: list[torch.Tensor], view_names: list[str], refine_focal: bool, lr_pose: float,
                  lr_focal: float, refine_from: int, warmup: int) -> None:

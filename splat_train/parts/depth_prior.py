@@ -8,7 +8,7 @@ depth (``rasterize(...)["depth"]``, differentiable in every backend) is read at 
 pixels and compared with :func:`pearson_depth_loss`, which is invariant to the scale and
 shift of either depth: a prior whose scale or offset differs from the model's still shapes
 the geometry. The weight ramps in (:func:`depth_weight_at`). :class:`DepthPriorLoss` is the
-training part (:mod:`splat_train.train_part`) that adds the term to the trainer's loss.
+training part (:mod:`splat_train.parts.base`) that adds the term to the trainer's loss.
 
 This is where the initialiser's confidence keeps acting after iteration 0: a confident sample
 pulls the rendered depth more than an unsure one.
@@ -26,7 +26,7 @@ from torch import Tensor
 
 from camio.depth_prior import read_depth_prior
 from splat_train.losses import CUDA_GRAPHS, graphed_checked
-from splat_train.train_part import TrainPart
+from splat_train.parts.base import TrainPart
 
 __all__ = ["DepthPrior", "DepthPriorLoss", "ViewSamples", "load_depth_prior", "pearson_depth_loss",
            "depth_weight_at"]

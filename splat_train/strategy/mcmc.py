@@ -4,7 +4,7 @@ Kheradmand et al., "3D Gaussian Splatting as Markov Chain Monte Carlo" (NeurIPS 
 arXiv:2404.09591), as gsplat implements it (``gsplat/strategy/mcmc.py`` ``MCMCStrategy``,
 ``gsplat/strategy/ops.py`` ``relocate``, ``sample_add``, ``inject_noise_to_position``,
 ``gsplat/relocation.py`` and its CUDA kernel ``gsplat/cuda/csrc/RelocationCUDA.cu``). Instead
-of 3DGS's gradient-triggered clone / split / prune (:mod:`splat_train.densify`), at every
+of 3DGS's gradient-triggered clone / split / prune (:mod:`splat_train.strategy.densify`), at every
 refine iteration:
 
 1. *relocate*: every dead Gaussian (opacity <= ``min_opacity``) is moved onto a live one drawn
@@ -21,7 +21,7 @@ the paper. The count never falls: dead Gaussians are reused, not removed.
 Adam moments: the rows written by a relocation or an addition (the sources, whose opacity and
 scale changed, and the new copies) start at zero. gsplat zeros the sources and the appended
 rows but leaves a relocated row's destination with the moments of the dead Gaussian it
-replaces; here that row starts at zero too, as every new Gaussian of :mod:`splat_train.densify`.
+replaces; here that row starts at zero too, as every new Gaussian of :mod:`splat_train.strategy.densify`.
 
 Parameters follow :mod:`splat_train.gaussians` (log scales, logit opacity, w x y z quats).
 All draws come from the run's ``torch.Generator`` (CPU), so a run is reproducible and resumes
@@ -34,10 +34,12 @@ import logging
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import ClassVar
 
 import torch
 
-from splat_train.densify import Params, quat_to_rotmat, update_params
+from splat_train.strategy.densify import Params, quat_to_rotmat, update_params
+from splat_train.strategy.base import Strategy
 
 __all__ = ["MCMCStrategy", "growth_target", "refine_steps", "relocation_opacity_scale", "relocate", "sample_add", "inject_noise",
            "GROWTH", "MAX_COPIES", "NOISE_K", "NOISE_T"]
@@ -249,10 +251,9 @@ def growth_target(n: int, step: int, steps: int, seed: int | None, cap: int, gro
 
 
 @dataclass
-class MCMCStrategy:
-    """The MCMC refine schedule and cap, with the interface of
-    :class:`splat_train.densify.DensifyStrategy` (``from_config``, ``init_state``,
-    ``update_state``, ``step``), made from a training config by :meth:`from_config`.
+class MCMCStrategy(Strategy):
+    """The MCMC refine schedule and cap (:class:`splat_train.strategy.base.Strategy`), made by its
+    config (:class:`splat_train.strategy.configs.MCMCStrategyConfig`).
 
     Attributes:
         refine_from, refine_until, refine_every: relocate and add at iterations it with
@@ -276,22 +277,15 @@ class MCMCStrategy:
     growth: float = GROWTH
     seed_size: int | None = None
 
+    name: ClassVar[str] = "mcmc"
+
     @classmethod
     def from_config(cls, cfg, max_gaussians: int | None = None, seed_size: int | None = None,
                     **overrides) -> "MCMCStrategy":
-        """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its resolved
-        schedule), capped at ``max_gaussians`` (required: MCMC grows to its cap); ``seed_size``
-        (the seed's count) is kept where ``cfg.mcmc_growth`` is "reach_cap"."""
-        if max_gaussians is None:
-            raise ValueError("the mcmc strategy needs a cap on the Gaussian count: set gaussians_per_pixel > 0 "
-                             "or max_gaussians")
-        sched = cfg.schedule()
-        fields = dict(refine_from=sched.densify_from, refine_until=sched.densify_until,
-                      refine_every=sched.densify_every, cap=int(max_gaussians), min_opacity=cfg.prune_opacity,
-                      noise_lr=cfg.noise_lr,
-                      seed_size=seed_size if cfg.mcmc_growth == "reach_cap" else None)
-        fields.update(overrides)
-        return cls(**fields)
+        """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its schedule and its
+        mcmc settings), capped at ``max_gaussians`` (required: MCMC grows to its cap);
+        ``seed_size`` (the seed's count) is kept where ``cfg.mcmc_growth`` is "reach_cap"."""
+        return cfg.growth.mcmc.build(cfg.growth, cfg.schedule(), max_gaussians, seed_size, **overrides)
 
     @staticmethod
     def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
@@ -307,6 +301,10 @@ class MCMCStrategy:
     def update_state(self, state: dict[str, torch.Tensor], means2d_grad: torch.Tensor, radii: torch.Tensor,
                      visible: torch.Tensor, width: int, height: int, iteration: int) -> None:
         """Nothing to accumulate: MCMC needs no view-space gradient statistics."""
+
+    def totals(self, state: dict[str, torch.Tensor]) -> dict[str, int]:
+        """Gaussians relocated and added so far (``train.json`` ``strategy_totals``)."""
+        return {k: int(v) for k, v in state.items()}
 
     def step(self, params: Params, optimizer: torch.optim.Optimizer, state: dict[str, torch.Tensor],
              iteration: int, extent: float, generator: torch.Generator | None = None) -> dict[str, int]:

@@ -21,11 +21,12 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, ClassVar
 
 import torch
 
 from splat_train.cpu import optim as cpu_optim
+from splat_train.strategy.base import Strategy
 
 __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",
            "quat_to_rotmat", "update_params"]
@@ -187,9 +188,9 @@ def cap_candidates(clone_mask: torch.Tensor, split_mask: torch.Tensor, grads: to
 
 
 @dataclass
-class DensifyStrategy:
-    """The 3DGS densification schedule and thresholds (iteration counts of this run), made from
-    a training config by :meth:`from_config`.
+class DensifyStrategy(Strategy):
+    """The 3DGS densification schedule and thresholds (iteration counts of this run), made by its
+    config (:class:`splat_train.strategy.configs.DefaultStrategyConfig`).
 
     Attributes:
         densify_from, densify_until, densify_every: densify at iterations it with
@@ -221,20 +222,14 @@ class DensifyStrategy:
     reset_value: float
     max_gaussians: int | None
 
+    name: ClassVar[str] = "densify"
+
     @classmethod
     def from_config(cls, cfg, max_gaussians: int | None = None, **overrides) -> "DensifyStrategy":
-        """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its resolved
-        schedule and thresholds: the one place of their defaults), with the growth cap
-        ``max_gaussians`` and any field replaced by ``overrides``."""
-        sched = cfg.schedule()
-        fields = dict(
-            densify_from=sched.densify_from, densify_until=sched.densify_until, densify_every=sched.densify_every,
-            opacity_reset_every=sched.opacity_reset_every, grad_threshold=cfg.densify_grad_threshold,
-            percent_dense=cfg.percent_dense, prune_opacity=cfg.prune_opacity,
-            prune_screen_size=cfg.prune_screen_size, prune_world_size=cfg.prune_world_size,
-            reset_value=cfg.opacity_reset_value, max_gaussians=max_gaussians)
-        fields.update(overrides)
-        return cls(**fields)
+        """The strategy of :class:`splat_train.config.TrainConfig` ``cfg`` (its schedule and its
+        default strategy's settings), with the growth cap ``max_gaussians`` and any field
+        replaced by ``overrides``."""
+        return cfg.growth.default.build(cfg.growth, cfg.schedule(), max_gaussians, **overrides)
 
     @staticmethod
     def init_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:

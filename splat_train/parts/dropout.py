@@ -6,7 +6,7 @@ unchanged; p ramps linearly from 0 to the final rate over the run, or over its f
 (:func:`dropout_rate_at`).
 The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
 anything: only the training render of :meth:`splat_train.trainer.Trainer.step` goes through
-:class:`GaussianDropout`, the training part (:mod:`splat_train.train_part`) that applies
+:class:`GaussianDropout`, the training part (:mod:`splat_train.parts.base`) that applies
 :func:`gaussian_dropout`. Working on the opacities before the rasterizer, it renders the same
 through every backend. One difference follows from gsplat's semantics: gsplat culls a Gaussian
 of opacity below 1/255 in its projection, so a dropped Gaussian is not counted as seen in that
@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from splat_train.rng import uniform
-from splat_train.train_part import OpacityFn, TrainPart
+from splat_train.parts.base import OpacityFn, TrainPart
 
 __all__ = ["dropout_rate_at", "gaussian_dropout", "GaussianDropout"]
 

@@ -2,8 +2,8 @@
 
 The trainer (:class:`splat_train.trainer.Trainer`) runs the Gaussians' own loop (view, render,
 photometric loss, backward, Adam, densification strategy) and, at fixed points of every
-iteration, the hooks of its recipe's parts (:func:`splat_train.parts.recipe_parts`), in the
-list's order. A part overrides only the hooks it needs; the defaults do nothing. As gsplat's
+iteration, the hooks of its config's parts (each made by its config,
+:mod:`splat_train.parts.configs`; :func:`splat_train.parts.recipe_parts`), in the list's order. A part overrides only the hooks it needs; the defaults do nothing. As gsplat's
 densification strategies (``gsplat.strategy.Strategy``: settings in the object, hooks before
 and after the backward pass) and kornia's training callbacks, the loop calls the part; a part
 never calls the loop.
@@ -21,7 +21,9 @@ One iteration ``it`` (1-based) of training view ``view`` (index into the trainin
 
 and, outside the iteration, :meth:`TrainPart.state_dict` / :meth:`TrainPart.load_state_dict`
 (the checkpoint, so that a resumed run continues bit for bit) and :meth:`TrainPart.summary`
-(keys of ``train.json``). Randomness comes from the trainer's generator, passed to the part
+(keys of ``train.json``); :attr:`TrainPart.moves_cameras` / :attr:`TrainPart.moves_intrinsics`
+say whether the part's cameras replace the given ones in the final evaluation and in
+``cameras_refined/``. Randomness comes from the trainer's generator, passed to the part
 when it is made: its state is in every checkpoint.
 """
 
@@ -54,12 +56,19 @@ class TrainPart:
     Attributes:
         name: the part's key in the checkpoint's ``parts`` and in the trainer's log line.
         needs_depth: whether the part's loss reads the render's depth.
+        moves_cameras: whether :meth:`camera` changes the training poses (pose refinement):
+            the trainer then scores the training views with the part's cameras at the end and
+            writes them to ``cameras_refined/``.
+        moves_intrinsics: whether :meth:`camera` also changes K (focal refinement): the
+            written cameras then take the part's K.
     """
 
     name: str = "part"
     #: whether :meth:`loss` reads the render's ``depth``: when no part does, the training
     #: render skips the depth outputs (gsplat renders colour only)
     needs_depth: bool = False
+    moves_cameras: bool = False
+    moves_intrinsics: bool = False
 
     def camera(self, iteration: int, view: int, cam_from_world: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
         """The camera training view ``view`` is rendered with at ``iteration``.
