@@ -54,7 +54,7 @@ from pathlib import Path
 
 #: the files that define defaults (relative to the repository root)
 SOURCES = (
-    "splat_train/config.py", "splat_train/recipes.py", "splat_train/testpose.py", "splat_train/strategy/mcmc.py",
+    "splat_train/config.py", "splat_train/tree.py", "splat_train/recipes.py", "splat_train/testpose.py", "splat_train/strategy/mcmc.py",
     "splat_train/strategy/configs.py", "splat_train/parts/configs.py", "splat_train/fields.py",
     "bridge/core.py", "bridge/equations.py", "bridge/selection.py",
     "vggt_init/defaults.py", "vggt_init/run.py",

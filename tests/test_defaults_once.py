@@ -176,10 +176,6 @@ SHARED = {
 # {(file, name): what}. test_unresolved_repeats_are_still_there fails once one is gone, so the
 # entry goes too.
 UNRESOLVED = {
-    ("splat_train/__main__.py", "checkpoint_every"):
-        "splat_train's: --checkpoint-every's help writes TrainConfig's 500 by hand (%(default)s removes it)",
-    ("splat_train/__main__.py", "eval_every"):
-        "splat_train's: --eval-every's help writes TrainConfig's 200 by hand (%(default)s removes it)",
     ("evaluation/initialisers/colmap_baseline.py", "max_image_size"):
         "--max-image-size's default= writes ColmapSettings' 3200 (default=ColmapSettings().max_image_size)",
     ("evaluation/initialisers/colmap_baseline.py", "max_num_features"):
@@ -197,8 +193,6 @@ UNRESOLVED = {
 
 # Help texts that still write their flag's default by hand: {(file, flag): what}.
 HELP_UNRESOLVED = {
-    **{("splat_train/__main__.py", flag): "splat_train's: its CLI's help (%(default)s removes it)"
-       for flag in ("downsample", "seed", "checkpoint_every", "eval_every", "threads", "kernel_threads")},
     ("evaluation/initialisers/colmap_baseline.py", "seed"): "--seed's help says (default 0) (%(default)s removes it)",
 }
 
