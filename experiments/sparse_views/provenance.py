@@ -253,14 +253,14 @@ def sentence(block: dict, what: str) -> str:
                if block.get("unregistered_scenes") else f"`{block['file']}` is not committed")
         return f"Not pre-registered: {who}, so none of their runs can follow it."
     if block["runs_before"]:
-        more = (f"; {len(block['runs_unplaced'])} more cannot be placed before or after it"
+        more = (f"; {len(block['runs_unplaced'])} more cannot be placed before or after their registration"
                 if block["runs_unplaced"] else "")
         return (f"Not pre-registered: {len(block['runs_before'])} of the {n} runs were made before the "
                 f"{what} ({cmd}): {_names(block['runs_before'])}{more}.")
     if block["runs_unplaced"]:
         return (f"Registered in the {what} ({cmd}); {block['runs_after']} of the {n} runs are later "
-                f"and {len(block['runs_unplaced'])} cannot be placed before or after it: their records hold only "
-                f"the day they were written, the registration's own day.")
+                f"and {len(block['runs_unplaced'])} cannot be placed before or after their registration: their records "
+                f"hold only the day they were written, the registration's own day.")
     if n == 0:
         return f"Registered in the {what} ({cmd}); no run is recorded yet."
     return f"Registered in the {what}, before all {n} of its runs ({cmd})."
