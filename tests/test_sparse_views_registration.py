@@ -150,7 +150,8 @@ def _grid_record(repo, scene, recipe, seed, **stamp):
 
 def test_the_grid_summary_checks_each_evaluation_scene_from_the_commit_that_gave_it_its_role(tmp_path):
     """scenes.yaml lists scene ``a`` as reserve, then a later commit makes it an evaluation scene:
-    that commit is its registration; a run before it is named, runs after it count."""
+    that commit is its registration (not a still later edit of the file); a run before it is
+    named, runs after it count."""
     repo = _init(tmp_path)
     (repo / "scenes.yaml").write_text(yaml.safe_dump(_scenes("reserve"), sort_keys=False))
     _commit(repo, f"{DAY}T08:00:00+00:00", "reserve")
@@ -160,6 +161,11 @@ def test_the_grid_summary_checks_each_evaluation_scene_from_the_commit_that_gave
     made = _commit(repo, REGISTERED_AT, "a becomes an evaluation scene")
     after = [_grid_record(repo, "a", rc, 1, started_at=f"{DAY}T11:00:00+00:00") for rc in ("paper", "sparse")]
     _commit(repo, f"{DAY}T12:00:00+00:00", "runs")
+    # a later change of the file that leaves the scene's role as it was is no registration
+    later = _scenes("evaluation")
+    later["scenes"].append({"name": "b", "role": "reserve", "kind": "object", "views": [3], "local": "data/b"})
+    (repo / "scenes.yaml").write_text(yaml.safe_dump(later, sort_keys=False))
+    _commit(repo, f"{DAY}T13:00:00+00:00", "a reserve scene")
     doc = tmp_path / "grid.md"
     proc = run(["-m", "experiments.sparse_views", "--protocol", str(repo / "scenes.yaml"), "--records",
                 str(repo / "rec"), "summary", "--doc", str(doc)])
