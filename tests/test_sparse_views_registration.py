@@ -175,7 +175,7 @@ def test_the_grid_summary_checks_each_evaluation_scene_from_the_commit_that_gave
     assert block["runs"] == 3 and block["runs_after"] == len(after) == 2 and block["runs_before"] == [early]
     assert block["pre_registered"] is False and block["scenes"]["a"]["commit"] == made
     page = doc.read_text()
-    assert "Not pre-registered: 1 of the 3 runs were made before the commits that gave each evaluation scene" in page
+    assert "Not pre-registered: 1 of the 3 runs was made before the commits that gave each evaluation scene" in page
     assert f"`{early}`" in page and made[:7] not in page
     # without the early run every run on the evaluation scene follows its registration
     (repo / "rec" / "runs" / f"{early}.json").unlink()
@@ -183,4 +183,4 @@ def test_the_grid_summary_checks_each_evaluation_scene_from_the_commit_that_gave
                 str(repo / "rec"), "summary", "--doc", str(doc)])
     assert proc.returncode == 0, proc.stderr
     assert json.loads((repo / "rec" / "summary.json").read_text())["registration"]["pre_registered"] is True
-    assert "before all 2 of its runs" in doc.read_text()
+    assert "before all 2 of their runs" in doc.read_text()

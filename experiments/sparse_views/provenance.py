@@ -255,7 +255,8 @@ def sentence(block: dict, what: str) -> str:
     if block["runs_before"]:
         more = (f"; {len(block['runs_unplaced'])} more cannot be placed before or after their registration"
                 if block["runs_unplaced"] else "")
-        return (f"Not pre-registered: {len(block['runs_before'])} of the {n} runs were made before the "
+        b = len(block["runs_before"])
+        return (f"Not pre-registered: {b} of the {n} runs {'was' if b == 1 else 'were'} made before the "
                 f"{what} ({cmd}): {_names(block['runs_before'])}{more}.")
     if block["runs_unplaced"]:
         return (f"Registered in the {what} ({cmd}); {block['runs_after']} of the {n} runs are later "
@@ -263,4 +264,4 @@ def sentence(block: dict, what: str) -> str:
                 f"hold only the day they were written, the registration's own day.")
     if n == 0:
         return f"Registered in the {what} ({cmd}); no run is recorded yet."
-    return f"Registered in the {what}, before all {n} of its runs ({cmd})."
+    return f"Registered in the {what}, before all {n} of {'their' if 'role' in block else 'its'} runs ({cmd})."
