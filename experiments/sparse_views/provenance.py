@@ -122,8 +122,12 @@ class History:
                 text = _git(self.root, "show", f"{rev}:{path}")
             except RuntimeError:
                 return None
-            data = yaml.load(text, Loader=loader) or {}
-            return {str(s.get("name")): s.get("role") for s in data.get("scenes", []) if isinstance(s, dict)}
+            try:
+                data = yaml.load(text, Loader=loader)
+            except yaml.YAMLError:  # a version that did not parse registered nothing
+                return None
+            scenes = data.get("scenes") if isinstance(data, dict) else None
+            return {str(s.get("name")): s.get("role") for s in scenes or [] if isinstance(s, dict)}
 
         if not commits:
             return {}
@@ -144,15 +148,19 @@ class History:
 
 def run_window(rec: dict, committed: datetime | None) -> tuple[datetime | None, datetime | None, str]:
     """When the run of record ``rec`` can have happened: (earliest, latest, source). ``committed``:
-    the first commit time of its record file (None: not committed)."""
-    if rec.get("started_at"):
-        t = _time(rec["started_at"])
+    the first commit time of its record file (None: not committed). A stamp that does not read
+    as a time counts as absent."""
+    try:
+        t = _time(str(rec["started_at"]))
         return t, t, "started_at"
-    if rec.get("recorded"):
+    except (KeyError, ValueError):
+        pass
+    try:
         day = datetime.strptime(str(rec["recorded"])[:10], "%Y-%m-%d").replace(tzinfo=timezone.utc)
         end = day + timedelta(days=1)
         return day, min(end, committed) if committed else end, "recorded day"
-    return None, committed, "record's first commit"
+    except (KeyError, ValueError):
+        return None, committed, "record's first commit"
 
 
 def place(rec: dict, committed: datetime | None, registered: datetime) -> str:
