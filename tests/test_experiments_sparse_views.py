@@ -7,6 +7,7 @@ targets' verdicts); the benchmark's real records are in experiments/records/spar
 import json
 import subprocess
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -197,11 +198,14 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     cmd = [sys.executable, "-m", "experiments.sparse_views", "--protocol", str(f), "--records", str(tmp_path / "rec"),
            "run", "--role", "tuning", "--recipes", "paper", "--seeds", "0", "--iterations", "20",
            "--work", str(tmp_path / "w")]
+    t0 = datetime.now(timezone.utc).replace(microsecond=0)
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
     (rec_path,) = (tmp_path / "rec" / "runs").glob("*.json")
     rec = json.loads(rec_path.read_text())
     assert rec_path.name == "tiny_n3_paper_s0_i20.json" and set(RECORD_KEYS) <= set(rec)
+    # when the run began, in UTC: the clock a registration's commit is checked against
+    assert t0 <= datetime.fromisoformat(rec["started_at"]) <= datetime.now(timezone.utc)
     assert rec["role"] == "tuning" and rec["iterations"] == 20 and rec["gaussians"] > 0
     assert 5 < rec["psnr"] < 60 and 0 < rec["ssim"] <= 1 and rec["curve"]["psnr"]
     again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)

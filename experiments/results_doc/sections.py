@@ -108,7 +108,7 @@ def sparse_views(records: Path) -> list[str] | None:
                     "" if rc == "sparse" else iv(v.get("scene_level", {}).get(rc))]
         if seen:
             rows2.append(row)
-    from experiments.sparse_views.summary import TARGET_N
+    from experiments.sparse_views.summary import TARGET_N, registration_sentence
 
     return out + ["", *table(head2, rows2), "",
                   "Evaluation scenes, on which no recipe value was chosen (`experiments/sparse_views/scenes.yaml`):",
@@ -120,7 +120,8 @@ def sparse_views(records: Path) -> list[str] | None:
                   "`sparse` trains against the training views' mean colour and the field's recipes against black,",
                   "so the like-for-like rows are those at equal background (`sparse-r13`: `sparse` on black;",
                   "`paper-bgmean`: `paper` on the mean colour). Per scene, and every tuning run:",
-                  "`docs/results-sparse-views.md`."]
+                  "`docs/results-sparse-views.md`.",
+                  *([registration_sentence(s["registration"])] if s.get("registration") else [])]
 
 
 # --- the dense mvs seed ----------------------------------------------------------------------------
@@ -171,6 +172,10 @@ def _seed_section(name: str, text: list[str]):
         rep = load(records / rel)
         head = (f"{rep['runs']} of {rep['runs_expected']} runs: {len(rep['scenes'])} scenes, n = {rep['n']}, "
                 f"{_seeds(rep['seeds'])}, {rep['iterations']:,} iterations, `paper` on black.")
+        if rep.get("registration"):  # whether its commit came before every run, as the report found it
+            from experiments.sparse_views.provenance import sentence
+
+            head += " " + sentence(rep["registration"], f"commit that added `{rep['registration']['file']}`")
         return [*_seed_tables(rep), "", head, *text]
     return render
 

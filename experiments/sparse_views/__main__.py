@@ -14,6 +14,7 @@ import json
 import os
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 from experiments.sparse_views import protocol
@@ -160,6 +161,7 @@ def cmd_run(args) -> int:
                       + ("recorded meanwhile" if mine else f"running in another process ({lock})") + ", skipped",
                       flush=True)
                 continue
+            started = datetime.now(timezone.utc).isoformat(timespec="seconds")  # the registration check's clock
             cell = prepare(args.work / f"{s.name}_n{n}", s, n, cfg.get("init", "posed"), cfg.get("bridge_mode"),
                            cfg.get("bridge_stride"), cfg.get("init_args"))
             res = train_and_score(cell, out, recipe, seed, args.iterations,
@@ -167,6 +169,7 @@ def cmd_run(args) -> int:
             rec = record(s.name, s.role, n, name, seed, args.iterations, res, cfg or None)
             rec["background"] = res["background"]  # the colour it trained and rendered against ("mean" resolved)
             rec["load_avg"] = os.getloadavg()
+            rec["started_at"] = started
             with atomic_path(rec_path) as tmp:  # a record is whole or absent
                 tmp.write_text(json.dumps(rec, indent=1) + "\n")
         print(f"[{i}/{len(todo)} {time.perf_counter() - t0:6.0f} s] {s.name} n={n} {name} seed {seed}: "
@@ -178,7 +181,7 @@ def cmd_run(args) -> int:
 def cmd_summary(args) -> int:
     from experiments.sparse_views.summary import write_summary
 
-    write_summary(args.records, args.doc, protocol.load(args.protocol, args.data))
+    write_summary(args.records, args.doc, protocol.load(args.protocol, args.data), args.protocol)
     return 0
 
 

@@ -5,7 +5,9 @@ Per (scene, n, recipe, iterations): mean and 95 % t half-width over seeds
 Gaussian count and training seconds. Per evaluation scene, ``sparse`` against every other
 recipe paired by seed. The verdicts of the benchmark's targets are computed here from the
 same numbers, never written by hand, with how the lead is spread over the scenes (by kind,
-where ``sparse`` is best, each scene left out in turn).
+where ``sparse`` is best, each scene left out in turn). Whether each evaluation scene took its
+role in a commit before every run on it: the ``registration`` block and a sentence of the page
+(:mod:`experiments.sparse_views.provenance`).
 """
 
 from __future__ import annotations
@@ -30,15 +32,20 @@ MAX_GAUSSIANS = 60_000  # the size target of a sparse-view model
 TARGET_N = 3  # the view count the targets are stated at; other counts get the same measures
 
 
-def load_records(records: Path) -> list[dict]:
-    rows = []
+def record_files(records: Path) -> list[tuple[Path, dict]]:
+    """Every run record under ``records/runs`` with its file, checked for :data:`RECORD_KEYS`."""
+    out = []
     for p in sorted((records / "runs").glob("*.json")):
         r = json.loads(p.read_text())
         missing = [k for k in RECORD_KEYS if k not in r]
         if missing:
             raise ValueError(f"{p}: record lacks {missing}")
-        rows.append(r)
-    return rows
+        out.append((p, r))
+    return out
+
+
+def load_records(records: Path) -> list[dict]:
+    return [r for _, r in record_files(records)]
 
 
 def _interval(values) -> dict:
@@ -234,7 +241,16 @@ def check_doc(doc: Path, generated: str = GENERATED) -> None:
                              f"'{generated}'): move it away or name a new file (nothing was changed)")
 
 
-def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: dict | None, runs_dir: str) -> str:
+def registration_sentence(block: dict) -> str:
+    """The grid's registration block (:func:`experiments.sparse_views.provenance.check_scenes`) as one
+    sentence of a page."""
+    from experiments.sparse_views.provenance import sentence
+
+    return sentence(block, f"commits that gave each evaluation scene its `role: evaluation` in `{block['file']}`")
+
+
+def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: dict | None, runs_dir: str,
+             registration: dict | None = None) -> str:
     info = {s.name: s for s in scenes}
     lines = ["# Sparse-view results: tuning and evaluation scenes apart", "",
              f"{GENERATED} from the run records in",
@@ -255,6 +271,8 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "equal background; outside the targets. On a scene with a `background` in scenes.yaml (NeRF's",
              "synthetic scenes: white) every recipe trains and renders against it; on the others `sparse`",
              "trains against the mean colour and the field's recipes against black.", ""]
+    if registration:
+        lines += [registration_sentence(registration), ""]
     for role in ("evaluation", "tuning"):
         rs = [a for a in agg if a["role"] == role]
         if not rs:
@@ -358,9 +376,13 @@ def _scene_level_lines(v: dict) -> list[str]:
     return out
 
 
-def write_summary(records: Path, doc: Path, scenes) -> dict:
+def write_summary(records: Path, doc: Path, scenes, protocol: Path | None = None) -> dict:
+    """Write ``records/summary.json`` and the page ``doc``; with the scenes file ``protocol``,
+    also the ``registration`` block: per evaluation scene with runs here, the commit that gave it
+    its role against the times of its runs (:mod:`experiments.sparse_views.provenance`)."""
     check_doc(doc)
-    rows = load_records(records)
+    files = record_files(records)
+    rows = [r for _, r in files]
     agg, pairs = aggregate(rows), paired(rows)
     # the targets at n = TARGET_N and the most iterations run there; every (n, iterations) measured
     kinds = {s.name: s.kind for s in scenes}
@@ -371,12 +393,22 @@ def write_summary(records: Path, doc: Path, scenes) -> dict:
     summary = {"rows": [{k: r[k] for k in RECORD_KEYS} | {"best_psnr": r.get("best_psnr")} for r in rows],
                "aggregate": agg, "paired": pairs, "targets": verdict,
                "measures_by_n": {f"n{n}_i{its}": v for (n, its), v in by_n.items()}}
+    if protocol is not None:
+        from experiments.sparse_views.provenance import check_scenes
+
+        evaluation = {s.name for s in scenes if s.role == "evaluation"}
+        runs_of: dict[str, list[Path]] = defaultdict(list)
+        for p, r in files:
+            if r["scene"] in evaluation:
+                runs_of[r["scene"]].append(p)
+        shown = protocol.resolve().relative_to(REPO) if protocol.resolve().is_relative_to(REPO) else protocol
+        summary["registration"] = check_scenes(protocol, dict(runs_of), str(shown))
     with atomic_path(records / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1) + "\n")
     doc.parent.mkdir(parents=True, exist_ok=True)
     runs_dir = (records / "runs").resolve()
     shown = runs_dir.relative_to(REPO) if runs_dir.is_relative_to(REPO) else runs_dir
     with atomic_path(doc) as tmp:  # a link put there meanwhile is replaced, never followed
-        tmp.write_text(markdown(agg, pairs, verdict, scenes, by_n, f"{shown}/"))
+        tmp.write_text(markdown(agg, pairs, verdict, scenes, by_n, f"{shown}/", summary.get("registration")))
     print(doc.read_text())
     return summary
