@@ -13,16 +13,15 @@ _early()  # first: a stop while `python -m` loads the command is one line, exit 
 
 import importlib
 import sys
-import types
 
 _FACE = {
-    "rasterize": "splat_train.rasterize",
+    "rasterize": "splat_train.render.rasterize",
     "TrainConfig": "splat_train.config",
     "psnr": "splat_train.losses",
     "ssim": "splat_train.losses",
-    "NonFiniteLossError": "splat_train.trainer",
-    "TrainResult": "splat_train.trainer",
-    "train": "splat_train.trainer",
+    "NonFiniteLossError": "splat_train.training.trainer",
+    "TrainResult": "splat_train.training.trainer",
+    "train": "splat_train.training.trainer",
 }
 
 __all__ = sorted(_FACE)
@@ -35,15 +34,3 @@ def __getattr__(name: str):
         return value
     raise AttributeError(f"module 'splat_train' has no attribute {name!r}")
 
-
-class _Face(types.ModuleType):
-    """``splat_train.rasterize`` is the function, as it always was: importing the submodule of
-    the same name binds the package attribute to its function, not to the module."""
-
-    def __setattr__(self, name: str, value) -> None:
-        if name == "rasterize" and isinstance(value, types.ModuleType):
-            value = value.rasterize
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Face
