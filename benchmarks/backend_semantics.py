@@ -79,7 +79,7 @@ def patched_tree(dest: Path) -> Path:
     for pkg in PACKAGES:
         if (ROOT / pkg).is_dir():
             shutil.copytree(ROOT / pkg, dest / pkg, ignore=shutil.ignore_patterns("__pycache__", "node_modules"))
-    src = dest / "splat_train" / "cpu" / "raster.cpp"
+    src = dest / "splat_train" / "render" / "cpu" / "raster.cpp"
     text = src.read_text()
     if text.count(KERNEL_CONSTANT[0]) != 1:
         raise RuntimeError(f"{src}: the alpha clamp constant is not where this experiment expects it")
