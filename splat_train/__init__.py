@@ -4,6 +4,13 @@ The package face hands on :func:`rasterize`, :class:`TrainConfig`, :func:`psnr`,
 :func:`train`, :class:`TrainResult` and :class:`NonFiniteLossError`, each imported on first
 use, so that reading a light module (``splat_train.recipes``, whose recipe names the workflow's
 config check reads) does not import torch.
+
+Rooms, lowest first: :mod:`.render` (the rasterizer, its maths and the C++ kernels; it imports
+nothing else of the package), the run's building blocks (:mod:`.config` with :mod:`.tree`,
+:mod:`.recipes` and :mod:`.fields`; :mod:`.data`, :mod:`.gaussians`, :mod:`.losses`, :mod:`.rng`;
+the growth strategies :mod:`.strategy` and the training parts :mod:`.parts`), the commands that
+draw a model (:mod:`.export`, :mod:`.flythrough`, :mod:`.testpose`), one training run
+(:mod:`.training`), the browser viewer (:mod:`.view`) and the CLI (:mod:`.__main__`).
 """
 from __future__ import annotations
 

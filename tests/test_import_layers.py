@@ -20,7 +20,8 @@ Three levels are checked:
   modules import each other one way across both rooms (the studies reuse the benchmarks' command
   runner and GPU table; the GPU check trains the sparse-view grid's command).
 
-The C++ kernels' loaders (``splat_train.render.cpu``) sit below everything that calls them, and\n``splat_train.render`` below the rest of splat_train (:data:`RENDER_LAYERS`).
+The C++ kernels' loaders (``splat_train.render.cpu``) sit below everything that calls them, and
+``splat_train.render`` below the rest of splat_train (:data:`RENDER_LAYERS`).
 """
 
 from __future__ import annotations
@@ -243,7 +244,8 @@ def test_cpu_kernels_import_no_caller():
     allowed = {"splat_train.render.projection", "splat_train.render._reference", "splat_train.render.sh"}
     for mod, deps in import_graph().items():
         if mod.startswith("splat_train.render.cpu."):
-            outside = {d for d in deps if d.startswith("splat_train.") and not d.startswith("splat_train.render.cpu")} - allowed
+            outside = {d for d in deps if d.startswith("splat_train.")
+                       and not d.startswith("splat_train.render.cpu")} - allowed
             assert not outside, (mod, outside)
 
 

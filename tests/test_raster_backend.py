@@ -15,7 +15,7 @@ from splat_train.render.cpu import raster as cpu_raster
 from splat_train.config import TrainConfig
 from splat_train.render.rasterize import BACKENDS, resolve_backend
 
-rasterize_mod = importlib.import_module("splat_train.render.rasterize")  # the module (splat_train.rasterize is the function)
+rasterize_mod = importlib.import_module("splat_train.render.rasterize")  # the module, not splat_train.rasterize
 
 
 @pytest.fixture

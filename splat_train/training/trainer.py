@@ -21,8 +21,9 @@ their scale gauge restored). Each part's state is in every checkpoint.
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
 uninterrupted run. The held-out evaluation scores PSNR, SSIM and, with ``eval_lpips``, LPIPS-alex
-(:mod:`splat_train.training.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is a C++ kernel's one-time build
-(``kernel_build_s``; ``python -m splat_train.render.cpu.build`` builds them ahead).
+(:mod:`splat_train.training.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is
+a C++ kernel's one-time build (``kernel_build_s``; ``python -m splat_train.render.cpu.build`` builds
+them ahead).
 Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text);
 with ``snapshot_every`` N, ``snapshot.ply`` every N iterations and at the last
