@@ -83,7 +83,7 @@ def raster_section(quick: bool, threads: int) -> dict:
     import torch
 
     from benchmarks import bench_rasterizer as br
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     torch.set_num_threads(threads)
     ref_case, fast_case = (300, 32, 32), (2000, 64, 64)

@@ -1,6 +1,6 @@
 """Which of gsplat's semantics moves a trained model? Each one emulated on the CPU kernel, many seeds.
 
-gsplat and this project's CPU backends differ by design in three ways (splat_train/_gsplat_backend.py):
+gsplat and this project's CPU backends differ by design in three ways (splat_train/render/_gsplat_backend.py):
 gsplat culls a Gaussian of opacity below 1/255 in its projection (not counted as seen by the
 densification statistics), clamps each Gaussian's alpha at 0.999 instead of 3DGS's 0.99, and draws
 dropout masks on the device. This runs the sparse-view grid's training command on one of its cells
@@ -11,7 +11,7 @@ with the CPU kernel and one difference at a time switched to gsplat's:
     clamp999      the C++ kernel built with alpha clamped at 0.999 (a copy of the packages in a
                   temporary folder, the one constant changed; its own kernel cache key)
     clamp999+op   clamp999 with the opacities clamped at 0.99 before every render, what the gsplat
-                  adapter does (``splat_train._gsplat_backend.OPACITY_MAX``)
+                  adapter does (``splat_train.render._gsplat_backend.OPACITY_MAX``)
 
     python -m benchmarks.backend_semantics --cell W/llff__fern_n3 --variants visibility clamp999 \
         --seeds $(seq 0 14) --recipe sparse --out backend_semantics.json
@@ -45,7 +45,7 @@ RUNNER = r'''
 import os, sys
 variant = os.environ["BACKEND_SEMANTICS_VARIANT"]
 if variant == "visibility":
-    import splat_train.trainer as T
+    import splat_train.training.trainer as T
     _render = T.render_params
     def render_params(params, sh_degree, cam_from_world, K, width, height, background, backend="auto",
                       opacity_fn=None, **kwargs):
@@ -63,7 +63,7 @@ if variant == "visibility":
     T.render_params = render_params
 elif variant == "clamp999+op":
     import splat_train.export as E
-    from splat_train._gsplat_backend import clamp_opacities
+    from splat_train.render._gsplat_backend import clamp_opacities
     _rasterize = E.rasterize
     E.rasterize = lambda means, quats, scales, opacities, *a, **k: _rasterize(
         means, quats, scales, clamp_opacities(opacities), *a, **k)
@@ -79,7 +79,7 @@ def patched_tree(dest: Path) -> Path:
     for pkg in PACKAGES:
         if (ROOT / pkg).is_dir():
             shutil.copytree(ROOT / pkg, dest / pkg, ignore=shutil.ignore_patterns("__pycache__", "node_modules"))
-    src = dest / "splat_train" / "cpu" / "raster.cpp"
+    src = dest / "splat_train" / "render" / "cpu" / "raster.cpp"
     text = src.read_text()
     if text.count(KERNEL_CONSTANT[0]) != 1:
         raise RuntimeError(f"{src}: the alpha clamp constant is not where this experiment expects it")

@@ -16,7 +16,7 @@ meaningless), and an estimated VGGT cell total is reported beside the measured o
 
 Training uses the trainer's defaults (threads included) unless ``--threads`` is given; the
 rasterizer engineer found one thread faster than two on this loaded machine, see the
-docstring of splat_train/rasterize.py.
+docstring of splat_train/render/rasterize.py.
 
     python benchmarks/bench_cell.py                      # the real cell (several minutes)
     python benchmarks/bench_cell.py --no-vggt            # skip the random-weight VGGT forward

@@ -86,7 +86,7 @@ def use_threads(backend: str, threads: int) -> None:
     """The trainer's thread layout for ``backend`` on ``threads`` cores: the C++ kernel
     ("cpu") on ``threads`` kernel threads with torch on one (TrainConfig defaults),
     the pure-torch backends on ``threads`` torch threads."""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     kernel = backend == "cpu"
     torch.set_num_threads(1 if kernel else threads)
@@ -118,8 +118,8 @@ def time_iteration(backend: str, n: int, width: int, height: int, reps: int) -> 
 
 def count_pairs(n: int, width: int, height: int) -> dict:
     """Tile-Gaussian pairs and blended Gaussian-pixel pairs (CPU kernel forward counts)."""
-    from splat_train.cpu import raster as cpu_raster
-    from splat_train.projection import project_gaussians
+    from splat_train.render.cpu import raster as cpu_raster
+    from splat_train.render.projection import project_gaussians
 
     params, K = make_scene(n, width, height)
     with torch.no_grad():
@@ -169,7 +169,7 @@ def matmul_gflops(threads: int, size: int = 2048, min_seconds: float = 1.0, min_
 
 def run_benchmark(threads: list[int], quick: bool = False, reference: bool = True) -> dict:
     """Run every configuration; returns a JSON-ready dict (also see module docstring)."""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     if not cpu_raster.available():
         raise RuntimeError(f"CPU kernel unavailable ({cpu_raster.build_error()}); nothing fast to benchmark")

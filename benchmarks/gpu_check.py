@@ -147,7 +147,7 @@ def _scene(n: int, device: str, seed: int = 0):
 
 
 def _render(backend: str, ts, W: int, H: int):
-    from splat_train.rasterize import rasterize
+    from splat_train.render.rasterize import rasterize
 
     dev = ts[0].device
     view = torch.eye(4, device=dev)
@@ -420,7 +420,7 @@ def run_gpu(cell_iterations: int = CELL_ITERATIONS, parts: tuple[str, ...] = PAR
 
     if not torch.cuda.is_available():
         raise RuntimeError("no CUDA device")
-    from splat_train._gsplat_backend import installed_version
+    from splat_train.render._gsplat_backend import installed_version
 
     report = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "cuda": torch.version.cuda,
               "gsplat": installed_version(), "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}

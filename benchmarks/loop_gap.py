@@ -7,7 +7,7 @@ Per seed, one run of each loop, each in a process of its own (:func:`commands`):
 
 * ``ours``: ``python -m splat_train`` with the ``paper`` recipe on the gsplat backend, the
   training command of ``bench_cell.py``'s cell; its held-out PSNR is the trainer's final
-  evaluation (:mod:`splat_train.heldout`);
+  evaluation (:mod:`splat_train.training.heldout`);
 * ``native``: ``benchmarks/gsplat_native.py``, gsplat's ``DefaultStrategy`` loop with the same
   schedule, rates and loss; its held-out PSNR is scored once at the end, the same way.
 

@@ -1,7 +1,7 @@
 """Where one whole training iteration spends its time, phase by phase.
 
 Continues a trainer checkpoint for ``--steps`` iterations by calling the trainer itself: its
-:meth:`splat_train.trainer.Trainer.step`, then the densification step that ``Trainer.run``
+:meth:`splat_train.training.trainer.Trainer.step`, then the densification step that ``Trainer.run``
 takes after it. The calls the step makes are timed through thin wrappers around them (nothing of
 the iteration is copied here, so a change to the step is profiled as it is):
 
@@ -45,15 +45,15 @@ PHASES = ("render", "loss", "backward", "densify_state", "adam", "other", "strat
 
 
 def make_trainer(checkpoint: str, seed: str, cameras: str, images: str, kernel_threads: int):
-    """A :class:`splat_train.trainer.Trainer` restored from ``checkpoint`` (config, views and
+    """A :class:`splat_train.training.trainer.Trainer` restored from ``checkpoint`` (config, views and
     inputs digest taken from the checkpoint; outputs go to a temporary folder never written)."""
     import tempfile
 
-    from splat_train.cpu import raster as cpu_raster
-    from splat_train.checkpoint import load_checkpoint
+    from splat_train.render.cpu import raster as cpu_raster
+    from splat_train.training.checkpoint import load_checkpoint
     from splat_train.config import TrainConfig
     from splat_train.data import load_views
-    from splat_train.trainer import Trainer
+    from splat_train.training.trainer import Trainer
 
     data = load_checkpoint(Path(checkpoint), "cpu")
     cfg = TrainConfig(**data["config"])
@@ -93,7 +93,7 @@ def step_calls(tr) -> tuple[tuple[object, str, str], ...]:
     """(object, attribute, phase) of each call that ``tr.step()`` makes and a profile times:
     the names where the step looks them up (the trainer module's, the trainer's own loss, the
     strategy's and the optimizer's methods, ``torch.Tensor.backward``)."""
-    from splat_train import trainer as trainer_mod
+    from splat_train.training import trainer as trainer_mod
 
     return ((trainer_mod, "render_params", "render"), (tr, "photometric", "loss"),
             (torch.Tensor, "backward", "backward"), (trainer_mod, "adam_step", "adam"),

@@ -64,7 +64,7 @@ def checkpoint_scene(ckpt: str, cameras: str, view: int) -> tuple[list[torch.Ten
         leaf tensors (requires_grad), cam_from_world [4, 4], K [3, 3], width, height).
     """
     from camio.colmap import read_model
-    from splat_train.checkpoint import load_checkpoint
+    from splat_train.training.checkpoint import load_checkpoint
     from splat_train.export import camera_tensors
     from splat_train.gaussians import activated, sh_coeffs
 
@@ -81,9 +81,9 @@ def profile(n: int, size: int, backend: str, reps: int, scene=None) -> dict[str,
     """Seconds per stage (best of ``reps``) for N Gaussians at size x size, or for ``scene``
     (:func:`checkpoint_scene`'s tuple; n and size are then ignored)."""
     from splat_train import rasterize
-    from splat_train.cpu import raster as cpu_raster
-    from splat_train.projection import project_gaussians
-    from splat_train.sh import sh_to_color
+    from splat_train.render.cpu import raster as cpu_raster
+    from splat_train.render.projection import project_gaussians
+    from splat_train.render.sh import sh_to_color
 
     if scene is None:
         params, K = make_scene(n, size, size)
@@ -93,7 +93,7 @@ def profile(n: int, size: int, backend: str, reps: int, scene=None) -> dict[str,
     means, quats, scales, opac, sh = params
     centre = -eye[:3, :3].T @ eye[:3, 3]  # camera centre in the world
     res: dict[str, float] = {}
-    from splat_train.cpu.project import project_sh_cpu
+    from splat_train.render.cpu.project import project_sh_cpu
 
     res["project"] = _best(lambda: project_sh_cpu(means, quats, scales, sh, 3, eye, K, width, height, 0.01, 0.3), reps)
     res["sh"] = 0.0
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         _CLOCK = time.thread_time
         args.threads = args.kernel_threads = 1
     torch.set_num_threads(args.threads)
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     cpu_raster.set_kernel_threads(args.kernel_threads)
     print(f"load average {os.getloadavg()}, torch threads {args.threads}, kernel threads {args.kernel_threads}"

@@ -1,7 +1,7 @@
 """One training step on a GPU, part by part: where the time of a ``splat_train`` iteration goes.
 
 On a prepared cell (``bench_cell.py --prepare-only``: the Bridge's seed and cameras, the
-training images), for one recipe: a trainer (:class:`splat_train.trainer.Trainer`, the run's
+training images), for one recipe: a trainer (:class:`splat_train.training.trainer.Trainer`, the run's
 config at the cell's 10,000 iterations, no held-out views) is run ``warm`` iterations, then
 
 * ``ms_per_step``: the plain loop (``Trainer.step`` and the strategy step, as ``Trainer.run``
@@ -57,13 +57,13 @@ WARM_LATE = 6000  # the same for the late-run profile: past sparse's growth (to 
 
 
 def cell_trainer(cell: Path, recipe: str, device: str = "cuda", graphs: bool | None = None, **overrides):
-    """A :class:`splat_train.trainer.Trainer` on the prepared ``cell`` (training views only),
+    """A :class:`splat_train.training.trainer.Trainer` on the prepared ``cell`` (training views only),
     ``recipe`` at :data:`CELL_ITERATIONS` (``overrides``: other config values), writing nowhere
     it keeps (a temporary folder)."""
     from benchmarks.gsplat_native import load_cell
     from splat_train.config import TrainConfig
     from splat_train.losses import TrainingLoss
-    from splat_train.trainer import Trainer, seed_depth_prior
+    from splat_train.training.trainer import Trainer, seed_depth_prior
 
     train, _test, _cloud = load_cell(cell)
     cfg = TrainConfig(recipe=recipe, iterations=CELL_ITERATIONS, device=device, **overrides)
@@ -262,7 +262,7 @@ def recipe_ab(cell: Path, variants: dict[str, dict] | None = None, rounds: int =
 def _tile_footprint(tr) -> dict:
     """The current model's tile intersections in the first training view (gsplat's own
     opacity-aware radii): the rasterizer's work grows with them, not with the Gaussian count."""
-    from splat_train import _gsplat_backend
+    from splat_train.render import _gsplat_backend
     from splat_train.export import render_params
 
     real, seen = _gsplat_backend._rasterization(), {}

@@ -117,7 +117,7 @@ def run_one(scene: Path, n: int, seed: int, s: dict, work: Path, refine_config: 
     from evaluation.initialisers.oracle import OracleNoise, run_oracle
     from evaluation.initialisers.posed import run_posed
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     shutil.rmtree(work, ignore_errors=True)  # every run starts afresh (no resume from older settings)
     split = read_split(scene / "split.json")

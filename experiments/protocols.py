@@ -117,7 +117,7 @@ def recovery(model: Path, cameras: Path, images: Path, device: str, steps: int, 
     from splat_train.export import camera_tensors, render_params
     from splat_train.gaussians import params_from_cloud
     from splat_train.losses import psnr
-    from splat_train.rasterize import resolve_backend
+    from splat_train.render.rasterize import resolve_backend
     from splat_train.testpose import refine_test_pose, scene_depth
 
     cloud = read_gaussian_ply(model)

@@ -3,7 +3,7 @@
 The SSIM of 3DGS (its Gaussian window and per-pixel map) and the layout conversion that the
 metrics and LPIPS use. Both stages import them from here, so neither imports the other:
 the training loss (:mod:`splat_train.losses`, and the C++ kernel's loader
-:mod:`splat_train.cpu.ssim`) and the evaluation metrics (:mod:`imgmetrics.psnr_ssim`,
+:mod:`splat_train.render.cpu.ssim`) and the evaluation metrics (:mod:`imgmetrics.psnr_ssim`,
 :mod:`imgmetrics.lpips`).
 """
 

@@ -1,6 +1,6 @@
 """Build a single-file C++ shared library with the system compiler, cached, for ctypes loading.
 
-Used by the CPU kernels (``splat_train/cpu/raster.py``, ``vggt_init/model/_attention_kernel.py``):
+Used by the CPU kernels (``splat_train/render/cpu/raster.py``, ``vggt_init/model/_attention_kernel.py``):
 plain C ABI sources with no torch headers, compiled on first use into a cache folder and named by a
 hash of the source bytes, the compiler, the flags and the machine, so an edited source or new
 flags give a new library and stale ones are never loaded.

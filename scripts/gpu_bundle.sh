@@ -28,7 +28,7 @@ PY=${PYTHON:-.venv/bin/python}
 [ -x "$PY" ] || { echo "gpu_bundle: $PY not found; run 'make install' first or set PYTHON" >&2; exit 1; }
 export PATH="$(cd "$(dirname "$PY")" && pwd):$PATH"  # the stages' subprocesses use this interpreter
 version() { "$PY" -c "import importlib.metadata as m; print(m.version('$1'))"; }
-GSPLAT=$("$PY" -c "from splat_train._gsplat_backend import GSPLAT_VERSION; print(GSPLAT_VERSION)")
+GSPLAT=$("$PY" -c "from splat_train.render._gsplat_backend import GSPLAT_VERSION; print(GSPLAT_VERSION)")
 PLATFORMS=()
 for p in manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux_2_27_x86_64 manylinux_2_28_x86_64 \
          manylinux_2_31_x86_64 manylinux_2_34_x86_64 manylinux_2_35_x86_64; do

@@ -84,7 +84,7 @@ def undefined_symbols(lib: Path, providers: list[Path]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(ROOT))
-    from splat_train._gsplat_backend import GSPLAT_VERSION
+    from splat_train.render._gsplat_backend import GSPLAT_VERSION
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--gsplat", default=GSPLAT_VERSION, help="gsplat version (default: the pinned one)")

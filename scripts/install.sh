@@ -102,7 +102,7 @@ STAMP="$VENV/.installed"
 want="$(cat pyproject.toml constraints/cpu.txt | sha256sum | cut -c1-16) $(pwd)"
 # The trainer's C++ kernels, built once here (cached by source hash in ~/.cache/splat_train,
 # quick when current) so that no training run's time includes their build.
-build_kernels() { "$PY" -m splat_train.cpu.build || echo "[install] warning: kernels not built; training builds them on first use"; }
+build_kernels() { "$PY" -m splat_train.render.cpu.build || echo "[install] warning: kernels not built; training builds them on first use"; }
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$PY" -I -c "import runtime, camio, imgmetrics, vggt_init, splat_train" 2>/dev/null; then
   echo "[install] $VENV is up to date (rm $STAMP to force a reinstall)"
   build_kernels

@@ -4,6 +4,13 @@ The package face hands on :func:`rasterize`, :class:`TrainConfig`, :func:`psnr`,
 :func:`train`, :class:`TrainResult` and :class:`NonFiniteLossError`, each imported on first
 use, so that reading a light module (``splat_train.recipes``, whose recipe names the workflow's
 config check reads) does not import torch.
+
+Rooms, lowest first: :mod:`.render` (the rasterizer, its maths and the C++ kernels; it imports
+nothing else of the package), the run's building blocks (:mod:`.config` with :mod:`.tree`,
+:mod:`.recipes` and :mod:`.fields`; :mod:`.data`, :mod:`.gaussians`, :mod:`.losses`, :mod:`.rng`;
+the growth strategies :mod:`.strategy` and the training parts :mod:`.parts`), the commands that
+draw a model (:mod:`.export`, :mod:`.flythrough`, :mod:`.testpose`), one training run
+(:mod:`.training`), the browser viewer (:mod:`.view`) and the CLI (:mod:`.__main__`).
 """
 from __future__ import annotations
 
@@ -13,16 +20,15 @@ _early()  # first: a stop while `python -m` loads the command is one line, exit 
 
 import importlib
 import sys
-import types
 
 _FACE = {
-    "rasterize": "splat_train.rasterize",
+    "rasterize": "splat_train.render.rasterize",
     "TrainConfig": "splat_train.config",
     "psnr": "splat_train.losses",
     "ssim": "splat_train.losses",
-    "NonFiniteLossError": "splat_train.trainer",
-    "TrainResult": "splat_train.trainer",
-    "train": "splat_train.trainer",
+    "NonFiniteLossError": "splat_train.training.trainer",
+    "TrainResult": "splat_train.training.trainer",
+    "train": "splat_train.training.trainer",
 }
 
 __all__ = sorted(_FACE)
@@ -35,15 +41,3 @@ def __getattr__(name: str):
         return value
     raise AttributeError(f"module 'splat_train' has no attribute {name!r}")
 
-
-class _Face(types.ModuleType):
-    """``splat_train.rasterize`` is the function, as it always was: importing the submodule of
-    the same name binds the package attribute to its function, not to the module."""
-
-    def __setattr__(self, name: str, value) -> None:
-        if name == "rasterize" and isinstance(value, types.ModuleType):
-            value = value.rasterize
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Face

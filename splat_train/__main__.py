@@ -213,7 +213,7 @@ def _export_parser() -> argparse.ArgumentParser:
 
 
 def _testpose_parser() -> argparse.ArgumentParser:
-    from splat_train.rasterize import BACKENDS
+    from splat_train.render.rasterize import BACKENDS
     from splat_train.testpose import DEFAULT_LR, DEFAULT_PATIENCE, DEFAULT_STEPS
 
     p = argparse.ArgumentParser(prog="python -m splat_train testpose",
@@ -399,7 +399,7 @@ def _main(argv: list[str] | None = None) -> int:
 
     args = _train_parser().parse_args(deprecated_flags(argv, "python -m splat_train", _OLD_TRAIN_FLAGS))
     setup_logging(args.verbose, args.quiet)
-    from splat_train.snapshot import check_snapshot_every
+    from splat_train.training.snapshot import check_snapshot_every
 
     try:
         check_snapshot_every(args.snapshot_every)
@@ -417,7 +417,7 @@ def _main(argv: list[str] | None = None) -> int:
                               "--resume-dir": args.resume_dir}, "splat_train"):
         return 2
     from camio.ply import check_seed_cloud, read_gaussian_ply
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     for warning in check_seed_cloud(read_gaussian_ply(args.seed_ply), args.seed_ply):
         log.warning("degenerate seed: %s", warning)

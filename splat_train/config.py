@@ -110,7 +110,7 @@ class TrainConfig(ConfigTree):
             if self.run.iterations is None:
                 object.__setattr__(self, "run", dataclasses.replace(
                     self.run, iterations=default_iterations(self.run.device)))
-            from splat_train.rasterize import BACKENDS
+            from splat_train.render.rasterize import BACKENDS
 
             if self.run.rasterizer not in BACKENDS:
                 raise ValueError(f"rasterizer must be one of {BACKENDS}, got {self.run.rasterizer!r}")

@@ -26,7 +26,7 @@ from runtime.logs import progress
 from splat_train.data import View, load_views, read_name_list
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import psnr
-from splat_train.rasterize import rasterize
+from splat_train.render.rasterize import rasterize
 from splat_train.recipes import BACKGROUND_BLACK
 
 __all__ = ["render_params", "render_views", "render_model", "render_name", "model_background", "background_note", "parse_background"]
@@ -146,7 +146,7 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
         on_render: called as ``on_render(name, rgb, target, alpha)`` for every view with an
             image (``rgb`` the render clamped to [0, 1] and ``target`` the image, both [H, W, 3],
             and ``alpha`` [H, W] the render's accumulated opacity, on the model's device), e.g.
-            :class:`splat_train.heldout.HeldoutScorer`.
+            :class:`splat_train.training.heldout.HeldoutScorer`.
         cam_override: optional [4, 4] cam_from_world per view (refined poses).
         K_override: optional [3, 3] intrinsics per view in its image pixels (refined focal).
         backend: :func:`splat_train.rasterize` backend.

@@ -19,8 +19,8 @@ import torch
 
 from camio.ply import SH_DEGREE, GaussianCloud
 from splat_train.config import TrainConfig
-from splat_train.cpu import optim as cpu_optim
-from splat_train.sh import sh_concat
+from splat_train.render.cpu import optim as cpu_optim
+from splat_train.render.sh import sh_concat
 
 __all__ = ["PARAM_NAMES", "params_from_cloud", "params_to_cloud", "make_optimizer", "adam_step", "fused_adam_step",
            "activated", "sh_coeffs", "position_lr"]
@@ -88,7 +88,7 @@ def make_optimizer(params: dict[str, torch.nn.Parameter], cfg: TrainConfig, exte
 def adam_step(opt: torch.optim.Adam) -> None:
     """One step of the trainer's Adam by the fastest path that applies: torch's fused kernel
     called directly (:func:`fused_adam_step`, off the CPU), else the C++ kernel on the CPU
-    (:func:`splat_train.cpu.optim.adam_step`, which runs ``opt.step()`` where it does not apply)."""
+    (:func:`splat_train.render.cpu.optim.adam_step`, which runs ``opt.step()`` where it does not apply)."""
     if not fused_adam_step(opt):
         cpu_optim.adam_step(opt)
 

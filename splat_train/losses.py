@@ -17,7 +17,7 @@ import os
 import torch
 
 from imgmetrics.ssim import gaussian_window, gaussian_window_1d, ssim_map
-from splat_train.cpu import ssim as cpu_ssim
+from splat_train.render.cpu import ssim as cpu_ssim
 
 __all__ = ["ssim", "ssim_map", "l1_loss", "psnr", "photometric_loss", "photometric_terms", "TrainingLoss",
            "gaussian_regularisers", "gaussian_window", "gaussian_window_1d", "graphed_checked", "CUDA_GRAPHS"]
@@ -88,7 +88,7 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
 
 
 def _cpu_kernel_for(render: torch.Tensor, target: torch.Tensor):
-    """:mod:`splat_train.cpu.ssim` when it applies to these images (CPU float32/float64, one
+    """:mod:`splat_train.render.cpu.ssim` when it applies to these images (CPU float32/float64, one
     shape, a target that needs no gradient, the kernel built), else None."""
     if (render.device.type == "cpu" and target.device.type == "cpu" and not target.requires_grad
             and render.dtype in (torch.float32, torch.float64) and render.shape == target.shape):
@@ -98,7 +98,7 @@ def _cpu_kernel_for(render: torch.Tensor, target: torch.Tensor):
 
 
 def _training_ssim(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train.cpu.ssim`) for CPU
+    """:func:`ssim` (mean), through the C++ kernel (:mod:`splat_train.render.cpu.ssim`) for CPU
     float32/float64 images with a target that needs no gradient; the reference otherwise."""
     kernel = _cpu_kernel_for(render, target)
     if kernel is not None:

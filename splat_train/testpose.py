@@ -21,7 +21,7 @@ start included), so the correction never raises the loss against the test image.
 new lowest loss; testpose.json records it and each view's ``steps_run``.
 
 Gradients: the "cpu" backend keeps its fused C++ projection and takes the pose's gradient from
-that kernel's backward (``rasterize(kernel_camera_grad=True)``, :mod:`splat_train.cpu.project`:
+that kernel's backward (``rasterize(kernel_camera_grad=True)``, :mod:`splat_train.render.cpu.project`:
 dL/d(cam_from_world) chained from the blend's means2d / conic / colour gradients, summed only over
 the Gaussians the blend reached; the same values as autograd through the torch projection,
 tests/test_train_testpose.py); the activations and SH pair are computed once per view. The
@@ -64,7 +64,7 @@ from splat_train.export import background_note, camera_tensors, model_background
 from splat_train.gaussians import activated, params_from_cloud
 from splat_train.losses import photometric_loss, psnr
 from splat_train.parts.pose import so3_exp
-from splat_train.rasterize import rasterize, resolve_backend
+from splat_train.render.rasterize import rasterize, resolve_backend
 from splat_train.recipes import BACKGROUND_BLACK
 
 __all__ = ["DEFAULT_STEPS", "DEFAULT_PATIENCE", "DEFAULT_LR", "FINAL_LR_FRACTION", "testpose_lr", "PROTOCOL_NAME",

@@ -33,7 +33,7 @@ DENSIFY_FROM_3DGS = 500 / 10000
 
 # The colour behind the Gaussians (``background``): RGB in [0, 1], or BACKGROUND_MEAN, the mean
 # colour of the training images (splat_train.data.mean_colour, resolved once per run by
-# splat_train.trainer.train). Black is 3DGS's default and the field's recipes'.
+# splat_train.training.trainer.train). Black is 3DGS's default and the field's recipes'.
 BACKGROUND_BLACK = (0.0, 0.0, 0.0)
 BACKGROUND_MEAN = "mean"
 
@@ -116,7 +116,7 @@ class OptimConfig:
         background: RGB in [0, 1] behind the Gaussians, or "mean" (:data:`BACKGROUND_MEAN`):
             the mean colour of the training images, pooled over their pixels (an RGBA image
             composited on black for it), resolved once per run by
-            :func:`splat_train.trainer.train`, which also composites RGBA images on it;
+            :func:`splat_train.training.trainer.train`, which also composites RGBA images on it;
             train.json's config has the colour and its ``background_from`` says which was
             asked. From a few views a held-out view also sees what no training view did, where
             the render is this colour (docs/reference.md section 3a).

@@ -12,7 +12,7 @@ What is gsplat's code and what is ours:
   background, expected depth = accumulated / alpha.clamp(1e-10)), the opacity-aware radii of
   gsplat's CUDA projection (:func:`opacity_aware_radii`, written after its .cu source, as the
   twin lacks them), and the pixel compositing,
-  which is :func:`splat_train._reference.blend_dense` (3DGS rules: alpha <= 0.99) over each
+  which is :func:`splat_train.render._reference.blend_dense` (3DGS rules: alpha <= 0.99) over each
   Gaussian's gsplat tile rectangle. ``Ks`` enters the projection detached: gsplat 1.5.3's
   projection backward returns no gradient for it (``_FullyFusedProjection.backward``), while
   the PyTorch twin would differentiate it. gsplat's compositing (``_rasterize_to_pixels``) needs its
@@ -29,8 +29,8 @@ import math
 import torch
 from torch import Tensor
 
-from splat_train._reference import blend_dense
-from splat_train.projection import Projected
+from splat_train.render._reference import blend_dense
+from splat_train.render.projection import Projected
 
 
 def _tile_rects(isect_ids: Tensor, flatten_ids: Tensor, n: int, tile_width: int, tile_height: int

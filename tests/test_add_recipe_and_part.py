@@ -116,7 +116,7 @@ def test_an_added_part_left_off_changes_no_run(tmp_path):
     scene = write_scene(tmp_path / "scene", n_views=3)
     code = ("import sys; sys.argv[1:] and __import__(sys.argv[1]); "
             "from splat_train.config import TrainConfig; from splat_train.data import load_views; "
-            "from splat_train.trainer import inputs_digest; "
+            "from splat_train.training.trainer import inputs_digest; "
             f"views = load_views({str(scene['cameras'])!r}, {str(scene['images'])!r}); "
             f"print(inputs_digest({str(scene['seed'])!r}, views, TrainConfig(recipe='paper', iterations=9)))")
     (tmp_path / "counter_plugin.py").write_text(PLUGIN)

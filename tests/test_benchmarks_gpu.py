@@ -248,7 +248,7 @@ def test_late_step_profile_times_statistics_off_and_on(quick_bundle, monkeypatch
     the tile footprint comes from gsplat's own intersections, and the table shows them."""
     pytest.importorskip("gsplat")
     import _fake_gsplat
-    from splat_train import _gsplat_backend
+    from splat_train.render import _gsplat_backend
 
     profile_step = _cpu_stand_ins(monkeypatch)
     monkeypatch.setattr(_gsplat_backend, "_rasterization", lambda: _fake_gsplat.rasterization)

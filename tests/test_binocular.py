@@ -15,7 +15,7 @@ from splat_train import rasterize
 from splat_train.parts.binocular import (binocular_consistency_loss, disparity_smoothness, shifted_camera,
                                    warp_from_shifted)
 from splat_train.config import TrainConfig
-from splat_train.trainer import train
+from splat_train.training.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 F64 = torch.float64

@@ -29,7 +29,7 @@ def photo_run(root: Path) -> Path:
     from camio.colmap import write_text_model
     from camio.images import write_image
     from camio.ply import GaussianCloud, write_gaussian_ply
-    from splat_train.runlog import RunLog
+    from splat_train.training.runlog import RunLog
 
     results = root / "results"
     scene = results / "photos" / "garden"

@@ -70,7 +70,7 @@ def _bridge(inp: Path, out: Path) -> None:
 
 def _trainer(inp: Path, out: Path) -> None:
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     scene = write_scene(inp, n_views=3, width=16, height=12, n_test=1)
     n = torch.get_num_threads()
@@ -194,19 +194,19 @@ def _write_json(p, v):
 
 
 def _write_ckpt(p, v):
-    from splat_train.checkpoint import save_checkpoint
+    from splat_train.training.checkpoint import save_checkpoint
 
     save_checkpoint(p, 1, {"x": torch.arange(v)})
 
 
 def _read_ckpt(p):
-    from splat_train.checkpoint import load_checkpoint, latest_checkpoint
+    from splat_train.training.checkpoint import load_checkpoint, latest_checkpoint
 
     return len(load_checkpoint(latest_checkpoint(p))["x"])
 
 
 def _write_parquet(p, v):
-    from splat_train.runlog import RunLog
+    from splat_train.training.runlog import RunLog
 
     log = RunLog()
     for i in range(v):

@@ -61,7 +61,7 @@ def scene(tmp_path_factory):
                                         pytest.param(0.97, "truncated: header promises 60 vertices", id="cut97")])
 def test_trainer_truncated_seed_ply(scene, tmp_path, keep, match):
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     bad = _truncate(Path(shutil.copy(scene["seed"], tmp_path / "seed.ply")), keep)
     with pytest.raises(PlyFormatError, match=match) as err:
@@ -134,9 +134,9 @@ def test_camio_text_model_without_count_headers_still_reads(model_dir):
 
 
 def test_trainer_truncated_checkpoint_is_a_clear_error(scene, tmp_path):
-    from splat_train.checkpoint import list_checkpoints
+    from splat_train.training.checkpoint import list_checkpoints
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     out = tmp_path / "run"
     cfg = TrainConfig(iterations=4, checkpoint_every=2, densify_until=0, device="cpu", num_threads=1)

@@ -31,7 +31,7 @@ import torch
 
 from _train_scene import write_scene
 from camio.ply import read_gaussian_ply
-from splat_train.checkpoint import list_checkpoints, load_checkpoint
+from splat_train.training.checkpoint import list_checkpoints, load_checkpoint
 
 pytestmark = pytest.mark.slow
 
@@ -56,7 +56,7 @@ def _env() -> dict:
 def _run(scene: dict, out: Path) -> None:
     """What ``python -m splat_train <_command args>`` does, in this process."""
     from splat_train.config import load_config
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     cfg = load_config(json.dumps(CONFIG), iterations=ITERATIONS, downsample=None, seed=7,
                       checkpoint_every=CKPT_EVERY, eval_every=None, pose_refine=None, device="cpu",
@@ -202,7 +202,7 @@ def test_resume_dir_is_keyed_by_the_inputs_hash(tmp_path):
     is refused, naming the hash."""
     from splat_train.config import load_config
     from splat_train.data import load_views
-    from splat_train.trainer import inputs_digest, train
+    from splat_train.training.trainer import inputs_digest, train
 
     scene = write_scene(tmp_path / "scene", n_views=3)
     cfg = load_config(None, iterations=6, downsample=None, seed=0, checkpoint_every=3, eval_every=None,

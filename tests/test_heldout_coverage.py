@@ -1,4 +1,4 @@
-"""Held-out coverage along the run (splat_train.heldout): the share of a held-out view the model
+"""Held-out coverage along the run (splat_train.training.heldout): the share of a held-out view the model
 covers and the PSNR there, in log.parquet and train.json (an older checkpoint's log: tests/test_train_trainer.py)."""
 
 import math
@@ -10,8 +10,8 @@ import torch
 
 from _train_scene import write_scene
 from splat_train.config import TrainConfig
-from splat_train.heldout import COVERED_ALPHA, HeldoutScorer, coverage_split
-from splat_train.runlog import LOG_COLUMNS, TEST_DIAGNOSTICS
+from splat_train.training.heldout import COVERED_ALPHA, HeldoutScorer, coverage_split
+from splat_train.training.runlog import LOG_COLUMNS, TEST_DIAGNOSTICS
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -77,7 +77,7 @@ def test_the_trainer_logs_the_coverage_of_its_final_model(scene, tmp_path):
     renders of the test views, recomputed here in float64 from the rasterizer's alpha."""
     from splat_train.data import load_views
     from splat_train.export import render_views
-    from splat_train.trainer import Trainer
+    from splat_train.training.trainer import Trainer
 
     cfg = TrainConfig(iterations=24, densify_from=5, densify_until=0, opacity_reset_every=1000,
                       sh_increase_every=10, eval_every=12, recipe="paper", device="cpu")

@@ -11,7 +11,7 @@ Three levels are checked:
   (:data:`GROUND_FLOOR`: runtime, camio, imgmetrics, one job each) imports no stage, each of its
   packages only those below it; a stage (:data:`STAGES`) imports the ground floor and no other
   stage (what several stages use lives on the ground floor; stages talk through files);
-* subpackages: inside a package, its subpackages (e.g. evaluation.metrics, splat_train.cpu) and
+* subpackages: inside a package, its subpackages (e.g. evaluation.metrics, splat_train.render.cpu) and
   top-level modules import each other one way; evaluation's subpackages follow its layers
   (:data:`EVALUATION_LAYERS`);
 * modules: inside each package, subpackages included, the modules import each other one way;
@@ -20,7 +20,8 @@ Three levels are checked:
   modules import each other one way across both rooms (the studies reuse the benchmarks' command
   runner and GPU table; the GPU check trains the sparse-view grid's command).
 
-The C++ kernels' loaders (``splat_train.cpu``) sit below everything that calls them.
+The C++ kernels' loaders (``splat_train.render.cpu``) sit below everything that calls them, and
+``splat_train.render`` below the rest of splat_train (:data:`RENDER_LAYERS`).
 """
 
 from __future__ import annotations
@@ -144,7 +145,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_graph_sees_imports_inside_functions():
     graph = import_graph()
-    assert "splat_train.cpu.ssim" in graph["splat_train.losses"]
+    assert "splat_train.render.cpu.ssim" in graph["splat_train.losses"]
     assert "camio.datasets" in graph["camio.scene"]  # imported inside functions only
 
 
@@ -240,11 +241,54 @@ def test_checker_finds_circle_between_subpackages(tmp_path):
 def test_cpu_kernels_import_no_caller():
     """The kernel loaders import only the torch building blocks they mirror, never the modules
     that call them (rasterize, losses, densify, trainer, ...)."""
-    allowed = {"splat_train.projection", "splat_train._reference", "splat_train.sh"}
+    allowed = {"splat_train.render.projection", "splat_train.render._reference", "splat_train.render.sh"}
     for mod, deps in import_graph().items():
-        if mod.startswith("splat_train.cpu."):
-            outside = {d for d in deps if d.startswith("splat_train.") and not d.startswith("splat_train.cpu")} - allowed
+        if mod.startswith("splat_train.render.cpu."):
+            outside = {d for d in deps if d.startswith("splat_train.")
+                       and not d.startswith("splat_train.render.cpu")} - allowed
             assert not outside, (mod, outside)
+
+
+# splat_train.render's layers, lowest first (splat_train/render/__init__.py): the torch maths,
+# the fast paths built on it, the front. A module imports only modules of its own layer or below.
+RENDER_LAYERS = (
+    ("splat_train.render.projection", "splat_train.render.sh", "splat_train.render._reference"),
+    ("splat_train.render.cpu", "splat_train.render._tiles", "splat_train.render._gsplat_backend"),
+    ("splat_train.render.rasterize",),
+)
+
+
+def _render_layer(module: str) -> int:
+    return next(i for i, layer in enumerate(RENDER_LAYERS)
+                for unit in layer if module == unit or module.startswith(unit + "."))
+
+
+def test_render_is_splat_trains_floor():
+    """Nothing in splat_train.render imports the rest of splat_train, and inside it each module
+    imports only its own layer or those below (maths < kernels and backends < the front)."""
+    graph = import_graph()
+    render = {m: deps for m, deps in graph.items() if m.startswith("splat_train.render.")}
+    assert "splat_train.render.cpu.raster" in render and "splat_train.render.rasterize" in render
+    faces = {"splat_train.render", "splat_train.render.cpu"}
+    for mod, deps in render.items():
+        if mod in faces:
+            continue
+        outside = {d for d in deps if d.startswith("splat_train") and d not in faces
+                   and not d.startswith("splat_train.render.")}
+        assert not outside, f"{mod} imports {sorted(outside)} from above splat_train.render"
+        above = {d for d in deps if d.startswith("splat_train.render.") and d not in faces
+                 and _render_layer(d) > _render_layer(mod)}
+        assert not above, f"{mod} imports {sorted(above)}, which are above its layer"
+
+
+def test_training_sits_above_what_it_is_made_of():
+    """splat_train.training (the run loop and its files) is imported only by the CLI and the
+    viewer, never by the config, views, losses, parameters, strategies, parts or rasterizer."""
+    graph = import_graph()
+    users = {m for m, deps in graph.items()
+             if not m.startswith("splat_train.training") and any(d.startswith("splat_train.training") for d in deps)}
+    assert users <= {"splat_train.__main__", "splat_train.view.source"}, sorted(users)
+    assert "splat_train.training.snapshot" in graph["splat_train.view.source"]
 
 
 def _tool_units(graph: dict[str, set[str]]) -> dict[str, set[str]]:

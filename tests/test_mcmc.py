@@ -17,7 +17,7 @@ import torch
 
 from _train_scene import kill_at_loss_call, write_scene
 from camio.ply import GaussianCloud, read_gaussian_ply, write_gaussian_ply
-from splat_train.checkpoint import list_checkpoints, load_checkpoint
+from splat_train.training.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
 from splat_train.strategy.densify import quat_to_rotmat
 from splat_train.export import render_params
@@ -27,7 +27,7 @@ from splat_train.tree import OptimConfig
 from splat_train.strategy.mcmc import (MAX_COPIES, MCMCStrategy, growth_target, inject_noise, refine_steps, relocate,
                               relocation_opacity_scale)
 from splat_train.recipes import RECIPES
-from splat_train.trainer import train
+from splat_train.training.trainer import train
 
 REPO = Path(__file__).resolve().parents[1]
 D = torch.float64
@@ -368,7 +368,7 @@ def test_mcmc_trains_through_the_gsplat_adapter(scene, tmp_path, monkeypatch):
     and through the reference rasterizer: same growth, same fit."""
     pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip install -e '.[dev]'")
     import _fake_gsplat
-    from splat_train import _gsplat_backend
+    from splat_train.render import _gsplat_backend
 
     monkeypatch.setattr(_gsplat_backend, "_rasterization", lambda: _fake_gsplat.rasterization)
     summaries = {}

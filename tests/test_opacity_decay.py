@@ -16,7 +16,7 @@ from splat_train.config import TrainConfig
 from splat_train.data import load_views
 from splat_train.parts.opacity_decay import OpacityDecay, opacity_decay
 from splat_train.parts.compose import recipe_parts
-from splat_train.trainer import train
+from splat_train.training.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 F64 = torch.float64

@@ -12,7 +12,7 @@ import pytest
 
 from _train_scene import write_scene
 from splat_train.config import TrainConfig
-from splat_train.trainer import train
+from splat_train.training.trainer import train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -64,7 +64,7 @@ def test_profile_iteration_times_the_trainers_own_step(run):
     import torch
 
     from benchmarks.profile_iteration import PHASES, make_trainer, profile_steps
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     scene, ckpt = run
     backward, threads = torch.Tensor.backward, torch.get_num_threads()

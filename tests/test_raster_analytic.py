@@ -18,9 +18,9 @@ import pytest
 import torch
 
 from splat_train import rasterize
-from splat_train.cpu.raster import available as kernel_available
-from splat_train.projection import covariance_3d, project_gaussians
-from splat_train.sh import SH_C0, eval_sh, rgb_to_sh
+from splat_train.render.cpu.raster import available as kernel_available
+from splat_train.render.projection import covariance_3d, project_gaussians
+from splat_train.render.sh import SH_C0, eval_sh, rgb_to_sh
 
 BACKENDS = ["reference", "torch"] + (["cpu"] if kernel_available() else [])
 D = torch.float64

@@ -10,12 +10,12 @@ import logging
 import pytest
 import torch
 
-from splat_train import _gsplat_backend
-from splat_train.cpu import raster as cpu_raster
+from splat_train.render import _gsplat_backend
+from splat_train.render.cpu import raster as cpu_raster
 from splat_train.config import TrainConfig
-from splat_train.rasterize import BACKENDS, resolve_backend
+from splat_train.render.rasterize import BACKENDS, resolve_backend
 
-rasterize_mod = importlib.import_module("splat_train.rasterize")  # the package exports the function
+rasterize_mod = importlib.import_module("splat_train.render.rasterize")  # the module, not splat_train.rasterize
 
 
 @pytest.fixture
@@ -47,14 +47,14 @@ def test_unknown_backend_raises():
 
 def test_auto_on_cuda_with_gsplat(monkeypatch, fresh_warning, caplog):
     monkeypatch.setattr(_gsplat_backend, "available", lambda: True)
-    with caplog.at_level(logging.WARNING, logger="splat_train.rasterize"):
+    with caplog.at_level(logging.WARNING, logger="splat_train.render.rasterize"):
         assert resolve_backend("auto", torch.device("cuda")) == "gsplat"
     assert not caplog.records
 
 
 def test_auto_on_cuda_without_gsplat_falls_back_with_one_warning(monkeypatch, fresh_warning, caplog):
     monkeypatch.setattr(_gsplat_backend, "available", lambda: False)
-    with caplog.at_level(logging.WARNING, logger="splat_train.rasterize"):
+    with caplog.at_level(logging.WARNING, logger="splat_train.render.rasterize"):
         assert resolve_backend("auto", torch.device("cuda")) == "torch"
         assert resolve_backend("auto", torch.device("cuda:0")) == "torch"
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]

@@ -1,4 +1,4 @@
-"""The gsplat adapter (splat_train/_gsplat_backend.py) honours the rasterize contract, on CPU.
+"""The gsplat adapter (splat_train/render/_gsplat_backend.py) honours the rasterize contract, on CPU.
 
 What is gsplat's code and what is ours: gsplat 1.5.3 is imported for real, but its CUDA
 kernels cannot run here, so ``gsplat.rasterization`` is replaced by tests/_fake_gsplat.py:
@@ -6,7 +6,7 @@ gsplat's own pure-PyTorch projection (``_fully_fused_projection``: viewmats, Ks,
 plane, per-axis radii, means2d in pixels), tile intersection (``_isect_tiles``) and SH
 (``_spherical_harmonics``) from ``gsplat.cuda._torch_impl``, glued as in
 ``gsplat.rendering._rasterization`` and composited by OUR dense reference
-(``splat_train._reference.blend_dense``; gsplat's compositing needs CUDA and nerfacc). So these
+(``splat_train.render._reference.blend_dense``; gsplat's compositing needs CUDA and nerfacc). So these
 tests check our adapter's argument and result mapping and gsplat's projection / SH against our
 reference, forward and gradients; they do not check gsplat's CUDA kernels (the H100 numbers in
 benchmarks/README.md do that).
@@ -29,12 +29,12 @@ import torch
 gsplat = pytest.importorskip("gsplat", reason="gsplat is in the dev extra: pip install -e '.[dev]'")
 
 import _fake_gsplat  # noqa: E402  (tests/ is on sys.path via rootdir conftest)
-from splat_train import _gsplat_backend  # noqa: E402
+from splat_train.render import _gsplat_backend  # noqa: E402
 from splat_train.config import TrainConfig  # noqa: E402
 from splat_train.strategy.densify import DensifyStrategy  # noqa: E402
 from splat_train.parts.pose import so3_exp  # noqa: E402
-from splat_train.projection import project_gaussians  # noqa: E402
-from splat_train.rasterize import rasterize  # noqa: E402
+from splat_train.render.projection import project_gaussians  # noqa: E402
+from splat_train.render.rasterize import rasterize  # noqa: E402
 
 D = torch.float64
 W, H = 32, 24
@@ -203,7 +203,7 @@ def test_gsplat_trainer_asks_for_statistics_only_while_growth_is_to_come(fake_gs
                                                                         monkeypatch):
     """The trainer renders with statistics up to the last densification and without them after
     (the statistics then freeze); MCMC never asks for them."""
-    from splat_train import trainer as trainer_mod
+    from splat_train.training import trainer as trainer_mod
 
     asked = []
     real = trainer_mod.render_params
@@ -319,7 +319,7 @@ def train_scene(tmp_path_factory):
 def _trainer(scene, out, **over):
     from splat_train.config import TrainConfig
     from splat_train.data import load_views
-    from splat_train.trainer import Trainer
+    from splat_train.training.trainer import Trainer
 
     cfg = TrainConfig(**{**SMALL, **over})
     return Trainer(cfg, scene["seed"], load_views(scene["cameras"], scene["images"]), out)
@@ -397,7 +397,7 @@ def test_gsplat_trainer_reads_the_device_only_every_sync_every_iterations(fake_g
     in HOST_ONLY, with the iteration it happened in.
     """
     from splat_train import losses
-    from splat_train import trainer as trainer_mod
+    from splat_train.training import trainer as trainer_mod
 
     monkeypatch.setattr(trainer_mod, "host_sync_every", lambda dev: trainer_mod.SYNC_EVERY)
     monkeypatch.setattr(losses, "_cpu_kernel_for", lambda render, target: None)

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from splat_train import rasterize
-from splat_train.cpu.raster import available as kernel_available
-from splat_train._tiles import tile_pairs
-from splat_train.projection import project_gaussians
+from splat_train.render.cpu.raster import available as kernel_available
+from splat_train.render._tiles import tile_pairs
+from splat_train.render.projection import project_gaussians
 
 FAST = ["torch"] + (["cpu"] if kernel_available() else [])
 
@@ -143,7 +143,7 @@ def test_early_stop_happens_and_matches():
 def test_cpu_kernel_deterministic_across_threads(dtype):
     """Bit-identical image and gradients for 1, 2 and 3 kernel threads and on a repeat: tiles
     write disjoint pair rows and each Gaussian's pairs are summed in a fixed order."""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     params, cw, K, W, H = make_scene("overlap", seed=5, dtype=dtype, sh_degree=2)
     results = []
@@ -178,7 +178,7 @@ def test_tile_pairs_front_to_back_and_complete():
 
 @pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
 def test_cpu_binning_matches_torch_binning():
-    from splat_train.cpu.raster import tile_pairs_cpu
+    from splat_train.render.cpu.raster import tile_pairs_cpu
 
     params, cw, K, W, H = make_scene("overlap", seed=9)
     proj = project_gaussians(params["means"], params["quats"], params["scales"], cw, K, W, H)
@@ -191,8 +191,8 @@ def test_cpu_binning_matches_torch_binning():
 def test_cpu_radix_depth_order_matches_stable_sort():
     """float32 depths (the radix path) with ties, negative and invisible entries: the same
     indices as torch's stable sort (ties by index)."""
-    from splat_train.cpu.raster import _depth_order, load_library
-    from splat_train._reference import depth_order
+    from splat_train.render.cpu.raster import _depth_order, load_library
+    from splat_train.render._reference import depth_order
 
     g = torch.Generator().manual_seed(3)
     d = torch.randint(-50, 50, (5000,), generator=g).float() * 0.37
@@ -213,7 +213,7 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
     it runs the generic forward_impl. Both must give the same bits: images, transmittance and
     each pixel's last contributor, on partial edge tiles, early stops and crowded tiles.
     (Without AVX-512 both calls take the generic kernel and the test still holds.)"""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     args = _kernel_args(kind, 21, torch.float32)
     bins = args[4]
@@ -236,7 +236,7 @@ def test_cpu_forward_specialisation_is_the_generic_forward(kind):
 def _kernel_args(kind: str, seed: int, dtype):
     """(means2d, conics, RGB + depth features, opacities, bins, W, H) of a make_scene scene,
     binned for the "cpu" kernel: the arguments of its forward_raw / backward_raw."""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     params, cw, K, W, H = make_scene(kind, seed=seed, dtype=dtype)
     with torch.no_grad():
@@ -266,7 +266,7 @@ def test_cpu_backward_visits_only_rows_the_forward_blended(kind, dtype):
     (bins.rows_hit) and skips pairs with none: the gradients are bit for bit those of a
     backward that visits every row of every reached pair (a mask of all ones), while the
     masks do skip work here (pairs with no row, and rows left out)."""
-    from splat_train.cpu import raster as cpu_raster
+    from splat_train.render.cpu import raster as cpu_raster
 
     args = _kernel_args(kind, 22, dtype)
     bins, W, H = args[4:]

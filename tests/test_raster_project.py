@@ -1,4 +1,4 @@
-"""The fused C++ projection + SH (:mod:`splat_train.cpu.project`) against the torch code it
+"""The fused C++ projection + SH (:mod:`splat_train.render.cpu.project`) against the torch code it
 replaces on the CPU (:func:`project_gaussians` + :func:`sh_to_color`, autograd).
 
 Float64: values to 1e-12 relative (same double maths, different summation order), gradients
@@ -13,9 +13,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from splat_train.cpu import project as cpu_project
-from splat_train.projection import project_gaussians
-from splat_train.sh import sh_to_color
+from splat_train.render.cpu import project as cpu_project
+from splat_train.render.projection import project_gaussians
+from splat_train.render.sh import sh_to_color
 
 pytestmark = pytest.mark.skipif(not cpu_project.available(), reason="projection kernel did not build")
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from splat_train import rasterize
-from splat_train.cpu.raster import available as kernel_available
+from splat_train.render.cpu.raster import available as kernel_available
 
 BACKENDS = ["reference", "torch"] + (["cpu"] if kernel_available() else [])
 W, H = 40, 24

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from splat_train import rasterize
-from splat_train.cpu.raster import available as kernel_available
-from splat_train.projection import project_gaussians
+from splat_train.render.cpu.raster import available as kernel_available
+from splat_train.render.projection import project_gaussians
 
 pytestmark = pytest.mark.skipif(not kernel_available(), reason="CPU kernel did not build")
 
@@ -47,7 +47,7 @@ def _scene(n: int, seed: int, dtype, W: int, H: int):
 
 
 def _bins_pair(proj, opac, W, H):
-    from splat_train.cpu.raster import bin_cpu
+    from splat_train.render.cpu.raster import bin_cpu
 
     full = bin_cpu(proj.depths, proj.rect, proj.visible, W, H, "cpu")
     tight = bin_cpu(proj.depths, proj.rect, proj.visible, W, H, "cpu", proj.means2d, proj.conics, opac)
@@ -57,7 +57,7 @@ def _bins_pair(proj, opac, W, H):
 def _blend(proj, feats, opac, bins, W, H):
     """(accum, T, per-pixel count, gradients) of the kernel's forward and backward with ``bins``
     (the same seeded output cotangents for every call)."""
-    from splat_train.cpu.raster import backward_raw, forward_raw
+    from splat_train.render.cpu.raster import backward_raw, forward_raw
 
     accum, t_final, last, count = forward_raw(proj.means2d, proj.conics, feats, opac, bins, W, H)
     v_acc = torch.randn(accum.shape, generator=torch.Generator().manual_seed(1), dtype=accum.dtype)
@@ -154,8 +154,8 @@ def test_vector_footprint_pass_matches_scalar(dtype):
     spans) must equal the scalar footprint() bit for bit, padding lanes of a partial last
     block and the special cases included (opacity below 1/255, not positive definite,
     enormous, thin and rotated, and tall boxes whose spans are not stored)."""
-    from splat_train.cpu.build import ptr
-    from splat_train.cpu.raster import _footprints, load_library
+    from splat_train.render.cpu.build import ptr
+    from splat_train.render.cpu.raster import _footprints, load_library
 
     W, H = 200, 330
     n = 1003  # not a multiple of 8

@@ -39,7 +39,7 @@ def test_rasterize_zero_gaussians_gives_background():
 def test_trainer_refuses_empty_seed(tmp_path):
     """(Found by this suite: it used to train nothing and write an empty model.ply.)"""
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     scene = write_scene(tmp_path / "scene", n_views=3, width=16, height=12)
     seed = write_gaussian_ply(tmp_path / "empty.ply", _empty_cloud())

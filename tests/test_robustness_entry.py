@@ -107,7 +107,7 @@ def test_colmap_baseline_records_the_real_reason(tmp_path, capsys, case):
 
 def test_trainer_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
     import splat_train.__main__ as cli
-    import splat_train.trainer as trainer
+    import splat_train.training.trainer as trainer
     from _train_scene import write_scene
 
     sc = write_scene(tmp_path / "scene")
@@ -139,7 +139,7 @@ def _seed(tmp_path: Path, **edit) -> Path:
 ])
 def test_trainer_warns_on_a_degenerate_seed(tmp_path, monkeypatch, capsys, case, needle):
     import splat_train.__main__ as cli
-    import splat_train.trainer as trainer
+    import splat_train.training.trainer as trainer
     from _train_scene import write_scene
 
     sc = write_scene(tmp_path / "scene")

@@ -500,7 +500,7 @@ def test_the_workflow_refuses_a_scene_path_that_does_not_exist_in_one_line(tmp_p
 def test_a_full_disk_while_writing_a_checkpoint_is_one_oserror(tmp_path, monkeypatch):
     import torch
 
-    from splat_train import checkpoint
+    from splat_train.training import checkpoint
 
     def full(obj, f):
         raise RuntimeError("[enforce fail at inline_container.cc:626] . unexpected pos 128 vs 64")

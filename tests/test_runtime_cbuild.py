@@ -27,7 +27,7 @@ def test_editing_an_included_header_rebuilds(tmp_path):
 
 
 def test_kernels_name_the_shared_vector_header():
-    from splat_train.cpu import build as cpu_build
+    from splat_train.render.cpu import build as cpu_build
 
     assert [h.name for h in cpu_build._HEADERS] == ["vec8d.h"]
 

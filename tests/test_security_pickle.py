@@ -6,7 +6,7 @@ marker must not exist. Files: ``torch.save`` (zip container) and a bare pickle, 
 names each loader accepts (.pt, .pth, .bin, .ckpt, and .safetensors for good measure).
 
 Loaders: the VGGT checkpoint (vggt_init.checkpoint), the trainer's resume
-(splat_train.checkpoint, through ``train``), LPIPS weights at run time (imgmetrics.lpips) and
+(splat_train.training.checkpoint, through ``train``), LPIPS weights at run time (imgmetrics.lpips) and
 the one-time LPIPS converter's numpy-only unpickler (evaluation.metrics.lpips_convert).
 """
 
@@ -95,7 +95,7 @@ def test_vggt_load_model_bad_safetensors_is_checkpoint_format_error(tmp_path, ma
 
 @pytest.mark.parametrize("container", ["torch", "pickle"])
 def test_trainer_checkpoint_refuses_code(tmp_path, marker, container):
-    from splat_train.checkpoint import load_checkpoint
+    from splat_train.training.checkpoint import load_checkpoint
 
     path = _evil(tmp_path / "ckpt_0000010.pt", marker, container)
     with pytest.raises(ValueError, match=rf"cannot read checkpoint {path}"):
@@ -106,7 +106,7 @@ def test_trainer_resume_refuses_code(tmp_path, marker):
     """A crafted file dropped into OUT/ckpt as the newest checkpoint: train() refuses to resume."""
     from _train_scene import write_scene
     from splat_train.config import TrainConfig
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     scene = write_scene(tmp_path / "scene", n_views=3, width=16, height=12)
     out = tmp_path / "run"
@@ -161,7 +161,7 @@ def test_trainer_checkpoint_refusal_gives_no_unsafe_advice(tmp_path):
     """torch's own message says weights_only=False 'will likely succeed': never pass that on."""
     import pickle
 
-    from splat_train.checkpoint import load_checkpoint
+    from splat_train.training.checkpoint import load_checkpoint
 
     class _Payload:
         def __reduce__(self):

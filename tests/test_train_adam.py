@@ -1,10 +1,10 @@
-"""splat_train.cpu.optim: the trainer's Adam step on the kernel's threads, against torch.optim.Adam."""
+"""splat_train.render.cpu.optim: the trainer's Adam step on the kernel's threads, against torch.optim.Adam."""
 
 import pytest
 import torch
 
-from splat_train.cpu import optim as cpu_optim
-from splat_train.cpu.build import kernel_threads, set_kernel_threads
+from splat_train.render.cpu import optim as cpu_optim
+from splat_train.render.cpu.build import kernel_threads, set_kernel_threads
 
 pytestmark = pytest.mark.skipif(not cpu_optim.available(), reason="no C++ compiler for the CPU kernels")
 

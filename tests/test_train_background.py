@@ -1,5 +1,5 @@
 """The config's ``background`` "mean": the training images' mean colour, resolved once by
-``splat_train.trainer.train`` (RGBA composited on black for it), kept in train.json's config."""
+``splat_train.training.trainer.train`` (RGBA composited on black for it), kept in train.json's config."""
 
 import json
 
@@ -10,7 +10,7 @@ from _train_scene import write_scene
 from camio.images import read_image, write_image
 from splat_train.config import BACKGROUND_MEAN, TrainConfig
 from splat_train.data import load_views, mean_colour
-from splat_train.trainer import Trainer, inputs_digest, train
+from splat_train.training.trainer import Trainer, inputs_digest, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 

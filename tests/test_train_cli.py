@@ -91,7 +91,7 @@ def test_a_gpu_by_index_is_a_cuda_device(monkeypatch):
     """cuda:N names GPU N: a GPU device for the iteration default; with no GPU, or fewer than
     N + 1, the trainer says so in one sentence instead of a CUDA error."""
     from splat_train.config import PAPER_ITERATIONS, TrainConfig
-    from splat_train.trainer import _device
+    from splat_train.training.trainer import _device
 
     assert TrainConfig(device="cuda:1").iterations == PAPER_ITERATIONS
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

@@ -137,11 +137,11 @@ def test_update_state_skips_non_finite_gradients():
 
 
 def test_update_state_c_path_equals_torch_path():
-    """The CPU float32 accumulation in C (splat_train.cpu.optim, taken for the rasterizer's
+    """The CPU float32 accumulation in C (splat_train.render.cpu.optim, taken for the rasterizer's
     int32 radii and a [N, 2] view of its gradient buffer) gives the statistics of the torch
     code (taken for int64 radii): hidden, NaN, inf and overflowing rows skipped, counts and
     radii exact, norms to float32 rounding; three views accumulated."""
-    from splat_train.cpu import optim as cpu_optim
+    from splat_train.render.cpu import optim as cpu_optim
 
     if not cpu_optim.available():
         pytest.skip("no C++ compiler for the CPU kernels")

@@ -70,7 +70,7 @@ def run_case(scene: dict[str, Path], out: Path, keys: dict) -> dict:
     import pyarrow.parquet as pq
 
     from splat_train.config import load_config
-    from splat_train.trainer import train
+    from splat_train.training.trainer import train
 
     cfg = load_config({**BASE, **keys})
     res = train(scene["seed"], scene["cameras"], scene["images"], out, cfg,

@@ -99,7 +99,7 @@ def test_cpu_ssim_matches_reference(dtype, tol, shape):
     """The C++ SSIM of the training loss: value and gradient as the conv2d reference (float64
     to 1e-12, float32 to 2e-5 relative to the largest gradient entry), including images
     smaller than the 11 x 11 window in one direction (every column / row is a border)."""
-    from splat_train.cpu import ssim as cpu_ssim
+    from splat_train.render.cpu import ssim as cpu_ssim
 
     if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")
@@ -132,7 +132,7 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
     colour channels of a 4-channel buffer) included. 150 x 141: several bands of rows per
     channel (BAND_ROWS = 64) and every block size of the filters (4 vectors, 1 vector and
     scalar columns in both dtypes)."""
-    from splat_train.cpu import ssim as cpu_ssim
+    from splat_train.render.cpu import ssim as cpu_ssim
 
     if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")
@@ -157,8 +157,8 @@ def test_cpu_l1_ssim_matches_reference(dtype, tol, shape):
 def test_cpu_l1_ssim_independent_of_thread_count(monkeypatch):
     """Values and gradient bit-identical on 1 and 2 kernel threads (work items write their own
     rows and partial sums, which are added in a fixed order)."""
-    from splat_train.cpu import ssim as cpu_ssim
-    from splat_train.cpu.build import set_kernel_threads
+    from splat_train.render.cpu import ssim as cpu_ssim
+    from splat_train.render.cpu.build import set_kernel_threads
 
     if not cpu_ssim.available():
         pytest.skip("SSIM kernel did not build")

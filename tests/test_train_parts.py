@@ -17,7 +17,7 @@ from camio.colmap import read_model
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, write_depth_prior
 from splat_train.parts.binocular import binocular_consistency_loss, shifted_camera
 from splat_train.config import TrainConfig
-from splat_train.cpu.optim import adam_step
+from splat_train.render.cpu.optim import adam_step
 from splat_train.data import load_views
 from splat_train.parts.depth_prior import depth_weight_at
 from splat_train.parts.dropout import dropout_rate_at, gaussian_dropout
@@ -27,7 +27,7 @@ from splat_train.losses import gaussian_regularisers, photometric_loss
 from splat_train.parts.opacity_decay import opacity_decay
 from splat_train.parts.compose import recipe_parts
 from splat_train.parts.pose import PoseCorrections, camera_spread, pose_lr_factor
-from splat_train.trainer import Trainer, train
+from splat_train.training.trainer import Trainer, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 

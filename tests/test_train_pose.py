@@ -10,7 +10,7 @@ from camio.colmap import SparseModel, read_model
 from evaluation.metrics.pose import evaluate_pose
 from splat_train.config import TrainConfig
 from splat_train.parts.pose import PoseCorrections, pose_lr_factor, scale_gauge_factor, so3_exp
-from splat_train.trainer import train
+from splat_train.training.trainer import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 

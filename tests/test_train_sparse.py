@@ -17,14 +17,14 @@ import torch
 from _train_scene import write_scene
 from camio.depth_prior import DEPTH_PRIOR_FILE, DepthSamples, read_depth_prior, write_depth_prior
 from splat_train import rasterize
-from splat_train.cpu.raster import available as kernel_available
+from splat_train.render.cpu.raster import available as kernel_available
 from splat_train.recipes import RECIPE_NAMES
 from splat_train.config import TrainConfig
 from splat_train.strategy.densify import cap_candidates
 from splat_train.parts.depth_prior import load_depth_prior, pearson_depth_loss
 from splat_train.parts.dropout import dropout_rate_at, gaussian_dropout
 from splat_train.export import render_params
-from splat_train.trainer import Trainer, train
+from splat_train.training.trainer import Trainer, train
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -140,7 +140,7 @@ def test_dropout_acts_in_training_only(tmp_path):
                  sc["seed"], views, tmp_path / "o", tests)
     tr.iteration = 19
     seen = []
-    import splat_train.trainer as tm
+    import splat_train.training.trainer as tm
 
     real = tm.render_params
 

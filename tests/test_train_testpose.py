@@ -155,7 +155,7 @@ def test_gsplat_path_gets_pose_gradients(scene, monkeypatch):
     import torch
 
     from camio.ply import read_gaussian_ply
-    from splat_train import _gsplat_backend
+    from splat_train.render import _gsplat_backend
     from splat_train.data import load_views
     from splat_train.export import camera_tensors
     from splat_train.gaussians import params_from_cloud
@@ -171,7 +171,7 @@ def test_gsplat_path_gets_pose_gradients(scene, monkeypatch):
     assert res["loss_end"] < 0.8 * res["loss_start"] and res["best_step"] > 0
 
 
-# --- the kernel's camera gradient (splat_train/cpu/project.py, camera_grad=True) -------------
+# --- the kernel's camera gradient (splat_train/render/cpu/project.py, camera_grad=True) -------------
 #
 # The test-pose protocol differentiates the pose through the fused C++ projection's backward
 # instead of the torch projection. Checked in float64 against (1) the torch code's autograd,
@@ -209,9 +209,9 @@ def _grad_scene(seed: int, n: int = 300):
 
 def _project(kernel: bool, means, quats, scales, sh, deg, cw, K, W, H):
     """(means2d, conics, depths, colours) by the kernel (camera_grad) or the torch code."""
-    from splat_train.cpu import project as cpu_project
-    from splat_train.projection import project_gaussians
-    from splat_train.sh import sh_to_color
+    from splat_train.render.cpu import project as cpu_project
+    from splat_train.render.projection import project_gaussians
+    from splat_train.render.sh import sh_to_color
 
     colors = sh[:, 0] if deg is None else sh
     if kernel:
@@ -224,7 +224,7 @@ def _project(kernel: bool, means, quats, scales, sh, deg, cw, K, W, H):
 
 
 def _kernel_or_skip():
-    from splat_train.cpu import project as cpu_project
+    from splat_train.render.cpu import project as cpu_project
 
     if not cpu_project.available():
         pytest.skip("projection kernel did not build")
@@ -285,7 +285,7 @@ def test_kernel_camera_gradient_end_to_end_and_thread_independent(monkeypatch):
     import torch
 
     from splat_train.losses import photometric_loss
-    from splat_train.rasterize import rasterize
+    from splat_train.render.rasterize import rasterize
     from splat_train.testpose import se3_correction
 
     _kernel_or_skip()

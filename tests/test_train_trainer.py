@@ -1,4 +1,4 @@
-"""splat_train.trainer on a tiny generated scene: loss goes down, resume is exact, NaN stops
+"""splat_train.training.trainer on a tiny generated scene: loss goes down, resume is exact, NaN stops
 the run keeping the last checkpoint, the log has its columns, pose refinement."""
 
 import json
@@ -12,12 +12,12 @@ from _train_scene import kill_at_loss_call, write_scene
 from camio.colmap import read_model
 from camio.ply import read_gaussian_ply
 from splat_train import losses as losses_mod
-from splat_train import trainer as trainer_mod
-from splat_train.checkpoint import list_checkpoints, load_checkpoint
+from splat_train.training import trainer as trainer_mod
+from splat_train.training.checkpoint import list_checkpoints, load_checkpoint
 from splat_train.config import TrainConfig
-from splat_train.cpu import raster as cpu_raster
-from splat_train.runlog import LOG_COLUMNS
-from splat_train.trainer import NonFiniteLossError, train
+from splat_train.render.cpu import raster as cpu_raster
+from splat_train.training.runlog import LOG_COLUMNS
+from splat_train.training.trainer import NonFiniteLossError, train
 
 # A short explicit schedule: densify at 10 and 20, one opacity reset at 15, SH +1 every 10.
 SMALL = dict(iterations=24, densify_from=5, densify_until=20, densify_every=10, opacity_reset_every=15,
@@ -158,7 +158,7 @@ def test_trainer_refuses_a_skewed_camera(scene, tmp_path, monkeypatch):
     """K[0, 1] != 0 is refused once, when the trainer starts (rasterize checks it per call only
     for CPU tensors: on a GPU that read would be a device sync every iteration)."""
     from splat_train.data import load_views
-    from splat_train.trainer import Trainer
+    from splat_train.training.trainer import Trainer
 
     views = load_views(scene["cameras"], scene["images"])
     views[1].camera.K[0, 1] = 0.5
@@ -226,7 +226,7 @@ def test_kernel_threads_default_to_every_cpu_and_results_do_not_depend_on_them(s
 
 
 def test_runlog_test_curve_keeps_best_and_last():
-    from splat_train.runlog import RunLog
+    from splat_train.training.runlog import RunLog
 
     log = RunLog()
     for it, p in [(1, float("nan")), (200, 12.0), (400, 14.5), (401, float("nan")), (600, 13.0)]:
@@ -268,7 +268,7 @@ def test_heldout_ssim_and_lpips_along_the_run_agree_with_the_evaluation_metrics(
     from imgmetrics.psnr_ssim import ssim as eval_ssim
     from splat_train.data import load_views
     from splat_train.export import render_views
-    from splat_train.trainer import Trainer
+    from splat_train.training.trainer import Trainer
 
     weights = _random_lpips_weights(tmp_path / "lpips")
     cfg = TrainConfig(**{**SMALL, "densify_until": 0, "opacity_reset_every": 1000, "eval_lpips": True,
@@ -325,7 +325,7 @@ def test_heldout_lpips_on_images_too_small_for_alexnet_is_null_not_an_error(scen
 def test_runlog_resumes_a_checkpoint_from_before_the_heldout_columns():
     """A checkpoint's log written before test_ssim / test_lpips (and test_coverage /
     test_psnr_covered) existed loads with them null."""
-    from splat_train.runlog import RunLog
+    from splat_train.training.runlog import RunLog
 
     old = {c: torch.tensor([1.0, 2.0], dtype=torch.float64)
            for c in ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians")}

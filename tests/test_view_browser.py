@@ -90,7 +90,7 @@ def test_page_shows_the_snapshots_iteration_and_loads_a_newer_one(tmp_path):
     """`python -m splat_train view --model OUT` on a training run's folder: the page shows the
     snapshot's iteration and, when the trainer replaces it, loads the new one and its iteration."""
     from _view_scene import make_model
-    from splat_train.snapshot import write_snapshot
+    from splat_train.training.snapshot import write_snapshot
 
     out = tmp_path / "out"
     write_snapshot(out, make_model(200, seed=1), 10)

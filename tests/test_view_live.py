@@ -17,7 +17,7 @@ import pytest
 from _cli import ENV, ROOT, refused, run
 from _train_scene import write_scene
 from camio.ply import read_gaussian_ply
-from splat_train.snapshot import SNAPSHOT_FILE, snapshot_iteration
+from splat_train.training.snapshot import SNAPSHOT_FILE, snapshot_iteration
 from splat_train.view import server
 
 ITERATIONS, EVERY = 600, 10  # ~7 s of training on one CPU core at 32x24: several looks of the viewer

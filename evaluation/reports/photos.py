@@ -10,7 +10,7 @@ count the section shows, for every run:
   without that folder the section gives the command that makes it (a stage does not import
   another: the report reads the renders, it does not make them);
 * the training curve: loss and training-view PSNR against iteration from ``log.parquet``
-  (:mod:`splat_train.runlog`);
+  (:mod:`splat_train.training.runlog`);
 * the cameras seen from above: centres and viewing directions of ``{mode}/bridge/sparse/0``
   (else the initialiser's ``sparse/0``), projected on the plane normal to the cameras' mean up
   direction;

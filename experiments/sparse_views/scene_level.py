@@ -10,7 +10,7 @@ same records:
   records under :data:`EQUAL_BACKGROUND`'s black name) and once on the training views' mean
   colour (``paper``'s records under its mean-colour name);
 - **covered pixels**: per recipe, the share of held-out pixels the model covers (accumulated
-  alpha >= 0.5, splat_train/heldout.py) and the PSNR over them, from the runs that recorded it.
+  alpha >= 0.5, splat_train/training/heldout.py) and the PSNR over them, from the runs that recorded it.
 
 Every difference is first averaged over the seeds of a scene, then summarised over the scenes
 (95 % t interval, :func:`evaluation.study.stats.t_interval`, k = the number of scenes), so one

@@ -9,7 +9,7 @@ experiments.sparse_views run`` line that makes its records; ``report`` reads the
 ``<records>/<name>.json`` (the registration's own ``records`` folder, else
 ``experiments/records/sparse_views``) and a markdown page: per scene and variant the
 final held-out PSNR, SSIM, LPIPS, the coverage of the held-out pixels and the PSNR over the
-covered ones (alpha >= 0.5: splat_train/heldout.py); the floor, a flat image of the training
+covered ones (alpha >= 0.5: splat_train/training/heldout.py); the floor, a flat image of the training
 views' mean colour scored like a model (from the cells under ``--work``); per comparison the
 per-scene difference (paired by seed, then the mean over seeds), its mean over the scenes with a
 95 % t interval taking the scene as the unit, how many scenes are ahead, and the verdict of

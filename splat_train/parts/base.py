@@ -1,6 +1,6 @@
 """A part of the training loop: one regulariser or extra optimisation, with the state it owns.
 
-The trainer (:class:`splat_train.trainer.Trainer`) runs the Gaussians' own loop (view, render,
+The trainer (:class:`splat_train.training.trainer.Trainer`) runs the Gaussians' own loop (view, render,
 photometric loss, backward, Adam, densification strategy) and, at fixed points of every
 iteration, the hooks of its config's parts (each made by its config,
 :mod:`splat_train.parts.configs`; :func:`splat_train.parts.recipe_parts`), in the list's order. A part overrides only the hooks it needs; the defaults do nothing. As gsplat's

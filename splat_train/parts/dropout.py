@@ -5,13 +5,13 @@ survivors' opacity is divided by 1 - p, so that the expected opacity of each Gau
 unchanged; p ramps linearly from 0 to the final rate over the run, or over its first part
 (:func:`dropout_rate_at`).
 The renders that are scored, exported or shown (held-out evaluation, ``render``) never drop
-anything: only the training render of :meth:`splat_train.trainer.Trainer.step` goes through
+anything: only the training render of :meth:`splat_train.training.trainer.Trainer.step` goes through
 :class:`GaussianDropout`, the training part (:mod:`splat_train.parts.base`) that applies
 :func:`gaussian_dropout`. Working on the opacities before the rasterizer, it renders the same
 through every backend. One difference follows from gsplat's semantics: gsplat culls a Gaussian
 of opacity below 1/255 in its projection, so a dropped Gaussian is not counted as seen in that
 step's densification statistics there, while the CPU backends count it, as 3DGS's rasterizer
-(under DropGaussian's release) does (``splat_train._gsplat_backend``; emulated on the CPU it
+(under DropGaussian's release) does (``splat_train.render._gsplat_backend``; emulated on the CPU it
 moves the trained model by -0.04 ± 0.15 dB over 15 seeds, docs/results.md).
 """
 

@@ -25,7 +25,7 @@ from typing import Callable, ClassVar
 
 import torch
 
-from splat_train.cpu import optim as cpu_optim
+from splat_train.render.cpu import optim as cpu_optim
 from splat_train.strategy.base import Strategy
 
 __all__ = ["DensifyStrategy", "cap_candidates", "duplicate", "split", "split_children", "remove", "reset_opacity",

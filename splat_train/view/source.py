@@ -12,7 +12,7 @@ from then on, with a new ``version``; bytes that are not a model of that type ar
 (the last good model stays, and one warning names the file).
 
 ``--model`` may name a training run's output folder: the viewer then follows its
-``snapshot.ply`` (written by ``--snapshot-every``, :mod:`splat_train.snapshot`), or its
+``snapshot.ply`` (written by ``--snapshot-every``, :mod:`splat_train.training.snapshot`), or its
 ``model.ply`` while there is no snapshot; before either exists ``/model.ply`` answers 503 and
 the page waits. The iteration in a snapshot's header is served beside the bytes.
 """
@@ -28,7 +28,7 @@ from pathlib import Path
 
 from camio.ply import read_gaussian_ply
 from camio.splatfmt import EXPORT_FORMATS, read_splat, read_spz
-from splat_train.snapshot import SNAPSHOT_FILE, snapshot_iteration
+from splat_train.training.snapshot import SNAPSHOT_FILE, snapshot_iteration
 
 log = logging.getLogger("splat_train.view")
 

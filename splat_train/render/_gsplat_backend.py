@@ -8,13 +8,13 @@ CUDA kernels):
 
 * ``viewmats`` [1, 4, 4] = ``cam_from_world`` padded to 4x4 (world -> OpenCV camera, as ours);
   ``Ks`` [1, 3, 3] = ``K`` (both use pixel centres at +0.5, COLMAP);
-* ``eps2d`` = :data:`splat_train.projection.EPS2D`, ``near_plane`` passed through,
+* ``eps2d`` = :data:`splat_train.render.projection.EPS2D`, ``near_plane`` passed through,
   ``sh_degree`` passed through (None = plain colours), ``packed=False``, ``render_mode="RGB+ED"``;
 * returned ``means2d`` is [N, 2] in pixels and its ``.grad`` after ``backward()`` is
   dL/d(means2d) in pixels, the units :meth:`splat_train.strategy.densify.DensifyStrategy.update_state`
   expects (gsplat's own meta["means2d"] is [1, N, 2]; a hook copies its gradient);
 * ``visible`` = gsplat's own mask (both per-axis radii > 0); ``radii`` [N] int32 = 3DGS's
-  ceil(3 sqrt(lambda_max)) (:func:`splat_train.projection.screen_radius`) of the 2D
+  ceil(3 sqrt(lambda_max)) (:func:`splat_train.render.projection.screen_radius`) of the 2D
   covariance recovered from gsplat's conics, 0 where not visible. gsplat's own radii are
   per axis and opacity-aware (``rasterization`` passes the opacities to its projection:
   ceil(min(3.33, sqrt(2 ln(255 opacity))) sqrt(Sigma_axis)), ProjectionEWA3DGSFused.cu), so
@@ -24,7 +24,7 @@ CUDA kernels):
   a radius that lies within rounding of an integer by one pixel;
 * ``opacities`` are passed clamped at :data:`OPACITY_MAX` = 0.99 (:func:`clamp_opacities`):
   gsplat's kernels clamp each Gaussian's alpha at 0.999, 3DGS and our CPU backends at 0.99
-  (:data:`splat_train._reference.ALPHA_MAX`), so without it a Gaussian whose opacity passes 0.99
+  (:data:`splat_train.render._reference.ALPHA_MAX`), so without it a Gaussian whose opacity passes 0.99
   (a sigmoid near 1 with no opacity reset, or dropout's survivors scaled by 1 / (1 - p)) would
   hide what lies behind it ten times more than in 3DGS. Measured on the CPU kernel built with
   gsplat's 0.999 (``benchmarks/backend_semantics.py``, fern n = 3 grid cell, ``sparse``, 3,000
@@ -49,8 +49,8 @@ import importlib.metadata
 import torch
 from torch import Tensor
 
-from splat_train._reference import ALPHA_MAX
-from splat_train.projection import EPS2D, screen_radius
+from splat_train.render._reference import ALPHA_MAX
+from splat_train.render.projection import EPS2D, screen_radius
 
 __all__ = ["GSPLAT_VERSION", "OPACITY_MAX", "available", "clamp_opacities", "installed_version", "rasterize_gsplat"]
 
@@ -184,7 +184,7 @@ def _radii_3dgs(conics: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
         visible: [N] bool; other rows may hold anything (gsplat leaves them unwritten).
 
     Returns:
-        radii [N] int32: :func:`splat_train.projection.screen_radius` of the covariance
+        radii [N] int32: :func:`splat_train.render.projection.screen_radius` of the covariance
         [[C, -B], [-B, A]] / d, d = A C - B^2 (its determinant is 1 / d), computed in float64,
         0 where not visible; visible [N] bool: ``visible`` less the rows whose conic is
         degenerate (d not finite and > 0).

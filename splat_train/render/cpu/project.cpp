@@ -1,7 +1,7 @@
 // Fused EWA projection + SH colour on the CPU, forward and hand-written backward.
 //
 // Built and loaded like raster.cpp (plain C ABI, ctypes, no torch headers). Semantics are
-// those of splat_train/projection.py (project_gaussians) and splat_train/sh.py (sh_to_color),
+// those of splat_train/render/projection.py (project_gaussians) and splat_train/render/sh.py (sh_to_color),
 // which stay the reference: the per-Gaussian maths runs in double whatever the tensor dtype,
 // as the torch code does, and the gradients are those autograd gives for that code (the 1.3 x
 // field-of-view clamp of the Jacobian passes no gradient to x / z where it is active; culled
@@ -119,7 +119,7 @@ inline void load_block(int64_t i0, int64_t n, const T* means, const T* quats, co
   }
 }
 
-// The per-Gaussian projection (splat_train/projection.py), lane-wise.
+// The per-Gaussian projection (splat_train/render/projection.py), lane-wise.
 inline void project_block(const Cam& cam, Block& P) {
   for (int r = 0; r < 3; ++r)
     P.p[r] = cam.R[3 * r] * P.m[0] + cam.R[3 * r + 1] * P.m[1] + cam.R[3 * r + 2] * P.m[2] + cam.t[r];

@@ -1,7 +1,7 @@
 """Dense pure-PyTorch alpha blending: every Gaussian against every pixel, no tiles, no kernels.
 
-This is the test oracle for the fast paths (:mod:`splat_train._tiles`,
-:mod:`splat_train.cpu.raster`). It follows the 3DGS forward rules literally, vectorised:
+This is the test oracle for the fast paths (:mod:`splat_train.render._tiles`,
+:mod:`splat_train.render.cpu.raster`). It follows the 3DGS forward rules literally, vectorised:
 
 * Gaussians are blended front to back in ascending camera z (stable: ties keep index order).
 * A Gaussian influences a pixel only when the pixel's 16x16 tile lies in its tile rectangle
@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from splat_train.projection import Projected
+from splat_train.render.projection import Projected
 
 __all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "blend_dense", "depth_order"]
 
@@ -51,7 +51,7 @@ def blend_dense(proj: Projected, features: Tensor, opacities: Tensor) -> tuple[T
     """Dense front-to-back blending of projected Gaussians.
 
     Args:
-        proj: the screen-space Gaussians of one image (:class:`splat_train.projection.Projected`);
+        proj: the screen-space Gaussians of one image (:class:`splat_train.render.projection.Projected`);
             read: ``means2d`` [N, 2] pixel coordinates (COLMAP: pixel (i, j) centre at
             (j + .5, i + .5)), ``conics`` [N, 3] inverse 2D covariance (a, b, c), ``depths``
             [N] camera z (sort key only), ``rect`` [N, 4] int tile rectangle (x_min, x_max,

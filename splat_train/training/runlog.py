@@ -9,7 +9,7 @@ checkpoint rows, and between them the host's time so far), ``loss``, ``l1``,
 the test views at evaluation iterations (null elsewhere): ``test_psnr`` (dB), ``test_ssim``
 (3DGS SSIM, :func:`splat_train.losses.ssim`) and ``test_lpips`` (LPIPS v0.1, AlexNet; null
 also when LPIPS along the run is off, ``TrainConfig.eval_lpips``, or its weights are absent),
-and two diagnostics of where the held-out error is (:mod:`splat_train.heldout`):
+and two diagnostics of where the held-out error is (:mod:`splat_train.training.heldout`):
 ``test_coverage`` (the share of held-out pixels the model covers, accumulated opacity >= 0.5)
 and ``test_psnr_covered`` (PSNR over those pixels; null where a view covers none).
 They are computed on the float renders clamped to [0, 1], not on the 8-bit PNGs that

@@ -17,7 +17,7 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
   (too little covered) from the error where the model is (:func:`coverage_split`).
 
 The means over the test views are the ``test_*`` columns of ``log.parquet``
-(:mod:`splat_train.runlog`). They differ from the final ``metrics.json`` only by the 8-bit
+(:mod:`splat_train.training.runlog`). They differ from the final ``metrics.json`` only by the 8-bit
 quantisation of the PNGs that the evaluation stage reads.
 """
 

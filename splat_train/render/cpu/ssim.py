@@ -19,11 +19,11 @@ import torch
 from torch import Tensor
 
 from imgmetrics.ssim import gaussian_window_1d
-from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
-from splat_train.cpu.build import Kernel as _Kernel
-from splat_train.cpu.build import ptr as _ptr
-from splat_train.cpu.build import run_threaded as _run_threaded
-from splat_train.cpu.build import suffix as _suffix
+from splat_train.render.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.render.cpu.build import Kernel as _Kernel
+from splat_train.render.cpu.build import ptr as _ptr
+from splat_train.render.cpu.build import run_threaded as _run_threaded
+from splat_train.render.cpu.build import suffix as _suffix
 
 __all__ = ["available", "ssim_cpu", "l1_ssim_cpu"]
 

@@ -21,12 +21,13 @@ their scale gauge restored). Each part's state is in every checkpoint.
 All randomness comes from one ``torch.Generator`` seeded with ``cfg.seed``; its state is in
 every checkpoint, so on CPU a run resumed from ``DIR/ckpt`` ends with exactly the model of an
 uninterrupted run. The held-out evaluation scores PSNR, SSIM and, with ``eval_lpips``, LPIPS-alex
-(:mod:`splat_train.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is a C++ kernel's one-time build
-(``kernel_build_s``; ``python -m splat_train.cpu.build`` builds them ahead).
+(:mod:`splat_train.training.heldout`); its time is ``eval_time_s``, outside ``wall_time_s``, as is
+a C++ kernel's one-time build (``kernel_build_s``; ``python -m splat_train.render.cpu.build`` builds
+them ahead).
 Outputs (docs/contracts.md): ``model.ply``, ``log.parquet``, ``ckpt/``,
 ``renders/``, ``train.json`` and, with pose refinement, ``cameras_refined/`` (COLMAP text);
 with ``snapshot_every`` N, ``snapshot.ply`` every N iterations and at the last
-(:mod:`splat_train.snapshot`, outside the training time).
+(:mod:`splat_train.training.snapshot`, outside the training time).
 
 What a run resolves from its config and inputs is resolved once (:class:`ResolvedRun`,
 :func:`resolve_run`): the schedule, the background colour (the training images' mean read from
@@ -62,21 +63,21 @@ from camio.colmap import write_text_model
 from camio.depth_prior import DEPTH_PRIOR_FILE
 from camio.ply import read_gaussian_ply, write_gaussian_ply
 from runtime.logs import peak_rss_mb, progress
-from splat_train import checkpoint as ckpt
+from splat_train.training import checkpoint as ckpt
 from splat_train.config import BACKGROUND_MEAN, POSE_KEYS, RESUME_FREE_KEYS, Schedule, TrainConfig, resolve_device
 from splat_train.tree import added_at_default
-from splat_train.cpu import raster as cpu_raster
+from splat_train.render.cpu import raster as cpu_raster
 from splat_train.data import View, load_views, load_views_on_mean, mean_colour, read_name_list, scene_extent
 from splat_train.export import camera_tensors, render_params, render_views
 from splat_train.gaussians import adam_step, make_optimizer, params_from_cloud, params_to_cloud, position_lr
-from splat_train.heldout import LPIPS_NET, HeldoutScorer, unmeasured
+from splat_train.training.heldout import LPIPS_NET, HeldoutScorer, unmeasured
 from splat_train.losses import TrainingLoss
 from splat_train.parts.compose import opacity_map, recipe_parts
-from splat_train.rasterize import SKEW_ERROR, resolve_backend
+from splat_train.render.rasterize import SKEW_ERROR, resolve_backend
 from splat_train.rng import uniform
-from splat_train.cpu.build import build_seconds
-from splat_train.runlog import RunLog
-from splat_train.snapshot import check_snapshot_every, write_snapshot
+from splat_train.render.cpu.build import build_seconds
+from splat_train.training.runlog import RunLog
+from splat_train.training.snapshot import check_snapshot_every, write_snapshot
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError", "Trainer", "ResolvedRun", "resolve_run", "inputs_digest",
            "seed_depth_prior"]
@@ -442,7 +443,7 @@ class Trainer:
     def evaluate_heldout(self) -> dict[str, float]:
         """Mean held-out PSNR, SSIM, LPIPS (NaN when off or absent), coverage and PSNR where
         covered over the test views: the ``test_*`` columns of log.parquet
-        (:mod:`splat_train.heldout`)."""
+        (:mod:`splat_train.training.heldout`)."""
         if self.scorer is None:
             return unmeasured()
         self.scorer.reset()
@@ -595,7 +596,7 @@ def train(seed: str | Path, cameras: str | Path, images: str | Path, out_dir: st
             other file or folder there is left alone), this run's is
             removed after its outputs are written.
         snapshot_every: write ``out_dir/snapshot.ply`` every this many iterations and at the
-            last (:mod:`splat_train.snapshot`; what ``python -m splat_train view`` follows);
+            last (:mod:`splat_train.training.snapshot`; what ``python -m splat_train view`` follows);
             None: never.
 
     Raises:

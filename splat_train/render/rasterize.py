@@ -1,9 +1,9 @@
 """Public differentiable Gaussian rasterizer: :func:`rasterize`.
 
 Layers (gsplat style): this module checks inputs and runs the steps; projection
-(:mod:`splat_train.projection`), SH colour (:mod:`splat_train.sh`) and the blending backends
-(:mod:`splat_train.cpu.raster`, :mod:`splat_train._tiles`, :mod:`splat_train._reference`,
-:mod:`splat_train._gsplat_backend`) are private building blocks.
+(:mod:`splat_train.render.projection`), SH colour (:mod:`splat_train.render.sh`) and the blending backends
+(:mod:`splat_train.render.cpu.raster`, :mod:`splat_train.render._tiles`, :mod:`splat_train.render._reference`,
+:mod:`splat_train.render._gsplat_backend`) are private building blocks.
 
 Convention: ``cam_from_world`` maps world -> OpenCV camera (x right, y down, z forward); ``K``
 maps camera points to pixel coordinates with the top-left pixel centre at (0.5, 0.5) (COLMAP).
@@ -21,9 +21,9 @@ import logging
 import torch
 from torch import Tensor
 
-from splat_train import _reference
-from splat_train.projection import EPS2D, NEAR_PLANE, Projected, project_gaussians
-from splat_train.sh import num_sh_bases, sh_concat, sh_to_color
+from splat_train.render import _reference
+from splat_train.render.projection import EPS2D, NEAR_PLANE, Projected, project_gaussians
+from splat_train.render.sh import num_sh_bases, sh_concat, sh_to_color
 
 __all__ = ["rasterize", "resolve_backend", "BACKENDS", "SKEW_ERROR"]
 
@@ -62,11 +62,11 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     if backend != "auto":
         return backend
     if device.type == "cpu":
-        from splat_train.cpu import raster as cpu_raster
+        from splat_train.render.cpu import raster as cpu_raster
 
         return "cpu" if cpu_raster.available() else "torch"
     if device.type == "cuda":
-        from splat_train import _gsplat_backend
+        from splat_train.render import _gsplat_backend
 
         if _gsplat_backend.available():
             return "gsplat"
@@ -88,7 +88,7 @@ def _fused_projection_ok(means: Tensor, cam_from_world: Tensor, K: Tensor, kerne
         return False
     if cam_from_world.requires_grad and not kernel_camera_grad:
         return False
-    from splat_train.cpu import project as cpu_project
+    from splat_train.render.cpu import project as cpu_project
 
     return cpu_project.available()
 
@@ -103,17 +103,17 @@ def blend(backend: str, proj: Projected, features: Tensor, opacities: Tensor) ->
         opacities: [N] in [0, 1], dtype of ``proj.means2d``.
 
     Returns:
-        As :func:`splat_train._reference.blend_dense`: accum [H, W, F] (no background) and
+        As :func:`splat_train.render._reference.blend_dense`: accum [H, W, F] (no background) and
         final transmittance [H, W].
     """
     if backend == "reference":
         return _reference.blend_dense(proj, features, opacities)
     if backend == "torch":
-        from splat_train import _tiles
+        from splat_train.render import _tiles
 
         return _tiles.blend_tiles(proj, features, opacities)
     if backend == "cpu":
-        from splat_train.cpu import raster as cpu_raster
+        from splat_train.render.cpu import raster as cpu_raster
 
         return cpu_raster.blend_cpu(proj, features, opacities, kernel=backend)
     raise ValueError(f"blend backend must be 'cpu', 'torch' or 'reference', got {backend!r}")
@@ -171,7 +171,7 @@ def rasterize(
         near_plane: Gaussians with camera z below this are culled.
         kernel_camera_grad: with the "cpu" backend and a ``cam_from_world`` that requires grad
             (K must not), keep the fused C++ projection and let its backward give the camera's
-            gradient (:mod:`splat_train.cpu.project`) instead of running the torch projection
+            gradient (:mod:`splat_train.render.cpu.project`) instead of running the torch projection
             and SH over every Gaussian: the same gradient (float64 maths in both), an order of
             magnitude faster. The test-pose protocol sets it; training's pose refinement does not.
         depth: False lets a backend skip the depth outputs: gsplat then blends colour only and
@@ -195,7 +195,7 @@ def rasterize(
         backend (to compare with 3DGS's NDC-based densification threshold, multiply x by W/2
         and y by H/2, as :mod:`splat_train.strategy.densify` does),
         ``radii`` [N] int32 3DGS's 3-sigma screen radius in pixels
-        (:func:`splat_train.projection.screen_radius`), 0 = culled, for every backend (gsplat's
+        (:func:`splat_train.render.projection.screen_radius`), 0 = culled, for every backend (gsplat's
         own opacity-aware per-axis radii are converted),
         ``visible`` [N] bool (= radii > 0),
         ``depths`` [N] camera z of the means, ``conics`` [N, 3], ``colors`` [N, 3] the
@@ -241,7 +241,7 @@ def rasterize(
         colors = sh_concat(*colors, sh_degree)
 
     if which == "gsplat":
-        from splat_train import _gsplat_backend
+        from splat_train.render import _gsplat_backend
 
         return _gsplat_backend.rasterize_gsplat(
             means, quats, scales, opacities, colors, cam_from_world, K, width, height,
@@ -249,7 +249,7 @@ def rasterize(
         )
 
     if fused:
-        from splat_train.cpu import project as cpu_project
+        from splat_train.render.cpu import project as cpu_project
 
         proj, rgb_g, feat = cpu_project.project_sh_cpu(
             means, quats, scales, colors, sh_degree, cam_from_world, K, width, height, near_plane, EPS2D,

@@ -5,7 +5,7 @@
 per-pair gradients once per Gaussian in C. (The scalar kernel it replaced, backend "cpu_v1", is
 deleted; their side-by-side timings are recorded in ``benchmarks/README.md``.)
 
-Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train.cpu.build`.
+Building, loading (SIMD level chosen at load time), threads: :mod:`splat_train.render.cpu.build`.
 If no compiler is present or every build fails, the failure is logged once and
 :func:`available` returns False; the public rasterizer then uses the vectorised torch tile code.
 
@@ -26,13 +26,13 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from splat_train.cpu.build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
-from splat_train.cpu.build import Kernel as _Kernel
-from splat_train.cpu.build import ptr as _ptr
-from splat_train.cpu.build import run_threaded as _run_threaded
-from splat_train.cpu.build import suffix as _suffix
-from splat_train._reference import depth_order
-from splat_train.projection import TILE_SIZE, Projected
+from splat_train.render.cpu.build import KERNEL_REGISTRY, kernel_threads, set_kernel_threads
+from splat_train.render.cpu.build import Kernel as _Kernel
+from splat_train.render.cpu.build import ptr as _ptr
+from splat_train.render.cpu.build import run_threaded as _run_threaded
+from splat_train.render.cpu.build import suffix as _suffix
+from splat_train.render._reference import depth_order
+from splat_train.render.projection import TILE_SIZE, Projected
 
 __all__ = [
     "KERNELS", "available", "load_library", "blend_cpu", "build_error", "forward_raw", "backward_raw",
@@ -168,7 +168,7 @@ def _scratch(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
 
 
 def _depth_order(lib, depths: Tensor, visible: Tensor) -> Tensor:
-    """:func:`splat_train._reference.depth_order` by the kernel's radix sort (float32 depths).
+    """:func:`splat_train.render._reference.depth_order` by the kernel's radix sort (float32 depths).
     Call with ``_scratch_lock`` held."""
     if depths.dtype != torch.float32:
         return depth_order(depths, visible).contiguous()
@@ -198,7 +198,7 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
 
     Returns:
         :class:`Bins`; without the footprint arguments the same lists as
-        :func:`splat_train._tiles.tile_pairs`, with them a subsequence of each tile's list.
+        :func:`splat_train.render._tiles.tile_pairs`, with them a subsequence of each tile's list.
     """
     lib = load_library(kernel)
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -246,7 +246,7 @@ def bin_cpu(depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: i
 def tile_pairs_cpu(
     depths: Tensor, rect: Tensor, visible: Tensor, width: int, height: int, kernel: str = "cpu"
 ) -> tuple[Tensor, Tensor, int, int]:
-    """:func:`splat_train._tiles.tile_pairs` with the list building in C (counting sort).
+    """:func:`splat_train.render._tiles.tile_pairs` with the list building in C (counting sort).
 
     Same results (offsets [T + 1], gauss [P], tiles_x, tiles_y); O(pairs) instead of a sort of
     all pairs.
@@ -297,7 +297,7 @@ def _footprints(lib, means2d: Tensor, conics: Tensor, opacities: Tensor, suffix:
     """[N, 8] float64 per-Gaussian footprint of the "cpu" kernel (rows / columns it can reach;
     contiguous tensors of the kernel's dtype); with rect [N, 4] int64 and spans [N, 32] int16
     also its binning record (tiles and per-row spans; spans is written). With ``first`` (see
-    :func:`splat_train.cpu.build.run_threaded`): (footprints, ``first()``'s result)."""
+    :func:`splat_train.render.cpu.build.run_threaded`): (footprints, ``first()``'s result)."""
     fp = torch.empty(conics.shape[0], 8, dtype=torch.float64)
     res = _run_threaded(getattr(lib, f"splat2_footprint_{suffix}"), conics.shape[0], _ptr(conics), _ptr(opacities),
                         _ptr(means2d), None if rect is None else _ptr(rect), _ptr(fp),
@@ -410,7 +410,7 @@ class _BlendCPU(torch.autograd.Function):
 def blend_cpu(proj: Projected, features: Tensor, opacities: Tensor, kernel: str = "cpu") -> tuple[Tensor, Tensor]:
     """C++ tile blending with a hand-written backward (CPU tensors, float32 or float64).
 
-    Arguments and results as :func:`splat_train._reference.blend_dense`: ``proj`` the
+    Arguments and results as :func:`splat_train.render._reference.blend_dense`: ``proj`` the
     screen-space Gaussians of one image (pixels, COLMAP convention; 16-pixel tiles, the
     kernel's), ``features`` [N, F], ``opacities`` [N]; returns accum [H, W, F] (no
     background) and final transmittance [H, W], rows = image y. ``kernel``: "cpu" (the SIMD

@@ -1,11 +1,11 @@
 // Tile-based Gaussian alpha blending on the CPU, SIMD across the pixels of a tile.
 //
-// Built by splat_train/cpu/raster.py with the system C++ compiler (plain C ABI through ctypes,
+// Built by splat_train/render/cpu/raster.py with the system C++ compiler (plain C ABI through ctypes,
 // no torch headers, no OpenMP). The SIMD width is chosen at load time by the build flags
 // (-mavx512f ... on CPUs that have AVX-512, -mavx2 -mfma on AVX2 ones, none elsewhere): the code
 // uses GCC/Clang vector extensions, one 16-lane vector per 16-pixel tile row, which the compiler
 // maps to one zmm register (AVX-512), two ymm (AVX2) or four xmm (SSE2). Semantics are those of
-// splat_train/_reference.py (3DGS forward rules) and of the scalar kernel it replaced (backend
+// splat_train/render/_reference.py (3DGS forward rules) and of the scalar kernel it replaced (backend
 // "cpu_v1", since deleted; benchmarks/README.md records their comparison):
 //
 // * Forward: per tile, Gaussians front to back; each Gaussian visits only the tile rows its

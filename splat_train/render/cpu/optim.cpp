@@ -6,7 +6,7 @@
 // torch.optim.Adam (fused) runs on torch's intra-op threads, which the trainer keeps at one:
 // torch's OpenMP workers spin after each parallel region on the cores the rasterizer's own
 // threads need next (Adam on two torch threads took 7 -> 6 ms but the render after it 36 -> 40
-// ms). This kernel runs on the rasterizer's threads (splat_train.cpu.build.run_threaded),
+// ms). This kernel runs on the rasterizer's threads (splat_train.render.cpu.build.run_threaded),
 // which leave no spinning worker behind. Adam is memory-bound (59 floats per Gaussian read
 // four times and written three times: ~330 MB per step at 200k Gaussians), and one core does
 // not reach the machine's bandwidth.

@@ -1,7 +1,7 @@
 """Fused EWA projection + SH colour in C++ (``project.cpp``), forward and backward.
 
-The CPU twin of :func:`splat_train.projection.project_gaussians` followed by
-:func:`splat_train.sh.sh_to_color`, which stay the reference (tests/test_raster_project.py
+The CPU twin of :func:`splat_train.render.projection.project_gaussians` followed by
+:func:`splat_train.render.sh.sh_to_color`, which stay the reference (tests/test_raster_project.py
 compares values and gradients in float64). One C pass per Gaussian replaces some hundred torch
 ops and their autograd graph: at 100k Gaussians that graph cost ~1.3 us per Gaussian per
 iteration (benchmarks/profile_rasterizer.py).
@@ -27,13 +27,13 @@ import ctypes
 import torch
 from torch import Tensor
 
-from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
-from splat_train.cpu.build import Kernel as _Kernel
-from splat_train.cpu.build import ptr as _ptr
-from splat_train.cpu.build import run_threaded as _run_threaded
-from splat_train.cpu.build import suffix as _suffix
-from splat_train.projection import TILE_SIZE, Projected
-from splat_train.sh import num_sh_bases
+from splat_train.render.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.render.cpu.build import Kernel as _Kernel
+from splat_train.render.cpu.build import ptr as _ptr
+from splat_train.render.cpu.build import run_threaded as _run_threaded
+from splat_train.render.cpu.build import suffix as _suffix
+from splat_train.render.projection import TILE_SIZE, Projected
+from splat_train.render.sh import num_sh_bases
 
 __all__ = ["available", "project_sh_cpu"]
 
@@ -213,12 +213,12 @@ def project_sh_cpu(
             their gradients directly, with no [N, K, 3] concatenation per call.
         cam_from_world: [4, 4] or [3, 4] world -> OpenCV camera.
         K: [3, 3] intrinsics (no gradient); width, height: image size; near, eps2d as in
-            :func:`splat_train.projection.project_gaussians`.
+            :func:`splat_train.render.projection.project_gaussians`.
         camera_grad: differentiate ``cam_from_world`` too (when it requires grad; module doc).
             False refuses a camera that requires grad.
 
     Returns:
-        (:class:`splat_train.projection.Projected`, colours [N, 3], feat [N, 4]): the values of
+        (:class:`splat_train.render.projection.Projected`, colours [N, 3], feat [N, 4]): the values of
         ``project_gaussians`` and ``sh_to_color`` (float64 maths) with their gradients; feat
         is (colour, depth) per row, the blend's features with no concatenation (colour 0 when
         ``sh_degree`` is None); ``Projected.depths`` and the SH colours are its columns.

@@ -4,7 +4,7 @@
 front-to-back order (stable depth sort, ties by index: the same order as the dense reference).
 :func:`blend_tiles` blends those lists with padded batched tensor ops; it is the fallback on
 devices without the C++ kernel (CUDA without gsplat, or no compiler) and is exact with respect
-to :func:`splat_train._reference.blend_dense`, with memory bounded by tiles x 256 x list length
+to :func:`splat_train.render._reference.blend_dense`, with memory bounded by tiles x 256 x list length
 per chunk instead of pixels x Gaussians.
 """
 
@@ -13,8 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from splat_train._reference import ALPHA_MAX, ALPHA_MIN, T_MIN, depth_order
-from splat_train.projection import TILE_SIZE, Projected
+from splat_train.render._reference import ALPHA_MAX, ALPHA_MIN, T_MIN, depth_order
+from splat_train.render.projection import TILE_SIZE, Projected
 
 __all__ = ["tile_pairs", "blend_tiles"]
 
@@ -99,7 +99,7 @@ def _blend_chunk(tiles, offsets, gauss, means2d, conics, features, opacities, ti
 
 def blend_tiles(proj: Projected, features: Tensor, opacities: Tensor) -> tuple[Tensor, Tensor]:
     """Vectorised tile blending (autograd); arguments and results as
-    :func:`splat_train._reference.blend_dense`: ``proj`` the screen-space Gaussians of one image
+    :func:`splat_train.render._reference.blend_dense`: ``proj`` the screen-space Gaussians of one image
     (pixels, COLMAP convention), ``features`` [N, F], ``opacities`` [N]; returns accum
     [H, W, F] (no background) and T_final [H, W], rows = image y."""
     means2d, conics = proj.means2d, proj.conics

@@ -12,9 +12,9 @@ disables every kernel (callers then use the torch code).
 
 Threads: :func:`kernel_threads` Python threads run the same C entry and share an atomic work
 counter (ctypes drops the GIL; no OpenMP runtime, so no spinning worker threads competing with
-torch's on a loaded machine). Registered kernels: ``cpu`` (:mod:`splat_train.cpu.raster`),
-``project`` (:mod:`splat_train.cpu.project`), ``ssim`` (:mod:`splat_train.cpu.ssim`), ``optim``
-(:mod:`splat_train.cpu.optim`).
+torch's on a loaded machine). Registered kernels: ``cpu`` (:mod:`splat_train.render.cpu.raster`),
+``project`` (:mod:`splat_train.render.cpu.project`), ``ssim`` (:mod:`splat_train.render.cpu.ssim`), ``optim``
+(:mod:`splat_train.render.cpu.optim`).
 """
 
 from __future__ import annotations
@@ -150,11 +150,11 @@ def build_seconds() -> float:
 
 def build_all() -> dict[str, str | None]:
     """Build (or find cached) every registered kernel; returns name -> None or the error.
-    ``python -m splat_train.cpu.build`` runs it, so that no training run pays for the build."""
+    ``python -m splat_train.render.cpu.build`` runs it, so that no training run pays for the build."""
     import importlib
 
     for module in ("raster", "project", "ssim", "optim"):  # each registers its kernel on import
-        importlib.import_module(f"splat_train.cpu.{module}")
+        importlib.import_module(f"splat_train.render.cpu.{module}")
     return {name: (None if k.load() is not None else k.error) for name, k in sorted(KERNEL_REGISTRY.items())}
 
 
@@ -234,8 +234,8 @@ KERNEL_REGISTRY: dict[str, Kernel] = {}
 
 
 def main() -> int:
-    """``python -m splat_train.cpu.build``: build every kernel once (scripts/install.sh runs it)."""
-    from splat_train.cpu import build  # the imported module, whose registry the kernels join (not __main__)
+    """``python -m splat_train.render.cpu.build``: build every kernel once (scripts/install.sh runs it)."""
+    from splat_train.render.cpu import build  # the imported module, whose registry the kernels join (not __main__)
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     t0 = time.perf_counter()

@@ -5,7 +5,7 @@
 // at every level, so the result does not depend on the SIMD level).
 //
 // Included by the kernel sources; the build cache key covers this header too
-// (splat_train/cpu/build.py), so editing it rebuilds both kernels.
+// (splat_train/render/cpu/build.py), so editing it rebuilds both kernels.
 #pragma once
 
 #include <cmath>

@@ -18,9 +18,9 @@ import math
 
 import torch
 
-from splat_train.cpu.build import KERNEL_REGISTRY as _KERNELS
-from splat_train.cpu.build import Kernel as _Kernel
-from splat_train.cpu.build import run_threaded as _run_threaded
+from splat_train.render.cpu.build import KERNEL_REGISTRY as _KERNELS
+from splat_train.render.cpu.build import Kernel as _Kernel
+from splat_train.render.cpu.build import run_threaded as _run_threaded
 
 __all__ = ["available", "adam_step", "densify_stats"]
 
