@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.outdir import LEDGER, LOCK, MARKER
+from runtime.ledger import LEDGER, LOCK, MARKER
 
 from _cli import ENV, ROOT, refused, run
 
