@@ -19,8 +19,10 @@ read it:
 * ``<out>/.stage.lock`` (:data:`LOCK`): the writer's pid (:mod:`runtime.outlock`).
 
 It holds the names of these files, reading, replacing and appending them, the stamps and the
-records, and the entries of a folder that count when it is compared with its records
-(:func:`_tree`). docs/contracts.md gives the same formats.
+records, the entries of a folder that count when it is compared with its records
+(:func:`_tree`), and :class:`OutputFolderError`, the one error of the whole rule: it lives here,
+in the rule's lowest module, because reading these files already refuses. docs/contracts.md
+gives the same formats.
 """
 
 from __future__ import annotations
@@ -76,6 +78,7 @@ class OutputFolderError(ValueError):
 
 
 def _resolved(p: PathLike) -> Path:
+    """``p`` absolute, links resolved: how the rule compares paths and keys its folders."""
     return Path(os.path.abspath(os.fspath(p))).resolve()  # as the stage will open it (no ~ expansion)
 
 
