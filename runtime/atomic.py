@@ -23,7 +23,7 @@ __all__ = ["atomic_path", "atomic_dir", "scratch_dir", "write_json", "save_npz"]
 
 BEFORE_RENAME: list[Callable[[Path, Path], None]] = []
 """Called as ``hook(tmp, path)`` when a temporary is complete, before it is renamed onto
-``path`` (:mod:`runtime.outdir` records there what a stage writes, so that a rerun knows it even
+``path`` (:mod:`runtime.outrun` records there what a stage writes, so that a rerun knows it even
 after a kill, and refuses to replace what is not the stage's). A hook that raises stops the
 write; the temporary is removed."""
 
@@ -57,7 +57,7 @@ def _temporary(make: Callable[[], Path], remove: Callable[[Path], None]) -> Iter
 
 #: bytes a temporary's name adds to the name of the file or folder it stands for
 #: (``.`` + stem + ``.`` + 8 random characters + ``.tmp`` + suffix): an output's own name must
-#: leave room for them under the file system's name limit (runtime.outdir checks ``--out``)
+#: leave room for them under the file system's name limit (runtime.outcheck checks ``--out``)
 TEMP_NAME_EXTRA = 14
 
 

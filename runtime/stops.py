@@ -13,7 +13,8 @@ active: right after such a module is imported (pycolmap is imported lazily, insi
 work), the handlers are installed again.
 
 :func:`stops_held` holds the signals back for a few lines of bookkeeping that must not be cut
-in half (``runtime.atomic``'s temporary names, ``runtime.outdir``'s markers and lock).
+in half (``runtime.atomic``'s temporary names, ``runtime.ledger``'s markers, the lock that
+``runtime.outdir.prepare_out`` takes).
 :func:`run_command` is the ending of a command without an output folder (a benchmark runner);
 :func:`run_child` runs a child command and passes a stop on to it, waiting for its cleanup.
 

@@ -246,7 +246,8 @@ def _out_ok(out: str, inputs: dict, stage: str, fresh: bool = False, folder: boo
     run's files, so the folder never mixes two runs (seal it with runtime.outdir.seal_out).
     ``folder``: False for a command that writes one file (an export, a video); ``flag``: the
     option that named ``out`` (``--video``), as the refusal names it."""
-    from runtime.outdir import OutputFolderError, prepare_out
+    from runtime.ledger import OutputFolderError
+    from runtime.outdir import prepare_out
 
     try:
         prepare_out(out, inputs, stage, fresh=fresh, folder=folder, flag=flag)
@@ -316,7 +317,9 @@ def _render_video(args: argparse.Namespace, bg: tuple[float, float, float] | Non
 def main(argv: list[str] | None = None) -> int:
     """Train, render, test-pose or view; the output folder's writer's lock is given up when the
     command returns or raises (runtime.outdir)."""
-    from runtime.outdir import OutputFolderError, finish_outs, release_locks
+    from runtime.ledger import OutputFolderError
+    from runtime.outdir import finish_outs
+    from runtime.outlock import release_locks
 
     try:
         rc = _main(argv)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.outdir import MARKER
+from runtime.ledger import MARKER
 
 
 def _tree(root: Path) -> dict[str, bytes]:

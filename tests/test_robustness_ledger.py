@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.outdir import LEDGER, LOCK, MARKER
+from runtime.ledger import LEDGER, LOCK, MARKER
 
 from _cli import ENV, ROOT, refused, run
 
@@ -112,6 +112,38 @@ def test_a_replacing_stage_after_a_killed_run_keeps_what_the_user_added(tmp_path
     refused(run(["-m", "camio", "synth", "--out", str(out), "--views", "9", "--width", "32"]),
             str(out / "notes.txt"), "did not write")
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_the_lock_of_a_killed_writer_is_taken_over_with_one_log_line(tmp_path):
+    """A writer killed with SIGKILL leaves its lock file (its pid in it); the kernel released the
+    lock, so the next command takes it over, says so in one log line of the output rule's logger,
+    and gives the lock up when it ends."""
+    out = tmp_path / "scene"
+    proc = subprocess.run([sys.executable, "-c", _KILLED, str(out)], cwd=ROOT, env=ENV, capture_output=True)
+    assert proc.returncode == -signal.SIGKILL
+    dead = (out / LOCK).read_text().strip()
+    assert dead.isdigit(), dead
+    rerun = run(["-m", "camio", "synth", "--out", str(out), "--views", "9", "--width", "32"])
+    assert rerun.returncode == 0, rerun.stderr
+    assert f"INFO runtime.outdir: taking over the lock of {out}: process {dead} has ended" in rerun.stderr
+    assert not (out / LOCK).exists()
+
+
+def test_a_fresh_rerun_logs_how_many_of_its_files_it_removed(view, tmp_path):
+    """``splat_train render`` reruns into its folder: it first removes the files its earlier run
+    recorded (one log line of the output rule's logger, naming the count, the stage and the
+    folder), so the folder never mixes two runs."""
+    out = tmp_path / "renders"
+    assert _render(view, out, ["view00.png", "view01.png"]).returncode == 0
+    lines = (out / MARKER).read_text().splitlines()
+    assert lines[:2] == ["splat_train render", "#files"], lines
+    files = [rec for rec in map(json.loads, lines[2:]) if len(rec) > 1]
+    assert {"view00.png", "view01.png"} <= {rec[0] for rec in files}
+    rerun = _render(view, out, ["view02.png"])
+    assert rerun.returncode == 0, rerun.stderr
+    assert (f"INFO runtime.outdir: removed {len(files)} files of the earlier `splat_train render` run from {out}"
+            in rerun.stderr), rerun.stderr[-2000:]
+    assert not (out / "view00.png").exists() and (out / "view02.png").is_file()
 
 
 # --- a marker or ledger this version does not read ---------------------------------------------

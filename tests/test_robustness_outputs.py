@@ -19,7 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from runtime.outdir import LOCK, MARKER, check_name, check_name_list
+from runtime.ledger import LOCK, MARKER
+from runtime.names import check_name, check_name_list
 
 from _cli import ENV, ROOT
 from _cli import refused as _refused
@@ -272,7 +273,8 @@ def test_two_trainers_on_one_folder_one_is_refused(tmp_path):
                               stdout=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
     try:
         assert holder.stdout.readline().strip() == "ready"
-        from runtime.outdir import OutputFolderError, prepare_out
+        from runtime.ledger import OutputFolderError
+        from runtime.outdir import prepare_out
 
         with pytest.raises(OutputFolderError, match=f"pid {holder.pid}"):
             prepare_out(out, {}, "splat_train")

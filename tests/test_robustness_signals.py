@@ -24,7 +24,7 @@ from typing import Callable
 import pytest
 
 from _cli import ENV, ROOT
-from runtime.outdir import LEDGER, LOCK, MARKER
+from runtime.ledger import LEDGER, LOCK, MARKER
 
 SIGNALS = [signal.SIGTERM, signal.SIGINT, signal.SIGHUP]
 READY_S = 240  # generous: the machine may be loaded; the command is stopped as soon as it is ready
