@@ -28,6 +28,7 @@ import numpy as np
 
 from runtime.atomic import atomic_path
 from runtime.checks import check_folder
+from runtime.stops import stops_held
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -351,12 +352,15 @@ def write_image(path: str | Path, img: np.ndarray, bits: int = 8, jpeg_quality: 
     if ext in (".jpg", ".jpeg"):
         spec.attribute("Compression", f"jpeg:{int(jpeg_quality)}")
     with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise OSError(f"write_image: no writer for {path}: {oiio.geterror()}")
-        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(data))
-        err = out.geterror() if not ok else ""
-        out.close()
+        # one image is written whole before a stop acts: a stop between open and close left
+        # the codec half-way, and libpng printed "No IDATs written into file" on the way out
+        with stops_held():
+            out = oiio.ImageOutput.create(str(tmp))
+            if out is None:
+                raise OSError(f"write_image: no writer for {path}: {oiio.geterror()}")
+            ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(data))
+            err = out.geterror() if not ok else ""
+            out.close()
         if not ok:
             raise OSError(f"write_image: cannot write {path}: {err}")
     return path
