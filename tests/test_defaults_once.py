@@ -180,14 +180,6 @@ UNRESOLVED = {
         "splat_train's: --checkpoint-every's help writes TrainConfig's 500 by hand (%(default)s removes it)",
     ("splat_train/__main__.py", "eval_every"):
         "splat_train's: --eval-every's help writes TrainConfig's 200 by hand (%(default)s removes it)",
-    ("evaluation/initialisers/colmap_baseline.py", "max_image_size"):
-        "--max-image-size's default= writes ColmapSettings' 3200 (default=ColmapSettings().max_image_size)",
-    ("evaluation/initialisers/colmap_baseline.py", "max_num_features"):
-        "--max-num-features's default= writes ColmapSettings' 16384 (default=ColmapSettings().max_num_features)",
-    ("evaluation/initialisers/triangulate.py", "max_image_size"):
-        "triangulate_known_poses' parameter writes ColmapSettings' 3200 (take a ColmapSettings)",
-    ("evaluation/initialisers/triangulate.py", "max_num_features"):
-        "triangulate_known_poses' parameter writes ColmapSettings' 16384 (take a ColmapSettings)",
     ("workflow/schemas/config.schema.yaml", "conf_scale"):
         "workflow/rules/study_plan.smk gives every study cell --conf-scale from config oracle, so the schema "
         "fills it (null once that rule passes it only when set); test_schema_defaults_are_null_or_the_stages "
@@ -199,7 +191,6 @@ UNRESOLVED = {
 HELP_UNRESOLVED = {
     **{("splat_train/__main__.py", flag): "splat_train's: its CLI's help (%(default)s removes it)"
        for flag in ("downsample", "seed", "checkpoint_every", "eval_every", "threads", "kernel_threads")},
-    ("evaluation/initialisers/colmap_baseline.py", "seed"): "--seed's help says (default 0) (%(default)s removes it)",
 }
 
 

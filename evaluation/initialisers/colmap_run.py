@@ -1,7 +1,8 @@
 """The train-only COLMAP baseline, seeded and repeatable.
 
 Settings: SIFT features (one shared PINHOLE camera, or one per image size where the images
-differ in size, e.g. portrait and landscape photos; max image size 3200, max 16384 features), exhaustive matching with guided matching, incremental mapping, all through
+differ in size, e.g. portrait and landscape photos; max image size :data:`MAX_IMAGE_SIZE`, at most
+:data:`MAX_NUM_FEATURES` features), exhaustive matching with guided matching, incremental mapping, all through
 pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
@@ -54,6 +55,10 @@ MIN_ALIGN_IMAGES = 3
 #: threads of a COLMAP run unless told otherwise: 1 gives the same model on every run (bitwise);
 #: 0 = every available core, faster, but the mapper's parallel steps may then order work differently
 DEFAULT_THREADS = 1
+#: SIFT extraction downsizes larger images to this (pixels, long side): the protocol's setting
+MAX_IMAGE_SIZE = 3200
+#: SIFT features per image at most: the protocol's setting
+MAX_NUM_FEATURES = 16384
 
 
 def available_cores() -> int:
@@ -79,7 +84,7 @@ class ColmapSettings:
         matching_threads: the matcher's thread count (recorded in ``status.json``).
     """
 
-    def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
+    def __init__(self, max_image_size: int = MAX_IMAGE_SIZE, max_num_features: int = MAX_NUM_FEATURES,
                  guided_matching: bool = True, camera_model: str = "PINHOLE",
                  num_threads: int | None = DEFAULT_THREADS) -> None:
         self.max_image_size = int(max_image_size)

@@ -19,6 +19,7 @@ import numpy as np
 from runtime.atomic import scratch_dir
 from camio.cameras import Camera, rotmat_to_qvec
 from camio.colmap import SparseModel, cpu_matching_options, read_model
+from evaluation.initialisers.colmap_run import MAX_IMAGE_SIZE, MAX_NUM_FEATURES
 
 __all__ = ["triangulate_known_poses"]
 
@@ -26,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_threads: int = 1,
-                            max_image_size: int = 3200, max_num_features: int = 16384,
+                            max_image_size: int = MAX_IMAGE_SIZE, max_num_features: int = MAX_NUM_FEATURES,
                             seed: int = 0) -> tuple[SparseModel, dict]:
     """Triangulate points seen in ``cameras``' images with the cameras held fixed.
 

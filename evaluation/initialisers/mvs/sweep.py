@@ -27,6 +27,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from evaluation.initialisers.mvs.run import MvsConfig  # the defaults of the sweep's settings
+
 __all__ = ["SweepResult", "relative_pose", "ray_grid", "box_mean", "ncc_costs", "plane_sweep",
            "matching_confidence", "inverse_depth_planes"]
 
@@ -186,8 +188,10 @@ def _sweep_family(ref, ref_mean, ref_std, src_data, rays, normal, sigma_range, r
 
 def plane_sweep(ref_gray: np.ndarray, ref_K: np.ndarray, ref_cfw: np.ndarray,
                 sources: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rhos: np.ndarray, *,
-                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), window: int = 7, top_k: int = 1,
-                min_std: float = 0.01, margin_scale: float = 0.1, exclusion: int = 2, chunk: int = 16) -> SweepResult:
+                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), window: int = MvsConfig.window,
+                top_k: int = 1, min_std: float = MvsConfig.min_std, margin_scale: float = MvsConfig.margin_scale,
+                exclusion: int = 2,
+                chunk: int = MvsConfig.chunk) -> SweepResult:
     """Depth of every pixel of a reference view by a plane sweep (module docstring).
 
     Args:
