@@ -42,6 +42,7 @@ from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import MIN_IMAGE_SIDE, ImageReadError, check_images
 from evaluation.metrics.pose import paper_success
 from runtime.logs import peak_rss_mb
+from runtime.native import stoppable
 
 __all__ = [
     "ColmapSettings",
@@ -226,6 +227,19 @@ def _options(settings: ColmapSettings, seed: int):
     return reader, extraction, matching, verification, mapping
 
 
+def _map(db: Path, images: Path, sparse: Path, options) -> list[int]:
+    """Incremental mapping in :func:`runtime.native.stoppable`'s child: every model written to
+    ``sparse/<i>`` (COLMAP binary, read back exactly), their keys returned (a
+    ``pycolmap.Reconstruction`` does not pickle)."""
+    import pycolmap
+
+    recs = pycolmap.incremental_mapping(db, images, sparse, options=options)
+    for i, rec in recs.items():
+        (sparse / str(i)).mkdir(parents=True, exist_ok=True)
+        rec.write(str(sparse / str(i)))
+    return sorted(recs)
+
+
 def _largest(recs: dict) -> tuple[int | None, object | None]:
     """The model with the most registered images (ties: most points), or (None, None)."""
     best_key, best = None, None
@@ -300,19 +314,24 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
             log.info("COLMAP baseline: %d training images (%s), seed %d, %d threads", len(names),
                      f"a camera for each of {len({w.split('/')[0] for w in work_names.values()})} image sizes"
                      if per_size else "one camera", seed, settings.num_threads)
+            # each long pycolmap call runs where a stop signal ends it at once (runtime.native)
             t = time.perf_counter()
-            pycolmap.extract_features(db, work / "images", image_names=[work_names[n] for n in names],
-                                      camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size
-                                      else pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            log.info("feature extraction started")
+            stoppable("feature extraction", pycolmap.extract_features, db, work / "images",
+                      image_names=[work_names[n] for n in names],
+                      camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size else pycolmap.CameraMode.SINGLE,
+                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
             log.info("feature extraction done in %.2f s", time.perf_counter() - t)
             t = time.perf_counter()
-            pycolmap.match_exhaustive(db, matching_options=matching,
-                                      verification_options=verification, device=pycolmap.Device.cpu)
+            log.info("exhaustive matching started")
+            stoppable("exhaustive matching", pycolmap.match_exhaustive, db, matching_options=matching,
+                      verification_options=verification, device=pycolmap.Device.cpu)
             log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
             t = time.perf_counter()
             (work / "sparse").mkdir()
-            recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
+            log.info("incremental mapping started")
+            recs = {i: pycolmap.Reconstruction(str(work / "sparse" / str(i)))
+                    for i in stoppable("incremental mapping", _map, db, work / "images", work / "sparse", mapping)}
             log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
                      len(recs))
             status["num_models"] = len(recs)
