@@ -180,10 +180,6 @@ UNRESOLVED = {
         "splat_train's: --checkpoint-every's help writes TrainConfig's 500 by hand (%(default)s removes it)",
     ("splat_train/__main__.py", "eval_every"):
         "splat_train's: --eval-every's help writes TrainConfig's 200 by hand (%(default)s removes it)",
-    ("workflow/schemas/config.schema.yaml", "conf_scale"):
-        "workflow/rules/study_plan.smk gives every study cell --conf-scale from config oracle, so the schema "
-        "fills it (null once that rule passes it only when set); test_schema_defaults_are_null_or_the_stages "
-        "compares it with the oracle's",
 }
 
 
@@ -406,8 +402,6 @@ WORKFLOW_OWNED = {
 
 # Schema defaults that equal a stage's default because the workflow itself reads the key: {key: why}.
 SCHEMA_COPIES = {
-    "oracle.conf_scale": "every study cell passes it (workflow/rules/study_plan.smk)",
-    "oracle.downsample": "every study cell passes it (workflow/rules/study_plan.smk)",
     "colmap.repeats": "the workflow plans from it: more than one run adds --repeats and the reference (--ref)",
 }
 
@@ -437,8 +431,6 @@ WORKFLOW_FLAGS = {
     "--threads": "the rule's threads, a resource (WORKFLOW_OWNED)",
     "--mode": "the job's Bridge mode wildcard (bridge.modes)",
     "--n": "the job's view count wildcard (views)",
-    **{flag: SCHEMA_COPIES[f"oracle.{key}"] for flag, key in (("--conf-scale", "conf_scale"),
-                                                               ("--downsample", "downsample"))},
 }
 # the schema's sections whose keys feed stage commands
 _STAGE_SECTIONS = ("vggt", "colmap", "oracle", "posed", "mvs", "random", "ba", "bridge", "train", "evaluation")
