@@ -28,9 +28,10 @@ in its ``__init__``, which acts only when the process was started with ``python 
 that lands inside a native module's initialisation surfaces as that module's ``ImportError``;
 :func:`stopping` tells the command's ending that it was a stop.
 
-Limits: Python runs a handler between two bytecodes of the main thread, so a stop that comes
-during one long native call (a pycolmap reconstruction step) takes effect when that call
-returns.
+Python runs a handler between two bytecodes of the main thread, so a stop that comes during one
+long native call would take effect only when that call returns: the long pycolmap calls
+(feature extraction, matching, mapping, triangulation, bundle adjustment) therefore run through
+:func:`runtime.native.stoppable`, in a child process that a stop kills and reaps at once.
 """
 
 from __future__ import annotations

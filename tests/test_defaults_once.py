@@ -176,24 +176,11 @@ SHARED = {
 # {(file, name): what}. test_unresolved_repeats_are_still_there fails once one is gone, so the
 # entry goes too.
 UNRESOLVED = {
-    ("evaluation/initialisers/colmap_baseline.py", "max_image_size"):
-        "--max-image-size's default= writes ColmapSettings' 3200 (default=ColmapSettings().max_image_size)",
-    ("evaluation/initialisers/colmap_baseline.py", "max_num_features"):
-        "--max-num-features's default= writes ColmapSettings' 16384 (default=ColmapSettings().max_num_features)",
-    ("evaluation/initialisers/triangulate.py", "max_image_size"):
-        "triangulate_known_poses' parameter writes ColmapSettings' 3200 (take a ColmapSettings)",
-    ("evaluation/initialisers/triangulate.py", "max_num_features"):
-        "triangulate_known_poses' parameter writes ColmapSettings' 16384 (take a ColmapSettings)",
-    ("workflow/schemas/config.schema.yaml", "conf_scale"):
-        "workflow/rules/study_plan.smk gives every study cell --conf-scale from config oracle, so the schema "
-        "fills it (null once that rule passes it only when set); test_schema_defaults_are_null_or_the_stages "
-        "compares it with the oracle's",
 }
 
 
 # Help texts that still write their flag's default by hand: {(file, flag): what}.
 HELP_UNRESOLVED = {
-    ("evaluation/initialisers/colmap_baseline.py", "seed"): "--seed's help says (default 0) (%(default)s removes it)",
 }
 
 
@@ -409,8 +396,6 @@ WORKFLOW_OWNED = {
 
 # Schema defaults that equal a stage's default because the workflow itself reads the key: {key: why}.
 SCHEMA_COPIES = {
-    "oracle.conf_scale": "every study cell passes it (workflow/rules/study_plan.smk)",
-    "oracle.downsample": "every study cell passes it (workflow/rules/study_plan.smk)",
     "colmap.repeats": "the workflow plans from it: more than one run adds --repeats and the reference (--ref)",
 }
 
@@ -440,8 +425,6 @@ WORKFLOW_FLAGS = {
     "--threads": "the rule's threads, a resource (WORKFLOW_OWNED)",
     "--mode": "the job's Bridge mode wildcard (bridge.modes)",
     "--n": "the job's view count wildcard (views)",
-    **{flag: SCHEMA_COPIES[f"oracle.{key}"] for flag, key in (("--conf-scale", "conf_scale"),
-                                                               ("--downsample", "downsample"))},
 }
 # the schema's sections whose keys feed stage commands
 _STAGE_SECTIONS = ("vggt", "colmap", "oracle", "posed", "mvs", "random", "ba", "bridge", "train", "evaluation")

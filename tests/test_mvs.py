@@ -244,7 +244,9 @@ def test_repeated_texture_is_not_trusted():
         else:
             wide = rng.random((H, W + shift)).astype(np.float32)
         ref, src = wide[:, :W], wide[:, shift:]  # the wall seen from the left and from the right
-        res = plane_sweep(ref, K, ref_cfw, [(src, K, src_cfw)], rhos, window=5)
+        cfg = MvsConfig()
+        res = plane_sweep(ref, K, ref_cfw, [(src, K, src_cfw)], rhos, window=5, min_std=cfg.min_std,
+                          margin_scale=cfg.margin_scale, chunk=cfg.chunk)
         conf[kind] = float(np.median(res.conf[8:-8, 16:-16]))
         if kind == "random":
             good = np.abs(res.depth[8:-8, 16:-16] - d) / d < 0.05

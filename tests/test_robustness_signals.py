@@ -339,3 +339,60 @@ def test_a_stage_started_under_nohup_keeps_working_through_a_hangup(splats, tmp_
     _, err = proc.communicate(timeout=READY_S)
     assert proc.returncode == 0 and "stopped by" not in err, err[-3000:]
     assert (out / "model.ply").is_file()
+
+
+@pytest.fixture(scope="module")
+def long_colmap(tmp_path_factory) -> dict:
+    """A COLMAP input whose feature extraction and matching take seconds each: 6 synthetic views
+    of 640 px (``camio synth``), each copied 7 times under its own name (42 images)."""
+    import shutil
+
+    from _cli import run
+
+    root = tmp_path_factory.mktemp("longcolmap")
+    proc = run(["-m", "camio", "synth", "--out", str(root / "scene"), "--views", "6", "--width", "640", "-q"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = []
+    (root / "images").mkdir()
+    for src in sorted((root / "scene" / "images").iterdir()):
+        for k in range(7):
+            names.append(f"c{k}_{src.name}")
+            shutil.copy2(src, root / "images" / names[-1])
+    return {"images": root / "images", "names": names}
+
+
+NATIVE_STOPS = [("feature extraction", signal.SIGTERM), ("exhaustive matching", signal.SIGTERM),
+                ("feature extraction", signal.SIGINT)]
+NATIVE_STOP_S = 4.0  # from the signal to the command's end; the step itself runs far longer
+
+
+@pytest.mark.parametrize("step,sig", NATIVE_STOPS, ids=[f"{s.replace(' ', '_')}-{g.name}" for s, g in NATIVE_STOPS])
+def test_a_stop_inside_a_long_pycolmap_call_ends_the_command_at_once(long_colmap, tmp_path, step, sig):
+    """A stop that lands inside one long native pycolmap call (runtime.native.stoppable) ends
+    the command within seconds, not when the call returns: exit 128 + the signal, one line and
+    nothing else after the step began, no traceback, no process left over, no scratch folder,
+    nothing under the output's final names (sparse/, status.json)."""
+    out = tmp_path / "out"
+    seen: list[float] = []
+    sent: list[float] = []
+
+    def ready(run: _Run) -> bool:  # half a second into the step: the native call is under way
+        if not seen and f"{step} started" in run.text:
+            seen.append(time.monotonic())
+        if seen and time.monotonic() - seen[0] > 0.5:
+            sent.append(time.monotonic())
+            return True
+        return False
+
+    run = _Run(["-m", "evaluation.initialisers.colmap_baseline", "--images", str(long_colmap["images"]),
+                "--names", *long_colmap["names"], "--out", str(out)])
+    rc, err = run.stop_when(ready, sig)
+    took = time.monotonic() - sent[0]
+    check_stopped(rc, err, sig, out, "evaluation.colmap_baseline")
+    after = err.split(f"{step} started\n", 1)[1].splitlines()
+    # the stop landed inside the call, and nothing of it speaks afterwards (pycolmap's own
+    # interruption logs a glog line "Stopping thread..." and ends only its current image)
+    assert len(after) == 1 and "stopped by" in after[0], err[-3000:]
+    assert took < NATIVE_STOP_S, (took, err[-3000:])
+    assert not _processes_naming(str(out)), _processes_naming(str(out))  # the call's child was reaped
+    assert not out.exists() or not {"sparse", "status.json", "work"} & set(os.listdir(out)), os.listdir(out)

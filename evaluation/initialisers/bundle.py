@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
 from runtime.atomic import scratch_dir
+from runtime.native import stoppable
 from camio.cameras import project_points
 from camio.colmap import SparseModel, read_model, write_text_model
 
@@ -84,6 +86,17 @@ def rescale_about_first_camera(model: SparseModel, ref_cameras: list) -> tuple[S
     return SparseModel(cams, pts, model.colors, model.observations, model.camera_models), s
 
 
+def _solve(options, config, rec, out: Path) -> dict:
+    """The bundle adjustment in :func:`runtime.native.stoppable`'s child: ``rec`` refined and
+    written to ``out`` in COLMAP text form; returns ``termination`` and ``usable`` (a solver
+    summary does not pickle)."""
+    import pycolmap
+
+    summary = pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+    rec.write_text(str(out))
+    return {"termination": str(summary.termination_type).split(".")[-1], "usable": bool(summary.is_solution_usable())}
+
+
 def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px: float | None = 1.0,
                   max_iterations: int = 100, num_threads: int = 1) -> tuple[SparseModel, dict]:
     """Refine the cameras and points of ``model`` by bundle adjustment (module docstring).
@@ -129,9 +142,9 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
             if image.name == first:
                 config.set_constant_rig_from_world_pose(image.frame_id)
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        summary = pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
         (work / "out").mkdir()
-        rec.write_text(str(work / "out"))
+        # a long solve runs where a stop signal ends it at once (runtime.native)
+        summary = stoppable("bundle adjustment", _solve, options, config, rec, work / "out")
         out = read_model(work / "out")
     by_name = {c.name: c for c in out.cameras}
     cams = [by_name[c.name] for c in model.cameras]
@@ -142,8 +155,7 @@ def bundle_adjust(model: SparseModel, refine_focal: bool = False, loss_scale_px:
         "reproj_error_px_before": float(before.mean()) if len(before) else None,
         "reproj_error_px_after": float(after.mean()) if len(after) else None,
         "n_points": int(len(refined.points)), "n_observations": int(len(after)),
-        "termination": str(summary.termination_type).split(".")[-1],
-        "usable": bool(summary.is_solution_usable()),
+        "termination": summary["termination"], "usable": summary["usable"],
         "gauge": f"first camera {first!r} constant; scale: RMS centre distance from it restored "
                  "(solved with pycolmap's TWO_CAMS_FROM_WORLD gauge)",
         "gauge_rescale": scale,

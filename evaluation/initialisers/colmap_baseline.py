@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--images", required=True, help="scene image folder")
     add_view_args(p)
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=flag(int, 0), default=0, help="PRNG seed (default 0)")
+    p.add_argument("--seed", type=flag(int, 0), default=0, help="PRNG seed (default %(default)s)")
     p.add_argument("--repeats", type=flag(int, 1), default=1,
                    help="run K times with seeds seed, seed+1, ... (or --seeds) and report the spread")
     p.add_argument("--seeds", type=flag(int, 0), nargs="+", help="explicit seeds for the repeats")
@@ -45,9 +45,11 @@ def main(argv: list[str] | None = None) -> int:
                    "(ATE, rotation error, both success criteria) and report their spread; "
                    "written as a repeats summary, also for a single run")
     add_gate_args(p, "accuracy gate for --ref")
-    p.add_argument("--max-image-size", type=flag(int, 16), default=3200,
-                   help="SIFT extraction: longest image side in pixels")
-    p.add_argument("--max-num-features", type=flag(int, 16), default=16384, help="SIFT features per image at most")
+    defaults = ColmapSettings()
+    p.add_argument("--max-image-size", type=flag(int, 16), default=defaults.max_image_size,
+                   help="SIFT extraction: longest image side in pixels (default %(default)s)")
+    p.add_argument("--max-num-features", type=flag(int, 16), default=defaults.max_num_features,
+                   help="SIFT features per image at most (default %(default)s)")
     p.add_argument("--no-guided-matching", action="store_true", help="turn off COLMAP's guided matching")
     p.add_argument("--threads", type=flag(int, 0), default=DEFAULT_THREADS,
                    help=f"threads per COLMAP stage (default {DEFAULT_THREADS}: the same model every run; 0 = every "

@@ -1,7 +1,8 @@
 """The train-only COLMAP baseline, seeded and repeatable.
 
 Settings: SIFT features (one shared PINHOLE camera, or one per image size where the images
-differ in size, e.g. portrait and landscape photos; max image size 3200, max 16384 features), exhaustive matching with guided matching, incremental mapping, all through
+differ in size, e.g. portrait and landscape photos; max image size :data:`MAX_IMAGE_SIZE`, at most
+:data:`MAX_NUM_FEATURES` features), exhaustive matching with guided matching, incremental mapping, all through
 pycolmap 4.x. Only the training images are visible: they are symlinked (copied where links
 are not possible) into a private work folder before feature extraction, so a test image can
 never leak into the model.
@@ -41,6 +42,7 @@ from camio.colmap import MATCHING_THREADS, cpu_matching_options
 from camio.images import MIN_IMAGE_SIDE, ImageReadError, check_images
 from evaluation.metrics.pose import paper_success
 from runtime.logs import peak_rss_mb
+from runtime.native import stoppable
 
 __all__ = [
     "ColmapSettings",
@@ -54,6 +56,10 @@ MIN_ALIGN_IMAGES = 3
 #: threads of a COLMAP run unless told otherwise: 1 gives the same model on every run (bitwise);
 #: 0 = every available core, faster, but the mapper's parallel steps may then order work differently
 DEFAULT_THREADS = 1
+#: SIFT extraction downsizes larger images to this (pixels, long side): the protocol's setting
+MAX_IMAGE_SIZE = 3200
+#: SIFT features per image at most: the protocol's setting
+MAX_NUM_FEATURES = 16384
 
 
 def available_cores() -> int:
@@ -79,7 +85,7 @@ class ColmapSettings:
         matching_threads: the matcher's thread count (recorded in ``status.json``).
     """
 
-    def __init__(self, max_image_size: int = 3200, max_num_features: int = 16384,
+    def __init__(self, max_image_size: int = MAX_IMAGE_SIZE, max_num_features: int = MAX_NUM_FEATURES,
                  guided_matching: bool = True, camera_model: str = "PINHOLE",
                  num_threads: int | None = DEFAULT_THREADS) -> None:
         self.max_image_size = int(max_image_size)
@@ -221,6 +227,19 @@ def _options(settings: ColmapSettings, seed: int):
     return reader, extraction, matching, verification, mapping
 
 
+def _map(db: Path, images: Path, sparse: Path, options) -> list[int]:
+    """Incremental mapping in :func:`runtime.native.stoppable`'s child: every model written to
+    ``sparse/<i>`` (COLMAP binary, read back exactly), their keys returned (a
+    ``pycolmap.Reconstruction`` does not pickle)."""
+    import pycolmap
+
+    recs = pycolmap.incremental_mapping(db, images, sparse, options=options)
+    for i, rec in recs.items():
+        (sparse / str(i)).mkdir(parents=True, exist_ok=True)
+        rec.write(str(sparse / str(i)))
+    return sorted(recs)
+
+
 def _largest(recs: dict) -> tuple[int | None, object | None]:
     """The model with the most registered images (ties: most points), or (None, None)."""
     best_key, best = None, None
@@ -295,19 +314,24 @@ def run_colmap(images_dir: str | Path, names: list[str], out_dir: str | Path, se
             log.info("COLMAP baseline: %d training images (%s), seed %d, %d threads", len(names),
                      f"a camera for each of {len({w.split('/')[0] for w in work_names.values()})} image sizes"
                      if per_size else "one camera", seed, settings.num_threads)
+            # each long pycolmap call runs where a stop signal ends it at once (runtime.native)
             t = time.perf_counter()
-            pycolmap.extract_features(db, work / "images", image_names=[work_names[n] for n in names],
-                                      camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size
-                                      else pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            log.info("feature extraction started")
+            stoppable("feature extraction", pycolmap.extract_features, db, work / "images",
+                      image_names=[work_names[n] for n in names],
+                      camera_mode=pycolmap.CameraMode.PER_FOLDER if per_size else pycolmap.CameraMode.SINGLE,
+                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
             log.info("feature extraction done in %.2f s", time.perf_counter() - t)
             t = time.perf_counter()
-            pycolmap.match_exhaustive(db, matching_options=matching,
-                                      verification_options=verification, device=pycolmap.Device.cpu)
+            log.info("exhaustive matching started")
+            stoppable("exhaustive matching", pycolmap.match_exhaustive, db, matching_options=matching,
+                      verification_options=verification, device=pycolmap.Device.cpu)
             log.info("exhaustive matching done in %.2f s", time.perf_counter() - t)
             t = time.perf_counter()
             (work / "sparse").mkdir()
-            recs = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=mapping)
+            log.info("incremental mapping started")
+            recs = {i: pycolmap.Reconstruction(str(work / "sparse" / str(i)))
+                    for i in stoppable("incremental mapping", _map, db, work / "images", work / "sparse", mapping)}
             log.info("incremental mapping done in %.2f s: %d model(s)", time.perf_counter() - t,
                      len(recs))
             status["num_models"] = len(recs)

@@ -313,15 +313,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
     add_view_args(p)
     p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
-    p.add_argument("--rot-deg", type=flag(float, 0), default=0.0, help="RMS rotation noise (degrees)")
-    p.add_argument("--trans-frac", type=flag(float, 0), default=0.0,
+    p.add_argument("--rot-deg", type=flag(float, 0), default=OracleNoise.rot_deg,
+                   help="RMS rotation noise (degrees)")
+    p.add_argument("--trans-frac", type=flag(float, 0), default=OracleNoise.trans_frac,
                    help="RMS centre noise, fraction of the trajectory radius")
-    p.add_argument("--depth-rel", type=flag(float, 0), default=0.0, help="relative depth noise (std)")
-    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=0.0, help="fraction of outlier pixels")
-    p.add_argument("--conf-scale", type=flag(float, 0), default=10.0, help="confidence range above 1")
-    p.add_argument("--conf-noise", type=flag(float, 0), default=0.0,
+    p.add_argument("--depth-rel", type=flag(float, 0), default=OracleNoise.depth_rel,
+                   help="relative depth noise (std)")
+    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=OracleNoise.outlier_frac,
+                   help="fraction of outlier pixels")
+    p.add_argument("--conf-scale", type=flag(float, 0), default=OracleNoise.conf_scale,
+                   help="confidence range above 1")
+    p.add_argument("--conf-noise", type=flag(float, 0), default=OracleNoise.conf_noise,
                    help="log-normal noise on the confidence (0 = perfect ranking)")
-    p.add_argument("--conf-mode", choices=CONF_MODES, default="ranked",
+    p.add_argument("--conf-mode", choices=CONF_MODES, default=OracleNoise.conf_mode,
                    help="confidence informativeness: ranked (ranks the depth error), noise "
                    "(random order), anti (reversed ranks); see the module docstring")
     p.add_argument("--downsample", type=flag(int, 1), default=1, help="prediction grid stride")

@@ -42,7 +42,7 @@ from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
-from runtime.checks import flag
+from runtime.checks import check_folder, flag
 from runtime.cliargs import add_log_flags, plain
 
 __all__ = ["apply_noise", "run_posed", "REFERENCE_SOURCE"]
@@ -92,8 +92,7 @@ def run_posed(scene: str | Path, names: list[str], out_dir: str | Path, noise: O
     names = list(dict.fromkeys(names))
     if len(names) < 2:
         raise ValueError(f"posed: needs >= 2 training views, got {len(names)}")
-    if not scene.is_dir():
-        raise ValueError(f"posed: scene {scene} does not exist")
+    check_folder(scene, "posed: scene")  # NotAFolderError: missing, or a file given for it
     ref_dir = scene / "sparse" / "0"
     if not ref_dir.is_dir():
         raise ValueError(f"posed: {scene} has no reference cameras (sparse/0); the posed initialiser "
@@ -135,10 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     add_view_args(p, split=False)
     p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
-    p.add_argument("--rot-deg", type=flag(float, 0), default=0.0, help="RMS rotation noise (degrees)")
-    p.add_argument("--trans-frac", type=flag(float, 0), default=0.0, help="RMS centre noise, fraction of the radius")
-    p.add_argument("--depth-rel", type=flag(float, 0), default=0.0, help="relative depth noise of the points (std)")
-    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=0.0, help="fraction of outlier points")
+    p.add_argument("--rot-deg", type=flag(float, 0), default=OracleNoise.rot_deg,
+                   help="RMS rotation noise (degrees)")
+    p.add_argument("--trans-frac", type=flag(float, 0), default=OracleNoise.trans_frac,
+                   help="RMS centre noise, fraction of the radius")
+    p.add_argument("--depth-rel", type=flag(float, 0), default=OracleNoise.depth_rel,
+                   help="relative depth noise of the points (std)")
+    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=OracleNoise.outlier_frac,
+                   help="fraction of outlier points")
     p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the noise and of pycolmap")
     p.add_argument("--threads", type=flag(int, 1), default=1, help="feature extraction / matching threads")
     add_fallback_args(p)

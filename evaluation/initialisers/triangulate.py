@@ -17,16 +17,28 @@ from pathlib import Path
 import numpy as np
 
 from runtime.atomic import scratch_dir
+from runtime.native import stoppable
 from camio.cameras import Camera, rotmat_to_qvec
 from camio.colmap import SparseModel, cpu_matching_options, read_model
+from evaluation.initialisers.colmap_run import MAX_IMAGE_SIZE, MAX_NUM_FEATURES
 
 __all__ = ["triangulate_known_poses"]
 
 log = logging.getLogger(__name__)
 
 
+def _triangulate(rec, db: Path, images: Path, out: Path, opts, model: Path) -> None:
+    """``pycolmap.triangulate_points`` in :func:`runtime.native.stoppable`'s child, the result
+    written to ``model`` in COLMAP text form (a ``pycolmap.Reconstruction`` does not pickle)."""
+    import pycolmap
+
+    tri = pycolmap.triangulate_points(rec, db, images, out, clear_points=True, options=opts,
+                                      refine_intrinsics=False)
+    tri.write_text(str(model))
+
+
 def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_threads: int = 1,
-                            max_image_size: int = 3200, max_num_features: int = 16384,
+                            max_image_size: int = MAX_IMAGE_SIZE, max_num_features: int = MAX_NUM_FEATURES,
                             seed: int = 0) -> tuple[SparseModel, dict]:
     """Triangulate points seen in ``cameras``' images with the cameras held fixed.
 
@@ -70,9 +82,11 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
         extraction.num_threads = num_threads
         extraction.use_gpu = False
         extraction.sift.max_num_features = max_num_features
-        pycolmap.extract_features(db, images, [c.name for c in cameras],
-                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        # each long pycolmap call runs where a stop signal ends it at once (runtime.native)
+        log.info("feature extraction started")
+        stoppable("feature extraction", pycolmap.extract_features, db, images, [c.name for c in cameras],
+                  camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
+                  extraction_options=extraction, device=pycolmap.Device.cpu)
         by_name = {c.name: c for c in cameras}
         database = pycolmap.Database.open(str(db))
         try:
@@ -90,8 +104,9 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
         matching = cpu_matching_options()  # one thread: see camio.colmap.MATCHING_THREADS
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed
-        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
-                                  device=pycolmap.Device.cpu)
+        log.info("exhaustive matching started")
+        stoppable("exhaustive matching", pycolmap.match_exhaustive, db, matching_options=matching,
+                  verification_options=verification, device=pycolmap.Device.cpu)
         database = pycolmap.Database.open(str(db))
         try:
             verified = int(database.num_verified_image_pairs())
@@ -121,10 +136,9 @@ def triangulate_known_poses(image_dir: str | Path, cameras: list[Camera], num_th
         opts.triangulation.ignore_two_view_tracks = False
         out = work / "triangulated"
         out.mkdir()
-        tri = pycolmap.triangulate_points(rec, db, images, out, clear_points=True, options=opts,
-                                          refine_intrinsics=False)
         (work / "model").mkdir()
-        tri.write_text(str(work / "model"))
+        log.info("triangulation started")
+        stoppable("triangulation", _triangulate, rec, db, images, out, opts, work / "model")
         model = read_model(work / "model")
     # the poses must not have moved (fixed in the triangulator); keep the caller's exactly
     got = {c.name: c for c in model.cameras}

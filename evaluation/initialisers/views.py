@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from runtime.checks import flag
+from runtime.checks import file_problem, flag
 
 __all__ = ["add_view_args", "read_image_list", "training_names", "parse_training_args"]
 
@@ -29,11 +29,13 @@ def read_image_list(path: str | Path) -> list[str]:
     """The names in an image list (one per line; blank lines and ``#`` comments skipped).
 
     Raises:
-        ValueError: the file does not exist or names no image.
+        ValueError: the file does not exist, is a folder (:func:`runtime.checks.file_problem`'s line)
+            or names no image.
     """
     lst = Path(path)
-    if not lst.is_file():
-        raise ValueError(f"image list {lst} does not exist")
+    problem = file_problem(lst, "image list")
+    if problem:
+        raise ValueError(problem)
     names = [ln.strip() for ln in lst.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not names:
         raise ValueError(f"image list {lst} is empty: one training image name per line")

@@ -44,8 +44,8 @@ def colmap_args(wildcards):
 
 def oracle_args(wildcards):
     """The oracle's arguments set in config oracle (null keys are left to
-    evaluation.initialisers.oracle; conf_scale and downsample the schema fills, the study's
-    cells read them too)."""
+    evaluation.initialisers.oracle; the study's cells read conf_scale and downsample too).
+    """
     keys = (
         "seed",
         "rot_deg",

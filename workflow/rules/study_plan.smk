@@ -120,15 +120,12 @@ def study_final_targets(wildcards=None):
 
 
 def study_oracle_args(wildcards):
-    """Oracle CLI arguments of one cell and seed (downsample and conf_scale: config oracle)."""
+    """Oracle CLI arguments of one cell and seed (downsample and conf_scale: config oracle,
+    passed only when set: a null leaves the oracle's own default)."""
     noise = STUDY_CELLS[wildcards.cell]["noise"]
-    o = config["oracle"]
     args = [f"--{k.replace('_', '-')} {v}" for k, v in noise.items()]
-    args += [
-        f"--seed {wildcards.seed}",
-        f"--conf-scale {o['conf_scale']}",
-        f"--downsample {o['downsample']}",
-    ]
+    args += [f"--seed {wildcards.seed}"]
+    args += set_flags(config["oracle"], ("conf_scale", "downsample"))
     return " ".join(args)
 
 

@@ -186,8 +186,9 @@ def _sweep_family(ref, ref_mean, ref_std, src_data, rays, normal, sigma_range, r
 
 def plane_sweep(ref_gray: np.ndarray, ref_K: np.ndarray, ref_cfw: np.ndarray,
                 sources: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rhos: np.ndarray, *,
-                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), window: int = 7, top_k: int = 1,
-                min_std: float = 0.01, margin_scale: float = 0.1, exclusion: int = 2, chunk: int = 16) -> SweepResult:
+                window: int, min_std: float, margin_scale: float, chunk: int,
+                normals: list[tuple[np.ndarray, tuple[float, float]]] = (), top_k: int = 1,
+                exclusion: int = 2) -> SweepResult:
     """Depth of every pixel of a reference view by a plane sweep (module docstring).
 
     Args:
@@ -203,7 +204,8 @@ def plane_sweep(ref_gray: np.ndarray, ref_K: np.ndarray, ref_cfw: np.ndarray,
             (:func:`evaluation.initialisers.mvs.bounds.plane_family_range`). A scene's dominant
             planes (a ground, a wall) match as the windows warp with their slant (multiple
             sweep directions, Gallup et al. CVPR 2007); each pixel keeps the family of least cost.
-        window: NCC window (odd).
+        window: NCC window (odd); window, min_std, margin_scale and chunk have their defaults in
+            :class:`evaluation.initialisers.mvs.run.MvsConfig`, whose values the caller passes.
         top_k: sources averaged per hypothesis (the k lowest costs).
         min_std: grey-level standard deviation below which a reference window is textureless.
         margin_scale: the margin at which :func:`matching_confidence` reaches 1 - 1/e.
