@@ -16,7 +16,8 @@ is wrapped by its caller in a function that writes the result to the scratch fol
 what pickles. The child ignores the stop signals (a terminal's Ctrl-C reaches the whole process
 group; the parent decides) and dies with its parent (``PR_SET_PDEATHSIG``). An exception in the
 child is raised again here; a child that crashes (a native abort) is a ``RuntimeError`` naming
-the call and the signal, not a dead command.
+the call and the signal, not a dead command. Where the platform has no ``fork`` the call runs
+in this process, and a stop takes effect when it returns.
 """
 
 from __future__ import annotations
@@ -91,6 +92,8 @@ def stoppable(what: str, fn: Callable[..., T], *args, **kwargs) -> T:
         crash); the stop (:class:`runtime.stops.Stopped`, ``KeyboardInterrupt``) after the child
         was killed and reaped.
     """
+    if not hasattr(os, "fork"):  # no fork (Windows): the call runs here, and a stop waits for it
+        return fn(*args, **kwargs)
     r, w = os.pipe()
     pid = None
     try:
