@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from camio.images import image_size
+from runtime.native import stoppable
 
 __all__ = ["undistort_colmap", "undistort_model", "write_camera_model_text"]
 
@@ -59,7 +60,9 @@ def undistort_colmap(model_dir: Path, image_dir: Path, work_dir: Path) -> tuple[
             in_model.mkdir()
             rec.write(str(in_model))
             log.info("rescaled the distorted cameras to the image files before undistortion")
-        pycolmap.undistort_images(str(work_dir), str(in_model), str(image_dir), output_type="COLMAP")
+        # in a child a stop ends at once (runtime.native): minutes on a large scene
+        stoppable("undistortion", pycolmap.undistort_images, str(work_dir), str(in_model), str(image_dir),
+                  output_type="COLMAP")
         if rescaled:
             shutil.rmtree(in_model)
     except Exception:
