@@ -44,7 +44,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
-from benchmarks._proc import StageError, run_logged  # noqa: E402
+from experiments._proc import StageError, run_logged  # noqa: E402
 from splat_train.recipes import RECIPE_NAMES  # noqa: E402
 
 log = logging.getLogger("bench_cell")
@@ -515,5 +515,5 @@ if __name__ == "__main__":
     from runtime.stops import run_command
 
     # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
-    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    # signal, after the stage command it was running has ended cleanly (experiments._proc)
     sys.exit(run_command(main))

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
-from benchmarks._proc import run_logged  # noqa: E402
+from experiments._proc import run_logged  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FIX = ROOT / "tests" / "data" / "vggt" / "shared"
@@ -166,5 +166,5 @@ if __name__ == "__main__":
     from runtime.stops import run_command
 
     # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
-    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    # signal, after the stage command it was running has ended cleanly (experiments._proc)
     raise SystemExit(run_command(main))

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
-from benchmarks._proc import run_logged  # noqa: E402
+from experiments._proc import run_logged  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "protocols_fern.yaml"
@@ -281,5 +281,5 @@ if __name__ == "__main__":
     from runtime.stops import run_command
 
     # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
-    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    # signal, after the stage command it was running has ended cleanly (experiments._proc)
     raise SystemExit(run_command(main))

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script too
-from benchmarks._proc import run_stage as sh  # noqa: E402
+from experiments._proc import run_stage as sh  # noqa: E402
 from experiments.sparse_views.cells import bridge_and_align  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -216,5 +216,5 @@ if __name__ == "__main__":
     from runtime.stops import run_command
 
     # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
-    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    # signal, after the stage command it was running has ended cleanly (experiments._proc)
     sys.exit(run_command(main))

@@ -240,7 +240,7 @@ def test_run_trains_scores_and_records_through_the_stage_commands(tmp_path):
     summary = json.loads((tmp_path / "sem.json").read_text())["summary"]
     assert summary["cpu"]["seeds"] == summary["visibility"]["seeds"] == 1
     assert 5 < summary["visibility"]["mean"] < 60 and "minus_cpu" in summary["visibility"]
-    from benchmarks.gpu_check import format_gpu_table
+    from experiments.results_doc.gpu_table import format_gpu_table
 
     assert "| cpu vs the grid's CPU records, tiny_n3 20 it, paper, seeds [0]: final held-out PSNR |" in \
         format_gpu_table({"backend_agree": agree})

@@ -17,8 +17,9 @@ Three levels are checked:
 * modules: inside each package, subpackages included, the modules import each other one way;
 * the tool rooms (:data:`TOOL_ROOMS`: benchmarks, experiments) are not shipped and run from the
   clone: they may import every package, no package imports them, and their subpackages and
-  modules import each other one way across both rooms (the studies reuse the benchmarks' command
-  runner and GPU table; the GPU check trains the sparse-view grid's command).
+  modules import each other one way across both rooms, benchmarks above experiments (the GPU
+  check and the backend comparisons reuse the studies' command runner, GPU table and the
+  sparse-view grid's command; the studies import nothing of the benchmarks).
 
 The C++ kernels' loaders (``splat_train.render.cpu``) sit below everything that calls them, and
 ``splat_train.render`` below the rest of splat_train (:data:`RENDER_LAYERS`).
@@ -313,11 +314,15 @@ def test_no_package_imports_a_tool_room():
 
 
 def test_no_circle_in_the_tool_rooms():
-    """benchmarks and experiments import each other's parts one way: no circle between their
-    subpackages and modules (experiments.sparse_views, benchmarks.gpu_check, ...)."""
+    """The tool rooms import one way: benchmarks (timing the stages, and the studies' runner for
+    the backend comparisons) above experiments, which imports nothing of benchmarks; no circle
+    between their subpackages and modules (experiments.sparse_views, benchmarks.gpu_check, ...)."""
     graph = import_graph(packages=PACKAGES + TOOL_ROOMS)
+    up = sorted(f"{mod} -> {d}" for mod, deps in graph.items() if mod.split(".")[0] == "experiments"
+                for d in deps if d.split(".")[0] == "benchmarks")
+    assert not up, up
     units = _tool_units(graph)
-    assert "benchmarks._proc" in units["experiments.sparse_views"]  # the checker sees across the rooms
+    assert "experiments._proc" in units["experiments.sparse_views"]  # the checker sees across the rooms
     assert "experiments.sparse_views" in units["benchmarks.backend_agree"]
     cycle = find_cycle(units)
     assert cycle is None, " -> ".join(cycle)

@@ -310,7 +310,7 @@ GPU_TABLE_PARTS = ("device", "torch", "cuda", "gsplat", "gsplat_build", "cell", 
 
 
 def gpu(records: Path) -> list[str] | None:
-    from benchmarks.gpu_check import format_gpu_table
+    from experiments.results_doc.gpu_table import format_gpu_table
 
     r = gpu_parts(records)
     if "cell" not in r:

@@ -276,5 +276,5 @@ if __name__ == "__main__":
     from runtime.stops import run_command
 
     # a stop signal (SLURM's SIGTERM, Ctrl-C, SIGHUP) ends the runner with one line and 128 + the
-    # signal, after the stage command it was running has ended cleanly (benchmarks._proc)
+    # signal, after the stage command it was running has ended cleanly (experiments._proc)
     sys.exit(run_command(main))

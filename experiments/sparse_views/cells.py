@@ -23,7 +23,7 @@ import re
 from contextlib import contextmanager
 from pathlib import Path
 
-from benchmarks._proc import run_stage as sh
+from experiments._proc import run_stage as sh
 from experiments.sparse_views.protocol import Scene
 
 #: the initialisers a cell seeds from: name -> (command, whether it writes a confidence)

@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from benchmarks._proc import run_stage as sh
+from experiments._proc import run_stage as sh
 from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, BINOCULAR_FROM_FRACTION
 
 

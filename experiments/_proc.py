@@ -1,4 +1,4 @@
-"""One way for the benchmarks to run a command: from the repository root, its output in a log file;
+"""One way for the studies and the benchmarks to run a command: from the repository root, its output in a log file;
 a stop signal of the benchmark is passed on to the command, which ends cleanly first
 (:func:`runtime.stops.run_child`)."""
 
