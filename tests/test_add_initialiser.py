@@ -1,5 +1,6 @@
-"""Adding an initialiser, or a dataset format, touches only the files docs/contracts.md names for
-it ("Adding an initialiser", "Adding a dataset format").
+"""Adding an initialiser, a dataset format or a training recipe touches only the files
+docs/contracts.md names for it ("Adding an initialiser", "Adding a dataset format", "Adding a
+recipe").
 
 A copy of the project's tracked files gets:
 
@@ -9,7 +10,10 @@ A copy of the project's tracked files gets:
   evaluation/initialisers/registry.py and its module evaluation/initialisers/refcams.py;
 * one dataset format more, ``camlist`` (``cameras.lst``: per image a line ``NAME K R t``, the
   projection of a Middlebury ``*_par.txt`` without its count line), by its reader and entry in
-  camio/datasets.py and its row in docs/contracts.md.
+  camio/datasets.py and its row in docs/contracts.md;
+* one training recipe more, ``longdrop`` (DropGaussian with one value changed: the final dropout
+  rate 0.3), a preset stating that difference in splat_train/recipes.py and its row in
+  docs/reference.md.
 
 The test checks that nothing else differs, and that those lists are what docs/contracts.md
 says. Then, in the copy, through the commands a user runs:
@@ -113,6 +117,12 @@ READER = f'''def read_{FORMAT}(root: Path, image_dir: Path, names: list[str]) ->
 FORMAT_ENTRY = (f'    DatasetFormat("{FORMAT}", "one line per image: its name, K, R and t", "cameras.lst", True,\n'
                 f'                  lambda r: (r / "cameras.lst").is_file(), read_{FORMAT}),\n')
 FORMAT_ROW = f"| `{FORMAT}` | one line per image: its name, K, R and t | `cameras.lst` | yes |\n"
+# The recipe: a preset of one changed value, its place in RECIPES and its help line, and its row
+# in docs/reference.md section 3a.
+RECIPE = "longdrop"
+PRESET = (f'{RECIPE.upper()} = replace(DROPGAUSSIAN, recipe="{RECIPE}", parts=(DropoutConfig(rate=0.3),))\n\n')
+RECIPE_SUMMARY = f'    "{RECIPE}": "DropGaussian with a final dropout rate of 0.3",\n'
+RECIPE_ROW = f"| `{RECIPE}` | `dropgaussian` with the final dropout rate 0.3 |\n"
 
 
 def _tracked() -> list[str]:
@@ -141,6 +151,11 @@ def copy(tmp_path_factory) -> Path:
           READER)
     _edit(datasets, '    DatasetFormat("folder",', FORMAT_ENTRY)
     _edit(root / "docs" / "contracts.md", "| `folder` |", FORMAT_ROW)
+    recipes = root / "splat_train" / "recipes.py"
+    _edit(recipes, "RECIPES: dict[str, ConfigTree] = ", PRESET)
+    _edit(recipes, '"mcmc": MCMC', f', "{RECIPE}": {RECIPE.upper()}', before=False)
+    _edit(recipes, "}\n\n\ndef recipe_config", RECIPE_SUMMARY)
+    _edit(root / "docs" / "reference.md", "| `mcmc` | 3DGS as MCMC", RECIPE_ROW)
     return root
 
 
@@ -164,9 +179,10 @@ def test_the_copy_differs_by_the_documented_files_only(copy):
     differ = {rel for rel in _tracked() if (copy / rel).read_bytes() != (REPO / rel).read_bytes()}
     added = {str(p.relative_to(copy)) for p in copy.rglob("*")
              if p.is_file() and "__pycache__" not in p.parts} - set(_tracked())
-    documented = _documented("Adding an initialiser", NAME) | _documented("Adding a dataset format", FORMAT)
+    documented = (_documented("Adding an initialiser", NAME) | _documented("Adding a dataset format", FORMAT)
+                  | _documented("Adding a recipe", RECIPE))
     assert documented == {"evaluation/initialisers/registry.py", f"evaluation/initialisers/{NAME}.py",
-                          "camio/datasets.py", "docs/contracts.md"}
+                          "camio/datasets.py", "docs/contracts.md", "splat_train/recipes.py", "docs/reference.md"}
     assert differ | added == documented, (differ, added)
     code = (f"from evaluation.initialisers import registry as r; i = r.get('{NAME}'); "
             "print(r.with_common_rule(), i.needs, [o.flag for o in i.options])")
@@ -291,3 +307,25 @@ def test_d_the_tables_list_its_run_by_its_label(copy, tmp_path):
     proc = _run(copy, ["-m", "evaluation", "report", "--results", str(results), "--out", str(report)], timeout=180)
     assert proc.returncode == 0, proc.stderr
     assert f"{LABEL} (uniform)" in (report / "index.html").read_text()  # its render-grid column, by its label
+
+
+@pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
+def test_e_the_recipe_reaches_the_help_the_check_and_the_training_jobs(copy, tmp_path):
+    helptext = " ".join(_run(copy, ["-m", "splat_train", "--help"]).stdout.split())
+    assert f"'{RECIPE}': DropGaussian with a final dropout rate of 0.3" in helptext and f",mcmc,{RECIPE}}}" in helptext
+    assert RECIPE not in _run(REPO, ["-m", "splat_train", "--help"]).stdout  # the project's own
+    base = yaml.safe_load((REPO / "config.yaml").read_text())
+    cfg = {**base, "train": {**base.get("train", {}), "recipe": RECIPE}}
+    assert _check(copy, cfg, tmp_path).returncode == 0
+    before = _check(REPO, cfg, tmp_path)
+    assert before.returncode == 2 and f"'{RECIPE}' is not a valid value" in before.stderr
+    proc = _dry_run(copy, tmp_path, {"train": {"iterations": 10, "recipe": RECIPE}})
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    train_jobs = [b for b in out.split("\n\n") if "rule train_splats:" in b]
+    assert train_jobs and all(f"--recipe {RECIPE}" in b for b in train_jobs), train_jobs[:1]
+    # the preset states its one difference: every flat key but the dropout rate is dropgaussian's
+    code = ("from splat_train.recipes import recipe_defaults as d; a, b = d('dropgaussian'), d('" + RECIPE + "'); "
+            "print(sorted(k for k in a if a[k] != b[k]), b['dropout_rate'])")
+    res = _run(copy, ["-c", code])
+    assert res.stdout.strip() == "['dropout_rate'] 0.3", res.stderr
