@@ -37,6 +37,7 @@ reference (world) frame, OpenCV axes; pixels follow the COLMAP centre convention
 
 from __future__ import annotations
 
+import argparse
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -51,7 +52,7 @@ from evaluation.initialisers.views import add_view_args, parse_training_args
 from runtime.checks import flag
 from runtime.cliargs import add_log_flags
 
-__all__ = ["CONF_MODES", "MAX_POINTS", "OracleNoise", "rotation_from_axis_angle", "perturb_cameras",
+__all__ = ["CONF_MODES", "MAX_POINTS", "OracleNoise", "add_noise_args", "rotation_from_axis_angle", "perturb_cameras",
            "unproject_depth", "reassign_confidence", "make_oracle_predictions", "run_oracle"]
 
 log = logging.getLogger(__name__)
@@ -303,16 +304,10 @@ def run_oracle(scene: str | Path, names: list[str], out_dir: str | Path, noise: 
     return status
 
 
-def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m evaluation.initialisers.oracle --scene DIR (--split JSON --n N | --image-list FILE |
-    --names ...) --out DIR [noise options] [--seed S]``."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
-                                description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
-    add_view_args(p)
-    p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
+def add_noise_args(p: argparse.ArgumentParser, outliers: str) -> None:
+    """The noise flags of an initialiser built on the reference cameras (:class:`OracleNoise`'s
+    fields and defaults): ``--rot-deg``, ``--trans-frac``, ``--depth-rel``, ``--outlier-frac``
+    (a fraction of the ``outliers``: "pixels" of the oracle's maps, "points" of posed's model)."""
     p.add_argument("--rot-deg", type=flag(float, 0), default=OracleNoise.rot_deg,
                    help="RMS rotation noise (degrees)")
     p.add_argument("--trans-frac", type=flag(float, 0), default=OracleNoise.trans_frac,
@@ -320,7 +315,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depth-rel", type=flag(float, 0), default=OracleNoise.depth_rel,
                    help="relative depth noise (std)")
     p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=OracleNoise.outlier_frac,
-                   help="fraction of outlier pixels")
+                   help=f"fraction of outlier {outliers}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI: ``python -m evaluation.initialisers.oracle --scene DIR (--split JSON --n N | --image-list FILE |
+    --names ...) --out DIR [noise options] [--seed S]``."""
+
+    p = argparse.ArgumentParser(prog="python -m evaluation.initialisers.oracle",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--scene", required=True, help="prepared scene with sparse/0 and gt/depth")
+    add_view_args(p)
+    p.add_argument("--out", required=True, help="output folder (predictions.npz, sparse/0, status.json)")
+    add_noise_args(p, outliers="pixels")
     p.add_argument("--conf-scale", type=flag(float, 0), default=OracleNoise.conf_scale,
                    help="confidence range above 1")
     p.add_argument("--conf-noise", type=flag(float, 0), default=OracleNoise.conf_noise,

@@ -38,7 +38,7 @@ import numpy as np
 
 from runtime.atomic import atomic_dir, write_json
 from camio.colmap import SparseModel, read_model, write_text_model
-from evaluation.initialisers.oracle import OracleNoise, perturb_cameras
+from evaluation.initialisers.oracle import OracleNoise, add_noise_args, perturb_cameras
 from evaluation.metrics.pose import paper_success
 from evaluation.initialisers.random_init import add_fallback_args, apply_fallback
 from evaluation.initialisers.views import add_view_args, parse_training_args
@@ -134,14 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", required=True, help="prepared scene with images/ and sparse/0")
     add_view_args(p, split=False)
     p.add_argument("--out", required=True, help="output folder (sparse/0, status.json)")
-    p.add_argument("--rot-deg", type=flag(float, 0), default=OracleNoise.rot_deg,
-                   help="RMS rotation noise (degrees)")
-    p.add_argument("--trans-frac", type=flag(float, 0), default=OracleNoise.trans_frac,
-                   help="RMS centre noise, fraction of the radius")
-    p.add_argument("--depth-rel", type=flag(float, 0), default=OracleNoise.depth_rel,
-                   help="relative depth noise of the points (std)")
-    p.add_argument("--outlier-frac", type=flag(float, 0, 1), default=OracleNoise.outlier_frac,
-                   help="fraction of outlier points")
+    add_noise_args(p, outliers="points")
     p.add_argument("--seed", type=flag(int, 0), default=0, help="random seed of the noise and of pycolmap")
     p.add_argument("--threads", type=flag(int, 1), default=1, help="feature extraction / matching threads")
     add_fallback_args(p)
