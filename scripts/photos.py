@@ -307,9 +307,12 @@ def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat
             sys.stdout.write(line)
             sys.stdout.flush()
 
-    # a session of its own: a Ctrl-C at the terminal reaches snakemake once, through forward()
+    # a session of its own: a Ctrl-C at the terminal reaches snakemake once, through forward();
+    # its SIGINT at the default even where this command was started with it ignored (a background
+    # job): forward() stops snakemake with SIGINT whatever signal stopped this command
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-                            start_new_session=True, env={**os.environ, **env})
+                            start_new_session=True, env={**os.environ, **env},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     stopped: list[int] = []
 
     def forward(sig, _frame) -> None:

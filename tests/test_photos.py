@@ -238,11 +238,14 @@ def mixed(tmp_path_factory) -> Path:
 
 
 @pytest.mark.slow
-def test_mixed_orientation_photos_run_end_to_end_and_resume_after_sigterm(tmp_path, mixed):
+@pytest.mark.parametrize("sigint", ["default", "ignored"])
+def test_mixed_orientation_photos_run_end_to_end_and_resume_after_sigterm(tmp_path, mixed, sigint):
     """Portrait and landscape photos, the portrait ones EXIF-rotated, in one folder: the run says
     which it turned upright, COLMAP gives each size its own camera, and every photo is trained
     on and rendered at its own upright size. A SIGTERM in the middle stops the run (the signal
-    forwarded to snakemake, one line, exit 128 + 15); the same command then resumes to the end."""
+    forwarded to snakemake, one line, exit 128 + 15); the same command then resumes to the end.
+    Also where the command starts with SIGINT ignored (a background job of a script): snakemake,
+    which the command stops with SIGINT, used to inherit the ignore and ran on to the end."""
     import numpy as np
 
     from camio.colmap import read_model
@@ -251,8 +254,9 @@ def test_mixed_orientation_photos_run_end_to_end_and_resume_after_sigterm(tmp_pa
     out = tmp_path / "out"
     args = [sys.executable, str(REPO / "scripts" / "photos.py"), str(mixed), "--out", str(out), "--init", "colmap",
             "--iterations", "3"]
+    disposition = signal.SIG_DFL if sigint == "default" else signal.SIG_IGN
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(tmp_path),
-                            cwd=tmp_path)
+                            cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, disposition))
     seen = []
     for line in proc.stdout:  # stop once the conversion is done and later jobs run
         seen.append(line)

@@ -64,6 +64,13 @@ EARLY = [  # (id, argv after python; @out: the output it would write)
 ]
 
 
+def _stop_signals_default() -> None:
+    """In the child: the stop signals at their defaults, whatever the test runner inherited (a
+    background job ignores SIGINT, ``nohup`` SIGHUP; a command keeps a signal ignored at start)."""
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
+
+
 def _started(proc: subprocess.Popen, first: str) -> list[str]:
     """Read ``-X importtime`` lines until the one after ``first`` (the module that installs the
     handlers): the command's own code has run past that point."""
@@ -89,7 +96,7 @@ def test_a_stop_while_the_command_loads_is_one_line(scene, tmp_path, case, argv,
         args = [str(scene["model"]) if a == "@model" else a.replace("@scene", str(scene["scene"]))
                 .replace("@out", str(out)) for a in argv]
         proc = subprocess.Popen([sys.executable, "-X", "importtime", *args], cwd=ROOT, env=ENV, text=True,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=_stop_signals_default)
         try:
             head = _started(proc, "runtime.stops")
             time.sleep(delay)
