@@ -303,6 +303,9 @@ class ViewServer(ThreadingHTTPServer):
     def process_request_thread(self, request, client_address) -> None:
         try:
             super().process_request_thread(request, client_address)
+        except BaseException as exc:  # noqa: BLE001 - a handler thread ends in one log line, never a
+            # traceback (one escaped while the viewer was being stopped under load)
+            log.debug("the connection of %s ended: %s: %s", client_address[0], type(exc).__name__, exc)
         finally:
             self.slots.release()
 
