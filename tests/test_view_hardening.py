@@ -168,3 +168,37 @@ def test_a_request_trickled_a_byte_at_a_time_is_cut_at_the_timeout(scene):
     finally:
         _, err = v.stop()
     assert "Traceback" not in err, err
+
+
+def test_a_stop_while_a_handler_thread_starts_gives_its_slot_back_once_and_goes_on(monkeypatch):
+    """A stop (here KeyboardInterrupt) can land in ``Thread.start()`` while it waits for a handler
+    thread that has already answered and given its slot back. The stop must reach the server loop
+    (not turn into "Semaphore released too many times", which let the viewer keep serving), and
+    every slot must be free afterwards."""
+    import threading
+
+    srv = server.make_server({"/x": b"x"}, port=0)
+    real_start = threading.Thread.start
+
+    def start_then_stop(self):
+        real_start(self)
+        self.join(10)  # the handler ran and gave its slot back
+        raise KeyboardInterrupt
+
+    b = _connect(srv.server_port)
+    a, address = srv.get_request()
+    try:
+        b.sendall(f"GET /x HTTP/1.0\r\nHost: 127.0.0.1:{srv.server_port}\r\n\r\n".encode())
+        monkeypatch.setattr(threading.Thread, "start", start_then_stop)
+        with pytest.raises(KeyboardInterrupt):
+            srv.process_request(a, address)
+        monkeypatch.undo()
+        assert b.recv(1024).startswith(b"HTTP/1.0 200")
+        for _ in range(srv.max_connections):  # every slot is free, and no more than those
+            assert srv.slots.acquire(blocking=False)
+        assert not srv.slots.acquire(blocking=False)
+        assert not srv._slot_of
+    finally:
+        a.close()
+        b.close()
+        srv.server_close()

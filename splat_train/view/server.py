@@ -274,6 +274,21 @@ class _Handler(BaseHTTPRequestHandler):
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
 
 
+class _Slot:
+    """One connection's hold on the server's semaphore, given back once whoever gives it back."""
+
+    def __init__(self, sem: threading.BoundedSemaphore):
+        self._sem = sem
+        self._lock = threading.Lock()
+        self._held = True
+
+    def release(self) -> None:
+        with self._lock:
+            if self._held:
+                self._held = False
+                self._sem.release()
+
+
 class ViewServer(ThreadingHTTPServer):
     """A thread per connection, at most ``max_connections`` at once (module docstring)."""
 
@@ -282,6 +297,7 @@ class ViewServer(ThreadingHTTPServer):
     def __init__(self, address: tuple[str, int], handler: type, max_connections: int = MAX_CONNECTIONS):
         self.max_connections = max_connections
         self.slots = threading.BoundedSemaphore(max_connections)
+        self._slot_of: dict[object, _Slot] = {}  # request -> its slot, until its thread takes it
         super().__init__(address, handler)
 
     def process_request(self, request, client_address) -> None:
@@ -294,20 +310,26 @@ class ViewServer(ThreadingHTTPServer):
                 pass
             self.shutdown_request(request)
             return
+        slot = self._slot_of[request] = _Slot(self.slots)
         try:
             super().process_request(request, client_address)
-        except BaseException:  # no thread started: give the slot back
-            self.slots.release()
+        except BaseException:
+            # No thread, or a stop arrived while Thread.start() waited for one that has already run
+            # and given the slot back: either way the slot is given back once, and the stop goes on.
+            self._slot_of.pop(request, None)
+            slot.release()
             raise
 
     def process_request_thread(self, request, client_address) -> None:
+        slot = self._slot_of.pop(request, None)
         try:
             super().process_request_thread(request, client_address)
         except BaseException as exc:  # noqa: BLE001 - a handler thread ends in one log line, never a
             # traceback (one escaped while the viewer was being stopped under load)
             log.debug("the connection of %s ended: %s: %s", client_address[0], type(exc).__name__, exc)
         finally:
-            self.slots.release()
+            if slot is not None:
+                slot.release()
 
     def handle_error(self, request, client_address) -> None:
         exc = sys.exc_info()[1]
