@@ -124,6 +124,22 @@ _OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
 }
 
 
+# Commands that summarise a results tree: a tree with nothing in it is refused
+# (after --out's own checks, before anything is written there).
+_READS_RUNS = ("tables", "plots", "report")
+
+
+def _require_runs(results: str) -> None:
+    """Refuse a results folder that holds no run and no skipped initialiser: a wrong path (or a
+    workflow that has not run) would otherwise give empty tables and exit 0."""
+    from evaluation.reports.results import find_runs
+    from evaluation.reports.run_status import read_skipped
+
+    if not find_runs(results) and not read_skipped(results):
+        raise ValueError(f"--results {results}: no run found (expected {{dataset}}/{{scene}}/n{{n}}/{{initialiser}}/ "
+                         "folders with result files, as the workflow writes them): nothing to summarise")
+
+
 def _prepare_out(args) -> None:
     """Apply camio's output rule to ``args.out`` of the command (:data:`_OUTPUTS`)."""
     from runtime.outdir import prepare_out
@@ -289,6 +305,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def work() -> int:
         _prepare_out(args)
+        if args.command in _READS_RUNS:
+            _require_runs(args.results)
         rc = int(func(args) or 0)
         if rc == 0:
             _seal_out(args)

@@ -5,11 +5,11 @@
 # editable install. Idempotent: a second run only checks (a stamp in .venv records the
 # pyproject/constraints it installed; change either and it reinstalls).
 #
-# The venv is created with --system-site-packages: packages the machine already has at the
-# pinned versions (torch, pycolmap, ...) are reused instead of downloaded again; whatever is
-# missing or at another version, and the project itself (editable), go into .venv.
-# VENV_ISOLATED=1 makes a venv that sees nothing of the system's packages.
-# A torch the machine already has at another version than the pin (a CUDA build, typically) is
+# The venv is isolated: it sees nothing of the machine's packages, so what runs is exactly the
+# pins of constraints/cpu.txt. SYSTEM_SITE_PACKAGES=1 makes it with --system-site-packages
+# instead: packages the machine already has at the pinned versions (torch, pycolmap, ...) are
+# reused rather than downloaded again, and only what is missing goes into .venv.
+# A torch the venv already sees at another version than the pin (a CUDA build, typically) is
 # kept: the CPU pin would shadow it in .venv. One older than the project's range is refused.
 # DRY_RUN=1 says what would be done (apt, venv, npm, pip, kernels, weights) and does none of it.
 # Usage: bash scripts/install.sh        (PYTHON=python3.11 picks the creating interpreter)
@@ -18,8 +18,9 @@ cd "$(dirname "$0")/.."
 BASE_PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 DRY=${DRY_RUN:-0}
+SYSTEM_SITE=${SYSTEM_SITE_PACKAGES:-0}
 if [ "$DRY" = 1 ] && [ ! -x "$VENV/bin/python" ]; then
-  echo "[install] would create $VENV ($([ "${VENV_ISOLATED:-0}" = 1 ] && echo isolated || echo --system-site-packages))"
+  echo "[install] would create $VENV ($([ "$SYSTEM_SITE" = 1 ] && echo --system-site-packages || echo isolated))"
 elif [ ! -x "$VENV/bin/python" ]; then
   # Debian's system python3 has venv without ensurepip until python3-venv is installed
   if ! "$BASE_PY" -c "import ensurepip, venv" 2>/dev/null; then
@@ -31,11 +32,14 @@ elif [ ! -x "$VENV/bin/python" ]; then
       DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv
   fi
   echo "[install] creating $VENV (this clone's own environment)"
-  if [ "${VENV_ISOLATED:-0}" = 1 ]; then
-    "$BASE_PY" -m venv "$VENV"
-  else
+  if [ "$SYSTEM_SITE" = 1 ]; then
     "$BASE_PY" -m venv --system-site-packages "$VENV"
+  else
+    "$BASE_PY" -m venv "$VENV"
   fi
+fi
+if [ -f "$VENV/pyvenv.cfg" ] && grep -qi '^include-system-site-packages *= *true' "$VENV/pyvenv.cfg" && [ "$SYSTEM_SITE" != 1 ]; then
+  echo "[install] note: $VENV was made with --system-site-packages and is kept as it is; for an isolated one: rm -rf $VENV, then make install again"
 fi
 # The browser viewer's libraries (`python -m splat_train view`): Spark and three.js from npm at
 # the versions pinned by splat_train/view/npm/package-lock.json, into its git-ignored
@@ -71,7 +75,7 @@ fi
 PY="$VENV/bin/python"
 # what the venv will see: in a dry run before the venv exists, the creating interpreter's packages
 PROBE_PY="$PY"; [ -x "$PY" ] || PROBE_PY="$BASE_PY"
-[ "${VENV_ISOLATED:-0}" = 1 ] && [ ! -x "$PY" ] && PROBE_PY=""
+[ "$SYSTEM_SITE" = 1 ] || [ -x "$PY" ] || PROBE_PY=""
 PIN=$(sed -n 's/^torch==//p' constraints/cpu.txt)
 NEED=$(sed -n 's/^ *"torch>=\([0-9.]*\)".*/\1/p' pyproject.toml)
 HAVE=""; [ -n "$PROBE_PY" ] && HAVE=$("$PROBE_PY" -c "import torch; print(torch.__version__)" 2>/dev/null || true)
@@ -79,14 +83,14 @@ CONSTRAINTS=constraints/cpu.txt
 KEEP_TORCH=0
 if [ -n "$HAVE" ] && [ "${HAVE%%+*}" != "$PIN" ]; then
   if ! "$BASE_PY" -c "import sys; v = lambda s: tuple(int(x) for x in s.split('+')[0].split('.')[:2]); sys.exit(v('$HAVE') < v('$NEED'))"; then
-    echo "[install] error: the machine's torch $HAVE (seen through --system-site-packages) is older than the project's torch>=$NEED: upgrade it, or VENV_ISOLATED=1 for a venv with the pinned CPU build torch==$PIN" >&2
+    echo "[install] error: the machine's torch $HAVE (seen by $VENV) is older than the project's torch>=$NEED: upgrade it, or install without SYSTEM_SITE_PACKAGES=1 for a venv with the pinned CPU build torch==$PIN" >&2
     exit 2
   fi
   KEEP_TORCH=1
   CONSTRAINTS=$(mktemp)
   trap 'rm -f "$CONSTRAINTS"' EXIT
   grep -v '^torch==' constraints/cpu.txt > "$CONSTRAINTS"
-  echo "[install] keeping the machine's torch $HAVE: the CPU pin torch==$PIN is not installed over it (VENV_ISOLATED=1 for the pin)"
+  echo "[install] keeping the machine's torch $HAVE: the CPU pin torch==$PIN is not installed over it"
 fi
 if [ "$DRY" = 1 ]; then
   if [ -n "$HAVE" ] && [ "$KEEP_TORCH" = 0 ]; then

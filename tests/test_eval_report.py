@@ -141,7 +141,9 @@ def test_plots_command_keeps_its_empty_folder(tmp_path):
     import subprocess
     import sys
 
-    (tmp_path / "results").mkdir()
+    failed = tmp_path / "results" / "synthetic" / "s" / "n3" / "colmap"
+    failed.mkdir(parents=True)
+    (failed / "status.json").write_text('{"success": false, "reason": "no model"}')
     proc = subprocess.run([sys.executable, "-m", "evaluation", "plots", "--results", str(tmp_path / "results"),
                            "--out", str(tmp_path / "plots"), "-q"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr

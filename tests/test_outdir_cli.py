@@ -257,6 +257,9 @@ def test_workflow_logs_inside_out_count_as_empty_except_for_a_replacing_stage(tm
     out = tmp_path / "run"
     (out / "logs").mkdir(parents=True)
     (out / "logs" / "oracle_init.log").write_text("")
+    failed = inp["root"] / "synthetic" / "s" / "n3" / "colmap"  # a run, so that there is something to plot
+    failed.mkdir(parents=True)
+    (failed / "status.json").write_text('{"success": false, "reason": "no model"}')
     rc = _main("evaluation.__main__")(["plots", "--results", str(inp["root"]), "--out", str(out)])
     assert rc == 0, capsys.readouterr().err
     assert (out / "logs" / "oracle_init.log").exists()

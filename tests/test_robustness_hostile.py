@@ -439,16 +439,19 @@ def test_photos_after_snakemake_was_killed_names_the_stale_lock_and_unlocks_it(t
     ("torch-at-the-pin", None, False, 0, ("is the pin: kept", "constraints/cpu.txt -e .[dev]")),
     ("a-cuda-build-of-another-version", "2.5.1+cu124", False, 0,
      ("keeping the machine's torch 2.5.1+cu124", "not installed over it", "without torch")),
-    ("older-than-the-range", "2.3.0", False, 2, ("torch 2.3.0", "older than the project's torch>=2.4", "VENV_ISOLATED=1")),
-    ("isolated-venv", "2.5.1+cu124", True, 0, ("pip install -c constraints/cpu.txt torch==",)),
-], ids=["torch-at-the-pin", "a-cuda-build-of-another-version", "older-than-the-range", "isolated-venv"])
+    ("older-than-the-range", "2.3.0", False, 2, ("torch 2.3.0", "older than the project's torch>=2.4", "without SYSTEM_SITE_PACKAGES=1")),
+    ("isolated-venv", "2.5.1+cu124", True, 0, ("would create", "(isolated)", "pip install -c constraints/cpu.txt torch==")),
+    ("the-default", "2.5.1+cu124", None, 0, ("would create", "(isolated)", "pip install -c constraints/cpu.txt torch==")),
+], ids=["torch-at-the-pin", "a-cuda-build-of-another-version", "older-than-the-range", "isolated-venv", "the-default"])
 def test_install_dry_run_keeps_or_refuses_the_machines_torch(tmp_path, case, version, isolated, rc, needles):
-    """`DRY_RUN=1 bash scripts/install.sh` for a new venv made with --system-site-packages: the
+    """`DRY_RUN=1 bash scripts/install.sh` for a new venv. Made with SYSTEM_SITE_PACKAGES=1, the
     machine's torch (this interpreter's, or a package named torch with that version first on
     PYTHONPATH, standing for another build) is kept, or refused when older than pyproject's
-    range, or ignored by an isolated venv; nothing is created."""
-    env = {**os.environ, "DRY_RUN": "1", "VENV": str(tmp_path / "venv"), "PYTHON": sys.executable,
-           "VENV_ISOLATED": "1" if isolated else "0"}
+    range; an isolated venv, the default, ignores it and gets the pin; nothing is created."""
+    env = {k: v for k, v in os.environ.items() if k != "SYSTEM_SITE_PACKAGES"}
+    env.update({"DRY_RUN": "1", "VENV": str(tmp_path / "venv"), "PYTHON": sys.executable})
+    if isolated is not None:
+        env["SYSTEM_SITE_PACKAGES"] = "0" if isolated else "1"
     if version:
         (tmp_path / "site" / "torch").mkdir(parents=True)
         (tmp_path / "site" / "torch" / "__init__.py").write_text(f"__version__ = {version!r}\n")
@@ -479,3 +482,32 @@ def test_a_depth_prior_with_non_finite_samples_is_refused(scene, tmp_path):
                  "--iterations", "1", "--out", str(tmp_path / "out")]), DEPTH_PRIOR_FILE, "non-finite", "z: 1",
             "weight: 1")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["tables", "plots", "report"])
+@pytest.mark.parametrize("tree", ["empty", "unrelated"])
+def test_a_results_folder_without_runs_is_refused_and_nothing_is_written(tmp_path, command, tree):
+    """A wrong --results (an empty folder, or one of photos) gave empty tables and exit 0."""
+    results = tmp_path / "res"
+    results.mkdir()
+    if tree == "unrelated":
+        (results / "photos").mkdir()
+        (results / "photos" / "a.jpg").write_bytes(b"\xff\xd8")
+    before = _listing(tmp_path)
+    p = run(["-m", "evaluation", command, "--results", str(results), "--out", str(tmp_path / "out")])
+    refused(p, str(results), "no run found")
+    assert _listing(tmp_path) == before
+
+
+def test_install_names_an_existing_venv_that_sees_the_system_and_keeps_it(tmp_path):
+    """A .venv made by an older install with --system-site-packages is not removed behind the
+    user's back (VENV may be their own): one line says how to get the isolated default."""
+    venv = tmp_path / "venv"
+    venv.mkdir()
+    (venv / "pyvenv.cfg").write_text("home = /usr/bin\ninclude-system-site-packages = true\n")
+    env = {k: v for k, v in os.environ.items() if k != "SYSTEM_SITE_PACKAGES"}
+    env.update({"DRY_RUN": "1", "VENV": str(venv), "PYTHON": sys.executable})
+    p = subprocess.run(["bash", "scripts/install.sh"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert f"{venv} was made with --system-site-packages and is kept" in p.stdout
+    assert (venv / "pyvenv.cfg").read_text().endswith("= true\n") and sorted(os.listdir(venv)) == ["pyvenv.cfg"]
