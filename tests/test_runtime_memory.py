@@ -32,6 +32,10 @@ pytestmark = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ve
 
 FIX = Path(__file__).parent / "data" / "vggt" / "shared"
 MB64 = 64 * 2**20
+# Between the two readings around an allocation, the interpreter and torch may free small blocks
+# of their own (8.6 KB once, in a clean-clone venv): the heap's in-use count grows by the 64 MB
+# block less at most this much. Without the settings it grows by nothing (the block is mmap'd).
+OWN_FREES = 2**20
 
 # Two probes in one subprocess, each 64 MB allocated and freed ROUNDS times: torch tensors as
 # vggt_init allocates them (2 MB-aligned with THP_MEM_ALLOC_ENABLE), and glibc's malloc/free
@@ -109,7 +113,7 @@ def test_retained_memory_comes_from_and_stays_in_the_heap():
     # retained: never mmap'd, from the heap, and kept in the process when freed (not trimmed)
     for r in retained["rounds"] + retained["plain"]:
         assert r["held"]["mmapped"] == r["before"]["mmapped"], r
-        assert r["held"]["in_use"] - r["before"]["in_use"] >= MB64, r
+        assert r["held"]["in_use"] - r["before"]["in_use"] >= MB64 - OWN_FREES, r
         assert r["freed"]["free_in_heap"] >= MB64 and r["freed"]["arena"] == r["held"]["arena"], r
 
 
