@@ -258,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     rl = sub.add_parser("relabel", help="rename the records of OLD to NEW (a value landed: the recipe's old "
                                         "runs become a variant, the candidate's the recipe's)")
     rl.add_argument("old", help="the records' name now (a recipe or a variant)")
-    rl.add_argument("new", help="their new name; a recipe name only for records trained with what it gives now")
+    rl.add_argument("new", help="their new name; a recipe's or a kept variant's (splat_train.recipes.VARIANTS) only "
+                                    "for records trained with what it gives now")
     rl.add_argument("--stale-only", action="store_true",
                     help="move only the records that OLD (a recipe) no longer resolves to")
     rl.add_argument("--work", type=Path, default=None, help="the run command's --work: rename the run folders too")

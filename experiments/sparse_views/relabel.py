@@ -8,9 +8,12 @@ recipe as it is now (:func:`experiments.sparse_views.runs.resolved_values`, with
 own background from scenes.yaml), so that a record never carries a name whose values it
 was not trained with:
 
-- to a recipe name: every record moved must resolve to what the recipe gives now, or nothing
-  moves; its ``config`` becomes what a run of the recipe writes: ``{"recipe": NAME}``, with the
-  scene's own ``background`` where scenes.yaml gives one;
+- to a recipe name, or to a kept variant's (:data:`splat_train.recipes.VARIANTS`, a recipe's
+  earlier values under a name of their own): every record moved must resolve to what the name
+  gives now, or nothing moves; its ``config`` becomes what a run of it writes: ``{"recipe":
+  NAME}``, with the scene's own ``background`` where scenes.yaml gives one. A record made
+  before records kept their values (no ``values``) is checked on the schedule it keeps, and
+  only a variant takes it: a recipe name needs every value;
 - ``stale_only``: only the records that the recipe no longer matches move (a scene whose own
   background stood in for the changed value keeps its records under the recipe's name).
 
@@ -25,13 +28,18 @@ from pathlib import Path
 from experiments.sparse_views.runs import resolved_values, run_name, stale_keys
 
 
-def _current(rec: dict, recipe: str, backgrounds: dict) -> bool:
-    """Whether the record's values are what ``recipe`` resolves to now on its scene."""
-    if rec.get("values") is None:
-        return False
+def _current(rec: dict, recipe: str, backgrounds: dict, schedule_only: bool = False) -> bool:
+    """Whether the record's values are what ``recipe`` (a recipe or a variant) resolves to now on
+    its scene; ``schedule_only``: a record without ``values`` is judged on its ``schedule``."""
     bg = backgrounds.get(rec["scene"])
     want = resolved_values(recipe, {} if bg is None else {"background": list(bg)}, rec["iterations"])
-    return stale_keys(rec["values"], want) == []
+    found = rec.get("values")
+    if found is None:
+        if not schedule_only or not rec.get("schedule"):
+            return False
+        found = {k: v for k, v in rec["schedule"].items() if k != "source"}
+        want = {k: want[k] for k in found}
+    return stale_keys(found, want) == []
 
 
 def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool = False,
@@ -54,7 +62,7 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
             name is taken, or nothing is named ``old``.
     """
     from runtime.atomic import atomic_path
-    from splat_train.recipes import RECIPE_NAMES
+    from splat_train.recipes import RECIPE_NAMES, VARIANTS
 
     if old == new:
         raise ValueError("relabel: the old and the new name are the same")
@@ -70,10 +78,12 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
         raise ValueError(f"relabel: no record in {runs_dir} is named {old!r}")
     if stale_only:
         found = [(p, r) for p, r in found if not _current(r, old, backgrounds)]
-    if new in RECIPE_NAMES:
-        bad = [p.name for p, r in found if not _current(r, new, backgrounds)]
+    named = new in RECIPE_NAMES or new in VARIANTS  # a name whose values a record must have
+    if named:
+        kind = "recipe" if new in RECIPE_NAMES else "variant"
+        bad = [p.name for p, r in found if not _current(r, new, backgrounds, schedule_only=kind == "variant")]
         if bad:
-            raise ValueError(f"relabel: {len(bad)} record(s) of {old!r} were not trained with what recipe "
+            raise ValueError(f"relabel: {len(bad)} record(s) of {old!r} were not trained with what {kind} "
                              f"{new!r} gives now (e.g. {bad[0]}); nothing moved")
     moves = []
     for path, rec in found:
@@ -89,7 +99,7 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
         moves.append((path, rec, target, folders))
     for path, rec, target, folders in moves:
         rec = {**rec, "recipe": new}
-        if new in RECIPE_NAMES:  # as cmd_run writes a run of the recipe on this scene
+        if named:  # as cmd_run writes a run of the recipe or variant on this scene
             bg = backgrounds.get(rec["scene"])
             rec["config"] = {"recipe": new, **({} if bg is None else {"background": list(bg)})}
         with atomic_path(target) as tmp:
