@@ -73,7 +73,7 @@ def sparse_views(records: Path) -> list[str] | None:
                 f"{d['psnr']['scenes_ahead']} of {k}: {verdict(eb['met'])}")
             rows[f"equal background, {eb['background']}: LPIPS-Alex / VGG, `{o}` − `{b}`"][i] = (
                 f"{iv(d['lpips_alex'], 3)} / {iv(d['lpips_vgg'], 3)}")
-        for r in ("sparse", "paper"):
+        for r in ("sparse", "paper", "paper-seedcode"):
             c = v.get("coverage", {}).get(r)
             if c:
                 rows[f"`{r}`: held-out pixels covered (alpha ≥ 0.5), PSNR over them"][i] = (
@@ -109,8 +109,16 @@ def sparse_views(records: Path) -> list[str] | None:
         if seen:
             rows2.append(row)
     from experiments.sparse_views.summary import TARGET_N, registration_sentence
+    from splat_train.recipes import VARIANTS
 
-    return out + ["", *table(head2, rows2), "",
+    missing = sorted({rc for v in by_n for rc in v.get("recipes_without_runs", [])})
+    kept = [name for name in VARIANTS if any(a["recipe"] == name for a in agg)]
+    gap = [] if not missing else [
+        "No run yet on these scenes of " + ", ".join(f"`{rc}`" for rc in missing) + " as they now train "
+        "(docs/reference.md section 6): no figure above is of them and no target against them is read"
+        + ("" if not kept else "; " + ", ".join(f"`{x}`" for x in kept) + " are their runs before their values "
+           "changed") + ".", ""]
+    return out + ["", *table(head2, rows2), "", *gap,
                   "Evaluation scenes, on which no recipe value was chosen (`experiments/sparse_views/scenes.yaml`):",
                   ", ".join(f"`{x}`" for x in by_n[0]["evaluation_scenes"]) + ". `posed` seed, every 8th image "
                   "held out, on a CPU.",
@@ -119,7 +127,7 @@ def sparse_views(records: Path) -> list[str] | None:
                   "measures.",
                   "`sparse` trains against the training views' mean colour and the field's recipes against black,",
                   "so the like-for-like rows are those at equal background (`sparse-r13`: `sparse` on black;",
-                  "`paper-bgmean`: `paper` on the mean colour). Per scene, and every tuning run:",
+                  "`paper-bgmean`: `paper-seedcode` on the mean colour). Per scene, and every tuning run:",
                   "`docs/results-sparse-views.md`.",
                   *([registration_sentence(s["registration"])] if s.get("registration") else [])]
 
