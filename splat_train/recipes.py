@@ -12,7 +12,7 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
 
 ``paper``
     3DGS as its release trains (graphdeco-inria/gaussian-splatting, ``train.py`` and
-    ``arguments/__init__.py``; docs/reference.md section 6 lists every value with its source):
+    ``arguments/__init__.py``; docs/reference.md section 7 lists every value with its source):
     the release's schedule as fractions of its own 30,000 iterations, as gsplat's
     ``steps_scaler`` scales it: densify from 500/30000 of the run to half of it (15000/30000)
     every 100 iterations, reset opacity every 3000/30000, raise the SH degree every
@@ -183,7 +183,7 @@ OPACITY_REG_GSPLAT = 0.01
 DEPTH_WEIGHT_FSGS = 0.05
 
 # The 3DGS release's run length and its schedule there (arguments/__init__.py OptimizationParams,
-# train.py; docs/reference.md section 6)
+# train.py; docs/reference.md section 7)
 ITERATIONS_3DGS = 30000
 SCHEDULE_3DGS = RecipeSchedule(densify_from=500 / ITERATIONS_3DGS, densify_until=15000 / ITERATIONS_3DGS,
                                opacity_reset_every=3000 / ITERATIONS_3DGS, sh_increase_every=1000 / ITERATIONS_3DGS)

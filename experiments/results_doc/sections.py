@@ -115,7 +115,7 @@ def sparse_views(records: Path) -> list[str] | None:
     kept = [name for name in VARIANTS if any(a["recipe"] == name for a in agg)]
     gap = [] if not missing else [
         "No run yet on these scenes of " + ", ".join(f"`{rc}`" for rc in missing) + " as they now train "
-        "(docs/reference.md section 6): no figure above is of them and no target against them is read"
+        "(docs/reference.md section 7): no figure above is of them and no target against them is read"
         + ("" if not kept else "; " + ", ".join(f"`{x}`" for x in kept) + " are their runs before their values "
            "changed") + ".", ""]
     return out + ["", *table(head2, rows2), "", *gap,
