@@ -140,3 +140,31 @@ def test_a_recipes_old_records_become_its_kept_variant_checked_against_it(tmp_pa
         assert (rec["recipe"], rec["config"], rec["psnr"]) == ("paper-seedcode", {"recipe": "paper-seedcode"}, psnr)
     fern = json.loads((runs / f"{run_name('llff__fern', 3, 'paper-seedcode', 0, ITS)}.json").read_text())
     assert fern["values"] == old
+
+
+def test_variants_built_on_a_recipe_name_its_kept_variant_only_when_their_values_are_its(tmp_path, capsys):
+    """``--built-on``: a variant built on ``paper`` (``paper-mvs``, ``{"recipe": "paper", "init":
+    "mvs"}``) trained with paper's earlier values keeps its name and its seed keys, and its config
+    names ``paper-seedcode``; one trained with other values refuses the move, and nothing moves."""
+    runs = tmp_path / "records" / "runs"
+    runs.mkdir(parents=True)
+    seedcode = resolved_values("paper-seedcode", {}, ITS)
+    old = _write(runs, "llff__fern", "paper", {"recipe": "paper"}, seedcode, 14.0)
+    mvs = _write(runs, "llff__fern", "paper-mvs", {"recipe": "paper", "init": "mvs", "bridge_mode": "gated"},
+                 seedcode, 15.0)
+    odd = _write(runs, "llff__horns", "paper-mvs", {"recipe": "paper", "init": "mvs"},
+                 {**seedcode, "densify_every": 7}, 15.0)
+    before = {p.name: p.read_text() for p in runs.glob("*.json")}
+    assert _cli(tmp_path / "records", "paper", "paper-seedcode", "--stale-only", "--built-on") == 2
+    err = capsys.readouterr().err
+    assert "nothing moved" in err and odd.name in err and len(err.strip().splitlines()) == 1
+    assert {p.name: p.read_text() for p in runs.glob("*.json")} == before
+    odd.unlink()
+    assert _cli(tmp_path / "records", "paper", "paper-seedcode", "--stale-only", "--built-on") == 0
+    assert not old.exists()
+    moved = json.loads((runs / f"{run_name('llff__fern', 3, 'paper-seedcode', 0, ITS)}.json").read_text())
+    assert moved["recipe"] == "paper-seedcode" and moved["config"] == {"recipe": "paper-seedcode"}
+    built = json.loads(mvs.read_text())
+    assert built["recipe"] == "paper-mvs"
+    assert built["config"] == {"recipe": "paper-seedcode", "init": "mvs", "bridge_mode": "gated"}
+    assert resolved_values(built["config"]["recipe"], {}, ITS) == built["values"]

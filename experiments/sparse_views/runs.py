@@ -63,6 +63,10 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
     return {**out, **sched}
 
 
+#: a variant's config keys that choose its seed (experiments.sparse_views.cells.prepare), not training values
+SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
+
+
 # Values that became keys after records were made, with the value every run had before: a
 # record without the key ran with it.
 IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
