@@ -11,28 +11,39 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
 (:meth:`splat_train.tree.ConfigTree.schedule`, printed by the trainer).
 
 ``paper``
-    The training of the paper's tables (docs/reference.md section 3, 3DGS as the seed code ran it for
-    10,000 iterations): densify from 5 % of the run to its end every 100 iterations, reset
-    opacity every 30 %, raise the SH degree every 10 %; no cap on growth, no dropout, no depth
-    term. At the paper's 10,000 iterations these are the seed code's absolute counts (500,
-    10000, 3000, 1000); a shorter run compresses them in proportion, as the project always did.
+    3DGS as its release trains (graphdeco-inria/gaussian-splatting, ``train.py`` and
+    ``arguments/__init__.py``; docs/reference.md section 7 lists every value with its source):
+    the release's schedule as fractions of its own 30,000 iterations, as gsplat's
+    ``steps_scaler`` scales it: densify from 500/30000 of the run to half of it (15000/30000)
+    every 100 iterations, reset opacity every 3000/30000, raise the SH degree every
+    1000/30000; no cap on growth, no dropout, no depth term. The densification *period* stays
+    100 at every run length, as the release's own code keeps it whatever ``--iterations`` says
+    (a 5x shorter period in a 5x shorter run grew 4000 seeds to 120k Gaussians by iteration 400
+    on the 256 px synthetic scene). The seed code of the paper ran this code for 10,000
+    iterations with its absolute counts (densify to the end, reset every 3,000, SH every 1,000);
+    at 10,000 iterations this recipe densifies to 5,000, resets every 1,000 and raises the SH
+    degree every 333, as the release's 30,000-iteration run does in proportion (the variant
+    ``paper-seedcode`` keeps the seed code's schedule, see below).
     Pruning is what the official code does, not what its source appears to do: the code
     computes a screen-size prune (2D radius above 20 px after the first reset), but zeroes the
     radii it reads before the prune reads them (graphdeco-inria/gaussian-splatting issue 123),
     so it never prunes by screen size; gsplat's ``DefaultStrategy`` leaves it off by default for
     the same reason. This recipe leaves it off too (``prune_screen_size`` 0), so that it trains
     as 3DGS and gsplat's own loop do (tests/test_train_recipes.py pins the two strategies
-    together on a small scene).
+    together on a small scene); the world-size prune that the release runs beside it (largest
+    scale above 0.1 x the extent, after the first reset) stays.
     In the sparse regime this recipe overfits: held-out PSNR peaks early and falls while the
     model grows (docs/lessons.md).
 
 ``dropgaussian``
     DropGaussian (Park et al., CVPR 2025) as its release trains LLFF 3 views
     (DCVL-3D/DropGaussian_release): 3DGS with Gaussian dropout during training, the rate ramped
-    linearly to 0.2 over the run, survivors scaled by 1 / (1 - p); densify from 500 to 10,000
-    of 10,000 iterations every 100 with the gradient threshold 5e-4 (2.5x 3DGS's), opacity
-    reset every 3,000 (30 %). No cap, no depth term. As for ``paper``, a shorter run compresses
-    the schedule in proportion and the period stays 100.
+    linearly to 0.2 over the run (``0.2 * iteration / 10000`` of its 10,000 iterations),
+    survivors scaled by 1 / (1 - p); densify from 500 to 10,000 of 10,000 iterations every 100
+    with the gradient threshold 5e-4 (2.5x 3DGS's), opacity reset every 3,000 (30 %); the
+    release prunes by opacity only (its ``size_threshold`` is None: neither the screen-size nor
+    the world-size prune, ``prune_world_size`` 0). No cap, no depth term. A shorter run
+    compresses the schedule in proportion and the period stays 100.
 
 ``sparse``
     The sparse-view regularisation the field converged on, each part with its own switch:
@@ -93,8 +104,13 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
     (504 x 378) with 3 views has 571,536 training pixels, so the cap is 100k, the size of the
     field's LLFF 3-view models (80k-120k). gsplat's absolute ``cap_max`` 1e6 is sized for
     dense 360-degree captures of 100-300 views (under 0.01 per pixel); an absolute cap would
-    not follow the view count or resolution, and 1e6 is ten times the field's 3-view models. A
-    seed larger than the cap keeps its size (MCMC never removes Gaussians) and is only relocated.
+    not follow the view count or resolution, and 1e6 is ten times the field's 3-view models.
+    The release always grows from its initial points towards a cap above them (its configs'
+    ``cap_max`` is 1.5-59x the 100,000 random points it starts from), so a seed that fills
+    the per-pixel cap (3DGS's random initialisation, 0.25 per training pixel) raises the cap
+    to :data:`CAP_OVER_SEED` x its size (``seed_over_cap`` "grow"): it grows as the release's
+    runs do instead of staying at its seed (MCMC never removes Gaussians, so a seed above the
+    cap keeps its size either way).
 
     Growth (``mcmc_growth`` "reach_cap"): gsplat's int(1.05 N) per refine step, except where it
     cannot take the seed to the cap within the refine window; there the count follows the
@@ -110,6 +126,20 @@ iterations of this run, never rescaled). The recipe's own schedule values are sh
     Initial opacity and scale: gsplat's preset starts SfM points at opacity 0.5 and a tenth of
     the neighbour distance; here the seed PLY's own opacities and scales are kept (the Bridge's
     uncertainty-gated opacity is part of the initialiser under test), as in the other recipes.
+
+Variants (:data:`VARIANTS`)
+    A recipe's earlier values, kept under a name of their own so that the runs made with them
+    (experiments/records/sparse_views) stay readable and can be reproduced: a variant is a
+    preset like a recipe (``--config '{"recipe": "paper-seedcode"}'``, ``TrainConfig(recipe=...)``),
+    not one of the recipes a user picks (``--recipe``, the workflow's config, the benchmark's
+    targets).
+
+    * ``paper-seedcode``: ``paper`` with the seed code's schedule (densify from 500/10000 of the
+      run to its end, reset opacity every 30 %, SH degree every 10 %);
+    * ``dropgaussian-wsprune``: ``dropgaussian`` with 3DGS's world-size prune, which its
+      release never runs;
+    * ``mcmc-keep``: ``mcmc`` with a seed over its cap kept at its size (``seed_over_cap``
+      "keep"), so a seed that fills the cap does not grow.
 """
 
 from __future__ import annotations
@@ -121,13 +151,15 @@ from splat_train.tree import (BACKGROUND_BLACK, BACKGROUND_MEAN, DENSIFY_FROM_3D
                               SCHEDULE_KEYS, ConfigTree, OptimConfig, RecipeSchedule)
 from splat_train.parts.configs import (BINOCULAR_FROM_FRACTION, OPACITY_DECAY_BINOCULAR, BinocularConfig,
                                       DepthPriorConfig, DropoutConfig, OpacityDecayConfig, RegularisersConfig)
-from splat_train.strategy.configs import (GRAD_THRESHOLD_3DGS, MCMC_GROWTH, SEED_OVER_CAP, STRATEGIES,  # noqa: F401
-                                          MCMCStrategyConfig, StrategyConfig)
+from splat_train.strategy.configs import (CAP_OVER_SEED, GRAD_THRESHOLD_3DGS, MCMC_GROWTH,  # noqa: F401
+                                          PRUNE_WORLD_SIZE_3DGS, SEED_OVER_CAP, STRATEGIES, MCMCStrategyConfig,
+                                          StrategyConfig)
 
 __all__ = ["RECIPES", "RECIPE_NAMES", "RECIPE_SUMMARIES", "DEFAULT_RECIPE", "PART_KEYS", "SCHEDULE_KEYS", "VALUE_KEYS",
            "RAMP_KEYS", "STRATEGIES", "SEED_OVER_CAP", "MCMC_GROWTH", "MIN_DENSIFY_EVERY", "BACKGROUND_BLACK",
-           "BACKGROUND_MEAN", "BINOCULAR_FROM_FRACTION", "PAPER", "DROPGAUSSIAN", "SPARSE", "MCMC",
-           "recipe_config", "recipe_defaults", "register_recipe"]
+           "BACKGROUND_MEAN", "BINOCULAR_FROM_FRACTION", "CAP_OVER_SEED", "PRUNE_WORLD_SIZE_3DGS", "PAPER",
+           "DROPGAUSSIAN", "SPARSE", "MCMC", "VARIANTS", "ITERATIONS_3DGS", "recipe_config", "recipe_defaults",
+           "register_recipe"]
 
 DEFAULT_RECIPE = "sparse"
 
@@ -140,7 +172,8 @@ PART_KEYS = {"dropout_rate": 0.0, "depth_weight": 0.0, "gaussians_per_pixel": 0.
 RAMP_KEYS = ("depth_ramp_fraction", "dropout_ramp_fraction", "binocular_from_fraction")
 # ... and the values every recipe gives: the densification thresholds, how the model grows
 # (``strategy``), the background.
-VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "strategy", "seed_over_cap", "mcmc_growth", "background")
+VALUE_KEYS = ("densify_grad_threshold", "prune_screen_size", "prune_world_size", "strategy", "seed_over_cap",
+              "mcmc_growth", "background")
 assert set(RECIPE_KEYS) == {*PART_KEYS, *RAMP_KEYS, *VALUE_KEYS}
 
 # gsplat's MCMC preset's opacity regulariser weight (simple_trainer.py ``opacity_reg``)
@@ -149,20 +182,30 @@ OPACITY_REG_GSPLAT = 0.01
 # scenes (docs/lessons.md)
 DEPTH_WEIGHT_FSGS = 0.05
 
-# ``paper``: the base as it is. Its schedule (RecipeSchedule's defaults): densify from 500/10000
-# of the run to its end every 100 iterations, reset opacity every 30 %, SH degree every 10 %;
-# the default strategy at 3DGS's gradient threshold 2e-4, and prune_screen_size off: the official
-# code never applies it (see the module docstring); no cap (seed_over_cap "cap": nothing to
-# hold), mcmc_growth not read (no mcmc strategy); every part off (dropout, depth, regularisers,
-# binocular stereo consistency (splat_train/parts/binocular.py), opacity decay
-# (splat_train/parts/opacity_decay.py)); black behind the model.
-PAPER = ConfigTree(recipe="paper", shares=RecipeSchedule())
+# The 3DGS release's run length and its schedule there (arguments/__init__.py OptimizationParams,
+# train.py; docs/reference.md section 7)
+ITERATIONS_3DGS = 30000
+SCHEDULE_3DGS = RecipeSchedule(densify_from=500 / ITERATIONS_3DGS, densify_until=15000 / ITERATIONS_3DGS,
+                               opacity_reset_every=3000 / ITERATIONS_3DGS, sh_increase_every=1000 / ITERATIONS_3DGS)
+
+# ``paper``: the base with the 3DGS release's schedule as fractions of its 30,000 iterations:
+# densify from 500/30000 of the run to half of it every 100 iterations (the period absolute, as
+# its code keeps it), reset opacity every 10 %, SH degree every 1000/30000; the default strategy
+# at 3DGS's gradient threshold 2e-4, the world-size prune at 3DGS's 0.1 and prune_screen_size
+# off: the official code never applies it (see the module docstring); no cap (seed_over_cap
+# "cap": nothing to hold), mcmc_growth not read (no mcmc strategy); every part off (dropout,
+# depth, regularisers, binocular stereo consistency (splat_train/parts/binocular.py), opacity
+# decay (splat_train/parts/opacity_decay.py)); black behind the model.
+PAPER = ConfigTree(recipe="paper", shares=SCHEDULE_3DGS)
 
 # ``dropgaussian``: ``paper`` with DropGaussian's dropout, ramped to 0.2 over the whole run
-# (DropGaussian's ramp, the DropoutConfig default), and its densification gradient threshold.
+# (DropGaussian's ramp, the DropoutConfig default), its densification gradient threshold, no
+# world-size prune (the release passes size_threshold None, which skips both size prunes) and
+# its release's schedule at its 10,000 iterations (RecipeSchedule's defaults: densify from 500
+# to the end, reset every 3,000, SH every 1,000).
 DROPGAUSSIAN = replace(
-    PAPER, recipe="dropgaussian", parts=(DropoutConfig(rate=0.2),),
-    growth=replace(PAPER.growth, default=replace(PAPER.growth.default, grad_threshold=5e-4)))
+    PAPER, recipe="dropgaussian", parts=(DropoutConfig(rate=0.2),), shares=RecipeSchedule(),
+    growth=replace(PAPER.growth, default=replace(PAPER.growth.default, grad_threshold=5e-4, prune_world_size=0.0)))
 
 SPARSE = ConfigTree(
     recipe="sparse",
@@ -222,8 +265,9 @@ MCMC = ConfigTree(
         name="mcmc",
         # 100k at LLFF 3 views, 1/8 resolution (571,536 pixels); see the module docstring
         gaussians_per_pixel=0.175,
-        # gsplat's MCMCStrategy never removes a Gaussian: a seed above the cap keeps its size
-        seed_over_cap="keep",
+        # the release grows from its initial points towards a cap above them: a seed that fills
+        # the per-pixel cap raises it to CAP_OVER_SEED x its size (see the module docstring)
+        seed_over_cap="grow",
         # gsplat's 5 % per refine step, but never a model that cannot reach its cap: from the
         # 12-95 points three views triangulate, 5 % per step leaves it at a few hundred
         # Gaussians (under 20 it never grows: int(1.05 N) = N); see the module docstring
@@ -238,9 +282,22 @@ MCMC = ConfigTree(
 
 RECIPES: dict[str, ConfigTree] = {"paper": PAPER, "dropgaussian": DROPGAUSSIAN, "sparse": SPARSE, "mcmc": MCMC}
 RECIPE_NAMES = tuple(RECIPES)
+
+# A recipe's earlier values, kept so that the runs made with them stay readable and can be
+# reproduced (see the module docstring); never among RECIPES.
+VARIANTS: dict[str, ConfigTree] = {
+    # paper before it took the release's schedule: the seed code's (RecipeSchedule's defaults)
+    "paper-seedcode": replace(PAPER, recipe="paper-seedcode", shares=RecipeSchedule()),
+    # dropgaussian before it dropped the world-size prune
+    "dropgaussian-wsprune": replace(DROPGAUSSIAN, recipe="dropgaussian-wsprune", growth=replace(
+        DROPGAUSSIAN.growth, default=replace(DROPGAUSSIAN.growth.default, prune_world_size=PRUNE_WORLD_SIZE_3DGS))),
+    # mcmc before a seed that fills its cap raised it: the seed kept at its size
+    "mcmc-keep": replace(MCMC, recipe="mcmc-keep", growth=replace(MCMC.growth, seed_over_cap="keep")),
+}
+
 # One line per recipe, for help texts (the module docstring has the full account).
 RECIPE_SUMMARIES = {
-    "paper": "3DGS as its code trains (the paper's tables)",
+    "paper": "3DGS as its release trains, its schedule in proportion to the run",
     "dropgaussian": "3DGS with Gaussian dropout, as DropGaussian trains LLFF",
     "sparse": "dropout, the initialiser's depth prior, binocular consistency, growth capped per training pixel, "
               "opacity decay and an opacity regulariser instead of the opacity reset",
@@ -249,9 +306,12 @@ RECIPE_SUMMARIES = {
 
 
 def recipe_config(name: str) -> ConfigTree:
-    """The recipe ``name`` (a tree; ``iterations`` unresolved); ValueError naming the valid recipes otherwise."""
+    """The recipe or variant ``name`` (a tree; ``iterations`` unresolved); ValueError naming the
+    valid recipes otherwise."""
+    if name in VARIANTS:
+        return VARIANTS[name]
     if name not in RECIPES:
-        raise ValueError(f"recipe must be one of {list(RECIPES)}, got {name!r}")
+        raise ValueError(f"recipe must be one of {list(RECIPES)} (or a kept variant: {list(VARIANTS)}), got {name!r}")
     return RECIPES[name]
 
 
@@ -268,7 +328,7 @@ def register_recipe(preset: ConfigTree, summary: str) -> ConfigTree:
     The workflow's config schema lists the recipes it accepts (docs/contracts.md, "Adding a
     recipe")."""
     global RECIPE_NAMES
-    if preset.recipe in RECIPES:
+    if preset.recipe in RECIPES or preset.recipe in VARIANTS:
         raise ValueError(f"a recipe named {preset.recipe!r} exists already")
     RECIPES[preset.recipe] = preset
     RECIPE_SUMMARIES[preset.recipe] = summary

@@ -216,8 +216,8 @@ FLAT_KEYS = (
 # what a seed over the cap does, the background.
 RECIPE_KEYS = ("dropout_rate", "depth_weight", "gaussians_per_pixel", "opacity_reg", "scale_reg",
                "binocular_weight", "opacity_decay", "depth_ramp_fraction", "dropout_ramp_fraction",
-               "binocular_from_fraction", "densify_grad_threshold", "prune_screen_size", "strategy",
-               "seed_over_cap", "mcmc_growth", "background")
+               "binocular_from_fraction", "densify_grad_threshold", "prune_screen_size", "prune_world_size",
+               "strategy", "seed_over_cap", "mcmc_growth", "background")
 
 # Where a flat key lives: ("recipe",), (group, field) for group in run / optim / growth,
 # ("growth", "default" | "mcmc", field), ("part", part name, field).

@@ -62,7 +62,10 @@ def test_a_recipe_states_only_its_differences_from_the_base():
     assert PAPER.parts == () and PAPER.run == tree.RunConfig() and PAPER.growth == strategy_configs.StrategyConfig()
     assert DROPGAUSSIAN.parts == (DropoutConfig(rate=0.2),)
     diff = {k for k, v in DROPGAUSSIAN.to_flat().items() if PAPER.to_flat()[k] != v}
-    assert diff == {"recipe", "dropout_rate", "densify_grad_threshold"}
+    assert diff == {"recipe", "dropout_rate", "densify_grad_threshold", "prune_world_size"}
+    # the schedule: paper's is the 3DGS release's over 30,000 iterations, dropgaussian's its
+    # release's over 10,000 (the seed code's, RecipeSchedule's defaults)
+    assert DROPGAUSSIAN.shares == tree.RecipeSchedule() != PAPER.shares
     assert set(recipe_defaults("paper")) == set(RECIPE_KEYS)
 
 

@@ -420,23 +420,27 @@ def test_backend_comparison_against_every_record_of_the_recipe(tmp_path):
 
 def test_every_shipped_record_of_a_recipe_matches_what_the_recipe_resolves_now():
     """A record whose kept values differ from its recipe's stops `run` (exit 2, "made with other
-    values"): the shipped records of the four recipes must stay current when a recipe gains a
-    key, or rerunning the README's grid fails on them. Records from before values were recorded
-    (the first tuning round's) say so and are left out."""
+    values"): the shipped records of the four recipes, and of the variants that keep a recipe's
+    earlier values (paper-seedcode, dropgaussian-wsprune, mcmc-keep), must stay current when a
+    recipe gains a key, or rerunning the README's grid fails on them. Records from before values
+    were recorded (the first tuning round's) say so and are left out."""
     from experiments.sparse_views.runs import resolved_values, stale_keys
-    from splat_train.recipes import RECIPE_NAMES
+    from splat_train.recipes import RECIPE_NAMES, VARIANTS
 
     records = sorted((protocol.REPO / "experiments" / "records" / "sparse_views" / "runs").glob("*.json"))
-    checked = 0
+    checked, by_name = 0, {}
     for path in records:
         rec = json.loads(path.read_text())
-        if rec["recipe"] not in RECIPE_NAMES or rec.get("values") is None:
+        if (rec["recipe"] not in RECIPE_NAMES and rec["recipe"] not in VARIANTS) or rec.get("values") is None:
             continue
+        assert rec["config"]["recipe"] == rec["recipe"], path.name
         overrides = {k: v for k, v in (rec.get("config") or {}).items() if k != "recipe"}
         want = resolved_values(rec["recipe"], overrides, rec["iterations"])
         assert stale_keys(rec["values"], want) == [], path.name
         checked += 1
+        by_name[rec["recipe"]] = by_name.get(rec["recipe"], 0) + 1
     assert checked >= 500
+    assert all(by_name.get(v, 0) >= 90 for v in VARIANTS), by_name
 
 
 def test_a_key_older_records_predate_counts_at_the_value_their_runs_had():

@@ -75,7 +75,7 @@ def test_sparse_decays_at_the_release_factor_and_the_field_recipes_do_not(tmp_pa
     assert "OpacityDecay" not in names(TrainConfig(recipe="sparse", binocular_weight=0.0, opacity_decay=1.0))
     cfg = TrainConfig(recipe="paper", opacity_decay=0.995, iterations=1000)
     parts = [p for p in recipe_parts(cfg, views, cams, torch.Generator()) if isinstance(p, OpacityDecay)]
-    assert len(parts) == 1 and parts[0].start == cfg.schedule().densify_from == 50
+    assert len(parts) == 1 and parts[0].start == cfg.schedule().densify_from == 17
 
 
 def test_a_run_with_the_decay_prunes_what_no_view_holds_up(tmp_path):

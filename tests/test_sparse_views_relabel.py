@@ -114,3 +114,57 @@ def test_bad_requests_say_why_and_move_nothing(records, capsys):
     assert "not a recipe" in capsys.readouterr().err
     assert _cli(records, "sparse", "sparse") == 2
     assert _names(records) == before
+
+
+def test_a_recipes_old_records_become_its_kept_variant_checked_against_it(tmp_path, capsys):
+    """``paper``'s records made with the seed code's schedule move to ``paper-seedcode`` (a kept
+    variant, splat_train.recipes.VARIANTS), whose values they must have; a record that predates
+    its values is judged on its schedule; records of other values are refused the name."""
+    records = tmp_path / "records"
+    runs = records / "runs"
+    runs.mkdir(parents=True)
+    old = resolved_values("paper-seedcode", {}, ITS)
+    assert old != resolved_values("paper", {}, ITS)
+    _write(runs, "llff__fern", "paper", {"recipe": "paper"}, old, 15.0)
+    sched = {k: old[k] for k in ("densify_from", "densify_until", "densify_every", "opacity_reset_every",
+                                 "sh_increase_every")}
+    early = _write(runs, "llff__horns", "paper", {"recipe": "paper"}, None, 14.0)
+    early.write_text(json.dumps({**json.loads(early.read_text()), "schedule": sched}))
+    _write(runs, "llff__room", "dropgaussian", {"recipe": "dropgaussian"}, resolved_values("dropgaussian", {}, ITS), 16.0)
+    assert _cli(records, "dropgaussian", "dropgaussian-wsprune") == 2  # trained without the prune
+    assert "were not trained with what variant 'dropgaussian-wsprune' gives now" in capsys.readouterr().err
+    assert _cli(records, "paper", "paper-seedcode", "--stale-only") == 0
+    assert "2 records of 'paper' are now 'paper-seedcode'" in capsys.readouterr().out
+    for scene, psnr in (("llff__fern", 15.0), ("llff__horns", 14.0)):
+        rec = json.loads((runs / f"{run_name(scene, 3, 'paper-seedcode', 0, ITS)}.json").read_text())
+        assert (rec["recipe"], rec["config"], rec["psnr"]) == ("paper-seedcode", {"recipe": "paper-seedcode"}, psnr)
+    fern = json.loads((runs / f"{run_name('llff__fern', 3, 'paper-seedcode', 0, ITS)}.json").read_text())
+    assert fern["values"] == old
+
+
+def test_variants_built_on_a_recipe_name_its_kept_variant_only_when_their_values_are_its(tmp_path, capsys):
+    """``--built-on``: a variant built on ``paper`` (``paper-mvs``, ``{"recipe": "paper", "init":
+    "mvs"}``) trained with paper's earlier values keeps its name and its seed keys, and its config
+    names ``paper-seedcode``; one trained with other values refuses the move, and nothing moves."""
+    runs = tmp_path / "records" / "runs"
+    runs.mkdir(parents=True)
+    seedcode = resolved_values("paper-seedcode", {}, ITS)
+    old = _write(runs, "llff__fern", "paper", {"recipe": "paper"}, seedcode, 14.0)
+    mvs = _write(runs, "llff__fern", "paper-mvs", {"recipe": "paper", "init": "mvs", "bridge_mode": "gated"},
+                 seedcode, 15.0)
+    odd = _write(runs, "llff__horns", "paper-mvs", {"recipe": "paper", "init": "mvs"},
+                 {**seedcode, "densify_every": 7}, 15.0)
+    before = {p.name: p.read_text() for p in runs.glob("*.json")}
+    assert _cli(tmp_path / "records", "paper", "paper-seedcode", "--stale-only", "--built-on") == 2
+    err = capsys.readouterr().err
+    assert "nothing moved" in err and odd.name in err and len(err.strip().splitlines()) == 1
+    assert {p.name: p.read_text() for p in runs.glob("*.json")} == before
+    odd.unlink()
+    assert _cli(tmp_path / "records", "paper", "paper-seedcode", "--stale-only", "--built-on") == 0
+    assert not old.exists()
+    moved = json.loads((runs / f"{run_name('llff__fern', 3, 'paper-seedcode', 0, ITS)}.json").read_text())
+    assert moved["recipe"] == "paper-seedcode" and moved["config"] == {"recipe": "paper-seedcode"}
+    built = json.loads(mvs.read_text())
+    assert built["recipe"] == "paper-mvs"
+    assert built["config"] == {"recipe": "paper-seedcode", "init": "mvs", "bridge_mode": "gated"}
+    assert resolved_values(built["config"]["recipe"], {}, ITS) == built["values"]

@@ -65,7 +65,8 @@ def test_summary_holds_floor_equal_backgrounds_intervals_and_coverage(tmp_path):
     for scene, lift in (("a", 0.0), ("b", 2.0)):
         for seed in (0, 1):
             rows += [_rec(scene, "sparse", seed, 20.0 + lift, 0.20, coverage=0.7),
-                     _rec(scene, "paper", seed, 16.0 + lift, 0.30, coverage=0.9),
+                     _rec(scene, "paper-seedcode", seed, 16.0 + lift, 0.30, coverage=0.9),
+                     _rec(scene, "paper", seed, 15.0 + lift, 0.32),
                      _rec(scene, "sparse-r13", seed, 17.0 + lift + seed, 0.25),
                      _rec(scene, "paper-bgmean", seed, 19.0 + lift, 0.22, coverage=0.8)]
     for i, r in enumerate(rows):
@@ -79,17 +80,17 @@ def test_summary_holds_floor_equal_backgrounds_intervals_and_coverage(tmp_path):
     fl = t["floor"]
     assert fl["psnr"] == pytest.approx(14.5) and fl["lead"]["per_scene"] == {"a": 5.0, "b": 8.0} and fl["met"]
     black, mean = t["equal_background"]
-    assert (black["background"], black["ours"], black["base"]) == ("black", "sparse-r13", "paper")
+    assert (black["background"], black["ours"], black["base"]) == ("black", "sparse-r13", "paper-seedcode")
     assert black["diff"]["psnr"]["mean"] == pytest.approx(1.5) and black["diff"]["psnr"]["k"] == 2
     assert black["met"]  # +1.5, both scenes exactly +1.5: interval of zero width above 0; LPIPS lower
     assert mean["diff"]["psnr"]["mean"] == pytest.approx(1.0) and mean["met"]
-    assert t["scene_level"]["paper"]["mean"] == pytest.approx(4.0)
-    assert set(t["coverage"]) == {"sparse", "paper", "paper-bgmean"}  # sparse-r13 recorded none
+    assert t["scene_level"]["paper-seedcode"]["mean"] == pytest.approx(4.0)
+    assert set(t["coverage"]) == {"sparse", "paper-seedcode", "paper-bgmean"}  # sparse-r13 and paper recorded none
     assert t["coverage"]["sparse"]["coverage"] == pytest.approx(0.7)
-    assert t["coverage"]["paper"]["psnr_covered"] == pytest.approx(18.0)
+    assert t["coverage"]["paper-seedcode"]["psnr_covered"] == pytest.approx(18.0)
     text = doc.read_text()
     assert "floor, a flat image of the training views' mean colour: 14.50 dB" in text
-    assert "at equal background (black): `sparse-r13` 18.50 against `paper` 17.00" in text
+    assert "at equal background (black): `sparse-r13` 18.50 against `paper-seedcode` 17.00" in text
     assert "each at its own background (not a like-for-like" in text
 
 

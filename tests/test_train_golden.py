@@ -33,6 +33,11 @@ CASES = {
     "dropgaussian": dict(recipe="dropgaussian"),
     "sparse": dict(recipe="sparse"),
     "mcmc": dict(recipe="mcmc"),
+    # the variants that keep a recipe's earlier values (splat_train.recipes.VARIANTS): each ends
+    # where its recipe ended before the recipe changed (its runs' records are kept under it)
+    "paper-seedcode": dict(recipe="paper-seedcode"),
+    "dropgaussian-wsprune": dict(recipe="dropgaussian-wsprune"),
+    "mcmc-keep": dict(recipe="mcmc-keep"),
     # a part's value under a recipe without it turns the part on; a set schedule key is kept
     "paper+dropout+pose": dict(recipe="paper", dropout_rate=0.1, densify_every=15, pose_refine=True,
                                pose_refine_from=5, pose_warmup=5, lr_pose=1e-3),

@@ -56,29 +56,69 @@ def test_a_seed_over_the_cap_is_held_kept_or_relocated():
     # no cap at all: nothing to raise
     paper = TrainConfig(recipe="paper", iterations=3000, seed_over_cap="keep")
     assert paper.max_gaussians_for(pixels, seed) is None and paper.strategy_for(pixels, seed) == "densify"
-    # mcmc never removes: its cap is at least the seed
-    assert TrainConfig(recipe="mcmc", iterations=3000).max_gaussians_for(pixels, 30_000) == 30_000
+    # mcmc never removes, and grows from a seed that fills its cap (CAP_OVER_SEED x the seed)
+    assert TrainConfig(recipe="mcmc", iterations=3000).max_gaussians_for(pixels, 30_000) == 45_000
+    assert TrainConfig(recipe="mcmc-keep", iterations=3000).max_gaussians_for(pixels, 30_000) == 30_000
+    grow = cfg.replace(seed_over_cap="grow")
+    assert (grow.max_gaussians_for(pixels, seed), grow.strategy_for(pixels, seed)) == (45_000, "densify")
+    assert grow.max_gaussians_for(pixels, 100) == 12_000  # a small seed: the cap as set
     with pytest.raises(ValueError, match="seed_over_cap must be one of"):
-        TrainConfig(recipe="sparse", seed_over_cap="grow")
+        TrainConfig(recipe="sparse", seed_over_cap="expand")
 
 
 def test_dropgaussian_is_its_release_llff_setting():
     """DropGaussian's LLFF training: 10k iterations, densify 500-10k every 100 at gradient
-    threshold 5e-4, opacity reset every 3,000, dropout ramped to 0.2; no cap, no depth term."""
+    threshold 5e-4, opacity reset every 3,000, dropout ramped to 0.2, pruning by opacity only;
+    no cap, no depth term (every value against its source: tests/test_recipes_released.py)."""
     cfg = TrainConfig(recipe="dropgaussian", iterations=10000)
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every) == (500, 10000, 100, 3000)
     assert cfg.densify_grad_threshold == 5e-4 and cfg.dropout_rate == 0.2
-    assert cfg.depth_weight == 0.0 and cfg.gaussians_per_pixel == 0.0 and cfg.prune_screen_size == 0.0
+    assert cfg.depth_weight == 0.0 and cfg.gaussians_per_pixel == 0.0
+    assert cfg.prune_screen_size == 0.0 and cfg.prune_world_size == 0.0
 
 
-def test_paper_is_3dgs_at_10k():
-    cfg = TrainConfig(recipe="paper", iterations=10000)
+def test_paper_is_the_3dgs_release_at_30k():
+    cfg = TrainConfig(recipe="paper", iterations=30000)
     s = cfg.schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every, s.sh_increase_every) == \
-        (500, 10000, 100, 3000, 1000)
+        (500, 15000, 100, 3000, 1000)
     assert cfg.densify_grad_threshold == 2e-4 and cfg.dropout_rate == 0.0 and cfg.prune_screen_size == 0.0
-    assert RECIPES["paper"].gaussians_per_pixel == 0.0
+    assert cfg.prune_world_size == 0.1 and RECIPES["paper"].gaussians_per_pixel == 0.0
+
+
+def test_the_kept_variants_are_their_recipes_before_the_change():
+    """``paper-seedcode`` is the seed code's schedule at 10,000 iterations, ``dropgaussian-wsprune``
+    prunes by world size, ``mcmc-keep`` keeps a seed over its cap at its size; each is its
+    recipe in every other value, and none is a recipe a user picks."""
+    s = TrainConfig(recipe="paper-seedcode", iterations=10000).schedule()
+    assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every, s.sh_increase_every) == \
+        (500, 10000, 100, 3000, 1000)
+    assert TrainConfig(recipe="dropgaussian-wsprune", iterations=10000).prune_world_size == 0.1
+    assert TrainConfig(recipe="mcmc-keep", iterations=10000).seed_over_cap == "keep"
+    for variant, recipe, differ in (("paper-seedcode", "paper", set()),
+                                    ("dropgaussian-wsprune", "dropgaussian", {"prune_world_size"}),
+                                    ("mcmc-keep", "mcmc", {"seed_over_cap"})):
+        a, b = recipe_defaults(variant), recipe_defaults(recipe)
+        assert {k for k in a if a[k] != b[k]} == differ, variant
+        assert variant not in RECIPE_NAMES
+
+
+def test_dropgaussian_prunes_by_opacity_only():
+    """No world-size prune after a reset (the release's size_threshold is None); paper keeps it."""
+    n, extent = 40, 1.0
+    cloud = GaussianCloud.from_points(np.zeros((n, 3)), np.full((n, 3), 0.5), np.full(n, 0.5),
+                                      np.full(n, 0.5))  # every Gaussian 0.5 x the extent: past 3DGS's 0.1
+    pruned = {}
+    for recipe in ("paper", "dropgaussian", "dropgaussian-wsprune"):
+        cfg = TrainConfig(recipe=recipe, iterations=10000)
+        strat = DensifyStrategy.from_config(cfg, densify_from=0, opacity_reset_every=100, grad_threshold=1.0)
+        params = params_from_cloud(cloud)
+        state = strat.init_state(n)
+        strat.update_state(state, torch.zeros(n, 2), torch.full((n,), 3), torch.ones(n, dtype=torch.bool), W, H,
+                           iteration=199)
+        pruned[recipe] = strat.step(params, make_optimizer(params, cfg, extent=extent), state, 200, extent)["pruned"]
+    assert pruned == {"paper": n, "dropgaussian": 0, "dropgaussian-wsprune": n}
 
 
 def _scene(n: int, seed: int):
@@ -106,7 +146,7 @@ def _views(n: int, k: int, seed: int):
 def test_paper_densifies_as_gsplat_default_strategy(iteration):
     gsplat_strategy = pytest.importorskip("gsplat.strategy")
     n, extent = 600, 1.0
-    cfg = TrainConfig(recipe="paper", iterations=10000)
+    cfg = TrainConfig(recipe="paper", iterations=30000)  # the release's length: its first reset at 3,000
     ours = DensifyStrategy.from_config(cfg)
     theirs = gsplat_strategy.DefaultStrategy(
         prune_opa=cfg.prune_opacity, grow_grad2d=cfg.densify_grad_threshold, grow_scale3d=cfg.percent_dense,

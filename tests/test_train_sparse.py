@@ -32,11 +32,12 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 # ---------------------------------------------------------------- recipes and schedules
 @pytest.mark.parametrize("iterations,expected", [
-    (10000, (500, 10000, 100, 3000, 1000)),  # the seed code's counts at the paper's budget
-    (1000, (50, 1000, 100, 300, 100)),
-    (300, (15, 300, 100, 300, 30)),  # reset period kept >= 3 densification periods
+    (30000, (500, 15000, 100, 3000, 1000)),  # the 3DGS release's counts at its own length
+    (10000, (167, 5000, 100, 1000, 333)),  # the same fractions; the period stays 100
+    (1000, (17, 500, 100, 300, 33)),  # reset period kept >= 3 densification periods
+    (300, (5, 150, 100, 300, 10)),
 ])
-def test_paper_recipe_keeps_the_seed_schedule(iterations, expected):
+def test_paper_recipe_is_the_release_schedule_in_proportion(iterations, expected):
     s = TrainConfig(recipe="paper", iterations=iterations).schedule()
     assert (s.densify_from, s.densify_until, s.densify_every, s.opacity_reset_every, s.sh_increase_every) == expected
     cfg = TrainConfig(recipe="paper", iterations=iterations)
@@ -69,7 +70,7 @@ def test_a_schedule_value_means_what_it_says():
     1500 stop growth at 1500 (it used to be rescaled to 450); the source is recorded."""
     s = TrainConfig(recipe="paper", iterations=3000, densify_until=1500).schedule()
     assert s.densify_until == 1500 and s.source["densify_until"] == "set"
-    assert s.densify_from == 150 and s.source["densify_from"].startswith("recipe paper")
+    assert s.densify_from == 50 and s.source["densify_from"].startswith("recipe paper")
 
 
 @pytest.mark.parametrize("bad", [{"recipe": "fast"}, {"dropout_rate": 1.0}, {"depth_weight": -1},

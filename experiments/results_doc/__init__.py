@@ -21,7 +21,7 @@ __all__ = ["SECTIONS", "render_page", "DOC", "RECORDS", "BENCH_RECORDS"]
 
 
 def _seed_command(name: str):
-    return lambda records: S._registration(name)[1]
+    return lambda records: S._registration(name, records)[1]
 
 
 SECTIONS = (
@@ -35,7 +35,8 @@ SECTIONS = (
             _seed_command("mvs_seed"), "sparse_views/mvs_seed.json", S.mvs_seed),
     Section("The dense seed's fill and Bridge stride, on tuning scenes",
             "`python -m experiments.sparse_views --records experiments/records/mvs_tuning run --role tuning "
-            "--scenes llff__horns tnt__Train --n 3 --seeds 0 --iterations 3000 --work WORK --recipes VARIANTS`",
+            "--scenes llff__horns tnt__Train --n 3 --seeds 0 --iterations 3000 --work WORK --recipes VARIANTS`, each "
+            "variant `NAME='{\"recipe\": \"paper-seedcode\", ...}'` as its record's config holds it",
             S.MVS_TUNING_RUNS + "/", S.mvs_tuning),
     Section("The field's LLFF 3-view protocol", S.llff_command, S.LLFF_RUNS + "/", S.llff_protocol),
     Section("Both evaluation protocols (`docs/protocols.md`)",

@@ -73,7 +73,7 @@ def sparse_views(records: Path) -> list[str] | None:
                 f"{d['psnr']['scenes_ahead']} of {k}: {verdict(eb['met'])}")
             rows[f"equal background, {eb['background']}: LPIPS-Alex / VGG, `{o}` − `{b}`"][i] = (
                 f"{iv(d['lpips_alex'], 3)} / {iv(d['lpips_vgg'], 3)}")
-        for r in ("sparse", "paper"):
+        for r in ("sparse", "paper", "paper-seedcode"):
             c = v.get("coverage", {}).get(r)
             if c:
                 rows[f"`{r}`: held-out pixels covered (alpha ≥ 0.5), PSNR over them"][i] = (
@@ -109,8 +109,16 @@ def sparse_views(records: Path) -> list[str] | None:
         if seen:
             rows2.append(row)
     from experiments.sparse_views.summary import TARGET_N, registration_sentence
+    from splat_train.recipes import VARIANTS
 
-    return out + ["", *table(head2, rows2), "",
+    missing = sorted({rc for v in by_n for rc in v.get("recipes_without_runs", [])})
+    kept = [name for name in VARIANTS if any(a["recipe"] == name for a in agg)]
+    gap = [] if not missing else [
+        "No run yet on these scenes of " + ", ".join(f"`{rc}`" for rc in missing) + " as they now train "
+        "(docs/reference.md section 7): no figure above is of them and no target against them is read"
+        + ("" if not kept else "; " + ", ".join(f"`{x}`" for x in kept) + " are their runs before their values "
+           "changed") + ".", ""]
+    return out + ["", *table(head2, rows2), "", *gap,
                   "Evaluation scenes, on which no recipe value was chosen (`experiments/sparse_views/scenes.yaml`):",
                   ", ".join(f"`{x}`" for x in by_n[0]["evaluation_scenes"]) + ". `posed` seed, every 8th image "
                   "held out, on a CPU.",
@@ -119,21 +127,22 @@ def sparse_views(records: Path) -> list[str] | None:
                   "measures.",
                   "`sparse` trains against the training views' mean colour and the field's recipes against black,",
                   "so the like-for-like rows are those at equal background (`sparse-r13`: `sparse` on black;",
-                  "`paper-bgmean`: `paper` on the mean colour). Per scene, and every tuning run:",
+                  "`paper-bgmean`: `paper-seedcode` on the mean colour). Per scene, and every tuning run:",
                   "`docs/results-sparse-views.md`.",
                   *([registration_sentence(s["registration"])] if s.get("registration") else [])]
 
 
 # --- the dense mvs seed ----------------------------------------------------------------------------
 
-def _registration(name: str):
-    """The record of a pre-registered seed comparison, with its run and report commands."""
+def _registration(name: str, records: Path = RECORDS):
+    """The record of a pre-registered seed comparison, with its run and report commands (the run
+    command as its records under ``records`` hold the registration: :func:`seeds.as_recorded`)."""
     from experiments.sparse_views import seeds
 
     path = REGISTERED / f"{name}.yaml"
     reg = seeds.load_registration(path)
     rel = seeds.records_dir(reg).relative_to(RECORDS)
-    report = (f"`{seeds.run_command(reg)}`, then `python -m experiments.sparse_views.seeds report "
+    report = (f"`{seeds.run_command(seeds.as_recorded(reg, records / rel))}`, then `python -m experiments.sparse_views.seeds report "
               f"--registration {path.relative_to(REPO)} --work WORK`")
     return rel / f"{reg['name']}.json", report
 
@@ -170,8 +179,13 @@ def _seed_section(name: str, text: list[str]):
         if not (records / rel).is_file():
             return None
         rep = load(records / rel)
+        from experiments.sparse_views.seeds import kept_sentence
+
+        recipes = ", ".join(f"`{r}`" for r in dict.fromkeys(v["recipe"] for v in rep["variants"].values()))
         head = (f"{rep['runs']} of {rep['runs_expected']} runs: {len(rep['scenes'])} scenes, n = {rep['n']}, "
-                f"{_seeds(rep['seeds'])}, {rep['iterations']:,} iterations, `paper` on black.")
+                f"{_seeds(rep['seeds'])}, {rep['iterations']:,} iterations, {recipes} on black.")
+        if rep.get("kept"):
+            head += " " + kept_sentence(rep["kept"])
         if rep.get("registration"):  # whether its commit came before every run, as the report found it
             from experiments.sparse_views.provenance import sentence
 
@@ -181,17 +195,17 @@ def _seed_section(name: str, text: list[str]):
 
 
 mvs_fill_seed = _seed_section("mvs_fill_seed", [
-    "`paper` from four seeds on captures no run had measured before the registration was committed:",
-    "triangulated points (`paper`: `posed`), 3DGS's random points, and `mvs` with every unexplained",
+    "`paper-seedcode` from four seeds on captures no run had measured before the registration was committed:",
+    "triangulated points (`paper-seedcode`: `posed`), 3DGS's random points, and `mvs` with every unexplained",
     "ray filled, its opacity from Eq. 2 (`gated`) or uniform. Per scene: `docs/results-mvs-fill-seed.md`."])
 
 mvs_seed = _seed_section("mvs_seed", [
     "The same comparison on the sparse-view evaluation scenes, with `mvs` writing only the pixels it",
     "kept (no fill). Where three views triangulate no point, `posed` falls back to the random points,",
-    "so `paper` and `paper-random` coincide there. Per scene: `docs/results-mvs-seed.md`."])
+    "so `paper-seedcode` and `paper-random` coincide there. Per scene: `docs/results-mvs-seed.md`."])
 
 MVS_TUNING_TEXT = [
-    "`paper` from each seed on two tuning scenes. Record names: `-s20` reads every 20th pixel (the",
+    "`paper-seedcode` (`paper` before it took its release's values) from each seed on two tuning scenes. Record names: `-s20` reads every 20th pixel (the",
     "Bridge's stride; otherwise every pixel), `-nofill` keeps only the pixels stereo explains, `-fill1`",
     "fills every unexplained ray (the default now); `paper-mvs` filled every 4th pixel",
     "(`experiments/records/mvs_tuning/README.md`)."]

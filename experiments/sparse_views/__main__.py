@@ -19,15 +19,12 @@ from pathlib import Path
 
 from experiments.sparse_views import protocol
 from experiments.sparse_views.protocol import HERE, REPO
+from experiments.sparse_views.runs import SEED_KEYS
 
 RECORDS = REPO / "experiments" / "records" / "sparse_views"
 DOC = REPO / "docs" / "results-sparse-views.md"
 # the field's recipes beside ours, in the table's order
 DEFAULT_RECIPES = ("paper", "dropgaussian", "mcmc", "sparse")
-
-
-#: a variant's keys that choose its seed (experiments.sparse_views.cells.prepare), not training values
-SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
 
 
 def _variant(text: str) -> tuple[str, dict]:
@@ -204,8 +201,10 @@ def cmd_relabel(args) -> int:
     from experiments.sparse_views.relabel import relabel
 
     moved = relabel(args.records / "runs", args.old, args.new, protocol.load(args.protocol, args.data),
-                    args.stale_only, args.work)
-    print(f"{len(moved)} records of {args.old!r} are now {args.new!r}"
+                    args.stale_only, args.work, args.built_on)
+    renamed = sum(a != b for a, b in moved)
+    print(f"{renamed} records of {args.old!r} are now {args.new!r}"
+          + (f", {len(moved) - renamed} records built on it now build on {args.new!r}" if args.built_on else "")
           + (f" (and their run folders under {args.work})" if args.work else ""))
     return 0
 
@@ -258,10 +257,14 @@ def main(argv: list[str] | None = None) -> int:
     rl = sub.add_parser("relabel", help="rename the records of OLD to NEW (a value landed: the recipe's old "
                                         "runs become a variant, the candidate's the recipe's)")
     rl.add_argument("old", help="the records' name now (a recipe or a variant)")
-    rl.add_argument("new", help="their new name; a recipe name only for records trained with what it gives now")
+    rl.add_argument("new", help="their new name; a recipe's or a kept variant's (splat_train.recipes.VARIANTS) only "
+                                    "for records trained with what it gives now")
     rl.add_argument("--stale-only", action="store_true",
                     help="move only the records that OLD (a recipe) no longer resolves to")
     rl.add_argument("--work", type=Path, default=None, help="the run command's --work: rename the run folders too")
+    rl.add_argument("--built-on", action="store_true",
+                    help="also the records of variants built on OLD (config {\"recipe\": OLD, ...}): their config "
+                         "names NEW, checked against NEW with their own keys")
     args = p.parse_args(argv)
     try:
         check_folders(args)

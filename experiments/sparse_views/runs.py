@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from experiments._proc import run_stage as sh
-from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, BINOCULAR_FROM_FRACTION
+from splat_train.recipes import BACKGROUND_BLACK, BACKGROUND_MEAN, BINOCULAR_FROM_FRACTION, PRUNE_WORLD_SIZE_3DGS
 
 
 @contextmanager
@@ -63,11 +63,16 @@ def resolved_values(recipe: str, overrides: dict, iterations: int) -> dict:
     return {**out, **sched}
 
 
+#: a variant's config keys that choose its seed (experiments.sparse_views.cells.prepare), not training values
+SEED_KEYS = ("init", "init_args", "bridge_mode", "bridge_stride")
+
+
 # Values that became keys after records were made, with the value every run had before: a
 # record without the key ran with it.
 IMPLIED_VALUES = {"dropout_ramp_fraction": 1.0, "binocular_weight": 0.0,
                   "binocular_from_fraction": BINOCULAR_FROM_FRACTION, "opacity_decay": 1.0,
-                  "mcmc_growth": "gsplat", "background": list(BACKGROUND_BLACK)}
+                  "mcmc_growth": "gsplat", "background": list(BACKGROUND_BLACK),
+                  "prune_world_size": PRUNE_WORLD_SIZE_3DGS}
 
 
 def stale_keys(found: dict, want: dict) -> list[str]:

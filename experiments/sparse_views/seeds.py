@@ -67,6 +67,42 @@ def records_dir(reg: dict) -> Path:
     return REPO / reg["records"] if reg.get("records") else RECORDS
 
 
+def as_recorded(reg: dict, records: Path) -> dict:
+    """The registration as its records hold it: a registered recipe whose runs were trained
+    before it took other values, and so were kept under a variant (``paper`` as ``paper-seedcode``,
+    :data:`splat_train.recipes.VARIANTS`, by ``python -m experiments.sparse_views relabel``), is
+    that variant in the variants (its record name and every config's recipe) and targets; the
+    map is ``kept`` ({registered recipe: variant}). Read from the records' own configs, so a
+    registration whose records name the recipe stays as registered."""
+    from splat_train.recipes import VARIANTS
+
+    kept = {}
+    for name, v in reg["variants"].items():
+        names = [name] + [k for k in VARIANTS if name == v["recipe"]]  # a recipe's own runs may carry a variant's name
+        for cand in names:
+            hits = sorted((records / "runs").glob(f"*_n{reg['n']}_{cand}_s*_i{reg['iterations']}.json"))
+            found = {(json.loads(p.read_text()).get("config") or {}).get("recipe") for p in hits}
+            if found and found <= set(VARIANTS) and len(found) == 1 and v["recipe"] not in found:
+                kept[v["recipe"]] = found.pop()
+                break
+    if not kept:
+        return {**reg, "kept": {}}
+    def rename(name):
+        return kept.get(name, name) if name in reg["variants"] and reg["variants"][name] == {"recipe": name} else name
+    variants = {rename(n): {**v, "recipe": kept.get(v["recipe"], v["recipe"])} for n, v in reg["variants"].items()}
+    side = lambda items: [{**t, "better": rename(t["better"]), "than": rename(t["than"])} for t in items]  # noqa: E731
+    return {**reg, "variants": variants, "targets": side(reg.get("targets", [])),
+            "measured_without_target": side(reg.get("measured_without_target", [])), "kept": kept}
+
+
+def kept_sentence(kept: dict) -> str:
+    """One sentence naming each registered recipe that its records hold as a kept variant."""
+    if not kept:
+        return ""
+    return " ".join(f"`{r}` in that registration is the variant `{v}` (trained before `{r}` took its release's "
+                    f"values)." for r, v in kept.items())
+
+
 def run_command(reg: dict, work: str = "WORK") -> str:
     """The run line that makes the registration's records (one shard; ``--shard K/2`` splits it)."""
     variants = []
@@ -96,6 +132,7 @@ def report(reg: dict, records: Path, work: Path | None, registration: Path | Non
     """The figures of the registration (module docstring) from ``records/runs``; with the
     registration's file (``shown``: its name in the records), also its ``registration`` block:
     the commit that added it against the runs' times (:func:`experiments.sparse_views.provenance.check`)."""
+    reg = as_recorded(reg, records)
     files = run_files(reg, records)
     runs = {k: json.loads(p.read_text()) for k, p in files.items()}
     expected = len(reg["variants"]) * len(reg["scenes"]) * len(reg["seeds"])
@@ -133,6 +170,8 @@ def report(reg: dict, records: Path, work: Path | None, registration: Path | Non
             "iterations": reg["iterations"], "variants": reg["variants"], "runs": len(runs),
             "runs_expected": expected, "complete_scenes": complete, "floor_psnr": floor,
             "per_scene": {v: dict(per[v]) for v in reg["variants"]}, "comparisons": comparisons}
+    if reg["kept"]:
+        out["kept"] = reg["kept"]
     if registration is not None:
         from experiments.sparse_views.provenance import check
 
@@ -157,7 +196,8 @@ def markdown(rep: dict, registration: str, command: str) -> str:
     lines = [f"# Seeds compared: {rep['name']}", "",
              f"{GENERATED} from the records of the registration `{registration}`.{checked} {rep['runs']} of "
              f"{rep['runs_expected']} runs recorded; n = {rep['n']}, seeds {rep['seeds']}, "
-             f"{rep['iterations']} iterations on a CPU, every variant at the scene's one background (black).", "",
+             f"{rep['iterations']} iterations on a CPU, every variant at the scene's one background (black)."
+             + (" " + kept_sentence(rep["kept"]) if rep.get("kept") else ""), "",
              "Final held-out PSNR (dB) over the full image, and over the pixels the model covers "
              "(accumulated alpha >= 0.5) with the covered share; the floor is a flat image of the training "
              "views' mean colour, scored like a model. Means over seeds.", "",
@@ -215,11 +255,11 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, KeyError) as exc:
         print(f"python -m experiments.sparse_views.seeds: {exc}", file=sys.stderr)
         return 2
-    command = run_command(reg, str(args.work) if args.work else "WORK")
+    args.records = args.records or records_dir(reg)
+    command = run_command(as_recorded(reg, args.records), str(args.work) if args.work else "WORK")
     if args.what == "command":
         print(command)
         return 0
-    args.records = args.records or records_dir(reg)
     doc = args.doc or REPO / "docs" / f"results-{reg['name'].replace('_', '-')}.md"
     from experiments.sparse_views.summary import check_doc
 
@@ -235,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
 
     write_json(args.records / f"{reg['name']}.json", rep)
     with atomic_path(doc) as tmp:
-        tmp.write_text(markdown(rep, str(rel), run_command(reg)))
+        tmp.write_text(markdown(rep, str(rel), run_command(as_recorded(reg, args.records))))
     for c in rep["comparisons"]:
         iv = c["psnr_diff"]
         print(f"{c['better']} - {c['than']}: " + ("no complete scene" if iv is None else

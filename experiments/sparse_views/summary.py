@@ -153,7 +153,10 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
         have[a["scene"]].add(a["recipe"])
     scenes = sorted(sc for sc, rs in have.items() if rs == recipes)
     out = {"n": n, "iterations": iterations, "evaluation_scenes": scenes,
-           "incomplete_scenes": sorted(set(have) - set(scenes))}
+           "incomplete_scenes": sorted(set(have) - set(scenes)),
+           # the recipes with no run here at their current values (a changed recipe's earlier
+           # runs are kept under a variant's name, splat_train.recipes.VARIANTS)
+           "recipes_without_runs": [rc for rc in RECIPE_NAMES if rc not in recipes]}
     ev = [a for a in ev if a["scene"] in scenes]
     rows = [r for r in rows if r["role"] == "evaluation" and r["n"] == n and r["iterations"] == iterations
             and r["scene"] in scenes]
@@ -174,6 +177,7 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
     if OURS in mean_psnr:
         out["psnr_lead_over_best_other"] = _lead(mean_psnr)
         out["psnr_lead_ok"] = (out["psnr_lead_over_best_other"] or 0) >= 0.5
+    if OURS in mean_psnr and BASE in mean_psnr:  # against paper as it trains now
         vp = [p for p in pairs if p["n"] == n and p["iterations"] == iterations and p["against"] == BASE
               and p["scene"] in scenes]
         for net in ("lpips_alex", "lpips_vgg"):
@@ -185,6 +189,7 @@ def verdicts(rows: list[dict], agg: list[dict], pairs: list[dict], n: int = TARG
             out[f"{net}_no_worse"] = None if iv["k"] < 2 else iv["mean"] - iv["hw95"] <= 0
         out["final_ge_paper_best_scenes"] = sum(1 for p in vp if p.get("final_minus_paper_best", {}).get("mean") is not None
                                                 and p["final_minus_paper_best"]["mean"] >= 0)
+    if OURS in mean_psnr:
         out["max_gaussians_ours"] = max((r["gaussians"] for r in rows if r["recipe"] == OURS), default=None)
         out["gaussians_ok"] = out["max_gaussians_ours"] is not None and out["max_gaussians_ours"] <= MAX_GAUSSIANS
     return out
@@ -266,7 +271,11 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
              "the densification start; `sparse-r13`: against black, before the training images' mean colour",
              "behind the model). `mcmc-r13` is `mcmc` before its growth rule (5 % per refine step",
              "alone, which leaves a seed of a few triangulated points far below its cap; kept beside the",
-             "rerun, outside the targets). `paper-bgmean` is `paper` against the training images' mean colour",
+             "rerun, outside the targets). `paper-seedcode`, `dropgaussian-wsprune` and `mcmc-keep` are `paper`,",
+             "`dropgaussian` and `mcmc` before they took their releases' values (the seed code's schedule; 3DGS's",
+             "world-size prune, which DropGaussian's release never runs; a seed that fills the cap kept at its",
+             "size): kept beside the recipes, outside the targets, until the recipes are run again.",
+             "`paper-bgmean` is `paper-seedcode` against the training images' mean colour",
              "instead of black (`sparse`'s colour), so that the lead is also read at",
              "equal background; outside the targets. On a scene with a `background` in scenes.yaml (NeRF's",
              "synthetic scenes: white) every recipe trains and renders against it; on the others `sparse`",
@@ -302,6 +311,10 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
                   ""]
         if v.get("incomplete_scenes"):
             lines.append("- not counted until every recipe has run there: " + ", ".join(v["incomplete_scenes"]))
+        if v.get("recipes_without_runs"):
+            lines.append("- no run yet of " + ", ".join(f"`{rc}`" for rc in v["recipes_without_runs"])
+                         + " as the recipe now trains: no figure below is of it, and no target against it is "
+                         "read (its runs before its values changed are the variant rows above)")
         lines += _scene_level_lines(v)
         lines.append("- mean final PSNR over the scenes, each recipe at its own background: "
                      + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
@@ -315,7 +328,7 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
                 f"{kind} ({len(k['scenes'])}): " + ", ".join(f"{rc} {x:.2f}" for rc, x in k["mean_final_psnr"].items())
                 + ("" if k["psnr_lead_over_best_other"] is None else f", `sparse` − best other {k['psnr_lead_over_best_other']:+.2f} dB")
                 for kind, k in sp["by_kind"].items()))
-        if OURS in v["mean_final_psnr"]:
+        if OURS in v["mean_final_psnr"] and len(v["mean_final_psnr"]) > 1:
             rest = [s for s in v["evaluation_scenes"] if s not in sp.get("sparse_best_scenes", [])]
             lines.append(f"- scenes where `sparse` has the highest mean PSNR of the recipes: "
                          f"{len(sp.get('sparse_best_scenes', []))} of {len(v['evaluation_scenes'])}"

@@ -11,6 +11,7 @@ the cap. Light (no torch): a strategy's module is imported when one is built.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
@@ -20,16 +21,25 @@ if TYPE_CHECKING:
     from splat_train.strategy.base import Strategy
 
 __all__ = ["StrategyConfig", "DefaultStrategyConfig", "MCMCStrategyConfig", "STRATEGIES", "SEED_OVER_CAP",
-           "MCMC_GROWTH", "GRAD_THRESHOLD_3DGS"]
+           "MCMC_GROWTH", "GRAD_THRESHOLD_3DGS", "PRUNE_WORLD_SIZE_3DGS", "CAP_OVER_SEED"]
 
 # 3DGS's densification gradient threshold (the mean NDC view-space gradient norm)
 GRAD_THRESHOLD_3DGS = 2e-4
+# 3DGS's world-size prune (scene/gaussian_model.py densify_and_prune: largest scale above 0.1 x
+# the extent, after the first opacity reset); 0: off, as DropGaussian's release runs
+PRUNE_WORLD_SIZE_3DGS = 0.1
 # What a run does with a seed larger than its growth cap (a dense initialiser's point map, or
 # 3DGS's random initialisation where the views triangulate nothing): "cap" holds the cap, so
 # the prune shrinks the model towards it and growth never refills past it; "keep" raises the
-# cap to the seed's size; "relocate" raises it and grows by relocation (the mcmc strategy)
-# instead of clone / split / prune. Nothing changes for a seed within the cap.
-SEED_OVER_CAP = ("cap", "keep", "relocate")
+# cap to the seed's size; "grow" raises it to CAP_OVER_SEED x the seed's size, so that the seed
+# still grows (the mcmc recipe); "relocate" raises it to the seed's size and grows by relocation
+# (the mcmc strategy) instead of clone / split / prune. Nothing changes for a seed within the
+# cap, except under "grow" where the seed is over 1 / CAP_OVER_SEED of it.
+SEED_OVER_CAP = ("cap", "keep", "grow", "relocate")
+# "grow": the cap is at least this many times the seed. The 3DGS-MCMC release's smallest
+# cap_max over the 100,000 random points it starts from (configs/hotdog.json, 150,000); its
+# other configs put the cap 2.7-59x above them.
+CAP_OVER_SEED = 1.5
 # How the mcmc strategy grows (splat_train.strategy.mcmc.growth_target): "gsplat", 5 % per refine step
 # (int(1.05 N), gsplat's MCMCStrategy); "reach_cap", the same unless 5 % per step cannot take
 # the seed to the cap within the refine window, in which case the count follows the geometric
@@ -56,7 +66,8 @@ class DefaultStrategyConfig:
         prune_screen_size: after the first opacity reset, also remove Gaussians whose 2D
             radius exceeded this many pixels (0: never, as the official 3DGS code and gsplat
             run) ...
-        prune_world_size: ... or whose largest scale exceeds this fraction of the extent.
+        prune_world_size: ... or whose largest scale exceeds this fraction of the extent (0:
+            never, as DropGaussian's release runs).
     """
 
     flat_names: ClassVar[dict[str, str]] = {"grad_threshold": "densify_grad_threshold"}
@@ -67,7 +78,7 @@ class DefaultStrategyConfig:
     opacity_reset_value: Annotated[float, FRACTION] = 0.01
     # off: the official code never applies it (splat_train.recipes)
     prune_screen_size: Annotated[float, WEIGHT] = 0.0
-    prune_world_size: Annotated[float, WEIGHT] = 0.1
+    prune_world_size: Annotated[float, WEIGHT] = PRUNE_WORLD_SIZE_3DGS
 
     def __post_init__(self) -> None:
         check(self)
@@ -154,8 +165,9 @@ class StrategyConfig:
             0: no such cap.
         seed_over_cap: what a run does with a seed larger than its cap (:data:`SEED_OVER_CAP`):
             "cap" holds the cap (the prune shrinks the model towards it), "keep" raises the cap
-            to the seed's size, "relocate" raises it and grows with the mcmc strategy; a seed
-            within the cap trains the same under all three.
+            to the seed's size, "grow" raises it to :data:`CAP_OVER_SEED` x the seed's size
+            (``mcmc``), "relocate" raises it to the seed's size and grows with the mcmc
+            strategy; a seed within the cap trains the same under "cap", "keep" and "relocate".
         default: the densify strategy's own settings.
         mcmc: the mcmc strategy's own settings.
     """
@@ -192,11 +204,13 @@ class StrategyConfig:
 
     def max_gaussians_for(self, train_pixels: int, seed_size: int = 0) -> int | None:
         """The Gaussian cap of a run on ``train_pixels`` training pixels (summed over views),
-        raised to ``seed_size`` (the seed's Gaussians) unless ``seed_over_cap`` is "cap"; None:
-        no cap."""
+        raised to ``seed_size`` (the seed's Gaussians) unless ``seed_over_cap`` is "cap", and
+        to :data:`CAP_OVER_SEED` x ``seed_size`` where it is "grow"; None: no cap."""
         cap = self.set_cap(train_pixels)
         if cap is None or self.seed_over_cap == "cap":
             return cap
+        if self.seed_over_cap == "grow":
+            return max(cap, math.ceil(CAP_OVER_SEED * int(seed_size)))
         return max(cap, int(seed_size))
 
     def strategy_for(self, train_pixels: int, seed_size: int) -> str:

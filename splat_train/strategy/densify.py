@@ -204,7 +204,7 @@ class DensifyStrategy(Strategy):
         prune_opacity: prune alpha below this.
         prune_screen_size, prune_world_size: after the first reset, prune Gaussians whose 2D
             radius exceeded prune_screen_size pixels (0: no screen-size prune) or whose max
-            scale exceeds prune_world_size * extent.
+            scale exceeds prune_world_size * extent (0: no world-size prune).
         reset_value: opacity after a reset.
         max_gaussians: no more Gaussians than this after clone/split (None: unlimited); when
             the candidates exceed the room, the best are kept (:func:`cap_candidates`).
@@ -316,9 +316,10 @@ class DensifyStrategy(Strategy):
             if 0 < self.opacity_reset_every < iteration:
                 if self.prune_screen_size > 0:
                     prune |= radii > self.prune_screen_size
-                max_scale = torch.cat([torch.exp(params["scales"].detach()[src[:n_plain]]),
-                                       torch.exp(children_scales)]).amax(1)
-                prune |= max_scale > self.prune_world_size * extent
+                if self.prune_world_size > 0:
+                    max_scale = torch.cat([torch.exp(params["scales"].detach()[src[:n_plain]]),
+                                           torch.exp(children_scales)]).amax(1)
+                    prune |= max_scale > self.prune_world_size * extent
         rows = (~prune).nonzero().squeeze(1)  # surviving rows, in order
         final_src = src[rows]
         child_rows = rows[rows >= n_plain] - n_plain  # surviving children, as rows of children_*
