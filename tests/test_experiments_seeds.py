@@ -82,3 +82,38 @@ def test_a_cell_seed_is_a_known_initialiser():
             cells.seed_folder("mvs", None, None, bad)
     with pytest.raises(ValueError, match="no init_args"):
         cells.seed_folder("posed", None, None, {"fill_stride": 0})
+
+
+def test_a_target_against_the_floor_and_its_conditions_decide_the_verdict(tmp_path, monkeypatch):
+    """`than: floor` reads the flat mean-colour image's PSNR per scene; `interval_above_zero` and
+    `lpips_no_worse` must hold beside the mean difference for a target to be met."""
+    floors = {"a": 12.0, "b": 13.0, "c": 14.0}
+    monkeypatch.setattr(seeds, "floor_psnr", lambda cell: floors[cell.name.split("_n")[0]])
+    reg = {**REG, "targets": [{"better": "paper-mvs", "than": "floor", "by": 3.0},
+                              {"better": "paper-mvs", "than": "paper", "by": 0.5, "interval_above_zero": True},
+                              {"better": "paper-mvs", "than": "paper", "by": 0.5, "lpips_no_worse": True}]}
+    gains = {"a": 2.0, "b": -1.0, "c": 2.5}  # mean +1.17, interval spanning 0
+    for scene, gain in gains.items():
+        for seed in (0, 1):
+            _record(tmp_path, scene, "paper", seed, 15.0)
+            _record(tmp_path, scene, "paper-mvs", seed, 15.0 + gain)
+    rep = seeds.report(reg, tmp_path, tmp_path / "work")
+    floor_c, interval_c, lpips_c = rep["comparisons"]
+    assert floor_c["psnr_diff_per_scene"] == pytest.approx({s: 15.0 + gains[s] - floors[s] for s in gains})
+    assert floor_c["met"] and floor_c["lpips_alex_diff"] is None  # mean +3.83 dB over the floor
+    assert interval_c["psnr_diff"]["lo"] < 0 and not interval_c["met"]  # the mean alone would pass
+    assert lpips_c["met"]  # equal LPIPS is no worse
+    for scene in gains:  # a worse LPIPS on every scene fails the same comparison
+        (tmp_path / "runs" / f"{scene}_n3_paper-mvs_s0_i10.json").write_text(json.dumps(
+            {"psnr": 15.0 + gains[scene], "ssim": 0.5, "lpips_alex": 0.6, "lpips_vgg": 0.5, "gaussians": 10,
+             "seed_gaussians": 5, "curve": {"coverage": [0.9], "psnr_covered": [16.0]}}))
+    assert not seeds.report(reg, tmp_path, tmp_path / "work")["comparisons"][2]["met"]
+    page = seeds.markdown(rep, "reg.yaml", "cmd")
+    assert "| paper-mvs - floor |" in page and ">= +0.5 dB, interval above 0 |" in page
+    assert ">= +0.5 dB, LPIPS no worse |" in page
+    bad = tmp_path / "bad.yaml"
+    for target, needle in (({"better": "floor", "than": "paper", "by": 1}, "'floor' is not a variant"),
+                           ({"better": "paper-mvs", "than": "paper", "by": 1, "above": True}, "unknown target keys")):
+        bad.write_text(yaml.safe_dump({**REG, "targets": [target]}))
+        with pytest.raises(ValueError, match=needle):
+            seeds.load_registration(bad)
