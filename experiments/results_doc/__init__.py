@@ -29,6 +29,8 @@ SECTIONS = (
             "`python -m experiments.sparse_views run --role evaluation --work WORK`, "
             "`python -m experiments.sparse_views floor --work WORK`, then `python -m experiments.sparse_views summary`",
             S.SUMMARY, S.sparse_views),
+    Section("The default recipe against 3DGS as released, on unseen captures",
+            _seed_command("baselines_released"), "baselines_released/baselines_released.json", S.baselines_released),
     Section("Dense seeds from multi-view stereo (`mvs`) on unseen captures",
             _seed_command("mvs_fill_seed"), "mvs_fill_seed/mvs_fill_seed.json", S.mvs_fill_seed),
     Section("Dense seeds from multi-view stereo, before the fill, on the evaluation scenes",
