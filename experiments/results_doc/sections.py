@@ -161,7 +161,7 @@ def _seed_tables(rep: dict) -> list[str]:
     floors = [rep["floor_psnr"][s] for s in sc if rep["floor_psnr"].get(s) is not None]
     if floors:
         rows.append(["floor (flat mean colour)", f"{_mean(floors):.2f}", "", "", ""])
-    out = table(["seed", "PSNR", "LPIPS-Alex / VGG", "held-out pixels covered", "seed / final Gaussians"], rows)
+    out = table(["variant", "PSNR", "LPIPS-Alex / VGG", "held-out pixels covered", "seed / final Gaussians"], rows)
     comp = []
     for c in rep["comparisons"]:
         target = (", ".join([f"≥ +{c['by']:.1f} dB", *(CONDITION_TEXT[k] for k in c.get("conditions", []))])
