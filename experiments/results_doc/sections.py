@@ -207,6 +207,11 @@ baselines_released = _seed_section("baselines_released", [
     "(black, `sparse-black`), and as a user gets it (`sparse`, on the training views' mean colour) against",
     "the floor. Per scene: `docs/results-baselines-released.md`."])
 
+released_dropgaussian_mcmc = _seed_section("released_dropgaussian_mcmc", [
+    "The default recipe on black against DropGaussian and 3DGS-MCMC as their authors release them, on the",
+    "same captures, registered before these runs; `sparse-black` was run again into these records and",
+    "repeated its runs above to the bit. Per scene: `docs/results-released-dropgaussian-mcmc.md`."])
+
 mvs_fill_seed = _seed_section("mvs_fill_seed", [
     "`paper-seedcode` from four seeds on captures no run had measured before the registration was committed:",
     "triangulated points (`paper-seedcode`: `posed`), 3DGS's random points, and `mvs` with every unexplained",
