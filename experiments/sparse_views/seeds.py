@@ -70,6 +70,31 @@ def load_registration(path: Path) -> dict:
     return reg
 
 
+#: the pre-registered sets: each on scenes no earlier set measured (tests/test_sparse_views_scenes.py)
+REGISTERED = HERE / "registered"
+
+
+def measured_before(reg: dict, path: Path | None) -> dict[str, list[str]]:
+    """{registration name: the scenes it shares with ``reg``} over the pre-registered sets
+    (:data:`REGISTERED`) other than ``path``: a comparison on such scenes is not one on unseen
+    scenes, whatever it fixed before its runs."""
+    out = {}
+    for other in sorted(REGISTERED.glob("*.yaml")):
+        if path is not None and other.resolve() == Path(path).resolve():
+            continue
+        shared = sorted(set(reg["scenes"]) & set(load_registration(other)["scenes"]))
+        if shared:
+            out[other.stem] = shared
+    return out
+
+
+def measured_sentence(before: dict[str, list[str]], scenes: int) -> str:
+    """One sentence naming the pre-registered sets that measured these scenes before."""
+    sets = "; ".join(f"`{name}` measured {len(sc)} of the {scenes}" for name, sc in before.items())
+    return (f"Not an evaluation on unseen scenes: {sets} before, so these figures are not pre-registered "
+            "results, only comparisons whose values were fixed before their runs.")
+
+
 def target_met(c: dict, complete: bool) -> bool:
     """A registered target's verdict: every scene measured, the mean PSNR difference at least
     ``by``, and each of its conditions (:data:`TARGET_CONDITIONS`) held."""
@@ -201,6 +226,9 @@ def report(reg: dict, records: Path, work: Path | None, registration: Path | Non
             "per_scene": {v: dict(per[v]) for v in reg["variants"]}, "comparisons": comparisons}
     if reg["kept"]:
         out["kept"] = reg["kept"]
+    before = measured_before(reg, registration)
+    if before:
+        out["scenes_measured_before"] = before
     if registration is not None:
         from experiments.sparse_views.provenance import check
 
@@ -245,7 +273,9 @@ def markdown(rep: dict, registration: str, command: str) -> str:
              f"{GENERATED} from the records of the registration `{registration}`.{checked} {rep['runs']} of "
              f"{rep['runs_expected']} runs recorded; n = {rep['n']}, seeds {rep['seeds']}, "
              f"{rep['iterations']} iterations on a CPU; {backgrounds(rep['variants'])}."
-             + (" " + kept_sentence(rep["kept"]) if rep.get("kept") else ""), "",
+             + (" " + kept_sentence(rep["kept"]) if rep.get("kept") else "")
+             + (" " + measured_sentence(rep["scenes_measured_before"], len(rep["scenes"]))
+                if rep.get("scenes_measured_before") else ""), "",
              "Final held-out PSNR (dB) over the full image, and over the pixels the model covers "
              "(accumulated alpha >= 0.5) with the covered share; the floor is a flat image of the training "
              "views' mean colour, scored like a model. Means over seeds.", "",
