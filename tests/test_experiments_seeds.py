@@ -117,3 +117,24 @@ def test_a_target_against_the_floor_and_its_conditions_decide_the_verdict(tmp_pa
         bad.write_text(yaml.safe_dump({**REG, "targets": [target]}))
         with pytest.raises(ValueError, match=needle):
             seeds.load_registration(bad)
+
+
+def test_a_comparison_on_scenes_a_registration_measured_says_it_is_not_on_unseen_scenes(tmp_path):
+    """Its values may be fixed before its runs, but the scenes are not unseen: the report names the
+    pre-registered set that measured them first, and the page says the figures are not
+    pre-registered results; the shipped re-measurements are caught, the registrations are not."""
+    fill = seeds.load_registration(seeds.REGISTERED / "mvs_fill_seed.yaml")
+    reg = {**REG, "scenes": [fill["scenes"][0], "elsewhere"]}
+    for seed in (0, 1):
+        for scene in reg["scenes"]:
+            _record(tmp_path, scene, "paper", seed, 15.0)
+            _record(tmp_path, scene, "paper-mvs", seed, 16.0)
+    rep = seeds.report(reg, tmp_path, None)
+    assert rep["scenes_measured_before"] == {"mvs_fill_seed": [fill["scenes"][0]]}
+    assert "Not an evaluation on unseen scenes: `mvs_fill_seed` measured 1 of the 2 before" in seeds.markdown(
+        rep, "reg.yaml", "cmd")
+    assert "scenes_measured_before" not in seeds.report(REG, tmp_path, None)
+    for path in sorted((seeds.HERE / "remeasured").glob("*.yaml")):
+        assert seeds.measured_before(seeds.load_registration(path), path), path.name
+    for path in sorted(seeds.REGISTERED.glob("*.yaml")):
+        assert seeds.measured_before(seeds.load_registration(path), path) == {}, path.name
