@@ -117,8 +117,8 @@ def sparse_views(records: Path) -> list[str] | None:
     missing = sorted({rc for v in by_n for rc in v.get("recipes_without_runs", [])})
     kept = [name for name in VARIANTS if any(a["recipe"] == name for a in agg)]
     gap = [] if not missing else [
-        "No run yet on these scenes of " + ", ".join(f"`{rc}`" for rc in missing) + " as they now train "
-        "(docs/reference.md section 7): no figure above is of them and no target against them is read"
+        "No figure above is of " + ", ".join(f"`{rc}`" for rc in missing) + " with the values they now train "
+        "with (docs/reference.md section 7), and no target is read against them"
         + ("" if not kept else "; " + ", ".join(f"`{x}`" for x in kept) + " are their runs before their values "
            "changed") + ".", ""]
     return out + ["", *table(head2, rows2), "", *gap,

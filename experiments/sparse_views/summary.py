@@ -312,9 +312,9 @@ def markdown(agg: list[dict], pairs: list[dict], verdict: dict, scenes, by_n: di
         if v.get("incomplete_scenes"):
             lines.append("- not counted until every recipe has run there: " + ", ".join(v["incomplete_scenes"]))
         if v.get("recipes_without_runs"):
-            lines.append("- no run yet of " + ", ".join(f"`{rc}`" for rc in v["recipes_without_runs"])
-                         + " as the recipe now trains: no figure below is of it, and no target against it is "
-                         "read (its runs before its values changed are the variant rows above)")
+            lines.append("- no figure below is of " + ", ".join(f"`{rc}`" for rc in v["recipes_without_runs"])
+                         + " with the values they now train with, and no target against them is read (the "
+                         "variant rows above hold their runs with their earlier values)")
         lines += _scene_level_lines(v)
         lines.append("- mean final PSNR over the scenes, each recipe at its own background: "
                      + ", ".join(f"{k} {x:.2f}" for k, x in v["mean_final_psnr"].items()))
