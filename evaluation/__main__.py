@@ -135,7 +135,7 @@ def _require_runs(results: str) -> None:
     from evaluation.reports.results import find_runs
     from evaluation.reports.run_status import read_skipped
 
-    if not find_runs(results) and not read_skipped(results):
+    if not find_runs(results, warn=False) and not read_skipped(results):  # the command warns, once
         raise ValueError(f"--results {results}: no run found (expected {{dataset}}/{{scene}}/n{{n}}/{{initialiser}}/ "
                          "folders with result files, as the workflow writes them): nothing to summarise")
 

@@ -115,12 +115,12 @@ _RUN_FILES = ("status.json", "timing.json", "pose.json", "metrics.json", "bridge
               "log.parquet")
 
 
-def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
+def find_runs(results: str | Path, warn: bool = True) -> list[tuple[Path, str | None]]:
     """(run folder ``{results}/{dataset}/{scene}/n{n}/{init}``, bridge mode or None), sorted.
 
     A run folder with mode sub-folders gives one entry per mode; otherwise one entry with None.
     A run folder without any result file (only logs: the job never wrote its outputs) is left
-    out with a warning.
+    out, with a warning unless ``warn`` is False.
     """
     results = Path(results)
     check_folder(results, "results folder")
@@ -131,7 +131,8 @@ def find_runs(results: str | Path) -> list[tuple[Path, str | None]]:
         if not any(find_file(p, name) for name in _RUN_FILES):
             # only logs: the job never produced a result (e.g. VGGT without its checkpoint);
             # that is a run that did not happen, not a failure of the method
-            log.warning("%s holds no result files (see its logs/): left out of the tables", p)
+            if warn:
+                log.warning("%s holds no result files (see its logs/): left out of the tables", p)
             continue
         modes = mode_dirs(p)
         out += [(p, m.name) for m in modes] if modes else [(p, None)]

@@ -14,7 +14,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from experiments.results_doc.page import REPO, RECORDS, iv, latest, load, table, verdict
-from experiments.sparse_views.seeds import CONDITION_TEXT
+from experiments.sparse_views.seeds import REGISTERED, REMEASURED, target_text
 
 SUMMARY = "sparse_views/summary.json"
 LLFF_RUNS = "llff_protocol/runs"
@@ -22,9 +22,6 @@ MVS_TUNING_RUNS = "mvs_tuning/runs"
 GPU = "gpu-*.json"
 PROTOCOLS = "protocols-*.json"
 SEMANTICS = "backend_semantics-*.json"
-REGISTERED = REPO / "experiments" / "sparse_views" / "registered"
-# comparisons whose values were fixed before their runs, on scenes a registration measured before
-REMEASURED = REPO / "experiments" / "sparse_views" / "remeasured"
 
 
 def _seeds(seeds) -> str:
@@ -168,8 +165,7 @@ def _seed_tables(rep: dict) -> list[str]:
     out = table(["variant", "PSNR", "LPIPS-Alex / VGG", "held-out pixels covered", "seed / final Gaussians"], rows)
     comp = []
     for c in rep["comparisons"]:
-        target = (", ".join([f"≥ +{c['by']:.1f} dB", *(CONDITION_TEXT[k] for k in c.get("conditions", []))])
-                  if c["kind"] == "target" else "none (measured)")
+        target = target_text(c, "≥")
         met = verdict(c["met"]) if c["kind"] == "target" else ""
         if c["kind"] == "target" and len(sc) < len(rep["scenes"]):
             met = "incomplete"
