@@ -168,3 +168,102 @@ def test_variants_built_on_a_recipe_name_its_kept_variant_only_when_their_values
     assert built["recipe"] == "paper-mvs"
     assert built["config"] == {"recipe": "paper-seedcode", "init": "mvs", "bridge_mode": "gated"}
     assert resolved_values(built["config"]["recipe"], {}, ITS) == built["values"]
+
+
+# --- reconfig: a record's config says what a run of its values is asked now -------------------
+
+def _reconfig(records, name, config):
+    from tests._cli import run
+
+    return run(["-m", "experiments.sparse_views", "--records", str(records), "reconfig", name, "--config", config])
+
+
+def _texts(runs):
+    return {p.name: p.read_text() for p in sorted(runs.glob("*.json"))}
+
+
+@pytest.fixture
+def old_records(tmp_path):
+    """``sparse-r13`` (trained against black, filed with config ``{"recipe": "sparse"}``) on fern
+    and on the milk carton (white, its scenes.yaml background), and ``mcmc-r13`` (``mcmc-keep``'s
+    values from before the ``mcmc_growth`` key, filed as ``{"recipe": "mcmc"}``) on fern."""
+    runs = tmp_path / "records" / "runs"
+    runs.mkdir(parents=True)
+    white = {"background": [1.0, 1.0, 1.0]}
+    _write(runs, "llff__fern", "sparse-r13", {"recipe": "sparse"},
+           resolved_values("sparse", {"background": [0.0, 0.0, 0.0]}, ITS), 15.0)
+    _write(runs, "own__milk", "sparse-r13", {"recipe": "sparse"}, resolved_values("sparse", white, ITS), 17.0)
+    keep = resolved_values("mcmc-keep", {"mcmc_growth": "gsplat"}, ITS)
+    assert keep != resolved_values("mcmc", {}, ITS)
+    _write(runs, "llff__fern", "mcmc-r13", {"recipe": "mcmc"}, {k: v for k, v in keep.items() if k != "mcmc_growth"},
+           16.0)
+    return tmp_path / "records"
+
+
+def test_reconfig_sets_the_config_that_gives_each_records_values(old_records):
+    """``reconfig NAME --config JSON``: every record of NAME keeps its name and figures, and its
+    config becomes JSON (with the scene's own background where scenes.yaml gives one); a record
+    that predates a key counts at its implied value (``mcmc_growth`` "gsplat"); run again, it
+    changes nothing."""
+    runs = old_records / "runs"
+    before = {p.name: json.loads(p.read_text()) for p in runs.glob("*.json")}
+    proc = _reconfig(old_records, "sparse-r13", '{"recipe": "sparse", "background": [0, 0, 0]}')
+    assert proc.returncode == 0, proc.stderr
+    assert "2 of 2 records of 'sparse-r13' now have config" in proc.stdout
+    assert "1 with their scene's own background" in proc.stdout
+    proc = _reconfig(old_records, "mcmc-r13", '{"recipe": "mcmc-keep", "mcmc_growth": "gsplat"}')
+    assert proc.returncode == 0, proc.stderr
+    after = {p.name: json.loads(p.read_text()) for p in runs.glob("*.json")}
+    assert set(after) == set(before)
+    for name, rec in after.items():  # the config alone changed
+        assert {k: v for k, v in rec.items() if k != "config"} == {k: v for k, v in before[name].items() if k != "config"}
+    fern = after[f"{run_name('llff__fern', 3, 'sparse-r13', 0, ITS)}.json"]
+    milk = after[f"{run_name('own__milk', 3, 'sparse-r13', 0, ITS)}.json"]
+    mcmc = after[f"{run_name('llff__fern', 3, 'mcmc-r13', 0, ITS)}.json"]
+    assert fern["config"] == {"recipe": "sparse", "background": [0, 0, 0]}
+    assert milk["config"] == {"recipe": "sparse", "background": [1.0, 1.0, 1.0]}
+    assert mcmc["config"] == {"recipe": "mcmc-keep", "mcmc_growth": "gsplat"}
+    for rec in after.values():  # what the config asks is what the record was trained with
+        cfg = {k: v for k, v in rec["config"].items() if k != "recipe"}
+        assert resolved_values(rec["config"]["recipe"], cfg, ITS) == {**resolved_values(
+            rec["config"]["recipe"], cfg, ITS), **rec["values"]}
+    texts = _texts(runs)
+    proc = _reconfig(old_records, "sparse-r13", '{"recipe": "sparse", "background": [0, 0, 0]}')
+    assert proc.returncode == 0 and "0 of 2 records" in proc.stdout and "2 had it already" in proc.stdout
+    assert _texts(runs) == texts
+
+
+def test_reconfig_refuses_one_mismatch_and_writes_nothing(old_records):
+    """One record of the name whose values the config does not give (another densification
+    period), and the refusal names it: exit 2, one line, no record touched."""
+    from tests._cli import refused
+
+    runs = old_records / "runs"
+    odd = _write(runs, "llff__horns", "sparse-r13", {"recipe": "sparse"},
+                 {**resolved_values("sparse", {"background": [0.0, 0.0, 0.0]}, ITS), "densify_every": 7}, 14.0)
+    before = _texts(runs)
+    refused(_reconfig(old_records, "sparse-r13", '{"recipe": "sparse", "background": [0, 0, 0]}'),
+            "1 of 3 record(s) of 'sparse-r13'", odd.name, "nothing written")
+    # mcmc's own name no longer gives mcmc-r13's values (it grows a seed that fills the cap)
+    refused(_reconfig(old_records, "mcmc-r13", '{"recipe": "mcmc"}'), "were not trained with what")
+    # the growth rule its records predate is not mcmc-keep's now
+    refused(_reconfig(old_records, "mcmc-r13", '{"recipe": "mcmc-keep"}'), "were not trained with what")
+    # a seed other than the records' is not what they ran from
+    refused(_reconfig(old_records, "mcmc-r13", '{"recipe": "mcmc-keep", "mcmc_growth": "gsplat", "init": "mvs"}'),
+            "were not trained with what")
+    assert _texts(runs) == before
+
+
+@pytest.mark.parametrize("name, config, needle", [
+    ("sparse-r99", '{"recipe": "sparse"}', "no record in"),
+    ("sparse-r13", '{"recipe": "sparse"', "is not JSON"),
+    ("sparse-r13", '["sparse"]', "JSON object with a \"recipe\""),
+    ("sparse-r13", '{"recipe": "sparce"}', "sparce"),
+    ("sparse-r13", '{"recipe": "sparse", "backround": [0, 0, 0]}', "backround"),
+])
+def test_reconfig_refuses_an_unknown_name_or_config(old_records, name, config, needle):
+    from tests._cli import refused
+
+    before = _texts(old_records / "runs")
+    refused(_reconfig(old_records, name, config), needle)
+    assert _texts(old_records / "runs") == before

@@ -3,6 +3,7 @@
     run      train every (scene, n, recipe, seed) of one role that has no record yet
     summary  records -> summary.json and the docs table (no training)
     relabel  rename a recipe's or variant's records when a recipe's value lands
+    reconfig set the config of a variant's records to what a run of their values is asked now
     floor    score the flat mean-colour image of each cell (records/floors.json; no training)
     list     the protocol's scenes, their role and whether their data is here
 """
@@ -209,6 +210,21 @@ def cmd_relabel(args) -> int:
     return 0
 
 
+def cmd_reconfig(args) -> int:
+    from experiments.sparse_views.relabel import reconfig
+
+    try:
+        config = json.loads(args.config)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--config {args.config!r} is not JSON ({exc.msg}): pass an object such as "
+                         f"'{{\"recipe\": \"sparse\", \"background\": [0, 0, 0]}}'") from None
+    done = reconfig(args.records / "runs", args.name, config, protocol.load(args.protocol, args.data))
+    changed = sum(c for _, c, _ in done)
+    print(f"{changed} of {len(done)} records of {args.name!r} now have config {json.dumps(config)}"
+          f" ({sum(o for *_, o in done)} with their scene's own background; {len(done) - changed} had it already)")
+    return 0
+
+
 def cmd_list(args) -> int:
     for s in protocol.load(args.protocol, args.data):
         where = "generated" if s.path is None else (str(s.path) if s.available else f"missing: {s.path}")
@@ -265,11 +281,18 @@ def main(argv: list[str] | None = None) -> int:
     rl.add_argument("--built-on", action="store_true",
                     help="also the records of variants built on OLD (config {\"recipe\": OLD, ...}): their config "
                          "names NEW, checked against NEW with their own keys")
+    rc = sub.add_parser("reconfig", help="set the config of the records named NAME to JSON (what a run of their "
+                                         "values is asked now), if every record's values are what JSON gives")
+    rc.add_argument("name", help="the records' name (kept)")
+    rc.add_argument("--config", required=True,
+                    help="JSON object {\"recipe\": RECIPE, key: value, ...} (a recipe or a kept variant, "
+                         "splat_train.recipes.VARIANTS, plus config keys); the scene's own background in scenes.yaml "
+                         "is added where it has one")
     args = p.parse_args(argv)
     try:
         check_folders(args)
         return {"run": cmd_run, "summary": cmd_summary, "list": cmd_list,
-                "relabel": cmd_relabel, "floor": cmd_floor}[args.command](args)
+                "relabel": cmd_relabel, "reconfig": cmd_reconfig, "floor": cmd_floor}[args.command](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: python -m experiments.sparse_views {args.command}: {exc}", file=sys.stderr)
         return 2

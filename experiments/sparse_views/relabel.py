@@ -24,6 +24,11 @@ Every target name must be free (records and, with ``work``, run folders), or not
 name, and their config's recipe becomes ``new``, checked the same way with the variant's own
 config keys (its seed keys aside). The same check serves the records of other layouts
 (:func:`matches`: the recipe study's runs, which keep only their schedule).
+
+:func:`reconfig` keeps the name and sets the config alone: a variant's records whose values a
+recipe's own name no longer gives, but the recipe with a key set (or a kept variant with a key its
+records predate) does (``sparse-r13``: ``{"recipe": "sparse", "background": [0, 0, 0]}``) say
+so, checked the same way, every record or none.
 """
 
 from __future__ import annotations
@@ -143,3 +148,62 @@ def relabel(runs_dir: Path, old: str, new: str, scenes: list, stale_only: bool =
         if folders is not None and folders[0].is_dir():
             folders[0].rename(folders[1])
     return [(m[0], m[2]) for m in moves]
+
+
+def reconfig(runs_dir: Path, name: str, config: dict, scenes: list) -> list[tuple[Path, bool, bool]]:
+    """Set the ``config`` of every record filed under ``name`` to ``config`` (with the scene's
+    own background from scenes.yaml where it has one, as a run writes it), only if each record's
+    kept values are what that config resolves to now (:func:`matches`; a record without
+    ``values`` only on its schedule, and only for a kept variant with no other keys).
+
+    A record's seed keys (:data:`SEED_KEYS`) are not values: ``config`` keeps the record's where it
+    names none, and one that names others than a record's is a mismatch.
+
+    Args:
+        runs_dir: the records' folder (``experiments/records/sparse_views/runs``).
+        name: the records' name (their ``recipe``), kept.
+        config: what a run of them is asked: ``{"recipe": RECIPE, key: value, ...}``.
+        scenes: the protocol's scenes (:func:`protocol.load`), for their backgrounds.
+
+    Returns:
+        Per record of ``name``: its path, whether its config changed (a record that has the
+        config already is left as it is) and whether it took its scene's background.
+
+    Raises:
+        ValueError: ``config`` is not an object with a known ``recipe``, nothing is named
+            ``name``, or a record's values are not what ``config`` gives now; nothing is written.
+    """
+    from runtime.atomic import atomic_path
+    from splat_train.recipes import VARIANTS
+
+    if not isinstance(config, dict) or not isinstance(config.get("recipe"), str):
+        raise ValueError(f"reconfig: --config must be a JSON object with a \"recipe\", got {json.dumps(config)}")
+    backgrounds = {s.name: s.background for s in scenes}
+    found = [(p, r) for p, r in ((p, json.loads(p.read_text())) for p in sorted(Path(runs_dir).glob("*.json")))
+             if r.get("recipe") == name]
+    if not found:
+        raise ValueError(f"reconfig: no record in {runs_dir} is named {name!r}")
+    asked_seed = {k: v for k, v in config.items() if k in SEED_KEYS}
+    schedule_only = config["recipe"] in VARIANTS and not overrides(config)
+    plans, bad = [], []
+    for path, rec in found:
+        bg = backgrounds.get(rec["scene"])
+        own_seed = {k: v for k, v in (rec.get("config") or {}).items() if k in SEED_KEYS}
+        cfg = {"recipe": config["recipe"], **(asked_seed or own_seed), **overrides(config),
+               **({} if bg is None else {"background": list(bg)})}
+        same_seed = not asked_seed or asked_seed == own_seed
+        if not same_seed or not matches(rec.get("values"), rec.get("schedule"), cfg["recipe"], overrides(cfg),
+                                        rec["iterations"], schedule_only):
+            bad.append(path.name)
+        plans.append((path, rec, cfg, bg is not None))
+    if bad:
+        raise ValueError(f"reconfig: {len(bad)} of {len(found)} record(s) of {name!r} were not trained with what "
+                         f"{json.dumps(config)} gives now (e.g. {bad[0]}); nothing written")
+    done = []
+    for path, rec, cfg, own in plans:
+        changed = rec.get("config") != cfg
+        if changed:
+            with atomic_path(path) as tmp:
+                tmp.write_text(json.dumps({**rec, "config": cfg}, indent=1) + "\n")
+        done.append((path, changed, own))
+    return done
