@@ -255,11 +255,11 @@ def test_reconfig_refuses_one_mismatch_and_writes_nothing(old_records):
 
 
 @pytest.mark.parametrize("name, config, needle", [
-    ("sparse-r99", '{"recipe": "sparse"}', "no record in"),
-    ("sparse-r13", '{"recipe": "sparse"', "is not JSON"),
-    ("sparse-r13", '["sparse"]', "JSON object with a \"recipe\""),
-    ("sparse-r13", '{"recipe": "sparce"}', "sparce"),
-    ("sparse-r13", '{"recipe": "sparse", "backround": [0, 0, 0]}', "backround"),
+    pytest.param("sparse-r99", '{"recipe": "sparse"}', "no record in", id="unknown-name"),
+    pytest.param("sparse-r13", '{"recipe": "sparse"', "is not JSON", id="not-json"),
+    pytest.param("sparse-r13", '["sparse"]', "JSON object with a \"recipe\"", id="no-recipe"),
+    pytest.param("sparse-r13", '{"recipe": "sparce"}', "sparce", id="unknown-recipe"),
+    pytest.param("sparse-r13", '{"recipe": "sparse", "backround": [0, 0, 0]}', "backround", id="unknown-key"),
 ])
 def test_reconfig_refuses_an_unknown_name_or_config(old_records, name, config, needle):
     from tests._cli import refused
