@@ -23,9 +23,10 @@ from collections import defaultdict
 
 #: (background, ``sparse``'s records there, ``paper``'s records there): each pair trained and
 #: rendered against one colour. ``sparse-r13`` is ``sparse`` with every value as now but the
-#: background (black); ``paper-seedcode`` is ``paper`` with the seed code's schedule (its runs
-#: before ``paper`` took the 3DGS release's), and ``paper-bgmean`` is ``paper-seedcode`` against
-#: the training views' mean colour, so both pairs hold the same ``paper``.
+#: background (black; its records' config ``{"recipe": "sparse", "background": [0, 0, 0]}``);
+#: ``paper-seedcode`` is ``paper`` with the seed code's schedule (its runs before ``paper`` took
+#: the 3DGS release's), and ``paper-bgmean`` is ``paper-seedcode`` against the training views'
+#: mean colour, so both pairs hold the same ``paper``.
 EQUAL_BACKGROUND = (("black", "sparse-r13", "paper-seedcode"), ("mean colour", "sparse", "paper-bgmean"))
 #: the lead over the floor the default recipe must reach at the target view count (dB)
 FLOOR_LEAD_TARGET = 3.0
