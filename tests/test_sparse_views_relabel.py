@@ -267,3 +267,19 @@ def test_reconfig_refuses_an_unknown_name_or_config(old_records, name, config, n
     before = _texts(old_records / "runs")
     refused(_reconfig(old_records, name, config), needle)
     assert _texts(old_records / "runs") == before
+
+
+@pytest.mark.parametrize("name, recipe, count", [("sparse-r13", "sparse", 98), ("mcmc-r13", "mcmc-keep", 289)])
+def test_the_shipped_records_of_a_former_value_carry_the_config_of_their_values(name, recipe, count):
+    """``sparse-r13`` (``sparse`` on black) and ``mcmc-r13`` (``mcmc-keep`` before its growth
+    rule): what each record's config asks resolves now to the values it was trained with."""
+    from experiments.sparse_views.protocol import REPO
+    from experiments.sparse_views.runs import stale_keys
+
+    paths = sorted((REPO / "experiments" / "records" / "sparse_views" / "runs").glob(f"*_{name}_s*.json"))
+    assert len(paths) == count
+    for path in paths:
+        rec = json.loads(path.read_text())
+        cfg = {k: v for k, v in rec["config"].items() if k != "recipe"}
+        assert rec["config"]["recipe"] == recipe, path.name
+        assert stale_keys(rec["values"], resolved_values(recipe, cfg, rec["iterations"])) == [], path.name
