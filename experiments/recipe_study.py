@@ -45,6 +45,7 @@ VGGT_LIKE = ["--rot-deg", "1.2", "--trans-frac", "0.1", "--depth-rel", "0.02", "
              "--conf-noise", "0.3"]
 VARIANTS: dict[str, dict] = {
     "paper": {"recipe": "paper"},
+    "paper-seedcode": {"recipe": "paper-seedcode"},  # the records' paper runs: paper with the seed code's schedule
     "sparse": {"recipe": "sparse"},
     "no-dropout": {"recipe": "sparse", "dropout_rate": 0.0},
     "no-depth": {"recipe": "sparse", "depth_weight": 0.0},

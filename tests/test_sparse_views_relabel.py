@@ -283,3 +283,21 @@ def test_the_shipped_records_of_a_former_value_carry_the_config_of_their_values(
         cfg = {k: v for k, v in rec["config"].items() if k != "recipe"}
         assert rec["config"]["recipe"] == recipe, path.name
         assert stale_keys(rec["values"], resolved_values(recipe, cfg, rec["iterations"])) == [], path.name
+
+
+def test_the_recipe_studys_paper_runs_have_the_schedule_of_their_name():
+    """The recipe study's runs keep only their schedule: its runs of ``paper`` with the seed
+    code's schedule are filed as ``paper-seedcode``, and a run filed under either name has what
+    that name gives now (:func:`matches` on the schedule)."""
+    from experiments.sparse_views.protocol import REPO
+    from experiments.sparse_views.relabel import matches
+
+    checked = 0
+    for path in sorted((REPO / "experiments" / "records" / "recipe_study").glob("*.json")):
+        rec = json.loads(path.read_text())
+        for run in rec["runs"]:
+            if run["variant"] in ("paper", "paper-seedcode") and run.get("schedule"):
+                assert matches(None, run["schedule"], run["variant"], {}, rec["iterations"], schedule_only=True), \
+                    (path.name, run["variant"], run["seed"])
+                checked += 1
+    assert checked >= 6
