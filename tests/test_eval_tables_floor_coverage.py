@@ -204,3 +204,21 @@ def test_a_damaged_floor_json_is_treated_as_missing(tmp_path, caplog):
     assert any("floor.json" in r.getMessage() and "treated as missing" in r.getMessage() for r in caplog.records)
     assert runs["floor_psnr"].isna().all() and runs["floor_ssim"].isna().all()
     assert FLOOR not in set(table_two(runs)["init"])
+
+
+def test_pareto_plot_draws_the_scene_floor(runs, tmp_path, monkeypatch):
+    from evaluation.reports import plots
+
+    drawn = {}
+
+    def keep(fig, path, dpi=100):
+        ax = fig.axes[0]
+        drawn[Path(path).name] = [ln.get_ydata()[0] for ln in ax.get_lines() if ln.get_label().startswith("floor")]
+        plots.pyplot().close(fig)
+        return path
+
+    monkeypatch.setattr(plots, "save_png", keep)
+    plots.pareto_plot(runs, tmp_path)
+    assert drawn["pareto__mip360__room__n3.png"] == [13.0]
+    assert drawn["pareto__mip360__garden__n3.png"] == [11.0]
+    assert drawn["pareto__mip360__room__n6.png"] == [] and drawn["pareto__mip360__nus__n3.png"] == []
