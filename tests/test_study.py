@@ -186,7 +186,7 @@ def test_summarise_and_paired_differences_known_numbers():
 
 
 def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=("gated", "uniform", "filtered"),
-                     along_run=False, init="oracle", scene="bundled", n=3):
+                     along_run=False, init="oracle", scene="bundled", n=3, coverage=False):
     """A study tree with the files the report reads (metrics, floaters, training log)."""
     import json
 
@@ -201,7 +201,10 @@ def _fake_study_tree(root, cells=("zero", "rot_deg-2"), seeds=(0, 1, 2), modes=(
                 d = run / m
                 (d / "train").mkdir(parents=True)
                 (d / "metrics.json").write_text(json.dumps(
-                    {"psnr": 20 + rng.normal(), "ssim": 0.5, "lpips_alex": 0.3, "n_images": 3}))
+                    {"psnr": 20 + rng.normal(), "ssim": 0.5, "lpips_alex": 0.3, "n_images": 3,
+                     **({"covered_alpha": 0.5, "coverage": 0.6 + 0.01 * s,
+                         "covered": {"psnr": 25.0 + s, "ssim": 0.7, "lpips_alex": 0.2, "lpips_vgg": None}}
+                        if coverage else {})}))
                 if init == "oracle":  # no floater measure without a ground-truth mesh
                     (d / "floaters.json").write_text(json.dumps(
                         {"tau": 0.1, "seed": {"floater_frac": 0.2}, "final": {"floater_frac": 0.3 + 0.01 * s}}))
@@ -229,6 +232,7 @@ def test_run_study_reports_every_mode_with_an_interval(tmp_path):
     plots = sorted(p.name for p in (tmp_path / "study" / "report" / "plots").iterdir())
     assert plots == ["synthetic__bundled__n3__axis_rot_deg__zero.png", "synthetic__bundled__n3__psnr_vs_time.png"]
     # a log without SSIM / LPIPS along the run (older runs): no such tables, no error
+    assert "coverage (final)" not in md and "PSNR covered" not in md  # metrics.json scored without alpha
     assert "SSIM (best it." not in md and "held-out LPIPS" not in md and "held-out PSNR [dB] along the run" in md
     # the regular HTML report embeds the section with its plots
     images = tmp_path / "images"
@@ -348,3 +352,15 @@ def test_run_study_reads_posed_cells(tmp_path):
     assert "synthetic/fern, n = 3: SSIM (best it.: highest)" in md
     runs = pd.read_csv(tmp_path / "report" / "runs.csv")
     assert set(runs["init"]) == {"posed"} and len(runs) == 6
+
+
+def test_run_study_reports_coverage_and_covered_psnr_where_scored_with_alpha(tmp_path):
+    from evaluation.study.report import run_study
+
+    _fake_study_tree(tmp_path / "study", coverage=True)
+    cells = expand_cells({"axes": [{"param": "rot_deg", "levels": [2]}]})
+    md = run_study(tmp_path / "study", tmp_path / "study" / "report", cells).read_text()
+    cov = md.split("coverage (final) [fraction]")[1].split("##")[0]
+    assert "| zero | 0.610 ± " in cov  # mean over seeds 0, 1, 2 of 0.6 + 0.01 s
+    covered = md.split("PSNR covered (final) [dB]")[1].split("##")[0]
+    assert "| zero | 26.00 ± " in covered

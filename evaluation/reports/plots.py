@@ -5,7 +5,9 @@
   against iteration, one line per initialiser.
 * ``pareto__{dataset}__{scene}__n{n}.png``: per scene and view count, final held-out PSNR (metrics.json, else the log's last test_psnr) against
   total run time (initialisation + bridge + training + evaluation) over all runs, with the
-  Pareto front (no other run is both faster and better).
+  Pareto front (no other run is both faster and better), and the scene's floor (floor.json: a
+  flat image of the training views' mean colour, scored like a model) as a dashed line where
+  there is one.
 """
 
 from __future__ import annotations
@@ -105,9 +107,11 @@ def pareto_front(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
 def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
     """``out/pareto__{dataset}__{scene}__n{n}.png``: held-out PSNR against total run time, one
     plot (and one front) per scene and view count, since times and errors of different scenes
-    are not comparable. One legend entry per run label. Empty when no run has both."""
+    are not comparable. One legend entry per run label, and the floor's PSNR (a dashed line)
+    where the scene has one. Empty when no run has both."""
     psnr = runs["psnr"].where(runs["psnr"].notna(), runs["final_test_psnr"])
     d = runs.assign(psnr_final=psnr, label=[run_label(i, m) for i, m in zip(runs["init"], runs["bridge_mode"])])
+    floors = d.groupby(["dataset", "scene", "n"])["floor_psnr"].first() if "floor_psnr" in d else None
     d = d[["dataset", "scene", "label", "n", "total_s", "psnr_final"]].dropna()
     if d.empty:
         log.warning("plots: no run has both a run time and a PSNR; no Pareto plot")
@@ -123,6 +127,9 @@ def pareto_plot(runs: pd.DataFrame, out: str | Path) -> list[Path]:
         if len(front) > 1:
             ax.step(g["total_s"].to_numpy()[front], g["psnr_final"].to_numpy()[front], where="post",
                     color="k", lw=1, label="Pareto front")
+        floor = floors.get((dataset, scene, n), math.nan) if floors is not None else math.nan
+        if np.isfinite(floor):
+            ax.axhline(floor, color="0.5", ls="--", lw=1, label="floor (mean colour)")
         if g["total_s"].max() > 10 * max(g["total_s"].min(), 1e-9):
             ax.set_xscale("log")
         ax.set_title(f"{dataset} / {scene}, n = {int(n)}", fontsize=9)

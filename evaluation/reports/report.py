@@ -36,7 +36,8 @@ from evaluation.reports.plots import run_plots
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.report_view import view_section
 from evaluation.reports.results import TESTPOSE_DIR, collect_runs, find_file, run_label
-from evaluation.reports.tables import HELDOUT_TABLES, build_tables, has_heldout, protocol_note, table_notes
+from evaluation.reports.tables import (HELDOUT_TABLES, build_tables, has_heldout, protocol_note, table_legends,
+                                      table_notes)
 from evaluation.reports.thumbs import MAX_VIEWS, images_in, thumb_cell
 
 __all__ = ["guide_html", "render_grid_html", "run_report"]
@@ -251,6 +252,7 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
         if not heldout:
             tables = {t: df for t, df in tables.items() if t not in HELDOUT_TABLES}
         notes = table_notes(tables)
+        legends = table_legends(runs)
         page_title = "Evaluation report" if heldout else "Report on your photos"
         parts = [f"<h1>{page_title}</h1>",
                  f"<p>{counted(len(runs), 'run')} from <code>{html.escape(str(results))}</code>. "
@@ -268,6 +270,8 @@ def run_report(results: str | Path, out: str | Path, scenes_dir: str | Path | No
                 empty.append(title)
             else:
                 parts += [f"<h2>{html.escape(title)}</h2>", _table_html(df)]
+                if legends.get(title):
+                    parts.append(f"<p>{html.escape(legends[title])}</p>")
         if empty:
             parts.append(f"<p>Nothing to show (no runs of that kind): {html.escape('; '.join(empty))}.</p>")
         if plots:

@@ -17,7 +17,10 @@ file               what is read
                    (column ``seed_fallback``: its ``reason`` when ``applied``)
 ``pose.json``      :mod:`evaluation.metrics.pose`: ATE, RPE, relative rotation error, fy/fx, success
 ``metrics.json``   ``python -m evaluation images``: means ``psnr``, ``ssim``, ``lpips_alex``,
-                   ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``
+                   ``lpips_vgg`` (top level, or under ``mean``), ``wall_time_s``; ``coverage``
+                   (the share of held-out pixels the model covers), ``covered`` (the four
+                   measures over those pixels alone: columns ``covered_psnr``, ...) and
+                   ``covered_alpha`` (the threshold on accumulated alpha); null or absent: NaN
 ``timing.json``    vggt_init / oracle: ``total_s`` (or ``wall_time_s``), peak memory keys
 ``bridge.json``    bridge: ``mode``, ``wall_time_s``
 ``train.json``     splat_train summary: ``wall_time_s`` (or ``train_s``), ``num_gaussians``
@@ -33,9 +36,15 @@ file               what is read
 ``testpose/``      the test-pose protocol (docs/protocols.md), read only from the mode (or run)
                    folder's ``testpose/``, never by the name look-up above:
                    ``testpose/metrics.json`` (columns ``testpose_psnr``, ``testpose_ssim``,
-                   ``testpose_lpips_alex``, ``testpose_lpips_vgg``) and
+                   ``testpose_lpips_alex``, ``testpose_lpips_vgg``, ``testpose_coverage``,
+                   ``testpose_covered_psnr``, ...) and
                    ``testpose/refine/testpose.json`` (``testpose_rot_deg_mean``,
                    ``testpose_steps``, ``testpose_patience``)
+``floor.json``     ``python -m evaluation floor``, one per (dataset, scene, n) at
+                   ``{results}/{dataset}/{scene}/n{n}/floor.json`` (beside the initialiser
+                   folders): the flat image of the training views' mean colour, scored like a
+                   render (columns ``floor_psnr``, ``floor_ssim``, ``floor_lpips_alex``,
+                   ``floor_lpips_vgg``; the same for every run of that scene and n)
 =================  ==========================================================================
 
 A scene without reference cameras has no ``pose.json``; a failed COLMAP run has only
@@ -63,7 +72,7 @@ from evaluation.metrics.pose import GateConfig, accuracy_gate, status_success
 from evaluation.reports.markup import counted
 from runtime.checks import check_folder
 
-__all__ = ["RUN_COLUMNS", "run_label", "mode_dirs", "find_runs", "find_file", "read_log", "best_along", "read_run",
+__all__ = ["RUN_COLUMNS", "IMAGE_MEASURES", "COVERAGE_COLUMNS", "FLOOR_COLUMNS", "FLOOR_FILE", "run_label", "mode_dirs", "find_runs", "find_file", "read_log", "best_along", "read_run",
            "collect_runs", "STAGES"]
 
 log = logging.getLogger(__name__)
@@ -76,15 +85,25 @@ TESTPOSE_DIR = "testpose"
 #: the strict one (the paper's) first, the default of every table.
 PROTOCOLS = {"strict": "", "test-pose": "testpose_"}
 #: The held-out metrics of each protocol: the strict column name -> the test-pose column name.
-TESTPOSE_COLUMNS = {k: PROTOCOLS["test-pose"] + k for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")}
+#: The image measures of a metrics.json (and of a floor.json).
+IMAGE_MEASURES = ("psnr", "ssim", "lpips_alex", "lpips_vgg")
+TESTPOSE_COLUMNS = {k: PROTOCOLS["test-pose"] + k for k in IMAGE_MEASURES}
+#: The coverage columns of each protocol (strict column name -> the protocol's): the share of
+#: held-out pixels covered, and each image measure over the covered pixels alone.
+COVERAGE_COLUMNS = ("coverage", *(f"covered_{k}" for k in IMAGE_MEASURES))
+#: The floor's columns (floor.json's measure -> column); the floor is the same under both protocols.
+FLOOR_COLUMNS = {k: f"floor_{k}" for k in IMAGE_MEASURES}
+FLOOR_FILE = "floor.json"
+"""The floor of a (dataset, scene, n): ``{results}/{dataset}/{scene}/n{n}/floor.json``."""
 STAGES = ("init", "bridge", "train", "eval")
 _STAGE_WORDS = {"init": ("init", *registry.NAMES), "bridge": ("bridge",),
                 "train": ("train", "splat"), "eval": ("eval", "metric", "pose", "render", "align")}
 
 RUN_COLUMNS = [
     "dataset", "scene", "n", "init", "bridge_mode", "success_paper", "success_gated", "has_reference",
-    "registered", "n_train", "points", "reason", "psnr", "ssim", "lpips_alex", "lpips_vgg", "n_test",
-    "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
+    "registered", "n_train", "points", "reason", *IMAGE_MEASURES, "n_test",
+    *(prefix + c for prefix in PROTOCOLS.values() for c in COVERAGE_COLUMNS), "covered_alpha",
+    *FLOOR_COLUMNS.values(), "ate_rmse", "ate_rel_radius", "ate_pct_radius", "rpe_rot_deg", "rpe_trans_dir_deg",
     *TESTPOSE_COLUMNS.values(), "testpose_rot_deg_mean", "testpose_steps", "testpose_patience",
     "rel_rot_err_mean_deg", "rel_rot_err_max_deg", "fy_fx_max_dev", "final_test_psnr", "best_test_psnr", "best_test_iter", "num_gaussians",
     "iterations", "recipe", "init_s", "bridge_s", "train_s", "eval_s", "total_s", "peak_mem_mb", "peak_gpu_mb",
@@ -219,6 +238,15 @@ def _metric(m: dict, key: str) -> float:
     return _num(v)
 
 
+def _coverage(m: dict, prefix: str) -> dict[str, float]:
+    """A metrics.json's coverage and its measures over the covered pixels (keys
+    :data:`COVERAGE_COLUMNS` after the protocol's ``prefix``); NaN where null or absent (a
+    metrics.json scored without alpha)."""
+    covered = m.get("covered") if isinstance(m.get("covered"), dict) else {}
+    values = {"coverage": _num(m.get("coverage")), **{f"covered_{k}": _num(covered.get(k)) for k in IMAGE_MEASURES}}
+    return {prefix + k: values[k] for k in COVERAGE_COLUMNS}
+
+
 def _peaks(d: dict) -> tuple[float, float]:
     """(peak host MB, peak GPU MB) from any keys naming a peak in MB/GB."""
     host, gpu = math.nan, math.nan
@@ -283,6 +311,8 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
     metrics = _json(find("metrics.json"))
     tp_dir = (run_dir / mode if mode else run_dir) / TESTPOSE_DIR
     tp_metrics = _json(tp_dir / "metrics.json" if (tp_dir / "metrics.json").is_file() else None)
+    floor_path = run_dir.parent / FLOOR_FILE
+    floor = _json(floor_path if floor_path.is_file() else None)
     tp_record = _json(tp_dir / "refine" / "testpose.json" if (tp_dir / "refine" / "testpose.json").is_file() else None)
     timing = _json(find("timing.json"))
     bridge = _json(find("bridge.json"))
@@ -313,6 +343,10 @@ def read_run(run_dir: str | Path, gate: GateConfig = GateConfig(), results_root:
         **{k: _metric(metrics, k) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
         "n_test": _first(metrics, "n_images"),
         **{tp: _metric(tp_metrics, k) for k, tp in TESTPOSE_COLUMNS.items()},
+        **_coverage(metrics, PROTOCOLS["strict"]), **_coverage(tp_metrics, PROTOCOLS["test-pose"]),
+        "covered_alpha": _first(metrics, "covered_alpha") if metrics.get("covered_alpha") is not None
+        else _first(tp_metrics, "covered_alpha"),
+        **{col: _num(floor.get(k)) for k, col in FLOOR_COLUMNS.items()},
         "testpose_rot_deg_mean": _first(tp_record, "mean_rotation_deg"),
         "testpose_steps": _first(tp_record, "steps"),
         "testpose_patience": _first(tp_record, "patience"),

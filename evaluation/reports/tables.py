@@ -5,14 +5,21 @@
   matched COLMAP vs ours PSNR / SSIM / LPIPS over the scenes where COLMAP succeeded (paper
   criterion) and has held-out metrics, their difference (ours - COLMAP), and ours over all scenes,
   under each held-out protocol (header ``[strict]``: the paper's, first; ``[test-pose]``: held-out
-  poses optimised with the model frozen, docs/protocols.md; "-" where a run was not scored so).
+  poses optimised with the model frozen, docs/protocols.md; "-" where a run was not scored so);
+  beside the PSNRs, the floor's PSNR over the matched scenes and over the scenes of ours (all).
 * Table II style summary: per dataset, initialiser and n: success under both criteria,
   registered / n, image metrics over successful runs (metrics.json at the final iteration, and
   the training log's held-out PSNR at the final and at the best evaluated iteration; both
-  protocols, and the test-pose protocol's mean rotation change), ATE and rotation error.
+  protocols, and the test-pose protocol's mean rotation change), per protocol the coverage and
+  PSNR / SSIM / LPIPS over the covered pixels, ATE and rotation error; and per dataset and n one
+  "floor" row: the floor's PSNR / SSIM / LPIPS over the scenes that have one (coverage "-").
 * Pose accuracy: one row per run with reference cameras.
 * Run time: mean seconds per stage and peak memory, per dataset, initialiser and n.
 * COLMAP repeats: the spread over seeds, where runs were repeated.
+
+The floor (``floor.json``, :mod:`evaluation.reports.results`) is a flat image of the training
+views' mean colour, scored like a model; covered pixels are the held-out pixels whose accumulated
+alpha reaches metrics.json's ``covered_alpha``. :func:`table_legends` says both under the tables.
 
 Means ignore missing values (NaN); a cell with nothing to average is "-".
 """
@@ -31,9 +38,10 @@ from runtime.atomic import atomic_path
 from evaluation.initialisers import registry
 from evaluation.metrics.pose import GateConfig, success_criteria_text
 from evaluation.reports.markup import counted, format_value, markdown_table
-from evaluation.reports.results import PROTOCOLS, collect_runs
+from evaluation.reports.results import COVERAGE_COLUMNS, FLOOR_COLUMNS, PROTOCOLS, collect_runs
 
-__all__ = ["to_markdown", "table_notes", "table_one", "table_two", "pose_table", "runtime_table", "repeats_table",
+__all__ = ["to_markdown", "table_notes", "table_legends", "FLOOR", "table_one", "table_two", "pose_table",
+           "runtime_table", "repeats_table",
            "build_tables", "run_tables", "has_heldout", "HELDOUT_TABLES"]
 
 log = logging.getLogger(__name__)
@@ -84,6 +92,10 @@ def _one_mode(rows: pd.DataFrame, mode: str | None) -> pd.DataFrame:
     return rows[~rows["scene"].duplicated()].set_index("scene")
 
 
+#: The name of the floor's row (Table II) and columns (Table I).
+FLOOR = "floor"
+
+
 def table_one(runs: pd.DataFrame, ours: str | None = None, baseline: str | None = None,
               lpips: str | tuple[str, ...] = LPIPS_NETS, ours_mode: str | None = "gated",
               baseline_mode: str | None = "uniform") -> pd.DataFrame:
@@ -118,6 +130,10 @@ def table_one(runs: pd.DataFrame, ours: str | None = None, baseline: str | None 
                 row[f"{head} {ours} (matched)"] = o
                 row[f"{head} delta"] = o - b
                 row[f"{head} {ours} (all)"] = _mean(_col(our, col))
+                if protocol == "strict" and metric == "psnr":  # the floor: the same under both protocols
+                    floor = _col(our, FLOOR_COLUMNS[metric])
+                    row[f"{label} {FLOOR} (matched)"] = _mean(floor.loc[matched]) if matched else math.nan
+                    row[f"{label} {FLOOR} (all)"] = _mean(floor[_col(our, col).notna()])
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -150,8 +166,7 @@ def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> 
             "success (paper)": _k_of_n(g["success_paper"]),
             "success (accurate)": _k_of_n(g.loc[g["has_reference"].astype(bool), "success_gated"]),
             "registered/n": _mean(g["registered"] / g["n_train"]),
-            **{f"{label} [{protocol}]": _mean(_col(ok, prefix + metric)) for protocol, prefix in PROTOCOLS.items()
-               for metric, label in _metrics(lpips)},
+            **_quality(ok, lpips),
             "test-pose rot. change (deg)": _mean(_col(ok, "testpose_rot_deg_mean")),
             "log PSNR final": _mean(ok["final_test_psnr"]),
             "log PSNR best": _mean(ok["best_test_psnr"]),
@@ -159,7 +174,39 @@ def table_two(runs: pd.DataFrame, lpips: str | tuple[str, ...] = LPIPS_NETS) -> 
             "ATE % radius": _mean(ok["ate_pct_radius"]), "rel. rot. err (deg)": _mean(ok["rel_rot_err_mean_deg"]),
             "total s": _mean(g["total_s"]),
         })
-    return _in_registry_order(pd.DataFrame(rows))
+    return _in_registry_order(pd.DataFrame(rows + _floor_rows(runs, lpips), columns=list(rows[0]) if rows else None))
+
+
+def _quality(g: pd.DataFrame, lpips) -> dict[str, float]:
+    """Table II's image columns of the runs ``g``, per protocol: the full-image measures, the
+    coverage and the measures over the covered pixels (means over the runs)."""
+    out = {}
+    for protocol, prefix in PROTOCOLS.items():
+        out.update({f"{label} [{protocol}]": _mean(_col(g, prefix + metric)) for metric, label in _metrics(lpips)})
+        out[f"coverage [{protocol}]"] = _mean(_col(g, prefix + COVERAGE_COLUMNS[0]))
+        out.update({f"{label} covered [{protocol}]": _mean(_col(g, f"{prefix}covered_{metric}"))
+                    for metric, label in _metrics(lpips)})
+    return out
+
+
+def _floor_rows(runs: pd.DataFrame, lpips) -> list[dict]:
+    """Table II's floor rows: per dataset and n with a floor, its measures averaged over the
+    scenes that have one (the floor does not depend on the pose: the same under each protocol;
+    no coverage); the other columns are empty."""
+    if not len(runs):
+        return []
+    cols = [c for c in FLOOR_COLUMNS.values() if c in runs]
+    scenes = runs.drop_duplicates(["dataset", "scene", "n"])
+    scenes = scenes[scenes[cols].notna().any(axis=1)] if cols else scenes.iloc[:0]
+    rows = []
+    for (dataset, n), g in scenes.groupby(["dataset", "n"], sort=True):
+        row = {"dataset": dataset, "init": FLOOR, "mode": None, "n": int(n), "runs": len(g), "recipe": "-",
+               "success (paper)": "-", "success (accurate)": "-"}
+        for protocol in PROTOCOLS:
+            row.update({f"{label} [{protocol}]": _mean(_col(g, FLOOR_COLUMNS[metric]))
+                        for metric, label in _metrics(lpips)})
+        rows.append(row)
+    return rows
 
 
 def pose_table(runs: pd.DataFrame) -> pd.DataFrame:
@@ -256,6 +303,28 @@ def table_notes(tables: dict[str, pd.DataFrame], ours: str | None = None,
     return notes
 
 
+def _thresholds(runs: pd.DataFrame) -> str:
+    """The covered-alpha thresholds the runs' metrics.json record ("-" where none does)."""
+    values = sorted(set(pd.to_numeric(_col(runs, "covered_alpha"), errors="coerce").dropna()))
+    return " / ".join(f"{v:g}" for v in values) or "-"
+
+
+def table_legends(runs: pd.DataFrame) -> dict[str, str]:
+    """What the floor and the covered columns are, by title (shown under Table I and Table II)."""
+    floor = (f"The {FLOOR} is a flat image of the training views' mean colour, scored like a model (floor.json): a "
+             "model that learnt only that colour scores it, so a figure means something only above it")
+    if _col(runs, FLOOR_COLUMNS["psnr"]).isna().all():
+        floor += "; no scene here has one (python -m evaluation floor writes it)"
+    covered = (f"Covered pixels are the held-out pixels whose accumulated alpha is at least {_thresholds(runs)} "
+               "(metrics.json's covered_alpha): coverage is their share, and the columns marked covered score those "
+               "pixels alone (elsewhere a render shows only the background colour); \"-\" where a run was scored "
+               "without its alpha.")
+    return {TABLE_ONE: f"{floor}; its (matched) and (all) columns average it over the scenes of the PSNR columns "
+                       "beside them that have one.",
+            TABLE_TWO: f"{floor}; its row averages it over the scenes that have one ({FLOOR} row, runs: scenes). "
+                       + covered}
+
+
 def protocol_note(runs: pd.DataFrame) -> str | None:
     """One sentence on the test-pose protocol's settings over the runs it scored (steps and
     patience as their testpose.json records them); None when no run has it."""
@@ -273,10 +342,11 @@ def protocol_note(runs: pd.DataFrame) -> str | None:
             "(docs/protocols.md).")
 
 
-def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig(), note: str | None = None) -> str:
+def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConfig(), note: str | None = None,
+                    legends: dict[str, str] | None = None) -> str:
     """The Markdown document: criteria (and ``note``, e.g. :func:`protocol_note`), then every
-    non-empty table (empty ones are named once at the end; a table that cannot be filled says
-    why instead)."""
+    non-empty table, each with its legend below it (``legends``, :func:`table_legends`); empty
+    ones are named once at the end; a table that cannot be filled says why instead."""
     out = ["# Results", "",
            *success_criteria_text(gate),
            "Matched: scenes where COLMAP succeeded (paper criterion) and has held-out metrics at that n; "
@@ -291,9 +361,11 @@ def tables_markdown(tables: dict[str, pd.DataFrame], gate: GateConfig = GateConf
             empty.append(title)
             continue
         out += [f"## {title}", ""]
-        digits = {c: (3 if "SSIM" in c or "LPIPS" in c else 2) for c in df.columns}
+        digits = {c: (3 if "SSIM" in c or "LPIPS" in c or "coverage" in c else 2) for c in df.columns}
         digits.update({k: v for k, v in _DIGITS.items() if k in df.columns})
         out += [to_markdown(df, digits), ""]
+        if (legends or {}).get(title):
+            out += [legends[title], ""]
     if empty:
         out += ["Nothing to show (no runs of that kind): " + "; ".join(empty) + ".", ""]
     return "\n".join(out)
@@ -316,7 +388,8 @@ def run_tables(results: str | Path, out: str | Path, gate: GateConfig = GateConf
     if not heldout:
         tables = {t: df for t, df in tables.items() if t not in HELDOUT_TABLES}
     with atomic_path(out / "tables.md") as tmp:
-        tmp.write_text(tables_markdown(tables, gate, protocol_note(runs) if heldout else NO_HELDOUT_NOTE) + "\n")
+        tmp.write_text(tables_markdown(tables, gate, protocol_note(runs) if heldout else NO_HELDOUT_NOTE,
+                                       table_legends(runs)) + "\n")
     log.info("tables: %s -> %s and %s in %.2f s", counted(len(runs), "run"), out / "runs.parquet", out / "tables.md",
              time.perf_counter() - t0)
     return tables

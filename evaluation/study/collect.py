@@ -57,6 +57,9 @@ MEASURES = {
     "lpips": ("LPIPS (final)", "", 3),
     "best_test_lpips": ("LPIPS (best it.: lowest)", "", 3),
     "best_lpips_iter": ("best LPIPS iteration", "it.", 0),
+    # metrics.json's share of held-out pixels covered, and the PSNR over them (where scored with alpha)
+    "coverage": ("coverage (final)", "fraction", 3),
+    "covered_psnr": ("PSNR covered (final)", "dB", 2),
     "num_gaussians": ("Gaussians (final)", "count", 0),
     "floater_seed": ("floater frac. (seed)", "fraction", 3),
     "floater_final": ("floater frac. (final)", "fraction", 3),
