@@ -44,7 +44,7 @@ from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim
 from runtime.cliargs import add_log_flags, plain
 from runtime.logs import progress, setup_logging, timed
 
-__all__ = ["match_images", "load_models", "score_pair", "evaluate_images", "add_parser", "main"]
+__all__ = ["match_images", "load_models", "score_pair", "evaluate_images", "add_lpips_args", "add_parser", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +197,11 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
     p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
     p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
+    add_lpips_args(p)
+
+
+def add_lpips_args(p: argparse.ArgumentParser) -> None:
+    """--lpips-nets, --lpips-weights and --device (of every command scored like renders)."""
     p.add_argument("--lpips-nets", nargs="*", default=list(NETS), choices=NETS,
                    help=f"LPIPS backbones (default: {' '.join(NETS)}; give none to skip LPIPS)")
     p.add_argument("--lpips-weights", type=Path, default=None,
