@@ -20,7 +20,7 @@ Output (``floor.json``, written atomically; docs/contracts.md)::
      "n_images": N,
      "per_image": [{"name": gt file name, "psnr": .., "ssim": .., "lpips_alex": .. | null,
                     "lpips_vgg": .. | null}, ...],
-     "train_names": [...], "psnr_cap_db": 100.0, "psnr_capped": [...],
+     "train_names": [sorted], "psnr_cap_db": 100.0, "psnr_capped": [...],
      "lpips_weights": {"alex": path | null, "vgg": path | null},
      "images_dir": .., "gt_dir": .., "wall_time_s": ..}
 
@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Sequence
 
 from camio.images import from_uint8, list_images, read_image, read_image_uint8
-from evaluation.initialisers.views import read_image_list
+from evaluation.metrics.align_run import load_names
 from evaluation.metrics.images_cli import _mean, add_lpips_args, load_models, score_pair
 from imgmetrics.floor import flat_colour, flat_image
 from imgmetrics.lpips import NETS
@@ -47,6 +47,7 @@ from runtime.atomic import write_json
 from runtime.checks import check_folder
 from runtime.cliargs import plain
 from runtime.logs import timed
+from runtime.names import check_name_list
 
 __all__ = ["evaluate_floor", "add_parser"]
 
@@ -70,7 +71,8 @@ def evaluate_floor(images_dir: str | Path, train_names: str | Path, gt_dir: str 
 
     Args:
         images_dir: the scene's images (the training names are looked up here).
-        train_names: text file, one training image name per line (``n{n}/train.txt``).
+        train_names: text file, one training image name per line (``n{n}/train.txt``; '#'
+            comments), or a JSON list of names (:func:`evaluation.metrics.align_run.load_names`).
         gt_dir: the held-out ground-truth images.
         out_json: output path (atomic write), or None to only return the record.
         lpips_nets, lpips_weights, device: as for ``evaluation images``.
@@ -82,7 +84,7 @@ def evaluate_floor(images_dir: str | Path, train_names: str | Path, gt_dir: str 
     images_dir, gt_dir = Path(images_dir), Path(gt_dir)
     check_folder(images_dir, "--images folder")
     check_folder(gt_dir, "--gt folder")
-    names = read_image_list(train_names)
+    names = check_name_list(load_names(train_names), train_names)
     gt_names = list_images(gt_dir)
     if not gt_names:
         raise ValueError(f"no images (.png/.jpg/.tif/.exr) in the ground-truth folder {gt_dir}")
