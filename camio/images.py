@@ -38,6 +38,7 @@ __all__ = [
     "check_image_name",
     "read_image",
     "read_image_uint8",
+    "from_uint8",
     "read_pixels",
     "check_images",
     "write_image",
@@ -308,6 +309,16 @@ def _float_types():
 def read_image_uint8(path: str | Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
     """:func:`read_image` rounded to uint8 [H, W, 3] (exact for 8-bit RGB files)."""
     return to_uint8(read_image(path, background))
+
+
+def from_uint8(img: np.ndarray) -> np.ndarray:
+    """uint8 [..] -> float32 in [0, 1]: exactly what :func:`read_image` returns for an 8-bit file
+    of these values (OpenImageIO scales by the float32 reciprocal of 255, which differs from a
+    division by 255 in the last bit for some codes)."""
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        raise ValueError(f"from_uint8 takes uint8 values, got {a.dtype}")
+    return a.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
 def to_uint8(img: np.ndarray) -> np.ndarray:

@@ -4,6 +4,8 @@ Commands:
   pose     pose accuracy of a COLMAP model against reference cameras -> pose.json
   images   image metrics of renders against ground truth -> metrics.json
            (from :mod:`evaluation.metrics.images_cli`, imported only when used)
+  floor    the flat image of the training views' mean colour scored like a render -> floor.json
+           (from :mod:`evaluation.metrics.floor_cli`, imported only when used)
   align    Sim(3) on training cameras; reference test cameras in the model frame
   tables   results tree -> runs.parquet + tables.md
   plots    training curves and the error / run-time Pareto plot (PNG)
@@ -115,6 +117,7 @@ def _cmd_study(args) -> int:
 _OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
     "pose": (("pred", "ref", "names"), False, (), False),
     "images": (("pred", "gt", "lpips_weights"), False, (), False),
+    "floor": (("images", "train_names", "gt", "lpips_weights"), False, (), False),
     "align": (("pred", "ref", "train_names", "test_names", "images"), True, (), False),
     "tables": (("results",), True, ("--results",), False),
     "plots": (("results",), True, ("--results",), False),
@@ -169,30 +172,38 @@ def _seal_out(args) -> None:
         seal_out(args.out, f"evaluation {args.command}")
 
 
-def _missing_images(exc: Exception):
+def _missing(command: str, exc: Exception):
     def run(args) -> int:
-        log.error("the 'images' command is not available: importing evaluation.metrics.images_cli failed "
+        log.error("the '%s' command is not available: importing evaluation.metrics.%s_cli failed "
                   "(%s). Check that the evaluation package is complete and installed (pip install -e .).",
-                  exc)
+                  command, command, exc)
         return 2
     return run
 
 
-def _add_images(sub, wanted: bool) -> None:
-    """Register ``images`` from evaluation.metrics.images_cli (only imported when it is the command)."""
+# Commands registered from evaluation.metrics.<command>_cli (torch: imported only when used).
+_LAZY = {
+    "images": "image metrics of renders against ground truth -> metrics.json",
+    "floor": "the flat image of the training views' mean colour scored like a render -> floor.json",
+}
+
+
+def _add_lazy(sub, command: str, wanted: bool) -> None:
+    """Register ``command`` from evaluation.metrics.<command>_cli (only imported when it is the command)."""
     if wanted:
+        import importlib
+
         try:
-            from evaluation.metrics import images_cli
+            module = importlib.import_module(f"evaluation.metrics.{command}_cli")
         except ImportError as exc:
             # prefix "+" so that the real command's --options land in ``rest`` unparsed
-            p = sub.add_parser("images", help="image metrics (unavailable)", prefix_chars="+")
+            p = sub.add_parser(command, help=f"{command} (unavailable)", prefix_chars="+")
             p.add_argument("rest", nargs=argparse.REMAINDER)
-            p.set_defaults(func=_missing_images(exc))
+            p.set_defaults(func=_missing(command, exc))
             return
-        add_log_flags(images_cli.add_parser(sub), subcommand=True)
+        add_log_flags(module.add_parser(sub), subcommand=True)
         return
-    sub.add_parser("images", help="image metrics of renders against ground truth -> metrics.json",
-                   add_help=False)
+    sub.add_parser(command, help=_LAZY[command], add_help=False)
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
@@ -218,7 +229,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_pose)
 
     command = next((a for a in argv if not a.startswith("-")), None)
-    _add_images(sub, wanted=command == "images")
+    for name in _LAZY:
+        _add_lazy(sub, name, wanted=command == name)
 
     p = sub.add_parser("align", help="Sim(3) on training cameras; test cameras in the model frame")
     p.add_argument("--pred", required=True, help="the model's COLMAP cameras (its frame)")
@@ -299,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     func = getattr(args, "func", None)
     if func is None:
-        log.error("evaluation.metrics.images_cli.add_parser did not set a handler (set_defaults(func=...))")
+        log.error("evaluation.metrics.%s_cli.add_parser did not set a handler (set_defaults(func=...))", args.command)
         return 2
     from runtime.outdir import run_stage
 

@@ -6,7 +6,9 @@
   the training loss and its C++ kernel share) and the layout conversion the metrics use
   (:func:`imgmetrics.ssim.to_bchw`);
 * :mod:`imgmetrics.lpips`: LPIPS (AlexNet / VGG16 with the official linear heads), its weights
-  read from safetensors.
+  read from safetensors;
+* :mod:`imgmetrics.floor`: the floor's flat image (the training views' mean colour), the one
+  definition of its colour.
 
 Ground floor (tests/test_import_layers.py): it imports no stage, so the training loss and the
 evaluation metrics compute the same numbers without importing each other.

@@ -29,7 +29,7 @@ def _parsers(module: str, monkeypatch) -> list[argparse.ArgumentParser]:
                                   ("camio", "evaluation", "bridge", "vggt_init", "splat_train") else module)
     argvs = [[]]
     if module == "evaluation":
-        argvs = [["images"]]  # registers the images command's real parser
+        argvs = [["images"], ["floor"]]  # registers the lazily imported commands' real parsers
     if module == "splat_train":
         argvs = [[], ["render"], ["export"]]
     for argv in argvs:

@@ -62,6 +62,9 @@ def _stages():
                        "--out", str(o)], "list"),
         ("evaluation images", "evaluation.__main__",
          lambda i, o: ["images", "--pred", str(i["images"]), "--gt", str(i["images"]), "--out", str(o)], "images"),
+        ("evaluation floor", "evaluation.__main__",
+         lambda i, o: ["floor", "--images", str(i["images"]), "--train-names", str(i["list"]), "--gt",
+                       str(i["images"]), "--out", str(o)], "images"),
         ("evaluation align", "evaluation.__main__",
          lambda i, o: ["align", "--pred", str(i["model"]), "--ref", str(i["model"]), "--train-names",
                        str(i["list"]), "--out", str(o)], "model"),
@@ -123,9 +126,9 @@ def test_out_holding_an_input_is_refused(tmp_path, capsys, stage):
 
 
 @pytest.mark.parametrize("stage", [s for s in STAGES if s[0] not in ("camio split", "evaluation pose", "evaluation images",
-                                                                      "evaluation floaters")],
+                                                                      "evaluation floor", "evaluation floaters")],
                          ids=[s[0] for s in STAGES if s[0] not in ("camio split", "evaluation pose", "evaluation images",
-                                                                   "evaluation floaters")])
+                                                                   "evaluation floor", "evaluation floaters")])
 def test_non_empty_folder_not_made_by_the_stage_is_refused(tmp_path, capsys, stage):
     name, module, argv, which = stage
     inp = _inputs(tmp_path)

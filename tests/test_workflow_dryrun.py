@@ -134,6 +134,16 @@ def test_synthetic_scene_plans_every_stage(mixed):
     assert re.search(r"evaluation\.initialisers\.colmap_baseline .*--threads [1-9]", out)
 
 
+def test_floor_per_scene_and_view_count(mixed):
+    """floor.json (the flat mean-colour image's held-out metrics) once per (scene, n) with
+    held-out views, whatever the initialisers; none without reference cameras or test views."""
+    counts, out = mixed
+    assert jobs(counts, "floor", "bundled") == 2
+    for n in (3, 6):
+        assert f"output: results/synthetic/bundled/n{n}/floor.json" in out
+    assert jobs(counts, "floor", "photos") == jobs(counts, "floor", "notest") == 0
+
+
 def test_scene_without_reference_cameras(mixed):
     counts, _ = mixed
     assert jobs(counts, "convert_scene", "photos") == 1 and jobs(counts, "synth_scene", "photos") == 0
@@ -169,7 +179,7 @@ def test_no_colmap_no_training_and_the_depth_head(tmp_path):
     assert jobs(counts, "colmap_baseline") == 0 and jobs(counts, "colmap_index") == 0
     assert "--points-from depth" in out
     for rule in ("bridge_predictions", "train_splats", "render_test", "image_metrics",
-                 "align_test_cameras"):
+                 "align_test_cameras", "floor"):
         assert jobs(counts, rule) == 0, rule
     assert jobs(counts, "pose_eval") == 4 and jobs(counts, "tables") == 1
 

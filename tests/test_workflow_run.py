@@ -29,5 +29,7 @@ def test_ci_config_runs_end_to_end(workflow_run):
             assert (run / mode / "train" / "model.ply").is_file()
             assert (run / "logs").is_dir() and (run / mode / "benchmarks" / "train.tsv").is_file()
         assert not (scene / f"n{n}" / "vggt" / "predictions.npz").exists()  # temp() removed it
+        floor = json.loads((scene / f"n{n}" / "floor.json").read_text())  # one per (scene, n)
+        assert floor["n_images"] == len(json.loads((scene / "split.json").read_text())["test"])
     assert (res / "tables" / "tables.md").read_text().startswith("#")
     assert (res / "report" / "index.html").is_file()

@@ -44,7 +44,7 @@ from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim
 from runtime.cliargs import add_log_flags, plain
 from runtime.logs import progress, setup_logging, timed
 
-__all__ = ["match_images", "evaluate_images", "add_parser", "main"]
+__all__ = ["match_images", "load_models", "score_pair", "evaluate_images", "add_lpips_args", "add_parser", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +91,39 @@ def _mean(values: list[float | None]) -> float | None:
     return float(sum(values) / len(values))
 
 
+def load_models(lpips_nets: Sequence[str] = NETS, lpips_weights: str | Path | None = None,
+                device: str | torch.device = "cpu") -> tuple[dict, dict]:
+    """The LPIPS models asked for: ({net: model | None}, {net: weights path | None}) over
+    :data:`imgmetrics.lpips.NETS` (None: not asked for)."""
+    wanted = {canonical_net(n) for n in lpips_nets}
+    models = {}
+    weights_used: dict[str, str | None] = {}
+    for net in NETS:
+        models[net] = load_lpips(net, lpips_weights, device) if net in wanted else None
+        weights_used[net] = str(find_weights(net, lpips_weights)) if models[net] is not None else None
+    return models, weights_used
+
+
+def score_pair(pred, gt, models: dict) -> tuple[float, dict]:
+    """One image pair scored: PSNR and SSIM in float64, LPIPS in float32 (each net of
+    ``models``, :func:`load_models`; null where None).
+
+    Args:
+        pred, gt: float32 RGB ``[H, W, 3]`` in [0, 1], same shape (:func:`camio.images.read_image`).
+
+    Returns:
+        (the uncapped PSNR, {"psnr": capped PSNR, "ssim", "lpips_alex", "lpips_vgg"}).
+    """
+    p64, g64 = torch.from_numpy(pred).double(), torch.from_numpy(gt).double()
+    p64, g64 = p64.permute(2, 0, 1), g64.permute(2, 0, 1)
+    raw_psnr = float(psnr(p64, g64)[0])
+    rec = {"psnr": capped_psnr(raw_psnr), "ssim": float(ssim(p64, g64)[0])}
+    for net in NETS:
+        m = models[net]
+        rec[f"lpips_{net}"] = float(lpips_distance(m, pred, gt)[0]) if m is not None else None
+    return raw_psnr, rec
+
+
 def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Path | None,
                     lpips_nets: Sequence[str] = NETS, lpips_weights: str | Path | None = None,
                     device: str | torch.device = "cpu") -> dict:
@@ -112,12 +145,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
     t0 = time.perf_counter()
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     pairs = match_images(pred_dir, gt_dir)
-    wanted = {canonical_net(n) for n in lpips_nets}
-    models = {}
-    weights_used: dict[str, str | None] = {}
-    for net in NETS:
-        models[net] = load_lpips(net, lpips_weights, device) if net in wanted else None
-        weights_used[net] = str(find_weights(net, lpips_weights)) if models[net] is not None else None
+    models, weights_used = load_models(lpips_nets, lpips_weights, device)
     log.info("evaluating %d image pairs (%s vs %s); LPIPS: %s", len(pairs), pred_dir, gt_dir,
              ", ".join(n for n in NETS if models[n] is not None) or "none")
 
@@ -130,15 +158,10 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
             raise ValueError(f"size mismatch for {gt_name}: render {pred_dir / pred_name} is "
                              f"{pred.shape[1]}x{pred.shape[0]}, ground truth {gt_dir / gt_name} is "
                              f"{gt.shape[1]}x{gt.shape[0]} (width x height); render at the ground-truth size")
-        p64, g64 = torch.from_numpy(pred).double(), torch.from_numpy(gt).double()
-        p64, g64 = p64.permute(2, 0, 1), g64.permute(2, 0, 1)
-        raw_psnr = float(psnr(p64, g64)[0])
+        raw_psnr, scores = score_pair(pred, gt, models)
         if raw_psnr >= PSNR_CAP_DB:
             capped.append(gt_name)
-        rec = {"name": gt_name, "pred": pred_name, "psnr": capped_psnr(raw_psnr), "ssim": float(ssim(p64, g64)[0])}
-        for net in NETS:
-            m = models[net]
-            rec[f"lpips_{net}"] = float(lpips_distance(m, pred, gt)[0]) if m is not None else None
+        rec = {"name": gt_name, "pred": pred_name, **scores}
         per_image.append(rec)
         log.debug("%s: PSNR %.3f dB, SSIM %.4f", gt_name, rec["psnr"], rec["ssim"])
 
@@ -174,6 +197,11 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
     p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
     p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
+    add_lpips_args(p)
+
+
+def add_lpips_args(p: argparse.ArgumentParser) -> None:
+    """--lpips-nets, --lpips-weights and --device (of every command scored like renders)."""
     p.add_argument("--lpips-nets", nargs="*", default=list(NETS), choices=NETS,
                    help=f"LPIPS backbones (default: {' '.join(NETS)}; give none to skip LPIPS)")
     p.add_argument("--lpips-weights", type=Path, default=None,

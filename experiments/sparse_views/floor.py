@@ -23,23 +23,24 @@ __all__ = ["floor_psnr", "measure_floors", "load_floors", "FLOORS"]
 
 
 def floor_psnr(cell: Path) -> float | None:
-    """Mean held-out PSNR of a flat image of the training views' mean colour (8-bit, as the
-    renders are scored), over the test views of a prepared cell (scene/, train.txt, test.txt);
-    None where the cell is not here."""
+    """Mean held-out PSNR of a flat image of the training views' mean colour
+    (:mod:`imgmetrics.floor`, 8-bit, as the renders are scored), over the test views of a
+    prepared cell (scene/, train.txt, test.txt); None where the cell is not here."""
     import numpy as np
 
     from camio.images import read_image_uint8
+    from imgmetrics.floor import flat_colour, flat_image
 
     if not (cell / "train.txt").is_file():
         return None
     images = cell / "scene" / "images"
     names = lambda f: [n for n in (cell / f).read_text().split() if n]  # noqa: E731
-    train = [read_image_uint8(images / n).astype(np.float64) for n in names("train.txt")]
-    mean = np.round(np.mean([t.reshape(-1, 3).mean(0) for t in train], axis=0))
+    colour = flat_colour(read_image_uint8(images / n) for n in names("train.txt"))
     out = []
     for n in names("test.txt"):
         gt = read_image_uint8(images / n).astype(np.float64)
-        mse = np.mean((gt - mean) ** 2) / 255.0 ** 2
+        flat = flat_image(colour, *gt.shape[:2]).astype(np.float64)
+        mse = np.mean((gt - flat) ** 2) / 255.0 ** 2
         out.append(10 * np.log10(1.0 / max(mse, 1e-12)))
     return float(np.mean(out))
 

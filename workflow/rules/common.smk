@@ -11,6 +11,7 @@ Layout of the outputs (R = config["results"]):
     R/{dataset}/{scene}/{synth|converted|undistorted}/   prepared scene (images, sparse/0, gt/)
     R/{dataset}/{scene}/split.json                        the split used
     R/{dataset}/{scene}/n{n}/train.txt                    the n training names
+    R/{dataset}/{scene}/n{n}/floor.json                   the flat mean-colour image's held-out metrics
     R/{dataset}/{scene}/test_images/                      links to the held-out images
     R/{dataset}/{scene}/n{n}/{init}/                      initialiser output (sparse/0, status.json)
     R/{dataset}/{scene}/n{n}/{init}/pose.json             pose accuracy (reference cameras only)

@@ -25,6 +25,33 @@ rule image_metrics:
         "{params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
+# The floor (docs/contracts.md, floor.json): the flat image of the training views' mean colour,
+# scored on the held-out views like a render; one per (scene, n), whatever the initialiser.
+rule floor:
+    input:
+        scene=scene_dir,
+        train=f"{SCENE}/n{{n}}/train.txt",
+        test_images=f"{SCENE}/test_images",
+    output:
+        f"{SCENE}/n{{n}}/floor.json",
+    log:
+        f"{SCENE}/logs/floor_n{{n}}.log",
+    benchmark:
+        f"{SCENE}/benchmarks/floor_n{{n}}.tsv"
+    conda:
+        "../envs/project.yaml"
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=short_runtime,
+        cpus_per_task=cpus_per_task,
+    params:
+        lpips=lpips_args,
+    shell:
+        "python -m evaluation floor --images {input.scene:q}/images --train-names {input.train:q} "
+        "--gt {input.test_images:q} {params.lpips} --out {output:q} > {log:q} 2>&1"
+
+
 # The test-pose protocol (docs/protocols.md): each held-out pose optimised against its image
 # with the model frozen, starting from the strict protocol's aligned cameras; scored like
 # the strict renders. Off with evaluation.testpose: false.

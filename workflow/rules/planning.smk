@@ -105,9 +105,20 @@ def run_targets(dataset, scene, n, init, stage):
     return out
 
 
+def has_floor(dataset, scene):
+    """The floor (floor.json per view count) applies: held-out views to score it on, and
+    trained models whose metrics it is the floor of."""
+    return (
+        has_reference(dataset, scene)
+        and has_test_split(dataset, scene)
+        and config["train"]["enabled"]
+    )
+
+
 def stage_targets(stage, colmap):
     """Every run's files up to ``stage`` over all scenes, view counts and initialisers;
-    the checkpointed runs (``colmap=True``, read through the checkpoint) or all the others.
+    the checkpointed runs (``colmap=True``, read through the checkpoint) or all the others
+    (with, from the metrics stage on, each (scene, n)'s floor.json).
 
     Target rules take the two halves as separate input functions, so the runs that do not
     depend on COLMAP are planned (and shown by a dry run) before the checkpoint completes.
@@ -117,6 +128,8 @@ def stage_targets(stage, colmap):
         if not colmap:
             out.append(f"{R}/{ds}/{sc}/split.json")
         for n in scene_views(ds, sc):
+            if not colmap and stage in ("metrics", "all") and has_floor(ds, sc):
+                out.append(f"{R}/{ds}/{sc}/n{n}/floor.json")
             for init in scene_inits(ds, sc):
                 if (init in CHECKPOINTED) == colmap:
                     out += run_targets(ds, sc, n, init, stage)
