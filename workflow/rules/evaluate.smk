@@ -22,7 +22,7 @@ rule image_metrics:
         lpips=lpips_args,
     shell:
         "python -m evaluation images --pred {input.renders:q} --gt {input.test_images:q} "
-        "{params.lpips} --out {output:q} > {log:q} 2>&1"
+        "--alpha {input.renders:q}/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 # The test-pose protocol (docs/protocols.md): each held-out pose optimised against its image
@@ -75,7 +75,7 @@ rule testpose_metrics:
         lpips=lpips_args,
     shell:
         "python -m evaluation images --pred {input.refine:q}/renders --gt {input.test_images:q} "
-        "{params.lpips} --out {output:q} > {log:q} 2>&1"
+        "--alpha {input.refine:q}/renders/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 rule unavailable_initialisers:
