@@ -15,6 +15,13 @@ Distance (lpips 0.1.4, ``LPIPS(net=..., version='0.1')``, non-spatial):
     f_l = tap l of the backbone, unit-normalised over channels: f / (||f||_2 + 1e-10)
     d   = sum_l  mean_{h,w}  w_l . (f_l(x) - f_l(y))^2        (w_l: 1x1 conv, no bias)
 
+Spatial form (the lpips package's ``spatial=True``; :func:`lpips_map`): each layer's map
+``w_l . (f_l(x) - f_l(y))^2`` [H_l, W_l] upsampled bilinearly (``align_corners=False``) to the
+image size [H, W] and summed over the layers. Its mean is ``d`` exactly where every layer's size
+divides the image's (VGG at sides that are multiples of 16); otherwise bilinear upsampling by a
+non-integer factor weights the border rows a little differently, and the mean differs from
+``d`` by up to ~5e-4 of ``d`` (measured on random 40x36 to 256x192 images, both backbones).
+
 Weights are read only from safetensors files (never pickles at run time), looked up in
 this order (:func:`find_weights`):
 
@@ -39,6 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from imgmetrics.ssim import to_bchw
 
@@ -51,6 +59,7 @@ __all__ = [
     "find_weights",
     "load_lpips",
     "lpips_distance",
+    "lpips_map",
     "missing_weights_hint",
 ]
 
@@ -143,16 +152,19 @@ class LPIPS(nn.Module):
         self.requires_grad_(False)
         self.eval()
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, input_range: str = "01") -> torch.Tensor:
-        """LPIPS distance per image.
+    def forward(self, x: torch.Tensor, y: torch.Tensor, input_range: str = "01",
+                spatial: bool = False) -> torch.Tensor:
+        """LPIPS distance per image, or its spatial map.
 
         Args:
             x, y: [B, 3, H, W] RGB, same shape. ``input_range="01"``: values in [0, 1]
                 (the project's convention; mapped to 2 v - 1); ``"pm1"``: already in [-1, 1]
                 (the lpips package's default).
+            spatial: return the per-pixel map instead of the mean (see module docstring).
 
         Returns:
-            [B] distances (>= 0 for trained heads, whose weights are non-negative).
+            [B] distances (>= 0 for trained heads, whose weights are non-negative); with
+            ``spatial``, [B, H, W] maps in the input's pixel grid.
         """
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
             raise ValueError(f"LPIPS expects two [B, 3, H, W] tensors of one shape; got "
@@ -166,11 +178,16 @@ class LPIPS(nn.Module):
         scale = torch.tensor(_SCALE, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
         fx = self.net((x - shift) / scale)
         fy = self.net((y - shift) / scale)
-        total = x.new_zeros(x.shape[0])
+        size = x.shape[-2:]
+        total = x.new_zeros((x.shape[0], *size) if spatial else (x.shape[0],))
         for a, b, lin in zip(fx, fy, self.lins):
             a = a / (torch.sqrt((a * a).sum(dim=1, keepdim=True)) + _EPS)
             b = b / (torch.sqrt((b * b).sum(dim=1, keepdim=True)) + _EPS)
-            total = total + lin((a - b) ** 2).mean(dim=(1, 2, 3))
+            d = lin((a - b) ** 2)  # [B, 1, H_l, W_l]
+            if spatial:
+                total = total + F.interpolate(d, size=size, mode="bilinear", align_corners=False)[:, 0]
+            else:
+                total = total + d.mean(dim=(1, 2, 3))
         return total
 
 
@@ -265,6 +282,21 @@ def lpips_distance(model: LPIPS, pred: torch.Tensor | np.ndarray, gt: torch.Tens
     Returns:
         [B] tensor on the CPU.
     """
+    return _run(model, pred, gt, dtype, spatial=False)
+
+
+@torch.no_grad()
+def lpips_map(model: LPIPS, pred: torch.Tensor | np.ndarray, gt: torch.Tensor | np.ndarray,
+              dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The LPIPS spatial map per image (module docstring), arguments as :func:`lpips_distance`.
+
+    Returns:
+        [B, H, W] tensor on the CPU, in the images' pixel grid.
+    """
+    return _run(model, pred, gt, dtype, spatial=True)
+
+
+def _run(model: LPIPS, pred, gt, dtype: torch.dtype, spatial: bool) -> torch.Tensor:
     device = next(model.parameters()).device
     x = to_bchw(pred, dtype).to(device)
     y = to_bchw(gt, dtype).to(device)
@@ -272,7 +304,7 @@ def lpips_distance(model: LPIPS, pred: torch.Tensor | np.ndarray, gt: torch.Tens
     if param_dtype != dtype:
         model = model.to(dtype)
     try:
-        return model(x, y).cpu()
+        return model(x, y, spatial=spatial).cpu()
     finally:
         if param_dtype != dtype:
             model.to(param_dtype)

@@ -5,6 +5,9 @@ evaluation stage renders the held-out cameras with it). Output names: the image 
 its suffix replaced by ``.png``, e.g. ``IMG_0001.JPG -> IMG_0001.png``; image names are plain
 file names (every reader checks them, :mod:`runtime.names`) and no two share a stem
 (:func:`splat_train.data.load_views`), so every render is its own file inside ``out_dir``.
+``python -m splat_train render`` also writes each render's accumulated opacity as
+``out_dir/alpha/<stem>.png`` (16-bit gray, :mod:`camio.alpha`), which the image metrics read to
+score the pixels the model covers.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 import torch
 
 from camio import Camera
+from camio.alpha import alpha_path, write_alpha
 from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from runtime.checks import RGB
@@ -138,8 +142,8 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
                  background: torch.Tensor, out_dir: str | Path | None = None,
                  cam_override: list[torch.Tensor] | None = None, desc: str = "render",
                  K_override: list[torch.Tensor] | None = None, backend: str = "auto",
-                 on_render: Callable[[str, torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None
-                 ) -> dict[str, float]:
+                 on_render: Callable[[str, torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
+                 alpha: bool = False) -> dict[str, float]:
     """Render every view; write PNGs into ``out_dir`` (if given); PSNR where a view has an image.
 
     Args:
@@ -150,6 +154,8 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
         cam_override: optional [4, 4] cam_from_world per view (refined poses).
         K_override: optional [3, 3] intrinsics per view in its image pixels (refined focal).
         backend: :func:`splat_train.rasterize` backend.
+        alpha: also write each render's accumulated opacity [H, W] to ``out_dir/alpha/<stem>.png``
+            (:func:`camio.alpha.write_alpha`).
 
     Returns:
         image name -> PSNR in dB (only views with an image).
@@ -171,6 +177,8 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
                 on_render(v.name, rgb, target, out["alpha"])
         if out_dir is not None:
             write_image(Path(out_dir) / render_name(v.name), rgb.cpu().numpy())
+            if alpha:
+                write_alpha(alpha_path(out_dir, render_name(v.name)), out["alpha"].cpu().numpy())
     return scores
 
 
@@ -178,7 +186,8 @@ def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
                  images: str | Path | None = None, width: int | None = None, height: int | None = None,
                  names: str | Path | None = None, background: tuple[float, float, float] | None = None,
                  device: str = "cpu") -> dict[str, float]:
-    """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs.
+    """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs, and
+    each render's accumulated opacity in ``out_dir/alpha/`` (:mod:`camio.alpha`).
 
     Image sizes: the camera sizes; or those of the same-named files in ``images`` (K rescaled;
     the PSNR against them is returned); or ``width`` x ``height`` for every camera.
@@ -202,7 +211,7 @@ def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
     cloud = read_gaussian_ply(model)
     params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)
     bg = torch.tensor(background, dtype=torch.float32, device=device)
-    scores = render_views(params, cloud.sh_degree, views, bg, out_dir)
+    scores = render_views(params, cloud.sh_degree, views, bg, out_dir, alpha=True)
     log.info("rendered %d views of %s (%d Gaussians) into %s in %.1f s%s", len(views), model,
              len(cloud), out_dir, time.perf_counter() - t0,
              f", mean PSNR {np.mean(list(scores.values())):.2f} dB" if scores else "")

@@ -57,6 +57,7 @@ import torch
 from camio import Camera
 from runtime.atomic import write_json
 from camio.colmap import write_text_model
+from camio.alpha import alpha_path, write_alpha
 from camio.images import write_image
 from camio.ply import read_gaussian_ply
 from splat_train.data import View, load_views, read_name_list
@@ -209,7 +210,9 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
     the background the model was trained against (:func:`splat_train.export.model_background`).
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
-    image sizes), ``out_dir/renders/<stem>.png`` and ``out_dir/testpose.json`` (docs/contracts.md).
+    image sizes), ``out_dir/renders/<stem>.png`` with each render's accumulated opacity in
+    ``out_dir/renders/alpha/<stem>.png`` (:mod:`camio.alpha`) and ``out_dir/testpose.json``
+    (docs/contracts.md).
 
     Returns:
         The ``testpose.json`` record.
@@ -239,6 +242,7 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
                                   v.camera.height, bg, ran)
         rgb = after["rgb"].clamp(0.0, 1.0)
         write_image(out / "renders" / render_name(v.name), rgb.cpu().numpy())
+        write_alpha(alpha_path(out / "renders", render_name(v.name)), after["alpha"].cpu().numpy())
         # the kept correction applied in float64 to the camera as read (the start itself when
         # best_step is 0), not the float32 pose the renders used: no float32 round trip in the
         # written cameras and the recorded pose change

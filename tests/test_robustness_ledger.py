@@ -218,6 +218,8 @@ def test_records_name_each_file_with_its_stamp(view, tmp_path):
     assert _render(view, out, ["view00.png"]).returncode == 0
     lines = (out / MARKER).read_text().splitlines()
     assert lines[:2] == ["splat_train render", "#files"]
-    (rec,) = [json.loads(x) for x in lines[2:]]
-    st = (out / "view00.png").stat()
-    assert rec[:5] == ["view00.png", st.st_size, st.st_mtime_ns, st.st_ino, st.st_ctime_ns] and len(rec[5]) == 32
+    recs = {r[0]: r for r in map(json.loads, lines[2:]) if len(r) > 1}  # files; a folder is its name alone
+    assert set(recs) == {"view00.png", "alpha/view00.png"}  # the render and its opacity (camio.alpha)
+    for name, rec in recs.items():
+        st = (out / name).stat()
+        assert rec[:5] == [name, st.st_size, st.st_mtime_ns, st.st_ino, st.st_ctime_ns] and len(rec[5]) == 32

@@ -2,7 +2,7 @@
 
 Usage (through the evaluation dispatcher, or standalone)::
 
-    python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json
+    python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json [--alpha RENDERS/alpha]
     python -m evaluation.metrics.images_cli --pred RENDERS --gt GT_IMAGES --out metrics.json [--lpips-nets alex]
 
 Matching: files are paired by *stem* (name without extension, case-sensitive), so a render
@@ -19,7 +19,18 @@ Output (``metrics.json``, written atomically; docs/contracts.md)::
                     "psnr": .., "ssim": .., "lpips_alex": .. | null, "lpips_vgg": .. | null}, ...],
      "psnr_cap_db": 100.0, "psnr_capped": [names whose PSNR was >= the cap (identical: inf)],
      "lpips_weights": {"alex": path | null, "vgg": path | null},
-     "pred_dir": .., "gt_dir": .., "wall_time_s": ..}
+     "pred_dir": .., "gt_dir": .., "wall_time_s": ..,
+     "alpha_dir": path | null, "covered_alpha": 0.5 | null, "coverage": mean | null,
+     "covered": {"psnr": .., "ssim": .., "lpips_alex": .. | null, "lpips_vgg": .. | null} | null}
+
+With ``--alpha DIR`` (the renders' accumulated opacity, ``DIR/<render stem>.png``, which
+``python -m splat_train render`` writes to ``RENDERS/alpha/``; :mod:`camio.alpha`) each
+``per_image`` record also holds ``coverage`` (the share of its pixels with opacity >=
+``covered_alpha``) and ``covered``: PSNR (capped), SSIM and LPIPS over those pixels alone
+(:mod:`imgmetrics.covered`; each null where the image has no covered pixel). The top-level
+``coverage`` is the mean over the images, ``covered`` the means over the images with a covered
+pixel (a measure null where none has one). Without ``--alpha`` these keys are null. A render
+without its alpha image, or one of another size, is refused (exit 2) naming the file.
 
 PSNR is computed in float64 and capped at :data:`imgmetrics.psnr_ssim.PSNR_CAP_DB` (identical
 images have PSNR = inf; JSON has no inf, and a mean of inf says nothing), SSIM in float64,
@@ -38,7 +49,9 @@ from typing import Sequence
 import torch
 
 from runtime.atomic import write_json
+from camio.alpha import read_alpha
 from camio.images import list_images, read_image
+from imgmetrics.covered import COVERED_ALPHA, coverage, covered_mask, lpips_covered, psnr_covered, ssim_covered
 from imgmetrics.lpips import NETS, canonical_net, find_weights, load_lpips, lpips_distance
 from imgmetrics.psnr_ssim import PSNR_CAP_DB, capped_psnr, psnr, ssim
 from runtime.cliargs import add_log_flags, plain
@@ -124,9 +137,51 @@ def score_pair(pred, gt, models: dict) -> tuple[float, dict]:
     return raw_psnr, rec
 
 
+def _alpha_files(alpha_dir: Path, pairs: list[tuple[str, str]]) -> list[Path]:
+    """The alpha image of every render (``alpha_dir/<render stem>.png``), all checked to exist
+    before anything is scored; FileNotFoundError naming the first missing one otherwise."""
+    if not alpha_dir.is_dir():
+        raise FileNotFoundError(f"--alpha folder {alpha_dir} does not exist; `python -m splat_train render` "
+                                "writes RENDERS/alpha/, or leave out --alpha")
+    files = [alpha_dir / f"{Path(pred).stem}.png" for pred, _ in pairs]
+    for f, (pred, _) in zip(files, pairs):
+        if not f.is_file():
+            raise FileNotFoundError(f"alpha image {f} of the render {pred} is missing; render again with "
+                                    "`python -m splat_train render` (it writes alpha/), or leave out --alpha")
+    return files
+
+
+def _covered(pred, gt, alpha_file: Path, models: dict) -> tuple[float, dict]:
+    """(coverage, {psnr, ssim, lpips_alex, lpips_vgg} over the covered pixels) of one pair:
+    ``pred``, ``gt`` float32 [H, W, 3]; a figure is None where no pixel is covered."""
+    alpha = read_alpha(alpha_file)
+    if alpha.shape != pred.shape[:2]:
+        raise ValueError(f"size mismatch: alpha image {alpha_file} is {alpha.shape[1]}x{alpha.shape[0]}, its render "
+                         f"{pred.shape[1]}x{pred.shape[0]} (width x height); use the alpha written with the render")
+    mask = covered_mask(alpha)
+    p64, g64 = pred.astype("float64"), gt.astype("float64")
+
+    def value(v: float) -> float | None:
+        return None if v != v else v  # NaN: nothing covered
+
+    raw = value(psnr_covered(p64, g64, mask))
+    out = {"psnr": None if raw is None else capped_psnr(raw), "ssim": value(ssim_covered(p64, g64, mask))}
+    for net in NETS:
+        m = models[net]
+        out[f"lpips_{net}"] = value(lpips_covered(m, pred, gt, mask)) if m is not None else None
+    return coverage(alpha), out
+
+
+def _covered_means(per_image: list[dict]) -> dict:
+    """Mean of each covered figure over the images that have it (None where none has)."""
+    keys = ("psnr", "ssim", *(f"lpips_{net}" for net in NETS))
+    vals = {k: [r["covered"][k] for r in per_image if r["covered"][k] is not None] for k in keys}
+    return {k: (float(sum(v) / len(v)) if v else None) for k, v in vals.items()}
+
+
 def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Path | None,
                     lpips_nets: Sequence[str] = NETS, lpips_weights: str | Path | None = None,
-                    device: str | torch.device = "cpu") -> dict:
+                    device: str | torch.device = "cpu", alpha_dir: str | Path | None = None) -> dict:
     """Compute per-image and mean PSNR / SSIM / LPIPS and write ``out_json`` (if given).
 
     Args:
@@ -138,6 +193,8 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         lpips_weights: folder with ``{net}.safetensors`` (default: LPIPS_WEIGHTS_DIR, then
             the user cache; see :mod:`imgmetrics.lpips`).
         device: torch device for LPIPS.
+        alpha_dir: folder of the renders' accumulated opacity (``<render stem>.png``,
+            :mod:`camio.alpha`): adds coverage and the covered figures; None: those are null.
 
     Returns:
         The record written to ``out_json`` (see module docstring).
@@ -145,13 +202,14 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
     t0 = time.perf_counter()
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     pairs = match_images(pred_dir, gt_dir)
+    alpha_files = _alpha_files(Path(alpha_dir), pairs) if alpha_dir is not None else [None] * len(pairs)
     models, weights_used = load_models(lpips_nets, lpips_weights, device)
     log.info("evaluating %d image pairs (%s vs %s); LPIPS: %s", len(pairs), pred_dir, gt_dir,
              ", ".join(n for n in NETS if models[n] is not None) or "none")
 
     per_image: list[dict] = []
     capped: list[str] = []
-    for pred_name, gt_name in progress(pairs, total=len(pairs), desc="image metrics"):
+    for (pred_name, gt_name), alpha_file in progress(zip(pairs, alpha_files), total=len(pairs), desc="image metrics"):
         pred = read_image(pred_dir / pred_name)
         gt = read_image(gt_dir / gt_name)
         if pred.shape != gt.shape:
@@ -162,6 +220,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         if raw_psnr >= PSNR_CAP_DB:
             capped.append(gt_name)
         rec = {"name": gt_name, "pred": pred_name, **scores}
+        rec["coverage"], rec["covered"] = _covered(pred, gt, alpha_file, models) if alpha_file else (None, None)
         per_image.append(rec)
         log.debug("%s: PSNR %.3f dB, SSIM %.4f", gt_name, rec["psnr"], rec["ssim"])
 
@@ -180,6 +239,10 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         "lpips_weights": weights_used,
         "pred_dir": str(pred_dir),
         "gt_dir": str(gt_dir),
+        "alpha_dir": None if alpha_dir is None else str(alpha_dir),
+        "covered_alpha": None if alpha_dir is None else COVERED_ALPHA,
+        "coverage": None if alpha_dir is None else _mean([r["coverage"] for r in per_image]),
+        "covered": None if alpha_dir is None else _covered_means(per_image),
         "wall_time_s": time.perf_counter() - t0,
     }
     log.info("mean over %d images: PSNR %.3f dB, SSIM %.4f, LPIPS-alex %s, LPIPS-vgg %s (%.2f s)",
@@ -187,6 +250,9 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
              "missing" if result["lpips_alex"] is None else f"{result['lpips_alex']:.4f}",
              "missing" if result["lpips_vgg"] is None else f"{result['lpips_vgg']:.4f}",
              result["wall_time_s"])
+    if alpha_dir is not None:
+        log.info("covered (opacity >= %g): %.1f %% of the pixels; there PSNR %s dB, SSIM %s", COVERED_ALPHA,
+                 100 * result["coverage"], result["covered"]["psnr"], result["covered"]["ssim"])
     if out_json is not None:
         write_json(out_json, result)
         log.info("wrote %s", out_json)
@@ -207,6 +273,9 @@ def add_lpips_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-weights", type=Path, default=None,
                    help="folder with {alex,vgg}.safetensors (default: $LPIPS_WEIGHTS_DIR, then the user cache)")
     p.add_argument("--device", default="cpu", help="torch device for LPIPS (cpu, cuda, ...)")
+    p.add_argument("--alpha", type=Path, default=None,
+                   help="folder of the renders' accumulated opacity (RENDERS/alpha, written by `splat_train render`): "
+                        "adds coverage and PSNR / SSIM / LPIPS over the covered pixels")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -215,7 +284,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         with timed("image metrics", log):
             evaluate_images(args.pred, args.gt, args.out, tuple(args.lpips_nets), args.lpips_weights,
-                            args.device)
+                            args.device, alpha_dir=args.alpha)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
         log.error("%s: %s", type(exc).__name__, exc)
         return 2

@@ -11,8 +11,9 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
   uses (:func:`imgmetrics.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
   NaN (null in log.parquet) when it is off or the weights are absent, never 0;
 * coverage: the share of the view's pixels the model covers, accumulated opacity (the
-  render's ``alpha``, [H, W]) at least :data:`COVERED_ALPHA`; and the PSNR over those pixels
-  alone (NaN where none is covered). From a few views a held-out view also sees what no
+  render's ``alpha``, [H, W]) at least :data:`imgmetrics.covered.COVERED_ALPHA`; and the PSNR
+  over those pixels alone (NaN where none is covered), the definitions of
+  :mod:`imgmetrics.covered` that ``python -m evaluation images --alpha`` also uses. From a few views a held-out view also sees what no
   training view saw, where the render is the background: the two tell that part of the error
   (too little covered) from the error where the model is (:func:`coverage_split`).
 
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imgmetrics.covered import COVERED_ALPHA, coverage, covered_mask, psnr_covered
 from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
@@ -40,8 +42,6 @@ log = logging.getLogger(__name__)
 
 #: the LPIPS backbone along the run (the evaluation's default network for the study tables)
 LPIPS_NET = "alex"
-#: a held-out pixel counts as covered by the model where its accumulated opacity reaches this
-COVERED_ALPHA = 0.5
 #: the keys of :meth:`HeldoutScorer.means`
 MEASURES = ("psnr", "ssim", "lpips", "coverage", "psnr_covered")
 
@@ -61,13 +61,9 @@ def coverage_split(rgb: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor)
     Returns:
         The share of pixels with ``alpha`` >= :data:`COVERED_ALPHA`, and the PSNR (dB, float64
         MSE over those pixels' channels) of ``rgb`` against ``target`` there: NaN when no pixel
-        is covered, inf when they match exactly.
+        is covered, inf when they match exactly (:mod:`imgmetrics.covered`).
     """
-    covered = alpha.detach() >= COVERED_ALPHA
-    share = float(covered.double().mean())
-    if not bool(covered.any()):
-        return share, math.nan
-    return share, psnr(rgb[covered], target[covered])
+    return coverage(alpha), psnr_covered(rgb.permute(2, 0, 1), target.permute(2, 0, 1), covered_mask(alpha))
 
 
 class HeldoutScorer:
