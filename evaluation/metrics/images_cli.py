@@ -263,6 +263,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
     p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
     p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
+    p.add_argument("--alpha", type=Path, default=None,
+                   help="folder of the renders' accumulated opacity (RENDERS/alpha, written by `splat_train render`): "
+                        "adds coverage and PSNR / SSIM / LPIPS over the covered pixels")
     add_lpips_args(p)
 
 
@@ -273,9 +276,6 @@ def add_lpips_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-weights", type=Path, default=None,
                    help="folder with {alex,vgg}.safetensors (default: $LPIPS_WEIGHTS_DIR, then the user cache)")
     p.add_argument("--device", default="cpu", help="torch device for LPIPS (cpu, cuda, ...)")
-    p.add_argument("--alpha", type=Path, default=None,
-                   help="folder of the renders' accumulated opacity (RENDERS/alpha, written by `splat_train render`): "
-                        "adds coverage and PSNR / SSIM / LPIPS over the covered pixels")
 
 
 def _run(args: argparse.Namespace) -> int:
