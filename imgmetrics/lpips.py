@@ -138,6 +138,12 @@ class _Backbone(nn.Module):
         return out
 
 
+#: the smallest image side each backbone's deepest tapped layer still sees (AlexNet's stride-4
+#: convolution and two 3x3 stride-2 pools, VGG16's four 2x2 pools): below it the network has no
+#: pixel left to compare (tests/test_eval_lpips.py holds both at the edge)
+MIN_SIDE = {"alex": 31, "vgg": 16}
+
+
 class LPIPS(nn.Module):
     """LPIPS v0.1 distance with a frozen AlexNet or VGG16 backbone (see module docstring).
 
@@ -161,6 +167,7 @@ class LPIPS(nn.Module):
                 (the project's convention; mapped to 2 v - 1); ``"pm1"``: already in [-1, 1]
                 (the lpips package's default).
             spatial: return the per-pixel map instead of the mean (see module docstring).
+            H and W at least :data:`MIN_SIDE` of the backbone (ValueError otherwise).
 
         Returns:
             [B] distances (>= 0 for trained heads, whose weights are non-negative); with
@@ -169,6 +176,11 @@ class LPIPS(nn.Module):
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
             raise ValueError(f"LPIPS expects two [B, 3, H, W] tensors of one shape; got "
                              f"{tuple(x.shape)} and {tuple(y.shape)}")
+        need = MIN_SIDE[self.net_name]
+        if min(x.shape[-2:]) < need:
+            raise ValueError(f"LPIPS-{self.net_name} needs images at least {need} px a side, got "
+                             f"{x.shape[-1]}x{x.shape[-2]} (width x height); leave {self.net_name} out of "
+                             "--lpips-nets (give none to skip LPIPS)")
         if input_range == "01":
             x, y = 2.0 * x - 1.0, 2.0 * y - 1.0
         elif input_range != "pm1":

@@ -119,3 +119,32 @@ def test_cli_parsers(tmp_path, no_lpips_weights):
     assert args.func(args) == 0 and json.loads((tmp_path / "a.json").read_text())["n_images"] == 1
     assert main(["--pred", str(pred), "--gt", str(gt), "--out", str(tmp_path / "b.json")]) == 0
     assert json.loads((tmp_path / "b.json").read_text())["lpips_vgg"] is None
+
+
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_lpips_works_from_its_smallest_side_and_refuses_below(net):
+    from imgmetrics.lpips import MIN_SIDE
+
+    m = LPIPS(net)
+    side = MIN_SIDE[net]
+    x, y = torch.rand(1, 3, side, side + 5), torch.rand(1, 3, side, side + 5)
+    assert torch.isfinite(m(x, y)).all()
+    with pytest.raises(ValueError, match=f"LPIPS-{net} needs images at least {side} px a side"):
+        m(x[..., : side - 1, :], y[..., : side - 1, :])
+
+
+def test_images_cli_refuses_lpips_on_images_too_small_for_it(tmp_path, no_lpips_weights):
+    from tests._cli import refused, run
+
+    wdir = tmp_path / "weights"
+    wdir.mkdir()
+    save_file(LPIPS("alex").state_dict(), str(wdir / "alex.safetensors"), metadata={"net": "alex"})
+    pred, gt = _folders(tmp_path, ["0.png"], ["0.png"])  # 24x20: below AlexNet's smallest side
+    out = tmp_path / "m.json"
+    proc = run(["-m", "evaluation", "images", "--pred", str(pred), "--gt", str(gt), "--out", str(out),
+                "--lpips-nets", "alex", "--lpips-weights", str(wdir)])
+    refused(proc, "LPIPS-alex needs images at least 31 px a side", "24x20", "--lpips-nets")
+    assert not out.exists()
+    # without LPIPS the same images are scored
+    assert run(["-m", "evaluation", "images", "--pred", str(pred), "--gt", str(gt), "--out", str(out),
+                "--lpips-nets"]).returncode == 0 and out.is_file()
