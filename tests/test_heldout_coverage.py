@@ -104,3 +104,21 @@ def test_the_trainer_logs_the_coverage_of_its_final_model(scene, tmp_path):
     assert c["test_coverage"][-1] == c["last_test_coverage"] == pytest.approx(df.loc[24, "test_coverage"])
     assert len(c["test_psnr_covered"]) == len(c["iterations"]) == 2
     assert "best_test_coverage" not in c  # a diagnostic, not a measure with a best
+
+
+def test_a_view_too_small_for_lpips_turns_it_off_for_the_run_and_keeps_scoring(caplog):
+    """A held-out view under LPIPS-alex's smallest side: LPIPS is NaN from then on, with one
+    warning, and PSNR / SSIM / coverage go on (the run does not stop)."""
+    from imgmetrics.lpips import LPIPS
+
+    scorer = HeldoutScorer(lpips=False)
+    scorer.model = LPIPS("alex")
+    rgb, target = torch.rand(20, 24, 3), torch.rand(20, 24, 3)
+    with caplog.at_level("WARNING"):
+        scorer("small", rgb, target, torch.ones(20, 24))
+        scorer("again", rgb, target, torch.ones(20, 24))
+    assert scorer.model is None
+    assert [r.message for r in caplog.records].count(next(r.message for r in caplog.records)) == 1
+    assert "held-out LPIPS off" in caplog.records[0].message and "needs images at least 31 px" in caplog.records[0].message
+    m = scorer.means()
+    assert math.isnan(m["lpips"]) and np.isfinite(m["psnr"]) and np.isfinite(m["ssim"]) and m["coverage"] == 1.0

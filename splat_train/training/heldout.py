@@ -102,7 +102,7 @@ class HeldoutScorer:
         if self.model is not None:
             try:
                 rec["lpips"] = float(lpips_distance(self.model, rgb.permute(2, 0, 1), target.permute(2, 0, 1))[0])
-            except RuntimeError as exc:  # AlexNet's pooling needs images of >= 31 px a side
+            except ValueError as exc:  # smaller than the backbone compares (imgmetrics.lpips.MIN_SIDE)
                 log.warning("held-out LPIPS off for the rest of the run: view %s (%d x %d px) cannot be scored "
                             "(%s); test_lpips stays null", name, rgb.shape[1], rgb.shape[0], exc)
                 self.model = None
