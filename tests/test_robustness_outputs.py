@@ -205,8 +205,8 @@ def test_render_rerun_clears_its_own_earlier_renders_and_keeps_the_users(view, t
     (out / ".stage").read_text()
     proc = _render(view, out, ["view03.png"])
     assert proc.returncode == 0, proc.stderr
-    pngs = sorted(p.name for p in out.rglob("*.png"))
-    assert pngs == ["view03.png"], pngs  # never a mix of two runs
+    pngs = sorted(p.relative_to(out).as_posix() for p in out.rglob("*.png"))
+    assert pngs == ["alpha/view03.png", "view03.png"], pngs  # never a mix of two runs (the render and its alpha)
     assert (out / "mine.txt").read_text() == "keep"
 
 
@@ -236,7 +236,8 @@ def test_render_after_an_unfinished_run_removes_what_that_run_wrote_and_keeps_th
     (out / "mine" / "notes.txt").write_text("mine")
     proc = _render(view, out, ["view03.png"])
     assert proc.returncode == 0, proc.stderr
-    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.png")) == ["view03.png", "view05.png"]
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.png")) == [
+        "alpha/view03.png", "view03.png", "view05.png"]
     assert (out / "view05.png").read_bytes() == b"the user's, added after the kill" and not (out / "sub").exists()
     assert (out / "mine" / "notes.txt").read_text() == "mine"
 
