@@ -100,9 +100,18 @@ def test_the_trainer_logs_the_coverage_of_its_final_model(scene, tmp_path):
     assert 0.0 < df.loc[24, "test_coverage"] <= 1.0
     assert df.loc[24, "test_coverage"] == pytest.approx(np.mean([s for s, _ in split]), abs=1e-12)
     assert df.loc[24, "test_psnr_covered"] == pytest.approx(np.mean([p for _, p in split]), abs=1e-4)
+    # SSIM over the covered pixels: imgmetrics' definition (the one `evaluation images --alpha`
+    # uses) in float64 on the same renders; the trainer scores in float32 (1e-5); LPIPS is off
+    from imgmetrics.covered import covered_mask, ssim_covered
+
+    ssims = [ssim_covered(rgb.clamp(0, 1).permute(2, 0, 1), gt.permute(2, 0, 1), covered_mask(alpha))
+             for rgb, gt, alpha in renders.values()]
+    ssims = [v for v in ssims if not math.isnan(v)]
+    assert ssims and df.loc[24, "test_ssim_covered"] == pytest.approx(np.mean(ssims), abs=1e-5)
+    assert df["test_lpips_covered"].isna().all()
     c = res.summary["test_curve"]
     assert c["test_coverage"][-1] == c["last_test_coverage"] == pytest.approx(df.loc[24, "test_coverage"])
-    assert len(c["test_psnr_covered"]) == len(c["iterations"]) == 2
+    assert len(c["test_psnr_covered"]) == len(c["test_ssim_covered"]) == len(c["iterations"]) == 2
     assert "best_test_coverage" not in c  # a diagnostic, not a measure with a best
 
 
@@ -122,3 +131,24 @@ def test_a_view_too_small_for_lpips_turns_it_off_for_the_run_and_keeps_scoring(c
     assert "held-out LPIPS off" in caplog.records[0].message and "needs images at least 31 px" in caplog.records[0].message
     m = scorer.means()
     assert math.isnan(m["lpips"]) and np.isfinite(m["psnr"]) and np.isfinite(m["ssim"]) and m["coverage"] == 1.0
+
+
+def test_covered_ssim_and_lpips_over_every_pixel_are_the_full_image_ones_and_skip_empty_views():
+    """A view covered everywhere scores SSIM (and LPIPS-Alex, random weights) over the covered
+    pixels as over the image (LPIPS: the map's mean, to 1e-4 of the distance; imgmetrics.lpips);
+    a view that covers nothing is left out of the covered means, not counted as 0."""
+    from imgmetrics.lpips import LPIPS
+
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(40, 48, 3, generator=g)
+    rgb = (target + 0.05 * torch.randn(40, 48, 3, generator=g)).clamp(0, 1)
+    sc = HeldoutScorer()
+    sc.model = LPIPS("alex")
+    sc("full", rgb, target, torch.ones(40, 48))
+    full = sc.means()
+    assert full["ssim_covered"] == pytest.approx(full["ssim"], abs=1e-6)
+    assert full["lpips_covered"] == pytest.approx(full["lpips"], rel=1e-3, abs=1e-6)
+    sc("empty", torch.zeros_like(rgb), target, torch.zeros(40, 48))
+    both = sc.means()
+    assert both["ssim_covered"] == full["ssim_covered"] and both["lpips_covered"] == full["lpips_covered"]
+    assert both["ssim"] != full["ssim"]

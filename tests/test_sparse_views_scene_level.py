@@ -125,3 +125,19 @@ def test_floor_cli_scores_a_generated_cell_and_refuses_unknown_scenes(tmp_path):
     assert again.returncode == 0 and "floor tiny" not in again.stdout
     bad = subprocess.run(cmd + ["--scenes", "tinyy"], cwd=REPO, capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "tinyy" in bad.stderr, bad.stderr
+
+
+def test_coverage_adds_covered_ssim_and_lpips_only_where_every_run_scored_them():
+    scenes = ["a", "b"]
+    rows = [_rec(s, "sparse", k, 20.0 + k, coverage=0.8) for s in scenes for k in (0, 1)]
+    for i, r in enumerate(rows):
+        r["curve"]["ssim_covered"] = [0.5 + 0.1 * i]
+        r["curve"]["lpips_covered"] = [0.2]
+    old = [_rec(s, "paper", 0, 18.0, coverage=0.9) for s in scenes]  # before the trainer scored them
+    out = scene_level.coverage(rows + old, scenes)
+    # per scene the mean over seeds (0.55 and 0.75), then over the scenes
+    assert out["sparse"]["ssim_covered"] == pytest.approx(0.65, abs=1e-12)
+    assert out["sparse"]["lpips_covered"] == pytest.approx(0.2, abs=1e-12)
+    assert set(out["paper"]) == {"coverage", "psnr_covered", "psnr"}
+    rows[0]["curve"]["lpips_covered"] = [None]  # LPIPS off in one run: no covered LPIPS mean
+    assert "lpips_covered" not in scene_level.coverage(rows, scenes)["sparse"]

@@ -178,7 +178,8 @@ def record(scene, role: str, n: int, recipe: str, seed: int, iterations: int, re
         "seed_gaussians": tj.get("seed_gaussians"), "max_gaussians": tj.get("max_gaussians"),
         "best_psnr": c.get("best_test_psnr"), "best_iteration": c.get("best_iteration"),
         "curve": {"iterations": c.get("iterations"), "psnr": c.get("test_psnr"),
-                  "coverage": c.get("test_coverage"), "psnr_covered": c.get("test_psnr_covered")},
+                  "coverage": c.get("test_coverage"), "psnr_covered": c.get("test_psnr_covered"),
+                  "ssim_covered": c.get("test_ssim_covered"), "lpips_covered": c.get("test_lpips_covered")},
         "config": {"recipe": recipe, **(config or {})}, "schedule": tj.get("schedule"),
         "values": result.get("values"), "device": tj.get("device"), "recorded": time.strftime("%Y-%m-%d"),
     }

@@ -131,7 +131,9 @@ def coverage(rows: list[dict], scenes: list[str]) -> dict[str, dict]:
     """Per recipe or variant, over ``scenes`` (per-scene means over seeds, then their mean):
     the share of held-out pixels covered at the end of the run, the PSNR over them, and the
     full-image PSNR of the same runs; only recipes whose every run on those scenes recorded
-    coverage (the held-out curve's last ``coverage`` and ``psnr_covered``)."""
+    coverage (the held-out curve's last ``coverage`` and ``psnr_covered``). The SSIM and LPIPS
+    over the covered pixels (``ssim_covered``, ``lpips_covered``) are added where every one of
+    those runs recorded them (runs before the trainer scored them did not)."""
     by = defaultdict(list)
     for r in rows:
         if r["scene"] in scenes:
@@ -143,8 +145,10 @@ def coverage(rows: list[dict], scenes: list[str]) -> dict[str, dict]:
             continue
         if {r["scene"] for r in rs} != set(scenes):
             continue
+        measures = ["coverage", "psnr_covered"] + [m for m in ("ssim_covered", "lpips_covered")
+                                                   if all(c.get(m) and c[m][-1] is not None for c in curves)]
         flat = [{"scene": r["scene"], "recipe": recipe, "seed": r["seed"], "psnr": r["psnr"],
-                 "coverage": c["coverage"][-1], "psnr_covered": c["psnr_covered"][-1]} for r, c in zip(rs, curves)]
-        out[recipe] = {m: sum(v.values()) / len(v) for m in ("coverage", "psnr_covered", "psnr")
+                 **{m: c[m][-1] for m in measures}} for r, c in zip(rs, curves)]
+        out[recipe] = {m: sum(v.values()) / len(v) for m in (*measures, "psnr")
                        for v in [scene_means(flat, recipe, scenes, m)]}
     return out

@@ -386,8 +386,12 @@ def _scene_level_lines(v: dict) -> list[str]:
         out.append("- `sparse` − each other recipe, PSNR with the scene as the unit: " + "; ".join(
             f"{k} {_iv(iv)}" for k, iv in v["scene_level"].items()))
     if v.get("coverage"):
-        out.append("- covered pixels (accumulated alpha ≥ 0.5; share covered, PSNR over them, full-image PSNR): " + "; ".join(
-            f"{k} {c['coverage']:.2f}, {c['psnr_covered']:.2f}, {c['psnr']:.2f}" for k, c in v["coverage"].items()))
+        out.append("- covered pixels (accumulated alpha ≥ 0.5; share covered, PSNR over them, full-image PSNR; "
+                   "SSIM and LPIPS-Alex over them where every run scored them): " + "; ".join(
+            f"{k} {c['coverage']:.2f}, {c['psnr_covered']:.2f}, {c['psnr']:.2f}"
+            + (f", SSIM {c['ssim_covered']:.3f}" if "ssim_covered" in c else "")
+            + (f", LPIPS-Alex {c['lpips_covered']:.3f}" if "lpips_covered" in c else "")
+            for k, c in v["coverage"].items()))
     return out
 
 

@@ -11,8 +11,8 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
   uses (:func:`imgmetrics.lpips.load_lpips`), float32; only with ``TrainConfig.eval_lpips``;
   NaN (null in log.parquet) when it is off or the weights are absent, never 0;
 * coverage: the share of the view's pixels the model covers, accumulated opacity (the
-  render's ``alpha``, [H, W]) at least :data:`imgmetrics.covered.COVERED_ALPHA`; and the PSNR
-  over those pixels alone (NaN where none is covered), the definitions of
+  render's ``alpha``, [H, W]) at least :data:`imgmetrics.covered.COVERED_ALPHA`; and the PSNR,
+  SSIM and (with LPIPS on) LPIPS over those pixels alone (NaN where none is covered), the definitions of
   :mod:`imgmetrics.covered` that ``python -m evaluation images --alpha`` also uses. From a few views a held-out view also sees what no
   training view saw, where the render is the background: the two tell that part of the error
   (too little covered) from the error where the model is (:func:`coverage_split`).
@@ -32,18 +32,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imgmetrics.covered import COVERED_ALPHA, coverage, covered_mask, psnr_covered
+from imgmetrics.covered import COVERED_ALPHA, coverage, covered_mask, lpips_covered, psnr_covered, ssim_covered
 from imgmetrics.lpips import find_weights, load_lpips, lpips_distance
 from splat_train.losses import psnr, ssim
 
-__all__ = ["HeldoutScorer", "LPIPS_NET", "COVERED_ALPHA", "MEASURES", "coverage_split", "unmeasured"]
+__all__ = ["HeldoutScorer", "LPIPS_NET", "COVERED_ALPHA", "MEASURES", "COVERED_MEASURES", "coverage_split", "unmeasured"]
 
 log = logging.getLogger(__name__)
 
 #: the LPIPS backbone along the run (the evaluation's default network for the study tables)
 LPIPS_NET = "alex"
 #: the keys of :meth:`HeldoutScorer.means`
-MEASURES = ("psnr", "ssim", "lpips", "coverage", "psnr_covered")
+MEASURES = ("psnr", "ssim", "lpips", "coverage", "psnr_covered", "ssim_covered", "lpips_covered")
+#: the measures over the covered pixels: means over the views that cover any pixel
+COVERED_MEASURES = ("psnr_covered", "ssim_covered", "lpips_covered")
 
 
 def unmeasured() -> dict[str, float]:
@@ -94,14 +96,20 @@ class HeldoutScorer:
     @torch.no_grad()
     def __call__(self, name: str, rgb: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor | None = None) -> None:
         """Score one view: ``rgb`` and ``target`` are [H, W, 3] in [0, 1] on one device,
-        ``alpha`` [H, W] the render's accumulated opacity (None: coverage NaN)."""
-        rec = {"psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target)), "lpips": math.nan,
-               "coverage": math.nan, "psnr_covered": math.nan}
+        ``alpha`` [H, W] the render's accumulated opacity (None: coverage and the covered
+        measures NaN)."""
+        rec = {**unmeasured(), "psnr": psnr(rgb, target), "ssim": float(ssim(rgb, target))}
+        chw, target_chw = rgb.permute(2, 0, 1), target.permute(2, 0, 1)
+        mask = None
         if alpha is not None:
+            mask = covered_mask(alpha)
             rec["coverage"], rec["psnr_covered"] = coverage_split(rgb, target, alpha)
+            rec["ssim_covered"] = ssim_covered(chw, target_chw, mask)
         if self.model is not None:
             try:
-                rec["lpips"] = float(lpips_distance(self.model, rgb.permute(2, 0, 1), target.permute(2, 0, 1))[0])
+                rec["lpips"] = float(lpips_distance(self.model, chw, target_chw)[0])
+                if mask is not None:
+                    rec["lpips_covered"] = lpips_covered(self.model, chw, target_chw, mask)
             except ValueError as exc:  # smaller than the backbone compares (imgmetrics.lpips.MIN_SIDE)
                 log.warning("held-out LPIPS off for the rest of the run: view %s (%d x %d px) cannot be scored "
                             "(%s); test_lpips stays null", name, rgb.shape[1], rgb.shape[0], exc)
@@ -109,11 +117,13 @@ class HeldoutScorer:
         self.per_view[name] = rec
 
     def means(self) -> dict[str, float]:
-        """Mean of each measure over the views scored since :meth:`reset` (NaN without views)."""
+        """Mean of each measure over the views scored since :meth:`reset` (NaN without views);
+        the :data:`COVERED_MEASURES` over the views that cover any pixel."""
         if not self.per_view:
             return unmeasured()
-        out = {k: float(np.mean([r[k] for r in self.per_view.values()])) for k in ("psnr", "ssim", "lpips", "coverage")}
-        # the covered PSNR over the views that cover any pixel
-        covered = [r["psnr_covered"] for r in self.per_view.values() if not math.isnan(r["psnr_covered"])]
-        out["psnr_covered"] = float(np.mean(covered)) if covered else math.nan
+        views = self.per_view.values()
+        out = {k: float(np.mean([r[k] for r in views])) for k in MEASURES if k not in COVERED_MEASURES}
+        for k in COVERED_MEASURES:
+            vals = [r[k] for r in views if not math.isnan(r[k])]
+            out[k] = float(np.mean(vals)) if vals else math.nan
         return out

@@ -31,8 +31,8 @@ __all__ = ["RunLog", "LOG_COLUMNS", "TEST_MEASURES", "TEST_DIAGNOSTICS"]
 
 #: held-out measures: (column, higher is better); null except at evaluation iterations
 TEST_MEASURES = (("test_psnr", True), ("test_ssim", True), ("test_lpips", False))
-#: held-out diagnostics, no best or worst: the covered share and the PSNR where covered
-TEST_DIAGNOSTICS = ("test_coverage", "test_psnr_covered")
+#: held-out diagnostics, no best or worst: the covered share and PSNR, SSIM, LPIPS where covered
+TEST_DIAGNOSTICS = ("test_coverage", "test_psnr_covered", "test_ssim_covered", "test_lpips_covered")
 LOG_COLUMNS = ("iteration", "wall_time_s", "loss", "l1", "ssim", "train_psnr", "num_gaussians",
                *(c for c, _ in TEST_MEASURES), *TEST_DIAGNOSTICS)
 _INT_COLUMNS = ("iteration", "num_gaussians")
@@ -60,7 +60,7 @@ class RunLog:
     def test_curve(self) -> dict[str, Any]:
         """The held-out curves over the evaluation rows (those with a finite ``test_psnr``):
         ``iterations``, ``wall_time_s``, ``test_psnr``, ``test_ssim``, ``test_lpips``,
-        ``test_coverage``, ``test_psnr_covered`` (lists of one length; None where a value is
+        ``test_coverage``, ``test_psnr_covered``, ``test_ssim_covered``, ``test_lpips_covered`` (lists of one length; None where a value is
         null, e.g. LPIPS off) and, per measure (not the two diagnostics), the best
         (highest PSNR / SSIM, lowest LPIPS) and the last: ``best_iteration`` /
         ``best_test_psnr`` (PSNR), ``best_ssim_iteration`` / ``best_test_ssim``,

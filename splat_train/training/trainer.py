@@ -484,6 +484,7 @@ class Trainer:
             self.pending.append(dict(iteration=it, wall_time_s=self.wall, num_gaussians=self.num_gaussians,
                                      test_psnr=test_psnr, test_ssim=held["ssim"], test_lpips=held["lpips"],
                                      test_coverage=held["coverage"], test_psnr_covered=held["psnr_covered"],
+                                     test_ssim_covered=held["ssim_covered"], test_lpips_covered=held["lpips_covered"],
                                      view=self.train_views[self.last_view].name, scalars=scalars))
             saving = it % cfg.checkpoint_every == 0 or it == cfg.iterations
             if it % self.sync_every == 0 or it % every_log == 0 or saving or evaluate:
