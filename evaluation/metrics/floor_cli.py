@@ -39,7 +39,7 @@ from typing import Sequence
 
 from camio.images import from_uint8, list_images, read_image, read_image_uint8
 from evaluation.metrics.align_run import load_names
-from evaluation.metrics.images_cli import _mean, add_lpips_args, load_models, score_pair
+from evaluation.metrics.images_cli import _mean, add_lpips_args, load_models, means_line, score_pair
 from imgmetrics.floor import flat_colour, flat_image
 from imgmetrics.lpips import NETS
 from imgmetrics.psnr_ssim import PSNR_CAP_DB
@@ -112,11 +112,7 @@ def evaluate_floor(images_dir: str | Path, train_names: str | Path, gt_dir: str 
         "gt_dir": str(gt_dir),
         "wall_time_s": time.perf_counter() - t0,
     }
-    log.info("floor over %d held-out image(s): PSNR %.3f dB, SSIM %.4f, LPIPS-alex %s, LPIPS-vgg %s (%.2f s)",
-             len(per_image), result["psnr"], result["ssim"],
-             "missing" if result["lpips_alex"] is None else f"{result['lpips_alex']:.4f}",
-             "missing" if result["lpips_vgg"] is None else f"{result['lpips_vgg']:.4f}",
-             result["wall_time_s"])
+    log.info("%s", means_line("floor over", result))
     if out_json is not None:
         write_json(out_json, result)
         log.info("wrote %s", out_json)

@@ -179,6 +179,14 @@ def _covered_means(per_image: list[dict]) -> dict:
     return {k: (float(sum(v) / len(v)) if v else None) for k, v in vals.items()}
 
 
+def means_line(what: str, result: dict) -> str:
+    """The log line of a scored folder's means: ``what`` then the image count, PSNR, SSIM, both
+    LPIPS ("missing" where null) and the time (``result``: a metrics.json or floor.json record)."""
+    lp = {n: "missing" if result[f"lpips_{n}"] is None else f"{result[f'lpips_{n}']:.4f}" for n in NETS}
+    return (f"{what} {result['n_images']} image(s): PSNR {result['psnr']:.3f} dB, SSIM {result['ssim']:.4f}, "
+            + ", ".join(f"LPIPS-{n} {v}" for n, v in lp.items()) + f" ({result['wall_time_s']:.2f} s)")
+
+
 def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Path | None,
                     lpips_nets: Sequence[str] = NETS, lpips_weights: str | Path | None = None,
                     device: str | torch.device = "cpu", alpha_dir: str | Path | None = None) -> dict:
@@ -245,11 +253,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         "covered": None if alpha_dir is None else _covered_means(per_image),
         "wall_time_s": time.perf_counter() - t0,
     }
-    log.info("mean over %d images: PSNR %.3f dB, SSIM %.4f, LPIPS-alex %s, LPIPS-vgg %s (%.2f s)",
-             len(per_image), result["psnr"], result["ssim"],
-             "missing" if result["lpips_alex"] is None else f"{result['lpips_alex']:.4f}",
-             "missing" if result["lpips_vgg"] is None else f"{result['lpips_vgg']:.4f}",
-             result["wall_time_s"])
+    log.info("%s", means_line("mean over", result))
     if alpha_dir is not None:
         log.info("covered (opacity >= %g): %.1f %% of the pixels; there PSNR %s dB, SSIM %s", COVERED_ALPHA,
                  100 * result["coverage"], result["covered"]["psnr"], result["covered"]["ssim"])
