@@ -186,6 +186,7 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE),
                    help="render every camera (or the video) at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
+    p.add_argument("--alpha", action="store_true", help="also write each render's accumulated opacity to OUT/alpha/<stem>.png (16-bit gray), from which `python -m evaluation images --alpha` scores the pixels the model covers")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
                         "from the train.json beside it; black without one)")
@@ -231,6 +232,9 @@ def _testpose_parser() -> argparse.ArgumentParser:
                         "every step; recorded in testpose.json with each view's steps_run)")
     p.add_argument("--lr", type=flag(float, 0, lo_open=True), default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
+    p.add_argument("--alpha", action="store_true", help="also write each render's accumulated opacity to "
+                   "OUT/renders/alpha/<stem>.png (16-bit gray), from which `python -m evaluation images --alpha` "
+                   "scores the pixels the model covers")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
                    help="where to render and optimise (auto: CUDA when available, else CPU; default cpu)")
     p.add_argument("--rasterizer", default="auto", choices=list(BACKENDS), help="rasterizer backend (auto: "
@@ -372,7 +376,8 @@ def _main(argv: list[str] | None = None) -> int:
         for warning in check_seed_cloud(read_gaussian_ply(args.model), args.model, role="model"):
             log.warning("degenerate model: %s", warning)
         render_model(args.model, args.cameras, args.out, images=args.images, width=args.width,
-                     height=args.height, names=args.image_list, background=bg, device=args.device)
+                     height=args.height, names=args.image_list, background=bg, device=args.device,
+                     alpha=args.alpha)
         from runtime.outdir import seal_out
 
         seal_out(args.out, "splat_train render")
@@ -392,7 +397,7 @@ def _main(argv: list[str] | None = None) -> int:
 
         rec = run_testpose(args.model, args.cameras, args.images, args.out, steps=args.steps, lr=args.lr,
                            device=resolve_device(args.device), backend=args.rasterizer, names=args.image_list,
-                           patience=args.patience)
+                           patience=args.patience, alpha=args.alpha)
         from runtime.outdir import seal_out
 
         seal_out(args.out, "splat_train testpose")

@@ -5,9 +5,9 @@ evaluation stage renders the held-out cameras with it). Output names: the image 
 its suffix replaced by ``.png``, e.g. ``IMG_0001.JPG -> IMG_0001.png``; image names are plain
 file names (every reader checks them, :mod:`runtime.names`) and no two share a stem
 (:func:`splat_train.data.load_views`), so every render is its own file inside ``out_dir``.
-``python -m splat_train render`` also writes each render's accumulated opacity as
+``python -m splat_train render --alpha`` also writes each render's accumulated opacity as
 ``out_dir/alpha/<stem>.png`` (16-bit gray, :mod:`camio.alpha`), which the image metrics read to
-score the pixels the model covers.
+score the pixels the model covers (the workflow's held-out renders ask for it).
 """
 
 from __future__ import annotations
@@ -185,9 +185,9 @@ def render_views(params: dict[str, torch.Tensor], sh_degree: int, views: list[Vi
 def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
                  images: str | Path | None = None, width: int | None = None, height: int | None = None,
                  names: str | Path | None = None, background: tuple[float, float, float] | None = None,
-                 device: str = "cpu") -> dict[str, float]:
-    """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs, and
-    each render's accumulated opacity in ``out_dir/alpha/`` (:mod:`camio.alpha`).
+                 device: str = "cpu", alpha: bool = False) -> dict[str, float]:
+    """Render a trained ``model.ply`` into every camera of a COLMAP folder and write PNGs; with
+    ``alpha``, each render's accumulated opacity in ``out_dir/alpha/`` too (:mod:`camio.alpha`).
 
     Image sizes: the camera sizes; or those of the same-named files in ``images`` (K rescaled;
     the PSNR against them is returned); or ``width`` x ``height`` for every camera.
@@ -211,7 +211,7 @@ def render_model(model: str | Path, cameras: str | Path, out_dir: str | Path,
     cloud = read_gaussian_ply(model)
     params = params_from_cloud(cloud, sh_degree=cloud.sh_degree, device=device)
     bg = torch.tensor(background, dtype=torch.float32, device=device)
-    scores = render_views(params, cloud.sh_degree, views, bg, out_dir, alpha=True)
+    scores = render_views(params, cloud.sh_degree, views, bg, out_dir, alpha=alpha)
     log.info("rendered %d views of %s (%d Gaussians) into %s in %.1f s%s", len(views), model,
              len(cloud), out_dir, time.perf_counter() - t0,
              f", mean PSNR {np.mean(list(scores.values())):.2f} dB" if scores else "")

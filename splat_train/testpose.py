@@ -205,13 +205,13 @@ def refine_test_pose(params: dict[str, torch.Tensor], sh_degree: int, cam_from_w
 def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out_dir: str | Path,
                  steps: int = DEFAULT_STEPS, lr: float = DEFAULT_LR, device: str = "cpu",
                  backend: str = "auto", names: str | Path | None = None,
-                 patience: int = DEFAULT_PATIENCE) -> dict:
+                 patience: int = DEFAULT_PATIENCE, alpha: bool = False) -> dict:
     """The test-pose protocol on a camera folder: refined cameras, renders and a record, against
     the background the model was trained against (:func:`splat_train.export.model_background`).
 
     Writes ``out_dir/sparse/0`` (COLMAP text: the refined held-out cameras, model frame, at the
-    image sizes), ``out_dir/renders/<stem>.png`` with each render's accumulated opacity in
-    ``out_dir/renders/alpha/<stem>.png`` (:mod:`camio.alpha`) and ``out_dir/testpose.json``
+    image sizes), ``out_dir/renders/<stem>.png`` (with ``alpha``, each render's accumulated
+    opacity in ``out_dir/renders/alpha/<stem>.png`` too, :mod:`camio.alpha`) and ``out_dir/testpose.json``
     (docs/contracts.md).
 
     Returns:
@@ -242,7 +242,8 @@ def run_testpose(model: str | Path, cameras: str | Path, images: str | Path, out
                                   v.camera.height, bg, ran)
         rgb = after["rgb"].clamp(0.0, 1.0)
         write_image(out / "renders" / render_name(v.name), rgb.cpu().numpy())
-        write_alpha(alpha_path(out / "renders", render_name(v.name)), after["alpha"].cpu().numpy())
+        if alpha:
+            write_alpha(alpha_path(out / "renders", render_name(v.name)), after["alpha"].cpu().numpy())
         # the kept correction applied in float64 to the camera as read (the start itself when
         # best_step is 0), not the float32 pose the renders used: no float32 round trip in the
         # written cameras and the recorded pose change

@@ -1,5 +1,5 @@
 """The renders' accumulated opacity and the figures over the covered pixels, through the commands a
-user runs: ``splat_train render`` writes ``alpha/<stem>.png`` beside each render (16-bit gray, the
+user runs: ``splat_train render --alpha`` writes ``alpha/<stem>.png`` beside each render (16-bit gray, the
 opacity the renderer computed), and ``evaluation images --alpha`` scores the covered pixels into
 metrics.json (keys always present, null without ``--alpha``); a missing or mis-sized alpha image is
 one line naming it."""
@@ -35,9 +35,18 @@ def rendered(tmp_path_factory):
     paths = write_scene(root / "scene", n_views=3, width=40, height=30, n_test=2)
     out = root / "renders"
     proc = run(["-m", "splat_train", "render", "--model", str(paths["seed"]), "--cameras", str(paths["test_cameras"]),
-                "--images", str(paths["test_images"]), "--out", str(out), "--background", "0,0,0"])
+                "--images", str(paths["test_images"]), "--out", str(out), "--background", "0,0,0", "--alpha"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     return paths, out
+
+
+def test_render_writes_no_alpha_unless_asked(rendered, tmp_path):
+    paths, _ = rendered
+    out = tmp_path / "plain"
+    proc = run(["-m", "splat_train", "render", "--model", str(paths["seed"]), "--cameras", str(paths["test_cameras"]),
+                "--images", str(paths["test_images"]), "--out", str(out)])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert list_images(out) == sorted(list_images(paths["test_images"])) and not (out / "alpha").exists()
 
 
 def test_render_writes_the_opacity_beside_each_render(rendered):

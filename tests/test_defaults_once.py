@@ -425,6 +425,8 @@ WORKFLOW_FLAGS = {
     "--threads": "the rule's threads, a resource (WORKFLOW_OWNED)",
     "--mode": "the job's Bridge mode wildcard (bridge.modes)",
     "--n": "the job's view count wildcard (views)",
+    "--alpha": "the held-out renders always carry their opacity (render, testpose), and image_metrics "
+               "scores the covered pixels from it: the workflow's wiring, not a user's choice",
 }
 # the schema's sections whose keys feed stage commands
 _STAGE_SECTIONS = ("vggt", "colmap", "oracle", "posed", "mvs", "random", "ba", "bridge", "train", "evaluation")

@@ -42,7 +42,7 @@ def _render(view: dict, out: Path, names: list[str]) -> subprocess.CompletedProc
     lst = out.parent / f"list{len(names)}.txt"
     lst.write_text("\n".join(names) + "\n")
     return run(["-m", "splat_train", "render", "--model", str(view["model"]), "--cameras", str(view["cameras"]),
-                "--image-list", str(lst), "--out", str(out)])
+                "--image-list", str(lst), "--alpha", "--out", str(out)])
 
 
 def _names(split: Path, out: Path) -> subprocess.CompletedProcess:

@@ -188,7 +188,7 @@ def _render(view: dict, out: Path, names: list[str]) -> subprocess.CompletedProc
     lst = out.parent / f"list{len(names)}.txt"
     lst.write_text("\n".join(names) + "\n")
     return _run(["-m", "splat_train", "render", "--model", str(view["model"]), "--cameras", str(view["cameras"]),
-                 "--image-list", str(lst), "--out", str(out)])
+                 "--image-list", str(lst), "--alpha", "--out", str(out)])
 
 
 @pytest.fixture(scope="module")

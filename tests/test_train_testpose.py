@@ -124,6 +124,26 @@ def test_zero_steps_keeps_the_start(scene, tmp_path):
     rec = json.loads((out / "testpose.json").read_text())
     assert all(v["rotation_deg"] < 1e-3 and v["translation"] < 1e-6 and v["best_step"] == 0
                for v in rec["views"].values())
+    assert not (out / "renders" / "alpha").exists()  # only with --alpha
+
+
+def test_alpha_writes_each_renders_opacity_at_the_refined_pose(scene, tmp_path):
+    """With --alpha, renders/alpha/<stem>.png holds the opacity of the render at the refined pose
+    (here the start: 0 steps), as `splat_train render --alpha` writes it for the same camera."""
+    from camio.alpha import read_alpha
+    from splat_train.__main__ import main as cli
+
+    out, plain = tmp_path / "tp", tmp_path / "plain"
+    assert main(["testpose", "--model", str(scene["model"]), "--cameras", str(scene["test_cameras"]),
+                 "--images", str(scene["test_images"]), "--out", str(out), "--steps", "0",
+                 "--rasterizer", "cpu", "--alpha", "-q"]) == 0
+    assert cli(["render", "--model", str(scene["model"]), "--cameras", str(scene["test_cameras"]),
+                "--images", str(scene["test_images"]), "--out", str(plain), "--alpha", "-q"]) == 0
+    names = sorted(p.name for p in (out / "renders" / "alpha").iterdir())
+    assert names and names == sorted(p.name for p in (plain / "alpha").iterdir())
+    for n in names:
+        a, b = read_alpha(out / "renders" / "alpha" / n), read_alpha(plain / "alpha" / n)
+        assert a.shape == b.shape and 0.0 < a.mean() and float(abs(a - b).max()) <= 2 / 65535
 
 
 def test_patience_stops_a_view_that_stopped_improving(scene, tmp_path):

@@ -78,7 +78,7 @@ rule testpose_refine:
         args=testpose_args,
     shell:
         "python -m splat_train testpose --model {input.model:q} --cameras {input.cameras:q}/0 "
-        "--images {input.test_images:q} --out {output:q} {params.args} > {log:q} 2>&1"
+        "--images {input.test_images:q} --alpha --out {output:q} {params.args} > {log:q} 2>&1"
 
 
 rule testpose_metrics:

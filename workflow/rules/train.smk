@@ -116,4 +116,4 @@ rule render_test:
         cpus_per_task=cpus_per_task,
     shell:
         "python -m splat_train render --model {input.model:q} --cameras {input.cameras:q}/0 "
-        "--images {input.test_images:q} --out {output:q} > {log:q} 2>&1"
+        "--images {input.test_images:q} --alpha --out {output:q} > {log:q} 2>&1"
