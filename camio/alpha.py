@@ -4,8 +4,8 @@ A render's accumulated opacity (``1 - final transmittance``, [H, W] in [0, 1]) i
 16-bit single-channel PNG, value ``round(alpha * 65535)``, in the folder :data:`ALPHA_FOLDER`
 inside the renders folder, under the render's own file name. :func:`camio.images.list_images`
 does not descend into it, so every reader of the RGB renders sees the same files as before.
-``python -m splat_train render`` (and ``testpose``) write it; ``python -m evaluation images
---alpha`` reads it to score the covered pixels (:mod:`imgmetrics.covered`).
+``python -m splat_train render --alpha`` (and ``testpose --alpha``) write it; ``python -m evaluation images
+--alpha-dir`` reads it to score the covered pixels (:mod:`imgmetrics.covered`).
 """
 
 from __future__ import annotations

@@ -116,7 +116,7 @@ def _cmd_study(args) -> int:
 # replaces its --out folder whole.
 _OUTPUTS: dict[str, tuple[tuple[str, ...], bool, tuple[str, ...], bool]] = {
     "pose": (("pred", "ref", "names"), False, (), False),
-    "images": (("pred", "gt", "alpha", "lpips_weights"), False, (), False),
+    "images": (("pred", "gt", "alpha_dir", "lpips_weights"), False, (), False),
     "floor": (("images", "train_names", "gt", "lpips_weights"), False, (), False),
     "align": (("pred", "ref", "train_names", "test_names", "images"), True, (), False),
     "tables": (("results",), True, ("--results",), False),

@@ -186,7 +186,9 @@ def _render_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=flag(int, 1, MAX_IMAGE_SIDE),
                    help="render every camera (or the video) at this height (with --width)")
     p.add_argument("--image-list", help="only these image names")
-    p.add_argument("--alpha", action="store_true", help="also write each render's accumulated opacity to OUT/alpha/<stem>.png (16-bit gray), from which `python -m evaluation images --alpha` scores the pixels the model covers")
+    p.add_argument("--alpha", action="store_true",
+                   help="also write each render's accumulated opacity to OUT/alpha/<stem>.png (16-bit gray), from "
+                        "which `python -m evaluation images --alpha-dir` scores the pixels the model covers")
     p.add_argument("--background", default=None,
                    help="background RGB in [0,1], e.g. 1,1,1 (default: the one the model was trained against, "
                         "from the train.json beside it; black without one)")
@@ -233,7 +235,7 @@ def _testpose_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=flag(float, 0, lo_open=True), default=DEFAULT_LR, help=f"Adam rate ({DEFAULT_LR})")
     p.add_argument("--image-list", help="only these image names")
     p.add_argument("--alpha", action="store_true", help="also write each render's accumulated opacity to "
-                   "OUT/renders/alpha/<stem>.png (16-bit gray), from which `python -m evaluation images --alpha` "
+                   "OUT/renders/alpha/<stem>.png (16-bit gray), from which `python -m evaluation images --alpha-dir` "
                    "scores the pixels the model covers")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
                    help="where to render and optimise (auto: CUDA when available, else CPU; default cpu)")

@@ -1,7 +1,7 @@
 """The renders' accumulated opacity and the figures over the covered pixels, through the commands a
 user runs: ``splat_train render --alpha`` writes ``alpha/<stem>.png`` beside each render (16-bit gray, the
-opacity the renderer computed), and ``evaluation images --alpha`` scores the covered pixels into
-metrics.json (keys always present, null without ``--alpha``); a missing or mis-sized alpha image is
+opacity the renderer computed), and ``evaluation images --alpha-dir`` scores the covered pixels into
+metrics.json (keys always present, null without ``--alpha-dir``); a missing or mis-sized alpha image is
 one line naming it."""
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def _metrics(rendered, tmp_path, *extra):
 
 def test_images_alpha_scores_the_covered_pixels(rendered, tmp_path):
     paths, out = rendered
-    proc, res = _metrics(rendered, tmp_path, "--alpha", str(out / "alpha"))
+    proc, res = _metrics(rendered, tmp_path, "--alpha-dir", str(out / "alpha"))
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads(res.read_text())
     assert data["covered_alpha"] == COVERED_ALPHA and data["alpha_dir"] == str(out / "alpha")
@@ -120,7 +120,7 @@ def test_a_missing_alpha_image_is_refused_naming_it(rendered, tmp_path):
     shutil.copytree(out / "alpha", alpha)
     gone = sorted(alpha.iterdir())[1]
     gone.unlink()
-    proc, res = _metrics(rendered, tmp_path, "--alpha", str(alpha))
+    proc, res = _metrics(rendered, tmp_path, "--alpha-dir", str(alpha))
     refused(proc, str(gone), "missing")
     assert not res.exists()
 
@@ -132,6 +132,6 @@ def test_an_alpha_image_of_another_size_is_refused_naming_it(rendered, tmp_path)
     bad = sorted(alpha.iterdir())[0]
     w, h = image_size(bad)
     write_image(bad, np.ones((h, w + 1)), bits=16)
-    proc, res = _metrics(rendered, tmp_path, "--alpha", str(alpha))
+    proc, res = _metrics(rendered, tmp_path, "--alpha-dir", str(alpha))
     refused(proc, str(bad), "size mismatch")
     assert not res.exists()

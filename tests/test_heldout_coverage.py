@@ -100,7 +100,7 @@ def test_the_trainer_logs_the_coverage_of_its_final_model(scene, tmp_path):
     assert 0.0 < df.loc[24, "test_coverage"] <= 1.0
     assert df.loc[24, "test_coverage"] == pytest.approx(np.mean([s for s, _ in split]), abs=1e-12)
     assert df.loc[24, "test_psnr_covered"] == pytest.approx(np.mean([p for _, p in split]), abs=1e-4)
-    # SSIM over the covered pixels: imgmetrics' definition (the one `evaluation images --alpha`
+    # SSIM over the covered pixels: imgmetrics' definition (the one `evaluation images --alpha-dir`
     # uses) in float64 on the same renders; the trainer scores in float32 (1e-5); LPIPS is off
     from imgmetrics.covered import covered_mask, ssim_covered
 

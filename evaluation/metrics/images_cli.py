@@ -2,7 +2,7 @@
 
 Usage (through the evaluation dispatcher, or standalone)::
 
-    python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json [--alpha RENDERS/alpha]
+    python -m evaluation images --pred RENDERS --gt GT_IMAGES --out metrics.json [--alpha-dir RENDERS/alpha]
     python -m evaluation.metrics.images_cli --pred RENDERS --gt GT_IMAGES --out metrics.json [--lpips-nets alex]
 
 Matching: files are paired by *stem* (name without extension, case-sensitive), so a render
@@ -23,13 +23,13 @@ Output (``metrics.json``, written atomically; docs/contracts.md)::
      "alpha_dir": path | null, "covered_alpha": 0.5 | null, "coverage": mean | null,
      "covered": {"psnr": .., "ssim": .., "lpips_alex": .. | null, "lpips_vgg": .. | null} | null}
 
-With ``--alpha DIR`` (the renders' accumulated opacity, ``DIR/<render stem>.png``, which
+With ``--alpha-dir DIR`` (the renders' accumulated opacity, ``DIR/<render stem>.png``, which
 ``python -m splat_train render`` writes to ``RENDERS/alpha/``; :mod:`camio.alpha`) each
 ``per_image`` record also holds ``coverage`` (the share of its pixels with opacity >=
 ``covered_alpha``) and ``covered``: PSNR (capped), SSIM and LPIPS over those pixels alone
 (:mod:`imgmetrics.covered`; each null where the image has no covered pixel). The top-level
 ``coverage`` is the mean over the images, ``covered`` the means over the images with a covered
-pixel (a measure null where none has one). Without ``--alpha`` these keys are null. A render
+pixel (a measure null where none has one). Without ``--alpha-dir`` these keys are null. A render
 without its alpha image, or one of another size, is refused (exit 2) naming the file.
 
 PSNR is computed in float64 and capped at :data:`imgmetrics.psnr_ssim.PSNR_CAP_DB` (identical
@@ -141,13 +141,13 @@ def _alpha_files(alpha_dir: Path, pairs: list[tuple[str, str]]) -> list[Path]:
     """The alpha image of every render (``alpha_dir/<render stem>.png``), all checked to exist
     before anything is scored; FileNotFoundError naming the first missing one otherwise."""
     if not alpha_dir.is_dir():
-        raise FileNotFoundError(f"--alpha folder {alpha_dir} does not exist; `python -m splat_train render` "
-                                "writes RENDERS/alpha/, or leave out --alpha")
+        raise FileNotFoundError(f"--alpha-dir folder {alpha_dir} does not exist; `python -m splat_train render --alpha` "
+                                "writes RENDERS/alpha/, or leave out --alpha-dir")
     files = [alpha_dir / f"{Path(pred).stem}.png" for pred, _ in pairs]
     for f, (pred, _) in zip(files, pairs):
         if not f.is_file():
             raise FileNotFoundError(f"alpha image {f} of the render {pred} is missing; render again with "
-                                    "`python -m splat_train render` (it writes alpha/), or leave out --alpha")
+                                    "`python -m splat_train render --alpha` (it writes alpha/), or leave out --alpha-dir")
     return files
 
 
@@ -267,8 +267,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", type=Path, required=True, help="folder of rendered test views")
     p.add_argument("--gt", type=Path, required=True, help="folder of ground-truth test views (same stems)")
     p.add_argument("--out", type=Path, required=True, help="metrics.json to write")
-    p.add_argument("--alpha", type=Path, default=None,
-                   help="folder of the renders' accumulated opacity (RENDERS/alpha, written by `splat_train render`): "
+    p.add_argument("--alpha-dir", type=Path, default=None,
+                   help="folder of the renders' accumulated opacity (RENDERS/alpha, written by `splat_train render --alpha`): "
                         "adds coverage and PSNR / SSIM / LPIPS over the covered pixels")
     add_lpips_args(p)
 
@@ -288,7 +288,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         with timed("image metrics", log):
             evaluate_images(args.pred, args.gt, args.out, tuple(args.lpips_nets), args.lpips_weights,
-                            args.device, alpha_dir=args.alpha)
+                            args.device, alpha_dir=args.alpha_dir)
     except (ImageReadError, FileNotFoundError) as exc:  # bad input: one line naming the file
         log.error("%s: %s", type(exc).__name__, exc)
         return 2

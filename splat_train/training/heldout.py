@@ -13,7 +13,7 @@ scores the float render, clamped to [0, 1], against the test image, both ``[H, W
 * coverage: the share of the view's pixels the model covers, accumulated opacity (the
   render's ``alpha``, [H, W]) at least :data:`imgmetrics.covered.COVERED_ALPHA`; and the PSNR,
   SSIM and (with LPIPS on) LPIPS over those pixels alone (NaN where none is covered), the definitions of
-  :mod:`imgmetrics.covered` that ``python -m evaluation images --alpha`` also uses. From a few views a held-out view also sees what no
+  :mod:`imgmetrics.covered` that ``python -m evaluation images --alpha-dir`` also uses. From a few views a held-out view also sees what no
   training view saw, where the render is the background: the two tell that part of the error
   (too little covered) from the error where the model is (:func:`coverage_split`).
 

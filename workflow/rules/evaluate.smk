@@ -22,7 +22,7 @@ rule image_metrics:
         lpips=lpips_args,
     shell:
         "python -m evaluation images --pred {input.renders:q} --gt {input.test_images:q} "
-        "--alpha {input.renders:q}/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
+        "--alpha-dir {input.renders:q}/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 # The floor (docs/contracts.md, floor.json): the flat image of the training views' mean colour,
@@ -102,7 +102,7 @@ rule testpose_metrics:
         lpips=lpips_args,
     shell:
         "python -m evaluation images --pred {input.refine:q}/renders --gt {input.test_images:q} "
-        "--alpha {input.refine:q}/renders/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
+        "--alpha-dir {input.refine:q}/renders/alpha {params.lpips} --out {output:q} > {log:q} 2>&1"
 
 
 rule unavailable_initialisers:
