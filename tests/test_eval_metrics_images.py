@@ -15,6 +15,7 @@ from camio.images import write_image
 from evaluation.metrics.images_cli import add_parser, evaluate_images, main, match_images
 from imgmetrics.lpips import LPIPS
 from imgmetrics.psnr_ssim import PSNR_CAP_DB
+from tests._lpips_weights import random_alex_weights
 
 pytestmark = pytest.mark.usefixtures("core_threads")
 
@@ -93,14 +94,7 @@ def test_record_without_lpips_weights(tmp_path, no_lpips_weights):
 
 
 def test_record_with_lpips_weights(tmp_path, no_lpips_weights):
-    wdir = tmp_path / "weights"
-    wdir.mkdir()
-    torch.manual_seed(0)
-    model = LPIPS("alex")
-    with torch.no_grad():
-        for l in model.lins:
-            l.weight.abs_()
-    save_file(model.state_dict(), str(wdir / "alex.safetensors"), metadata={"net": "alex"})
+    wdir = random_alex_weights(tmp_path / "weights")
     pred, gt = _folders(tmp_path, ["0.png", "1.png"], ["0.png", "1.png"], size=(40, 40))
     write_image(pred / "1.png", _img(1, 40, 40))
     res = evaluate_images(pred, gt, None, lpips_nets=("alex",), lpips_weights=wdir)

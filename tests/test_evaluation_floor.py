@@ -12,15 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import yaml
-from safetensors.torch import save_file
 
 from camio.images import write_image
 from experiments.sparse_views.floor import floor_psnr
 from imgmetrics.floor import flat_colour, flat_image
-from imgmetrics.lpips import LPIPS
 from tests._cli import ROOT, refused, run
+from tests._lpips_weights import random_alex_weights
 
 SNAKEMAKE = shutil.which("snakemake")
 
@@ -109,14 +107,7 @@ def test_floor_is_scored_like_a_render_of_the_flat_image(tmp_path, monkeypatch):
     image (PSNR, SSIM and LPIPS, bit for bit): one scoring for both."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "empty_cache"))
     monkeypatch.delenv("LPIPS_WEIGHTS_DIR", raising=False)
-    wdir = tmp_path / "weights"
-    wdir.mkdir()
-    torch.manual_seed(0)
-    model = LPIPS("alex")
-    with torch.no_grad():
-        for lin in model.lins:
-            lin.weight.abs_()
-    save_file(model.state_dict(), str(wdir / "alex.safetensors"), metadata={"net": "alex"})
+    wdir = random_alex_weights(tmp_path / "weights")
     s = _scene(tmp_path)
     lp = ("--lpips-nets", "alex", "--lpips-weights", str(wdir))
     assert _floor(s, tmp_path / "floor.json", *lp).returncode == 0

@@ -240,18 +240,9 @@ def test_runlog_test_curve_keeps_best_and_last():
 
 
 def _random_lpips_weights(folder):
-    """alex.safetensors with seeded random LPIPS weights: the test needs no download."""
-    from safetensors.torch import save_file
+    from _lpips_weights import random_alex_weights
 
-    from imgmetrics.lpips import LPIPS, WEIGHTS_FORMAT
-
-    torch.manual_seed(0)
-    m = LPIPS("alex")
-    for p in m.lins.parameters():  # non-negative heads, like the trained ones
-        p.data = p.data.abs()
-    folder.mkdir(parents=True, exist_ok=True)
-    save_file(m.state_dict(), str(folder / "alex.safetensors"), metadata={"format": WEIGHTS_FORMAT, "net": "alex"})
-    return folder
+    return random_alex_weights(folder)
 
 
 @pytest.fixture(scope="module")
