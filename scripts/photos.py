@@ -17,9 +17,10 @@ own size); the run says which.
 The run prints snakemake's progress lines, each naming the step that finished, the workflow's
 own messages, and every HEARTBEAT_S seconds (workflow/scripts/progress.py) the time elapsed and
 the newest log line; ``-v`` shows snakemake's job blocks too. SIGINT (Ctrl-C) or SIGTERM stops
-the run: it is passed on to snakemake (as SIGINT, snakemake's signal to stop now), which ends its
-jobs; the script waits for it, says so in one line and exits 128 + the signal's number; the same command again resumes (snakemake --rerun-incomplete redoes the jobs that were
-cut short). A run killed outright (SIGKILL, a power loss) leaves snakemake's lock behind: the next
+the run: it is passed on as SIGINT to snakemake and the jobs it runs (each job ends within a second,
+tidying its output folder; snakemake starts no other); the script waits for them, says so in one
+line and exits 128 + the signal's number; the same command again resumes (snakemake
+--rerun-incomplete redoes the jobs that were cut short). A run killed outright (SIGKILL, a power loss) leaves snakemake's lock behind: the next
 run says so in one line, and ``--unlock`` removes that lock when no run of the folder is alive on
 this machine. This writes DIR/config.yaml (the workflow's
 configuration for this folder) and DIR/split.json (every photo trains), then runs the project's
@@ -47,6 +48,7 @@ seed with a confidence per point, which the Bridge turns into opacity (Eq. 2).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shlex
 import signal
@@ -54,6 +56,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import Iterable, Iterator
 
 from runtime.stops import stops_early
 
@@ -68,6 +71,8 @@ REPO = Path(__file__).resolve().parents[1]
 _PAIR = [registry.with_role(role) for role in registry.ROLES]
 INITS = {**{name: [name] for name in _PAIR}, "both": _PAIR}
 DATASET = "photos"
+#: seconds between two SIGINTs to snakemake after a stop, until it says it is stopping
+SIGINT_AGAIN_S = 0.5
 HEADER = "# Written by scripts/photos.py for"
 #: the keys a new config.yaml starts with, which a rerun leaves to the file unless a flag sets them
 #: how often (iterations) a photo run's trainer replaces train/snapshot.ply, which the viewer
@@ -298,7 +303,7 @@ def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat
     Returns:
         (snakemake's exit code, the signal that stopped the run or None).
     """
-    from progress import Heartbeat, annotate, brief
+    from progress import Heartbeat, acts_on_stop, annotate, brief
 
     lock = threading.Lock()
 
@@ -314,20 +319,42 @@ def run_snakemake(cmd: list[str], out: Path, env: dict, verbose: bool, heartbeat
                             start_new_session=True, env={**os.environ, **env},
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     stopped: list[int] = []
+    acted = threading.Event()
+
+    def interrupt(whole_group: bool) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            if whole_group:  # the session's group: snakemake and the jobs it runs (shell children)
+                os.killpg(proc.pid, signal.SIGINT)
+            else:
+                proc.send_signal(signal.SIGINT)
+
+    def insist() -> None:
+        # snakemake (9.27) loses a SIGINT that lands while it writes a log line (its log handler
+        # passes over a KeyboardInterrupt), and it writes many between two jobs. Until it says it
+        # is stopping (or exits), snakemake alone gets the SIGINT again; its jobs had theirs
+        while not acted.wait(SIGINT_AGAIN_S) and proc.poll() is None:
+            interrupt(whole_group=False)
 
     def forward(sig, _frame) -> None:
+        # SIGINT is snakemake's "stop now": it starts no other job, marks the running ones'
+        # outputs incomplete and exits once they end, which the same SIGINT makes them do (each
+        # stage command ends within a second on it, tidying its output folder). On a SIGTERM
+        # snakemake waits for its jobs to end by themselves and (snakemake 9.27) hangs when the
+        # signal falls between two jobs
+        if not stopped:
+            threading.Thread(target=insist, name="sigint-again", daemon=True).start()
         stopped.append(sig)
-        try:
-            # SIGINT is snakemake's "stop now": it ends its jobs, marks their outputs incomplete and
-            # exits; on a SIGTERM it waits for the running jobs and (snakemake 9.27) hangs when the
-            # signal falls between two jobs
-            proc.send_signal(signal.SIGINT)
-        except ProcessLookupError:
-            pass
+        interrupt(whole_group=True)
+
+    def watched(stream: Iterable[str]) -> Iterator[str]:
+        for line in stream:
+            if stopped and acts_on_stop(line):
+                acted.set()
+            yield line
 
     saved = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        lines = annotate(proc.stdout, "[photos]")
+        lines = annotate(watched(proc.stdout), "[photos]")
         # once stopped, snakemake's own account of the stop (its jobs cut short) only with -v
         lines = lines if verbose else (ln for ln in brief(lines) if not stopped)
         if heartbeat:

@@ -292,6 +292,98 @@ def test_mixed_orientation_photos_run_end_to_end_and_resume_after_sigterm(tmp_pa
     assert "### colmap: ran, registered 6 of 6 photos" in (out / "photos.md").read_text()
 
 
+_LOSES_ONE_SIGINT = """
+import sys, time
+
+def log(line):  # as snakemake's log handler: a KeyboardInterrupt while it writes is passed over
+    try:
+        print(line, flush=True)
+        time.sleep(2.0)  # a slow write
+    except KeyboardInterrupt:
+        pass
+
+try:
+    log("writing a log line")
+    time.sleep(60)  # the next job
+except KeyboardInterrupt:
+    print("Terminating processes on user request, this might take some time.", flush=True)
+    sys.exit(1)
+print("ran to the end", flush=True)
+"""
+
+
+def test_a_stop_reaches_snakemake_even_where_it_drops_the_first_sigint(tmp_path):
+    """Snakemake (9.27) drops a SIGINT that lands while it writes a log line: its log handler
+    passes over a KeyboardInterrupt, and it writes many between two jobs. The run's forwarder
+    sends SIGINT again until the child says it is stopping: here a child that drops the first
+    one the same way stops within seconds instead of running its next minute-long job to the end."""
+    import time
+
+    child = tmp_path / "child.py"
+    child.write_text(_LOSES_ONE_SIGINT)
+    driver = (f"import json, sys; sys.path[:0] = [{str(REPO / 'scripts')!r}, {str(REPO / 'workflow' / 'scripts')!r}]\n"
+              f"import photos\n"
+              f"rc, stopped = photos.run_snakemake([sys.executable, {str(child)!r}], __import__('pathlib').Path('.'),"
+              f" {{}}, True, False)\n"
+              f"print(json.dumps([rc, stopped]))\n")
+    proc = subprocess.Popen([sys.executable, "-c", driver], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=_env(tmp_path), cwd=tmp_path)
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if "writing a log line" in line:
+            proc.send_signal(signal.SIGTERM)
+            sent = time.monotonic()
+            break
+    rest, err = proc.communicate(timeout=120)
+    took = time.monotonic() - sent
+    text = "".join(seen) + rest
+    assert "ran to the end" not in text, text + err
+    assert "on user request" in text and json.loads(text.strip().splitlines()[-1]) == [1, signal.SIGTERM], text + err
+    assert took < 30, f"the stop took {took:.1f} s"
+
+
+@pytest.mark.slow
+def test_a_stop_during_training_ends_the_training_within_seconds(tmp_path, mixed):
+    """A SIGTERM while a model trains reaches the trainer too (snakemake alone would wait for its
+    job to end: an hour on full-size photos): the run ends within seconds, the trainer's log says
+    it stopped and kept nothing half-written, and no process of the run is left."""
+    import threading
+    import time
+
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, str(REPO / "scripts" / "photos.py"), str(mixed), "--out", str(out),
+                             "--init", "colmap", "--iterations", "1000000"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=_env(tmp_path), cwd=tmp_path)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    log = out / "photos" / "street" / "n6" / "colmap" / "uniform" / "logs" / "train.log"
+    try:
+        deadline = time.monotonic() + 600
+        while not (log.is_file() and "training parts" in log.read_text()):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines) + proc.stderr.read()
+            time.sleep(0.2)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        proc.wait(timeout=120)
+        took = time.monotonic() - sent
+        err = proc.stderr.read()
+        time.sleep(0.5)
+        left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
+        shown = subprocess.run(["ps", "-o", "pid,args", "-p", ",".join(left or ["1"])], capture_output=True,
+                               text=True).stdout
+    finally:  # a stop that did not work leaves no trainer running on
+        subprocess.run(["pkill", "-KILL", "-f", str(out)], capture_output=True)
+    reader.join(10)
+    assert proc.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in err, "".join(lines) + err
+    assert took < 30, f"the stop took {took:.1f} s"
+    assert "stopped by SIGINT" in log.read_text().splitlines()[-1], log.read_text()[-2000:]
+    assert not (log.parents[1] / "train" / "model.ply").exists()
+    assert not left, shown
+
+
 def test_dense_on_photos_of_several_sizes_is_refused_up_front(tmp_path, mixed):
     """Multi-view stereo writes one grid for all views: --dense on portrait and landscape photos
     is one line before anything runs, saying what to do."""

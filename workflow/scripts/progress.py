@@ -37,8 +37,16 @@ _CHATTER = re.compile(r"^(\s|\[(Mon|Tue|Wed|Thu|Fri|Sat|Sun) |(local)?(rule|chec
                       r"Updating checkpoint dependencies|Complete log|Job stats:|Will exit after finishing currently running jobs|job +count|-+ +-+$|\S+ +\d+$|$)")
 _ERROR = re.compile(r"^(Error in rule|RuleException|WorkflowError|Traceback|Exiting because|MissingInputException|"
                     r"IncompleteFilesException|LockException)")
+#: snakemake's line once it acts on a SIGINT ("Terminating processes on user request", in its
+#: scheduler, or "Cancelling snakemake on user request." before or after it)
+_STOP_SEEN = re.compile(r"on user request")
 #: seconds between two heartbeat lines
 HEARTBEAT_S = 30.0
+
+
+def acts_on_stop(line: str) -> bool:
+    """Whether snakemake's output ``line`` says it is stopping on a SIGINT."""
+    return bool(_STOP_SEEN.search(line))
 
 
 def annotate(lines: Iterable[str], prefix: str = "") -> Iterator[str]:
