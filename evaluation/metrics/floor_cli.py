@@ -39,7 +39,7 @@ from typing import Sequence
 
 from camio.images import from_uint8, list_images, read_image, read_image_uint8
 from evaluation.metrics.align_run import load_names
-from evaluation.metrics.images_cli import _mean, add_lpips_args, load_models, means_line, score_pair
+from evaluation.metrics.images_cli import add_lpips_args, load_models, mean_or_none, means_line, score_pair
 from imgmetrics.floor import flat_colour, flat_image
 from imgmetrics.lpips import NETS
 from imgmetrics.psnr_ssim import PSNR_CAP_DB
@@ -101,7 +101,7 @@ def evaluate_floor(images_dir: str | Path, train_names: str | Path, gt_dir: str 
         per_image.append({"name": gt_name, **scores})
     result = {
         "colour": [int(c) for c in colour],
-        **{k: _mean([r[k] for r in per_image]) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
+        **{k: mean_or_none([r[k] for r in per_image]) for k in ("psnr", "ssim", "lpips_alex", "lpips_vgg")},
         "n_images": len(per_image),
         "per_image": per_image,
         "train_names": names,

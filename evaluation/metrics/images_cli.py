@@ -98,7 +98,8 @@ def match_images(pred_dir: str | Path, gt_dir: str | Path) -> list[tuple[str, st
     return [(pred[s], gt[s]) for s in sorted(gt)]
 
 
-def _mean(values: list[float | None]) -> float | None:
+def mean_or_none(values: list[float | None]) -> float | None:
+    """The mean of ``values``; None where there are none or one is None (a figure not scored)."""
     if not values or any(v is None for v in values):
         return None
     return float(sum(values) / len(values))
@@ -236,10 +237,10 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         log.warning("%d image(s) reached the PSNR cap of %.0f dB (identical or nearly): %s",
                     len(capped), PSNR_CAP_DB, capped[:10])
     result = {
-        "psnr": _mean([r["psnr"] for r in per_image]),
-        "ssim": _mean([r["ssim"] for r in per_image]),
-        "lpips_alex": _mean([r["lpips_alex"] for r in per_image]),
-        "lpips_vgg": _mean([r["lpips_vgg"] for r in per_image]),
+        "psnr": mean_or_none([r["psnr"] for r in per_image]),
+        "ssim": mean_or_none([r["ssim"] for r in per_image]),
+        "lpips_alex": mean_or_none([r["lpips_alex"] for r in per_image]),
+        "lpips_vgg": mean_or_none([r["lpips_vgg"] for r in per_image]),
         "n_images": len(per_image),
         "per_image": per_image,
         "psnr_cap_db": PSNR_CAP_DB,
@@ -249,7 +250,7 @@ def evaluate_images(pred_dir: str | Path, gt_dir: str | Path, out_json: str | Pa
         "gt_dir": str(gt_dir),
         "alpha_dir": None if alpha_dir is None else str(alpha_dir),
         "covered_alpha": None if alpha_dir is None else COVERED_ALPHA,
-        "coverage": None if alpha_dir is None else _mean([r["coverage"] for r in per_image]),
+        "coverage": None if alpha_dir is None else mean_or_none([r["coverage"] for r in per_image]),
         "covered": None if alpha_dir is None else _covered_means(per_image),
         "wall_time_s": time.perf_counter() - t0,
     }
